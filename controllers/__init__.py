@@ -1,0 +1,1 @@
+"""Controller plugins: failproof torque-off, emergency controllers, PD, trajectories."""

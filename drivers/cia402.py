@@ -1,0 +1,180 @@
+"""CiA 402 (drive profile) and CiA 301 constants shared by the driver and the simulated drive.
+
+One table for both sides, so the simulator cannot drift from what the driver expects.
+Values are from ../shared/reference/canopen-cia402.md.
+"""
+from __future__ import annotations
+
+import enum
+
+import numpy as np
+
+# --- object dictionary indices -------------------------------------------------------------
+DEVICE_TYPE = 0x1000
+ERROR_REGISTER = 0x1001
+PREDEFINED_ERROR_FIELD = 0x1003
+CONSUMER_HEARTBEAT_TIME = 0x1016
+PRODUCER_HEARTBEAT_TIME = 0x1017
+IDENTITY = 0x1018
+ERROR_BEHAVIOR = 0x1029
+RPDO_COMM = 0x1400  # + n-1
+RPDO_MAP = 0x1600
+TPDO_COMM = 0x1800
+TPDO_MAP = 0x1A00
+
+ABORT_CONNECTION_OPTION = 0x6007
+ERROR_CODE = 0x603F
+CONTROLWORD = 0x6040
+STATUSWORD = 0x6041
+QUICK_STOP_OPTION = 0x605A
+SHUTDOWN_OPTION = 0x605B
+DISABLE_OPERATION_OPTION = 0x605C
+MODES_OF_OPERATION = 0x6060
+MODES_OF_OPERATION_DISPLAY = 0x6061
+POSITION_ACTUAL = 0x6064
+VELOCITY_ACTUAL = 0x606C
+TARGET_TORQUE = 0x6071
+MAX_TORQUE = 0x6072
+RATED_TORQUE = 0x6076
+TORQUE_ACTUAL = 0x6077
+TARGET_POSITION = 0x607A
+QUICK_STOP_DECELERATION = 0x6085
+TARGET_VELOCITY = 0x60FF
+SUPPORTED_DRIVE_MODES = 0x6502
+
+DEVICE_TYPE_SERVO = 0x00020192  # CiA 402, servo drive
+
+# --- CiA 301 function codes (COB-ID = base + node id) ---------------------------------------
+NMT = 0x000
+SYNC = 0x080
+EMCY = 0x080
+TPDO_BASE = (0x180, 0x280, 0x380, 0x480)
+RPDO_BASE = (0x200, 0x300, 0x400, 0x500)
+SDO_TX = 0x580
+SDO_RX = 0x600
+HEARTBEAT = 0x700
+
+
+class NmtCommand(enum.IntEnum):
+    START = 0x01
+    STOP = 0x02
+    PRE_OPERATIONAL = 0x80
+    RESET_NODE = 0x81
+    RESET_COMMUNICATION = 0x82
+
+
+class NmtState(enum.IntEnum):
+    """Heartbeat payload byte."""
+    BOOT_UP = 0x00
+    STOPPED = 0x04
+    OPERATIONAL = 0x05
+    PRE_OPERATIONAL = 0x7F
+
+
+# --- CiA 402 state machine -----------------------------------------------------------------
+class State402(enum.IntEnum):
+    UNKNOWN = -1
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
+
+
+# (mask, value, state), checked in this order: the 0x4F-masked states first.
+STATUSWORD_PATTERNS: tuple[tuple[int, int, State402], ...] = (
+    (0x4F, 0x00, State402.NOT_READY_TO_SWITCH_ON),
+    (0x4F, 0x40, State402.SWITCH_ON_DISABLED),
+    (0x6F, 0x21, State402.READY_TO_SWITCH_ON),
+    (0x6F, 0x23, State402.SWITCHED_ON),
+    (0x6F, 0x27, State402.OPERATION_ENABLED),
+    (0x6F, 0x07, State402.QUICK_STOP_ACTIVE),
+    (0x4F, 0x0F, State402.FAULT_REACTION_ACTIVE),
+    (0x4F, 0x08, State402.FAULT),
+)
+
+# Statusword value bits per state (what a drive reports; bit 4 voltage enabled and
+# bit 5 quick stop are added by the drive on top of these).
+STATUSWORD_OF_STATE: dict[State402, int] = {s: v for _, v, s in STATUSWORD_PATTERNS}
+
+SW_READY_TO_SWITCH_ON = 1 << 0
+SW_SWITCHED_ON = 1 << 1
+SW_OPERATION_ENABLED = 1 << 2
+SW_FAULT = 1 << 3
+SW_VOLTAGE_ENABLED = 1 << 4
+SW_QUICK_STOP = 1 << 5  # active low: 0 = quick stop active
+SW_SWITCH_ON_DISABLED = 1 << 6
+SW_WARNING = 1 << 7
+SW_REMOTE = 1 << 9
+SW_TARGET_REACHED = 1 << 10
+
+
+def state_from_statusword(statusword: int) -> State402:
+    for mask, value, state in STATUSWORD_PATTERNS:
+        if statusword & mask == value:
+            return state
+    return State402.UNKNOWN
+
+
+def _state_table() -> np.ndarray:
+    # Only bits 0-6 decide the state: a 128-entry table decodes a whole array of statuswords
+    # in one numpy take() on the hot path.
+    return np.array([state_from_statusword(sw) for sw in range(128)], dtype=np.int8)
+
+
+STATE_OF_LOW_BITS: np.ndarray = _state_table()
+
+
+def states_from_statuswords(statuswords: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Vectorised state_from_statusword into a pre-allocated int8 array."""
+    return np.take(STATE_OF_LOW_BITS, statuswords & 0x7F, out=out)
+
+
+class Controlword(enum.IntEnum):
+    DISABLE_VOLTAGE = 0x0000  # the torque-off command: power stage off, motor coasts
+    QUICK_STOP = 0x0002
+    SHUTDOWN = 0x0006
+    SWITCH_ON = 0x0007
+    DISABLE_OPERATION = 0x0007
+    ENABLE_OPERATION = 0x000F
+    FAULT_RESET = 0x0080  # rising edge of bit 7
+
+
+CW_HALT = 1 << 8
+
+
+class Mode(enum.IntEnum):
+    """Modes of operation (0x6060 / 0x6061)."""
+    NONE = 0
+    PROFILE_POSITION = 1
+    VELOCITY = 2
+    PROFILE_VELOCITY = 3
+    PROFILE_TORQUE = 4
+    HOMING = 6
+    INTERPOLATED_POSITION = 7
+    CSP = 8
+    CSV = 9
+    CST = 10
+
+
+class AbortConnectionOption(enum.IntEnum):
+    """0x6007: what the drive does on heartbeat loss, bus-off, NMT stop or reset."""
+    NONE = 0
+    FAULT = 1
+    DISABLE_VOLTAGE = 2
+    QUICK_STOP = 3
+
+
+# EMCY error codes used by the simulator and understood by the driver.
+EMCY_NO_ERROR = 0x0000
+EMCY_GENERIC = 0x1000
+EMCY_OVERCURRENT = 0x2310
+EMCY_OVERVOLTAGE = 0x3210
+EMCY_OVERTEMPERATURE = 0x4310
+EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat error
+EMCY_POSITION_SENSOR = 0x7305
+EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_STO = 0x5441  # vendor area commonly used for "STO input active"
