@@ -40,6 +40,10 @@ TORQUE_ACTUAL = 0x6077
 TARGET_POSITION = 0x607A
 QUICK_STOP_DECELERATION = 0x6085
 TARGET_VELOCITY = 0x60FF
+POSITION_ENCODER_RESOLUTION = 0x608F  # :1 increments per :2 motor revolutions
+GEAR_RATIO = 0x6091  # :1 motor revolutions per :2 shaft revolutions
+VELOCITY_OFFSET = 0x60B1
+TORQUE_OFFSET = 0x60B2
 SUPPORTED_DRIVE_MODES = 0x6502
 
 DEVICE_TYPE_SERVO = 0x00020192  # CiA 402, servo drive
@@ -177,4 +181,5 @@ EMCY_OVERTEMPERATURE = 0x4310
 EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat error
 EMCY_POSITION_SENSOR = 0x7305
 EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_PDO_LENGTH = 0x8210  # RPDO not processed: shorter than its mapping
 EMCY_STO = 0x5441  # vendor area commonly used for "STO input active"
