@@ -1,0 +1,70 @@
+"""Hold position (emergency, entry point ``hold``): a stiff PD on the pose at the failure.
+
+A stop of category 2: ``initialize_fast`` captures the measured position in the failure's
+cycle and the joints are held there, by the PD here (CST) or by the drives' position loop
+(CSP). For robots that must not sag or fall when their controller fails.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+
+from rocoma_can.drivers.joints import JointMode
+from rocoma_can.interfaces import EmergencyController
+
+from .joint_group import JointGroup
+from .params import joint_names, output_mode, per_joint
+from .pd_law import PdLaw, track
+from .pose_swap import PoseSwapState
+
+
+class Hold(EmergencyController):
+    """Parameters (per joint: a scalar or one value per selected joint):
+      joints        joint names this controller drives (default: all)
+      kp, kd        gains, Nm/rad and Nm·s/rad, >= 0 (CST only)
+      torque_limit  |torque| bound, Nm, > 0 (default: none)
+      mode          "CST" (default) or "CSP"
+    """
+
+    def __init__(self, name: str = "hold", *, joints: Sequence[str] | None = None,
+                 kp: Any = 200.0, kd: Any = 5.0, torque_limit: Any = math.inf,
+                 mode: Any = "CST") -> None:
+        super().__init__(name)
+        self._joints = joint_names(self, joints)
+        self._p_kp = per_joint(self, "kp", kp, minimum=0.0)
+        self._p_kd = per_joint(self, "kd", kd, minimum=0.0)
+        self._p_torque_limit = per_joint(self, "torque_limit", torque_limit, positive=True,
+                                         allow_inf=True)
+        self.mode = output_mode(self, mode, (JointMode.CST, JointMode.CSP))
+
+    def create(self, dt: float) -> bool:
+        self.group = g = JointGroup(self, self._joints)
+        g.bind(self.state, self.command)
+        self.law = PdLaw(self._p_kp.resolve(self, g.n), self._p_kd.resolve(self, g.n),
+                         self._p_torque_limit.resolve(self, g.n))
+        self.hold_position = np.zeros(g.n)
+        return True
+
+    def initialize_fast(self, dt: float) -> bool:
+        self.group.read()
+        np.copyto(self.hold_position, self.group.q)
+        return True
+
+    def initialize(self, dt: float) -> bool:
+        return self.initialize_fast(dt)
+
+    def advance(self, dt: float) -> bool:
+        g = self.group
+        g.read()
+        track(g, self.law, self.mode, self.hold_position, None, None)
+        g.write()
+        return True
+
+    def get_swap_state(self) -> PoseSwapState:
+        """The held pose as reference, so a controller switched to next starts there."""
+        g = self.group
+        g.read()
+        return PoseSwapState(g.names, self.hold_position.copy(), np.zeros(g.n),
+                             self.hold_position.copy(), g.q.copy())
