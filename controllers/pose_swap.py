@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rocoma_can.interfaces import SwapState
+from rocoma_can.tuples import TupleSwapState
 
 
 @dataclass(frozen=True)
@@ -23,30 +24,22 @@ class PoseSwapState(SwapState):
     target: np.ndarray              # rad, where the predecessor was going
     measured: np.ndarray            # rad, measured position when the state was taken
 
-    def fill(self, field: str, names: tuple[str, ...], out: np.ndarray) -> np.ndarray:
-        """Copy ``field`` for the joints in ``names`` that this state knows into ``out``
-        (others keep their value); returns a bool mask of the joints filled."""
+    def fill(self, field: str, names: tuple[str, ...], out: np.ndarray) -> None:
+        """Copy ``field`` into ``out`` for the joints of ``names`` that this state knows
+        (the others keep their value)."""
         values = getattr(self, field)
-        filled = np.zeros(len(names), dtype=bool)
         for i, name in enumerate(names):
             if name in self.names:
                 out[i] = values[self.names.index(name)]
-                filled[i] = True
-        return filled
 
 
 def find_pose_state(swap_state: SwapState | None) -> PoseSwapState | None:
-    """The PoseSwapState in ``swap_state``, looking inside a tuple's state if needed.
-
-    A ControllerTuple hands over the swap states of its members; any object with a
-    ``states`` sequence (or mapping) is searched, merging the members' joints.
-    """
+    """The PoseSwapState in ``swap_state``; a tuple's members' pose states are merged."""
     if isinstance(swap_state, PoseSwapState):
         return swap_state
-    members = getattr(swap_state, "states", None)
-    if isinstance(members, dict):
-        members = list(members.values())
-    poses = [find_pose_state(s) for s in members or ()]
+    if not isinstance(swap_state, TupleSwapState):
+        return None
+    poses = [find_pose_state(s) for s in swap_state.states]
     poses = [p for p in poses if p is not None]
     if not poses:
         return None
