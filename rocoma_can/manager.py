@@ -1,0 +1,495 @@
+"""The controller manager: run-time switching over two safety layers (rocoma, made exact).
+
+Threads and who calls what (the seed's tables; design.md "The manager"):
+
+* update thread (whoever calls ``update()``): advances exactly one layer per call. A failure
+  (advance False or raising, check_state or limit_command False) or a pending e-stop request
+  is handled inside that same call: the emergency controller's ``initialize_fast`` and first
+  ``advance`` run there (or the failproof's ``advance``), so the command written in a cycle
+  never comes from a controller that failed in it. Nothing slow runs here.
+* stopper threads: ``pre_stop`` + ``stop`` of controllers handed over to be stopped. A
+  controller is "being stopped" from the hand-over until its ``stop`` returns; while it is,
+  it is never advanced, never used as an emergency layer and never swapped in.
+* switcher thread: old ``pre_stop`` (the old keeps advancing), wait until the new one is not
+  being stopped, ``old.get_swap_state()``, ``new.swap(dt, state)``, then commit under the
+  cycle lock only if no e-stop happened meanwhile; the old one's ``stop`` follows on a
+  stopper thread. A failed pre_stop or swap e-stops, as rocoma does: the old controller was
+  already told to stop and is no longer trusted to run on.
+* event thread: subscriber callbacks and the log records of failures seen in the cycle.
+
+The cycle lock is held by ``update()`` and by the switcher's commit only; the commit is a few
+assignments, so the update thread never waits on slow work.
+"""
+from __future__ import annotations
+
+import enum
+import itertools
+import logging
+import queue
+import threading
+import time
+from collections import deque
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from .adapters import (ControllerAdapter, EmergencyControllerAdapter,
+                       FailproofControllerAdapter, StateCheck)
+from .events import EventDispatcher, EventKind, ManagerEvent, ManagerState, Subscriber
+from .interfaces import Controller, EmergencyController, FailproofController
+from .workers import WorkerManager
+
+log = logging.getLogger("rocoma_can.manager")
+
+
+class SwitchResult(enum.IntEnum):
+    SWITCHED = 0
+    RUNNING = 1    # already the active controller in OK
+    NOT_FOUND = 2  # unknown name, or an emergency / failproof controller's name
+    ERROR = 3      # refused (busy, latched e-stop, shutting down) or failed / interrupted
+
+
+@dataclass
+class ManagerTimeouts:
+    """Upper bounds, in seconds, for every wait the manager does."""
+    being_stopped: float = 5.0  # a switch waits this long for the new controller's stop
+    switch: float = 60.0        # switch_controller() waits this long for the result
+    shutdown: float = 5.0       # shutdown waits this long for stops and for each thread
+
+
+@dataclass
+class _Pair:
+    controller: ControllerAdapter
+    emergency: EmergencyControllerAdapter | None
+
+
+class _Stoppers:
+    """Threads that run pre_stop + stop. One per controller, so a slow stop never delays
+    another controller's (a controller has at most one stop in flight)."""
+
+    def __init__(self, name: str) -> None:
+        self._name = name
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._threads: list[threading.Thread] = []
+
+    def grow_to(self, n: int) -> None:
+        while len(self._threads) < n:
+            t = threading.Thread(target=self._run, daemon=True,
+                                 name=f"{self._name}/stopper{len(self._threads)}")
+            t.start()
+            self._threads.append(t)
+
+    def hand_over(self, adapter: ControllerAdapter) -> None:
+        """Non-blocking; the caller has set adapter.being_stopped."""
+        self._queue.put(adapter)
+
+    def close(self, timeout: float) -> list[str]:
+        for _ in self._threads:
+            self._queue.put(None)
+        deadline = time.monotonic() + timeout
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+        return [t.name for t in self._threads if t.is_alive()]
+
+    def _run(self) -> None:
+        while True:
+            adapter = self._queue.get()
+            if adapter is None:
+                return
+            try:
+                adapter.stop()
+            finally:
+                adapter.being_stopped = False
+
+
+class ControllerManager:
+    """Runs one controller at a time over an emergency and a failproof layer."""
+
+    def __init__(self, failproof: FailproofController, dt: float, state: Any = None,
+                 command: Any = None, *, estop_must_be_cleared: bool = False,
+                 check_state: StateCheck | None = None,
+                 limit_command: StateCheck | None = None,
+                 timeouts: ManagerTimeouts | None = None, name: str = "rocoma") -> None:
+        if not isinstance(failproof, FailproofController):
+            raise TypeError(f"failproof must be a FailproofController, got {failproof!r}")
+        if not dt > 0:
+            raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
+        self.name = name
+        self.dt = float(dt)
+        self.state_object = state
+        self.command_object = command
+        self.timeouts = timeouts or ManagerTimeouts()
+        self._must_clear = estop_must_be_cleared
+        self._check_state = check_state
+        self._limit_command = limit_command
+
+        self._events = EventDispatcher(name)
+        self._failproof = FailproofControllerAdapter(failproof, self._events.log)
+        self._attach(failproof)
+        if not self._failproof.create(self.dt):
+            self._events.close(self.timeouts.shutdown)
+            raise RuntimeError(f"failproof controller {failproof.name!r} could not be created: "
+                               f"{self._failproof.failure}")
+
+        self._pairs: dict[str, _Pair] = {}
+        self._emergencies: dict[str, EmergencyControllerAdapter] = {}
+        self._state = ManagerState.FAILPROOF
+        self._active: _Pair | None = None
+        self._cycle_lock = threading.Lock()
+        self._requests: deque[tuple[bool, str]] = deque()  # (failproof?, cause), any thread
+        self._estop_counter = itertools.count(1)
+        self._estop_serial = 0   # changes with every e-stop; a switch commits only if unchanged
+        self._latched = estop_must_be_cleared  # like an e-stop button after power-on
+        self._closed = False
+        self.cycle_count = 0
+
+        self._stoppers = _Stoppers(name)
+        self._switch_busy = threading.Lock()
+        self._switch_jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._switcher = threading.Thread(target=self._run_switcher, daemon=True,
+                                          name=f"{name}/switcher")
+        self._switcher.start()
+
+    # --- set-up ---------------------------------------------------------------------------
+    def _attach(self, controller: Any) -> None:
+        controller.dt = self.dt
+        controller.state = self.state_object
+        controller.command = self.command_object
+        if isinstance(controller, Controller) and controller.workers is None:
+            controller.workers = WorkerManager(controller.name)
+
+    def add_controller(self, controller: Controller,
+                       emergency: EmergencyController | None = None) -> bool:
+        """Create and register a controller, paired with an optional emergency controller.
+
+        An emergency controller whose name is already registered is dropped with a warning
+        and the registered instance is shared (rocoma's behaviour).
+        """
+        if isinstance(controller, EmergencyController) or not isinstance(controller, Controller):
+            raise TypeError(f"{controller!r} is not a switchable Controller "
+                            "(emergency controllers go in add_controller(..., emergency=...))")
+        if emergency is not None and not isinstance(emergency, EmergencyController):
+            raise TypeError(f"{emergency!r} is not an EmergencyController")
+        name = controller.name
+        if name in self._pairs or name in self._emergencies or name == self._failproof.name:
+            log.error("controller name %r is already taken; not added", name)
+            return False
+        if self._closed:
+            log.error("manager is shut down; controller %r not added", name)
+            return False
+
+        emcy_adapter = None
+        if emergency is not None:
+            emcy_adapter = self._emergencies.get(emergency.name)
+            if emcy_adapter is None:
+                if emergency.name in self._pairs or emergency.name == self._failproof.name:
+                    log.error("emergency controller name %r is taken by another layer; "
+                              "controller %r not added", emergency.name, name)
+                    return False
+                emcy_adapter = EmergencyControllerAdapter(
+                    emergency, self._events.log, self._check_state, self._limit_command)
+                self._attach(emergency)
+                if not emcy_adapter.create(self.dt):
+                    log.error("emergency controller %r could not be created (%s); "
+                              "controller %r not added", emergency.name, emcy_adapter.failure, name)
+                    return False
+                self._emergencies[emergency.name] = emcy_adapter
+            elif emcy_adapter.controller is not emergency:
+                log.warning("a second emergency controller named %r was dropped; "
+                            "the first instance is shared", emergency.name)
+
+        adapter = ControllerAdapter(controller, self._events.log,
+                                    self._check_state, self._limit_command)
+        self._attach(controller)
+        if not adapter.create(self.dt):
+            log.error("controller %r could not be created: %s", name, adapter.failure)
+            return False
+        self._pairs[name] = _Pair(adapter, emcy_adapter)
+        self._stoppers.grow_to(len(self._pairs) + len(self._emergencies))
+        return True
+
+    # --- the cycle ------------------------------------------------------------------------
+    def update(self) -> ManagerState:
+        """One control cycle; returns the layer that wrote this cycle's command."""
+        with self._cycle_lock:
+            self.cycle_count += 1
+            if self._requests:
+                self._apply_requests()
+            dt = self.dt
+            while True:  # a failure falls through to the next layer within this call
+                state = self._state
+                if state is ManagerState.OK:
+                    adapter = self._active.controller
+                    if adapter.advance(dt):
+                        break
+                    self._estop(False, adapter.failure)
+                elif state is ManagerState.EMERGENCY:
+                    adapter = self._active.emergency
+                    if adapter.advance(dt):
+                        break
+                    self._estop(True, adapter.failure)
+                else:
+                    self._failproof.advance(dt)
+                    break
+            return self._state
+
+    def _estop(self, to_failproof: bool, cause: str) -> None:
+        """Fall one layer (or to failproof). Update thread only, cycle lock held.
+
+        The emergency controller's initialize_fast runs here; its first advance follows in
+        the caller's loop, in the same update call.
+        """
+        self._estop_serial = next(self._estop_counter)
+        if self._must_clear:
+            self._latched = True
+        previous = self._state
+        pair = self._active
+        if previous is ManagerState.OK:
+            self._stop_in_background(pair.controller)
+            emcy = pair.emergency
+            if (not to_failproof and emcy is not None and not emcy.being_stopped
+                    and emcy.initialize_fast(self.dt)):
+                emcy.running = True
+                self._state = ManagerState.EMERGENCY
+            else:
+                self._state = ManagerState.FAILPROOF
+        elif previous is ManagerState.EMERGENCY:
+            self._stop_in_background(pair.emergency)
+            self._state = ManagerState.FAILPROOF
+        self._emit(EventKind.EMERGENCY_STOP, cause)
+        if self._state is not previous:
+            self._emit_changed()
+
+    def _apply_requests(self) -> None:
+        """E-stops requested from any thread; cycle lock held."""
+        while self._requests:
+            to_failproof, cause = self._requests.popleft()
+            self._estop(to_failproof, cause)
+
+    def _stop_in_background(self, adapter: ControllerAdapter) -> None:
+        adapter.running = False
+        if not adapter.being_stopped:  # else its stop is owned by a switch in progress
+            adapter.being_stopped = True
+            self._stoppers.hand_over(adapter)
+
+    # --- e-stop requests (any thread) -----------------------------------------------------
+    def emergency_stop(self, cause: str = "request") -> None:
+        """OK → EMERGENCY (or FAILPROOF), EMERGENCY → FAILPROOF; effective by the next update."""
+        self._request(False, cause)
+
+    def failproof_stop(self, cause: str = "failproof request") -> None:
+        """Straight to the failproof layer; effective by the next update."""
+        self._request(True, cause)
+
+    def _request(self, to_failproof: bool, cause: str) -> None:
+        if self._must_clear:
+            self._latched = True
+        self._estop_serial = next(self._estop_counter)  # a switch under way will not commit
+        self._requests.append((to_failproof, cause))
+
+    def clear_emergency_stop(self) -> bool:
+        """Unlatch (with estop_must_be_cleared): switching is allowed again."""
+        was = self._latched
+        self._latched = False
+        if was:
+            self._emit(EventKind.STATE_CHANGED, "emergency stop cleared")
+        return True
+
+    # --- switching ------------------------------------------------------------------------
+    def request_switch(self, name: str) -> Future:
+        """Start a switch on the switcher thread; the future resolves to a SwitchResult."""
+        future: Future = Future()
+        pair = self._pairs.get(name)
+        if pair is None:
+            log.warning("switch to %r: no such controller (available: %s)",
+                        name, ", ".join(self.available_controllers()) or "none")
+            future.set_result(SwitchResult.NOT_FOUND)
+        elif self._closed:
+            log.error("switch to %r refused: manager is shut down", name)
+            future.set_result(SwitchResult.ERROR)
+        elif not self._switch_busy.acquire(blocking=False):
+            log.error("switch to %r refused: another switch is in progress", name)
+            future.set_result(SwitchResult.ERROR)
+        else:
+            future.set_running_or_notify_cancel()
+            self._switch_jobs.put((pair, future))
+        return future
+
+    def switch_controller(self, name: str, timeout: float | None = None) -> SwitchResult:
+        """Switch and wait for the result (at most ``timeout``, default timeouts.switch)."""
+        future = self.request_switch(name)
+        wait = self.timeouts.switch if timeout is None else timeout
+        try:
+            return future.result(timeout=wait)
+        except TimeoutError:
+            log.error("switch to %r: no result within %.1f s; it goes on in the background",
+                      name, wait)
+            return SwitchResult.ERROR
+
+    def _run_switcher(self) -> None:
+        while True:
+            job = self._switch_jobs.get()
+            if job is None:
+                return
+            pair, future = job
+            try:
+                result = self._switch(pair)
+            except Exception:  # a bug here must not leave the caller waiting
+                log.exception("switch to %r failed unexpectedly", pair.controller.name)
+                result = SwitchResult.ERROR
+            finally:
+                self._switch_busy.release()
+            future.set_result(result)
+
+    def _switch(self, pair: _Pair) -> SwitchResult:
+        new = pair.controller
+        with self._cycle_lock:  # a consistent view of who runs, between two cycles
+            if self._latched:
+                log.error("switch to %r refused: emergency stop not cleared", new.name)
+                return SwitchResult.ERROR
+            if self._state is ManagerState.OK and self._active is pair:
+                return SwitchResult.RUNNING
+            serial = self._estop_serial
+            old = self._running_adapter()
+            if old is not None:
+                old.being_stopped = True  # this switch owns its stop from here on
+
+        if old is not None and not old.pre_stop():
+            return self._abort_switch(old, f"switch: {old.failure}")
+
+        deadline = time.monotonic() + self.timeouts.being_stopped
+        while new.being_stopped:
+            if time.monotonic() > deadline:
+                return self._abort_switch(old, f"switch: {new.name} still being stopped "
+                                          f"after {self.timeouts.being_stopped:.1f} s")
+            time.sleep(0.001)
+
+        swap_state = old.get_swap_state() if old is not None else None
+        if not new.swap(self.dt, swap_state):
+            new.being_stopped = True  # its swap may have left half-initialized state
+            self._stoppers.hand_over(new)
+            return self._abort_switch(old, f"switch: {new.failure}")
+
+        with self._cycle_lock:
+            committed = self._estop_serial == serial and not self._closed
+            if committed:
+                previous = self._state
+                new.running = True
+                self._active = pair
+                self._state = ManagerState.OK
+                self._emit_changed()
+            else:  # a requested e-stop may not have reached update() yet: the old one
+                self._apply_requests()  # must stop running before its stop is handed over
+        if not committed:
+            log.error("switch to %r interrupted by an emergency stop", new.name)
+            new.being_stopped = True
+            self._stoppers.hand_over(new)
+            return self._finish_old(old, SwitchResult.ERROR)
+        log.info("switched to %r (from %s)", new.name, previous.name)
+        return self._finish_old(old, SwitchResult.SWITCHED)
+
+    def _abort_switch(self, old: ControllerAdapter | None, cause: str) -> SwitchResult:
+        """A switch failed after the old controller was told to stop: e-stop, like rocoma.
+        The e-stop is applied here, between two cycles, so the old controller no longer runs
+        when its stop is handed over."""
+        log.error("%s; emergency stop", cause)
+        with self._cycle_lock:
+            self._apply_requests()
+            self._estop(False, cause)
+        return self._finish_old(old, SwitchResult.ERROR)
+
+    def _finish_old(self, old: ControllerAdapter | None, result: SwitchResult) -> SwitchResult:
+        if old is not None:
+            old.running = False
+            self._stoppers.hand_over(old)  # being_stopped was set when the switch began
+        return result
+
+    def _running_adapter(self) -> ControllerAdapter | None:
+        if self._state is ManagerState.OK:
+            return self._active.controller
+        if self._state is ManagerState.EMERGENCY:
+            return self._active.emergency
+        return None
+
+    # --- what others read -----------------------------------------------------------------
+    @property
+    def state(self) -> ManagerState:
+        return self._state
+
+    @property
+    def estop_latched(self) -> bool:
+        return self._latched
+
+    @property
+    def active_controller_name(self) -> str:
+        adapter = self._running_adapter()
+        return adapter.name if adapter is not None else self._failproof.name
+
+    def available_controllers(self) -> list[str]:
+        return sorted(self._pairs)
+
+    def subscribe(self, callback: Subscriber) -> Callable[[], None]:
+        """Call ``callback(event)`` on the event thread; returns the unsubscribe function."""
+        return self._events.subscribe(callback)
+
+    def _emit(self, kind: EventKind, cause: str = "") -> None:
+        self._events.emit(ManagerEvent(kind, self._state, self.active_controller_name, cause))
+
+    def _emit_changed(self) -> None:
+        self._emit(EventKind.STATE_CHANGED)
+        self._emit(EventKind.ACTIVE_CONTROLLER_CHANGED)
+
+    def adapters(self) -> dict[str, Any]:
+        """Every registered controller's adapter by name (flags and call statistics)."""
+        out: dict[str, Any] = {p.controller.name: p.controller for p in self._pairs.values()}
+        out.update(self._emergencies)
+        out[self._failproof.name] = self._failproof
+        return out
+
+    # --- shutdown -------------------------------------------------------------------------
+    def shutdown(self) -> bool:
+        """Failproof, stop and clean up every controller, join every thread (all bounded).
+
+        Returns False when something did not finish in time (it is logged by name).
+        """
+        if self._closed:
+            return True
+        self._closed = True
+        limit = self.timeouts.shutdown
+        ok = True
+        if self._switch_busy.acquire(timeout=limit):
+            self._switch_busy.release()
+        else:
+            log.error("shutdown: a switch did not finish within %.1f s", limit)
+            ok = False
+        with self._cycle_lock:
+            if self._state is not ManagerState.FAILPROOF:
+                self._estop(True, "shutdown")
+            self._failproof.advance(self.dt)
+        deadline = time.monotonic() + limit
+        pending = [a for a in self.adapters().values() if getattr(a, "being_stopped", False)]
+        while pending and time.monotonic() < deadline:
+            time.sleep(0.005)
+            pending = [a for a in pending if a.being_stopped]
+        for adapter in pending:
+            log.error("shutdown: controller %r still stopping after %.1f s", adapter.name, limit)
+        ok = ok and not pending
+        for adapter in self.adapters().values():
+            if adapter.created and adapter not in pending:
+                ok = adapter.cleanup() and ok
+        self._switch_jobs.put(None)
+        self._switcher.join(limit)
+        stuck = self._stoppers.close(limit)
+        if self._switcher.is_alive():
+            stuck.append(self._switcher.name)
+        if not self._events.close(limit):
+            stuck.append(f"{self.name}/events")
+        for thread_name in stuck:
+            log.error("shutdown: thread %s did not end within %.1f s", thread_name, limit)
+        return ok and not stuck
+
+    def __enter__(self) -> ControllerManager:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
