@@ -1,0 +1,89 @@
+"""Per-cycle cost of the controllers library: initialize_fast and advance, 12 joints.
+
+    .venv/bin/python benchmarks/controllers.py [--joints 12] [--repeat 20000]
+
+Prints median and 99th percentile in µs per call. An emergency controller's initialize_fast
+runs in the failure's cycle, so it must stay far below the cycle time (1000 µs at 1 kHz).
+Numbers are from this process on a shared machine: compare them, do not treat them as bounds.
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import time
+from typing import Callable
+
+import numpy as np
+
+from rocoma_can.controllers.damp import Damp
+from rocoma_can.controllers.hold import Hold
+from rocoma_can.controllers.pd import JointPD
+from rocoma_can.controllers.quick_stop import QuickStop
+from rocoma_can.controllers.torque_off import TorqueOff
+from rocoma_can.controllers.trajectory import Trajectory
+from rocoma_can.controllers.zero_torque import Float
+from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.interfaces import EmergencyController
+
+DT = 0.001
+
+
+def controllers() -> list:
+    return [
+        TorqueOff(),
+        Damp("damp", damping=2.0, torque_limit=20.0),
+        Hold("hold", kp=200.0, kd=5.0, torque_limit=20.0),
+        Hold("hold_csp", mode="CSP"),
+        QuickStop("quick_stop"),
+        JointPD("pd", kp=100.0, kd=4.0, target=0.3, torque_limit=20.0, velocity_limit=2.0),
+        JointPD("pd_csp", target=0.3, mode="CSP"),
+        Trajectory("sine_csp", amplitude=0.2, frequency=1.0),
+        Trajectory("sine_cst", amplitude=0.2, frequency=1.0, mode="CST", kp=100.0, kd=4.0),
+        Trajectory("min_jerk", kind="min_jerk", target=0.5, duration=2.0),
+        Float("float"),
+    ]
+
+
+def timed(fn: Callable[[], object], repeat: int) -> np.ndarray:
+    samples = np.empty(repeat)
+    clock = time.perf_counter_ns
+    for i in range(repeat):
+        t0 = clock()
+        fn()
+        samples[i] = clock() - t0
+    return samples / 1000.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--joints", type=int, default=12)
+    parser.add_argument("--repeat", type=int, default=20000)
+    args = parser.parse_args()
+    rng = np.random.default_rng(0)
+    state = JointState.zeros(args.joints)
+    command = JointCommand.zeros(args.joints)
+    state.position[:] = rng.uniform(-1, 1, args.joints)
+    state.velocity[:] = rng.uniform(-1, 1, args.joints)
+
+    print(f"{args.joints} joints, {args.repeat} calls each, µs per call (median / p99)")
+    print(f"{'controller':<12} {'initialize_fast':>18} {'advance':>18}")
+    gc.disable()  # measure the code, not the collector
+    try:
+        for ctrl in controllers():
+            ctrl.dt, ctrl.state, ctrl.command = DT, state, command
+            assert ctrl.create(DT) is not False, ctrl
+            init = "-"
+            if isinstance(ctrl, EmergencyController):
+                t = timed(lambda: ctrl.initialize_fast(DT), args.repeat)
+                init = f"{np.median(t):7.2f} / {np.percentile(t, 99):7.2f}"
+            elif hasattr(ctrl, "initialize"):
+                assert ctrl.initialize(DT)
+            t = timed(lambda: ctrl.advance(DT), args.repeat)
+            adv = f"{np.median(t):7.2f} / {np.percentile(t, 99):7.2f}"
+            print(f"{ctrl.name:<12} {init:>18} {adv:>18}")
+    finally:
+        gc.enable()
+
+
+if __name__ == "__main__":
+    main()
