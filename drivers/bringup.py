@@ -1,0 +1,224 @@
+"""Per-drive start-up as a non-blocking state machine, stepped once per cycle.
+
+    WAIT_BOOT ──boot-up / heartbeat (or boot_wait elapsed)──> CONFIGURING
+    CONFIGURING ──SDO job done──> STARTING      (job failed ──> FAILED: cause)
+    STARTING ──first TPDO──> READY, or RESETTING if the statusword says fault
+    RESETTING ──fault cleared──> READY          (timeout ──> FAILED)
+
+All SDO traffic runs in ``configure`` on a worker thread (canopen's SdoClient has no lock:
+one job per node at a time, never two threads on one node's SDO). The cycle only looks at
+``Future.done()``. A drive that is faulted, whose STO input is low or that does not answer
+ends in FAILED with the cause, and the others carry on.
+
+READY means: NMT operational, PDOs mapped, no fault, torque off. Enabling (shutdown, switch
+on, enable operation) is not part of start-up: the manager starts in FAILPROOF, which sends
+disable voltage to every drive, so the enable steps run from the cyclic controlword when a
+controller commands a cyclic mode (see hardware.py).
+"""
+from __future__ import annotations
+
+import enum
+import struct
+from concurrent.futures import Executor, Future
+from dataclasses import dataclass
+
+import canopen
+
+from . import cia402
+from .config import DriveConfig
+from .pdo_layout import PDO_SLOTS, DriveLayout, Pdo
+
+#: Transmission type: synchronous, every SYNC (RPDO: act on the next SYNC).
+SYNC_EVERY_CYCLE = 1
+_COB_INVALID = 0x8000_0000
+
+
+class Phase(enum.IntEnum):
+    WAIT_BOOT = 0
+    CONFIGURING = 1
+    STARTING = 2
+    RESETTING = 3
+    READY = 4
+    FAILED = 5
+
+
+@dataclass(frozen=True)
+class Timeouts:
+    """Seconds each start-up step may take before the drive is reported FAILED."""
+    boot_wait: float = 1.0   # wait this long for boot-up/heartbeat, then probe by SDO anyway
+    start: float = 2.0       # NMT start -> first TPDO
+    reset: float = 1.0       # fault reset -> statusword without fault
+    enable: float = 1.0      # commanded cyclic mode -> operation enabled (hardware.py)
+
+
+@dataclass(frozen=True)
+class ConfigResult:
+    statusword: int
+    error_code: int
+
+
+def _u8(v: int) -> bytes:
+    return struct.pack("<B", v)
+
+
+def _u16(v: int) -> bytes:
+    return struct.pack("<H", v)
+
+
+def _u32(v: int) -> bytes:
+    return struct.pack("<I", v)
+
+
+def _configure_pdos(sdo: canopen.sdo.SdoClient, pdos: tuple[Pdo, ...], comm_base: int,
+                    map_base: int, cob_bases: tuple[int, ...], node_id: int) -> None:
+    for k in range(PDO_SLOTS):
+        comm, mapping = comm_base + k, map_base + k
+        default_cob = cob_bases[k] + node_id
+        sdo.download(comm, 1, _u32(_COB_INVALID | default_cob))  # disable before remapping
+        if k >= len(pdos):
+            continue
+        pdo = pdos[k]
+        sdo.download(mapping, 0, _u8(0))
+        for j, entry in enumerate(pdo.entries, start=1):
+            sdo.download(mapping, j, _u32(entry.mapping))
+        sdo.download(mapping, 0, _u8(len(pdo.entries)))
+        sdo.download(comm, 2, _u8(SYNC_EVERY_CYCLE))
+        sdo.download(comm, 1, _u32(pdo.cob_id))
+
+
+def configure(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
+              manager_node_id: int, consumer_ms: int) -> ConfigResult:
+    """Everything a drive needs before NMT start, by SDO; runs on the configuration worker.
+
+    Raises with a message naming the step when the drive refuses or does not answer.
+    """
+    sdo = node.sdo
+    node.nmt.send_command(cia402.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
+    try:
+        device_type = struct.unpack("<I", sdo.upload(cia402.DEVICE_TYPE, 0)[:4])[0]
+    except canopen.SdoCommunicationError as e:
+        raise RuntimeError(f"does not answer (no SDO reply to 0x1000: {e})") from e
+    if device_type & 0xFFFF != 402:
+        raise RuntimeError(f"is not a CiA 402 drive (0x1000 = 0x{device_type:08X})")
+    try:
+        supported = struct.unpack("<I", sdo.upload(cia402.SUPPORTED_DRIVE_MODES, 0)[:4])[0]
+    except canopen.SdoAbortedError:
+        supported = None  # optional object: trust the config
+    if supported is not None:
+        missing = [m.name for m in drive.modes if not supported & (1 << (int(m) - 1))]
+        if missing:
+            raise RuntimeError(f"does not support mode(s) {missing} (0x6502 = 0x{supported:X})")
+    _configure_pdos(sdo, layout.rpdos, cia402.RPDO_COMM, cia402.RPDO_MAP, cia402.RPDO_BASE,
+                    drive.node_id)
+    _configure_pdos(sdo, layout.tpdos, cia402.TPDO_COMM, cia402.TPDO_MAP, cia402.TPDO_BASE,
+                    drive.node_id)
+    sdo.download(cia402.PRODUCER_HEARTBEAT_TIME, 0, _u16(drive.heartbeat_ms))
+    sdo.download(cia402.CONSUMER_HEARTBEAT_TIME, 1, _u32((manager_node_id << 16) | consumer_ms))
+    sdo.download(cia402.ABORT_CONNECTION_OPTION, 0,
+                 struct.pack("<h", cia402.AbortConnectionOption.DISABLE_VOLTAGE))
+    sdo.download(cia402.MODES_OF_OPERATION, 0, struct.pack("<b", int(drive.modes[0])))
+    statusword = struct.unpack("<H", sdo.upload(cia402.STATUSWORD, 0)[:2])[0]
+    try:
+        error_code = struct.unpack("<H", sdo.upload(cia402.ERROR_CODE, 0)[:2])[0]
+    except canopen.SdoAbortedError:
+        error_code = 0
+    node.nmt.send_command(cia402.NmtCommand.START)
+    return ConfigResult(statusword, error_code)
+
+
+class DriveBringup:
+    """Start-up state of one drive; ``step`` is called from the cycle and never blocks."""
+
+    def __init__(self, drive: DriveConfig, layout: DriveLayout, node: canopen.RemoteNode,
+                 manager_node_id: int, consumer_ms: int, timeouts: Timeouts) -> None:
+        self.drive = drive
+        self.layout = layout
+        self.node = node
+        self.manager_node_id = manager_node_id
+        self.consumer_ms = consumer_ms
+        self.timeouts = timeouts
+        self.phase = Phase.WAIT_BOOT
+        self.since = 0.0
+        self.alive = False          # boot-up or heartbeat seen (set by the receive drain)
+        self.mapped = False         # our PDO layout is configured: safe to send our RPDOs
+        self.failure: str | None = None
+        self.reset_cycles = 0       # cycles spent in RESETTING (edge: 0x00 first, then 0x80)
+        self.sto_seen = False       # an EMCY 0x5441 arrived during start-up
+        self._job: Future[ConfigResult] | None = None
+
+    def restart(self, now: float, probe_at_once: bool = False) -> None:
+        """Back to the beginning (start-up, or recovery of a drive that failed or rebooted)."""
+        self.phase = Phase.WAIT_BOOT
+        self.since = now - (self.timeouts.boot_wait if probe_at_once else 0.0)
+        self.alive = False
+        self.failure = None
+        self.sto_seen = False
+
+    def reset_fault(self, now: float) -> None:
+        self._enter(Phase.RESETTING, now)
+        self.reset_cycles = 0
+
+    def _enter(self, phase: Phase, now: float) -> None:
+        self.phase = phase
+        self.since = now
+
+    def _fail(self, cause: str, now: float) -> None:
+        self.failure = cause
+        self._enter(Phase.FAILED, now)
+
+    def step(self, now: float, executor: Executor, fresh: bool, state: int,
+             error_code: int) -> bool:
+        """Advance one cycle; returns True on the cycle the drive becomes READY."""
+        phase = self.phase
+        if phase == Phase.WAIT_BOOT:
+            if self.alive or now - self.since >= self.timeouts.boot_wait:
+                self._job = executor.submit(configure, self.node, self.drive, self.layout,
+                                            self.manager_node_id, self.consumer_ms)
+                self._enter(Phase.CONFIGURING, now)
+        elif phase == Phase.CONFIGURING:
+            job = self._job
+            if job is not None and job.done():
+                self._job = None
+                exc = job.exception()
+                if exc is not None:
+                    self._fail(str(exc) or type(exc).__name__, now)
+                    return False
+                self.mapped = True
+                result = job.result()
+                if self.sto_seen or (cia402.state_from_statusword(result.statusword)
+                                     == cia402.State402.FAULT
+                                     and result.error_code == cia402.EMCY_STO):
+                    self._fail("STO input low (safe torque off active)", now)
+                    return False
+                self._enter(Phase.STARTING, now)
+        elif phase == Phase.STARTING:
+            if self.sto_seen:
+                self._fail("STO input low (safe torque off active)", now)
+            elif fresh:
+                if state in (cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE):
+                    self.reset_fault(now)
+                else:
+                    self._enter(Phase.READY, now)
+                    return True
+            elif now - self.since > self.timeouts.start:
+                self._fail(f"no TPDO within {self.timeouts.start} s of NMT start", now)
+        elif phase == Phase.RESETTING:
+            self.reset_cycles += 1
+            if self.reset_cycles > 2 and fresh and state not in (
+                    cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE,
+                    cia402.State402.UNKNOWN):
+                self._enter(Phase.READY, now)
+                return True
+            if now - self.since > self.timeouts.reset:
+                why = "STO input low" if error_code == cia402.EMCY_STO else "fault persists"
+                self._fail(f"{why} after fault reset (error code 0x{error_code:04X})", now)
+        return False
+
+    @property
+    def fault_reset_bit(self) -> bool:
+        """Controlword bit 7 this cycle: low on the first RESETTING cycle, then high (edge)."""
+        return self.phase == Phase.RESETTING and self.reset_cycles >= 1
+
+    def cancel(self) -> None:
+        if self._job is not None:
+            self._job.cancel()

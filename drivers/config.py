@@ -1,0 +1,137 @@
+"""What the CAN hardware layer needs to know about each drive, checked once at start-up.
+
+Plain dataclasses so the runtime can build them from YAML (``DriveConfig.from_dict``); every
+check raises ValueError naming the drive and the field, because a wrong gear ratio or node id
+found at run time is a moving robot doing the wrong thing.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+from .joints import JointMode
+
+#: Modes a drive can be configured for (JointMode.TORQUE_OFF / QUICK_STOP are always allowed).
+CYCLIC_MODES = (JointMode.CSP, JointMode.CSV, JointMode.CST)
+#: Feedback objects a drive can report in its TPDOs (statusword is always mapped).
+FEEDBACK = ("position", "velocity", "torque")
+_REQUIRED = ("name", "node_id", "increments_per_rev", "rated_torque_nm")
+
+
+def _mode(value: Any, where: str) -> JointMode:
+    if isinstance(value, str):
+        try:
+            value = JointMode[value.strip().upper()]
+        except KeyError:
+            raise ValueError(f"{where}: unknown mode {value!r}; use csp, csv or cst") from None
+    try:
+        mode = JointMode(int(value))
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: unknown mode {value!r}; use csp, csv or cst") from None
+    if mode not in CYCLIC_MODES:
+        raise ValueError(f"{where}: {mode.name} is not a cyclic mode; use csp, csv or cst")
+    return mode
+
+
+@dataclass
+class DriveConfig:
+    """One CiA 402 drive driving one joint.
+
+    Units on the bus: position in increments, velocity in increments per second, torque in
+    per mille of the motor's rated torque (0x6076). ``gear_ratio`` is motor turns per joint
+    turn; a negative ratio flips the joint direction. Joint torque = motor torque x gear ratio.
+    """
+    name: str
+    node_id: int
+    increments_per_rev: int
+    rated_torque_nm: float
+    gear_ratio: float = 1.0
+    modes: tuple[JointMode, ...] = (JointMode.CSP,)
+    feedback: tuple[str, ...] = FEEDBACK
+    eds: str | None = None                  # path; None = the shipped generic CiA 402 EDS
+    max_torque_nm: float = math.inf         # joint side; commands are clipped to it
+    max_velocity: float = math.inf          # rad/s, joint side
+    position_min: float = -math.inf         # rad, joint side
+    position_max: float = math.inf
+    heartbeat_ms: int = 100                 # the drive's heartbeat producer (0x1017)
+
+    def __post_init__(self) -> None:
+        where = f"drive {self.name!r}"
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"drive name must be a non-empty string, got {self.name!r}")
+        if not isinstance(self.node_id, int) or not 1 <= self.node_id <= 127:
+            raise ValueError(f"{where}: node_id must be an integer 1..127, got {self.node_id!r}")
+        if not isinstance(self.increments_per_rev, int) or self.increments_per_rev <= 0:
+            raise ValueError(f"{where}: increments_per_rev must be a positive integer, "
+                             f"got {self.increments_per_rev!r}")
+        _positive(where, "rated_torque_nm", self.rated_torque_nm)
+        if not _finite(self.gear_ratio) or self.gear_ratio == 0:
+            raise ValueError(f"{where}: gear_ratio must be a non-zero number, got {self.gear_ratio!r}")
+        modes = (self.modes,) if isinstance(self.modes, (str, int)) else tuple(self.modes)
+        if not modes:
+            raise ValueError(f"{where}: modes must name at least one of csp, csv, cst")
+        self.modes = tuple(dict.fromkeys(_mode(m, f"{where}: modes") for m in modes))
+        feedback = (self.feedback,) if isinstance(self.feedback, str) else tuple(self.feedback)
+        for name in feedback:
+            if name not in FEEDBACK:
+                raise ValueError(f"{where}: feedback {name!r} unknown; use {list(FEEDBACK)}")
+        self.feedback = tuple(f for f in FEEDBACK if f in feedback)
+        for name in ("max_torque_nm", "max_velocity"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or math.isnan(value) or value <= 0:
+                raise ValueError(f"{where}: {name} must be > 0 (inf = no limit), got {value!r}")
+        for name in ("position_min", "position_max"):
+            if not isinstance(getattr(self, name), (int, float)) or math.isnan(getattr(self, name)):
+                raise ValueError(f"{where}: {name} must be a number, got {getattr(self, name)!r}")
+        if self.position_min >= self.position_max:
+            raise ValueError(f"{where}: position_min ({self.position_min}) must be below "
+                             f"position_max ({self.position_max})")
+        if not isinstance(self.heartbeat_ms, int) or not 1 <= self.heartbeat_ms <= 0xFFFF:
+            raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
+                             f"got {self.heartbeat_ms!r}")
+        if self.eds is not None and not Path(self.eds).is_file():
+            raise ValueError(f"{where}: eds file {self.eds!r} does not exist")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> DriveConfig:
+        """Build from a YAML mapping; unknown keys are an error (a typo must not be ignored)."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"drive {data.get('name', '?')!r}: unknown keys {unknown}; "
+                             f"known keys are {sorted(known)}")
+        missing = [k for k in _REQUIRED if k not in data]
+        if missing:
+            raise ValueError(f"drive {data.get('name', '?')!r}: missing keys {missing}")
+        return cls(**dict(data))
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+def _positive(where: str, name: str, value: Any) -> None:
+    if not _finite(value) or value <= 0:
+        raise ValueError(f"{where}: {name} must be a positive number, got {value!r}")
+
+
+def check_drives(drives: list[DriveConfig], manager_node_id: int) -> None:
+    """Checks across drives: unique names and node ids, none equal to the manager's."""
+    if not drives:
+        raise ValueError("drives: at least one drive is needed")
+    if not isinstance(manager_node_id, int) or not 1 <= manager_node_id <= 127:
+        raise ValueError(f"manager_node_id must be an integer 1..127, got {manager_node_id!r}")
+    seen_names: set[str] = set()
+    seen_ids: dict[int, str] = {}
+    for d in drives:
+        if d.name in seen_names:
+            raise ValueError(f"drive name {d.name!r} is used twice")
+        seen_names.add(d.name)
+        if d.node_id in seen_ids:
+            raise ValueError(f"drive {d.name!r}: node_id {d.node_id} is already used by "
+                             f"drive {seen_ids[d.node_id]!r}")
+        if d.node_id == manager_node_id:
+            raise ValueError(f"drive {d.name!r}: node_id {d.node_id} is the manager's node id")
+        seen_ids[d.node_id] = d.name

@@ -1,0 +1,132 @@
+"""Drive supervision: every way a drive can go wrong becomes one FaultEvent.
+
+Causes: heartbeat deadline missed (monotonic clock, not canopen's wall-clock timestamps),
+heartbeat reporting a state other than operational (the drive rebooted or was stopped), an
+EMCY with a non-zero code, the statusword fault bit, TPDOs missing for k cycles, or a drive
+that does not reach operation enabled when commanded. ros2_canopen logs these and carries
+on; here each one is an e-stop.
+
+The first cause per drive latches the drive's fault and yields an event; later causes for
+the same drive are kept for the status report but raise no new event, so one broken drive
+is one e-stop (OK -> EMERGENCY), and a second drive failing is the second one (-> FAILPROOF).
+The latch is cleared by recovery only.
+"""
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from . import cia402
+from .config import DriveConfig
+
+EMCY_NAMES = {
+    cia402.EMCY_GENERIC: "generic error",
+    cia402.EMCY_OVERCURRENT: "overcurrent",
+    cia402.EMCY_OVERVOLTAGE: "overvoltage",
+    cia402.EMCY_OVERTEMPERATURE: "overtemperature",
+    cia402.EMCY_HEARTBEAT: "heartbeat error",
+    cia402.EMCY_POSITION_SENSOR: "position sensor",
+    cia402.EMCY_FOLLOWING_ERROR: "following error",
+    cia402.EMCY_STO: "STO input active",
+}
+
+
+def emcy_text(code: int) -> str:
+    return f"EMCY 0x{code:04X} ({EMCY_NAMES.get(code, 'error')})"
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    """One supervision finding, with enough to act on it and to tell a human."""
+    node_id: int
+    drive: str
+    cause: str
+    code: int = 0      # EMCY / 0x603F error code when known
+    time: float = 0.0  # time.monotonic()
+
+    def __str__(self) -> str:
+        return f"drive {self.drive!r} (node {self.node_id}): {self.cause}"
+
+
+class Supervisor:
+    """Deadlines and fault latches for N drives; all methods run on the cycle thread."""
+
+    def __init__(self, drives: Sequence[DriveConfig], tpdo_timeout_cycles: int,
+                 heartbeat_timeout_factor: float, history: int = 64) -> None:
+        if tpdo_timeout_cycles < 1:
+            raise ValueError(f"tpdo_timeout_cycles must be >= 1, got {tpdo_timeout_cycles}")
+        if heartbeat_timeout_factor <= 1.0:
+            raise ValueError("heartbeat_timeout_factor must be > 1 (a deadline shorter than "
+                             f"the heartbeat period always trips), got {heartbeat_timeout_factor}")
+        n = len(drives)
+        self.drives = list(drives)
+        self.tpdo_timeout_cycles = tpdo_timeout_cycles
+        self.heartbeat_timeout = np.array([d.heartbeat_ms * heartbeat_timeout_factor / 1000.0
+                                           for d in drives])
+        self.heartbeat_deadline = np.full(n, math.inf)
+        self.active = np.zeros(n, dtype=bool)      # supervised: brought up and not failed
+        self.missing = np.zeros(n, dtype=np.int64)  # consecutive cycles without all TPDOs
+        self.latched: list[FaultEvent | None] = [None] * n
+        self.history: collections.deque[FaultEvent] = collections.deque(maxlen=history)
+        self.pending: list[FaultEvent] = []
+
+    def arm(self, i: int, now: float) -> None:
+        """Start supervising drive i (brought up); heartbeat deadline from now."""
+        self.active[i] = True
+        self.missing[i] = 0
+        self.heartbeat_deadline[i] = now + self.heartbeat_timeout[i]
+
+    def disarm(self, i: int) -> None:
+        self.active[i] = False
+        self.heartbeat_deadline[i] = math.inf
+
+    def clear(self, i: int) -> None:
+        self.latched[i] = None
+
+    def fault(self, i: int, cause: str, now: float, code: int = 0) -> None:
+        event = FaultEvent(self.drives[i].node_id, self.drives[i].name, cause, code, now)
+        self.history.append(event)
+        if self.latched[i] is None:
+            self.latched[i] = event
+            self.pending.append(event)
+
+    def on_heartbeat(self, i: int, state: int, now: float) -> None:
+        if not self.active[i]:
+            return
+        self.heartbeat_deadline[i] = now + self.heartbeat_timeout[i]
+        if state != cia402.NmtState.OPERATIONAL:
+            name = cia402.NmtState(state).name if state in cia402.NmtState._value2member_map_ \
+                else f"0x{state:02X}"
+            self.fault(i, f"NMT state {name} reported in heartbeat", now)
+
+    def on_emcy(self, i: int, code: int, now: float) -> None:
+        if code != cia402.EMCY_NO_ERROR and self.active[i]:
+            self.fault(i, emcy_text(code), now, code)
+
+    def tick(self, now: float, tpdos_complete: np.ndarray, states: np.ndarray,
+             error_codes: np.ndarray) -> None:
+        """Once per cycle after draining: deadlines, missing TPDOs, statusword fault bit."""
+        active = self.active
+        if not active.any():
+            return
+        for i in np.flatnonzero(active & (self.heartbeat_deadline < now)):
+            self.fault(int(i), f"heartbeat lost (none for {self.heartbeat_timeout[i]:.3f} s)",
+                       now)
+            self.heartbeat_deadline[i] = math.inf  # one event per loss
+        self.missing += 1
+        self.missing[tpdos_complete] = 0
+        for i in np.flatnonzero(active & (self.missing == self.tpdo_timeout_cycles)):
+            self.fault(int(i), f"TPDOs missing for {self.tpdo_timeout_cycles} cycles", now)
+        for i in np.flatnonzero(active & ((states == cia402.State402.FAULT)
+                                          | (states == cia402.State402.FAULT_REACTION_ACTIVE))):
+            code = int(error_codes[i])
+            self.fault(int(i), "statusword fault bit" + (f", {emcy_text(code)}" if code else ""),
+                       now, code)
+
+    def take_pending(self) -> list[FaultEvent]:
+        events, self.pending = self.pending, []
+        return events
