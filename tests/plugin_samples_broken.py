@@ -1,0 +1,2 @@
+"""A plugin module that fails on import (for tests/test_plugins.py)."""
+raise RuntimeError("this module is broken on purpose")
