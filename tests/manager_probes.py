@@ -7,14 +7,16 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import pytest
+
 from rocoma_can import (ControllerManager, EmergencyController, FailproofController,
-                        SwapState)
+                        ManagerState, SwapState)
 from rocoma_can.interfaces import Controller
 
 WAIT = 10.0  # upper bound for any wait in these tests; a hit means the test failed
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # each call is its own record: index() by identity
 class Call:
     controller: str
     method: str
@@ -142,3 +144,33 @@ class FailproofProbe(_Behaviour, FailproofController):
 class CommandLog(list):
     """The shared 'command': each advance appends its writer; the test reads who wrote
     cycle k and clears it per cycle."""
+
+
+@dataclass
+class Rig:
+    mgr: ControllerManager
+    journal: Journal
+    command: CommandLog
+
+    def step(self) -> tuple[ManagerState, list[str]]:
+        """One update call: the layer returned and who wrote the command in it."""
+        self.command.clear()
+        state = self.mgr.update()
+        return state, list(self.command)
+
+    def calls_in_cycle(self, cycle: int) -> list[tuple[str, str]]:
+        return [(c.controller, c.method) for c in self.journal.calls
+                if c.cycle == cycle and c.update_thread]
+
+
+@pytest.fixture
+def rig():
+    journal = Journal(update_thread=threading.get_ident())
+    command = CommandLog()
+    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001, command=command)
+    journal.manager = mgr
+    yield Rig(mgr, journal, command)
+    assert mgr.shutdown()
+    assert not [t for t in threading.enumerate() if t.name.startswith("rocoma/")]
+
+

@@ -7,43 +7,11 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
 
-import pytest
-
-from manager_probes import (WAIT, CommandLog, EmergencyProbe, FailproofProbe, Journal,
-                            NumberSwapState, Probe)
-from rocoma_can import ControllerManager, ManagerState, SwitchResult
+from manager_probes import WAIT, EmergencyProbe, NumberSwapState, Probe, rig  # noqa: F401
+from rocoma_can import ManagerState, SwitchResult
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
-
-
-@dataclass
-class Rig:
-    mgr: ControllerManager
-    journal: Journal
-    command: CommandLog
-
-    def step(self) -> tuple[ManagerState, list[str]]:
-        """One update call: the layer returned and who wrote the command in it."""
-        self.command.clear()
-        state = self.mgr.update()
-        return state, list(self.command)
-
-    def calls_in_cycle(self, cycle: int) -> list[tuple[str, str]]:
-        return [(c.controller, c.method) for c in self.journal.calls
-                if c.cycle == cycle and c.update_thread]
-
-
-@pytest.fixture
-def rig():
-    journal = Journal(update_thread=threading.get_ident())
-    command = CommandLog()
-    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001, command=command)
-    journal.manager = mgr
-    yield Rig(mgr, journal, command)
-    assert mgr.shutdown()
-    assert not [t for t in threading.enumerate() if t.name.startswith("rocoma/")]
 
 
 def test_table_1a_estop_in_ok_emergency_takes_over_in_the_failing_call(rig):

@@ -1,0 +1,400 @@
+"""rocoma's own test scenarios, plus the precise points of design.md "The manager"."""
+from __future__ import annotations
+
+import logging
+import threading
+
+import pytest
+
+from manager_probes import (WAIT, CommandLog, EmergencyProbe, FailproofProbe, Journal,
+                            Probe, rig)  # noqa: F401
+from rocoma_can import (ControllerManager, EventKind, ManagerState, ManagerTimeouts,
+                        SwitchResult)
+
+OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
+
+
+def add(rig, name, emergency=None, **behaviour):
+    c = Probe(name, rig.journal, **behaviour)
+    assert rig.mgr.add_controller(c, emergency=emergency)
+    return c
+
+
+def test_starts_in_failproof(rig):
+    assert rig.mgr.state is FAILPROOF
+    assert rig.mgr.active_controller_name == "failproof"
+    assert rig.step() == (FAILPROOF, ["failproof"])
+
+
+def test_switch_failproof_to_a_then_a_to_b(rig):
+    add(rig, "a"), add(rig, "b")
+    assert rig.mgr.switch_controller("a") == SwitchResult.SWITCHED
+    assert rig.step() == (OK, ["a"])
+    assert rig.mgr.switch_controller("b") == SwitchResult.SWITCHED
+    assert rig.step() == (OK, ["b"])
+    assert rig.mgr.active_controller_name == "b"
+    rig.journal.wait_for("a", "stop")
+
+
+def test_switch_to_the_active_controller_is_running(rig):
+    add(rig, "a")
+    assert rig.mgr.switch_controller("a") == SwitchResult.SWITCHED
+    assert rig.mgr.switch_controller("a") == SwitchResult.RUNNING
+    assert len(rig.journal.of("a", "initialize")) == 1
+
+
+def test_not_found_for_unknown_emergency_and_failproof_names(rig):
+    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    for name in ("nope", "e", "failproof"):
+        assert rig.mgr.switch_controller(name) == SwitchResult.NOT_FOUND
+    assert rig.mgr.available_controllers() == ["a"]
+
+
+def test_available_controllers_sorted(rig):
+    for name in ("zeta", "alpha", "mid"):
+        add(rig, name)
+    assert rig.mgr.available_controllers() == ["alpha", "mid", "zeta"]
+
+
+def test_no_emergency_controller_goes_failproof(rig):
+    a = add(rig, "a")
+    rig.mgr.switch_controller("a")
+    a.fail.add("advance")
+    assert rig.step() == (FAILPROOF, ["failproof"])
+
+
+def test_second_estop_goes_failproof(rig):
+    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    rig.mgr.switch_controller("a")
+    rig.mgr.emergency_stop()
+    assert rig.step() == (EMERGENCY, ["e"])
+    rig.mgr.emergency_stop()
+    assert rig.step() == (FAILPROOF, ["failproof"])
+    rig.journal.wait_for("e", "stop")
+
+
+def test_estop_from_another_thread_takes_effect_by_the_next_update(rig):
+    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    rig.mgr.switch_controller("a")
+    t = threading.Thread(target=rig.mgr.emergency_stop, args=("remote",))
+    t.start()
+    t.join(WAIT)
+    assert rig.step() == (EMERGENCY, ["e"])
+
+
+def test_failproof_stop_from_ok_skips_the_emergency_layer(rig):
+    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    rig.mgr.switch_controller("a")
+    rig.mgr.failproof_stop()
+    assert rig.step() == (FAILPROOF, ["failproof"])
+    assert not rig.journal.of("e", "initialize_fast")
+
+
+@pytest.mark.parametrize("via_emergency", [True, False])
+def test_must_clear_blocks_switching_until_cleared(via_emergency):
+    journal = Journal(update_thread=threading.get_ident())
+    command = CommandLog()
+    with ControllerManager(FailproofProbe("failproof", journal), dt=0.001, command=command,
+                           estop_must_be_cleared=True) as mgr:
+        journal.manager = mgr
+        e = EmergencyProbe("e", journal)
+        assert mgr.add_controller(Probe("a", journal), emergency=e)
+        assert mgr.estop_latched  # latched at start, like an e-stop button after power-on
+        assert mgr.switch_controller("a") == SwitchResult.ERROR
+        assert mgr.clear_emergency_stop()
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        if via_emergency:
+            mgr.emergency_stop()
+            assert mgr.update() is EMERGENCY
+        else:
+            mgr.failproof_stop()
+            assert mgr.update() is FAILPROOF
+        assert mgr.estop_latched
+        assert mgr.switch_controller("a") == SwitchResult.ERROR
+        mgr.update()
+        mgr.clear_emergency_stop()
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        assert mgr.update() is OK
+
+
+def test_internal_failure_latches_with_must_clear():
+    journal = Journal(update_thread=threading.get_ident())
+    with ControllerManager(FailproofProbe("failproof", journal), dt=0.001,
+                           command=CommandLog(), estop_must_be_cleared=True) as mgr:
+        journal.manager = mgr
+        a = Probe("a", journal)
+        mgr.add_controller(a)
+        mgr.clear_emergency_stop()
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        a.fail.add("advance")
+        assert mgr.update() is FAILPROOF
+        assert mgr.estop_latched
+
+
+def test_concurrent_switch_gets_error_at_once(rig):
+    gate = threading.Event()
+    add(rig, "a", gates={"initialize": gate})
+    add(rig, "b")
+    first = rig.mgr.request_switch("a")
+    rig.journal.wait_for("a", "initialize")
+    second = rig.mgr.request_switch("b")
+    assert second.done() and second.result() == SwitchResult.ERROR
+    gate.set()
+    assert first.result(WAIT) == SwitchResult.SWITCHED
+
+
+def test_estop_during_switch_returns_error_and_stops_both(rig):
+    gate = threading.Event()
+    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    add(rig, "b", gates={"initialize": gate})
+    rig.mgr.switch_controller("a")
+    assert rig.step() == (OK, ["a"])
+    future = rig.mgr.request_switch("b")
+    rig.journal.wait_for("b", "initialize")
+    assert rig.step() == (OK, ["a"])  # the old one keeps advancing meanwhile
+    rig.mgr.emergency_stop("button")
+    assert rig.step() == (EMERGENCY, ["e"])
+    gate.set()
+    assert future.result(WAIT) == SwitchResult.ERROR
+    rig.journal.wait_for("a", "stop")
+    rig.journal.wait_for("b", "stop")
+    assert len(rig.journal.of("a", "pre_stop")) == 1  # once, although switch and e-stop met
+    assert len(rig.journal.of("b", "pre_stop")) == 1
+    assert rig.step() == (EMERGENCY, ["e"])
+
+
+def test_estop_requested_but_not_yet_applied_still_interrupts_the_switch(rig):
+    gate = threading.Event()
+    add(rig, "a")
+    add(rig, "b", gates={"initialize": gate})
+    rig.mgr.switch_controller("a")
+    future = rig.mgr.request_switch("b")
+    rig.journal.wait_for("b", "initialize")
+    rig.mgr.emergency_stop()  # no update() runs before the commit
+    gate.set()
+    assert future.result(WAIT) == SwitchResult.ERROR
+    assert rig.mgr.state is FAILPROOF  # applied by the switcher before a's stop
+    rig.journal.wait_for("a", "stop")
+    assert rig.step() == (FAILPROOF, ["failproof"])
+
+
+def test_switch_completes_with_no_update_loop_running(rig):
+    add(rig, "a")
+    assert rig.mgr.switch_controller("a", timeout=WAIT) == SwitchResult.SWITCHED
+    assert rig.mgr.state is OK
+
+
+def test_second_estop_completes_while_the_first_stop_still_runs(rig):
+    a_stop = threading.Event()
+    e = EmergencyProbe("e", rig.journal)
+    add(rig, "a", emergency=e, gates={"stop": a_stop})
+    rig.mgr.switch_controller("a")
+    rig.mgr.emergency_stop()
+    assert rig.step() == (EMERGENCY, ["e"])
+    rig.journal.wait_for("a", "stop")  # hanging on its gate
+    rig.mgr.emergency_stop()
+    assert rig.step() == (FAILPROOF, ["failproof"])
+    rig.journal.wait_for("e", "stop")  # not queued behind a's stop
+    a_stop.set()
+    rig.journal.wait_for("a", "stop")
+
+
+def test_switching_works_again_after_an_interrupted_switch_with_the_loop_running(rig):
+    gate = threading.Event()
+    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    add(rig, "b", gates={"initialize": gate})
+    rig.mgr.switch_controller("a")
+    stop = threading.Event()
+
+    def loop():
+        while not stop.wait(0.001):
+            rig.mgr.update()
+    t = threading.Thread(target=loop)
+    rig.journal.update_thread = None
+    t.start()
+    try:
+        future = rig.mgr.request_switch("b")
+        rig.journal.wait_for("b", "initialize")
+        rig.mgr.emergency_stop()
+        gate.set()
+        assert future.result(WAIT) == SwitchResult.ERROR
+        rig.journal.wait_for("b", "stop")
+        assert rig.mgr.switch_controller("b") == SwitchResult.SWITCHED
+        rig.journal.wait_for("b", "advance")
+        assert rig.mgr.switch_controller("a") == SwitchResult.SWITCHED
+        rig.journal.wait_for("a", "advance", count=len(rig.journal.of("a", "advance")) + 1)
+    finally:
+        stop.set()
+        t.join(WAIT)
+    assert rig.mgr.state is OK and rig.mgr.active_controller_name == "a"
+
+
+def test_failed_swap_estops_and_stops_the_new_controller(rig):
+    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    add(rig, "b", fail={"initialize"})
+    rig.mgr.switch_controller("a")
+    assert rig.mgr.switch_controller("b") == SwitchResult.ERROR
+    assert rig.mgr.state is EMERGENCY  # a was pre-stopped, so it may not run on
+    rig.journal.wait_for("a", "stop")
+    rig.journal.wait_for("b", "stop")
+    assert rig.step() == (EMERGENCY, ["e"])
+
+
+def test_switch_waits_for_the_new_controller_to_finish_stopping(rig):
+    gate = threading.Event()
+    add(rig, "a", gates={"stop": gate})
+    add(rig, "b")
+    rig.mgr.switch_controller("a")
+    rig.mgr.switch_controller("b")
+    rig.journal.wait_for("a", "stop")  # hanging: a is being stopped
+    future = rig.mgr.request_switch("a")
+    assert not future.done()
+    gate.set()
+    assert future.result(WAIT) == SwitchResult.SWITCHED
+    stop_call = rig.journal.of("a", "stop")[0]
+    swap_call = rig.journal.of("a", "swap")[-1]
+    assert rig.journal.calls.index(stop_call) < rig.journal.calls.index(swap_call)
+
+
+def test_being_stopped_wait_is_bounded():
+    journal = Journal(update_thread=threading.get_ident())
+    gate = threading.Event()
+    with ControllerManager(FailproofProbe("failproof", journal), dt=0.001, command=CommandLog(),
+                           timeouts=ManagerTimeouts(being_stopped=0.2)) as mgr:
+        journal.manager = mgr
+        mgr.add_controller(Probe("a", journal, gates={"stop": gate}))
+        mgr.add_controller(Probe("b", journal))
+        mgr.switch_controller("a")
+        mgr.switch_controller("b")
+        journal.wait_for("a", "stop")
+        assert mgr.switch_controller("a") == SwitchResult.ERROR
+        gate.set()
+
+
+def test_check_state_and_limit_command_failures_are_failures():
+    journal = Journal(update_thread=threading.get_ident())
+    verdict = {"state": True, "command": True}
+    with ControllerManager(FailproofProbe("failproof", journal), dt=0.001, command=CommandLog(),
+                           check_state=lambda s: verdict["state"],
+                           limit_command=lambda c: verdict["command"]) as mgr:
+        journal.manager = mgr
+        e = EmergencyProbe("e", journal)
+        mgr.add_controller(Probe("a", journal), emergency=e)
+        mgr.switch_controller("a")
+        assert mgr.update() is OK
+        verdict["command"] = False
+        assert mgr.update() is FAILPROOF  # a rejected, then e's command rejected too
+        mgr.switch_controller("a")
+        verdict["command"] = True
+        verdict["state"] = False
+        n = len(journal.of("a", "advance"))
+        assert mgr.update() is FAILPROOF
+        assert len(journal.of("a", "advance")) == n  # not advanced on a bad state
+
+
+LAYER_METHODS = [
+    ("controller", "create"), ("controller", "initialize"), ("controller", "advance"),
+    ("controller", "pre_stop"), ("controller", "stop"), ("controller", "get_swap_state"),
+    ("controller", "cleanup"), ("emergency", "initialize_fast"), ("emergency", "advance"),
+    ("emergency", "stop"), ("failproof", "advance"), ("failproof", "cleanup"),
+]
+
+
+@pytest.mark.parametrize("layer,method", LAYER_METHODS)
+def test_exceptions_in_every_callback_of_every_layer(layer, method, caplog):
+    journal = Journal(update_thread=threading.get_ident())
+    raising = {"raises": {method}}
+    fp = FailproofProbe("failproof", journal, **(raising if layer == "failproof" else {}))
+    command = CommandLog()
+    mgr = ControllerManager(fp, dt=0.001, command=command)
+    journal.manager = mgr
+    e = EmergencyProbe("e", journal, **(raising if layer == "emergency" else {}))
+    a = Probe("a", journal, **(raising if layer == "controller" else {}))
+    added = mgr.add_controller(a, emergency=e)
+    mgr.add_controller(Probe("b", journal))
+    if (layer, method) == ("controller", "create"):
+        assert not added and mgr.available_controllers() == ["b"]
+    else:
+        result = mgr.switch_controller("a")
+        assert result == (SwitchResult.ERROR if method == "initialize" else SwitchResult.SWITCHED)
+        for _ in range(3):
+            mgr.update()
+        if method == "get_swap_state":  # the successor starts without a swap state
+            assert mgr.switch_controller("b") == SwitchResult.SWITCHED
+            assert mgr.update() is OK
+        mgr.emergency_stop()
+        mgr.update()
+        mgr.emergency_stop()
+        assert mgr.update() is FAILPROOF
+    with caplog.at_level(logging.ERROR, logger="rocoma_can.manager"):
+        assert mgr.shutdown() == (method != "cleanup")  # a failed cleanup is reported
+    assert "raised on purpose" in caplog.text or (layer, method) == ("controller", "create")
+    assert not [t for t in threading.enumerate() if t.name.startswith("rocoma/")]
+
+
+def test_adding_to_the_wrong_layer_raises_type_error(rig):
+    with pytest.raises(TypeError):
+        rig.mgr.add_controller(EmergencyProbe("e", rig.journal))
+    with pytest.raises(TypeError):
+        rig.mgr.add_controller(Probe("a", rig.journal), emergency=Probe("x", rig.journal))
+    with pytest.raises(TypeError):
+        ControllerManager(Probe("p", rig.journal), dt=0.001)
+
+
+def test_duplicate_emergency_name_is_dropped_and_the_first_shared(rig, caplog):
+    first, second = EmergencyProbe("e", rig.journal), EmergencyProbe("e", rig.journal)
+    add(rig, "a", emergency=first)
+    with caplog.at_level(logging.WARNING, logger="rocoma_can.manager"):
+        add(rig, "b", emergency=second)
+    assert "dropped" in caplog.text
+    rig.mgr.switch_controller("b")
+    rig.mgr.emergency_stop()
+    assert rig.step() == (EMERGENCY, ["e"])
+    assert rig.mgr.adapters()["e"].controller is first
+
+
+def test_subscribers_see_switch_state_and_estop_events(rig):
+    events = []
+    got = threading.Event()
+
+    def on_event(ev):
+        events.append(ev)
+        if ev.kind is EventKind.EMERGENCY_STOP:
+            got.set()
+    rig.mgr.subscribe(on_event)
+    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    rig.mgr.switch_controller("a")
+    rig.mgr.emergency_stop("big red button")
+    rig.step()
+    assert got.wait(WAIT)
+    kinds = [(ev.kind, ev.state, ev.active_controller) for ev in events]
+    assert (EventKind.ACTIVE_CONTROLLER_CHANGED, OK, "a") in kinds
+    assert (EventKind.STATE_CHANGED, EMERGENCY, "e") in kinds
+    estop = [ev for ev in events if ev.kind is EventKind.EMERGENCY_STOP]
+    assert estop[0].cause == "big red button"
+
+
+def test_a_raising_subscriber_does_not_silence_the_others(rig):
+    seen = threading.Event()
+    rig.mgr.subscribe(lambda ev: 1 / 0)
+    rig.mgr.subscribe(lambda ev: seen.set())
+    add(rig, "a")
+    rig.mgr.switch_controller("a")
+    assert seen.wait(WAIT)
+
+
+def test_shutdown_stops_cleans_up_and_joins_everything():
+    journal = Journal(update_thread=threading.get_ident())
+    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001, command=CommandLog())
+    journal.manager = mgr
+    e = EmergencyProbe("e", journal)
+    mgr.add_controller(Probe("a", journal), emergency=e)
+    mgr.add_controller(Probe("b", journal), emergency=e)
+    mgr.switch_controller("a")
+    mgr.update()
+    assert mgr.shutdown()
+    assert mgr.state is FAILPROOF
+    assert {c.controller for c in journal.of(method="cleanup")} == {"a", "b", "e", "failproof"}
+    assert journal.of("a", "stop")
+    assert not [t for t in threading.enumerate() if t.name.startswith("rocoma/")]
+    assert mgr.switch_controller("a") == SwitchResult.ERROR
