@@ -71,9 +71,13 @@ class Damp(EmergencyController):
             g.read()
             self._elapsed += dt
             np.abs(g.v, out=self._speed)
-            self._still_for = self._still_for + dt if self._speed.max() < self.still_velocity \
-                else 0.0
-            if self._still_for >= self.still_time or self._elapsed >= self.timeout:
+            if self._speed.max() < self.still_velocity:
+                self._still_for += dt
+                rested = self._still_for >= self.still_time
+            else:
+                self._still_for = 0.0
+                rested = False
+            if rested or self._elapsed >= self.timeout:
                 self.torque_is_off = True
                 g.torque_off()
             else:
