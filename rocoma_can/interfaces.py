@@ -96,8 +96,8 @@ class Controller(_Named, abc.ABC):
     def start_worker(self, handle: Any) -> bool:
         return self._worker_manager().start_worker(handle)
 
-    def cancel_worker(self, handle: Any, wait: bool = True) -> bool:
-        return self._worker_manager().cancel_worker(handle, wait=wait)
+    def cancel_worker(self, handle: Any, wait: bool = True, timeout: float = 1.0) -> bool:
+        return self._worker_manager().cancel_worker(handle, wait=wait, timeout=timeout)
 
     def _worker_manager(self) -> WorkerManager:
         if self.workers is None:
