@@ -1,0 +1,74 @@
+"""Suite-wide policy for SocketCAN tests, and the shared fixture plugins.
+
+A test needs real SocketCAN (vcan0/vcan1) when it carries the `vcan` marker, lives in
+tests/vcan/, or uses the vcan_bus fixture; the last two are marked automatically. Such tests
+run through tools/vcan-run (bash tools/test: `-m vcan` there, `-m "not vcan"` natively).
+Where vcan is unavailable they are skipped with the reason, except under CI=true, where that
+skip is turned into a failure: CI must never go green by not running them.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+pytest.register_assert_rewrite("fixtures")
+from fixtures.bus import in_ci, vcan_problem  # noqa: E402  (after the rewrite hook)
+
+pytest_plugins = ["fixtures.bus"]
+
+VCAN_DIR = Path(__file__).parent / "vcan"
+
+
+def _needs_vcan(item: pytest.Item) -> bool:
+    return item.get_closest_marker("vcan") is not None
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m deselects: the automatic marks must count
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if VCAN_DIR in item.path.parents or "vcan_bus" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.vcan)
+        if _needs_vcan(item) and vcan_problem():
+            item.add_marker(pytest.mark.skip(reason=f"vcan unavailable: {vcan_problem()}"))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
+    report = yield
+    if report.skipped and in_ci() and _needs_vcan(item) and not hasattr(report, "wasxfail"):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else report.longrepr
+        report.outcome = "failed"
+        report.longrepr = f"CI=true: this vcan test must run, but it was skipped: {reason}"
+    return report
+
+
+def vcan_outcomes(stats: dict[str, list]) -> dict[str, str]:
+    """Outcome per vcan test id: failed (in any phase) over skipped over passed."""
+    outcomes: dict[str, str] = {}
+    for outcome, categories in (("failed", ("failed", "error")),
+                                ("skipped", ("skipped", "xfailed")),
+                                ("passed", ("passed", "xpassed"))):
+        for category in categories:
+            for report in stats.get(category, ()):
+                if "vcan" in getattr(report, "keywords", {}):
+                    outcomes.setdefault(report.nodeid, outcome)
+    return outcomes
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:
+    """Say how many vcan tests really ran; tools/test reads the same numbers from the file
+    named by ROCOMA_VCAN_SUMMARY."""
+    outcomes = list(vcan_outcomes(terminalreporter.stats).values())
+    runner = os.environ.get("ROCOMA_VCAN_RUNNER", "none")
+    counts = {name: outcomes.count(name) for name in ("passed", "failed", "skipped")}
+    summary_path = os.environ.get("ROCOMA_VCAN_SUMMARY")
+    if summary_path:
+        Path(summary_path).write_text(json.dumps(dict(counts, runner=runner)))
+    if outcomes or runner != "none":
+        terminalreporter.write_sep(
+            "-", f"vcan tests: {counts['passed'] + counts['failed']} ran ({counts['passed']} "
+                 f"passed, {counts['failed']} failed), {counts['skipped']} skipped; "
+                 f"SocketCAN: {runner}")
