@@ -86,6 +86,35 @@ def _configure_pdos(sdo: canopen.sdo.SdoClient, pdos: tuple[Pdo, ...], comm_base
         sdo.download(comm, 1, _u32(pdo.cob_id))
 
 
+def _read_u32(sdo: canopen.sdo.SdoClient, index: int, subindex: int) -> int | None:
+    """An optional object: None when the drive does not have it."""
+    try:
+        return struct.unpack("<I", sdo.upload(index, subindex)[:4].ljust(4, b"\0"))[0]
+    except canopen.SdoAbortedError:
+        return None
+
+
+def _check_scaling(sdo: canopen.sdo.SdoClient, drive: DriveConfig) -> None:
+    """Where the drive states its scaling (0x608F, 0x6091, 0x6076), the config must agree:
+    a wrong increments_per_rev or gear ratio would scale every target wrongly."""
+    checks = []
+    inc = _read_u32(sdo, cia402.POSITION_ENCODER_RESOLUTION, 1)
+    revs = _read_u32(sdo, cia402.POSITION_ENCODER_RESOLUTION, 2)
+    if inc and revs:
+        checks.append(("increments_per_rev", drive.increments_per_rev, inc / revs, "0x608F"))
+    motor = _read_u32(sdo, cia402.GEAR_RATIO, 1)
+    shaft = _read_u32(sdo, cia402.GEAR_RATIO, 2)
+    if motor and shaft:
+        checks.append(("gear_ratio", abs(drive.gear_ratio), motor / shaft, "0x6091"))
+    rated = _read_u32(sdo, cia402.RATED_TORQUE, 0)
+    if rated:
+        checks.append(("rated_torque_nm", drive.rated_torque_nm, rated / 1000.0, "0x6076"))
+    for name, configured, reported, where in checks:
+        if abs(configured - reported) > 1e-9 * max(abs(reported), 1.0):
+            raise RuntimeError(f"config {name} = {configured:g} but the drive reports "
+                               f"{reported:g} ({where})")
+
+
 def configure(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
               manager_node_id: int, consumer_ms: int) -> ConfigResult:
     """Everything a drive needs before NMT start, by SDO; runs on the configuration worker.
@@ -108,6 +137,7 @@ def configure(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
         missing = [m.name for m in drive.modes if not supported & (1 << (int(m) - 1))]
         if missing:
             raise RuntimeError(f"does not support mode(s) {missing} (0x6502 = 0x{supported:X})")
+    _check_scaling(sdo, drive)
     _configure_pdos(sdo, layout.rpdos, cia402.RPDO_COMM, cia402.RPDO_MAP, cia402.RPDO_BASE,
                     drive.node_id)
     _configure_pdos(sdo, layout.tpdos, cia402.TPDO_COMM, cia402.TPDO_MAP, cia402.TPDO_BASE,

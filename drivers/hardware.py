@@ -1,0 +1,575 @@
+"""The CAN hardware layer: N CiA 402 drives as one JointState / JointCommand pair.
+
+One cycle, on the one thread that owns the loop (``run_cycle`` does exactly this)::
+
+    hw.read(now)       drain received frames -> JointState; bring-up steps; supervision
+    manager.update()   the active layer writes JointCommand
+    hw.write(state)    RPDOs (or torque-off frames) for every drive, SYNC, manager heartbeat
+
+The safety path, top to bottom (each step names where it lives):
+
+1. A drive goes wrong. Supervision (supervision.py) turns every symptom into a FaultEvent:
+   EMCY, statusword fault bit, heartbeat deadline or non-operational heartbeat, TPDOs missing
+   for k cycles, a drive dropping out of operation enabled or not enabling in time
+   (``_command_frames`` below). Frames arrive on the Notifier thread, which only appends
+   them to a deque; ``read`` drains it on the cycle thread, so no lock is shared with a
+   slow thread.
+2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
+   a latched drive is never sent anything but controlword 0x0000), until recovery.
+3. ``read`` hands the event to the manager before update(): ``manager.emergency_stop(cause)``
+   (``attach`` / ``create_manager``). In update() the manager switches OK -> EMERGENCY: the
+   emergency controller's initialize_fast and advance write this cycle's command, so the
+   failed controller never commands again.
+4. A second fault (another drive, or the emergency controller failing) -> FAILPROOF.
+5. While the manager reports FAILPROOF, ``write`` sends the pre-encoded torque-off frames
+   (controlword 0x0000, mode, targets 0; built in ``__init__``) for every drive in the same
+   cycle, whatever JointCommand says. That path has no arithmetic and no branch that can
+   raise; a send error is counted, never raised. The failproof controller (TorqueOff) also
+   zeroes JointCommand so loggers see the truth, but the frames do not depend on it.
+6. If the loop itself dies or hangs, nothing is sent at all, including the manager heartbeat
+   (produced by ``write``, never by a kernel BCM task that would outlive the process). Each
+   drive's heartbeat consumer (0x1016, set at start-up) times out and its abort connection
+   option (0x6007 = 2, disable voltage) switches the power stage off.
+
+This is everything software over CAN can do, and it is not a certified safe torque off: a
+bus-off, a babbling node or firmware that ignores the controlword defeats it. Hard-wired STO
+inputs or CANopen Safety (SRDO) are needed for that (see README, safety model).
+"""
+from __future__ import annotations
+
+import collections
+import math
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import can
+import canopen
+import numpy as np
+
+from rocoma_can import eds as shipped_eds
+
+from . import cia402
+from .bringup import DriveBringup, Phase, Timeouts
+from .bus import CanopenBus, open_bus
+from .cia402 import State402
+from .config import DriveConfig, check_drives
+from .joints import JointCommand, JointMode, JointState
+from .pdo_layout import RPDO_FIELDS, DriveLayout, check_against_od, layout_for
+from .scaling import Scaling
+from .supervision import FaultEvent, Supervisor
+
+#: ManagerState.FAILPROOF (rocoma_can.events); compared as an int so the hot path needs no import.
+FAILPROOF = 0
+
+_CW_FAULT_RESET = int(cia402.Controlword.FAULT_RESET)
+_CW_ENABLE = int(cia402.Controlword.ENABLE_OPERATION)
+_CW_QUICK_STOP = int(cia402.Controlword.QUICK_STOP)
+_OP_ENABLED = int(State402.OPERATION_ENABLED)
+_CYCLIC = (int(JointMode.CSP), int(JointMode.CSV), int(JointMode.CST))
+_DROP_AFTER_CYCLES = 4
+# Next enable step (shutdown, switch on, enable operation) by State402 value + 1; every state
+# the enable sequence cannot leave by itself gets disable voltage.
+_ENABLE_STEP = {
+    State402.SWITCH_ON_DISABLED: int(cia402.Controlword.SHUTDOWN),
+    State402.READY_TO_SWITCH_ON: int(cia402.Controlword.SWITCH_ON),
+    State402.SWITCHED_ON: _CW_ENABLE,
+    State402.OPERATION_ENABLED: _CW_ENABLE,
+}
+ENABLE_STEP = tuple(_ENABLE_STEP.get(State402(s), int(cia402.Controlword.DISABLE_VOLTAGE))
+                    for s in range(-1, 8))
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """Where the drives are: any python-can interface (socketcan, virtual, pcan, ...)."""
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int | None = None  # socketcan ignores it: set it with `ip link`
+
+
+@dataclass(frozen=True)
+class DriveStatus:
+    """A snapshot for status reports and services."""
+    name: str
+    node_id: int
+    phase: str            # WAIT_BOOT, CONFIGURING, STARTING, RESETTING, READY, FAILED
+    cia402_state: str
+    enabled: bool
+    fault: str | None     # the latched fault or start-up failure, None when healthy
+
+
+class _Receiver(can.Listener):
+    """Runs on the Notifier thread: filter by COB-ID, stamp, append. Nothing else."""
+
+    def __init__(self, cob_ids: set[int], sink: collections.deque) -> None:
+        self._ids = frozenset(cob_ids)
+        self._sink = sink
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.arbitration_id in self._ids and not msg.is_error_frame:
+            self._sink.append((time.monotonic(), msg))
+
+    def on_error(self, exc: Exception) -> None:  # keep the Notifier alive
+        pass
+
+
+def _frame(cob_id: int, size: int) -> can.Message:
+    return can.Message(arbitration_id=cob_id, data=bytearray(size), is_extended_id=False)
+
+
+class CanopenHardware:
+    """CiA 402 drives on one CAN bus, cycled by the control loop."""
+
+    def __init__(self, bus: can.BusABC | BusConfig, drives: Sequence[DriveConfig],
+                 manager_node_id: int, dt: float, *,
+                 manager_heartbeat_ms: int = 100, consumer_factor: float = 2.0,
+                 heartbeat_timeout_factor: float = 2.5, tpdo_timeout_cycles: int = 5,
+                 timeouts: Timeouts = Timeouts(), config_workers: int = 4,
+                 on_fault: Callable[[FaultEvent], None] | None = None) -> None:
+        drives = list(drives)
+        check_drives(drives, manager_node_id)
+        if not dt > 0:
+            raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
+        consumer_ms = int(round(manager_heartbeat_ms * consumer_factor))
+        if not 1 <= manager_heartbeat_ms or not consumer_factor > 1 or consumer_ms > 0xFFFF:
+            raise ValueError("manager_heartbeat_ms must be >= 1 and consumer_factor > 1 with "
+                             "their product <= 65535 ms (the drives' heartbeat consumer time); "
+                             f"got {manager_heartbeat_ms} and {consumer_factor}")
+        self.drives_config = drives
+        self.manager_node_id = manager_node_id
+        self.dt = float(dt)
+        self.manager_heartbeat_period = manager_heartbeat_ms / 1000.0
+        self.consumer_ms = consumer_ms
+        self.timeouts = timeouts
+        self.on_fault = on_fault
+        self._bus_arg = bus
+        n = len(drives)
+        names = [d.name for d in drives]
+        self.state = JointState.zeros(names)
+        self.command = JointCommand.zeros(names)
+        self.layouts: list[DriveLayout] = [layout_for(d) for d in drives]
+        self.scaling = Scaling(drives)
+        self.supervisor = Supervisor(drives, tpdo_timeout_cycles, heartbeat_timeout_factor)
+        self._ods = []
+        for d, layout in zip(drives, self.layouts):
+            path = d.eds or str(shipped_eds.path(shipped_eds.CIA402_DRIVE))
+            od = canopen.import_od(path, d.node_id)
+            check_against_od(layout, od, d.name)
+            self._ods.append(od)
+
+        # --- raw bus values, one slot per drive (the codecs read and write these) ---------
+        self._raw = {name: np.zeros(n, dtype=np.int64) for name in
+                     ("statusword", "position", "velocity", "torque",
+                      "target_position", "target_velocity", "target_torque")}
+        self._allowed_modes = np.array(
+            [(1 << JointMode.TORQUE_OFF) | (1 << JointMode.QUICK_STOP)
+             | sum(1 << int(m) for m in d.modes) for d in drives], dtype=np.int64)
+        self._mode_bits = np.zeros(n, dtype=np.int64)
+        self._ones = np.ones(n, dtype=np.int64)
+        self._default_mode = [int(d.modes[0]) for d in drives]
+        self._got = np.zeros(n, dtype=np.int64)             # TPDO bits seen this cycle
+        self._expected = np.array([(1 << len(lay.tpdos)) - 1 for lay in self.layouts],
+                                  dtype=np.int64)
+        self._complete = np.zeros(n, dtype=bool)
+        self._want_since = np.full(n, math.nan)             # commanded cyclic, not enabled yet
+        # Cycles in a row the drive reported operation enabled while we sent enable: a drop
+        # only counts as a fault once it is past the statusword's round-trip lag.
+        self._enabled_cycles = [0] * n
+        self._hb_state = [-1] * n
+        self._hb_time = np.full(n, -math.inf)
+
+        # --- receive tables: COB-ID -> what to do with the frame ---------------------------
+        self._tpdo_of: dict[int, tuple[int, int, Any, tuple[np.ndarray, ...]]] = {}
+        for i, layout in enumerate(self.layouts):
+            for pdo in layout.tpdos:
+                self._tpdo_of[pdo.cob_id] = (i, 1 << (pdo.number - 1), pdo.codec.unpack_from,
+                                             tuple(self._raw[name] for name in pdo.names))
+        self._heartbeat_of = {cia402.HEARTBEAT + d.node_id: i for i, d in enumerate(drives)}
+        self._emcy_of = {cia402.EMCY + d.node_id: i for i, d in enumerate(drives)}
+        self._rx: collections.deque = collections.deque()
+
+        # --- transmit frames, allocated once -------------------------------------------------
+        # Per drive and RPDO: (frame, codec.pack_into, positions of its entries in RPDO_FIELDS)
+        self._rpdo_frames = [[(_frame(p.cob_id, p.size), p.codec.pack_into,
+                               p.positions_in(RPDO_FIELDS)) for p in lay.rpdos]
+                             for lay in self.layouts]
+        self._torque_off_frames = [self._preencode(i, 0) for i in range(n)]
+        self._fault_reset_frames = [self._preencode(i, _CW_FAULT_RESET) for i in range(n)]
+        self._sync = _frame(cia402.SYNC, 0)
+        self._heartbeat = can.Message(arbitration_id=cia402.HEARTBEAT + manager_node_id,
+                                      data=bytearray([cia402.NmtState.OPERATIONAL]),
+                                      is_extended_id=False)
+        self._next_heartbeat = -math.inf
+
+        self._canopen: CanopenBus | None = None
+        self._bringup: list[DriveBringup] = []
+        self._executor: ThreadPoolExecutor | None = None
+        self._manager: Any = None
+        self._recovery: Future | None = None
+        self._recovery_started = False
+        self._recovery_timeout = 5.0
+        self._recovery_deadline = math.inf
+        self._now = 0.0
+        self.fault_events: collections.deque[FaultEvent] = self.supervisor.history
+        self.tx_errors = 0     # frames the bus refused (counted, never raised)
+        self.rx_bad = 0        # frames with a wrong length for their layout
+        self.cycles = 0
+
+    def _preencode(self, i: int, controlword: int) -> list[can.Message]:
+        """Torque-off frames for drive i: controlword, the default mode, every target 0."""
+        values = (controlword, self._default_mode[i], 0, 0, 0)
+        frames = []
+        for pdo in self.layouts[i].rpdos:
+            msg = _frame(pdo.cob_id, pdo.size)
+            pdo.codec.pack_into(msg.data, 0, *(values[k] for k in pdo.positions_in(RPDO_FIELDS)))
+            frames.append(msg)
+        return frames
+
+    # --- life cycle ---------------------------------------------------------------------------
+    def start(self, now: float | None = None) -> None:
+        """Open the bus (unless lent), attach the receiver, begin every drive's bring-up."""
+        if self._canopen is not None:
+            raise RuntimeError("CanopenHardware.start() called twice")
+        now = time.monotonic() if now is None else now
+        if isinstance(self._bus_arg, BusConfig):
+            cfg = self._bus_arg
+            cb = CanopenBus(open_bus(cfg.interface, cfg.channel, cfg.bitrate), own_bus=True)
+        else:
+            cb = CanopenBus(self._bus_arg)
+        self._canopen = cb
+        cob_ids = set(self._tpdo_of) | set(self._heartbeat_of) | set(self._emcy_of)
+        cb.add_listener(_Receiver(cob_ids, self._rx))
+        self._executor = ThreadPoolExecutor(max_workers=max(1, min(4, len(self.drives_config))),
+                                            thread_name_prefix="canopen-config")
+        for d, layout, od in zip(self.drives_config, self.layouts, self._ods):
+            node = cb.network.add_node(d.node_id, od)
+            b = DriveBringup(d, layout, node, self.manager_node_id, self.consumer_ms,
+                             self.timeouts)
+            b.restart(now)
+            self._bringup.append(b)
+        self._now = now
+
+    def close(self) -> None:
+        """Join the configuration workers and the Notifier; shut the bus if opened here."""
+        for b in self._bringup:
+            b.cancel()
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+        if self._canopen is not None:
+            self._canopen.close()
+            self._canopen = None
+        if self._recovery is not None and not self._recovery.done():
+            self._recovery.set_result(False)
+
+    def __enter__(self) -> CanopenHardware:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- manager wiring -------------------------------------------------------------------------
+    def attach(self, manager: Any) -> None:
+        """Route fault events to ``manager.emergency_stop`` (before its update, from read)."""
+        self._manager = manager
+
+    def create_manager(self, **kwargs: Any) -> Any:
+        """A ControllerManager over this hardware with TorqueOff as its failproof layer.
+
+        The failproof layer is not configurable: passing ``failproof`` is a TypeError. The
+        torque-off frames in FAILPROOF do not depend on it anyway (see the module docstring).
+        """
+        from rocoma_can import ControllerManager
+        from rocoma_can.controllers.torque_off import TorqueOff
+        if "failproof" in kwargs:
+            raise TypeError("the CAN hardware layer always installs TorqueOff as failproof "
+                            "controller; it cannot be replaced")
+        if "limit_command" in kwargs:
+            raise TypeError("limit_command is the hardware's own check (modes, NaN, limits)")
+        manager = ControllerManager(TorqueOff(), self.dt, self.state, self.command,
+                                    limit_command=self.limit_command, **kwargs)
+        self.attach(manager)
+        return manager
+
+    def run_cycle(self, now: float | None = None) -> Any:
+        """read, manager.update, write: one whole cycle (needs ``attach``/``create_manager``)."""
+        self.read(time.monotonic() if now is None else now)
+        state = self._manager.update()
+        self.write(state)
+        return state
+
+    # --- the cycle ------------------------------------------------------------------------------
+    def read(self, now: float) -> None:
+        """Drain frames into JointState, step bring-up and recovery, raise fault events."""
+        self._now = now
+        sup = self.supervisor
+        got = self._got
+        got.fill(0)
+        rx = self._rx
+        tpdo_of, heartbeat_of, emcy_of = self._tpdo_of, self._heartbeat_of, self._emcy_of
+        stamp = self.state.stamp
+        while rx:
+            t, msg = rx.popleft()
+            cob = msg.arbitration_id
+            entry = tpdo_of.get(cob)
+            if entry is not None:
+                i, bit, unpack, targets = entry
+                try:
+                    values = unpack(msg.data)
+                except Exception:  # struct.error: a frame shorter than its layout
+                    self.rx_bad += 1
+                    continue
+                for arr, v in zip(targets, values):
+                    arr[i] = v
+                got[i] |= bit
+                stamp[i] = t
+                continue
+            i = heartbeat_of.get(cob)
+            if i is not None:
+                if msg.dlc >= 1:
+                    self._on_heartbeat(i, msg.data[0], t)
+                continue
+            i = emcy_of.get(cob)
+            if i is not None and msg.dlc >= 2:
+                code = msg.data[0] | (msg.data[1] << 8)
+                self.state.error_code[i] = code
+                if code == cia402.EMCY_STO:
+                    self._bringup[i].sto_seen = True
+                sup.on_emcy(i, code, t)
+        np.equal(got, self._expected, out=self._complete)
+        self._decode(now)
+        self._step_bringup(now)
+        sup.tick(now, self._complete, self.state.cia402_state, self.state.error_code)
+        self._step_recovery(now)
+        self._deliver(sup.take_pending())
+        self.cycles += 1
+
+    def _on_heartbeat(self, i: int, nmt_state: int, t: float) -> None:
+        self._hb_state[i] = nmt_state
+        self._hb_time[i] = t
+        self._bringup[i].alive = True
+        self.supervisor.on_heartbeat(i, nmt_state, t)
+
+    def _decode(self, now: float) -> None:
+        s, raw, sc = self.state, self._raw, self.scaling
+        np.copyto(s.fresh, self._complete)
+        sc.decode(raw["position"], sc.position, s.position)
+        sc.decode(raw["velocity"], sc.velocity, s.velocity)
+        sc.decode(raw["torque"], sc.torque, s.torque)
+        np.copyto(s.statusword, raw["statusword"], casting="unsafe")
+        cia402.states_from_statuswords(s.statusword, s.cia402_state)
+        s.time = now
+
+    def _step_bringup(self, now: float) -> None:
+        executor = self._executor
+        if executor is None:
+            return
+        states, fresh, codes = self.state.cia402_state, self._complete, self.state.error_code
+        for i, b in enumerate(self._bringup):
+            if b.phase == Phase.READY or b.phase == Phase.FAILED:
+                continue
+            if b.step(now, executor, bool(fresh[i]), int(states[i]), int(codes[i])):
+                self.supervisor.arm(i, now)
+                self.state.error_code[i] = 0
+
+    def _deliver(self, events: list[FaultEvent]) -> None:
+        for event in events:
+            try:
+                if self._manager is not None:
+                    self._manager.emergency_stop(cause=str(event))
+                if self.on_fault is not None:
+                    self.on_fault(event)
+            except Exception:  # a reporting hook must not take the cycle down
+                pass
+
+    def write(self, manager_state: int) -> None:
+        """Command frames (or torque-off frames in FAILPROOF), then SYNC, then heartbeat."""
+        if int(manager_state) == FAILPROOF:
+            self._torque_off()
+        else:
+            try:
+                self._command_frames()
+            except Exception:  # a bug here must still end in torque-off
+                self.tx_errors += 1
+                self._torque_off()
+        self._send(self._sync)
+        if self._now >= self._next_heartbeat:
+            self._send(self._heartbeat)
+            self._next_heartbeat = self._now + self.manager_heartbeat_period
+
+    def _send(self, msg: can.Message) -> None:
+        try:
+            self._canopen.bus.send(msg, timeout=0)  # type: ignore[union-attr]
+        except Exception:
+            self.tx_errors += 1
+
+    def _torque_off(self) -> None:
+        """FAILPROOF: pre-encoded disable-voltage frames to every configured drive."""
+        for i, b in enumerate(self._bringup):
+            if b.mapped:
+                for msg in (self._fault_reset_frames[i] if b.fault_reset_bit
+                            else self._torque_off_frames[i]):
+                    self._send(msg)
+            self._enabled_cycles[i] = 0
+        self._want_since.fill(math.nan)
+
+    def _command_frames(self) -> None:
+        cmd, raw, sc, sup = self.command, self._raw, self.scaling, self.supervisor
+        sc.encode_position(cmd.position, raw["target_position"])
+        sc.encode_velocity(cmd.velocity, raw["target_velocity"])
+        sc.encode_torque(cmd.torque, raw["target_torque"])
+        modes = cmd.mode.tolist()
+        states = self.state.cia402_state.tolist()
+        tpos = raw["target_position"].tolist()
+        tvel = raw["target_velocity"].tolist()
+        ttrq = raw["target_torque"].tolist()
+        actual = raw["position"].tolist()
+        now = self._now
+        for i, b in enumerate(self._bringup):
+            if not b.mapped:
+                continue
+            if b.phase != Phase.READY or sup.latched[i] is not None:
+                for msg in (self._fault_reset_frames[i] if b.fault_reset_bit
+                            else self._torque_off_frames[i]):
+                    self._send(msg)
+                self._enabled_cycles[i] = 0
+                continue
+            mode, st = modes[i], states[i]
+            if mode in _CYCLIC:
+                if st == _OP_ENABLED:
+                    values = (_CW_ENABLE, mode, tpos[i], tvel[i], ttrq[i])
+                    self._enabled_cycles[i] += 1
+                    self._want_since[i] = math.nan
+                elif self._enabled_cycles[i] >= _DROP_AFTER_CYCLES:
+                    sup.fault(i, f"dropped out of operation enabled (now {State402(st).name})",
+                              now)
+                    values = (0, mode, actual[i], 0, 0)
+                    self._enabled_cycles[i] = 0
+                else:
+                    # Enable step by step; hold the actual position so enabling cannot jump.
+                    values = (ENABLE_STEP[st + 1], mode, actual[i], 0, 0)
+                    self._enabled_cycles[i] = 0
+                    since = self._want_since[i]
+                    if since != since:  # NaN: just started wanting
+                        self._want_since[i] = now
+                    elif now - since > self.timeouts.enable:
+                        sup.fault(i, f"not enabled within {self.timeouts.enable} s (stuck in "
+                                     f"{State402(st).name}; STO input low?)", now)
+            else:
+                cw = _CW_QUICK_STOP if mode == JointMode.QUICK_STOP else 0
+                values = (cw, self._default_mode[i], actual[i], 0, 0)
+                self._enabled_cycles[i] = 0
+                self._want_since[i] = math.nan
+            for msg, pack_into, where in self._rpdo_frames[i]:
+                pack_into(msg.data, 0, *[values[k] for k in where])
+                self._send(msg)
+
+    # --- the manager's limit_command -------------------------------------------------------------
+    def limit_command(self, command: JointCommand) -> bool:
+        """False (-> failure -> e-stop) for a mode a drive is not configured for, or NaN/inf.
+
+        Finite targets are clipped in place to the configured joint limits.
+        """
+        mode = command.mode
+        if int(mode.max()) > 15:
+            return False
+        np.left_shift(self._ones, mode, out=self._mode_bits)
+        np.bitwise_and(self._mode_bits, self._allowed_modes, out=self._mode_bits)
+        if np.count_nonzero(self._mode_bits) != len(self._mode_bits):
+            return False
+        total = float(command.position.sum() + command.velocity.sum() + command.torque.sum())
+        if not math.isfinite(total):
+            return False
+        self.scaling.clip_command(command.position, command.velocity, command.torque)
+        return True
+
+    # --- recovery --------------------------------------------------------------------------------
+    def recover(self, timeout: float = 5.0) -> Future:
+        """Fault reset / restart every faulted or failed drive; Future[bool] says if all came back.
+
+        Runs over the following cycles (never blocks the caller's thread or the cycle). On
+        success the latched faults are cleared and, with a manager attached, its e-stop latch
+        (``clear_emergency_stop``): switching is allowed again.
+        """
+        if self._recovery is not None and not self._recovery.done():
+            return self._recovery
+        future: Future = Future()
+        self._recovery_timeout = timeout
+        self._recovery_started = False
+        self._recovery = future
+        return future
+
+    def _step_recovery(self, now: float) -> None:
+        future = self._recovery
+        if future is None or future.done():
+            return
+        sup = self.supervisor
+        if not self._recovery_started:
+            self._recovery_started = True
+            self._recovery_deadline = now + self._recovery_timeout
+            for i, b in enumerate(self._bringup):
+                if b.phase == Phase.READY and sup.latched[i] is None:
+                    continue
+                sup.disarm(i)
+                sup.clear(i)
+                self.state.error_code[i] = 0
+                hb_ok = (self._hb_state[i] == cia402.NmtState.OPERATIONAL
+                         and now - self._hb_time[i] < sup.heartbeat_timeout[i])
+                if b.phase == Phase.READY and hb_ok:
+                    b.reset_fault(now)
+                elif b.phase != Phase.CONFIGURING:
+                    b.restart(now, probe_at_once=True)
+            return
+        if all(b.phase == Phase.READY for b in self._bringup) and not any(sup.latched):
+            if self._manager is not None:
+                try:
+                    self._manager.clear_emergency_stop()
+                except Exception:
+                    pass
+            future.set_result(True)
+        elif now > self._recovery_deadline or all(
+                b.phase in (Phase.READY, Phase.FAILED) for b in self._bringup):
+            future.set_result(False)
+
+    # --- status --------------------------------------------------------------------------------
+    @property
+    def frames_per_cycle(self) -> int:
+        """RPDOs + TPDOs of every drive + 1 SYNC (the manager heartbeat is not per cycle)."""
+        return sum(lay.frames_per_cycle for lay in self.layouts) + 1
+
+    @property
+    def ready(self) -> np.ndarray:
+        """Per drive: brought up, no latched fault (torque off until a controller enables it)."""
+        return np.array([b.phase == Phase.READY and self.supervisor.latched[i] is None
+                         for i, b in enumerate(self._bringup)], dtype=bool)
+
+    @property
+    def all_ready(self) -> bool:
+        return bool(self._bringup) and bool(self.ready.all())
+
+    @property
+    def starting(self) -> bool:
+        """Some drive is still in bring-up (neither READY nor FAILED)."""
+        return any(b.phase not in (Phase.READY, Phase.FAILED) for b in self._bringup)
+
+    @property
+    def enabled(self) -> np.ndarray:
+        return self.ready & (self.state.cia402_state == State402.OPERATION_ENABLED)
+
+    @property
+    def all_enabled(self) -> bool:
+        return bool(self._bringup) and bool(self.enabled.all())
+
+    def drive_status(self) -> list[DriveStatus]:
+        out = []
+        enabled = self.enabled if self._bringup else np.zeros(len(self.drives_config), bool)
+        for i, d in enumerate(self.drives_config):
+            b = self._bringup[i] if self._bringup else None
+            latched = self.supervisor.latched[i]
+            fault = str(latched.cause) if latched is not None else (b.failure if b else None)
+            out.append(DriveStatus(d.name, d.node_id, b.phase.name if b else "NOT_STARTED",
+                                   State402(int(self.state.cia402_state[i])).name,
+                                   bool(enabled[i]), fault))
+        return out
