@@ -1,0 +1,285 @@
+"""A simulated CAN bus segment: many simulated CiA 402 drives on ONE python-can bus.
+
+One bus (one socket on SocketCAN), one receive thread that dispatches frames by COB-ID, and
+one timer thread for heartbeats, consumer deadlines, late TPDOs and babbling. Both run the
+drives with the segment lock held, so a drive never sees two events at once. Exceptions in
+either thread are caught and kept in ``segment.errors`` (a callback that raised would
+otherwise end a reader thread silently); ``segment.check()`` re-raises the first one.
+
+Time: the joints are integrated on each SYNC over the time since the previous SYNC
+(monotonic, clipped to ``max_dt``), or over a fixed ``sync_period`` when one is given, which
+makes runs deterministic. Without a fixed period the drives keep running between SYNCs too
+(``free_run_period``), so a ramp or a coasting joint continues after the master has died.
+"""
+from __future__ import annotations
+
+import heapq
+import itertools
+import logging
+import threading
+import time
+from typing import Any, Callable, Iterable, Mapping
+
+import can
+import numpy as np
+
+from . import cia402 as c
+from .sim_drive import SimulatedDrive, load_object_dictionary
+from .sim_dynamics import JointDynamics, JointParams
+
+log = logging.getLogger(__name__)
+
+def _default_eds() -> str:
+    from rocoma_can import eds  # the EDS shipped with the package
+    return str(eds.path(eds.CIA402_DRIVE))
+
+
+class _Timers:
+    """Monotonic one-shot timers on one thread (a heap, no thread per timer)."""
+
+    def __init__(self, run: Callable[[Callable[..., Any], tuple], None]) -> None:
+        self._run = run
+        self._heap: list[tuple[float, int, Callable[..., Any], tuple]] = []
+        self._seq = itertools.count()
+        self._cond = threading.Condition()
+        self._stopped = False
+        self._thread = threading.Thread(target=self._loop, name="sim-timers", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        with self._cond:
+            self._stopped = True
+            self._cond.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def call_at(self, when: float, fn: Callable[..., Any], args: tuple) -> None:
+        with self._cond:
+            heapq.heappush(self._heap, (when, next(self._seq), fn, args))
+            self._cond.notify()
+
+    def _loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._stopped:
+                    now = time.monotonic()
+                    if self._heap and self._heap[0][0] <= now:
+                        break
+                    wait = self._heap[0][0] - now if self._heap else 0.5
+                    self._cond.wait(min(wait, 0.5))
+                if self._stopped:
+                    return
+                _, _, fn, args = heapq.heappop(self._heap)
+            self._run(fn, args)
+
+
+class SimulatedSegment:
+    """Simulated CiA 402 drives sharing one python-can bus.
+
+    ``params`` gives the joint physics and loop gains: one JointParams for every drive, or
+    a mapping node id -> JointParams (missing nodes get the defaults).
+    """
+
+    def __init__(self, bus: can.BusABC, node_ids: Iterable[int], eds_path: str | None = None,
+                 params: JointParams | Mapping[int, JointParams] | None = None, *,
+                 sync_period: float | None = None, max_dt: float = 0.05,
+                 free_run_period: float | None = 0.05, seed: int = 0,
+                 own_bus: bool = False) -> None:
+        ids = sorted(set(int(n) for n in node_ids))
+        if not ids:
+            raise ValueError("a simulated segment needs at least one node id")
+        bad = [n for n in ids if not 1 <= n <= 127]
+        if bad:
+            raise ValueError(f"CANopen node ids must be 1..127, got {bad}")
+        if sync_period is not None and not 0 < sync_period <= 1:
+            raise ValueError(f"sync_period must be in (0, 1] s, got {sync_period}")
+        if not 0 < max_dt <= 1:
+            raise ValueError(f"max_dt must be in (0, 1] s, got {max_dt}")
+        self.bus = bus
+        self.node_ids = tuple(ids)
+        self.sync_period = sync_period
+        self.max_dt = max_dt
+        self.free_run_period = free_run_period if sync_period is None else None
+        self.lock = threading.RLock()
+        self.rng = np.random.default_rng(seed)
+        self.errors: list[BaseException] = []
+        self.send_errors = 0
+        self.sync_count = 0
+        self._own_bus = own_bus
+        if isinstance(params, Mapping):
+            joint_params = [params.get(n, JointParams()) for n in ids]
+        else:
+            joint_params = [params or JointParams()] * len(ids)
+        self.dynamics = JointDynamics(joint_params)
+        eds = str(eds_path) if eds_path else _default_eds()
+        self.drives: dict[int, SimulatedDrive] = {
+            n: SimulatedDrive(self, n, j, load_object_dictionary(eds, n))
+            for j, n in enumerate(ids)}
+        self._fixed_routes: dict[int, Callable[[bytes], None]] = {
+            c.SDO_RX + n: d.on_sdo for n, d in self.drives.items()}
+        self._rpdo_routes: dict[int, tuple[SimulatedDrive, Any]] = {}
+        self._rpdo_of_drive: dict[int, dict[int, Any]] = {}
+        self._last_step: float | None = None
+        self._timers = _Timers(self._run_timer)
+        self._stopped = threading.Event()
+        self._rx_thread = threading.Thread(target=self._receive_loop,
+                                           name="sim-segment-rx", daemon=True)
+        self._started = False
+
+    @classmethod
+    def open(cls, channel: str, interface: str = "virtual", node_ids: Iterable[int] = (1,),
+             **kwargs: Any) -> SimulatedSegment:
+        """A segment on its own new bus (shut down with the segment)."""
+        bus = can.Bus(interface=interface, channel=channel, receive_own_messages=False,
+                      ignore_config=True)
+        try:
+            return cls(bus, node_ids, own_bus=True, **kwargs)
+        except BaseException:
+            bus.shutdown()
+            raise
+
+    # ------------------------------------------------------------------ life cycle
+    def start(self) -> SimulatedSegment:
+        """Power on every drive (boot-up frames), then start receiving and the timers."""
+        if self._started:
+            raise RuntimeError("simulated segment already started")
+        self._started = True
+        with self.lock:
+            for drive in self.drives.values():
+                drive.power_on()
+            self._last_step = self.clock()
+        self._rx_thread.start()
+        self._timers.start()
+        if self.free_run_period:
+            self.schedule(self.clock() + self.free_run_period, self._free_run)
+        return self
+
+    def stop(self) -> None:
+        self._stopped.set()
+        self._timers.stop()
+        if self._rx_thread.is_alive():
+            self._rx_thread.join(2.0)
+        if self._own_bus:
+            self.bus.shutdown()
+
+    def __enter__(self) -> SimulatedSegment:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def check(self) -> None:
+        """Re-raise the first exception a segment thread caught, if any."""
+        if self.errors:
+            raise RuntimeError(f"simulated segment failed: {self.errors[0]!r}") from self.errors[0]
+
+    # ------------------------------------------------------------------ services for drives
+    @staticmethod
+    def clock() -> float:
+        return time.monotonic()
+
+    def schedule(self, when: float, fn: Callable[..., Any], *args: Any) -> None:
+        self._timers.call_at(when, fn, args)
+
+    def send(self, cob_id: int, data: bytes) -> None:
+        msg = can.Message(arbitration_id=cob_id, data=data, is_extended_id=False)
+        try:
+            self.bus.send(msg, timeout=0.1)
+        except can.CanError as exc:  # ENOBUFS, bus closed: a real drive just loses it
+            self.send_errors += 1
+            if self.send_errors in (1, 10, 100, 1000):
+                log.warning("simulated segment: send of 0x%03X failed (%d so far): %s",
+                            cob_id, self.send_errors, exc)
+
+    def set_rpdo_routes(self, drive: SimulatedDrive, routes: dict[int, Any]) -> None:
+        for cob_id in self._rpdo_of_drive.get(drive.node_id, {}):
+            self._rpdo_routes.pop(cob_id, None)
+        self._rpdo_of_drive[drive.node_id] = routes
+        for cob_id, pdo in routes.items():
+            self._rpdo_routes[cob_id] = (drive, pdo)
+
+    # ------------------------------------------------------------------ receiving
+    def _receive_loop(self) -> None:
+        while not self._stopped.is_set():
+            try:
+                msg = self.bus.recv(0.05)
+            except Exception as exc:  # noqa: BLE001 - a closed or broken bus
+                if self._stopped.is_set():
+                    return
+                self._record(exc)
+                self._stopped.wait(0.05)
+                continue
+            if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+                continue
+            try:
+                with self.lock:
+                    self._dispatch(msg.arbitration_id, bytes(msg.data))
+            except Exception as exc:  # noqa: BLE001 - keep the segment receiving
+                self._record(exc)
+
+    def _dispatch(self, cob_id: int, data: bytes) -> None:
+        if cob_id == c.NMT:
+            if len(data) >= 2:
+                for node, drive in self.drives.items():
+                    if data[1] in (0, node):
+                        drive.on_nmt(data[0])
+            return
+        if cob_id == c.SYNC:
+            self._on_sync()
+            return
+        route = self._fixed_routes.get(cob_id)
+        if route is not None:
+            route(data)
+            return
+        rpdo = self._rpdo_routes.get(cob_id)
+        if rpdo is not None:
+            rpdo[0].on_rpdo(rpdo[1], data)
+            return
+        if c.HEARTBEAT < cob_id <= c.HEARTBEAT + 0x7F and data:
+            now = self.clock()
+            for drive in self.drives.values():
+                drive.on_heartbeat(cob_id - c.HEARTBEAT, now)
+
+    def _on_sync(self) -> None:
+        self.sync_count += 1
+        self._step(on_sync=True)
+
+    def _step(self, on_sync: bool) -> None:
+        now = self.clock()
+        if on_sync and self.sync_period is not None:
+            dt = self.sync_period
+        else:
+            dt = min(now - (self._last_step or now), self.max_dt)
+        self._last_step = now
+        drives = self.drives.values()
+        for drive in drives:
+            drive.prepare_step(dt, on_sync)
+        self.dynamics.step(dt)
+        for drive in drives:
+            drive.finish_step(on_sync)
+
+    def _free_run(self) -> None:
+        now = self.clock()
+        if self._last_step is None or now - self._last_step >= self.free_run_period:
+            self._step(on_sync=False)
+        self.schedule(now + self.free_run_period, self._free_run)
+
+    def _run_timer(self, fn: Callable[..., Any], args: tuple) -> None:
+        if self._stopped.is_set():
+            return
+        try:
+            with self.lock:
+                fn(*args)
+        except Exception as exc:  # noqa: BLE001 - keep the timers running
+            self._record(exc)
+
+    def _record(self, exc: BaseException) -> None:
+        if len(self.errors) < 100:
+            self.errors.append(exc)
+        log.error("simulated segment: %r", exc, exc_info=exc)
+
+    def status_lines(self) -> list[str]:
+        with self.lock:
+            return [d.status_line() for d in self.drives.values()]
