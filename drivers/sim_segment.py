@@ -106,7 +106,8 @@ class SimulatedSegment:
         self.rng = np.random.default_rng(seed)
         self.errors: list[BaseException] = []
         self.send_errors = 0
-        self.sync_count = 0
+        self.sync_count = 0  # SYNC and NMT frames handled: tests wait on these
+        self.nmt_count = 0
         self._own_bus = own_bus
         if isinstance(params, Mapping):
             joint_params = [params.get(n, JointParams()) for n in ids]
@@ -225,6 +226,7 @@ class SimulatedSegment:
                 for node, drive in self.drives.items():
                     if data[1] in (0, node):
                         drive.on_nmt(data[0])
+            self.nmt_count += 1
             return
         if cob_id == c.SYNC:
             self._on_sync()
@@ -243,8 +245,8 @@ class SimulatedSegment:
                 drive.on_heartbeat(cob_id - c.HEARTBEAT, now)
 
     def _on_sync(self) -> None:
-        self.sync_count += 1
         self._step(on_sync=True)
+        self.sync_count += 1
 
     def _step(self, on_sync: bool) -> None:
         now = self.clock()

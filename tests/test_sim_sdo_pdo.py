@@ -1,0 +1,199 @@
+"""The simulated drive's SDO server and PDOs, driven by a canopen client on another bus."""
+from __future__ import annotations
+
+import struct
+
+import pytest
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
+from rocoma_can.drivers import cia402 as c
+from rocoma_can.drivers.cia402 import Mode, NmtCommand, State402
+
+WRITES = {0x6040: 0x06, 0x6060: int(Mode.CSV), 0x6071: 123, 0x607A: -4567, 0x60FF: 890,
+          0x60B1: 11, 0x60B2: -12, 0x6072: 2500}
+
+
+def test_every_mappable_object_reads_and_writes_by_sdo(sim_bench, sim_interface):
+    bench = sim_bench(2, sim_interface)
+    node, drive = bench.node(2), bench.drive(2)
+    mappable = [v for v in node.object_dictionary.values()
+                if getattr(v, "pdo_mappable", False)]
+    assert {v.index for v in mappable} >= set(WRITES) | {0x6041, 0x6061, 0x6064, 0x606C,
+                                                          0x6077, 0x603F, 0x1001}
+    for var in mappable:
+        assert node.sdo[var.index].raw == drive.od_value(var.index), hex(var.index)
+        if var.index in WRITES:
+            node.sdo[var.index].raw = WRITES[var.index]
+            assert node.sdo[var.index].raw == WRITES[var.index]
+            assert drive.od_value(var.index) == WRITES[var.index]
+        else:
+            assert not var.writable
+            with pytest.raises(SdoAbortedError) as err:
+                node.sdo[var.index].raw = 0
+            assert err.value.code == 0x06010002  # read-only
+    # the writes took effect in the drive, not only in its dictionary
+    assert drive.state402 == State402.READY_TO_SWITCH_ON
+    assert node.sdo[0x6061].raw == Mode.CSV
+    assert node.sdo[0x6041].raw & 0x6F == 0x21
+
+
+def test_sdo_aborts_like_a_real_drive(sim_bench):
+    bench = sim_bench(1)
+    node = bench.node(1)
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x6060].raw = int(Mode.PROFILE_POSITION)  # not in 0x6502
+    assert err.value.code == 0x06090030
+    assert bench.drive().mode_display == Mode.NONE
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo.upload(0x2FFF, 0)
+    assert err.value.code == 0x06020000
+    with pytest.raises(SdoAbortedError) as err:  # wrong length for an UNSIGNED16
+        node.sdo.download(0x6040, 0, b"\x06\x00\x00\x00")
+    assert err.value.code == 0x06070010
+    assert node.sdo[0x1018][2].raw == 0x402
+    bench.nmt(NmtCommand.STOP, 1)
+    node.sdo.RESPONSE_TIMEOUT = 0.2
+    with pytest.raises(SdoCommunicationError):  # no SDO in STOPPED: no answer
+        node.sdo[0x6041].raw
+
+
+def _remap_tpdo1(node, *variables, trans_type=1):
+    node.tpdo.read()
+    pdo = node.tpdo[1]
+    pdo.clear()
+    for index in variables:
+        pdo.add_variable(index)
+    pdo.trans_type = trans_type
+    pdo.enabled = True
+    pdo.save()
+
+
+def test_pdo_remapping_by_sdo_changes_the_tpdo_layout(sim_bench, sim_interface):
+    bench = sim_bench(1, sim_interface)
+    node, rec = bench.node(1), bench.recorder
+    bench.nmt(NmtCommand.START)
+    bench.sync(1)
+    default = rec.wait_for_count(1, 2.0, 0x181)[0]
+    assert len(default.data) == 5  # statusword, mode display, torque actual
+    _remap_tpdo1(node, 0x6064, 0x6041)
+    assert node.sdo[0x1A00][0].raw == 2
+    assert node.sdo[0x1A00][1].raw == 0x60640020
+    mark = rec.mark()
+    bench.sync(1)
+    frame = rec.wait_for_count(1, 2.0, 0x181, since=mark)[0]
+    position, statusword = struct.unpack("<iH", frame.data)
+    assert statusword == bench.drive().statusword
+    assert position == bench.drive().position_increments
+
+
+def test_mapping_rules_of_cia301_are_enforced(sim_bench):
+    node = sim_bench(1).node(1)
+    with pytest.raises(SdoAbortedError) as err:  # mapping of a valid PDO
+        node.sdo[0x1A00][0].raw = 0
+    assert err.value.code == 0x08000022
+    node.sdo[0x1800][1].raw = 0x80000181
+    with pytest.raises(SdoAbortedError) as err:  # entries only while sub 0 is 0
+        node.sdo[0x1A00][1].raw = 0x60640020
+    assert err.value.code == 0x08000022
+    node.sdo[0x1A00][0].raw = 0
+    node.sdo[0x1A00][1].raw = 0x60760020  # rated torque: not mappable
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1A00][0].raw = 1
+    assert err.value.code == 0x06040041
+    for sub, entry in enumerate((0x60640020, 0x606C0020, 0x60410010), start=1):
+        node.sdo[0x1A00][sub].raw = entry
+    with pytest.raises(SdoAbortedError) as err:  # 80 bits
+        node.sdo[0x1A00][0].raw = 3
+    assert err.value.code == 0x06040042
+    node.sdo[0x1800][1].raw = 0x181
+    with pytest.raises(SdoAbortedError) as err:  # COB-ID change of a valid PDO
+        node.sdo[0x1800][1].raw = 0x191
+    assert err.value.code == 0x06090030
+    node.sdo[0x1400][1].raw = 0x80000201
+    node.sdo[0x1600][0].raw = 0
+    node.sdo[0x1600][1].raw = 0x60410010
+    with pytest.raises(SdoAbortedError) as err:  # statusword is read-only: not in an RPDO
+        node.sdo[0x1600][0].raw = 1
+    assert err.value.code == 0x06040041
+
+
+def test_rpdos_only_in_operational_and_remappable(sim_bench, sim_interface):
+    bench = sim_bench(1, sim_interface)
+    node, drive = bench.node(1), bench.drive()
+    node.rpdo.read()
+    pdo = node.rpdo[1]
+    pdo.clear()
+    pdo.add_variable(0x6040)
+    pdo.add_variable(0x60FF)
+    pdo.trans_type = 255
+    pdo.enabled = True
+    pdo.save()
+    node.sdo[0x6060].raw = int(Mode.CSV)
+    frame = struct.pack("<Hi", 0x06, 1000)
+    bench.send(0x201, frame)
+    bench.sync(1)  # the RPDO was sent before: the segment has seen it by now
+    assert drive.state402 == State402.SWITCH_ON_DISABLED  # PRE-OPERATIONAL: ignored
+    bench.nmt(NmtCommand.START)
+    for cw in (0x06, 0x07, 0x0F):
+        bench.send(0x201, struct.pack("<Hi", cw, 1000))
+    bench.sync(1)
+    assert drive.state402 == State402.OPERATION_ENABLED
+    assert drive.od_value(c.TARGET_VELOCITY) == 1000
+
+
+def test_synchronous_rpdo_takes_effect_at_the_next_sync(sim_bench):
+    bench = sim_bench(1)
+    node, drive = bench.node(1), bench.drive()
+    node.sdo[0x1400][2].raw = 1
+    bench.nmt(NmtCommand.START)
+    bench.send(0x201, struct.pack("<HbH", 0x06, int(Mode.CST), 0))
+    bench.send(0x600 + 1, bytes((0x40, 0x41, 0x60, 0, 0, 0, 0, 0)))  # any frame after it
+    bench.wait(lambda: bench.recorder.count(0x581) >= 1, what="SDO answer")
+    assert drive.state402 == State402.SWITCH_ON_DISABLED
+    bench.sync(1)
+    assert drive.state402 == State402.READY_TO_SWITCH_ON
+    assert drive.mode_display == Mode.CST
+
+
+def test_short_rpdo_gives_emcy_8210(sim_bench):
+    bench = sim_bench(1)
+    bench.nmt(NmtCommand.START)
+    bench.send(0x201, b"\x06\x00")  # mapping is 5 bytes
+    frame = bench.recorder.wait_for(lambda f: f.cob_id == 0x81, 2.0)
+    assert struct.unpack("<HB5s", frame.data)[0] == c.EMCY_PDO_LENGTH
+    assert bench.drive().state402 == State402.SWITCH_ON_DISABLED
+
+
+def test_transmission_type_n_sends_every_nth_sync(sim_bench):
+    bench = sim_bench(1)
+    node, rec = bench.node(1), bench.recorder
+    node.sdo[0x1801][2].raw = 3
+    bench.nmt(NmtCommand.START)
+    bench.sync(9)
+    rec.wait_for_count(9, 2.0, 0x181)
+    rec.wait_for_count(3, 2.0, 0x281)
+    bench.nmt(NmtCommand.PRE_OPERATIONAL)
+    mark = rec.mark()
+    bench.sync(3)
+    bench.nmt(NmtCommand.START)  # a frame after the SYNCs: the recorder has seen them
+    bench.sync(1)
+    rec.wait_for_count(1, 2.0, 0x181, since=mark)
+    assert rec.count((0x181, 0x281), since=mark) == 1  # none while PRE-OPERATIONAL
+
+
+def test_event_driven_tpdo_on_state_change(sim_bench):
+    bench = sim_bench(1)
+    node, rec = bench.node(1), bench.recorder
+    node.sdo[0x1802][1].raw = 0x80000381
+    node.sdo[0x1A02][0].raw = 0
+    node.sdo[0x1A02][1].raw = 0x60410010
+    node.sdo[0x1A02][0].raw = 1
+    node.sdo[0x1802][2].raw = 255
+    node.sdo[0x1802][1].raw = 0x381
+    bench.nmt(NmtCommand.START)
+    for cw in (0x06, 0x07, 0x0F):
+        node.sdo[0x6040].raw = cw
+    frames = rec.wait_for_count(4, 2.0, 0x381)
+    states = [c.state_from_statusword(struct.unpack("<H", f.data)[0]) for f in frames]
+    assert states == [State402.SWITCH_ON_DISABLED, State402.READY_TO_SWITCH_ON,
+                      State402.SWITCHED_ON, State402.OPERATION_ENABLED]
