@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from typing import Any, Callable
+
+import numpy as np
 
 from .interfaces import Controller, EmergencyController, FailproofController, SwapState
 
@@ -19,16 +22,22 @@ StateCheck = Callable[[Any], bool]
 
 
 class CallStats:
-    """Duration of one kind of call, in nanoseconds."""
-    __slots__ = ("count", "last_ns", "max_ns", "total_ns")
+    """Duration of one kind of call, in nanoseconds; with a window, also the p99 of the
+    latest ``window`` calls (a preallocated ring, so recording allocates nothing)."""
+    __slots__ = ("count", "last_ns", "max_ns", "total_ns", "_ring", "_mask")
 
-    def __init__(self) -> None:
+    def __init__(self, window: int = 0) -> None:
         self.count = 0
         self.last_ns = 0
         self.max_ns = 0
         self.total_ns = 0
+        size = 1 << max(0, window - 1).bit_length() if window else 0
+        self._ring = np.zeros(size, dtype=np.int64) if size else None
+        self._mask = size - 1
 
     def add(self, ns: int) -> None:
+        if self._ring is not None:
+            self._ring[self.count & self._mask] = ns
         self.count += 1
         self.last_ns = ns
         self.total_ns += ns
@@ -38,6 +47,29 @@ class CallStats:
     @property
     def mean_ns(self) -> float:
         return self.total_ns / self.count if self.count else 0.0
+
+    @property
+    def p99_ns(self) -> float:
+        if self._ring is None or not self.count:
+            return float(self.max_ns)
+        return float(np.percentile(self._ring[:min(self.count, len(self._ring))], 99))
+
+    def summary(self) -> dict[str, float]:
+        return {"count": self.count, "mean_us": self.mean_ns / 1e3, "p99_us": self.p99_ns / 1e3,
+                "max_us": self.max_ns / 1e3, "last_us": self.last_ns / 1e3}
+
+
+@dataclass(frozen=True)
+class TimingBudget:
+    """Timing supervision of one controller, in nanoseconds (0 = not supervised).
+
+    An advance over ``advance_ns`` ``overruns`` times in a row, or once over ``hang_ns``,
+    is a failure; so is an initialize_fast over ``initialize_fast_ns``.
+    """
+    advance_ns: int = 0
+    initialize_fast_ns: int = 0
+    overruns: int = 3
+    hang_ns: int = 0
 
 
 def _describe(result: Any) -> str:
@@ -86,11 +118,14 @@ class ControllerAdapter(_Adapter):
 
     def __init__(self, controller: Controller, report: Report,
                  check_state: StateCheck | None = None,
-                 limit_command: StateCheck | None = None) -> None:
+                 limit_command: StateCheck | None = None,
+                 budget: TimingBudget = TimingBudget()) -> None:
         super().__init__(controller, report)
         self._check_state = check_state
         self._limit_command = limit_command
-        self._advance_stats = self.stats["advance"]
+        self.budget = budget
+        self.overruns_in_a_row = 0
+        self._advance_stats = self.stats["advance"] = CallStats(window=4096)
         self.running = False         # the manager advances it
         self.being_stopped = False   # handed over to be stopped, stop not yet returned
         self.pre_stopped = False     # pre_stop ran for the current activation
@@ -121,7 +156,8 @@ class ControllerAdapter(_Adapter):
             return None
 
     def advance(self, dt: float) -> bool:
-        """The hot path: state check, advance, command limit. No allocation on success."""
+        """The hot path: state check, advance, command limit, timing budget.
+        No allocation on success."""
         controller = self.controller
         t0 = time.perf_counter_ns()
         try:
@@ -132,11 +168,27 @@ class ControllerAdapter(_Adapter):
                 return self._fail("advance", _describe(result))
             if self._limit_command is not None and not self._limit_command(controller.command):
                 return self._fail("advance", "wrote a command that limit_command rejected")
-            return True
         except Exception as exc:
             return self._fail("advance", f"raised {exc!r}", exc)
         finally:
-            self._advance_stats.add(time.perf_counter_ns() - t0)
+            ns = time.perf_counter_ns() - t0
+            self._advance_stats.add(ns)
+        return self._within_budget(ns)
+
+    def _within_budget(self, ns: int) -> bool:
+        budget = self.budget
+        if not budget.advance_ns or ns <= budget.advance_ns:
+            self.overruns_in_a_row = 0
+            return True
+        self.overruns_in_a_row += 1
+        if budget.hang_ns and ns > budget.hang_ns:
+            return self._fail("advance", f"hung for {ns / 1e6:.1f} ms "
+                              f"(limit {budget.hang_ns / 1e6:.1f} ms)")
+        if self.overruns_in_a_row >= budget.overruns:
+            return self._fail("advance", f"over its budget of {budget.advance_ns / 1e3:.0f} us "
+                              f"{self.overruns_in_a_row} cycles in a row "
+                              f"(last {ns / 1e3:.0f} us)")
+        return True
 
     def pre_stop(self) -> bool:
         self.pre_stopped = True
@@ -168,8 +220,13 @@ class EmergencyControllerAdapter(ControllerAdapter):
     controller: EmergencyController
 
     def initialize_fast(self, dt: float) -> bool:
-        return self._set_initialized(
-            self._call("initialize_fast", self.controller.initialize_fast, dt))
+        ok = self._call("initialize_fast", self.controller.initialize_fast, dt)
+        limit = self.budget.initialize_fast_ns
+        took = self.stats["initialize_fast"].last_ns
+        if ok and limit and took > limit:
+            ok = self._fail("initialize_fast", f"took {took / 1e3:.0f} us, over its budget of "
+                            f"{limit / 1e3:.0f} us")
+        return self._set_initialized(ok)
 
 
 class FailproofControllerAdapter(_Adapter):

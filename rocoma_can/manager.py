@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from .adapters import (ControllerAdapter, EmergencyControllerAdapter,
-                       FailproofControllerAdapter, StateCheck)
+                       FailproofControllerAdapter, StateCheck, TimingBudget)
 from .events import EventDispatcher, EventKind, ManagerEvent, ManagerState, Subscriber
 from .interfaces import Controller, EmergencyController, FailproofController
 from .workers import WorkerManager
@@ -55,6 +55,29 @@ class ManagerTimeouts:
     being_stopped: float = 5.0  # a switch waits this long for the new controller's stop
     switch: float = 60.0        # switch_controller() waits this long for the result
     shutdown: float = 5.0       # shutdown waits this long for stops and for each thread
+
+
+@dataclass
+class TimingSupervision:
+    """What rocoma left to the user ("make sure you have no deadlocks"), supervised.
+
+    Budgets are fractions of dt; a controller may set its own ``advance_budget`` (seconds).
+    A controller over its advance budget ``overruns`` cycles in a row, or an emergency
+    controller whose initialize_fast overruns, has failed. An update() that has not returned
+    after ``hang`` × dt is hung: the watchdog thread calls ``on_hang`` every dt until it
+    returns (the CAN layer sends the failproof torque-off frames from there), and the hung
+    advance counts as a failure when it finally returns.
+    """
+    advance: float = 0.5
+    initialize_fast: float = 0.5
+    overruns: int = 3
+    hang: float = 20.0
+
+    def budget_for(self, controller: Any, dt: float) -> TimingBudget:
+        advance = getattr(controller, "advance_budget", None) or self.advance * dt
+        return TimingBudget(advance_ns=int(advance * 1e9),
+                            initialize_fast_ns=int(self.initialize_fast * dt * 1e9),
+                            overruns=self.overruns, hang_ns=int(self.hang * dt * 1e9))
 
 
 @dataclass
@@ -109,7 +132,9 @@ class ControllerManager:
                  command: Any = None, *, estop_must_be_cleared: bool = False,
                  check_state: StateCheck | None = None,
                  limit_command: StateCheck | None = None,
-                 timeouts: ManagerTimeouts | None = None, name: str = "rocoma") -> None:
+                 timeouts: ManagerTimeouts | None = None,
+                 timing: TimingSupervision | None = TimingSupervision(),
+                 on_hang: Callable[[], None] | None = None, name: str = "rocoma") -> None:
         if not isinstance(failproof, FailproofController):
             raise TypeError(f"failproof must be a FailproofController, got {failproof!r}")
         if not dt > 0:
@@ -122,6 +147,10 @@ class ControllerManager:
         self._must_clear = estop_must_be_cleared
         self._check_state = check_state
         self._limit_command = limit_command
+        self.timing = timing
+        self._on_hang = on_hang
+        self.hang_calls = 0       # how often on_hang ran while update() was stuck
+        self._update_started = 0.0  # monotonic start of the update() in progress, else 0
 
         self._events = EventDispatcher(name)
         self._failproof = FailproofControllerAdapter(failproof, self._events.log)
@@ -149,6 +178,12 @@ class ControllerManager:
         self._switcher = threading.Thread(target=self._run_switcher, daemon=True,
                                           name=f"{name}/switcher")
         self._switcher.start()
+        self._watchdog_stop = threading.Event()
+        self._watchdog = None
+        if timing is not None and timing.hang > 0:
+            self._watchdog = threading.Thread(target=self._run_watchdog, daemon=True,
+                                              name=f"{name}/watchdog")
+            self._watchdog.start()
 
     # --- set-up ---------------------------------------------------------------------------
     def _attach(self, controller: Any) -> None:
@@ -187,7 +222,8 @@ class ControllerManager:
                               "controller %r not added", emergency.name, name)
                     return False
                 emcy_adapter = EmergencyControllerAdapter(
-                    emergency, self._events.log, self._check_state, self._limit_command)
+                    emergency, self._events.log, self._check_state, self._limit_command,
+                    self._budget_for(emergency))
                 self._attach(emergency)
                 if not emcy_adapter.create(self.dt):
                     log.error("emergency controller %r could not be created (%s); "
@@ -198,8 +234,8 @@ class ControllerManager:
                 log.warning("a second emergency controller named %r was dropped; "
                             "the first instance is shared", emergency.name)
 
-        adapter = ControllerAdapter(controller, self._events.log,
-                                    self._check_state, self._limit_command)
+        adapter = ControllerAdapter(controller, self._events.log, self._check_state,
+                                    self._limit_command, self._budget_for(controller))
         self._attach(controller)
         if not adapter.create(self.dt):
             log.error("controller %r could not be created: %s", name, adapter.failure)
@@ -208,30 +244,42 @@ class ControllerManager:
         self._stoppers.grow_to(len(self._pairs) + len(self._emergencies))
         return True
 
+    def _budget_for(self, controller: Any) -> TimingBudget:
+        if self.timing is None:
+            return TimingBudget()
+        return self.timing.budget_for(controller, self.dt)
+
     # --- the cycle ------------------------------------------------------------------------
     def update(self) -> ManagerState:
         """One control cycle; returns the layer that wrote this cycle's command."""
         with self._cycle_lock:
-            self.cycle_count += 1
-            if self._requests:
-                self._apply_requests()
-            dt = self.dt
-            while True:  # a failure falls through to the next layer within this call
-                state = self._state
-                if state is ManagerState.OK:
-                    adapter = self._active.controller
-                    if adapter.advance(dt):
-                        break
-                    self._estop(False, adapter.failure)
-                elif state is ManagerState.EMERGENCY:
-                    adapter = self._active.emergency
-                    if adapter.advance(dt):
-                        break
-                    self._estop(True, adapter.failure)
-                else:
-                    self._failproof.advance(dt)
+            self._update_started = time.monotonic()
+            try:
+                return self._update()
+            finally:
+                self._update_started = 0.0
+
+    def _update(self) -> ManagerState:
+        self.cycle_count += 1
+        if self._requests:
+            self._apply_requests()
+        dt = self.dt
+        while True:  # a failure falls through to the next layer within this call
+            state = self._state
+            if state is ManagerState.OK:
+                adapter = self._active.controller
+                if adapter.advance(dt):
                     break
-            return self._state
+                self._estop(False, adapter.failure)
+            elif state is ManagerState.EMERGENCY:
+                adapter = self._active.emergency
+                if adapter.advance(dt):
+                    break
+                self._estop(True, adapter.failure)
+            else:
+                self._failproof.advance(dt)
+                break
+        return self._state
 
     def _estop(self, to_failproof: bool, cause: str) -> None:
         """Fall one layer (or to failproof). Update thread only, cycle lock held.
@@ -271,6 +319,27 @@ class ControllerManager:
         if not adapter.being_stopped:  # else its stop is owned by a switch in progress
             adapter.being_stopped = True
             self._stoppers.hand_over(adapter)
+
+    def _run_watchdog(self) -> None:
+        """Torque off through on_hang while an update() is stuck (a hung advance)."""
+        hang = self.timing.hang * self.dt
+        reported = 0.0
+        while not self._watchdog_stop.wait(hang / 4):
+            started = self._update_started
+            while started and started == self._update_started \
+                    and time.monotonic() - started > hang:
+                if reported != started:
+                    reported = started
+                    self._events.log(logging.ERROR, f"update() stuck for more than "
+                                     f"{hang * 1e3:.1f} ms: commanding torque-off", None)
+                if self._on_hang is not None:
+                    self.hang_calls += 1
+                    try:
+                        self._on_hang()
+                    except Exception as exc:  # keep trying: this is the last line
+                        self._events.log(logging.ERROR, f"on_hang raised {exc!r}", exc)
+                if self._watchdog_stop.wait(self.dt):
+                    return
 
     # --- e-stop requests (any thread) -----------------------------------------------------
     def emergency_stop(self, cause: str = "request") -> None:
@@ -439,6 +508,11 @@ class ControllerManager:
         self._emit(EventKind.STATE_CHANGED)
         self._emit(EventKind.ACTIVE_CONTROLLER_CHANGED)
 
+    def statistics(self) -> dict[str, dict[str, dict[str, float]]]:
+        """Call durations per controller and call (count, mean, p99, max, last in µs)."""
+        return {name: {call: st.summary() for call, st in adapter.stats.items() if st.count}
+                for name, adapter in self.adapters().items()}
+
     def adapters(self) -> dict[str, Any]:
         """Every registered controller's adapter by name (flags and call statistics)."""
         out: dict[str, Any] = {p.controller.name: p.controller for p in self._pairs.values()}
@@ -479,9 +553,11 @@ class ControllerManager:
                 ok = adapter.cleanup() and ok
         self._switch_jobs.put(None)
         self._switcher.join(limit)
+        self._watchdog_stop.set()
+        if self._watchdog is not None:
+            self._watchdog.join(limit)
         stuck = self._stoppers.close(limit)
-        if self._switcher.is_alive():
-            stuck.append(self._switcher.name)
+        stuck += [t.name for t in (self._switcher, self._watchdog) if t is not None and t.is_alive()]
         if not self._events.close(limit):
             stuck.append(f"{self.name}/events")
         for thread_name in stuck:

@@ -1,0 +1,132 @@
+"""Timing supervision: budgets, overruns in a row, a hung advance, no false trips."""
+from __future__ import annotations
+
+import threading
+import time
+
+from manager_probes import CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
+from rocoma_can import (ControllerManager, EventKind, ManagerState, SwitchResult,
+                        TimingSupervision)
+
+OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
+DT = 0.01  # budgets: advance 5 ms, initialize_fast 5 ms, hang 200 ms
+
+
+def manager(journal, **kwargs):
+    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=DT, command=CommandLog(),
+                            timing=TimingSupervision(advance=0.5, initialize_fast=0.5,
+                                                     overruns=3, hang=20), **kwargs)
+    journal.manager = mgr
+    return mgr
+
+
+def test_advance_over_budget_k_times_in_a_row_is_a_failure():
+    journal = Journal(update_thread=threading.get_ident())
+    with manager(journal) as mgr:
+        a = Probe("a", journal)
+        mgr.add_controller(a, emergency=EmergencyProbe("e", journal))
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        a.delay["advance"] = 2 * 0.5 * DT  # always twice the budget
+        assert [mgr.update() for _ in range(3)] == [OK, OK, EMERGENCY]
+        assert "over its budget" in mgr.adapters()["a"].failure
+
+
+def test_an_overrun_streak_is_reset_by_a_cycle_within_budget():
+    journal = Journal(update_thread=threading.get_ident())
+    with manager(journal) as mgr:
+        a = Probe("a", journal)
+        mgr.add_controller(a)
+        mgr.switch_controller("a")
+        for _ in range(4):
+            a.delay["advance"] = DT
+            assert mgr.update() is OK
+            assert mgr.update() is OK
+            a.delay.pop("advance")
+            assert mgr.update() is OK
+
+
+def test_slow_initialize_fast_goes_failproof():
+    journal = Journal(update_thread=threading.get_ident())
+    with manager(journal) as mgr:
+        e = EmergencyProbe("e", journal, delay={"initialize_fast": DT})
+        mgr.add_controller(Probe("a", journal), emergency=e)
+        mgr.switch_controller("a")
+        mgr.emergency_stop()
+        assert mgr.update() is FAILPROOF
+        assert "over its budget" in mgr.adapters()["e"].failure
+
+
+def test_a_controller_may_set_its_own_advance_budget():
+    journal = Journal(update_thread=threading.get_ident())
+    with manager(journal) as mgr:
+        a = Probe("a", journal)
+        a.advance_budget = 4 * DT
+        mgr.add_controller(a)
+        mgr.switch_controller("a")
+        a.delay["advance"] = DT
+        assert [mgr.update() for _ in range(4)] == [OK] * 4
+
+
+def test_hung_advance_torques_off_through_the_watchdog_then_falls_through():
+    journal = Journal(update_thread=threading.get_ident())
+    hang_calls_before_return = []
+    release = threading.Event()
+
+    def on_hang():  # the CAN layer sends the failproof frames here
+        hang_calls_before_return.append(time.monotonic())
+        if len(hang_calls_before_return) >= 3:
+            release.set()
+
+    with manager(journal, on_hang=on_hang) as mgr:
+        a = Probe("a", journal)
+        mgr.add_controller(a, emergency=EmergencyProbe("e", journal))
+        mgr.switch_controller("a")
+        assert mgr.update() is OK
+        a.gates["advance"] = release  # advance blocks until on_hang ran three times
+        assert mgr.update() is EMERGENCY  # the hung advance failed when it returned
+        assert len(hang_calls_before_return) >= 3
+        assert "hung for" in mgr.adapters()["a"].failure
+        calls = len(hang_calls_before_return)
+        assert mgr.update() is EMERGENCY
+        time.sleep(30 * DT)
+        assert len(hang_calls_before_return) == calls  # quiet once update() returns
+
+
+def test_no_false_trips_in_a_10_s_run_of_a_normal_controller():
+    journal = Journal()
+    events = []
+    dt = 0.001
+    with ControllerManager(FailproofProbe("failproof", journal), dt=dt,
+                           command=CommandLog()) as mgr:
+        journal.manager = mgr
+        mgr.subscribe(lambda ev: events.append(ev) if ev.kind is EventKind.EMERGENCY_STOP
+                      else None)
+        mgr.add_controller(Probe("a", journal), emergency=EmergencyProbe("e", journal))
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        end = time.monotonic() + 10.0
+        next_t = time.monotonic()
+        states = set()
+        while time.monotonic() < end:
+            mgr.command_object.clear()
+            states.add(mgr.update())
+            next_t += dt
+            time.sleep(max(0.0, next_t - time.monotonic()))
+        assert states == {OK}
+        stats = mgr.statistics()["a"]["advance"]
+        assert stats["count"] == mgr.cycle_count
+        assert 0 < stats["mean_us"] <= stats["p99_us"] <= stats["max_us"]
+    assert [ev.cause for ev in events] == ["shutdown"]  # nothing tripped before it
+    assert journal.manager.hang_calls == 0
+
+
+def test_without_supervision_slow_advances_are_tolerated():
+    journal = Journal(update_thread=threading.get_ident())
+    with ControllerManager(FailproofProbe("failproof", journal), dt=DT, command=CommandLog(),
+                           timing=None) as mgr:
+        journal.manager = mgr
+        a = Probe("a", journal, delay={"advance": DT})
+        mgr.add_controller(a)
+        mgr.switch_controller("a")
+        assert [mgr.update() for _ in range(5)] == [OK] * 5
+        assert not [t for t in threading.enumerate() if t.name == "rocoma/watchdog"]
+
