@@ -379,8 +379,8 @@ class SimulatedDrive:
         self._hb_deadline[node] = now + period
         if node in self._hb_lost:
             self._hb_lost.discard(node)
-            self._error_register &= ~ERROR_REGISTER_BIT[0x8]
             if not self._errors_active():
+                self._error_register = 0
                 self._emcy(c.EMCY_NO_ERROR)
         if node not in self._hb_armed:  # monitoring starts with the first heartbeat
             self._hb_armed.add(node)

@@ -1,0 +1,154 @@
+"""NMT, boot-up, heartbeat producer and heartbeat consumer (0x1016 / 0x6007 / 0x1029)."""
+from __future__ import annotations
+
+import struct
+import time
+
+import pytest
+
+from rocoma_can.drivers import cia402 as c
+from rocoma_can.drivers.cia402 import AbortConnectionOption, Mode, NmtCommand, NmtState, State402
+
+MASTER = 0x7F
+
+
+def _heartbeats(rec, node, since=0):
+    return [f.data for f in rec.frames(0x700 + node, since=since)]
+
+
+def test_boot_up_then_heartbeats_in_pre_operational(sim_bench, sim_interface):
+    bench = sim_bench([3, 5], sim_interface)
+    rec = bench.recorder
+    for node in (3, 5):
+        frames = rec.wait_for_count(2, 2.0, 0x700 + node)
+        assert [f.data for f in frames] == [b"\x00", b"\x7f"]
+        assert bench.drive(node).nmt_state == NmtState.PRE_OPERATIONAL
+
+
+def test_nmt_transitions_addressed_and_broadcast(sim_bench, sim_interface):
+    bench = sim_bench(2, sim_interface)
+    rec = bench.recorder
+    bench.nmt(NmtCommand.START, 2)
+    assert [bench.drive(n).nmt_state for n in (1, 2)] == [NmtState.PRE_OPERATIONAL,
+                                                          NmtState.OPERATIONAL]
+    mark = rec.mark()
+    rec.wait_for(lambda f: f.cob_id == 0x702 and f.data == b"\x05", 2.0, since=mark)
+    bench.nmt(NmtCommand.STOP, 0)
+    assert [bench.drive(n).nmt_state for n in (1, 2)] == [NmtState.STOPPED] * 2
+    mark = rec.mark()
+    rec.wait_for(lambda f: f.cob_id == 0x701 and f.data == b"\x04", 2.0, since=mark)
+    bench.nmt(NmtCommand.PRE_OPERATIONAL, 0)
+    bench.nmt(NmtCommand.START, 0)
+    assert [bench.drive(n).nmt_state for n in (1, 2)] == [NmtState.OPERATIONAL] * 2
+
+
+def test_reset_node_and_reset_communication_boot_again(sim_bench):
+    bench = sim_bench(1)
+    node, drive, rec = bench.node(1), bench.drive(1), bench.recorder
+    node.sdo[0x1017].raw = 0
+    node.sdo[0x6072].raw = 1234
+    bench.nmt(NmtCommand.START)
+    mark = rec.mark()
+    bench.nmt(NmtCommand.RESET_COMMUNICATION, 1)
+    assert rec.wait_for_count(1, 2.0, 0x701, since=mark)[0].data == b"\x00"
+    assert drive.nmt_state == NmtState.PRE_OPERATIONAL
+    assert node.sdo[0x1017].raw == 100  # communication objects back to defaults
+    assert node.sdo[0x6072].raw == 1234  # application objects kept
+    node.sdo[0x6040].raw = 0x06
+    assert drive.state402 == State402.READY_TO_SWITCH_ON
+    mark = rec.mark()
+    bench.nmt(NmtCommand.RESET_NODE, 0)
+    assert rec.wait_for_count(1, 2.0, 0x701, since=mark)[0].data == b"\x00"
+    assert node.sdo[0x6072].raw == 3000  # everything back to defaults
+    assert drive.state402 == State402.SWITCH_ON_DISABLED
+
+
+def test_heartbeat_period_within_20_percent(sim_bench, sim_interface):
+    bench = sim_bench(1, sim_interface)
+    node, rec = bench.node(1), bench.recorder
+    node.sdo[0x1017].raw = 40
+    mark = rec.mark()
+    frames = rec.wait_for_count(11, 5.0, 0x701, since=mark)
+    # the producer runs on absolute deadlines: the mean over 10 periods is robust to jitter
+    mean = (frames[-1].time - frames[1].time) / 9
+    assert 0.032 <= mean <= 0.048, mean
+    node.sdo[0x1017].raw = 0
+    time.sleep(0.05)
+    mark = rec.mark()
+    bench.nmt(NmtCommand.START)  # the recorder has seen everything sent before this
+    bench.sync(1)
+    rec.wait_for_count(1, 2.0, 0x181, since=mark)
+    assert rec.count(0x701, since=mark) == 0
+
+
+def _consume_master(bench, ms, option):
+    node = bench.node(1)
+    node.sdo[0x1016][1].raw = (MASTER << 16) | ms
+    node.sdo[0x6007].raw = int(option)
+    bench.enable(1, Mode.CST)
+
+
+def _beat(bench, count, period):
+    for _ in range(count):
+        bench.send(0x700 + MASTER, b"\x05")
+        time.sleep(period)
+
+
+def test_master_heartbeat_loss_disables_voltage(sim_bench, sim_interface):
+    bench = sim_bench(1, sim_interface)
+    drive, rec = bench.drive(1), bench.recorder
+    _consume_master(bench, 150, AbortConnectionOption.DISABLE_VOLTAGE)
+    time.sleep(0.3)  # no heartbeat seen yet: monitoring has not started
+    assert drive.state402 == State402.OPERATION_ENABLED
+    mark = rec.mark()
+    _beat(bench, 10, 0.03)
+    last = rec.wait_for_count(10, 2.0, 0x77F, since=mark)[-1].time
+    assert rec.count(0x81, since=mark) == 0  # no false trip while the master is alive
+    emcy = rec.wait_for(lambda f: f.cob_id == 0x81, 3.0, since=mark)
+    code, register, vendor = struct.unpack("<HB5s", emcy.data)
+    assert (code, register & 0x11, vendor) == (c.EMCY_HEARTBEAT, 0x11, bytes(5))
+    # consumer time + one master period, with slack for a loaded 2-core machine
+    assert 0.150 <= emcy.time - last <= 0.150 + 0.030 + 0.3
+    bench.wait(lambda: drive.state402 == State402.SWITCH_ON_DISABLED, 1.0, "0x6007 reaction")
+    assert drive.nmt_state == NmtState.PRE_OPERATIONAL  # 0x1029:1 = 0
+    # the master is back: the communication error clears with EMCY 0x0000
+    mark = rec.mark()
+    _beat(bench, 1, 0)
+    emcy = rec.wait_for(lambda f: f.cob_id == 0x81, 2.0, since=mark)
+    assert emcy.data == bytes(8)
+
+
+def test_master_heartbeat_loss_with_option_fault(sim_bench):
+    bench = sim_bench(1)
+    drive, rec = bench.drive(1), bench.recorder
+    bench.node(1).sdo[0x1029][1].raw = 1  # no NMT change on a communication error
+    _consume_master(bench, 60, AbortConnectionOption.FAULT)
+    mark = rec.mark()
+    _beat(bench, 2, 0.02)
+    rec.wait_for(lambda f: f.cob_id == 0x81, 3.0, since=mark)
+    bench.sync(2)  # fault reaction ramps down on SYNC, then FAULT
+    bench.wait(lambda: drive.state402 == State402.FAULT, 2.0, "FAULT")
+    assert rec.count(0x81, since=mark) == 1
+    assert drive.error_code == c.EMCY_HEARTBEAT
+    assert drive.nmt_state == NmtState.OPERATIONAL
+
+
+def test_master_heartbeat_loss_with_option_quick_stop(sim_bench):
+    bench = sim_bench(1)
+    drive, node = bench.drive(1), bench.node(1)
+    _consume_master(bench, 60, AbortConnectionOption.QUICK_STOP)
+    node.sdo[0x6071].raw = 500
+    bench.sync(50)
+    assert drive.velocity_rad_s > 1.0
+    _beat(bench, 1, 0)
+    bench.wait(lambda: drive.state402 == State402.QUICK_STOP_ACTIVE, 2.0, "quick stop")
+    bench.sync(400)  # ramp with 0x6085 on each SYNC, then switch on disabled (0x605A = 2)
+    assert drive.state402 == State402.SWITCH_ON_DISABLED
+    assert abs(drive.velocity_rad_s) < 0.05
+
+
+def test_nmt_stop_applies_0x6007(sim_bench):
+    bench = sim_bench(1)
+    bench.enable(1, Mode.CSV)
+    bench.nmt(NmtCommand.STOP)
+    assert bench.drive(1).state402 == State402.SWITCH_ON_DISABLED
