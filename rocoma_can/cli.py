@@ -11,6 +11,7 @@ from typing import Sequence
 
 # Modules that contribute sub-commands, in help order.
 COMMAND_MODULES: tuple[str, ...] = (
+    "rocoma_can.demo",
     "rocoma_can.drivers.sim_cli",
 )
 

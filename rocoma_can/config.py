@@ -1,0 +1,321 @@
+"""The run-time configuration (one YAML file) and its validation.
+
+Layout (every key but ``drives`` and ``controllers`` has a default; README "Configuration")::
+
+    bus: {interface: socketcan, channel: can0, bitrate: 1000000}
+    rate: 500                      # control loop, Hz
+    manager:
+      node_id: 100                 # the manager's own CANopen node (eds/rocoma_manager.eds)
+      heartbeat_ms: 100            # its heartbeat; drives torque-off when it stops
+      estop_cob_id: 0x0A0          # any frame with this COB-ID e-stops (0 = off)
+      estop_must_be_cleared: true  # every e-stop latches until "clear"
+      switch_clients: null         # null: any SDO client may switch; [n, ...]: only these
+      status_period: 0.1           # s, state TPDO repeat period
+    realtime: {priority: null, cpus: null}   # SCHED_FIFO priority, CPU list
+    drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
+    controllers: [ ... ]           # rocoma_can.plugins format
+    emergency_controllers: [ ... ]
+
+``validate`` collects every problem, each as "<yaml path>: <what is wrong>", so one run of
+``rocoma-can check-config`` lists them all. The bus load of one cycle (drive PDOs with the
+layouts the driver will use, plus SYNC, with worst-case bit stuffing) must fit the bitrate.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from .drivers.config import DriveConfig
+from .drivers.hardware import BusConfig
+from .drivers.pdo_layout import layout_for
+
+DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
+_TOP_KEYS = {"bus", "rate", "manager", "realtime", "drives", "controllers",
+             "emergency_controllers"}
+_BUS_KEYS = {"interface", "channel", "bitrate"}
+_MANAGER_KEYS = {"node_id", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
+                 "switch_clients", "status_period"}
+_REALTIME_KEYS = {"priority", "cpus"}
+
+
+class ConfigError(ValueError):
+    """One or more problems, one per line, each starting with its YAML path."""
+
+    def __init__(self, problems: list[str]) -> None:
+        self.problems = list(problems)
+        super().__init__("\n".join(self.problems))
+
+
+@dataclass
+class ManagerNodeConfig:
+    node_id: int = 100
+    heartbeat_ms: int = 100
+    estop_cob_id: int = 0x0A0
+    estop_must_be_cleared: bool = True
+    switch_clients: tuple[int, ...] | None = None
+    status_period: float = 0.1
+
+
+@dataclass
+class RuntimeConfig:
+    bus: BusConfig
+    rate: float
+    manager: ManagerNodeConfig
+    drives: list[DriveConfig]
+    controllers: dict[str, Any]  # {"controllers": [...], "emergency_controllers": [...]}
+    priority: int | None = None
+    cpus: set[int] | None = None
+    source: str = "<memory>"
+    load: BusLoad | None = field(default=None)
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate
+
+
+# -- bus load -----------------------------------------------------------------------------------
+
+def frame_bits(data_bytes: int, worst_case: bool = True) -> int:
+    """Bits on the wire of a classic 11-bit CAN frame, 3-bit intermission included."""
+    bits = 8 * data_bytes + 47
+    if worst_case:
+        bits += (34 + 8 * data_bytes - 1) // 4
+    return bits
+
+
+@dataclass(frozen=True)
+class BusLoad:
+    drives: int
+    rate: float
+    bitrate: int
+    frames_per_cycle: int
+    bits_per_cycle: int          # worst-case stuffing
+    bits_per_drive: float        # mean over the drives, worst case
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames_per_cycle * self.rate
+
+    @property
+    def load(self) -> float:
+        """Fraction of the bitrate used, worst-case stuffing (heartbeats are < 0.1 %)."""
+        return self.bits_per_cycle * self.rate / self.bitrate
+
+    @property
+    def max_rate(self) -> float:
+        return self.bitrate / self.bits_per_cycle
+
+    @property
+    def drives_that_fit(self) -> int:
+        sync = frame_bits(0)
+        return max(0, int((self.bitrate / self.rate - sync) // self.bits_per_drive))
+
+    def explain(self) -> str:
+        full_frames = self.bitrate / frame_bits(8)
+        return (f"{self.drives} drives at {self.rate:g} Hz need "
+                f"{self.frames_per_second:,.0f} frames/s ({self.load:.0%} of the bus, worst "
+                f"case); a {self.bitrate / 1e6:g} Mbit/s bus carries ~{full_frames:,.0f} "
+                f"8-byte frames/s worst case; {math.floor(self.max_rate):,} Hz fits "
+                f"{self.drives} drives, {self.rate:g} Hz fits {self.drives_that_fit}")
+
+
+def bus_load(drives: list[DriveConfig], rate: float, bitrate: int) -> BusLoad:
+    """Per cycle: every drive's RPDOs and TPDOs (the driver's layouts) and one SYNC."""
+    frames, bits = 1, frame_bits(0)
+    drive_bits = 0
+    for d in drives:
+        layout = layout_for(d)
+        for pdo in layout.rpdos + layout.tpdos:
+            frames += 1
+            drive_bits += frame_bits(pdo.size)
+    bits += drive_bits
+    return BusLoad(len(drives), rate, bitrate, frames, bits,
+                   drive_bits / max(1, len(drives)))
+
+
+# -- loading and validation ---------------------------------------------------------------------
+
+def load(path: str | Path) -> RuntimeConfig:
+    """Read and validate a YAML file; ConfigError lists every problem."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigError([f"{path}: cannot read: {exc.strerror or exc}"]) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError([f"{path}: not valid YAML: {exc}"]) from None
+    return validate(data, source=str(p), base=p.parent)
+
+
+def validate(data: Any, source: str = "<memory>", base: Path | None = None,
+             check_controllers: bool = True) -> RuntimeConfig:
+    """Build a RuntimeConfig from a parsed YAML mapping, or raise ConfigError (all problems)."""
+    problems: list[str] = []
+    if not isinstance(data, Mapping):
+        raise ConfigError([f"(top): expected a mapping with bus, rate, drives, controllers, "
+                           f"got {type(data).__name__}"])
+    _unknown(data, _TOP_KEYS, "", problems)
+
+    bus_data = _section(data, "bus", problems)
+    _unknown(bus_data, _BUS_KEYS, "bus", problems)
+    interface = bus_data.get("interface", "socketcan")
+    channel = bus_data.get("channel", "can0")
+    bitrate = bus_data.get("bitrate")
+    for key, value in (("interface", interface), ("channel", channel)):
+        if not isinstance(value, str) or not value:
+            problems.append(f"bus.{key}: expected a non-empty string, got {value!r}")
+    if bitrate is not None and (not _is_int(bitrate) or not 10_000 <= bitrate <= 1_000_000):
+        problems.append(f"bus.bitrate: expected an integer 10000..1000000 bit/s, got {bitrate!r}")
+        bitrate = None
+
+    rate = data.get("rate", 500)
+    if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not 0 < rate <= 10_000:
+        problems.append(f"rate: expected a loop rate in Hz, 0 < rate <= 10000, got {rate!r}")
+        rate = None
+
+    m = _section(data, "manager", problems)
+    _unknown(m, _MANAGER_KEYS, "manager", problems)
+    manager = ManagerNodeConfig()
+    node_id = m.get("node_id", manager.node_id)
+    if not _is_int(node_id) or not 1 <= node_id <= 127:
+        problems.append(f"manager.node_id: expected an integer 1..127, got {node_id!r}")
+    else:
+        manager.node_id = node_id
+    hb = m.get("heartbeat_ms", manager.heartbeat_ms)
+    if not _is_int(hb) or not 1 <= hb <= 30000:
+        problems.append(f"manager.heartbeat_ms: expected an integer 1..30000 ms, got {hb!r}")
+    else:
+        manager.heartbeat_ms = hb
+    cob = m.get("estop_cob_id", manager.estop_cob_id)
+    if not _is_int(cob) or not 0 <= cob <= 0x7FF:
+        problems.append(f"manager.estop_cob_id: expected an 11-bit COB-ID 0x001..0x7FF "
+                        f"(0 = off), got {cob!r}")
+    elif cob in (0x000, 0x080) or 0x580 <= cob <= 0x67F or cob >= 0x700:
+        if cob != 0:
+            problems.append(f"manager.estop_cob_id: 0x{cob:03X} is reserved for NMT, SYNC, "
+                            "SDO or heartbeat frames; pick e.g. 0x0A0")
+        manager.estop_cob_id = 0
+    else:
+        manager.estop_cob_id = cob
+    must_clear = m.get("estop_must_be_cleared", manager.estop_must_be_cleared)
+    if not isinstance(must_clear, bool):
+        problems.append(f"manager.estop_must_be_cleared: expected true or false, "
+                        f"got {must_clear!r}")
+    else:
+        manager.estop_must_be_cleared = must_clear
+    clients = m.get("switch_clients")
+    if clients is not None:
+        if (not isinstance(clients, list)
+                or not all(_is_int(c) and 1 <= c <= 127 for c in clients)):
+            problems.append(f"manager.switch_clients: expected null or a list of client node "
+                            f"ids 1..127, got {clients!r}")
+        else:
+            manager.switch_clients = tuple(clients)
+    period = m.get("status_period", manager.status_period)
+    if not isinstance(period, (int, float)) or isinstance(period, bool) or not 0.01 <= period <= 10:
+        problems.append(f"manager.status_period: expected seconds 0.01..10, got {period!r}")
+    else:
+        manager.status_period = float(period)
+
+    rt = _section(data, "realtime", problems)
+    _unknown(rt, _REALTIME_KEYS, "realtime", problems)
+    priority = rt.get("priority")
+    if priority is not None and (not _is_int(priority) or not 1 <= priority <= 99):
+        problems.append(f"realtime.priority: expected null or 1..99, got {priority!r}")
+        priority = None
+    cpus = rt.get("cpus")
+    if cpus is not None and (not isinstance(cpus, list) or not cpus
+                             or not all(_is_int(c) and c >= 0 for c in cpus)):
+        problems.append(f"realtime.cpus: expected null or a list of CPU numbers, got {cpus!r}")
+        cpus = None
+
+    drives = _drives(data.get("drives"), manager.node_id, base, problems)
+
+    controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
+    if not data.get("controllers"):
+        problems.append("controllers: at least one controller is needed")
+    elif check_controllers:
+        from .plugins import PluginError, load_config
+        try:
+            load_config(controllers)
+        except PluginError as exc:
+            problems.append(str(exc))
+
+    load_ = None
+    if drives and rate is not None and interface != "virtual":
+        load_ = bus_load(drives, float(rate), bitrate or DEFAULT_BITRATE)
+        if load_.load > 1.0:
+            assumed = "" if bitrate else f" (no bus.bitrate given: {DEFAULT_BITRATE:,} assumed)"
+            problems.append(f"rate: bus overload{assumed}: {load_.explain()}")
+    if problems:
+        raise ConfigError([f"{source}: {p}" for p in problems])
+    return RuntimeConfig(BusConfig(interface, channel, bitrate), float(rate), manager, drives,
+                         controllers, priority, set(cpus) if cpus else None, source, load_)
+
+
+def _drives(entries: Any, manager_id: int, base: Path | None,
+            problems: list[str]) -> list[DriveConfig]:
+    if not isinstance(entries, list) or not entries:
+        problems.append(f"drives: expected a non-empty list of drives, got {entries!r}")
+        return []
+    drives: list[DriveConfig] = []
+    names: dict[str, int] = {}
+    ids: dict[int, int] = {}
+    for i, entry in enumerate(entries):
+        where = f"drives[{i}]"
+        if not isinstance(entry, Mapping):
+            problems.append(f"{where}: expected a mapping, got {entry!r}")
+            continue
+        entry = dict(entry)
+        if base is not None and isinstance(entry.get("eds"), str):
+            entry["eds"] = str((base / entry["eds"]).resolve()) \
+                if not Path(entry["eds"]).is_absolute() else entry["eds"]
+        try:
+            drive = DriveConfig.from_dict(entry)
+            layout_for(drive)
+        except (ValueError, TypeError) as exc:
+            problems.append(f"{where}: {exc}")
+            continue
+        if drive.name in names:
+            problems.append(f"{where}.name: {drive.name!r} is already drives[{names[drive.name]}]")
+        if drive.node_id in ids:
+            problems.append(f"{where}.node_id: {drive.node_id} is already used by "
+                            f"drives[{ids[drive.node_id]}]")
+        if drive.node_id == manager_id:
+            problems.append(f"{where}.node_id: {drive.node_id} is the manager's node id "
+                            "(manager.node_id)")
+        names.setdefault(drive.name, i)
+        ids.setdefault(drive.node_id, i)
+        drives.append(drive)
+    return drives
+
+
+def _section(data: Mapping[str, Any], key: str, problems: list[str]) -> Mapping[str, Any]:
+    value = data.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        problems.append(f"{key}: expected a mapping, got {value!r}")
+        return {}
+    return value
+
+
+def _unknown(section: Mapping[str, Any], known: set[str], where: str,
+             problems: list[str]) -> None:
+    for key in section:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), known, n=1)
+            hint = f", did you mean {close[0]!r}?" if close else ""
+            path = f"{where}.{key}" if where else str(key)
+            problems.append(f"{path}: unknown key{hint} (known: {', '.join(sorted(known))})")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)

@@ -1,0 +1,275 @@
+"""``rocoma-can demo``: the whole system in one process on python-can's virtual bus.
+
+Simulated CiA 402 drives, the control loop with the manager and its CANopen node, and an
+"operator" that talks to the manager only the way another CAN node would (SDO and raw
+frames). The walk-through: bring-up, clear, switch to pd, switch to trajectory (bumpless,
+by swap state), a drive fault -> emergency controller (damp), a second fault -> failproof
+torque-off, recovery of the drives, a switch back to pd, an e-stop by a raw CAN frame, and
+the SIGTERM-like stop of the loop, which ends in torque-off frames. Each step checks what it
+should; the exit code is 0 only when every step did.
+"""
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import can
+
+from .config import validate
+from .drivers.sim_segment import SimulatedSegment
+from .runtime import Runtime
+from .services import ManagerClient, STATE_NAMES
+
+MANAGER_ID = 100
+ESTOP_COB_ID = 0x0A0
+
+
+def demo_config(channel: str, drives: int, rate: float) -> dict[str, Any]:
+    joints = [f"joint{i}" for i in range(1, drives + 1)]
+    return {
+        "bus": {"interface": "virtual", "channel": channel},
+        "rate": rate,
+        "manager": {"node_id": MANAGER_ID, "heartbeat_ms": 100, "estop_cob_id": ESTOP_COB_ID,
+                    "estop_must_be_cleared": True, "status_period": 0.2},
+        "drives": [{"name": name, "node_id": i + 1, "increments_per_rev": 1048576,
+                    "rated_torque_nm": 1.0, "modes": ["csp", "cst"], "heartbeat_ms": 100}
+                   for i, name in enumerate(joints)],
+        "controllers": [
+            {"name": "pd", "plugin": "pd", "emergency": "damp",
+             "params": {"mode": "CSP", "target": 0.3, "velocity_limit": 1.0}},
+            {"name": "trajectory", "plugin": "trajectory", "emergency": "damp",
+             "params": {"kind": "sine", "amplitude": 0.3, "frequency": 0.5,
+                        "blend_time": 0.5, "mode": "CSP"}},
+        ],
+        "emergency_controllers": [
+            {"name": "damp", "plugin": "damp",
+             "params": {"damping": 0.05, "still_time": 0.2, "timeout": 2.0}},
+        ],
+    }
+
+
+@dataclass
+class Step:
+    name: str
+    ok: bool
+    detail: str
+
+
+@dataclass
+class Report:
+    steps: list[Step] = field(default_factory=list)
+    latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.steps) and all(s.ok for s in self.steps)
+
+
+class _Watch:
+    """Called by the loop every cycle: remembers when the manager state changed (cheap)."""
+
+    def __init__(self) -> None:
+        self.changes: list[tuple[float, int, int]] = []  # (time, cycle, new state)
+        self.state = -1
+        self.cycle = 0
+        self.runtime: Runtime | None = None
+
+    def __call__(self, now: float) -> None:
+        self.cycle += 1
+        state = int(self.runtime.loop.last_state)
+        if state != self.state:
+            self.state = state
+            self.changes.append((now, self.cycle, state))
+
+    def first_change_after(self, t0: float, to: set[int]) -> tuple[float, int] | None:
+        for t, cycle, state in list(self.changes):
+            if t >= t0 and state in to:
+                return t, cycle
+        return None
+
+
+def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not stop.is_set():
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: _Watch,
+              report: Report, hold: float, stop: threading.Event, say: Callable[[str], None]
+              ) -> None:
+    hw, mgr = rt.hardware, rt.manager
+    dt = rt.config.dt
+
+    def step(name: str, ok: bool, detail: str = "") -> bool:
+        report.steps.append(Step(name, ok, detail))
+        say(f"{'ok ' if ok else 'FAILED'} {name}{': ' + detail if detail else ''}")
+        return ok
+
+    def state() -> int:
+        return int(mgr.state)
+
+    def latency(what: str, t0: float, to: set[int]) -> None:
+        hit = watch.first_change_after(t0, to)
+        if hit is not None:
+            report.latencies.append((what, hit[0] - t0, max(1, round((hit[0] - t0) / dt))))
+
+    try:
+        if not step("bring-up", _wait(lambda: hw.all_ready, 10.0, stop),
+                    f"{len(hw.drives_config)} drives configured, mapped and started"):
+            return
+        client.write(0x2112, 1)  # clear: must-clear starts latched, like an e-stop button
+        result = client.switch("pd")
+        if not step("switch to pd (SDO 0x2100)",
+                    result == 0 and _wait(lambda: hw.all_enabled, 3.0, stop),
+                    f"result {result}, drives enabled: {hw.all_enabled}"):
+            return
+        time.sleep(hold)
+        result = client.switch("trajectory")
+        step("switch pd -> trajectory (swap state)", result == 0 and state() == 2,
+             f"result {result}, active {mgr.active_controller_name}")
+        time.sleep(hold)
+
+        node = seg.node_ids[min(2, len(seg.node_ids) - 1)]
+        t0 = time.monotonic()
+        seg.drives[node].trip_fault()
+        ok = _wait(lambda: state() == 1, 2.0, stop)
+        latency(f"drive {node} fault -> EMERGENCY", t0, {1, 0})
+        step(f"fault on drive {node} -> emergency controller", ok,
+             f"state {STATE_NAMES[state()]}, active {mgr.active_controller_name}")
+        time.sleep(hold / 2)
+
+        node2 = seg.node_ids[-1]
+        t0 = time.monotonic()
+        seg.drives[node2].trip_fault()
+        ok = _wait(lambda: state() == 0, 2.0, stop)
+        latency(f"drive {node2} fault -> FAILPROOF", t0, {0})
+        step(f"second fault on drive {node2} -> failproof torque-off", ok,
+             f"state {STATE_NAMES[state()]}")
+        time.sleep(hold / 2)
+
+        client.write(0x2113, 1)  # recover drives; on success the e-stop latch is cleared
+        ok = _wait(lambda: hw.all_ready and not mgr.estop_latched, 8.0, stop)
+        step("recovery (SDO 0x2113)", ok, f"drives ready: {hw.all_ready}, "
+                                          f"latched: {mgr.estop_latched}")
+        result = client.switch("pd")
+        step("final switch to pd", result == 0 and state() == 2
+             and _wait(lambda: hw.all_enabled, 3.0, stop), f"result {result}")
+        time.sleep(hold)
+
+        t0 = time.monotonic()
+        client.bus.send(can.Message(arbitration_id=ESTOP_COB_ID, data=b"\x01",
+                                    is_extended_id=False))
+        ok = _wait(lambda: state() == 1, 2.0, stop)
+        latency(f"CAN e-stop frame 0x{ESTOP_COB_ID:03X} -> EMERGENCY", t0, {1, 0})
+        step(f"e-stop by a raw CAN frame on 0x{ESTOP_COB_ID:03X}", ok,
+             f"state {STATE_NAMES[state()]}, cause {client.status()['estop_cause']!r}")
+        time.sleep(hold / 2)
+    except Exception as exc:  # an SDO failure is a failed step, and the demo ends
+        step("operator", False, f"{type(exc).__name__}: {exc}")
+    finally:
+        rt.loop.stop("walk-through finished")
+
+
+def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
+             out: Callable[[str], None] = print) -> Report:
+    channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
+    config = validate(demo_config(channel, drives, rate), source="demo")
+    report = Report()
+    watch = _Watch()
+    stop = threading.Event()
+    hold = max(0.2, duration / 10)
+    seg = SimulatedSegment.open(channel, "virtual", range(1, drives + 1))
+    client_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False,
+                         ignore_config=True)
+    torque_off_seen = threading.Event()
+    try:
+        seg.start()
+        with Runtime(config, on_cycle=watch) as rt, ManagerClient(client_bus, MANAGER_ID) as client:
+            watch.runtime = rt
+            out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
+                f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} (virtual bus {channel})")
+            operator = threading.Thread(
+                target=_operator, name="demo-operator",
+                args=(rt, seg, client, watch, report, hold, stop, out))
+            status = threading.Thread(target=_status_lines, name="demo-status",
+                                      args=(rt, stop, out))
+            operator.start()
+            status.start()
+            try:
+                summary = rt.run(duration=duration * 3 + 20)
+            finally:
+                stop.set()
+                operator.join(15.0)
+                status.join(2.0)
+            seen = _torque_off_after_stop(rt)
+            torque_off_seen.set() if seen else None
+            report.steps.append(Step("loop stop -> torque-off frames", seen,
+                                     f"stopped: {rt.loop.stop_reason}"))
+            out(f"{'ok ' if seen else 'FAILED'} loop stop -> torque-off "
+                f"(manager {STATE_NAMES[int(rt.loop.last_state)]})")
+            _summary(out, report, summary, rt)
+        seg.check()
+    finally:
+        client_bus.shutdown()
+        seg.stop()
+    return report
+
+
+def _torque_off_after_stop(rt: Runtime) -> bool:
+    """After the loop returned: FAILPROOF commanded, so the last writes were torque-off."""
+    return int(rt.loop.last_state) == 0
+
+
+def _status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None]) -> None:
+    while not stop.wait(1.0):
+        hw, mgr, s = rt.hardware, rt.manager, rt.loop.stats
+        out(f"  [{s.cycles:6d} cycles] {STATE_NAMES[int(mgr.state)]:9s} "
+            f"{mgr.active_controller_name:12s} enabled {int(hw.enabled.sum())}/"
+            f"{len(hw.drives_config)} q0 {hw.state.position[0]:+.3f} rad "
+            f"overruns {s.overruns} tx errors {hw.tx_errors}")
+
+
+def _summary(out: Callable[[str], None], report: Report, timing: Any, rt: Runtime) -> None:
+    out("")
+    out("summary")
+    out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
+    out(f"  {'cycles':28s} {timing.cycles}")
+    out(f"  {'missed cycles (overruns)':28s} {timing.overruns}")
+    out(f"  {'period mean / max':28s} {timing.period_mean * 1e3:.2f} / "
+        f"{timing.period_max * 1e3:.2f} ms")
+    out(f"  {'jitter p99 / max':28s} {timing.jitter_p99 * 1e3:.2f} / "
+        f"{timing.jitter_max * 1e3:.2f} ms")
+    out(f"  {'frames per cycle':28s} {rt.hardware.frames_per_cycle} "
+        f"(PDOs of {len(rt.hardware.drives_config)} drives + SYNC)")
+    out(f"  {'tx errors':28s} {rt.hardware.tx_errors}")
+    for what, seconds, cycles in report.latencies:
+        out(f"  {'latency ' + what:28s} {seconds * 1e3:.1f} ms (~{cycles} cycles)")
+    out("demo " + ("passed" if report.ok else "FAILED: " + ", ".join(
+        s.name for s in report.steps if not s.ok)))
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "demo", help="run the embedded demo (virtual bus, simulated drives)",
+        description=__doc__.split("\n\n")[0])
+    p.add_argument("--drives", type=int, default=6, help="simulated drives (default 6)")
+    p.add_argument("--rate", type=float, default=200.0, help="loop rate, Hz (default 200)")
+    p.add_argument("--duration", type=float, default=16.0,
+                   help="approximate length of the walk-through, s (default 16)")
+    p.set_defaults(func=_main)
+
+
+def _main(args: argparse.Namespace) -> int:
+    if not 1 <= args.drives <= 32 or not 10 <= args.rate <= 2000 or not args.duration > 0:
+        print("demo: --drives 1..32, --rate 10..2000 Hz, --duration > 0", flush=True)
+        return 2
+    report = run_demo(args.drives, args.rate, args.duration,
+                      out=lambda line: print(line, flush=True))
+    return 0 if report.ok else 1

@@ -1,0 +1,283 @@
+"""The control loop: one thread, a fixed rate on the monotonic clock, and a safe way out.
+
+Each cycle is ``hardware.read(now)`` -> ``manager.update()`` -> ``hardware.write(state)``.
+Timing: sleep until shortly before the deadline, then spin to it (``time.sleep`` alone
+overshoots by the scheduler's slack). The garbage collector is frozen after start-up and
+disabled; a generation-0 collection runs between cycles only when the cycle left slack, so
+a collection never lands inside a cycle. Statistics go to a preallocated numpy ring.
+
+Stopping (``stop()``, SIGINT, SIGTERM, or ``duration``) always ends with torque-off: the
+manager is failproof-stopped and ``stop_cycles`` more cycles run, which send the hardware's
+pre-encoded torque-off frames, before the loop returns. Every wait is bounded.
+"""
+from __future__ import annotations
+
+import gc
+import logging
+import math
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+_SPIN = 0.0005  # seconds before the deadline where sleeping stops and spinning starts
+
+
+@dataclass(frozen=True)
+class TimingSummary:
+    cycles: int
+    overruns: int             # cycles that started later than one period after their deadline
+    period_mean: float        # s, over the ring
+    period_max: float
+    jitter_max: float         # s, |start - deadline|, over the ring
+    jitter_p99: float
+    work_max: float           # s, time spent inside read/update/write
+
+    def line(self) -> str:
+        return (f"cycles {self.cycles}, overruns {self.overruns}, period mean "
+                f"{self.period_mean * 1e3:.3f} ms max {self.period_max * 1e3:.3f} ms, jitter "
+                f"p99 {self.jitter_p99 * 1e6:.0f} us max {self.jitter_max * 1e6:.0f} us, "
+                f"work max {self.work_max * 1e6:.0f} us")
+
+
+class CycleStats:
+    """Per-cycle start times, lateness and work time in a ring allocated once."""
+
+    def __init__(self, period: float, size: int = 4096) -> None:
+        self.period = period
+        self._start = np.zeros(size)
+        self._late = np.zeros(size)
+        self._work = np.zeros(size)
+        self._size = size
+        self.cycles = 0
+        self.overruns = 0
+
+    def record(self, start: float, deadline: float, work: float) -> None:
+        k = self.cycles % self._size
+        self._start[k] = start
+        late = start - deadline
+        self._late[k] = late
+        self._work[k] = work
+        if late > self.period:
+            self.overruns += 1
+        self.cycles += 1
+
+    def summary(self) -> TimingSummary:
+        n = min(self.cycles, self._size)
+        if n == 0:
+            return TimingSummary(0, 0, math.nan, math.nan, math.nan, math.nan, math.nan)
+        k = self.cycles % self._size
+        starts = np.concatenate((self._start[k:n], self._start[:k])) if n == self._size \
+            else self._start[:n]
+        periods = np.diff(starts) if n > 1 else np.array([self.period])
+        late = np.abs(self._late[:n])
+        return TimingSummary(self.cycles, self.overruns, float(periods.mean()),
+                             float(periods.max()), float(late.max()),
+                             float(np.percentile(late, 99)), float(self._work[:n].max()))
+
+
+def set_realtime(priority: int | None, cpus: set[int] | None) -> list[str]:
+    """SCHED_FIFO and CPU affinity for the calling thread; a warning per thing not permitted."""
+    warnings = []
+    if cpus:
+        try:
+            os.sched_setaffinity(0, cpus)
+        except (OSError, AttributeError) as exc:
+            warnings.append(f"CPU affinity {sorted(cpus)} not set: {exc}")
+    if priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except (OSError, AttributeError) as exc:
+            warnings.append(f"SCHED_FIFO priority {priority} not set ({exc}); the loop runs "
+                            "with normal priority. Grant CAP_SYS_NICE or an rtprio limit "
+                            "(ulimit -r) to get it")
+    for w in warnings:
+        log.warning("%s", w)
+    return warnings
+
+
+class ControlLoop:
+    """Runs ``hardware`` + ``manager`` at ``rate`` Hz on the calling thread until stopped.
+
+    ``hardware`` needs ``read(now)``, ``write(state)``; ``manager`` needs ``update()`` and
+    ``failproof_stop(cause)``. ``on_cycle(now)`` (optional) runs after each cycle on the
+    loop thread; it must be cheap (the demo uses it for its script and status line).
+    """
+
+    def __init__(self, hardware: Any, manager: Any, rate: float, *,
+                 priority: int | None = None, cpus: set[int] | None = None,
+                 stop_cycles: int = 3, on_cycle: Callable[[float], None] | None = None,
+                 stats_size: int = 4096) -> None:
+        if not rate > 0:
+            raise ValueError(f"rate must be > 0 Hz, got {rate!r}")
+        self.hardware = hardware
+        self.manager = manager
+        self.period = 1.0 / rate
+        self.priority = priority
+        self.cpus = cpus
+        self.stop_cycles = max(1, stop_cycles)
+        self.on_cycle = on_cycle
+        self.stats = CycleStats(self.period, stats_size)
+        self.stop_reason = ""
+        self._stop = threading.Event()
+        self.last_state: Any = None
+
+    def stop(self, reason: str = "stop requested") -> None:
+        """From any thread or a signal handler: the loop torque-offs and returns."""
+        if not self._stop.is_set():
+            self.stop_reason = reason
+            self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def install_signal_handlers(self) -> Callable[[], None]:
+        """SIGINT/SIGTERM -> stop(); returns a function restoring the previous handlers."""
+        previous = {}
+
+        def handler(signum: int, frame: Any) -> None:
+            self.stop(f"signal {signal.Signals(signum).name}")
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+
+        def restore() -> None:
+            for sig, old in previous.items():
+                signal.signal(sig, old)
+        return restore
+
+    def run(self, duration: float | None = None) -> TimingSummary:
+        set_realtime(self.priority, self.cpus)
+        gc.collect()
+        gc.freeze()
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
+        hw, mgr, stats, period = self.hardware, self.manager, self.stats, self.period
+        on_cycle = self.on_cycle
+        clock = time.monotonic
+        start = clock()
+        end = start + duration if duration is not None else math.inf
+        deadline = start
+        try:
+            while not self._stop.is_set():
+                now = clock()
+                if now >= end:
+                    self.stop("duration reached")
+                    break
+                hw.read(now)
+                state = mgr.update()
+                hw.write(state)
+                self.last_state = state
+                if on_cycle is not None:
+                    on_cycle(now)
+                done = clock()
+                stats.record(now, deadline, done - now)
+                deadline += period
+                if done > deadline:  # overrun: start again from now, do not burst
+                    deadline = done
+                    continue
+                if deadline - done > 0.25 * period and gc.get_count()[0] > 200:
+                    gc.collect(0)
+                self._wait_until(deadline)
+        finally:
+            self._torque_off()
+            if gc_was_enabled:
+                gc.enable()
+            gc.unfreeze()
+        return stats.summary()
+
+    def _wait_until(self, deadline: float) -> None:
+        clock = time.monotonic
+        remaining = deadline - clock() - _SPIN
+        if remaining > 0:
+            self._stop.wait(remaining)
+        while clock() < deadline and not self._stop.is_set():
+            pass
+
+    def _torque_off(self) -> None:
+        """Failproof stop, then cycles that send the torque-off frames (bounded count)."""
+        try:
+            self.manager.failproof_stop(cause=f"loop stopping: {self.stop_reason or 'exit'}")
+        except Exception:
+            log.exception("failproof_stop raised while stopping the loop")
+        for _ in range(self.stop_cycles):
+            try:
+                now = time.monotonic()
+                self.hardware.read(now)
+                state = self.manager.update()
+                self.hardware.write(state)
+                self.last_state = state
+            except Exception:
+                log.exception("torque-off cycle raised while stopping the loop")
+                try:
+                    self.hardware.write(0)  # FAILPROOF: the pre-encoded torque-off frames
+                except Exception:
+                    log.exception("torque-off frames could not be sent")
+            time.sleep(min(self.period, 0.02))
+
+
+class Runtime:
+    """Everything ``rocoma-can run`` starts from a RuntimeConfig, in start-up order:
+    the drives' hardware layer, the manager with the configured controllers, the manager's
+    CANopen node (on a second bus handle of the same channel), and the loop."""
+
+    def __init__(self, config: Any, *, on_cycle: Callable[[float], None] | None = None) -> None:
+        from .drivers.bus import open_bus
+        from .drivers.hardware import CanopenHardware
+        from .plugins import add_to_manager
+        from .services import ManagerNode
+        self.config = config
+        m = config.manager
+        self.hardware = CanopenHardware(config.bus, config.drives, m.node_id, config.dt,
+                                        manager_heartbeat_ms=m.heartbeat_ms)
+        self.manager = None
+        self.node = None
+        self._node_bus = None
+        try:
+            self.manager = self.hardware.create_manager(
+                estop_must_be_cleared=m.estop_must_be_cleared)
+            add_to_manager(self.manager, config.controllers)
+            bus = config.bus
+            self._node_bus = open_bus(bus.interface, bus.channel, bus.bitrate,
+                                      receive_own_messages=False)
+            self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
+                                    estop_cob_id=m.estop_cob_id, status_period=m.status_period,
+                                    recover=self.hardware.recover)
+        except BaseException:
+            self.close()
+            raise
+        self.loop = ControlLoop(self.hardware, self.manager, config.rate,
+                                priority=config.priority, cpus=config.cpus, on_cycle=on_cycle)
+
+    def run(self, duration: float | None = None, signals: bool = True) -> TimingSummary:
+        """Start the bus side, run the loop until stopped, torque-off; the caller closes."""
+        restore = self.loop.install_signal_handlers() if signals else None
+        try:
+            self.hardware.start()
+            self.node.start()
+            return self.loop.run(duration)
+        finally:
+            if restore is not None:
+                restore()
+
+    def close(self) -> None:
+        """Node, manager threads, hardware (joins its Notifier), then the node's bus."""
+        if self.node is not None:
+            self.node.close()
+        if self.manager is not None:
+            self.manager.shutdown()
+        self.hardware.close()
+        if self._node_bus is not None:
+            self._node_bus.shutdown()
+
+    def __enter__(self) -> Runtime:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

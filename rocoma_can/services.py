@@ -1,0 +1,342 @@
+"""The manager as a CANopen node (eds/rocoma_manager.eds): SDO services, e-stop frame, state frames.
+
+Server side, ``ManagerNode`` (objects; README "CLI and CAN services" has the full table):
+
+  0x2100 VISIBLE_STRING w  switch to the controller with this name
+  0x2101 U8 w              switch to controller number n of 0x2123 (1-based)
+  0x2102 U8 r              last switch result: 0 SWITCHED, 1 RUNNING, 2 NOT_FOUND, 3 ERROR,
+                           0xFF PENDING (accepted, switcher still working)
+  0x2110 / 0x2111 / 0x2112 / 0x2113 U8 w   e-stop / failproof stop / clear / recover drives
+  0x2120 U8 r state (0 FAILPROOF, 1 EMERGENCY, 2 OK); 0x2121 active controller name;
+  0x2122 U8 r active controller number (0 = none of 0x2123); 0x2123 controller list
+  (comma separated); 0x2124 last e-stop cause; 0x2130 U32 rw e-stop COB-ID (0 = off);
+  0x2131 U8 r e-stop latched
+
+Why a switch is answered at once: canopen's SDO server answers on the Notifier thread, and
+the same thread carries the e-stop COB-ID listener. Waiting there for a switch (which runs
+initialize/swap of the new controller, for any length of time) would delay e-stops and make
+the client's SDO time out. So a write to 0x2100/0x2101 is checked synchronously (unknown
+name -> abort 0x06090030 and 0x2102 = NOT_FOUND; e-stop latched or a switch running -> abort
+0x08000022 and 0x2102 = ERROR), otherwise accepted with 0x2102 = 0xFF (PENDING); the result
+lands in 0x2102 when the switch ends. ``rocoma-can switch`` polls 0x2102 for it.
+
+Frames the node sends (from its own status thread, never from the control loop):
+  TPDO1 0x180+id, 2 bytes [state, active controller number]: on every state or controller
+  change and every ``status_period``.
+  EMCY 0x080+id on every e-stop: code 0x9000 (external error), register 0x01, byte 3 =
+  the new state; EMCY 0x0000 (error reset) when the e-stop latch is cleared.
+Any frame on the e-stop COB-ID (0x2130), whatever its data, calls ``manager.emergency_stop``
+from the Notifier thread: the next control cycle handles it.
+
+The node uses a bus of its own (a second socket on the same interface, or a second
+virtual-bus instance) so its Notifier and SDO traffic never share a thread with the driver.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any, Callable
+
+import can
+import canopen
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from . import eds as shipped_eds
+from .events import EventKind, ManagerEvent
+
+log = logging.getLogger(__name__)
+
+SWITCH_NAME, SWITCH_INDEX, SWITCH_RESULT = 0x2100, 0x2101, 0x2102
+ESTOP, FAILPROOF_STOP, CLEAR, RECOVER = 0x2110, 0x2111, 0x2112, 0x2113
+STATE, ACTIVE_NAME, ACTIVE_INDEX, CONTROLLER_LIST, ESTOP_CAUSE = (
+    0x2120, 0x2121, 0x2122, 0x2123, 0x2124)
+ESTOP_COB_ID, ESTOP_LATCHED = 0x2130, 0x2131
+PENDING = 0xFF
+ABORT_NOT_FOUND = 0x06090030     # value range of parameter exceeded
+ABORT_REFUSED = 0x08000022       # cannot transfer because of the present device state
+ABORT_NO_RECOVERY = 0x08000021   # local control: this manager has no drives to recover
+EMCY_ESTOP = 0x9000
+TPDO1, EMCY = 0x180, 0x080
+
+
+class ManagerNode:
+    """Serves a ControllerManager on a CAN bus (lent, not shut down here)."""
+
+    def __init__(self, manager: Any, node_id: int, bus: can.BusABC, *,
+                 estop_cob_id: int = 0, status_period: float = 0.1,
+                 recover: Callable[[], Any] | None = None, eds_path: str | None = None) -> None:
+        self.manager = manager
+        self.node_id = node_id
+        self.bus = bus
+        self.status_period = status_period
+        self.recover = recover
+        self.last_result = 0
+        self.last_cause = ""
+        self.estop_frames: list[float] = []  # monotonic receive times of e-stop frames
+        self.frames_sent = 0
+        self._estop_cob_id = 0
+        self._network = canopen.Network(bus)
+        od = canopen.import_od(eds_path or str(shipped_eds.path(shipped_eds.MANAGER_NODE)),
+                               node_id)
+        self._node = canopen.LocalNode(node_id, od)
+        self._node.add_read_callback(self._on_read)
+        self._node.add_write_callback(self._on_write)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._status_loop, name="manager-node",
+                                        daemon=True)
+        self._unsubscribe: Callable[[], None] | None = None
+        self._initial_cob = estop_cob_id
+        self._started = False
+
+    # --- life cycle ---------------------------------------------------------------------------
+    def start(self) -> ManagerNode:
+        self._network.connect()  # with a bus given, this only starts the Notifier
+        self._network.add_node(self._node)
+        self.set_estop_cob_id(self._initial_cob)
+        self._unsubscribe = self.manager.subscribe(self._on_event)
+        self._started = True
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+            self._unsubscribe = None
+        self._stop.set()
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+        notifier = self._network.notifier
+        if notifier is not None:
+            notifier.stop(timeout=2.0)
+            self._network.notifier = None
+
+    def __enter__(self) -> ManagerNode:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- e-stop frame -------------------------------------------------------------------------
+    @property
+    def estop_cob_id(self) -> int:
+        return self._estop_cob_id
+
+    def set_estop_cob_id(self, cob_id: int) -> None:
+        if not 0 <= cob_id <= 0x7FF:
+            raise SdoAbortedError(ABORT_NOT_FOUND)
+        if self._estop_cob_id:
+            self._network.unsubscribe(self._estop_cob_id, self._on_estop_frame)
+        self._estop_cob_id = cob_id
+        if cob_id:
+            self._network.subscribe(cob_id, self._on_estop_frame)
+
+    def _on_estop_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self.manager.emergency_stop(cause=f"CAN e-stop from 0x{can_id:03X}")
+        self.estop_frames.append(time.monotonic())
+
+    # --- SDO ----------------------------------------------------------------------------------
+    def _controller_index(self) -> int:
+        names = self.manager.available_controllers()
+        active = self.manager.active_controller_name
+        return names.index(active) + 1 if active in names else 0
+
+    def _on_read(self, index: int, subindex: int, od: Any) -> Any:
+        m = self.manager
+        if index == STATE:
+            return int(m.state)
+        if index == ACTIVE_NAME:
+            return m.active_controller_name
+        if index == ACTIVE_INDEX:
+            return self._controller_index()
+        if index == CONTROLLER_LIST:
+            return ",".join(m.available_controllers())
+        if index == ESTOP_CAUSE:
+            return self.last_cause
+        if index == ESTOP_LATCHED:
+            return int(m.estop_latched)
+        if index == SWITCH_RESULT:
+            return self.last_result
+        if index == ESTOP_COB_ID:
+            return self._estop_cob_id
+        return None
+
+    def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        m = self.manager
+        if index == SWITCH_NAME:
+            self._switch(od.decode_raw(data).strip("\x00 "))
+        elif index == SWITCH_INDEX:
+            names = m.available_controllers()
+            n = od.decode_raw(data)
+            if not 1 <= n <= len(names):
+                self.last_result = 2
+                raise SdoAbortedError(ABORT_NOT_FOUND)
+            self._switch(names[n - 1])
+        elif index == ESTOP:
+            m.emergency_stop(cause=f"SDO e-stop (0x{ESTOP:04X})")
+        elif index == FAILPROOF_STOP:
+            m.failproof_stop(cause=f"SDO failproof stop (0x{FAILPROOF_STOP:04X})")
+        elif index == CLEAR:
+            m.clear_emergency_stop()
+            self._wake.set()
+        elif index == RECOVER:
+            if self.recover is None:
+                raise SdoAbortedError(ABORT_NO_RECOVERY)
+            self.recover()
+        elif index == ESTOP_COB_ID:
+            self.set_estop_cob_id(od.decode_raw(data) & 0x7FF
+                                  if not od.decode_raw(data) >> 31 else 0)
+
+    def _switch(self, name: str) -> None:
+        m = self.manager
+        if name not in m.available_controllers():
+            self.last_result = 2
+            raise SdoAbortedError(ABORT_NOT_FOUND)
+        if m.estop_latched:
+            self.last_result = 3
+            raise SdoAbortedError(ABORT_REFUSED)
+        self.last_result = PENDING
+        future = m.request_switch(name)
+        future.add_done_callback(self._switch_done)
+        if future.done() and future.result() == 3:
+            raise SdoAbortedError(ABORT_REFUSED)
+
+    def _switch_done(self, future: Any) -> None:
+        try:
+            self.last_result = int(future.result())
+        except Exception:
+            self.last_result = 3
+
+    # --- frames out ---------------------------------------------------------------------------
+    def _on_event(self, event: ManagerEvent) -> None:
+        """Manager event thread: note the cause, wake the status thread (no I/O here)."""
+        if event.kind is EventKind.EMERGENCY_STOP:
+            self.last_cause = event.cause
+            self._pending_emcy = int(event.state)
+        self._wake.set()
+
+    _pending_emcy: int | None = None
+
+    def _status_loop(self) -> None:
+        last = None
+        latched = self.manager.estop_latched
+        next_due = 0.0
+        while not self._stop.is_set():
+            self._wake.wait(max(0.0, min(self.status_period, next_due - time.monotonic())))
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            emcy, self._pending_emcy = self._pending_emcy, None
+            if emcy is not None:
+                self._send(EMCY + self.node_id, bytes([0x00, 0x90, 0x01, emcy, 0, 0, 0, 0]))
+            now_latched = self.manager.estop_latched
+            if latched and not now_latched:
+                self._send(EMCY + self.node_id, bytes(8))
+            latched = now_latched
+            current = (int(self.manager.state), self._controller_index())
+            now = time.monotonic()
+            if current != last or now >= next_due:
+                self._send(TPDO1 + self.node_id, bytes(current))
+                last = current
+                next_due = now + self.status_period
+
+    def _send(self, cob_id: int, data: bytes) -> None:
+        try:
+            self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False),
+                          timeout=0.05)
+            self.frames_sent += 1
+        except can.CanError as exc:
+            log.warning("manager node: frame 0x%03X not sent: %s", cob_id, exc)
+
+
+# --- client side ------------------------------------------------------------------------------
+
+class NoAnswer(RuntimeError):
+    """The manager node did not answer (not running, wrong node id or channel)."""
+
+
+class Refused(RuntimeError):
+    """The manager answered with an SDO abort."""
+
+    def __init__(self, code: int, what: str) -> None:
+        self.code = code
+        super().__init__(f"{what}: refused by the manager (SDO abort 0x{code:08X}: "
+                         f"{_ABORT_TEXT.get(code, 'see CiA 301')})")
+
+
+_ABORT_TEXT = {
+    ABORT_NOT_FOUND: "no such controller",
+    ABORT_REFUSED: "e-stop latched (clear it first) or a switch is running",
+    ABORT_NO_RECOVERY: "this manager has no drives to recover",
+}
+RESULT_NAMES = {0: "SWITCHED", 1: "RUNNING", 2: "NOT_FOUND", 3: "ERROR", PENDING: "PENDING"}
+STATE_NAMES = {0: "FAILPROOF", 1: "EMERGENCY", 2: "OK"}
+
+
+class ManagerClient:
+    """Talks to a running manager node over SDO (one thread at a time: SdoClient has no lock)."""
+
+    def __init__(self, bus: can.BusABC, node_id: int = 100, timeout: float = 0.5) -> None:
+        self.bus = bus
+        self.network = canopen.Network(bus)
+        self.network.connect()
+        od = canopen.import_od(str(shipped_eds.path(shipped_eds.MANAGER_NODE)), node_id)
+        self.node = self.network.add_node(canopen.RemoteNode(node_id, od))
+        self.node.sdo.RESPONSE_TIMEOUT = timeout
+        self.node.sdo.MAX_RETRIES = 0
+
+    def close(self) -> None:
+        if self.network.notifier is not None:
+            self.network.notifier.stop(timeout=2.0)
+            self.network.notifier = None
+
+    def __enter__(self) -> ManagerClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def read(self, index: int) -> Any:
+        try:
+            return self.node.sdo[index].raw
+        except SdoAbortedError as exc:
+            raise Refused(exc.code, f"read 0x{index:04X}") from None
+        except SdoCommunicationError as exc:
+            raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
+
+    def write(self, index: int, value: Any) -> None:
+        try:
+            self.node.sdo[index].raw = value
+        except SdoAbortedError as exc:
+            raise Refused(exc.code, f"write 0x{index:04X}") from None
+        except SdoCommunicationError as exc:
+            raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
+
+    def switch(self, name: str, timeout: float = 10.0) -> int:
+        """Request a switch and poll 0x2102 until it is no longer PENDING (bounded)."""
+        if name.isdigit():
+            self.write(SWITCH_INDEX, int(name))
+        else:
+            self.write(SWITCH_NAME, name)
+        deadline = time.monotonic() + timeout
+        while True:
+            result = self.read(SWITCH_RESULT)
+            if result != PENDING or time.monotonic() > deadline:
+                return result
+            time.sleep(0.02)
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "state": STATE_NAMES.get(self.read(STATE), "?"),
+            "active": self.read(ACTIVE_NAME),
+            "latched": bool(self.read(ESTOP_LATCHED)),
+            "last_switch": RESULT_NAMES.get(self.read(SWITCH_RESULT), "?"),
+            "estop_cause": self.read(ESTOP_CAUSE),
+            "estop_cob_id": self.read(ESTOP_COB_ID),
+        }
+
+    def controllers(self) -> list[str]:
+        text = self.read(CONTROLLER_LIST)
+        return [n for n in text.split(",") if n]
