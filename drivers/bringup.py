@@ -2,16 +2,21 @@
 
     WAIT_BOOT ──boot-up / heartbeat (or boot_wait elapsed)──> CONFIGURING
     CONFIGURING ──SDO job done──> STARTING      (job failed ──> FAILED: cause)
-    STARTING ──first TPDO──> READY, or RESETTING if the statusword says fault
-    RESETTING ──fault cleared──> READY          (timeout ──> FAILED)
+    STARTING ──first TPDO──> PROBING, or RESETTING if the statusword says fault
+    RESETTING ──fault cleared──> PROBING        (timeout ──> FAILED)
+    PROBING ──ready to switch on──> READY       (timeout, EMCY STO ──> FAILED)
 
 All SDO traffic runs in ``configure`` on a worker thread (canopen's SdoClient has no lock:
 one job per node at a time, never two threads on one node's SDO). The cycle only looks at
 ``Future.done()``. A drive that is faulted, whose STO input is low or that does not answer
 ends in FAILED with the cause, and the others carry on.
 
-READY means: NMT operational, PDOs mapped, no fault, torque off. Enabling (shutdown, switch
-on, enable operation) is not part of start-up: the manager starts in FAILPROOF, which sends
+PROBING sends "shutdown" (0x06) until the drive reports ready to switch on: the power stage
+stays off in that state, and a drive whose STO input is low refuses the transition, so it is
+found here and left out instead of failing later when a controller wants it enabled.
+
+READY means: NMT operational, PDOs mapped, no fault, torque off. Enabling (switch on, enable
+operation) is not part of start-up: the manager starts in FAILPROOF, which sends
 disable voltage to every drive, so the enable steps run from the cyclic controlword when a
 controller commands a cyclic mode (see hardware.py).
 """
@@ -38,8 +43,9 @@ class Phase(enum.IntEnum):
     CONFIGURING = 1
     STARTING = 2
     RESETTING = 3
-    READY = 4
-    FAILED = 5
+    PROBING = 4
+    READY = 5
+    FAILED = 6
 
 
 @dataclass(frozen=True)
@@ -228,8 +234,7 @@ class DriveBringup:
                 if state in (cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE):
                     self.reset_fault(now)
                 else:
-                    self._enter(Phase.READY, now)
-                    return True
+                    self._enter(Phase.PROBING, now)
             elif now - self.since > self.timeouts.start:
                 self._fail(f"no TPDO within {self.timeouts.start} s of NMT start", now)
         elif phase == Phase.RESETTING:
@@ -237,12 +242,28 @@ class DriveBringup:
             if self.reset_cycles > 2 and fresh and state not in (
                     cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE,
                     cia402.State402.UNKNOWN):
-                self._enter(Phase.READY, now)
-                return True
-            if now - self.since > self.timeouts.reset:
+                self._enter(Phase.PROBING, now)
+            elif now - self.since > self.timeouts.reset:
                 why = "STO input low" if error_code == cia402.EMCY_STO else "fault persists"
                 self._fail(f"{why} after fault reset (error code 0x{error_code:04X})", now)
+        elif phase == Phase.PROBING:
+            if self.sto_seen:
+                self._fail("STO input low (safe torque off active)", now)
+            elif fresh and state == cia402.State402.READY_TO_SWITCH_ON:
+                self._enter(Phase.READY, now)
+                return True
+            elif fresh and state in (cia402.State402.FAULT,
+                                     cia402.State402.FAULT_REACTION_ACTIVE):
+                self._fail(f"faulted during start-up (error code 0x{error_code:04X})", now)
+            elif now - self.since > self.timeouts.reset:
+                self._fail(f"refuses shutdown, stays in {cia402.State402(state).name} "
+                           "(STO input low?)", now)
         return False
+
+    @property
+    def probing(self) -> bool:
+        """Send shutdown (0x06) this cycle instead of disable voltage."""
+        return self.phase == Phase.PROBING
 
     @property
     def fault_reset_bit(self) -> bool:

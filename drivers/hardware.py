@@ -197,6 +197,8 @@ class CanopenHardware:
                              for lay in self.layouts]
         self._torque_off_frames = [self._preencode(i, 0) for i in range(n)]
         self._fault_reset_frames = [self._preencode(i, _CW_FAULT_RESET) for i in range(n)]
+        self._probe_frames = [self._preencode(i, int(cia402.Controlword.SHUTDOWN))
+                              for i in range(n)]
         self._sync = _frame(cia402.SYNC, 0)
         self._heartbeat = can.Message(arbitration_id=cia402.HEARTBEAT + manager_node_id,
                                       data=bytearray([cia402.NmtState.OPERATIONAL]),
@@ -409,11 +411,19 @@ class CanopenHardware:
         """FAILPROOF: pre-encoded disable-voltage frames to every configured drive."""
         for i, b in enumerate(self._bringup):
             if b.mapped:
-                for msg in (self._fault_reset_frames[i] if b.fault_reset_bit
-                            else self._torque_off_frames[i]):
+                for msg in self._start_frames(i, b):
                     self._send(msg)
             self._enabled_cycles[i] = 0
         self._want_since.fill(math.nan)
+
+    def _start_frames(self, i: int, b: DriveBringup) -> list[can.Message]:
+        """Pre-encoded frames for a drive not under command: torque off, or the fault-reset
+        edge / shutdown probe of its bring-up (both keep the power stage off)."""
+        if b.fault_reset_bit:
+            return self._fault_reset_frames[i]
+        if b.probing:
+            return self._probe_frames[i]
+        return self._torque_off_frames[i]
 
     def _command_frames(self) -> None:
         cmd, raw, sc, sup = self.command, self._raw, self.scaling, self.supervisor
@@ -431,8 +441,7 @@ class CanopenHardware:
             if not b.mapped:
                 continue
             if b.phase != Phase.READY or sup.latched[i] is not None:
-                for msg in (self._fault_reset_frames[i] if b.fault_reset_bit
-                            else self._torque_off_frames[i]):
+                for msg in self._start_frames(i, b):
                     self._send(msg)
                 self._enabled_cycles[i] = 0
                 continue

@@ -1,0 +1,278 @@
+"""The CAN driver against simulated CiA 402 drives, over a real python-can bus.
+
+Every test runs twice: on python-can's virtual bus at 200 Hz (fast suite) and on SocketCAN
+vcan0 at 50 Hz (vcan suite, through tools/vcan-run). Assertions are on states, events and
+the frames seen on the bus, never on wall time, except where the safety model itself is a
+time bound (drives off within 3 heartbeat periods).
+"""
+from __future__ import annotations
+
+import struct
+import time
+from dataclasses import dataclass
+
+import pytest
+
+from driver_rig import MANAGER_NODE_ID, Brake, HoldPD, Rig, Sine
+from rocoma_can import ManagerState, SwitchResult
+from rocoma_can.drivers import cia402
+from rocoma_can.drivers.bringup import Phase
+from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.joints import JointMode
+
+NODES = tuple(range(1, 7))
+RPDO1 = {cia402.RPDO_BASE[0] + n: n for n in NODES}
+START_TIMEOUT = 15.0
+
+
+@dataclass(frozen=True)
+class Can:
+    interface: str
+    dt: float
+
+    def channel(self, virtual_channel: str) -> str:
+        return virtual_channel if self.interface == "virtual" else "vcan0"
+
+
+@pytest.fixture(params=[pytest.param(Can("virtual", 0.005), id="virtual"),
+                        pytest.param(Can("socketcan", 0.02), id="vcan",
+                                     marks=pytest.mark.vcan)])
+def can_setup(request) -> Can:
+    return request.param
+
+
+@pytest.fixture
+def segment(can_setup, virtual_channel, sim_segment_factory):
+    return sim_segment_factory(NODES, channel=can_setup.channel(virtual_channel),
+                               interface=can_setup.interface)
+
+
+@pytest.fixture
+def make_rig(can_setup, virtual_channel, bus_factory):
+    rigs: list[Rig] = []
+
+    def make(nodes=NODES, **kw) -> Rig:
+        bus = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
+        rig = Rig(bus, nodes, can_setup.dt, **kw)
+        rigs.append(rig)
+        return rig
+
+    yield make
+    for rig in rigs:
+        rig.close()
+
+
+@pytest.fixture
+def recorder(can_setup, virtual_channel, frame_recorder):
+    return frame_recorder(can_setup.channel(virtual_channel), can_setup.interface)
+
+
+def bring_up(rig: Rig) -> None:
+    assert rig.run_until(lambda: not rig.hw.starting, START_TIMEOUT), rig.hw.drive_status()
+
+
+def enable_with(rig: Rig, controller, emergency=None) -> None:
+    rig.mgr.add_controller(controller, emergency=emergency)
+    assert rig.switch(controller.name) == SwitchResult.SWITCHED
+    assert rig.run_until(lambda: rig.hw.all_enabled, 5.0), rig.hw.drive_status()
+
+
+def rpdo1_controlwords(frames) -> dict[int, int]:
+    return {RPDO1[f.cob_id]: struct.unpack_from("<H", f.data)[0] for f in frames
+            if f.cob_id in RPDO1}
+
+
+# --- bring-up --------------------------------------------------------------------------------
+def test_bring_up_six_drives_to_operation_enabled(segment, make_rig):
+    rig = make_rig()
+    bring_up(rig)
+    assert rig.hw.all_ready, rig.hw.drive_status()
+    # every drive was configured as the safety model needs it
+    for n, drive in segment.drives.items():
+        assert drive.nmt_state == cia402.NmtState.OPERATIONAL
+        assert drive.od_value(cia402.CONSUMER_HEARTBEAT_TIME, 1) == (MANAGER_NODE_ID << 16) | 200
+        assert drive.od_value(cia402.ABORT_CONNECTION_OPTION) == \
+            cia402.AbortConnectionOption.DISABLE_VOLTAGE
+    # 3 modes per drive: 2 RPDOs + 2 TPDOs each, + SYNC
+    assert rig.hw.frames_per_cycle == 6 * 4 + 1
+    enable_with(rig, HoldPD())
+    assert rig.mgr.state == ManagerState.OK
+    assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
+    assert all(s.enabled and s.fault is None for s in rig.hw.drive_status())
+
+
+def test_drive_with_sto_low_does_not_hold_the_others_back(segment, make_rig):
+    segment.drives[3].set_sto(True)
+    rig = make_rig()
+    bring_up(rig)
+    status = {s.node_id: s for s in rig.hw.drive_status()}
+    assert status[3].phase == "FAILED" and "STO" in status[3].fault
+    assert all(status[n].phase == "READY" for n in NODES if n != 3)
+    rig.mgr.add_controller(HoldPD())
+    assert rig.switch("hold") == SwitchResult.SWITCHED
+    others = [n for n in NODES if n != 3]
+    assert rig.run_until(lambda: all(segment.drives[n].state402 == State402.OPERATION_ENABLED
+                                     for n in others), 5.0), rig.hw.drive_status()
+    rig.run(0.2)
+    assert rig.mgr.state == ManagerState.OK
+    assert segment.drives[3].state402 == State402.SWITCH_ON_DISABLED
+
+
+def test_drive_that_does_not_answer_is_reported(segment, make_rig):
+    rig = make_rig(nodes=NODES + (9,))  # no drive 9 on the segment
+    bring_up(rig)
+    status = {s.node_id: s for s in rig.hw.drive_status()}
+    assert status[9].phase == "FAILED" and "does not answer" in status[9].fault
+    assert all(status[n].phase == "READY" for n in NODES)
+
+
+# --- control ---------------------------------------------------------------------------------
+def test_pd_holds_in_cst_then_tracks_a_sine_in_csp_and_csv(segment, make_rig):
+    rig = make_rig()
+    bring_up(rig)
+    enable_with(rig, HoldPD(target=0.2))
+    rig.run(1.5)
+    assert abs(rig.hw.state.position - 0.2).max() < 0.02, rig.hw.state.position
+    assert abs(rig.hw.state.torque).max() < 0.5
+    for mode in (JointMode.CSP, JointMode.CSV):
+        sine = Sine(f"sine_{mode.name.lower()}", mode)
+        rig.mgr.add_controller(sine)
+        assert rig.switch(sine.name) == SwitchResult.SWITCHED
+        worst = 0.0
+        for _ in range(int(1.5 / rig.dt)):
+            rig.cycle()
+            if sine.t > 0.3:  # after the drive's loops settled on the moving reference
+                expected = sine.start + sine.reference()
+                worst = max(worst, abs(rig.hw.state.position - expected).max())
+        assert rig.mgr.state == ManagerState.OK
+        assert rig.hw.all_enabled
+        assert worst < 0.08, (mode, worst)
+        modes = rig.hw.state.statusword  # still enabled with the new mode
+        assert all(segment.drives[n].mode_display == mode for n in NODES), modes
+
+
+def test_unconfigured_mode_is_rejected_not_sent(segment, make_rig, recorder):
+    rig = make_rig(modes=("csp",))
+    bring_up(rig)
+    assert rig.hw.frames_per_cycle == 6 * 3 + 1  # 1 RPDO + 2 TPDOs per drive
+    mark = recorder.mark()
+    rig.mgr.add_controller(HoldPD())  # commands CST, which no drive is configured for
+    rig.switch("hold")
+    rig.run(0.2)
+    assert rig.mgr.state == ManagerState.FAILPROOF
+    time.sleep(0.1)
+    sent_modes = {struct.unpack_from("<b", f.data, 2)[0]
+                  for f in recorder.frames(set(RPDO1), since=mark)}
+    assert sent_modes == {int(JointMode.CSP)}
+
+
+# --- faults and the safety path -----------------------------------------------------------------
+def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
+        segment, make_rig, recorder):
+    rig = make_rig()
+    bring_up(rig)
+    enable_with(rig, HoldPD(), emergency=Brake())
+    segment.drives[2].trip_fault(cia402.EMCY_OVERCURRENT)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+    latched = rig.hw.supervisor.latched[1]
+    assert latched is not None and latched.node_id == 2 and "0x2310" in latched.cause
+    rig.run(0.2)
+    assert rig.mgr.state == ManagerState.EMERGENCY  # one broken drive is one e-stop
+    assert all(segment.drives[n].state402 == State402.OPERATION_ENABLED for n in NODES if n != 2)
+
+    segment.drives[5].trip_fault(cia402.EMCY_OVERTEMPERATURE)
+    assert rig.run_until(lambda: rig.states[-1] == ManagerState.FAILPROOF, 2.0)
+    assert rig.states[-2] == ManagerState.EMERGENCY
+    # The FAILPROOF cycle's frames: after the previous cycle's SYNC, up to its own SYNC
+    # (every cycle sends exactly one SYNC, and the recorder saw every one of them).
+    cycle = len(rig.states)
+    syncs = recorder.wait_for_count(cycle, 5.0, cia402.SYNC)
+    frames = recorder.frames()
+    cycle_frames = frames[frames.index(syncs[cycle - 2]) + 1:frames.index(syncs[cycle - 1])]
+    assert rpdo1_controlwords(cycle_frames) == {n: 0 for n in NODES}, cycle_frames
+    assert rig.run_until(lambda: all(d.state402 in (State402.SWITCH_ON_DISABLED, State402.FAULT)
+                                     for d in segment.drives.values()), 2.0)
+    # and every following cycle keeps sending controlword 0 to every drive
+    mark = recorder.mark()
+    rig.run(0.1)
+    time.sleep(0.05)
+    words = [struct.unpack_from("<H", f.data)[0] for f in recorder.frames(set(RPDO1), since=mark)]
+    assert words and set(words) == {0}
+
+
+def test_heartbeat_loss_of_one_drive_is_an_estop(segment, make_rig):
+    rig = make_rig()
+    bring_up(rig)
+    enable_with(rig, HoldPD(), emergency=Brake())
+    segment.drives[4].set_silent(True)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+    assert rig.hw.supervisor.latched[3].node_id == 4
+    assert rig.run_until(lambda: any("heartbeat lost" in e.cause and e.node_id == 4
+                                     for e in rig.hw.fault_events), 2.0)
+    assert rig.mgr.state == ManagerState.EMERGENCY
+
+
+def test_recovery_after_a_fault_returns_to_ok(segment, make_rig):
+    rig = make_rig(estop_must_be_cleared=True)
+    bring_up(rig)
+    rig.mgr.clear_emergency_stop()
+    enable_with(rig, HoldPD(), emergency=Brake())
+    segment.drives[6].trip_fault(cia402.EMCY_FOLLOWING_ERROR)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+    assert rig.switch("hold") == SwitchResult.ERROR  # latched until recovered
+    future = rig.hw.recover()
+    assert rig.run_until(future.done, 5.0)
+    assert future.result() is True, rig.hw.drive_status()
+    assert not rig.mgr.estop_latched
+    assert rig.switch("hold") == SwitchResult.SWITCHED
+    assert rig.run_until(lambda: rig.hw.all_enabled, 5.0), rig.hw.drive_status()
+    assert rig.mgr.state == ManagerState.OK
+    assert segment.drives[6].state402 == State402.OPERATION_ENABLED
+
+
+def test_a_stopped_loop_goes_silent_and_drives_switch_off_by_themselves(segment, make_rig):
+    """The hung-loop half of the safety model (the killed process is in tests/vcan)."""
+    rig = make_rig()
+    bring_up(rig)
+    enable_with(rig, HoldPD())
+    stopped = time.monotonic()  # no more cycles: no RPDOs, no SYNC, no manager heartbeat
+    period = rig.hw.manager_heartbeat_period
+    while time.monotonic() - stopped < 3 * period + 1.0:
+        if all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values()):
+            break
+        time.sleep(0.005)
+    elapsed = time.monotonic() - stopped
+    assert all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values())
+    assert elapsed < 3 * period, elapsed
+
+
+def test_bring_up_phases_are_reported(segment, make_rig):
+    rig = make_rig()
+    assert {s.phase for s in rig.hw.drive_status()} == {Phase.WAIT_BOOT.name}
+    bring_up(rig)
+    assert {s.phase for s in rig.hw.drive_status()} == {Phase.READY.name}
+
+
+def test_torque_off_frames_do_not_depend_on_the_failproof_controller(segment, make_rig,
+                                                                      recorder):
+    """Even a failproof layer that commands motion cannot make FAILPROOF send anything but
+    controlword 0: the frames are pre-encoded by the hardware layer."""
+    from rocoma_can import ControllerManager, FailproofController
+
+    class Reckless(FailproofController):
+        def advance(self, dt):
+            self.command.mode.fill(JointMode.CSP)
+            self.command.position.fill(1.0)
+
+    rig = make_rig()
+    bring_up(rig)
+    rig.mgr.shutdown()
+    rig.mgr = ControllerManager(Reckless(), rig.dt, rig.hw.state, rig.hw.command)
+    rig.hw.attach(rig.mgr)
+    mark = recorder.mark()
+    rig.run(0.2)
+    assert set(rig.states[-10:]) == {ManagerState.FAILPROOF}
+    recorder.wait_for_count(6 * 10, 5.0, set(RPDO1), since=mark)
+    frames = recorder.frames(set(RPDO1), since=mark)
+    assert {struct.unpack_from("<Hbi", f.data) for f in frames} == {(0, 8, 0)}
+    assert all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values())
