@@ -12,6 +12,7 @@ from typing import Sequence
 # Modules that contribute sub-commands, in help order.
 COMMAND_MODULES: tuple[str, ...] = (
     "rocoma_can.demo",
+    "rocoma_can.manager_cli",
     "rocoma_can.drivers.sim_cli",
 )
 

@@ -1,0 +1,170 @@
+"""Sub-commands ``run``, ``check-config`` and the client commands that talk to a running
+manager over the bus: ``switch``, ``estop``, ``failproof``, ``clear``, ``recover``, ``status``,
+``list``.
+
+Exit codes (for shell scripts):
+  0  done (switch: SWITCHED or RUNNING)
+  1  the manager refused or the operation failed (SDO abort, switch result NOT_FOUND/ERROR)
+  2  usage or configuration error (bad YAML, overloaded bus, cannot open the bus)
+  3  no answer from the manager (not running, wrong --node, --channel or --interface)
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any, Callable
+
+from .services import (CLEAR, ESTOP, FAILPROOF_STOP, RECOVER, RESULT_NAMES, ManagerClient,
+                       NoAnswer, Refused)
+
+OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
+
+
+def _err(message: str) -> None:
+    print(f"rocoma-can: {message}", file=sys.stderr, flush=True)
+
+
+# --- run / check-config -----------------------------------------------------------------------
+
+def _check_config(args: argparse.Namespace) -> int:
+    from .config import ConfigError, load
+    try:
+        config = load(args.config)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            print(problem, flush=True)
+        print(f"{len(exc.problems)} problem(s)", flush=True)
+        return USAGE
+    load_ = config.load
+    print(f"{args.config}: ok: {len(config.drives)} drives on {config.bus.interface}:"
+          f"{config.bus.channel} at {config.rate:g} Hz, manager node {config.manager.node_id}, "
+          f"e-stop COB-ID 0x{config.manager.estop_cob_id:03X}", flush=True)
+    if load_ is not None:
+        print(f"bus load: {load_.explain()}", flush=True)
+    return OK
+
+
+def _run(args: argparse.Namespace) -> int:
+    from .config import ConfigError, load
+    from .runtime import Runtime
+    try:
+        config = load(args.config)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            _err(problem)
+        return USAGE
+    if args.rate:
+        config.rate = args.rate
+    try:
+        runtime = Runtime(config)
+    except (OSError, ValueError) as exc:
+        _err(str(exc))
+        return USAGE
+    with runtime:
+        print(f"rocoma-can: running {len(config.drives)} drives at {config.rate:g} Hz on "
+              f"{config.bus.interface}:{config.bus.channel}, manager node "
+              f"{config.manager.node_id} (Ctrl-C / SIGTERM: torque-off, then exit)", flush=True)
+        try:
+            summary = runtime.run(duration=args.duration)
+        except OSError as exc:
+            _err(str(exc))
+            return USAGE
+        print(f"rocoma-can: stopped ({runtime.loop.stop_reason}); {summary.line()}", flush=True)
+    return OK
+
+
+# --- client commands --------------------------------------------------------------------------
+
+def _client(args: argparse.Namespace, action: Callable[[ManagerClient], int]) -> int:
+    from .drivers.bus import open_bus
+    try:
+        bus = open_bus(args.interface, args.channel, receive_own_messages=False)
+    except OSError as exc:
+        _err(str(exc))
+        return USAGE
+    try:
+        with ManagerClient(bus, args.node, timeout=args.timeout) as client:
+            return action(client)
+    except NoAnswer as exc:
+        _err(f"{exc} (is `rocoma-can run` running on {args.interface}:{args.channel}?)")
+        return NO_ANSWER
+    except Refused as exc:
+        _err(str(exc))
+        return FAILED
+    finally:
+        bus.shutdown()
+
+
+def _switch(args: argparse.Namespace) -> int:
+    def action(client: ManagerClient) -> int:
+        result = client.switch(args.name, timeout=args.wait)
+        print(RESULT_NAMES.get(result, str(result)), flush=True)
+        return OK if result in (0, 1) else FAILED
+    return _client(args, action)
+
+
+def _command(index: int, done: str) -> Callable[[argparse.Namespace], int]:
+    def handler(args: argparse.Namespace) -> int:
+        def action(client: ManagerClient) -> int:
+            client.write(index, 1)
+            print(done, flush=True)
+            return OK
+        return _client(args, action)
+    return handler
+
+
+def _status(args: argparse.Namespace) -> int:
+    def action(client: ManagerClient) -> int:
+        for key, value in client.status().items():
+            print(f"{key}: {value:#05x}" if key == "estop_cob_id" else f"{key}: {value}",
+                  flush=True)
+        return OK
+    return _client(args, action)
+
+
+def _list(args: argparse.Namespace) -> int:
+    def action(client: ManagerClient) -> int:
+        for i, name in enumerate(client.controllers(), 1):
+            print(f"{i} {name}", flush=True)
+        return OK
+    return _client(args, action)
+
+
+def _bus_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
+    p.add_argument("--channel", default="can0", help="CAN channel (can0)")
+    p.add_argument("--node", type=int, default=100, help="the manager's node id (100)")
+    p.add_argument("--timeout", type=float, default=0.5, help="SDO answer timeout, s (0.5)")
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser("run", help="run the manager from a YAML config")
+    p.add_argument("config", help="YAML file (see README, Configuration)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many s")
+    p.add_argument("--rate", type=float, default=None, help="override the loop rate, Hz")
+    p.set_defaults(func=_run)
+
+    p = subparsers.add_parser("check-config", help="validate a YAML config, list every problem")
+    p.add_argument("config")
+    p.set_defaults(func=_check_config)
+
+    p = subparsers.add_parser("switch", help="switch the running manager's controller")
+    p.add_argument("name", help="controller name, or its number from `list`")
+    p.add_argument("--wait", type=float, default=10.0, help="wait for the result, s (10)")
+    _bus_options(p)
+    p.set_defaults(func=_switch)
+    for name, index, text, done in (
+            ("estop", ESTOP, "emergency stop (emergency controller, else torque-off)",
+             "e-stop requested"),
+            ("failproof", FAILPROOF_STOP, "failproof stop (torque-off)", "failproof requested"),
+            ("clear", CLEAR, "clear a latched e-stop", "clear requested"),
+            ("recover", RECOVER, "fault-reset / restart faulted drives", "recovery started")):
+        p = subparsers.add_parser(name, help=text)
+        _bus_options(p)
+        p.set_defaults(func=_command(index, done))
+    p = subparsers.add_parser("status", help="state, active controller, e-stop latch and cause")
+    _bus_options(p)
+    p.set_defaults(func=_status)
+    p = subparsers.add_parser("list", help="the switchable controllers, numbered")
+    _bus_options(p)
+    p.set_defaults(func=_list)
