@@ -65,7 +65,10 @@ SCALING = {c.POSITION_ENCODER_RESOLUTION, c.GEAR_RATIO, c.RATED_TORQUE}
 
 # Error register (0x1001) bit per EMCY error class (code >> 12), CiA 301.
 ERROR_REGISTER_BIT = {0x2: 1 << 1, 0x3: 1 << 2, 0x4: 1 << 3, 0x8: 1 << 4}
-STOPPED_VELOCITY = 1e-3  # rad/s: a ramp has ended once the joint is slower than this
+# A ramp has ended once its command is zero and the joint is slower than this, or after
+# its command has been zero this long (standstill window and time of a real drive).
+STOPPED_VELOCITY = 0.01  # rad/s
+STANDSTILL_TIME = 0.05  # s
 
 
 def _wrap(value: float, bits: int) -> int:
@@ -139,6 +142,7 @@ class SimulatedDrive:
         self._ramp_velocity = 0.0
         self._ramp_decel = 0.0
         self._ramp_then: State402 | None = None
+        self._ramp_zero_time = 0.0
         # heartbeat producer and consumer
         self._hb_generation = 0
         self._consumer_generation = 0
@@ -621,6 +625,8 @@ class SimulatedDrive:
             v = self._ramp_velocity
             step = self._ramp_decel * dt
             self._ramp_velocity = math.copysign(max(abs(v) - step, 0.0), v)
+            if self._ramp_velocity == 0.0:
+                self._ramp_zero_time += dt
             dyn.mode[j] = LoopMode.VELOCITY
             dyn.target_velocity[j] = self._ramp_velocity
             return
@@ -651,8 +657,9 @@ class SimulatedDrive:
 
     def finish_step(self, on_sync: bool) -> None:
         """After the dynamics step: end ramps, sample actual values, send TPDOs."""
-        if self._ramping and self._ramp_velocity == 0.0 \
-                and abs(self._dyn.velocity[self.joint]) < STOPPED_VELOCITY:
+        if self._ramping and self._ramp_velocity == 0.0 and (
+                abs(self._dyn.velocity[self.joint]) < STOPPED_VELOCITY
+                or self._ramp_zero_time >= STANDSTILL_TIME):
             then = self._ramp_then
             if then is not None:
                 self._ramping = False
@@ -777,6 +784,7 @@ class SimulatedDrive:
         self._ramp_velocity = float(self._dyn.velocity[self.joint])
         self._ramp_decel = decel
         self._ramp_then = then
+        self._ramp_zero_time = 0.0
 
     def _fault(self, code: int) -> None:
         """Transition 13 (fault reaction: quick-stop ramp if powered), then 14."""
