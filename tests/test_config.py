@@ -1,0 +1,157 @@
+"""Run-time config: every problem reported with its YAML path, and the bus-load arithmetic."""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import pytest
+import yaml
+
+from rocoma_can.config import ConfigError, bus_load, frame_bits, load, validate
+from rocoma_can.drivers.config import DriveConfig
+
+EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
+
+
+def good() -> dict:
+    return {
+        "bus": {"interface": "socketcan", "channel": "vcan0", "bitrate": 1_000_000},
+        "rate": 100,
+        "manager": {"node_id": 100, "estop_cob_id": 0x0A0},
+        "drives": [{"name": f"j{i}", "node_id": i, "increments_per_rev": 4096,
+                    "rated_torque_nm": 1.0} for i in (1, 2)],
+        "controllers": [{"name": "pd", "plugin": "pd", "emergency": "damp"}],
+        "emergency_controllers": [{"name": "damp", "plugin": "damp"}],
+    }
+
+
+def test_good_config_builds():
+    config = validate(good())
+    assert config.rate == 100 and config.dt == pytest.approx(0.01)
+    assert [d.name for d in config.drives] == ["j1", "j2"]
+    assert config.manager.estop_cob_id == 0x0A0 and config.manager.estop_must_be_cleared
+
+
+@pytest.mark.parametrize("shipped", sorted(p.name for p in EXAMPLES.glob("*.yaml")))
+def test_shipped_examples_are_valid(shipped):
+    assert load(EXAMPLES / shipped).drives
+
+
+def _set(path: str, value):
+    def edit(cfg: dict) -> None:
+        *parents, last = path.split(".")
+        node = cfg
+        for key in parents:
+            node = node[int(key)] if key.isdigit() else node.setdefault(key, {})
+        if value is _DELETE:
+            del node[last]
+        elif last.isdigit():
+            node[int(last)] = value
+        else:
+            node[last] = value
+    return edit
+
+
+_DELETE = object()
+
+BAD = [
+    ("rate", _set("rate", 0), "rate: expected a loop rate"),
+    ("rate type", _set("rate", "fast"), "rate: expected a loop rate"),
+    ("unknown top key", _set("rates", 5), "rates: unknown key, did you mean 'rate'?"),
+    ("bitrate", _set("bus.bitrate", 2_000_000), "bus.bitrate: expected an integer"),
+    ("bus key", _set("bus.chanel", "x"), "bus.chanel: unknown key, did you mean 'channel'?"),
+    ("node id", _set("manager.node_id", 200), "manager.node_id: expected an integer 1..127"),
+    ("estop cob", _set("manager.estop_cob_id", 0x601), "manager.estop_cob_id: 0x601 is reserved"),
+    ("estop cob range", _set("manager.estop_cob_id", 0x1000), "manager.estop_cob_id: expected"),
+    ("must clear", _set("manager.estop_must_be_cleared", "yes"),
+     "manager.estop_must_be_cleared: expected true or false"),
+    ("clients", _set("manager.switch_clients", [0]), "manager.switch_clients"),
+    ("priority", _set("realtime.priority", 120), "realtime.priority"),
+    ("no drives", _set("drives", []), "drives: expected a non-empty list"),
+    ("drive field", _set("drives.1.node_id", 0), "drives[1]: drive 'j2': node_id must be"),
+    ("drive key", _set("drives.0.gear", 2), "drives[0]: drive 'j1': unknown keys ['gear']"),
+    ("drive mode", _set("drives.0.modes", ["pp"]), "drives[0]: drive 'j1': modes: unknown mode"),
+    ("same node", _set("drives.1.node_id", 1), "drives[1].node_id: 1 is already used by drives[0]"),
+    ("same name", _set("drives.1.name", "j1"), "drives[1].name: 'j1' is already drives[0]"),
+    ("manager node", _set("drives.1.node_id", 100), "drives[1].node_id: 100 is the manager's"),
+    ("no controllers", _set("controllers", []), "controllers: at least one controller"),
+    ("plugin", _set("controllers.0.plugin", "pdd"), "controllers[0].plugin: no controller plugin"),
+    ("emergency", _set("controllers.0.emergency", "dmap"), "controllers[0].emergency: no emergency"),
+]
+
+
+@pytest.mark.parametrize("label, edit, expected", BAD, ids=[b[0] for b in BAD])
+def test_each_problem_names_its_path(label, edit, expected):
+    cfg = copy.deepcopy(good())
+    edit(cfg)
+    with pytest.raises(ConfigError) as info:
+        validate(cfg, source="robot.yaml")
+    assert any(p.startswith("robot.yaml: " + expected) for p in info.value.problems), \
+        info.value.problems
+
+
+def test_all_problems_are_collected():
+    cfg = good()
+    cfg["rate"] = -1
+    cfg["manager"]["node_id"] = 0
+    cfg["drives"][1]["node_id"] = 1
+    cfg["controllers"][0]["plugin"] = "nope"
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    paths = [p.split(": ")[1] for p in info.value.problems]
+    assert paths == ["rate", "manager.node_id", "drives[1].node_id", "controllers[0].plugin"]
+
+
+def test_yaml_file_errors(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("rate: [1,\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load(bad)
+    ok = tmp_path / "ok.yaml"
+    ok.write_text(yaml.safe_dump(good()))
+    assert load(ok).source == str(ok)
+
+
+def test_frame_bits_match_the_reference():
+    assert frame_bits(8, worst_case=False) == 111
+    assert frame_bits(8) == 135
+    assert frame_bits(0, worst_case=False) == 47
+    assert round(1_000_000 / frame_bits(8)) == 7407
+
+
+def _drives(n: int, **kw) -> list[DriveConfig]:
+    return [DriveConfig(f"j{i}", i, 4096, 1.0, **kw) for i in range(1, n + 1)]
+
+
+def test_bus_load_counts_the_driver_layouts():
+    # CSP, feedback position+velocity+torque: 1 RPDO of 7 bytes, TPDOs of 8 + 4 bytes.
+    load_ = bus_load(_drives(3), 1000, 1_000_000)
+    assert load_.frames_per_cycle == 3 * 3 + 1
+    assert load_.bits_per_cycle == frame_bits(0) + 3 * (frame_bits(7) + frame_bits(8)
+                                                         + frame_bits(4))
+    # one RPDO + one TPDO of 8 bytes per drive, as in the reference's capacity table
+    two = bus_load(_drives(9, feedback=("position", "torque"), modes=("csp",)), 400, 1_000_000)
+    assert two.frames_per_cycle == 19 and two.load < 1.0
+
+
+def test_overload_says_what_fits():
+    cfg = good()
+    cfg["rate"] = 1000
+    cfg["drives"] = [{"name": f"j{i}", "node_id": i, "increments_per_rev": 4096,
+                      "rated_torque_nm": 1.0} for i in range(1, 13)]
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    (problem,) = info.value.problems
+    assert "rate: bus overload" in problem
+    assert "12 drives at 1000 Hz need 37,000 frames/s" in problem
+    assert "~7,407 8-byte frames/s worst case" in problem
+    assert "fits 12 drives" in problem and "1000 Hz fits 2" in problem
+
+
+def test_virtual_bus_has_no_bitrate_limit():
+    cfg = good()
+    cfg["bus"] = {"interface": "virtual", "channel": "x"}
+    cfg["rate"] = 5000
+    assert validate(cfg).load is None
