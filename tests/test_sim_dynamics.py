@@ -1,0 +1,131 @@
+"""CSP, CSV and CST move the simulated joint as commanded; torque off lets it coast."""
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+import pytest
+
+from rocoma_can.drivers.cia402 import Mode, State402
+from rocoma_can.drivers.sim_dynamics import JointDynamics, JointParams, LoopMode
+
+REV = 2 ** 20  # increments per revolution (0x608F default)
+PERIOD = 0.002  # the sim_bench default sync_period
+
+
+def test_cst_accelerates_like_the_joint_model(sim_bench, sim_interface):
+    bench = sim_bench(1, sim_interface)
+    node, drive, rec = bench.node(1), bench.drive(1), bench.recorder
+    bench.enable(1, Mode.CST)
+    node.sdo[0x6071].raw = 500  # per mille of 1 Nm rated
+    mark = rec.mark()
+    bench.sync(50)
+    # J dv/dt = tau - b v - c  ->  v(t) = (tau - c) / b * (1 - exp(-b t / J))
+    p = JointParams()
+    t = 50 * PERIOD
+    expected = (0.5 - p.coulomb) / p.viscous * (1 - math.exp(-p.viscous * t / p.inertia))
+    assert drive.velocity_rad_s == pytest.approx(expected, rel=0.01)
+    assert drive.torque_nm == pytest.approx(0.5)
+    statusword, mode, torque = struct.unpack("<HbH", rec.wait_for_count(50, 2.0, 0x181,
+                                                                        since=mark)[-1].data)
+    assert (mode, torque) == (Mode.CST, 500)
+    position, velocity = struct.unpack("<ii", rec.wait_for_count(50, 2.0, 0x281,
+                                                                 since=mark)[-1].data)
+    assert position == round(drive.position_rad * REV / (2 * math.pi))
+    assert velocity == round(drive.velocity_rad_s * REV / (2 * math.pi))
+
+
+def test_torque_is_limited_by_0x6072(sim_bench):
+    bench = sim_bench(1)
+    node, drive = bench.node(1), bench.drive(1)
+    node.sdo[0x6072].raw = 800
+    bench.enable(1, Mode.CST)
+    node.sdo[0x6071].raw = 5000
+    bench.sync(3)
+    assert drive.torque_nm == pytest.approx(0.8)
+    assert drive.torque_per_mille == 800
+
+
+def test_csv_tracks_the_target_velocity(sim_bench, sim_interface):
+    bench = sim_bench(1, sim_interface)
+    node, drive = bench.node(1), bench.drive(1)
+    bench.enable(1, Mode.CSV)
+    node.sdo[0x60FF].raw = REV // 2  # half a revolution per second
+    bench.sync(250)
+    assert drive.velocity_rad_s == pytest.approx(math.pi, rel=0.005)
+    assert drive.velocity_increments == pytest.approx(REV // 2, rel=0.005)
+    node.sdo[0x60B1].raw = REV // 2  # velocity offset adds
+    bench.sync(250)
+    assert drive.velocity_rad_s == pytest.approx(2 * math.pi, rel=0.005)
+
+
+def test_csp_reaches_the_target_position(sim_bench, sim_interface):
+    bench = sim_bench(1, sim_interface)
+    node, drive = bench.node(1), bench.drive(1)
+    bench.enable(1, Mode.CSP)
+    target = round(1.0 * REV / (2 * math.pi))  # 1 rad
+    node.sdo[0x607A].raw = target
+    bench.sync(500)
+    assert drive.position_rad == pytest.approx(1.0, abs=1e-3)
+    assert drive.position_increments == pytest.approx(target, abs=200)
+    assert abs(drive.velocity_rad_s) < 0.01
+
+
+def test_mode_switch_on_the_fly(sim_bench):
+    bench = sim_bench(1)
+    node, drive = bench.node(1), bench.drive(1)
+    bench.enable(1, Mode.CSV)
+    node.sdo[0x60FF].raw = REV
+    bench.sync(200)
+    here = drive.position_increments
+    node.sdo[0x607A].raw = here
+    node.sdo[0x6060].raw = int(Mode.CSP)
+    assert node.sdo[0x6061].raw == Mode.CSP
+    bench.sync(500)
+    assert drive.state402 == State402.OPERATION_ENABLED
+    assert abs(drive.velocity_rad_s) < 0.01  # holds where it was told, not where it drifted
+    assert drive.position_increments == pytest.approx(here, abs=REV * 0.15)
+    node.sdo[0x6060].raw = int(Mode.CST)
+    node.sdo[0x6071].raw = -300
+    bench.sync(50)
+    assert drive.velocity_rad_s < -1.0
+
+
+def test_disable_voltage_gives_zero_torque_and_the_joint_coasts(sim_bench, sim_interface):
+    bench = sim_bench(1, sim_interface)
+    node, drive, rec = bench.node(1), bench.drive(1), bench.recorder
+    bench.enable(1, Mode.CSV)
+    node.sdo[0x60FF].raw = REV
+    bench.sync(250)
+    v0, q0 = drive.velocity_rad_s, drive.position_rad
+    node.sdo[0x6040].raw = 0x00
+    assert drive.state402 == State402.SWITCH_ON_DISABLED
+    mark = rec.mark()
+    bench.sync(100)
+    assert drive.torque_nm == 0.0
+    tpdo = rec.wait_for_count(100, 2.0, 0x181, since=mark)
+    assert all(struct.unpack("<HbH", f.data)[2] == 0 for f in tpdo)
+    # coasting against friction only: J dv/dt = -b v - c
+    p = JointParams()
+    t = 100 * PERIOD
+    tau = p.inertia / p.viscous
+    v_ss = p.coulomb / p.viscous
+    expected = (v0 + v_ss) * math.exp(-t / tau) - v_ss
+    assert drive.velocity_rad_s == pytest.approx(expected, rel=0.01)
+    assert drive.position_rad > q0 + 0.5 * v0 * t
+
+
+def test_dynamics_vectorised_over_joints_and_stick_friction():
+    dyn = JointDynamics([JointParams(), JointParams(inertia=0.1, coulomb=0.5)])
+    dyn.mode[:] = LoopMode.TORQUE
+    dyn.torque_feedforward[:] = 0.3
+    dyn.step(0.1)
+    assert dyn.velocity[0] > 0.0
+    assert dyn.velocity[1] == 0.0  # 0.3 Nm does not break 0.5 Nm of static friction
+    dyn.mode[:] = LoopMode.OFF
+    for _ in range(200):
+        dyn.step(0.01)
+    np.testing.assert_array_equal(dyn.velocity, [0.0, 0.0])  # friction stops it, no jitter
+    with pytest.raises(ValueError, match="inertia"):
+        JointParams(inertia=0.0)
