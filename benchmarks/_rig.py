@@ -1,0 +1,208 @@
+"""The test rig the loop benchmarks share: simulated CiA 402 drives, the CAN hardware layer,
+a manager, the manager's CANopen node and the project's own ControlLoop (rocoma_can.runtime).
+
+Wired the way ``rocoma_can.runtime.Runtime`` wires it, but with controllers given in code,
+so a benchmark can add ones that fail or initialize slowly on purpose. The simulator runs
+in this process on a thread over python-can's virtual bus (default), or as a separate
+``rocoma-can sim`` process over SocketCAN vcan0 (``separate_process=True``; needs vcan, i.e.
+run the benchmark under tools/vcan-run).
+"""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import time
+import uuid
+from typing import Any, Callable
+
+import numpy as np
+
+from rocoma_can.drivers.bus import open_bus
+from rocoma_can.drivers.config import DriveConfig
+from rocoma_can.drivers.hardware import CanopenHardware
+from rocoma_can.drivers.sim_segment import SimulatedSegment
+from rocoma_can.interfaces import Controller, EmergencyController
+from rocoma_can.runtime import ControlLoop
+from rocoma_can.services import ManagerNode
+
+MANAGER_NODE_ID = 100
+ESTOP_COB_ID = 0x010
+#: The simulated drive's EDS defaults (0x608F, 0x6076): the hardware checks them at start-up.
+INCREMENTS_PER_REV = 1 << 20
+RATED_TORQUE_NM = 1.0
+
+
+def drive_configs(n: int) -> list[DriveConfig]:
+    return [DriveConfig(f"j{i}", i, INCREMENTS_PER_REV, RATED_TORQUE_NM) for i in range(1, n + 1)]
+
+
+def missed_cycles(starts: np.ndarray, period: float) -> int:
+    """Cycle slots that passed without a cycle starting: a gap of k periods misses k - 1."""
+    if len(starts) < 2:
+        return 0
+    slots = np.rint(np.diff(starts) / period).astype(np.int64)
+    return int(np.maximum(slots - 1, 0).sum())
+
+
+class StartLog:
+    """Cycle start times in an array allocated once (ControlLoop's on_cycle gets ``now``)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.starts = np.zeros(capacity)
+        self.n = 0
+
+    def add(self, now: float) -> None:
+        if self.n < len(self.starts):
+            self.starts[self.n] = now
+            self.n += 1
+
+    def window(self, t0: float = -math.inf, t1: float = math.inf) -> np.ndarray:
+        s = self.starts[:self.n]
+        return s[(s >= t0) & (s <= t1)]
+
+
+class Rig:
+    """Drives + hardware + manager + node; ``run(duration, on_cycle)`` runs the loop."""
+
+    def __init__(self, drives: int, rate: float, *, separate_process: bool = False,
+                 channel: str | None = None) -> None:
+        self.rate = rate
+        self.dt = 1.0 / rate
+        self.separate_process = separate_process
+        self.interface = "socketcan" if separate_process else "virtual"
+        self.channel = channel or ("vcan0" if separate_process
+                                   else f"bench-{uuid.uuid4().hex[:8]}")
+        self.node_ids = list(range(1, drives + 1))
+        self._closers: list[Callable[[], Any]] = []
+        try:
+            self._start_simulator()
+            self.bus = open_bus(self.interface, self.channel, receive_own_messages=False)
+            self._closers.append(self.bus.shutdown)
+            self.hardware = CanopenHardware(self.bus, drive_configs(drives), MANAGER_NODE_ID,
+                                            self.dt)
+            self._closers.append(self.hardware.close)
+            self.manager = self.hardware.create_manager()
+            self._closers.append(self.manager.shutdown)
+            self.node_bus = open_bus(self.interface, self.channel,
+                                    receive_own_messages=False)
+            self._closers.append(self.node_bus.shutdown)
+            self.node = ManagerNode(self.manager, MANAGER_NODE_ID, self.node_bus,
+                                    estop_cob_id=ESTOP_COB_ID)
+        except BaseException:
+            self.close()
+            raise
+
+    def _start_simulator(self) -> None:
+        if not self.separate_process:
+            segment = SimulatedSegment.open(self.channel, "virtual", self.node_ids).start()
+            self.segment = segment
+            self._closers.append(segment.check)
+            self._closers.append(segment.stop)
+            return
+        nodes = f"{self.node_ids[0]}-{self.node_ids[-1]}"
+        proc = subprocess.Popen([sys.executable, "-m", "rocoma_can", "sim", "--interface",
+                                 "socketcan", "--channel", self.channel, "--nodes", nodes])
+        self.segment = None
+
+        def stop() -> None:
+            proc.terminate()
+            try:
+                proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5.0)
+        self._closers.append(stop)
+        time.sleep(1.0)  # let the simulator open its socket and send boot-ups
+        if proc.poll() is not None:
+            raise RuntimeError(f"rocoma-can sim exited with {proc.returncode} (is vcan0 up? "
+                               "run under tools/vcan-run)")
+
+    def add(self, controller: Controller, emergency: EmergencyController | None = None) -> None:
+        if not self.manager.add_controller(controller, emergency=emergency):
+            raise RuntimeError(f"could not add controller {controller.name!r}")
+
+    def start(self) -> None:
+        self.hardware.start()
+        self.node.start()
+        self._closers.append(self.node.close)
+
+    def loop(self, on_cycle: Callable[[float], None], cycles: int) -> ControlLoop:
+        return ControlLoop(self.hardware, self.manager, self.rate, on_cycle=on_cycle,
+                           stats_size=max(16, cycles))
+
+    def close(self) -> None:
+        """Everything opened, in reverse order; a failing step does not skip the rest."""
+        errors = []
+        while self._closers:
+            try:
+                self._closers.pop()()
+            except Exception as exc:  # noqa: BLE001 - close the rest, report the first
+                errors.append(exc)
+        if errors:
+            raise errors[0]
+
+    def __enter__(self) -> Rig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Script:
+    """A scenario stepped from the loop's on_cycle: bring-up, switch, then the benchmark.
+
+    Phases: wait until every drive is READY, switch to ``controller`` and wait until every
+    drive is enabled, then call ``body(now)`` every cycle until it returns True (done) or
+    ``timeout`` passes (the run is then marked timed out). Stops the loop at the end.
+    """
+
+    def __init__(self, rig: Rig, controller: str, body: Callable[[float], bool],
+                 timeout: float) -> None:
+        self.rig = rig
+        self.controller = controller
+        self.body = body
+        self.timeout = timeout
+        self.loop: ControlLoop | None = None
+        self.phase = "bring-up"
+        self.timed_out = False
+        self.ready_at = math.nan
+        self._switch: Any = None
+        self._deadline = math.inf
+
+    def __call__(self, now: float) -> None:
+        if self._deadline == math.inf:
+            self._deadline = now + self.timeout
+        if now > self._deadline:
+            self.timed_out = True
+            self.loop.stop(f"timed out in phase {self.phase}")
+            return
+        hw = self.rig.hardware
+        if self.phase == "bring-up":
+            if hw.all_ready:
+                self._switch = self.rig.manager.request_switch(self.controller)
+                self.phase = "enable"
+        elif self.phase == "enable":
+            if self._switch.done() and hw.all_enabled:
+                self.phase = "run"
+                self.ready_at = now
+        elif self.body(now):
+            self.phase = "done"
+            self.loop.stop("done")
+
+
+def run_script(rig: Rig, script: Script, cycles: int,
+               start_log: StartLog | None = None) -> Any:
+    """Run the loop with ``script`` as on_cycle (and the cycle starts logged); the summary."""
+    if start_log is None:
+        on_cycle = script
+    else:
+        add = start_log.add
+
+        def on_cycle(now: float) -> None:
+            add(now)
+            script(now)
+    loop = rig.loop(on_cycle, cycles)
+    script.loop = loop
+    rig.start()
+    return loop.run(script.timeout + 5.0)
