@@ -16,7 +16,9 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+#: Where the JSON goes; ROCOMA_BENCH_RESULTS redirects it (the smoke test uses a temp dir).
+RESULTS = Path(os.environ.get("ROCOMA_BENCH_RESULTS")
+               or Path(__file__).resolve().parent / "results")
 
 
 def stats(samples: Iterable[float]) -> dict[str, float]:
@@ -80,7 +82,7 @@ def report(name: str, title: str, headers: Sequence[str], rows: Sequence[Sequenc
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps(result, indent=2, default=_json_default) + "\n")
-    print(f"\n(wrote {path.relative_to(RESULTS.parent.parent)})")
+    print(f"\n(wrote {path})")
     return result
 
 

@@ -1,0 +1,58 @@
+"""Run every benchmark one after the other with short settings (a few minutes in all).
+
+    .venv/bin/python benchmarks/run_all.py [--quick]
+
+Each benchmark runs as its own process (so one's threads and GC state cannot colour the
+next), prints its table and writes benchmarks/results/<name>.json. --quick runs each in its
+quickest mode (what tests/test_benchmarks_smoke.py does). Exit status: the number of
+benchmarks that failed.
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+#: name -> arguments for the short run (the defaults of each script are longer)
+SHORT = {
+    "bus_load": [],
+    "manager_overhead": [],
+    "controllers": ["--repeat", "5000"],
+    "cycle_cost": [],
+    "loop_run": ["--duration", "10"],
+    "estop_latency": [],
+    "switch_missed_cycles": [],
+}
+#: scripts without a --quick option get these instead
+QUICK_FALLBACK = {"controllers": ["--repeat", "1000"]}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--only", default="", help="comma-separated names")
+    args = parser.parse_args()
+    names = [n for n in SHORT if not args.only or n in args.only.split(",")]
+    failed = []
+    for name in names:
+        script = HERE / f"{name}.py"
+        if not script.exists():
+            print(f"\n## {name}: not present, skipped")
+            continue
+        extra = (QUICK_FALLBACK.get(name, ["--quick"]) if args.quick else SHORT[name])
+        t0 = time.monotonic()
+        rc = subprocess.call([sys.executable, str(script), *extra], cwd=HERE.parent)
+        print(f"\n({name}: exit {rc}, {time.monotonic() - t0:.1f} s)", flush=True)
+        if rc:
+            failed.append(name)
+    if failed:
+        print(f"\nfailed: {', '.join(failed)}")
+    return len(failed)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

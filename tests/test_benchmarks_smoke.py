@@ -1,0 +1,44 @@
+"""Every benchmark runs in its quickest mode and writes the JSON it promises.
+
+Timing is never asserted here (a shared 2-core machine): only that each script exits 0 and
+its result file has the keys the README and later comparisons read.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+COMMON = {"benchmark", "title", "machine", "args", "headers", "rows", "results"}
+
+CASES = {
+    "bus_load": lambda r: {"frames_per_cycle", "fits_500k", "fits_1000k"} <= set(r[0]),
+    "manager_overhead": lambda r: {"trivial: mgr.update()", "pd: mgr.update()",
+                                   "e-stop: advance fails -> damp"} <= set(r),
+    "loop_run": lambda r: {"mode", "missed_cycles", "period_us", "jitter_us", "estops",
+                           "final_state"} <= set(r) and r["mode"] == "in-process",
+    "estop_latency": lambda r: len(r["cases"]) == 2 and all(
+        {"first_frame_us", "all_drives_us", "first_frame_cycles", "lost"} <= set(c)
+        for c in r["cases"].values()),
+    "switch_missed_cycles": lambda r: {"plain", "drives"} <= set(r) and all(
+        {"missed_during", "max_period_ms_during", "missed_baseline", "results"} <= set(s)
+        for s in r.values()),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_benchmark_runs_quick_and_writes_json(name: str, tmp_path: Path) -> None:
+    env = {**os.environ, "ROCOMA_BENCH_RESULTS": str(tmp_path)}
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / f"{name}.py"), "--quick"],
+                          cwd=BENCHMARKS.parent, env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    data = json.loads((tmp_path / f"{name}.json").read_text())
+    assert COMMON <= set(data), sorted(COMMON - set(data))
+    assert data["benchmark"] == name and data["rows"]
+    assert CASES[name](data["results"]), data["results"]
