@@ -101,7 +101,7 @@ def test_disable_voltage_gives_zero_torque_and_the_joint_coasts(sim_bench, sim_i
     v0, q0 = drive.velocity_rad_s, drive.position_rad
     node.sdo[0x6040].raw = 0x00
     assert drive.state402 == State402.SWITCH_ON_DISABLED
-    mark = rec.mark()
+    mark = bench.barrier()  # TPDOs of the powered SYNCs may still be on their way
     bench.sync(100)
     assert drive.torque_nm == 0.0
     tpdo = rec.wait_for_count(100, 2.0, 0x181, since=mark)

@@ -73,8 +73,7 @@ def test_heartbeat_period_within_20_percent(sim_bench, sim_interface):
     mean = (frames[-1].time - frames[1].time) / 9
     assert 0.032 <= mean <= 0.048, mean
     node.sdo[0x1017].raw = 0
-    time.sleep(0.05)
-    mark = rec.mark()
+    mark = bench.barrier()
     bench.nmt(NmtCommand.START)  # the recorder has seen everything sent before this
     bench.sync(1)
     rec.wait_for_count(1, 2.0, 0x181, since=mark)
