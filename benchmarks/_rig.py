@@ -183,6 +183,12 @@ class Script:
                 self._switch = self.rig.manager.request_switch(self.controller)
                 self.phase = "enable"
         elif self.phase == "enable":
+            if not hw.all_ready and not hw.starting:
+                hw.recover()  # a supervision fault during enable (late TPDOs under load)
+            elif self._switch.done() and (self.rig.manager.state != 2  # OK
+                                          or self.rig.manager.active_controller_name
+                                          != self.controller):
+                self._switch = self.rig.manager.request_switch(self.controller)  # e-stopped
             if self._switch.done() and hw.all_enabled:
                 self.phase = "run"
                 self.ready_at = now

@@ -111,6 +111,8 @@ class Trials:
                   and hw.all_enabled)
             self.count = self.count + 1 if on else 0
             if self.count < SETTLE_CYCLES:
+                if not hw.all_ready and not hw.starting:
+                    hw.recover()  # a supervision fault (e.g. late TPDOs under load)
                 if not on and (self.pending is None or self.pending.done()) and \
                         (mgr.state != ManagerState.OK or mgr.active_controller_name != ctrl.name):
                     self.pending = mgr.request_switch(ctrl.name)
@@ -153,7 +155,7 @@ class Trials:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--drives", type=int, default=12)
-    parser.add_argument("--rate", type=float, default=500.0, help="Hz")
+    parser.add_argument("--rate", type=float, default=250.0, help="Hz")
     parser.add_argument("--repeat", type=int, default=30)
     parser.add_argument("--quick", action="store_true", help="4 drives, 5 repetitions")
     args = parser.parse_args()
