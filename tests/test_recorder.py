@@ -45,6 +45,7 @@ def test_filters_marks_and_counts(virtual_bus, frame_recorder):
     assert recorder.count(0x201) == 2
     assert recorder.count(0x201, since=mark) == 1
     assert [f.data for f in recorder.frames(cob_id={0x701, 0x081})] == [b"\x00", b""]
+    assert recorder.count(where=lambda f: f.data[:1] == b"\x02") == 1
     recorder.clear()
     assert recorder.frames() == []
 

@@ -1,0 +1,105 @@
+"""Real SocketCAN on vcan0/vcan1 (tests/vcan/ is marked `vcan`: run through tools/vcan-run).
+
+Inside user-mode-linux system calls are slow, so these tests use low cycle rates and assert
+counts and orderings, never speed.
+"""
+from __future__ import annotations
+
+import time
+
+import can
+
+
+def frame(cob_id: int, *data: int, extended: bool = False) -> can.Message:
+    return can.Message(arbitration_id=cob_id, data=bytes(data), is_extended_id=extended)
+
+
+def socketcan(bus_factory, channel: str = "vcan0") -> can.BusABC:
+    return bus_factory(channel, "socketcan")
+
+
+def test_two_sockets_exchange_frames_in_order(bus_factory, frame_recorder):
+    recorder = frame_recorder(interface="socketcan")
+    a, b = socketcan(bus_factory), socketcan(bus_factory)
+
+    for i in range(30):
+        a.send(frame(0x201, i, 0xAA))
+    received = [b.recv(timeout=5) for _ in range(30)]
+    for i in range(30):
+        b.send(frame(0x181, i))
+    replies = [a.recv(timeout=5) for _ in range(30)]
+
+    assert [(m.arbitration_id, m.data[0]) for m in received] == [(0x201, i) for i in range(30)]
+    assert [m.data[0] for m in replies] == list(range(30))
+    assert all(m.channel == "vcan0" and not m.is_extended_id for m in received)
+    recorder.wait_for_count(60, timeout=10)
+    assert recorder.cob_ids() == [0x201] * 30 + [0x181] * 30
+
+
+def test_frame_flags_survive_the_kernel(bus_factory):
+    a, b = socketcan(bus_factory), socketcan(bus_factory)
+    a.send(frame(0x1ABCDE01, 1, 2, 3, extended=True))
+    a.send(can.Message(arbitration_id=0x601, is_remote_frame=True, dlc=8, is_extended_id=False))
+
+    extended, remote = b.recv(timeout=5), b.recv(timeout=5)
+
+    assert (extended.arbitration_id, extended.is_extended_id, bytes(extended.data)) == (
+        0x1ABCDE01, True, b"\x01\x02\x03")
+    assert (remote.arbitration_id, remote.is_remote_frame, remote.dlc) == (0x601, True, 8)
+
+
+def test_vcan1_is_a_separate_bus(bus_factory, frame_recorder):
+    recorder0 = frame_recorder("vcan0", "socketcan")
+    recorder1 = frame_recorder("vcan1", "socketcan")
+    on0, on1 = socketcan(bus_factory, "vcan0"), socketcan(bus_factory, "vcan1")
+
+    on1.send(frame(0x111))
+    on0.send(frame(0x100))
+    recorder0.wait_for(lambda f: f.cob_id == 0x100, timeout=5)
+    recorder1.wait_for(lambda f: f.cob_id == 0x111, timeout=5)
+
+    # vcan0's recorder had the vcan1 frame queued first if the two were one bus.
+    assert recorder0.cob_ids() == [0x100]
+    assert recorder1.cob_ids() == [0x111]
+
+
+def test_kernel_bcm_sends_periodically_and_in_sequence(bus_factory, frame_recorder):
+    recorder = frame_recorder(interface="socketcan")
+    sender, marker = socketcan(bus_factory), socketcan(bus_factory)
+
+    task = sender.send_periodic([frame(0x280, n) for n in range(3)], period=0.02)  # 50 Hz
+    try:
+        recorder.wait_for_count(9, timeout=10, cob_id=0x280)
+        task.modify_data([frame(0x280, 0x10 + n) for n in range(3)])
+        recorder.wait_for_count(6, timeout=10, cob_id=0x280, where=lambda f: f.data[0] >= 0x10)
+    finally:
+        task.stop()
+    stopped = recorder.mark()
+    time.sleep(0.1)  # five periods: room for a frame the kernel should no longer send
+    marker.send(frame(0x7FF))
+    recorder.wait_for(lambda f: f.cob_id == 0x7FF, timeout=5, since=stopped)
+
+    data = [f.data[0] for f in recorder.frames(0x280)]
+    old = [d for d in data if d < 0x10]
+    new = [d for d in data if d >= 0x10]
+    assert data == old + new, "a frame with the old data came after the modification"
+    # The kernel cycles through the frames in the order given, before and after modify_data.
+    assert old[:9] == [0, 1, 2] * 3
+    assert [d - 0x10 for d in new[:6]] in ([0, 1, 2] * 2, [1, 2, 0] * 2, [2, 0, 1] * 2)
+    assert recorder.cob_ids(since=stopped) == [0x7FF], "BCM frames after task.stop()"
+
+
+def test_kernel_bcm_with_duration_sends_an_exact_count(bus_factory, frame_recorder):
+    recorder = frame_recorder(interface="socketcan")
+    sender, marker = socketcan(bus_factory), socketcan(bus_factory)
+
+    task = sender.send_periodic(frame(0x380, 1), period=0.02, duration=0.2)  # 10 frames
+    try:
+        recorder.wait_for_count(10, timeout=10, cob_id=0x380)
+        time.sleep(0.1)  # five periods in which an eleventh frame would show
+        marker.send(frame(0x7FF))
+        recorder.wait_for(lambda f: f.cob_id == 0x7FF, timeout=5)
+    finally:
+        task.stop()
+
+    assert recorder.count(0x380) == 10
