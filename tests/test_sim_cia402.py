@@ -80,9 +80,7 @@ def test_quick_stop_option_6_stays_and_transition_16(sim_bench):
     bench = sim_bench(1)
     node, drive = bench.node(1), bench.drive(1)
     node.sdo[0x605A].raw = 6
-    bench.enable(1, Mode.CSV)
-    node.sdo[0x60FF].raw = 2 ** 20  # one motor revolution per second
-    bench.sync(300)
+    bench.spin(1)
     _step(bench, 0x02, S.QUICK_STOP_ACTIVE, syncs=300)  # ramped to standstill, stays
     assert abs(drive.velocity_rad_s) < 0.01
     _step(bench, 0x0F, S.OPERATION_ENABLED)  # 16
@@ -92,9 +90,7 @@ def test_quick_stop_ramp_follows_0x6085(sim_bench):
     bench = sim_bench(1)
     node, drive = bench.node(1), bench.drive(1)
     node.sdo[0x6085].raw = 2 ** 20  # 1 rev/s^2: 1 rev/s stops in 1 s
-    bench.enable(1, Mode.CSV)
-    node.sdo[0x60FF].raw = 2 ** 20
-    bench.sync(300)
+    bench.spin(1)
     v0 = drive.velocity_rad_s
     assert v0 == pytest.approx(2 * 3.14159, rel=0.01)
     node.sdo[0x6040].raw = 0x02
@@ -110,9 +106,7 @@ def test_quick_stop_option_0_coasts(sim_bench):
     bench = sim_bench(1)
     node, drive = bench.node(1), bench.drive(1)
     node.sdo[0x605A].raw = 0
-    bench.enable(1, Mode.CSV)
-    node.sdo[0x60FF].raw = 2 ** 20
-    bench.sync(300)
+    bench.spin(1)
     node.sdo[0x6040].raw = 0x02
     assert drive.state402 == S.SWITCH_ON_DISABLED
     bench.sync(5)
@@ -123,9 +117,7 @@ def test_quick_stop_option_0_coasts(sim_bench):
 def test_halt_bit_stops_and_holds_in_operation_enabled(sim_bench):
     bench = sim_bench(1)
     node, drive = bench.node(1), bench.drive(1)
-    bench.enable(1, Mode.CSV)
-    node.sdo[0x60FF].raw = 2 ** 20
-    bench.sync(300)
+    bench.spin(1)
     node.sdo[0x6040].raw = 0x0F | c.CW_HALT
     bench.sync(500)  # 0x6085 default is 10 rev/s^2
     assert drive.state402 == S.OPERATION_ENABLED

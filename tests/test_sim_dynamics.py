@@ -95,9 +95,7 @@ def test_mode_switch_on_the_fly(sim_bench):
 def test_disable_voltage_gives_zero_torque_and_the_joint_coasts(sim_bench, sim_interface):
     bench = sim_bench(1, sim_interface)
     node, drive, rec = bench.node(1), bench.drive(1), bench.recorder
-    bench.enable(1, Mode.CSV)
-    node.sdo[0x60FF].raw = REV
-    bench.sync(250)
+    bench.spin(1, REV, syncs=250)
     v0, q0 = drive.velocity_rad_s, drive.position_rad
     node.sdo[0x6040].raw = 0x00
     assert drive.state402 == State402.SWITCH_ON_DISABLED

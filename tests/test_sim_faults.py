@@ -46,9 +46,7 @@ def test_trip_fault_emcy_error_objects_and_reset(sim_bench, sim_interface):
 def test_fault_while_moving_ramps_down_before_fault(sim_bench):
     bench = sim_bench(1)
     node, drive = bench.node(1), bench.drive(1)
-    bench.enable(1, Mode.CSV)
-    node.sdo[0x60FF].raw = 2 ** 20
-    bench.sync(300)
+    bench.spin(1)
     drive.trip_fault(c.EMCY_OVERTEMPERATURE)
     bench.sync(10)
     assert drive.state402 == State402.FAULT_REACTION_ACTIVE
@@ -122,9 +120,7 @@ def test_babble_is_bounded(sim_bench):
 def test_sto_low_drops_out_of_operation_enabled(sim_bench, sim_interface):
     bench = sim_bench(1, sim_interface)
     node, drive, rec = bench.node(1), bench.drive(1), bench.recorder
-    bench.enable(1, Mode.CSV)
-    node.sdo[0x60FF].raw = 2 ** 20
-    bench.sync(100)
+    bench.spin(1, syncs=100)
     mark = rec.mark()
     drive.set_sto(True)
     code, register = _emcy(rec.wait_for_count(1, 2.0, 0x81, since=mark)[0])
@@ -167,15 +163,22 @@ def test_parse_node_ids():
 
 def test_cli_runs_a_segment_with_faults_and_status(frame_recorder, virtual_channel, capsys):
     rec = frame_recorder()
-    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGUSR1))
-    timer.start()
+
+    def ask_for_status() -> None:  # SIGUSR1 once the segment runs and the fault is in
+        rec.wait_for(lambda f: f.cob_id == 0x82, 5.0)
+        os.kill(os.getpid(), signal.SIGUSR1)
+
+    # a SIGUSR1 before the CLI has its handler must not kill the test run
+    previous = signal.signal(signal.SIGUSR1, lambda *_: None)
+    asker = threading.Thread(target=ask_for_status)
+    asker.start()
     try:
         code = cli.main(["sim", "--interface", "virtual", "--channel", virtual_channel,
-                         "--nodes", "1-2", "--duration", "0.8", "--fault", "2:0x2310@0.1",
+                         "--nodes", "1-2", "--duration", "1.5", "--fault", "2:0x2310@0.1",
                          "--sto-low", "1"])
     finally:
-        timer.cancel()
-        timer.join()
+        asker.join(6.0)
+        signal.signal(signal.SIGUSR1, previous)
     assert code == 0
     assert [f.data for f in rec.frames(0x701)][:1] == [b"\x00"]
     emcys = {f.cob_id: struct.unpack("<H", f.data[:2])[0] for f in rec.frames((0x81, 0x82))}

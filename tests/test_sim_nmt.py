@@ -4,8 +4,6 @@ from __future__ import annotations
 import struct
 import time
 
-import pytest
-
 from rocoma_can.drivers import cia402 as c
 from rocoma_can.drivers.cia402 import AbortConnectionOption, Mode, NmtCommand, NmtState, State402
 
