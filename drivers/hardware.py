@@ -127,6 +127,7 @@ class CanopenHardware:
                  manager_heartbeat_ms: int = 100, consumer_factor: float = 2.0,
                  heartbeat_timeout_factor: float = 2.5, tpdo_timeout_cycles: int = 5,
                  timeouts: Timeouts = Timeouts(), config_workers: int = 4,
+                 sdo_timeout: float = 0.5, sdo_retries: int = 3,
                  on_fault: Callable[[FaultEvent], None] | None = None) -> None:
         drives = list(drives)
         check_drives(drives, manager_node_id)
@@ -143,6 +144,9 @@ class CanopenHardware:
         self.manager_heartbeat_period = manager_heartbeat_ms / 1000.0
         self.consumer_ms = consumer_ms
         self.timeouts = timeouts
+        self.config_workers = max(1, int(config_workers))
+        self.sdo_timeout = sdo_timeout
+        self.sdo_retries = sdo_retries
         self.on_fault = on_fault
         self._bus_arg = bus
         n = len(drives)
@@ -243,10 +247,14 @@ class CanopenHardware:
         self._canopen = cb
         cob_ids = set(self._tpdo_of) | set(self._heartbeat_of) | set(self._emcy_of)
         cb.add_listener(_Receiver(cob_ids, self._rx))
-        self._executor = ThreadPoolExecutor(max_workers=max(1, min(4, len(self.drives_config))),
-                                            thread_name_prefix="canopen-config")
+        self._executor = ThreadPoolExecutor(
+            max_workers=min(self.config_workers, len(self.drives_config)),
+            thread_name_prefix="canopen-config")
         for d, layout, od in zip(self.drives_config, self.layouts, self._ods):
             node = cb.network.add_node(d.node_id, od)
+            # Only expedited (<= 4 byte) transfers are used, so a retry is always safe.
+            node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
+            node.sdo.MAX_RETRIES = self.sdo_retries
             b = DriveBringup(d, layout, node, self.manager_node_id, self.consumer_ms,
                              self.timeouts)
             b.restart(now)

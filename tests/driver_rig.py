@@ -36,9 +36,11 @@ class Rig:
     def __init__(self, bus: can.BusABC, node_ids: Sequence[int], dt: float,
                  modes: Sequence[str] = ("csp", "csv", "cst"), *,
                  estop_must_be_cleared: bool = False, manager_heartbeat_ms: int = 100,
-                 timeouts: Timeouts = Timeouts(), **hw_kw) -> None:
+                 timeouts: Timeouts = Timeouts(), drive_heartbeat_ms: int = 100,
+                 **hw_kw) -> None:
         self.dt = dt
-        self.hw = CanopenHardware(bus, drive_configs(node_ids, modes), MANAGER_NODE_ID, dt,
+        drives = drive_configs(node_ids, modes, heartbeat_ms=drive_heartbeat_ms)
+        self.hw = CanopenHardware(bus, drives, MANAGER_NODE_ID, dt,
                                   manager_heartbeat_ms=manager_heartbeat_ms,
                                   timeouts=timeouts, **hw_kw)
         self.mgr = self.hw.create_manager(estop_must_be_cleared=estop_must_be_cleared)
@@ -151,3 +153,23 @@ class Brake(EmergencyController):
         c.velocity.fill(0.0)
         c.torque.fill(0.0)
         return True
+
+
+def serve(channel: str, interface: str, node_ids: Sequence[int], dt: float,
+          heartbeat_ms: int, seconds: float) -> None:
+    """A manager process for the SIGKILL test: bring up, enable, print ENABLED, keep cycling."""
+    bus = can.Bus(interface=interface, channel=channel, receive_own_messages=False,
+                  ignore_config=True)
+    rig = Rig(bus, node_ids, dt, manager_heartbeat_ms=heartbeat_ms)
+    try:
+        if not rig.run_until(lambda: not rig.hw.starting, 20.0):
+            raise SystemExit(f"bring-up timed out: {rig.hw.drive_status()}")
+        rig.mgr.add_controller(HoldPD())
+        rig.switch("hold")
+        if not rig.run_until(lambda: rig.hw.all_enabled, 10.0):
+            raise SystemExit(f"enable timed out: {rig.hw.drive_status()}")
+        print("ENABLED", flush=True)
+        rig.run(seconds)
+    finally:
+        rig.close()
+        bus.shutdown()

@@ -11,12 +11,13 @@ import struct
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import pytest
 
 from driver_rig import MANAGER_NODE_ID, Brake, HoldPD, Rig, Sine
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import cia402
-from rocoma_can.drivers.bringup import Phase
+from rocoma_can.drivers.bringup import Phase, Timeouts
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.joints import JointMode
 
@@ -27,15 +28,23 @@ START_TIMEOUT = 15.0
 
 @dataclass(frozen=True)
 class Can:
+    """A bus and the margins its scheduler needs: the user-mode-linux VM shares one host CPU
+    with everything else, so its supervision deadlines are wider (they are config, and the
+    tests check behaviour, not the margins)."""
     interface: str
     dt: float
+    heartbeat_ms: int        # the manager's heartbeat period
+    drive_heartbeat_ms: int  # the drives' heartbeat period (supervised at 2.5x)
+    tpdo_timeout_cycles: int
+    timeouts: Timeouts
 
     def channel(self, virtual_channel: str) -> str:
         return virtual_channel if self.interface == "virtual" else "vcan0"
 
 
-@pytest.fixture(params=[pytest.param(Can("virtual", 0.005), id="virtual"),
-                        pytest.param(Can("socketcan", 0.02), id="vcan",
+@pytest.fixture(params=[pytest.param(Can("virtual", 0.005, 100, 100, 20, Timeouts()), id="virtual"),
+                        pytest.param(Can("socketcan", 0.02, 250, 200, 10,
+                                         Timeouts(start=5.0, reset=3.0, enable=3.0)), id="vcan",
                                      marks=pytest.mark.vcan)])
 def can_setup(request) -> Can:
     return request.param
@@ -53,6 +62,10 @@ def make_rig(can_setup, virtual_channel, bus_factory):
 
     def make(nodes=NODES, **kw) -> Rig:
         bus = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
+        kw.setdefault("manager_heartbeat_ms", can_setup.heartbeat_ms)
+        kw.setdefault("drive_heartbeat_ms", can_setup.drive_heartbeat_ms)
+        kw.setdefault("tpdo_timeout_cycles", can_setup.tpdo_timeout_cycles)
+        kw.setdefault("timeouts", can_setup.timeouts)
         rig = Rig(bus, nodes, can_setup.dt, **kw)
         rigs.append(rig)
         return rig
@@ -77,22 +90,37 @@ def enable_with(rig: Rig, controller, emergency=None) -> None:
     assert rig.run_until(lambda: rig.hw.all_enabled, 5.0), rig.hw.drive_status()
 
 
-def rpdo1_controlwords(frames) -> dict[int, int]:
-    return {RPDO1[f.cob_id]: struct.unpack_from("<H", f.data)[0] for f in frames
-            if f.cob_id in RPDO1}
+def synced_mark(recorder, rig: Rig) -> int:
+    """A recorder mark after every frame the rig has sent so far (the recorder reads on a
+    thread of its own and may lag): it has seen one SYNC per cycle (less any the bus refused)."""
+    recorder.wait_for_count(len(rig.states) - rig.hw.tx_errors, 5.0, cia402.SYNC)
+    return recorder.mark()
+
+
+def rpdo1_cycles(frames) -> list[dict[int, int]]:
+    """RPDO1 controlwords per cycle (a cycle starts with drive 1's frame)."""
+    cycles: list[dict[int, int]] = []
+    for f in frames:
+        node = RPDO1[f.cob_id]
+        if node == NODES[0] or not cycles:
+            cycles.append({})
+        cycles[-1][node] = struct.unpack_from("<H", f.data)[0]
+    return cycles
 
 
 # --- bring-up --------------------------------------------------------------------------------
-def test_bring_up_six_drives_to_operation_enabled(segment, make_rig):
+def test_bring_up_six_drives_to_operation_enabled(segment, make_rig, can_setup):
     rig = make_rig()
     bring_up(rig)
     assert rig.hw.all_ready, rig.hw.drive_status()
     # every drive was configured as the safety model needs it
     for n, drive in segment.drives.items():
         assert drive.nmt_state == cia402.NmtState.OPERATIONAL
-        assert drive.od_value(cia402.CONSUMER_HEARTBEAT_TIME, 1) == (MANAGER_NODE_ID << 16) | 200
+        assert drive.od_value(cia402.CONSUMER_HEARTBEAT_TIME, 1) == \
+            (MANAGER_NODE_ID << 16) | rig.hw.consumer_ms
         assert drive.od_value(cia402.ABORT_CONNECTION_OPTION) == \
             cia402.AbortConnectionOption.DISABLE_VOLTAGE
+    assert rig.hw.consumer_ms == 2 * can_setup.heartbeat_ms
     # 3 modes per drive: 2 RPDOs + 2 TPDOs each, + SYNC
     assert rig.hw.frames_per_cycle == 6 * 4 + 1
     enable_with(rig, HoldPD())
@@ -138,15 +166,16 @@ def test_pd_holds_in_cst_then_tracks_a_sine_in_csp_and_csv(segment, make_rig):
         sine = Sine(f"sine_{mode.name.lower()}", mode)
         rig.mgr.add_controller(sine)
         assert rig.switch(sine.name) == SwitchResult.SWITCHED
-        worst = 0.0
-        for _ in range(int(1.5 / rig.dt)):
+        errors = []
+        for _ in range(int(2.0 / rig.dt)):
             rig.cycle()
             if sine.t > 0.3:  # after the drive's loops settled on the moving reference
-                expected = sine.start + sine.reference()
-                worst = max(worst, abs(rig.hw.state.position - expected).max())
+                errors.append(rig.hw.state.position - (sine.start + sine.reference()))
         assert rig.mgr.state == ManagerState.OK
         assert rig.hw.all_enabled
-        assert worst < 0.08, (mode, worst)
+        rms = float(np.sqrt(np.mean(np.square(errors))))
+        # a 0.3 rad sine; allowed: transport lag of a few cycles at its peak speed
+        assert rms < 0.03 + 3 * rig.dt * sine.a * 2 * np.pi * sine.f, (mode, rms)
         modes = rig.hw.state.statusword  # still enabled with the new mode
         assert all(segment.drives[n].mode_display == mode for n in NODES), modes
 
@@ -155,7 +184,7 @@ def test_unconfigured_mode_is_rejected_not_sent(segment, make_rig, recorder):
     rig = make_rig(modes=("csp",))
     bring_up(rig)
     assert rig.hw.frames_per_cycle == 6 * 3 + 1  # 1 RPDO + 2 TPDOs per drive
-    mark = recorder.mark()
+    mark = synced_mark(recorder, rig)
     rig.mgr.add_controller(HoldPD())  # commands CST, which no drive is configured for
     rig.switch("hold")
     rig.run(0.2)
@@ -180,20 +209,21 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
     assert rig.mgr.state == ManagerState.EMERGENCY  # one broken drive is one e-stop
     assert all(segment.drives[n].state402 == State402.OPERATION_ENABLED for n in NODES if n != 2)
 
+    mark = synced_mark(recorder, rig)
     segment.drives[5].trip_fault(cia402.EMCY_OVERTEMPERATURE)
     assert rig.run_until(lambda: rig.states[-1] == ManagerState.FAILPROOF, 2.0)
     assert rig.states[-2] == ManagerState.EMERGENCY
-    # The FAILPROOF cycle's frames: after the previous cycle's SYNC, up to its own SYNC
-    # (every cycle sends exactly one SYNC, and the recorder saw every one of them).
-    cycle = len(rig.states)
-    syncs = recorder.wait_for_count(cycle, 5.0, cia402.SYNC)
-    frames = recorder.frames()
-    cycle_frames = frames[frames.index(syncs[cycle - 2]) + 1:frames.index(syncs[cycle - 1])]
-    assert rpdo1_controlwords(cycle_frames) == {n: 0 for n in NODES}, cycle_frames
+    rig.run(0.1)
+    # Each cycle sends RPDO1 of drives 1..6 in order. The first cycle in which a healthy
+    # drive (not 2, not 5) got controlword 0 is the FAILPROOF cycle: every drive got 0 in it.
+    recorder.wait_for_count(len(rig.states) - rig.hw.tx_errors, 5.0, cia402.SYNC)
+    cycles = rpdo1_cycles(recorder.frames(set(RPDO1), since=mark))
+    first = next(c for c in cycles if any(c.get(n) == 0 for n in (1, 3, 4, 6)))
+    assert first == {n: 0 for n in NODES}, cycles
     assert rig.run_until(lambda: all(d.state402 in (State402.SWITCH_ON_DISABLED, State402.FAULT)
                                      for d in segment.drives.values()), 2.0)
     # and every following cycle keeps sending controlword 0 to every drive
-    mark = recorder.mark()
+    mark = synced_mark(recorder, rig)
     rig.run(0.1)
     time.sleep(0.05)
     words = [struct.unpack_from("<H", f.data)[0] for f in recorder.frames(set(RPDO1), since=mark)]
@@ -269,7 +299,8 @@ def test_torque_off_frames_do_not_depend_on_the_failproof_controller(segment, ma
     rig.mgr.shutdown()
     rig.mgr = ControllerManager(Reckless(), rig.dt, rig.hw.state, rig.hw.command)
     rig.hw.attach(rig.mgr)
-    mark = recorder.mark()
+    rig.run(0.1)
+    mark = synced_mark(recorder, rig)
     rig.run(0.2)
     assert set(rig.states[-10:]) == {ManagerState.FAILPROOF}
     recorder.wait_for_count(6 * 10, 5.0, set(RPDO1), since=mark)

@@ -1,0 +1,54 @@
+"""The manager process is killed (SIGKILL): every drive switches itself off.
+
+Nothing of the manager survives a SIGKILL (its heartbeat comes from the control loop, not a
+kernel BCM task), so each drive's heartbeat consumer (0x1016, consumer time = 2 manager
+heartbeat periods) expires and its abort connection option (0x6007 = disable voltage) takes
+the power stage off: within 3 heartbeat periods of the kill.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rocoma_can.drivers.cia402 import State402
+
+NODES = (1, 2, 3, 4, 5, 6)
+HEARTBEAT_MS = 200
+TESTS = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.vcan
+def test_killed_manager_process_drives_switch_off_within_three_heartbeats(sim_segment_factory):
+    segment = sim_segment_factory(NODES, channel="vcan0", interface="socketcan")
+    code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import driver_rig; "
+            f"driver_rig.serve('vcan0', 'socketcan', {NODES!r}, 0.02, {HEARTBEAT_MS}, 60.0)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # bounded: serve() exits within ~30 s without ENABLED
+        assert line.strip() == "ENABLED", (line, proc.stderr.read() if proc.poll() else "")
+        assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
+        time.sleep(0.3)  # a few heartbeats while enabled
+        os.kill(proc.pid, signal.SIGKILL)
+        killed = time.monotonic()
+        period = HEARTBEAT_MS / 1000.0
+        while time.monotonic() - killed < 3 * period + 2.0:
+            if all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values()):
+                break
+            time.sleep(0.005)
+        elapsed = time.monotonic() - killed
+        assert all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values()), \
+            segment.status_lines()
+        assert elapsed < 3 * period, elapsed
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=10)
+        proc.stdout.close()
+        proc.stderr.close()
