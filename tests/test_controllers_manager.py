@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -202,3 +203,16 @@ def test_worker_example_runs_only_while_its_controller_is_active(robot):
         r.cycle()
         time.sleep(0.001)
     assert not worker_alive()
+
+
+def test_readme_yaml_snippet_builds_and_runs(robot):
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    section = readme.split("<!-- section: controllers library -->", 1)[1]
+    snippet = section.split("```yaml\n", 1)[1].split("```", 1)[0]
+    r = robot(config=False)
+    loaded = add_to_manager(r.mgr, yaml.safe_load(snippet))
+    assert [item.controller.name for item in loaded] == [
+        "stand", "wave", "sit", "float", "stand_monitored", "stand_and_wave"]
+    for name in ("stand", "wave", "stand_and_wave", "stand_monitored"):
+        r.switch(name)
+        assert r.cycle(100) == ManagerState.OK
