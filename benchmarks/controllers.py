@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import time
-from typing import Callable
 
 import numpy as np
 
@@ -24,6 +22,8 @@ from rocoma_can.controllers.trajectory import Trajectory
 from rocoma_can.controllers.zero_torque import Float
 from rocoma_can.drivers.joints import JointCommand, JointState
 from rocoma_can.interfaces import EmergencyController
+
+from manager_overhead import timed_ns  # benchmarks/ is on sys.path when run as a script
 
 DT = 0.001
 
@@ -42,16 +42,6 @@ def controllers() -> list:
         Trajectory("min_jerk", kind="min_jerk", target=0.5, duration=2.0),
         Float("float"),
     ]
-
-
-def timed(fn: Callable[[], object], repeat: int) -> np.ndarray:
-    samples = np.empty(repeat)
-    clock = time.perf_counter_ns
-    for i in range(repeat):
-        t0 = clock()
-        fn()
-        samples[i] = clock() - t0
-    return samples / 1000.0
 
 
 def main() -> None:
@@ -74,11 +64,11 @@ def main() -> None:
             assert ctrl.create(DT) is not False, ctrl
             init = "-"
             if isinstance(ctrl, EmergencyController):
-                t = timed(lambda: ctrl.initialize_fast(DT), args.repeat)
+                t = timed_ns(lambda: ctrl.initialize_fast(DT), args.repeat) / 1000.0
                 init = f"{np.median(t):7.2f} / {np.percentile(t, 99):7.2f}"
             elif hasattr(ctrl, "initialize"):
                 assert ctrl.initialize(DT)
-            t = timed(lambda: ctrl.advance(DT), args.repeat)
+            t = timed_ns(lambda: ctrl.advance(DT), args.repeat) / 1000.0
             adv = f"{np.median(t):7.2f} / {np.percentile(t, 99):7.2f}"
             print(f"{ctrl.name:<12} {init:>18} {adv:>18}")
     finally:

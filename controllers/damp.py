@@ -16,7 +16,7 @@ from rocoma_can.drivers.joints import JointMode
 from rocoma_can.interfaces import EmergencyController
 
 from .joint_group import JointGroup
-from .params import joint_names, number, per_joint
+from .params import number, per_joint
 
 
 class Damp(EmergencyController):
@@ -34,7 +34,7 @@ class Damp(EmergencyController):
                  damping: Any = 1.0, torque_limit: Any = math.inf, still_velocity: Any = 0.05,
                  still_time: Any = 0.2, timeout: Any = math.inf) -> None:
         super().__init__(name)
-        self._joints = joint_names(self, joints)
+        self.group = JointGroup(self, joints)
         self._p_damping = per_joint(self, "damping", damping, positive=True)
         self._p_torque_limit = per_joint(self, "torque_limit", torque_limit, positive=True,
                                          allow_inf=True)
@@ -46,7 +46,7 @@ class Damp(EmergencyController):
         self._elapsed = 0.0
 
     def create(self, dt: float) -> bool:
-        self.group = g = JointGroup(self, self._joints)
+        g = self.group
         g.bind(self.state, self.command)
         self.damping = self._p_damping.resolve(self, g.n)
         self.torque_limit = self._p_torque_limit.resolve(self, g.n)

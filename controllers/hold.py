@@ -15,8 +15,8 @@ from rocoma_can.drivers.joints import JointMode
 from rocoma_can.interfaces import EmergencyController
 
 from .joint_group import JointGroup
-from .params import joint_names, output_mode, per_joint
-from .pd_law import PdLaw, track
+from .params import output_mode
+from .pd_law import PdGains, track
 from .pose_swap import PoseSwapState
 
 
@@ -32,18 +32,14 @@ class Hold(EmergencyController):
                  kp: Any = 200.0, kd: Any = 5.0, torque_limit: Any = math.inf,
                  mode: Any = "CST") -> None:
         super().__init__(name)
-        self._joints = joint_names(self, joints)
-        self._p_kp = per_joint(self, "kp", kp, minimum=0.0)
-        self._p_kd = per_joint(self, "kd", kd, minimum=0.0)
-        self._p_torque_limit = per_joint(self, "torque_limit", torque_limit, positive=True,
-                                         allow_inf=True)
+        self.group = JointGroup(self, joints)
+        self._gains = PdGains.check(self, kp, kd, torque_limit)
         self.mode = output_mode(self, mode, (JointMode.CST, JointMode.CSP))
 
     def create(self, dt: float) -> bool:
-        self.group = g = JointGroup(self, self._joints)
+        g = self.group
         g.bind(self.state, self.command)
-        self.law = PdLaw(self._p_kp.resolve(self, g.n), self._p_kd.resolve(self, g.n),
-                         self._p_torque_limit.resolve(self, g.n))
+        self.law = self._gains.law(self, g.n)
         self.hold_position = np.zeros(g.n)
         return True
 

@@ -15,16 +15,17 @@ import numpy as np
 
 from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
 
-from .params import param_error
+from .params import joint_names, param_error
 
 
 class JointGroup:
     """Measured ``position``/``velocity`` in, ``mode``/``position``/``velocity``/``torque``
     command buffers out, all of length ``n`` in the order of ``names``."""
 
-    def __init__(self, owner: Any, names: tuple[str, ...] | None) -> None:
+    def __init__(self, owner: Any, joints: Any) -> None:
+        """``joints``: the controller's ``joints`` parameter, checked here (None: all)."""
         self._owner = owner
-        self._requested = names
+        self._requested = joint_names(owner, joints)
         self.names: tuple[str, ...] = ()
         self.n = 0
 

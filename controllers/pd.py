@@ -17,8 +17,8 @@ from rocoma_can.drivers.joints import JointMode
 from rocoma_can.interfaces import Controller, SwapState
 
 from .joint_group import JointGroup
-from .params import joint_names, optional_per_joint, output_mode, param_error, per_joint
-from .pd_law import PdLaw, track
+from .params import optional_per_joint, output_mode, param_error, per_joint
+from .pd_law import PdGains, track
 from .pose_swap import PoseSwapState, find_pose_state
 
 
@@ -42,13 +42,10 @@ class JointPD(Controller):
                  position_min: Any = -math.inf, position_max: Any = math.inf,
                  mode: Any = "CST") -> None:
         super().__init__(name)
-        self._joints = joint_names(self, joints)
-        self._p_kp = per_joint(self, "kp", kp, minimum=0.0)
-        self._p_kd = per_joint(self, "kd", kd, minimum=0.0)
+        self.group = JointGroup(self, joints)
+        self._gains = PdGains.check(self, kp, kd, torque_limit)
         self._p_target = optional_per_joint(self, "target", target)
         self._p_ff = per_joint(self, "feedforward", feedforward)
-        self._p_torque_limit = per_joint(self, "torque_limit", torque_limit, positive=True,
-                                         allow_inf=True)
         self._p_velocity_limit = per_joint(self, "velocity_limit", velocity_limit,
                                            positive=True, allow_inf=True)
         self._p_min = per_joint(self, "position_min", position_min, allow_inf=True)
@@ -60,11 +57,10 @@ class JointPD(Controller):
 
     # --- set-up (not in the cycle) -------------------------------------------------------
     def create(self, dt: float) -> bool:
-        self.group = g = JointGroup(self, self._joints)
+        g = self.group
         g.bind(self.state, self.command)
         n = g.n
-        self.law = PdLaw(self._p_kp.resolve(self, n), self._p_kd.resolve(self, n),
-                         self._p_torque_limit.resolve(self, n))
+        self.law = self._gains.law(self, n)
         self.feedforward = self._p_ff.resolve(self, n)
         self.velocity_limit = self._p_velocity_limit.resolve(self, n)
         self.position_min = self._p_min.resolve(self, n)

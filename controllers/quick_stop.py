@@ -12,7 +12,7 @@ from rocoma_can.drivers.joints import JointMode
 from rocoma_can.interfaces import EmergencyController
 
 from .joint_group import JointGroup
-from .params import joint_names, number
+from .params import number
 
 
 class QuickStop(EmergencyController):
@@ -25,14 +25,13 @@ class QuickStop(EmergencyController):
     def __init__(self, name: str = "quick_stop", *, joints: Sequence[str] | None = None,
                  torque_off_after: Any = None) -> None:
         super().__init__(name)
-        self._joints = joint_names(self, joints)
+        self.group = JointGroup(self, joints)
         self.torque_off_after = (None if torque_off_after is None else
                                  number(self, "torque_off_after", torque_off_after,
                                         positive=True))
         self._elapsed = 0.0
 
     def create(self, dt: float) -> bool:
-        self.group = JointGroup(self, self._joints)
         self.group.bind(self.state, self.command)
         return True
 

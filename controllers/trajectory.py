@@ -23,9 +23,8 @@ from rocoma_can.drivers.joints import JointMode
 from rocoma_can.interfaces import Controller, SwapState
 
 from .joint_group import JointGroup
-from .params import (choice, joint_names, number, optional_per_joint, output_mode,
-                     param_error, per_joint)
-from .pd_law import PdLaw, track
+from .params import choice, number, optional_per_joint, output_mode, param_error, per_joint
+from .pd_law import PdGains, track
 from .pose_swap import PoseSwapState, find_pose_state
 
 KINDS = ("sine", "min_jerk")
@@ -64,7 +63,7 @@ class Trajectory(Controller):
                  target: Any = None, duration: Any = 1.0, mode: Any = "CSP",
                  kp: Any = 50.0, kd: Any = 2.0, torque_limit: Any = math.inf) -> None:
         super().__init__(name)
-        self._joints = joint_names(self, joints)
+        self.group = JointGroup(self, joints)
         self.kind = choice(self, "kind", kind, KINDS)
         self._p_amplitude = per_joint(self, "amplitude", amplitude, minimum=0.0)
         self._p_frequency = per_joint(self, "frequency", frequency, minimum=0.0)
@@ -78,19 +77,15 @@ class Trajectory(Controller):
         else:
             self.blend = number(self, "blend_time", blend_time, minimum=0.0)
         self.mode = output_mode(self, mode, (JointMode.CSP, JointMode.CST))
-        self._p_kp = per_joint(self, "kp", kp, minimum=0.0)
-        self._p_kd = per_joint(self, "kd", kd, minimum=0.0)
-        self._p_torque_limit = per_joint(self, "torque_limit", torque_limit, positive=True,
-                                         allow_inf=True)
+        self._gains = PdGains.check(self, kp, kd, torque_limit)
         self.time = 0.0
 
     # --- set-up (not in the cycle) -------------------------------------------------------
     def create(self, dt: float) -> bool:
-        self.group = g = JointGroup(self, self._joints)
+        g = self.group
         g.bind(self.state, self.command)
         n = g.n
-        self.law = PdLaw(self._p_kp.resolve(self, n), self._p_kd.resolve(self, n),
-                         self._p_torque_limit.resolve(self, n))
+        self.law = self._gains.law(self, n)
         self.amplitude = self._p_amplitude.resolve(self, n)
         self.omega = 2.0 * math.pi * self._p_frequency.resolve(self, n)
         self.phase = self._p_phase.resolve(self, n)

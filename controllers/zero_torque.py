@@ -12,7 +12,6 @@ from rocoma_can.drivers.joints import JointMode
 from rocoma_can.interfaces import Controller
 
 from .joint_group import JointGroup
-from .params import joint_names
 
 
 class Float(Controller):
@@ -22,10 +21,9 @@ class Float(Controller):
 
     def __init__(self, name: str = "float", *, joints: Sequence[str] | None = None) -> None:
         super().__init__(name)
-        self._joints = joint_names(self, joints)
+        self.group = JointGroup(self, joints)
 
     def create(self, dt: float) -> bool:
-        self.group = JointGroup(self, self._joints)
         self.group.bind(self.state, self.command)
         self.group.set_mode(JointMode.CST)  # torque, position, velocity buffers stay 0
         return True
