@@ -75,6 +75,9 @@ class Trajectory(Controller):
                 raise param_error(self, "target", "is required for kind 'min_jerk'")
             self.blend = number(self, "duration", duration, positive=True)
         else:
+            if self._p_target is not None:
+                raise param_error(self, "target", "is only for kind 'min_jerk' (a sine is "
+                                                  "given by amplitude/frequency/offset/phase)")
             self.blend = number(self, "blend_time", blend_time, minimum=0.0)
         self.mode = output_mode(self, mode, (JointMode.CSP, JointMode.CST))
         self._gains = PdGains.check(self, kp, kd, torque_limit)

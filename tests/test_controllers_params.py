@@ -50,6 +50,7 @@ def test_every_controller_is_registered_as_an_entry_point():
     (Trajectory, {"kind": "circle"}, "kind", "must be one of sine, min_jerk"),
     (Trajectory, {"kind": "min_jerk"}, "target", "required for kind 'min_jerk'"),
     (Trajectory, {"kind": "min_jerk", "target": 0.0, "duration": 0.0}, "duration", "> 0"),
+    (Trajectory, {"target": 0.5}, "target", "only for kind 'min_jerk'"),
     (Trajectory, {"frequency": -1.0}, "frequency", ">= 0"),
     (Trajectory, {"amplitude": [0.1, -0.1]}, "amplitude", ">= 0"),
     (Trajectory, {"blend_time": -0.5}, "blend_time", ">= 0"),
