@@ -299,15 +299,18 @@ class SimulatedDrive:
             raise ValueError(f"babble: count 1..100000, cob_id 0..0x7FF, data <= 8 bytes, "
                              f"burst >= 1; got {count}, 0x{cob_id:X}, {len(data)}, {burst}")
         with self._seg.lock:
+            running = self._babble_left > 0  # one flood at a time: a new call resets its count
             self._babble_left = count
-            self._seg.schedule(self._seg.clock(), self._babble_burst, cob_id, bytes(data), burst)
+            if not running:
+                self._seg.schedule(self._seg.clock(), self._babble_burst, cob_id, bytes(data),
+                                   burst)
 
     # ------------------------------------------------------------------ power-up and NMT
     def power_on(self) -> None:
         """Power-on / reset node: whole OD to defaults, CiA 402 state machine restarts."""
         self._values = dict(self._defaults)
         self._errors.clear()
-        self._error_register = 0
+        self._error_register = 1 if self._sto_low else 0
         self._last_controlword = 0
         self._ramping = False
         self._state = State402.NOT_READY_TO_SWITCH_ON
