@@ -136,7 +136,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
              f"result {result}, active {mgr.active_controller_name}")
         time.sleep(hold)
 
-        node = seg.node_ids[min(2, len(seg.node_ids) - 1)]
+        node = seg.node_ids[min(2, len(seg.node_ids) - 2)]  # not the last: that one is next
         t0 = time.monotonic()
         seg.drives[node].trip_fault()
         ok = _wait(lambda: state() == 1, 2.0, stop)
@@ -267,8 +267,8 @@ def register(subparsers: Any) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
-    if not 1 <= args.drives <= 32 or not 10 <= args.rate <= 2000 or not args.duration > 0:
-        print("demo: --drives 1..32, --rate 10..2000 Hz, --duration > 0", flush=True)
+    if not 2 <= args.drives <= 32 or not 10 <= args.rate <= 2000 or not args.duration > 0:
+        print("demo: --drives 2..32, --rate 10..2000 Hz, --duration > 0", flush=True)
         return 2
     report = run_demo(args.drives, args.rate, args.duration,
                       out=lambda line: print(line, flush=True))

@@ -56,7 +56,7 @@ PENDING = 0xFF
 ABORT_NOT_FOUND = 0x06090030     # value range of parameter exceeded
 ABORT_REFUSED = 0x08000022       # cannot transfer because of the present device state
 ABORT_NO_RECOVERY = 0x08000021   # local control: this manager has no drives to recover
-EMCY_ESTOP = 0x9000
+ABORT_NO_DATA = 0x08000024
 TPDO1, EMCY = 0x180, 0x080
 
 
@@ -285,7 +285,7 @@ class ManagerClient:
         od = canopen.import_od(str(shipped_eds.path(shipped_eds.MANAGER_NODE)), node_id)
         self.node = self.network.add_node(canopen.RemoteNode(node_id, od))
         self.node.sdo.RESPONSE_TIMEOUT = timeout
-        self.node.sdo.MAX_RETRIES = 0
+        self.node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry for ever in canopen 2.4)
 
     def close(self) -> None:
         if self.network.notifier is not None:
@@ -302,6 +302,8 @@ class ManagerClient:
         try:
             return self.node.sdo[index].raw
         except SdoAbortedError as exc:
+            if exc.code == ABORT_NO_DATA:  # canopen's server cannot upload an empty string
+                return ""
             raise Refused(exc.code, f"read 0x{index:04X}") from None
         except SdoCommunicationError as exc:
             raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None

@@ -1,0 +1,65 @@
+"""The CLI's exit codes a shell script relies on: 0 ok, 1 refused, 2 usage/config, 3 no answer."""
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pytest
+import yaml
+
+from rocoma_can.cli import main
+from test_config import good
+from test_services import NODE, Rig
+
+EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
+
+
+def test_check_config_ok(capsys):
+    assert main(["check-config", str(EXAMPLES / "robot_can0.yaml")]) == 0
+    assert "bus load: 12 drives at 250 Hz" in capsys.readouterr().out
+
+
+def test_check_config_lists_every_problem(tmp_path, capsys):
+    cfg = good()
+    cfg["rate"] = 0
+    cfg["drives"][0]["node_id"] = 300
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["check-config", str(path)]) == 2
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"{path}: rate:") and out[1].startswith(f"{path}: drives[0]:")
+    assert out[-1] == "2 problem(s)"
+
+
+def test_run_with_bad_config_is_usage_error(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "missing.yaml")]) == 2
+    assert "cannot read" in capsys.readouterr().err
+
+
+def test_client_without_manager_is_no_answer(virtual_channel, capsys):
+    assert main(["status", "--interface", "virtual", "--channel", virtual_channel,
+                 "--timeout", "0.2"]) == 3
+    assert "no answer from manager node 100" in capsys.readouterr().err
+
+
+def test_client_commands_against_a_manager(bus_factory, virtual_channel, capsys):
+    rig = Rig(bus_factory, must_clear=True)
+    opts = ["--interface", "virtual", "--channel", virtual_channel, "--node", str(NODE)]
+    try:
+        assert main(["switch", "pd", *opts]) == 1          # latched: refused
+        assert "e-stop latched" in capsys.readouterr().err
+        assert main(["clear", *opts]) == 0
+        assert main(["switch", "pd", *opts]) == 0
+        assert capsys.readouterr().out.strip().splitlines()[-1] == "SWITCHED"
+        assert main(["switch", "nope", *opts]) == 1
+        assert main(["list", *opts]) == 0
+        assert capsys.readouterr().out.splitlines() == ["1 pd", "2 trajectory"]
+        assert main(["estop", *opts]) == 0
+        assert rig.wait_state(1)
+        assert main(["status", *opts]) == 0
+        out = capsys.readouterr().out
+        assert "state: EMERGENCY" in out and "active: damp" in out and "latched: True" in out
+        assert main(["failproof", *opts]) == 0 and rig.wait_state(0)
+        assert main(["recover", *opts]) == 0 and rig.recovered == 1
+    finally:
+        rig.close()
