@@ -7,12 +7,29 @@ receives raw frames on the same bus. The Network's Notifier is the only reader o
 from __future__ import annotations
 
 import logging
+import socket
 from typing import Any
 
 import can
 import canopen
 
 log = logging.getLogger(__name__)
+
+#: Receive buffer for SocketCAN sockets: a frame costs ~1 KiB of socket memory, so the
+#: default (~200 KiB) holds a few hundred frames, a fraction of a second of a busy bus; a
+#: stalled reader (GC, scheduler) would lose TPDOs and heartbeats.
+RECEIVE_BUFFER_BYTES = 4 << 20
+
+
+def enlarge_receive_buffer(sock: socket.socket, size: int = RECEIVE_BUFFER_BYTES) -> None:
+    """Best effort: SO_RCVBUFFORCE (root / CAP_NET_ADMIN) or SO_RCVBUF up to rmem_max."""
+    force = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux's value; Python may not name it
+    for option in (force, socket.SO_RCVBUF):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, option, size)
+            return
+        except OSError:
+            continue
 
 
 def open_bus(interface: str, channel: str, bitrate: int | None = None,
@@ -32,6 +49,9 @@ class CanopenBus:
     def __init__(self, bus: can.BusABC, own_bus: bool = False) -> None:
         self.bus = bus
         self.own_bus = own_bus
+        sock = getattr(bus, "socket", None)
+        if isinstance(sock, socket.socket):
+            enlarge_receive_buffer(sock)
         self.network = canopen.Network(bus)
         self.network.connect()  # with a bus given, this only starts the Notifier
 

@@ -378,11 +378,17 @@ class CanopenHardware:
             return
         states, fresh, codes = self.state.cia402_state, self._complete, self.state.error_code
         for i, b in enumerate(self._bringup):
-            if b.phase == Phase.READY or b.phase == Phase.FAILED:
+            phase = b.phase
+            if phase == Phase.READY or phase == Phase.FAILED:
                 continue
             if b.step(now, executor, bool(fresh[i]), int(states[i]), int(codes[i])):
                 self.supervisor.arm(i, now)
                 self.state.error_code[i] = 0
+            elif phase == Phase.CONFIGURING and b.phase == Phase.STARTING:
+                # The drive's heartbeat consumer was just (re)configured, and it only starts
+                # watching with the first heartbeat it receives: send one in this cycle, so
+                # the drive is protected before it can become READY (a TPDO round trip later).
+                self._next_heartbeat = -math.inf
 
     def _deliver(self, events: list[FaultEvent]) -> None:
         for event in events:

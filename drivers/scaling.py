@@ -57,12 +57,16 @@ class Scaling:
         tmp = self._tmp
         np.multiply(si, inv, out=tmp)
         np.rint(tmp, out=tmp)
-        np.clip(tmp, lo, hi, out=tmp)
+        np.minimum(tmp, hi, out=tmp)  # minimum/maximum: a third of np.clip's call overhead
+        np.maximum(tmp, lo, out=tmp)
         np.copyto(out, tmp, casting="unsafe")
 
     def clip_command(self, position: np.ndarray, velocity: np.ndarray,
                      torque: np.ndarray) -> None:
         """Clip targets to the configured joint limits, in place."""
-        np.clip(position, self.position_min, self.position_max, out=position)
-        np.clip(velocity, self._min_velocity, self.max_velocity, out=velocity)
-        np.clip(torque, self._min_torque, self.max_torque, out=torque)
+        np.minimum(position, self.position_max, out=position)
+        np.maximum(position, self.position_min, out=position)
+        np.minimum(velocity, self.max_velocity, out=velocity)
+        np.maximum(velocity, self._min_velocity, out=velocity)
+        np.minimum(torque, self.max_torque, out=torque)
+        np.maximum(torque, self._min_torque, out=torque)

@@ -69,6 +69,7 @@ class Supervisor:
                                            for d in drives])
         self.heartbeat_deadline = np.full(n, math.inf)
         self.active = np.zeros(n, dtype=bool)      # supervised: brought up and not failed
+        self.watch = np.zeros(n, dtype=bool)       # active and not latched: what tick checks
         self.missing = np.zeros(n, dtype=np.int64)  # consecutive cycles without all TPDOs
         self.latched: list[FaultEvent | None] = [None] * n
         self.history: collections.deque[FaultEvent] = collections.deque(maxlen=history)
@@ -77,21 +78,25 @@ class Supervisor:
     def arm(self, i: int, now: float) -> None:
         """Start supervising drive i (brought up); heartbeat deadline from now."""
         self.active[i] = True
+        self.watch[i] = self.latched[i] is None
         self.missing[i] = 0
         self.heartbeat_deadline[i] = now + self.heartbeat_timeout[i]
 
     def disarm(self, i: int) -> None:
         self.active[i] = False
+        self.watch[i] = False
         self.heartbeat_deadline[i] = math.inf
 
     def clear(self, i: int) -> None:
         self.latched[i] = None
+        self.watch[i] = self.active[i]
 
     def fault(self, i: int, cause: str, now: float, code: int = 0) -> None:
         event = FaultEvent(self.drives[i].node_id, self.drives[i].name, cause, code, now)
         self.history.append(event)
         if self.latched[i] is None:
             self.latched[i] = event
+            self.watch[i] = False
             self.pending.append(event)
 
     def on_heartbeat(self, i: int, state: int, now: float) -> None:
@@ -109,23 +114,31 @@ class Supervisor:
 
     def tick(self, now: float, tpdos_complete: np.ndarray, states: np.ndarray,
              error_codes: np.ndarray) -> None:
-        """Once per cycle after draining: deadlines, missing TPDOs, statusword fault bit."""
-        active = self.active
-        if not active.any():
+        """Once per cycle after draining: deadlines, missing TPDOs, statusword fault bit.
+
+        Drives already latched are not checked again (one event per drive). The common case,
+        nothing wrong, costs a few whole-array reductions; the per-drive loops run only when
+        one of them says something is."""
+        watch = self.watch
+        if not watch.any():
             return
-        for i in np.flatnonzero(active & (self.heartbeat_deadline < now)):
-            self.fault(int(i), f"heartbeat lost (none for {self.heartbeat_timeout[i]:.3f} s)",
-                       now)
-            self.heartbeat_deadline[i] = math.inf  # one event per loss
-        self.missing += 1
-        self.missing[tpdos_complete] = 0
-        for i in np.flatnonzero(active & (self.missing == self.tpdo_timeout_cycles)):
-            self.fault(int(i), f"TPDOs missing for {self.tpdo_timeout_cycles} cycles", now)
-        for i in np.flatnonzero(active & ((states == cia402.State402.FAULT)
-                                          | (states == cia402.State402.FAULT_REACTION_ACTIVE))):
-            code = int(error_codes[i])
-            self.fault(int(i), "statusword fault bit" + (f", {emcy_text(code)}" if code else ""),
-                       now, code)
+        missing = self.missing
+        np.add(missing, 1, out=missing)
+        np.copyto(missing, 0, where=tpdos_complete)
+        if self.heartbeat_deadline.min() < now:
+            for i in np.flatnonzero(watch & (self.heartbeat_deadline < now)):
+                self.fault(int(i), "heartbeat lost (none for "
+                                   f"{self.heartbeat_timeout[i]:.3f} s)", now)
+                self.heartbeat_deadline[i] = math.inf  # one event per loss
+        if missing.max() >= self.tpdo_timeout_cycles:
+            for i in np.flatnonzero(watch & (missing >= self.tpdo_timeout_cycles)):
+                self.fault(int(i), f"TPDOs missing for {self.tpdo_timeout_cycles} cycles", now)
+        # FAULT_REACTION_ACTIVE (6) and FAULT (7) are the two highest State402 values
+        if states.max() >= cia402.State402.FAULT_REACTION_ACTIVE:
+            for i in np.flatnonzero(watch & (states >= cia402.State402.FAULT_REACTION_ACTIVE)):
+                code = int(error_codes[i])
+                self.fault(int(i), "statusword fault bit"
+                           + (f", {emcy_text(code)}" if code else ""), now, code)
 
     def take_pending(self) -> list[FaultEvent]:
         events, self.pending = self.pending, []
