@@ -13,6 +13,7 @@ from typing import Sequence
 COMMAND_MODULES: tuple[str, ...] = (
     "rocoma_can.demo",
     "rocoma_can.manager_cli",
+    "rocoma_can.new_controller",
     "rocoma_can.drivers.sim_cli",
 )
 
