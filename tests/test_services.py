@@ -58,6 +58,15 @@ class Rig:
             time.sleep(0.005)
         return False
 
+    def wait_cause(self, text: str, timeout: float = 2.0) -> str:
+        """0x2124 is set from the manager's event thread, just after the state changes."""
+        deadline = time.monotonic() + timeout
+        while True:
+            cause = self.client.read(0x2124)
+            if text in cause or time.monotonic() > deadline:
+                return cause
+            time.sleep(0.01)
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(5.0)
@@ -115,7 +124,7 @@ def test_sdo_estop_failproof_and_recover(rig):
     assert rig.manager.active_controller_name == "damp"
     rig.client.write(0x2111, 1)
     assert rig.wait_state(0)
-    assert "SDO failproof" in rig.client.read(0x2124) or "SDO e-stop" in rig.client.read(0x2124)
+    assert "SDO failproof stop" in rig.wait_cause("SDO failproof stop")
     rig.client.write(0x2113, 1)
     assert rig.recovered == 1
 
@@ -129,7 +138,7 @@ def test_estop_frame_from_any_node_and_broadcasts(rig, frame_recorder):
     raw = rig.client.bus  # any bus handle on the segment: a third node sending one frame
     raw.send(can.Message(arbitration_id=ESTOP_COB, data=b"", is_extended_id=False))
     assert rig.wait_state(1)
-    assert rig.client.read(0x2124) == f"CAN e-stop from 0x{ESTOP_COB:03X}"
+    assert rig.wait_cause("CAN e-stop") == f"CAN e-stop from 0x{ESTOP_COB:03X}"
     emcy = rec.wait_for(lambda f: f.cob_id == 0x80 + NODE, timeout=2.0, since=mark)
     assert emcy.data[:4] == bytes([0x00, 0x90, 0x01, 1])
     rec.wait_for(lambda f: f.cob_id == tpdo and f.data == bytes([1, 0]), timeout=2.0, since=mark)
