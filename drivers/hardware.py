@@ -29,7 +29,14 @@ The safety path, top to bottom (each step names where it lives):
 6. If the loop itself dies or hangs, nothing is sent at all, including the manager heartbeat
    (produced by ``write``, never by a kernel BCM task that would outlive the process). Each
    drive's heartbeat consumer (0x1016, set at start-up) times out and its abort connection
-   option (0x6007 = 2, disable voltage) switches the power stage off.
+   option (0x6007 = 2, disable voltage) switches the power stage off. A consumer watches only
+   after the first heartbeat it receives, so ``_step_bringup`` has one sent in the cycle a
+   drive's configuration completes, before the drive can become READY.
+
+Start-up (bringup.py) never enables a drive; it ends in READY (torque off). Drives are enabled
+step by step from the cyclic controlword (``_command_frames``, ``ENABLE_STEP``) only while the
+manager is OK or EMERGENCY and the active layer commands a cyclic mode for them. Recovery
+(``recover``) resets or restarts latched and failed drives over the following cycles.
 
 This is everything software over CAN can do, and it is not a certified safe torque off: a
 bus-off, a babbling node or firmware that ignores the controlword defeats it. Hard-wired STO
@@ -94,7 +101,7 @@ class DriveStatus:
     """A snapshot for status reports and services."""
     name: str
     node_id: int
-    phase: str            # WAIT_BOOT, CONFIGURING, STARTING, RESETTING, READY, FAILED
+    phase: str            # a bringup.Phase name: WAIT_BOOT ... READY, FAILED
     cia402_state: str
     enabled: bool
     fault: str | None     # the latched fault or start-up failure, None when healthy

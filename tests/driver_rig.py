@@ -14,6 +14,7 @@ import can
 
 from rocoma_can import Controller, EmergencyController, ManagerState
 from rocoma_can.drivers.bringup import Timeouts
+from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.joints import JointMode
@@ -153,6 +154,18 @@ class Brake(EmergencyController):
         c.velocity.fill(0.0)
         c.torque.fill(0.0)
         return True
+
+
+def seconds_until_all_off(segment, since: float, bound: float) -> float:
+    """Seconds from ``since`` until every simulated drive is in switch on disabled (polled,
+    at most ``bound`` seconds; it is an assertion failure if they are not by then)."""
+    def all_off() -> bool:
+        return all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values())
+    while time.monotonic() - since < bound and not all_off():
+        time.sleep(0.005)
+    elapsed = time.monotonic() - since
+    assert all_off(), segment.status_lines()
+    return elapsed
 
 
 def serve(channel: str, interface: str, node_ids: Sequence[int], dt: float,

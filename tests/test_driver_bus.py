@@ -15,7 +15,7 @@ import can
 import numpy as np
 import pytest
 
-from driver_rig import MANAGER_NODE_ID, Brake, HoldPD, Rig, Sine
+from driver_rig import MANAGER_NODE_ID, Brake, HoldPD, Rig, Sine, seconds_until_all_off
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import bus, cia402
 from rocoma_can.drivers.bringup import Phase, Timeouts
@@ -300,13 +300,7 @@ def test_a_stopped_loop_goes_silent_and_drives_switch_off_by_themselves(segment,
     enable_with(rig, HoldPD())
     stopped = time.monotonic()  # no more cycles: no RPDOs, no SYNC, no manager heartbeat
     period = rig.hw.manager_heartbeat_period
-    while time.monotonic() - stopped < 3 * period + 1.0:
-        if all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values()):
-            break
-        time.sleep(0.005)
-    elapsed = time.monotonic() - stopped
-    assert all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values()), \
-        segment.status_lines()
+    elapsed = seconds_until_all_off(segment, stopped, 3 * period + 1.0)
     assert elapsed < 3 * period, elapsed
 
 
