@@ -11,9 +11,9 @@ The safety path, top to bottom (each step names where it lives):
 1. A drive goes wrong. Supervision (supervision.py) turns every symptom into a FaultEvent:
    EMCY, statusword fault bit, heartbeat deadline or non-operational heartbeat, TPDOs missing
    for k cycles, a drive dropping out of operation enabled or not enabling in time
-   (``_command_frames`` below). Frames arrive on the Notifier thread, which only appends
-   them to a deque; ``read`` drains it on the cycle thread, so no lock is shared with a
-   slow thread.
+   (``_command_frames`` below), or a bus-off error frame (``_on_error_frames``). Frames
+   arrive on the Notifier thread, which only appends them to a deque; ``read`` drains it on
+   the cycle thread, so no lock is shared with a slow thread.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
    a latched drive is never sent anything but controlword 0x0000), until recovery.
 3. ``read`` hands the event to the manager before update(): ``manager.emergency_stop(cause)``
@@ -107,15 +107,23 @@ class DriveStatus:
     fault: str | None     # the latched fault or start-up failure, None when healthy
 
 
+#: Linux CAN error class of a bus-off error frame (linux/can/error.h CAN_ERR_BUSOFF)
+CAN_ERR_BUSOFF = 0x40
+
+
 class _Receiver(can.Listener):
     """Runs on the Notifier thread: filter by COB-ID, stamp, append. Nothing else."""
 
-    def __init__(self, cob_ids: set[int], sink: collections.deque) -> None:
+    def __init__(self, cob_ids: set[int], sink: collections.deque,
+                 errors: collections.deque) -> None:
         self._ids = frozenset(cob_ids)
         self._sink = sink
+        self._errors = errors
 
     def on_message_received(self, msg: can.Message) -> None:
-        if msg.arbitration_id in self._ids and not msg.is_error_frame:
+        if msg.is_error_frame:
+            self._errors.append((time.monotonic(), msg))
+        elif msg.arbitration_id in self._ids:
             self._sink.append((time.monotonic(), msg))
 
     def on_error(self, exc: Exception) -> None:  # keep the Notifier alive
@@ -200,6 +208,7 @@ class CanopenHardware:
         self._heartbeat_of = {cia402.HEARTBEAT + d.node_id: i for i, d in enumerate(drives)}
         self._emcy_of = {cia402.EMCY + d.node_id: i for i, d in enumerate(drives)}
         self._rx: collections.deque = collections.deque()
+        self._rx_errors: collections.deque = collections.deque(maxlen=1024)
 
         # --- transmit frames, allocated once -------------------------------------------------
         # Per drive and RPDO: (frame, codec.pack_into, positions of its entries in RPDO_FIELDS)
@@ -228,6 +237,7 @@ class CanopenHardware:
         self.fault_events: collections.deque[FaultEvent] = self.supervisor.history
         self.tx_errors = 0     # frames the bus refused (counted, never raised)
         self.rx_bad = 0        # frames with a wrong length for their layout
+        self.error_frames = 0  # CAN error frames received (bus-off ones are a fault)
         self.cycles = 0
 
     def _preencode(self, i: int, controlword: int) -> list[can.Message]:
@@ -253,7 +263,7 @@ class CanopenHardware:
             cb = CanopenBus(self._bus_arg)
         self._canopen = cb
         cob_ids = set(self._tpdo_of) | set(self._heartbeat_of) | set(self._emcy_of)
-        cb.add_listener(_Receiver(cob_ids, self._rx))
+        cb.add_listener(_Receiver(cob_ids, self._rx, self._rx_errors))
         self._executor = ThreadPoolExecutor(
             max_workers=min(self.config_workers, len(self.drives_config)),
             thread_name_prefix="canopen-config")
@@ -355,6 +365,8 @@ class CanopenHardware:
                 if code == cia402.EMCY_STO:
                     self._bringup[i].sto_seen = True
                 sup.on_emcy(i, code, t)
+        if self._rx_errors:
+            self._on_error_frames()
         np.equal(got, self._expected, out=self._complete)
         self._decode(now)
         self._step_bringup(now)
@@ -362,6 +374,15 @@ class CanopenHardware:
         self._step_recovery(now)
         self._deliver(sup.take_pending())
         self.cycles += 1
+
+    def _on_error_frames(self) -> None:
+        errors = self._rx_errors
+        while errors:
+            t, msg = errors.popleft()
+            self.error_frames += 1
+            if msg.arbitration_id & CAN_ERR_BUSOFF:
+                self.supervisor.bus_fault(f"CAN bus-off (error frame class "
+                                          f"0x{msg.arbitration_id:X})", t)
 
     def _on_heartbeat(self, i: int, nmt_state: int, t: float) -> None:
         self._hb_state[i] = nmt_state
@@ -539,6 +560,7 @@ class CanopenHardware:
         if not self._recovery_started:
             self._recovery_started = True
             self._recovery_deadline = now + self._recovery_timeout
+            sup.bus_latched = None
             for i, b in enumerate(self._bringup):
                 if b.phase == Phase.READY and sup.latched[i] is None:
                     continue
@@ -564,6 +586,12 @@ class CanopenHardware:
             future.set_result(False)
 
     # --- status --------------------------------------------------------------------------------
+    @property
+    def bus_fault(self) -> str | None:
+        """The latched bus-level fault (bus-off), None when there is none."""
+        event = self.supervisor.bus_latched
+        return None if event is None else event.cause
+
     @property
     def frames_per_cycle(self) -> int:
         """RPDOs + TPDOs of every drive + 1 SYNC (the manager heartbeat is not per cycle)."""

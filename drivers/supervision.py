@@ -2,8 +2,9 @@
 
 Causes: heartbeat deadline missed (monotonic clock, not canopen's wall-clock timestamps),
 heartbeat reporting a state other than operational (the drive rebooted or was stopped), an
-EMCY with a non-zero code, the statusword fault bit, TPDOs missing for k cycles, or a drive
-that does not reach operation enabled when commanded. ros2_canopen logs these and carries
+EMCY with a non-zero code, the statusword fault bit, TPDOs missing for k cycles, a drive
+that does not reach operation enabled when commanded, or the bus going bus-off (an error
+frame: python-can's ``bus.state`` does not say so on SocketCAN). ros2_canopen logs these and carries
 on; here each one is an e-stop.
 
 The first cause per drive latches the drive's fault and yields an event; later causes for
@@ -72,6 +73,7 @@ class Supervisor:
         self.watch = np.zeros(n, dtype=bool)       # active and not latched: what tick checks
         self.missing = np.zeros(n, dtype=np.int64)  # consecutive cycles without all TPDOs
         self.latched: list[FaultEvent | None] = [None] * n
+        self.bus_latched: FaultEvent | None = None  # bus-off: not one drive's fault
         self.history: collections.deque[FaultEvent] = collections.deque(maxlen=history)
         self.pending: list[FaultEvent] = []
 
@@ -97,6 +99,14 @@ class Supervisor:
         if self.latched[i] is None:
             self.latched[i] = event
             self.watch[i] = False
+            self.pending.append(event)
+
+    def bus_fault(self, cause: str, now: float) -> None:
+        """The bus itself failed (bus-off): one event, node id 0, until recovery."""
+        event = FaultEvent(0, "CAN bus", cause, 0, now)
+        self.history.append(event)
+        if self.bus_latched is None:
+            self.bus_latched = event
             self.pending.append(event)
 
     def on_heartbeat(self, i: int, state: int, now: float) -> None:

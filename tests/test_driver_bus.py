@@ -349,3 +349,23 @@ def test_every_ready_drive_already_watches_the_manager_heartbeat(segment, make_r
         len(NODES), 5.0, emcy, since=mark,
         where=lambda f: struct.unpack_from("<H", f.data)[0] == cia402.EMCY_HEARTBEAT)
     assert {f.cob_id - cia402.EMCY for f in lost} == set(NODES)
+
+
+def test_bus_off_error_frame_is_an_estop(virtual_channel, sim_segment_factory, bus_factory):
+    """SocketCAN reports bus-off only as an error frame (bus.state stays ACTIVE); here one
+    is injected on the virtual bus (a real vcan never goes bus-off)."""
+    segment = sim_segment_factory(NODES, channel=virtual_channel)
+    rig = Rig(bus_factory(virtual_channel), NODES, 0.005, tpdo_timeout_cycles=20)
+    try:
+        bring_up(rig)
+        enable_with(rig, HoldPD(), emergency=Brake())
+        bus_factory(virtual_channel).send(can.Message(
+            arbitration_id=0x40, is_error_frame=True, is_extended_id=False, data=bytes(8)))
+        assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+        assert rig.hw.bus_fault is not None and "bus-off" in rig.hw.bus_fault
+        future = rig.hw.recover()
+        assert rig.run_until(future.done, 5.0) and future.result() is True
+        assert rig.hw.bus_fault is None
+        assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
+    finally:
+        rig.close()
