@@ -168,9 +168,12 @@ def main() -> None:
     report("cycle_cost", "Driver cycle cost, decode + encode (µs per cycle)",
            ["drives", "frames/cycle", "ours median", "ours p99", "canopen median",
             "canopen p99", "canopen/ours"], rows, args=args, results=results,
-           notes=["ours: listener + CanopenHardware.read + write (send left out); canopen: "
-                  "Network.notify -> PdoMap, .raw per variable, scaled with the same numpy "
-                  "code. 2 RPDOs + 2 TPDOs per drive (CSP+CSV+CST, full feedback)."])
+           notes=["ours: listener + CanopenHardware.read + write (send left out), which also "
+                  "run supervision, the CiA 402 enable logic and the SYNC/heartbeat frames: "
+                  "a fixed cost of a few dozen numpy calls that the canopen column does not "
+                  "carry. canopen: Network.notify -> PdoMap, .raw per variable, scaled with "
+                  "the same numpy code. 2 RPDOs + 2 TPDOs per drive (CSP+CSV+CST, full "
+                  "feedback)."])
 
 
 if __name__ == "__main__":
