@@ -16,7 +16,7 @@ def _step(bench, cw, expected, syncs=1):
     statusword by SDO, by the drive, and in the TPDO that SYNC produced."""
     node, drive, rec = bench.node(1), bench.drive(1), bench.recorder
     node.sdo[0x6040].raw = cw
-    mark = rec.mark()
+    mark = bench.barrier()  # not rec.mark(): on SocketCAN older TPDOs may still be in flight
     bench.sync(syncs)
     statusword = node.sdo[0x6041].raw
     assert c.state_from_statusword(statusword) == expected, (hex(cw), hex(statusword))
