@@ -185,6 +185,7 @@ class CanopenHardware:
         self._allowed_modes = np.array(
             [(1 << JointMode.TORQUE_OFF) | (1 << JointMode.QUICK_STOP)
              | sum(1 << int(m) for m in d.modes) for d in drives], dtype=np.int64)
+        self._allowed_list = self._allowed_modes.tolist()
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
         self._default_mode = [int(d.modes[0]) for d in drives]
@@ -488,6 +489,12 @@ class CanopenHardware:
                 self._enabled_cycles[i] = 0
                 continue
             mode, st = modes[i], states[i]
+            if mode in _CYCLIC and not self._allowed_list[i] >> mode & 1:
+                # limit_command stops this before it gets here; if a caller skipped it, the
+                # drive's RPDO has no target for this mode: never send it, stop instead.
+                sup.fault(i, f"commanded {JointMode(mode).name}, which it is not configured "
+                             "for", now)
+                mode = int(JointMode.TORQUE_OFF)
             if mode in _CYCLIC:
                 if st == _OP_ENABLED:
                     values = (_CW_ENABLE, mode, tpos[i], tvel[i], ttrq[i])

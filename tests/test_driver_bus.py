@@ -376,3 +376,24 @@ def test_bus_off_error_frame_is_an_estop(virtual_channel, sim_segment_factory, b
         assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
     finally:
         rig.close()
+
+
+def test_unconfigured_mode_is_not_sent_even_without_limit_command(segment, make_rig, recorder):
+    """A manager built without the hardware's limit_command: the driver itself refuses."""
+    from rocoma_can import ControllerManager
+    from rocoma_can.controllers.torque_off import TorqueOff
+
+    rig = make_rig(modes=("csp",))
+    bring_up(rig)
+    rig.mgr.shutdown()
+    rig.mgr = ControllerManager(TorqueOff(), rig.dt, rig.hw.state, rig.hw.command)
+    rig.hw.attach(rig.mgr)
+    rig.mgr.add_controller(HoldPD())  # CST
+    mark = synced_mark(recorder, rig)
+    assert rig.switch("hold") == SwitchResult.SWITCHED
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.FAILPROOF, 2.0)
+    assert all("CST" in rig.hw.supervisor.latched[i].cause for i in range(len(NODES)))
+    synced_mark(recorder, rig)
+    sent_modes = {struct.unpack_from("<b", f.data, 2)[0]
+                  for f in recorder.frames(set(RPDO1), since=mark)}
+    assert sent_modes == {int(JointMode.CSP)}
