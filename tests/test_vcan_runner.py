@@ -1,6 +1,6 @@
 """tools/vcan-run from the outside: exit status, environment and directory pass through, and
-the user-mode-linux guest never outlives the runner. Runs natively; boots UML twice (once
-only partly), a few seconds each."""
+the user-mode-linux guest never outlives the runner (timeout, interrupt, runner killed). Runs
+natively; boots UML twice, plus two boots cut short after about a second."""
 from __future__ import annotations
 
 import os
@@ -129,3 +129,28 @@ def test_interrupt_kills_the_whole_guest_and_reports_the_signal(uml, tmp_path):
     assert status == 128 + signal.SIGINT, stderr
     assert "interrupted by signal 2" in stderr
     assert group_members(guest_pid(stderr)) == []
+
+
+def test_a_killed_runner_takes_the_guest_with_it(uml, tmp_path):
+    err_path = tmp_path / "err"
+    with err_path.open("w") as err:
+        runner = subprocess.Popen([sys.executable, str(VCAN_RUN), "sleep", "600"],
+                                  env=dict(os.environ, **uml), stdout=subprocess.DEVNULL,
+                                  stderr=err)
+    try:
+        deadline = time.monotonic() + 60
+        while "linux.uml pid" not in err_path.read_text() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        pgid = guest_pid(err_path.read_text())
+        kernel_argv = Path(f"/proc/{pgid}/cmdline").read_bytes().decode().split("\0")
+        state = Path(next(a for a in kernel_argv if a.startswith("init="))[5:]).parent
+        time.sleep(0.5)  # let the guest spawn its helper processes
+    finally:
+        runner.kill()  # no chance to clean up: the watchdog must
+        runner.wait(timeout=60)
+
+    deadline = time.monotonic() + 30
+    while (group_members(pgid) or state.exists()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert group_members(pgid) == []
+    assert not state.exists(), "the guest's state directory was left behind"
