@@ -549,7 +549,8 @@ class CanopenHardware:
 
         Runs over the following cycles (never blocks the caller's thread or the cycle). On
         success the latched faults are cleared and, with a manager attached, its e-stop latch
-        (``clear_emergency_stop``): switching is allowed again.
+        (``clear_emergency_stop``): switching is allowed again. The future is resolved on the
+        cycle thread, so a done-callback must be trivial (or wait on the future elsewhere).
         """
         if self._recovery is not None and not self._recovery.done():
             return self._recovery
