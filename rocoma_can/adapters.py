@@ -68,7 +68,7 @@ class TimingBudget:
     """
     advance_ns: int = 0
     initialize_fast_ns: int = 0
-    overruns: int = 3
+    overruns: int = 5
     hang_ns: int = 0
 
 

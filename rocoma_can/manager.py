@@ -62,6 +62,8 @@ class TimingSupervision:
     """What rocoma left to the user ("make sure you have no deadlocks"), supervised.
 
     Budgets are fractions of dt; a controller may set its own ``advance_budget`` (seconds).
+    Budgets are wall time, what the cycle experiences: without real-time priority a
+    preempted advance counts too, so ``overruns`` in a row (not one) makes a failure.
     A controller over its advance budget ``overruns`` cycles in a row, or an emergency
     controller whose initialize_fast overruns, has failed. An update() that has not returned
     after ``hang`` × dt is hung: the watchdog thread calls ``on_hang`` every dt until it
@@ -70,7 +72,7 @@ class TimingSupervision:
     """
     advance: float = 0.5
     initialize_fast: float = 0.5
-    overruns: int = 3
+    overruns: int = 5
     hang: float = 20.0
 
     def budget_for(self, controller: Any, dt: float) -> TimingBudget:
