@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import enum
 import struct
+import time
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 
@@ -121,18 +122,46 @@ def _check_scaling(sdo: canopen.sdo.SdoClient, drive: DriveConfig) -> None:
                                f"{reported:g} ({where})")
 
 
+CONFIG_ATTEMPTS = 3
+
+
+class NoAnswer(canopen.SdoCommunicationError):
+    """The drive did not answer the first request of a configuration attempt."""
+
+
 def configure(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
-              manager_node_id: int, consumer_ms: int) -> ConfigResult:
+              manager_node_id: int, consumer_ms: int,
+              attempts: int = CONFIG_ATTEMPTS) -> ConfigResult:
     """Everything a drive needs before NMT start, by SDO; runs on the configuration worker.
 
+    A garbled exchange is transient on a loaded bus: canopen retransmits a request on
+    timeout, and the late answer to the first copy then arrives as the answer to the next
+    request ("Unexpected response"); the hardware layer therefore turns canopen's
+    retransmission off. The configuration is idempotent, so it is repeated
+    whole (at most ``attempts`` times) after a pause in which stale answers arrive and are
+    dropped. Refusals (SDO aborts) and a drive that never answers are final.
     Raises with a message naming the step when the drive refuses or does not answer.
     """
+    for attempt in range(1, attempts + 1):
+        try:
+            return _configure_once(node, drive, layout, manager_node_id, consumer_ms)
+        except canopen.SdoCommunicationError as exc:
+            failure = exc
+            if attempt < attempts:
+                time.sleep(2 * node.sdo.RESPONSE_TIMEOUT)
+    if isinstance(failure, NoAnswer):
+        raise RuntimeError(f"does not answer ({failure}; {attempts} attempts)") from failure
+    raise RuntimeError(f"SDO exchange failed {attempts} times: {failure}") from failure
+
+
+def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
+                    manager_node_id: int, consumer_ms: int) -> ConfigResult:
     sdo = node.sdo
     node.nmt.send_command(cia402.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
     try:
         device_type = struct.unpack("<I", sdo.upload(cia402.DEVICE_TYPE, 0)[:4])[0]
     except canopen.SdoCommunicationError as e:
-        raise RuntimeError(f"does not answer (no SDO reply to 0x1000: {e})") from e
+        raise NoAnswer(f"no SDO reply to 0x1000: {e}") from e
     if device_type & 0xFFFF != 402:
         raise RuntimeError(f"is not a CiA 402 drive (0x1000 = 0x{device_type:08X})")
     try:
