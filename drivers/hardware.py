@@ -26,7 +26,10 @@ The safety path, top to bottom (each step names where it lives):
    cycle, whatever JointCommand says. That path has no arithmetic and no branch that can
    raise; a send error is counted, never raised. The failproof controller (TorqueOff) also
    zeroes JointCommand so loggers see the truth, but the frames do not depend on it.
-6. If the loop itself dies or hangs, nothing is sent at all, including the manager heartbeat
+6. If a controller hangs inside update(), the manager's watchdog thread calls
+   ``send_torque_off`` every cycle until it returns (then the hung advance counts as a
+   failure: step 3). If the loop itself dies or hangs, nothing is sent at all, including the
+   manager heartbeat
    (produced by ``write``, never by a kernel BCM task that would outlive the process). Each
    drive's heartbeat consumer (0x1016, set at start-up) times out and its abort connection
    option (0x6007 = 2, disable voltage) switches the power stage off. A consumer watches only
@@ -142,7 +145,7 @@ class CanopenHardware:
                  manager_heartbeat_ms: int = 100, consumer_factor: float = 2.0,
                  heartbeat_timeout_factor: float = 2.5, tpdo_timeout_cycles: int = 5,
                  timeouts: Timeouts = Timeouts(), config_workers: int = 4,
-                 sdo_timeout: float = 0.5, sdo_retries: int = 3,
+                 sdo_timeout: float = 0.5, sdo_retries: int = 0,
                  on_fault: Callable[[FaultEvent], None] | None = None) -> None:
         drives = list(drives)
         check_drives(drives, manager_node_id)
@@ -160,8 +163,11 @@ class CanopenHardware:
         self.consumer_ms = consumer_ms
         self.timeouts = timeouts
         self.config_workers = max(1, int(config_workers))
+        if not sdo_timeout > 0 or int(sdo_retries) != sdo_retries or sdo_retries < 0:
+            raise ValueError(f"sdo_timeout must be > 0 s and sdo_retries a whole number >= 0, "
+                             f"got {sdo_timeout!r} and {sdo_retries!r}")
         self.sdo_timeout = sdo_timeout
-        self.sdo_retries = sdo_retries
+        self.sdo_retries = int(sdo_retries)
         self.on_fault = on_fault
         self._bus_arg = bus
         n = len(drives)
@@ -270,9 +276,11 @@ class CanopenHardware:
             thread_name_prefix="canopen-config")
         for d, layout, od in zip(self.drives_config, self.layouts, self._ods):
             node = cb.network.add_node(d.node_id, od)
-            # Only expedited (<= 4 byte) transfers are used, so a retry is always safe.
+            # No retransmission by default (CiA 301 clients abort on timeout): a late answer
+            # to the first copy would be taken as the answer to the next request. configure()
+            # repeats a whole failed attempt instead, after stale answers have drained.
             node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
-            node.sdo.MAX_RETRIES = self.sdo_retries
+            node.sdo.MAX_RETRIES = self.sdo_retries + 1  # canopen counts tries (0 = forever)
             b = DriveBringup(d, layout, node, self.manager_node_id, self.consumer_ms,
                              self.timeouts)
             b.restart(now)
@@ -316,6 +324,7 @@ class CanopenHardware:
                             "controller; it cannot be replaced")
         if "limit_command" in kwargs:
             raise TypeError("limit_command is the hardware's own check (modes, NaN, limits)")
+        kwargs.setdefault("on_hang", self.send_torque_off)
         manager = ControllerManager(TorqueOff(), self.dt, self.state, self.command,
                                     limit_command=self.limit_command, **kwargs)
         self.attach(manager)
@@ -458,6 +467,20 @@ class CanopenHardware:
                     self._send(msg)
             self._enabled_cycles[i] = 0
         self._want_since.fill(math.nan)
+
+    def send_torque_off(self) -> None:
+        """Torque-off frames to every mapped drive, then SYNC, from any thread.
+
+        The manager's hang watchdog calls this while update() is stuck in a controller (the
+        cycle sends nothing then). It only sends pre-encoded frames and touches no cycle
+        state; it sends no heartbeat, so the drives' own heartbeat consumers still time out
+        if the loop never comes back.
+        """
+        for i, b in enumerate(self._bringup):
+            if b.mapped:
+                for msg in self._torque_off_frames[i]:
+                    self._send(msg)
+        self._send(self._sync)
 
     def _start_frames(self, i: int, b: DriveBringup) -> list[can.Message]:
         """Pre-encoded frames for a drive not under command: torque off, or the fault-reset
