@@ -1,8 +1,8 @@
 """Per-cycle cost of the controllers library: initialize_fast and advance, 12 joints.
 
-    .venv/bin/python benchmarks/controllers.py [--joints 12] [--repeat 20000]
+    .venv/bin/python benchmarks/controllers.py [--joints 12] [--repeat 20000] [--quick]
 
-Prints median and 99th percentile in µs per call. An emergency controller's initialize_fast
+Prints median and 99th percentile in µs per call and writes results/controllers.json. An emergency controller's initialize_fast
 runs in the failure's cycle, so it must stay far below the cycle time (1000 µs at 1 kHz).
 Numbers are from this process on a shared machine: compare them, do not treat them as bounds.
 """
@@ -23,7 +23,8 @@ from rocoma_can.controllers.zero_torque import Float
 from rocoma_can.drivers.joints import JointCommand, JointState
 from rocoma_can.interfaces import EmergencyController
 
-from manager_overhead import timed_ns  # benchmarks/ is on sys.path when run as a script
+from _report import report, stats  # benchmarks/ is on sys.path when run as a script
+from manager_overhead import timed_ns
 
 DT = 0.001
 
@@ -48,31 +49,36 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--joints", type=int, default=12)
     parser.add_argument("--repeat", type=int, default=20000)
+    parser.add_argument("--quick", action="store_true", help="1000 calls each")
     args = parser.parse_args()
+    repeat = 1000 if args.quick else args.repeat
     rng = np.random.default_rng(0)
     state = JointState.zeros(args.joints)
     command = JointCommand.zeros(args.joints)
     state.position[:] = rng.uniform(-1, 1, args.joints)
     state.velocity[:] = rng.uniform(-1, 1, args.joints)
 
-    print(f"{args.joints} joints, {args.repeat} calls each, µs per call (median / p99)")
-    print(f"{'controller':<12} {'initialize_fast':>18} {'advance':>18}")
+    rows, results = [], {}
     gc.disable()  # measure the code, not the collector
     try:
         for ctrl in controllers():
             ctrl.dt, ctrl.state, ctrl.command = DT, state, command
             assert ctrl.create(DT) is not False, ctrl
-            init = "-"
+            init = {"median": float("nan"), "p99": float("nan")}
             if isinstance(ctrl, EmergencyController):
-                t = timed_ns(lambda: ctrl.initialize_fast(DT), args.repeat) / 1000.0
-                init = f"{np.median(t):7.2f} / {np.percentile(t, 99):7.2f}"
+                init = stats(timed_ns(lambda: ctrl.initialize_fast(DT), repeat) / 1000.0)
             elif hasattr(ctrl, "initialize"):
                 assert ctrl.initialize(DT)
-            t = timed_ns(lambda: ctrl.advance(DT), args.repeat) / 1000.0
-            adv = f"{np.median(t):7.2f} / {np.percentile(t, 99):7.2f}"
-            print(f"{ctrl.name:<12} {init:>18} {adv:>18}")
+            adv = stats(timed_ns(lambda: ctrl.advance(DT), repeat) / 1000.0)
+            rows.append([ctrl.name, init["median"], init["p99"], adv["median"], adv["p99"]])
+            results[ctrl.name] = {"initialize_fast_us": init, "advance_us": adv}
     finally:
         gc.enable()
+    report("controllers", f"Controllers library, {args.joints} joints (µs per call)",
+           ["controller", "initialize_fast median", "initialize_fast p99", "advance median",
+            "advance p99"], rows, args=args, results=results,
+           notes=[f"{repeat} calls each. An emergency controller's initialize_fast runs in "
+                  "the failure's cycle: it must stay far below dt (1000 µs at 1 kHz)."])
 
 
 if __name__ == "__main__":

@@ -27,8 +27,6 @@ SHORT = {
     "estop_latency": [],
     "switch_missed_cycles": [],
 }
-#: scripts without a --quick option get these instead
-QUICK_FALLBACK = {"controllers": ["--repeat", "1000"]}
 
 
 def main() -> int:
@@ -40,10 +38,7 @@ def main() -> int:
     failed = []
     for name in names:
         script = HERE / f"{name}.py"
-        if not script.exists():
-            print(f"\n## {name}: not present, skipped")
-            continue
-        extra = (QUICK_FALLBACK.get(name, ["--quick"]) if args.quick else SHORT[name])
+        extra = ["--quick"] if args.quick else SHORT[name]
         t0 = time.monotonic()
         rc = subprocess.call([sys.executable, str(script), *extra], cwd=HERE.parent)
         print(f"\n({name}: exit {rc}, {time.monotonic() - t0:.1f} s)", flush=True)

@@ -25,6 +25,11 @@ CASES = {
     "estop_latency": lambda r: len(r["cases"]) == 2 and all(
         {"first_frame_us", "all_drives_us", "first_frame_cycles", "lost"} <= set(c)
         for c in r["cases"].values()),
+    "controllers": lambda r: {"damp", "hold", "pd", "torque_off"} <= set(r) and all(
+        {"initialize_fast_us", "advance_us"} <= set(c) for c in r.values()),
+    "cycle_cost": lambda r: [row["drives"] for row in r] == [1, 6, 12, 24] and all(
+        {"frames_per_cycle", "ours_us", "canopen_us", "speedup_median"} <= set(row)
+        for row in r),
     "switch_missed_cycles": lambda r: {"plain", "drives"} <= set(r) and all(
         {"missed_during", "max_period_ms_during", "missed_baseline", "results"} <= set(s)
         for s in r.values()),
