@@ -12,6 +12,8 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
       switch_clients: null         # null: any SDO client may switch; [n, ...]: only these
       status_period: 0.1           # s, state TPDO repeat period
     realtime: {priority: null, cpus: null}   # SCHED_FIFO priority, CPU list
+    supervision: {tpdo_timeout_cycles: 5, heartbeat_timeout_factor: 2.5,
+                  consumer_factor: 2.0, sdo_timeout: 0.5}   # CanopenHardware's margins
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
     controllers: [ ... ]           # rocoma_can.plugins format
     emergency_controllers: [ ... ]
@@ -35,12 +37,19 @@ from .drivers.hardware import BusConfig
 from .drivers.pdo_layout import layout_for
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
-_TOP_KEYS = {"bus", "rate", "manager", "realtime", "drives", "controllers",
+_TOP_KEYS = {"bus", "rate", "manager", "realtime", "supervision", "drives", "controllers",
              "emergency_controllers"}
 _BUS_KEYS = {"interface", "channel", "bitrate"}
 _MANAGER_KEYS = {"node_id", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
                  "switch_clients", "status_period"}
 _REALTIME_KEYS = {"priority", "cpus"}
+#: supervision margins: key -> (whole number?, minimum, maximum); CanopenHardware has the defaults
+_SUPERVISION = {
+    "tpdo_timeout_cycles": (True, 1, 10_000),
+    "heartbeat_timeout_factor": (False, 1.5, 100.0),
+    "consumer_factor": (False, 1.5, 100.0),
+    "sdo_timeout": (False, 0.01, 30.0),
+}
 
 
 class ConfigError(ValueError):
@@ -70,6 +79,7 @@ class RuntimeConfig:
     controllers: dict[str, Any]  # {"controllers": [...], "emergency_controllers": [...]}
     priority: int | None = None
     cpus: set[int] | None = None
+    supervision: dict[str, float] = field(default_factory=dict)  # CanopenHardware keywords
     source: str = "<memory>"
     load: BusLoad | None = field(default=None)
 
@@ -236,6 +246,8 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         problems.append(f"realtime.cpus: expected null or a list of CPU numbers, got {cpus!r}")
         cpus = None
 
+    supervision = _supervision(_section(data, "supervision", problems), problems)
+
     drives = _drives(data.get("drives"), manager.node_id, base, problems)
 
     controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
@@ -257,7 +269,26 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     if problems:
         raise ConfigError([f"{source}: {p}" for p in problems])
     return RuntimeConfig(BusConfig(interface, channel, bitrate), float(rate), manager, drives,
-                         controllers, priority, set(cpus) if cpus else None, source, load_)
+                         controllers, priority, set(cpus) if cpus else None, supervision,
+                         source, load_)
+
+
+def _supervision(section: Mapping[str, Any], problems: list[str]) -> dict[str, float]:
+    """The margins given (the rest keep CanopenHardware's defaults)."""
+    _unknown(section, set(_SUPERVISION), "supervision", problems)
+    out: dict[str, float] = {}
+    for key, value in section.items():
+        if key not in _SUPERVISION:
+            continue
+        whole, low, high = _SUPERVISION[key]
+        number = _is_int(value) if whole else (
+            isinstance(value, (int, float)) and not isinstance(value, bool))
+        if not number or not low <= value <= high:
+            kind = "an integer" if whole else "a number"
+            problems.append(f"supervision.{key}: expected {kind} {low}..{high}, got {value!r}")
+        else:
+            out[key] = value
+    return out
 
 
 def _drives(entries: Any, manager_id: int, base: Path | None,

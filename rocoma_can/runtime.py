@@ -235,7 +235,8 @@ class Runtime:
         self.config = config
         m = config.manager
         self.hardware = CanopenHardware(config.bus, config.drives, m.node_id, config.dt,
-                                        manager_heartbeat_ms=m.heartbeat_ms)
+                                        manager_heartbeat_ms=m.heartbeat_ms,
+                                        **config.supervision)
         self.manager = None
         self.node = None
         self._node_bus = None

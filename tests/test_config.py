@@ -9,6 +9,7 @@ import yaml
 
 from rocoma_can.config import ConfigError, bus_load, frame_bits, load, validate
 from rocoma_can.drivers.config import DriveConfig
+from rocoma_can.drivers.hardware import CanopenHardware
 
 EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
 
@@ -67,6 +68,12 @@ BAD = [
      "manager.estop_must_be_cleared: expected true or false"),
     ("clients", _set("manager.switch_clients", [0]), "manager.switch_clients"),
     ("priority", _set("realtime.priority", 120), "realtime.priority"),
+    ("tpdo cycles", _set("supervision", {"tpdo_timeout_cycles": 0.5}),
+     "supervision.tpdo_timeout_cycles: expected an integer 1..10000"),
+    ("sdo timeout", _set("supervision", {"sdo_timeout": 0}),
+     "supervision.sdo_timeout: expected a number 0.01..30.0"),
+    ("supervision key", _set("supervision", {"tpdo_cycles": 5}),
+     "supervision.tpdo_cycles: unknown key, did you mean 'tpdo_timeout_cycles'?"),
     ("no drives", _set("drives", []), "drives: expected a non-empty list"),
     ("drive field", _set("drives.1.node_id", 0), "drives[1]: drive 'j2': node_id must be"),
     ("drive key", _set("drives.0.gear", 2), "drives[0]: drive 'j1': unknown keys ['gear']"),
@@ -78,6 +85,21 @@ BAD = [
     ("plugin", _set("controllers.0.plugin", "pdd"), "controllers[0].plugin: no controller plugin"),
     ("emergency", _set("controllers.0.emergency", "dmap"), "controllers[0].emergency: no emergency"),
 ]
+
+
+def test_supervision_margins_reach_the_hardware():
+    cfg = good()
+    cfg["bus"] = {"interface": "virtual", "channel": "config-supervision"}
+    cfg["supervision"] = {"tpdo_timeout_cycles": 25, "heartbeat_timeout_factor": 5.0,
+                          "consumer_factor": 3, "sdo_timeout": 2.0}
+    config = validate(cfg)
+    hw = CanopenHardware(config.bus, config.drives, config.manager.node_id, config.dt,
+                         **config.supervision)  # the keys are the hardware's own keywords
+    try:
+        assert (hw.sdo_timeout, hw.supervisor.tpdo_timeout_cycles) == (2.0, 25)
+    finally:
+        hw.close()
+    assert validate(good()).supervision == {}  # nothing given: the hardware's defaults
 
 
 @pytest.mark.parametrize("label, edit, expected", BAD, ids=[b[0] for b in BAD])

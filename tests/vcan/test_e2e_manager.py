@@ -28,6 +28,10 @@ def config(tmp_path: Path) -> Path:
         "rate": 50,
         "manager": {"node_id": NODE, "heartbeat_ms": 100, "estop_cob_id": ESTOP,
                     "estop_must_be_cleared": True, "status_period": 0.2},
+        # margins for the VM's stalls under a full suite (defaults: 5 cycles, 2.5, 0.5 s):
+        # a 100 ms stall otherwise e-stops and re-latches between `clear` and `switch`
+        "supervision": {"tpdo_timeout_cycles": 25, "heartbeat_timeout_factor": 5.0,
+                        "sdo_timeout": 2.0},
         "drives": [{"name": f"j{n}", "node_id": n, "increments_per_rev": 1048576,
                     "rated_torque_nm": 1.0, "modes": ["csp", "cst"]} for n in DRIVES],
         "controllers": [
