@@ -9,7 +9,7 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
       heartbeat_ms: 100            # its heartbeat; drives torque-off when it stops
       estop_cob_id: 0x0A0          # any frame with this COB-ID e-stops (0 = off)
       estop_must_be_cleared: true  # every e-stop latches until "clear"
-      switch_clients: null         # null: any SDO client may switch; [n, ...]: only these
+      switch_clients: null         # must stay null: any SDO client may switch (README)
       status_period: 0.1           # s, state TPDO repeat period
     realtime: {priority: null, cpus: null}   # SCHED_FIFO priority, CPU list
     supervision: {tpdo_timeout_cycles: 5, heartbeat_timeout_factor: 2.5,
@@ -66,7 +66,6 @@ class ManagerNodeConfig:
     heartbeat_ms: int = 100
     estop_cob_id: int = 0x0A0
     estop_must_be_cleared: bool = True
-    switch_clients: tuple[int, ...] | None = None
     status_period: float = 0.1
 
 
@@ -220,14 +219,10 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                         f"got {must_clear!r}")
     else:
         manager.estop_must_be_cleared = must_clear
-    clients = m.get("switch_clients")
-    if clients is not None:
-        if (not isinstance(clients, list)
-                or not all(_is_int(c) and 1 <= c <= 127 for c in clients)):
-            problems.append(f"manager.switch_clients: expected null or a list of client node "
-                            f"ids 1..127, got {clients!r}")
-        else:
-            manager.switch_clients = tuple(clients)
+    if m.get("switch_clients") is not None:  # refused, not ignored: no false sense of safety
+        problems.append("manager.switch_clients: not supported: on the default SDO channel "
+                        "CANopen does not identify the client, so switching cannot be limited "
+                        "to some nodes (that needs per-client SDO server channels); remove it")
     period = m.get("status_period", manager.status_period)
     if not isinstance(period, (int, float)) or isinstance(period, bool) or not 0.01 <= period <= 10:
         problems.append(f"manager.status_period: expected seconds 0.01..10, got {period!r}")

@@ -66,7 +66,7 @@ BAD = [
     ("estop cob range", _set("manager.estop_cob_id", 0x1000), "manager.estop_cob_id: expected"),
     ("must clear", _set("manager.estop_must_be_cleared", "yes"),
      "manager.estop_must_be_cleared: expected true or false"),
-    ("clients", _set("manager.switch_clients", [0]), "manager.switch_clients"),
+    ("clients", _set("manager.switch_clients", [5]), "manager.switch_clients: not supported"),
     ("priority", _set("realtime.priority", 120), "realtime.priority"),
     ("tpdo cycles", _set("supervision", {"tpdo_timeout_cycles": 0.5}),
      "supervision.tpdo_timeout_cycles: expected an integer 1..10000"),
