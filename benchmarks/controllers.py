@@ -11,8 +11,6 @@ from __future__ import annotations
 import argparse
 import gc
 
-import numpy as np
-
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
@@ -20,11 +18,10 @@ from rocoma_can.controllers.quick_stop import QuickStop
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.controllers.trajectory import Trajectory
 from rocoma_can.controllers.zero_torque import Float
-from rocoma_can.drivers.joints import JointCommand, JointState
 from rocoma_can.interfaces import EmergencyController
 
 from _report import report, stats  # benchmarks/ is on sys.path when run as a script
-from manager_overhead import timed_ns
+from manager_overhead import random_joints, timed_ns
 
 DT = 0.001
 
@@ -52,11 +49,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="1000 calls each")
     args = parser.parse_args()
     repeat = 1000 if args.quick else args.repeat
-    rng = np.random.default_rng(0)
-    state = JointState.zeros(args.joints)
-    command = JointCommand.zeros(args.joints)
-    state.position[:] = rng.uniform(-1, 1, args.joints)
-    state.velocity[:] = rng.uniform(-1, 1, args.joints)
+    state, command = random_joints(args.joints)
 
     rows, results = [], {}
     gc.disable()  # measure the code, not the collector

@@ -26,7 +26,6 @@ import numpy as np
 
 from _report import report, stats
 from rocoma_can import eds
-from rocoma_can.drivers import cia402
 from rocoma_can.drivers.bringup import Phase
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware

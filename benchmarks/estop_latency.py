@@ -104,7 +104,7 @@ class Trials:
         self.pending = None
 
     def __call__(self, now: float) -> bool:
-        rig, hw, mgr = self.rig, self.rig.hardware, self.rig.manager
+        hw, mgr = self.rig.hardware, self.rig.manager
         name, ctrl = self.cases[self.case]
         if self.step == "settle":
             on = (mgr.state == ManagerState.OK and mgr.active_controller_name == ctrl.name

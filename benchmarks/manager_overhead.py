@@ -60,6 +60,15 @@ class Failing(Controller):
         return not self.fail
 
 
+def random_joints(n: int) -> tuple[JointState, JointCommand]:
+    """A reproducible joint state (positions and velocities in [-1, 1]) and a zero command."""
+    rng = np.random.default_rng(0)
+    state, command = JointState.zeros(n), JointCommand.zeros(n)
+    state.position[:] = rng.uniform(-1, 1, n)
+    state.velocity[:] = rng.uniform(-1, 1, n)
+    return state, command
+
+
 def timed_ns(fn: Callable[[], object], repeat: int) -> np.ndarray:
     samples = np.empty(repeat)
     clock = time.perf_counter_ns
@@ -121,11 +130,7 @@ def main() -> None:
     if args.quick:
         args.repeat, args.estops = 2000, 30
     logging.getLogger("rocoma_can").setLevel(logging.CRITICAL)  # one warning per e-stop
-    rng = np.random.default_rng(0)
-    state = JointState.zeros(args.joints)
-    command = JointCommand.zeros(args.joints)
-    state.position[:] = rng.uniform(-1, 1, args.joints)
-    state.velocity[:] = rng.uniform(-1, 1, args.joints)
+    state, command = random_joints(args.joints)
 
     rows, data = [], {}
 

@@ -1,10 +1,8 @@
 """The CLI's exit codes a shell script relies on: 0 ok, 1 refused, 2 usage/config, 3 no answer."""
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
-import pytest
 import yaml
 
 from rocoma_can.cli import main

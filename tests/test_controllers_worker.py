@@ -4,7 +4,6 @@ from __future__ import annotations
 import threading
 import time
 
-import numpy as np
 
 from joint_plant import JointPlant, attach
 from rocoma_can.controllers.tracking_monitor import WORKER_NAME, TrackingMonitor

@@ -6,8 +6,7 @@ import threading
 
 import pytest
 
-from manager_probes import (WAIT, CommandLog, EmergencyProbe, FailproofProbe, Journal,
-                            Probe, rig)  # noqa: F401
+from manager_probes import WAIT, CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
 from rocoma_can import (ControllerManager, EventKind, ManagerState, ManagerTimeouts,
                         SwitchResult)
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import threading
 import time
 
-from manager_probes import WAIT, EmergencyProbe, NumberSwapState, Probe, rig  # noqa: F401
+from manager_probes import WAIT, EmergencyProbe, NumberSwapState, Probe
 from rocoma_can import ManagerState, SwitchResult
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF

@@ -5,7 +5,6 @@ from __future__ import annotations
 import gc
 import threading
 
-import numpy as np
 import pytest
 
 from rocoma_can.config import validate

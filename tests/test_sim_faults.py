@@ -45,7 +45,7 @@ def test_trip_fault_emcy_error_objects_and_reset(sim_bench, sim_interface):
 
 def test_fault_while_moving_ramps_down_before_fault(sim_bench):
     bench = sim_bench(1)
-    node, drive = bench.node(1), bench.drive(1)
+    drive = bench.drive(1)
     bench.spin(1)
     drive.trip_fault(c.EMCY_OVERTEMPERATURE)
     bench.sync(10)

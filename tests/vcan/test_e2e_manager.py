@@ -4,7 +4,6 @@ seen by a third listener; SIGTERM -> torque-off frames before the manager exits.
 Low rates (50 Hz): user-mode-linux system calls are slow. Asserts frames and order only."""
 from __future__ import annotations
 
-import os
 import shutil
 import signal
 import subprocess
