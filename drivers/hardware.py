@@ -244,6 +244,7 @@ class CanopenHardware:
         self.fault_events: collections.deque[FaultEvent] = self.supervisor.history
         self.tx_errors = 0     # frames the bus refused (counted, never raised)
         self.rx_bad = 0        # frames with a wrong length for their layout
+        self.hook_errors = 0   # on_fault calls that raised (counted, never raised)
         self.error_frames = 0  # CAN error frames received (bus-off ones are a fault)
         self.cycles = 0
 
@@ -430,13 +431,13 @@ class CanopenHardware:
 
     def _deliver(self, events: list[FaultEvent]) -> None:
         for event in events:
-            try:
-                if self._manager is not None:
-                    self._manager.emergency_stop(cause=str(event))
-                if self.on_fault is not None:
+            if self._manager is not None:
+                self._manager.emergency_stop(cause=str(event))  # a deque append: cannot fail
+            if self.on_fault is not None:
+                try:
                     self.on_fault(event)
-            except Exception:  # a reporting hook must not take the cycle down
-                pass
+                except Exception:  # a reporting hook must not take the cycle down
+                    self.hook_errors += 1
 
     def write(self, manager_state: int) -> None:
         """Command frames (or torque-off frames in FAILPROOF), then SYNC, then heartbeat."""

@@ -197,3 +197,32 @@ def test_enable_steps():
     for s in (S.UNKNOWN, S.NOT_READY_TO_SWITCH_ON, S.FAULT, S.FAULT_REACTION_ACTIVE,
               S.QUICK_STOP_ACTIVE):
         assert step(s) == 0x00
+
+
+def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
+    import threading
+
+    import can
+    from rocoma_can import EventKind, ManagerState
+    from rocoma_can.drivers.supervision import FaultEvent
+
+    def hook(event):
+        raise RuntimeError("reporting failed")
+
+    bus = can.Bus(interface="virtual", channel="hook-errors", ignore_config=True)
+    hw = CanopenHardware(bus, [DriveConfig(name="j1", node_id=1, increments_per_rev=4096,
+                                           rated_torque_nm=1.0)], 100, 0.01, on_fault=hook)
+    mgr = hw.create_manager()
+    estops = []
+    seen = threading.Event()
+    mgr.subscribe(lambda ev: (estops.append(ev.cause), seen.set())
+                  if ev.kind is EventKind.EMERGENCY_STOP else None)
+    try:
+        hw._deliver([FaultEvent(node_id=1, drive="j1", cause="test", code=0)])
+        assert hw.hook_errors == 1
+        assert mgr.update() is ManagerState.FAILPROOF
+        assert seen.wait(5.0) and "test" in estops[0]
+    finally:
+        mgr.shutdown()
+        hw.close()
+        bus.shutdown()
