@@ -379,11 +379,11 @@ class SimulatedDrive:
             if node and ms:
                 self._consumers[node] = ms / 1000.0
 
-    def on_heartbeat(self, node: int, now: float) -> None:
+    def on_heartbeat(self, node: int, arrived: float) -> None:
         period = self._consumers.get(node)
         if period is None:
             return
-        self._hb_deadline[node] = now + period
+        self._hb_deadline[node] = arrived + period
         if node in self._hb_lost:
             self._hb_lost.discard(node)
             if not self._errors_active():
@@ -391,15 +391,16 @@ class SimulatedDrive:
                 self._emcy(c.EMCY_NO_ERROR)
         if node not in self._hb_armed:  # monitoring starts with the first heartbeat
             self._hb_armed.add(node)
-            self._seg.schedule(now + period, self._heartbeat_check, node,
+            self._seg.schedule(arrived + period, self._heartbeat_check, node,
                                self._consumer_generation)
 
     def _heartbeat_check(self, node: int, generation: int) -> None:
         if generation != self._consumer_generation or node not in self._hb_armed:
             return
         deadline = self._hb_deadline[node]
-        if self._seg.clock() < deadline:
-            self._seg.schedule(deadline, self._heartbeat_check, node, generation)
+        later = self._seg.judge_at(deadline)
+        if later is not None:  # a heartbeat that came in time may still be queued
+            self._seg.schedule(later, self._heartbeat_check, node, generation)
             return
         self._hb_armed.discard(node)
         self._hb_lost.add(node)

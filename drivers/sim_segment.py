@@ -10,12 +10,20 @@ Time: the joints are integrated on each SYNC over the time since the previous SY
 (monotonic, clipped to ``max_dt``), or over a fixed ``sync_period`` when one is given, which
 makes runs deterministic. Without a fixed period the drives keep running between SYNCs too
 (``free_run_period``), so a ramp or a coasting joint continues after the master has died.
+
+Arrival times: a real drive's CAN controller takes each frame as it arrives; this segment is
+one Python thread that may lag behind its socket (a loaded machine, a slow virtual machine).
+So SYNC steps and heartbeats use the time each frame arrived (the kernel's or python-can's
+stamp), and a heartbeat consumer declares a loss only once every frame that arrived before
+its deadline has been handled (``received_until``). Without that, heartbeats sent well in
+time but still queued would read as lost, and the drives would switch off for nothing.
 """
 from __future__ import annotations
 
 import heapq
 import itertools
 import logging
+import math
 import threading
 import time
 from typing import Any, Callable, Iterable, Mapping
@@ -24,10 +32,18 @@ import can
 import numpy as np
 
 from . import cia402 as c
+from .frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
 from .sim_drive import SimulatedDrive, load_object_dictionary
 from .sim_dynamics import JointDynamics, JointParams
 
 log = logging.getLogger(__name__)
+
+#: Longest wait for a frame before the receive thread looks at ``_stopped`` again; also how
+#: stale ``received_until`` may get on a silent bus (a heartbeat loss is seen this much late).
+RX_IDLE = 0.02
+#: Frames handled under one lock hold: bounded so timers still run during a flood.
+RX_BATCH = 64
+
 
 def _default_eds() -> str:
     from rocoma_can import eds  # the EDS shipped with the package
@@ -123,6 +139,9 @@ class SimulatedSegment:
         self._rpdo_routes: dict[int, tuple[SimulatedDrive, Any]] = {}
         self._rpdo_of_drive: dict[int, dict[int, Any]] = {}
         self._last_step: float | None = None
+        # Every frame that arrived (monotonic) before this has been handled: see the docstring.
+        self.received_until = -math.inf
+        self._writer = FrameWriter(bus)
         self._timers = _Timers(self._run_timer)
         self._stopped = threading.Event()
         self._rx_thread = threading.Thread(target=self._receive_loop,
@@ -185,14 +204,20 @@ class SimulatedSegment:
         self._timers.call_at(when, fn, args)
 
     def send(self, cob_id: int, data: bytes) -> None:
-        msg = can.Message(arbitration_id=cob_id, data=data, is_extended_id=False)
         try:
-            self.bus.send(msg, timeout=0.1)
+            self._writer.send(cob_id, data)
         except can.CanError as exc:  # ENOBUFS, bus closed: a real drive just loses it
             self.send_errors += 1
             if self.send_errors in (1, 10, 100, 1000):
                 log.warning("simulated segment: send of 0x%03X failed (%d so far): %s",
                             cob_id, self.send_errors, exc)
+
+    def judge_at(self, deadline: float) -> float | None:
+        """None once every frame that arrived before ``deadline`` has been handled (a timeout
+        at ``deadline`` may be judged now); otherwise when to look again."""
+        if self.received_until >= deadline:
+            return None
+        return max(deadline, self.clock() + RX_IDLE)
 
     def set_rpdo_routes(self, drive: SimulatedDrive, routes: dict[int, Any]) -> None:
         for cob_id in self._rpdo_of_drive.get(drive.node_id, {}):
@@ -203,24 +228,33 @@ class SimulatedSegment:
 
     # ------------------------------------------------------------------ receiving
     def _receive_loop(self) -> None:
+        reader = FrameReader(self.bus)
         while not self._stopped.is_set():
+            before = self.clock()
             try:
-                msg = self.bus.recv(0.05)
+                batch = reader.read(RX_IDLE, RX_BATCH)
             except Exception as exc:  # noqa: BLE001 - a closed or broken bus
                 if self._stopped.is_set():
                     return
                 self._record(exc)
-                self._stopped.wait(0.05)
-                continue
-            if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-                continue
-            try:
-                with self.lock:
-                    self._dispatch(msg.arbitration_id, bytes(msg.data))
-            except Exception as exc:  # noqa: BLE001 - keep the segment receiving
-                self._record(exc)
+                self._stopped.wait(RX_IDLE)
+                batch = []  # a failed interface delivers nothing: consumers may time out
+            now = self.clock()
+            offset = clock_offset()
+            with self.lock:
+                arrived = now
+                for msg in batch:
+                    if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+                        continue
+                    arrived = to_monotonic(offset, msg.timestamp, now)
+                    try:
+                        self._dispatch(msg.arbitration_id, bytes(msg.data), arrived)
+                    except Exception as exc:  # noqa: BLE001 - keep the segment receiving
+                        self._record(exc)
+                # read until empty: everything that arrived before the read began is handled
+                self.received_until = before if len(batch) < RX_BATCH else arrived
 
-    def _dispatch(self, cob_id: int, data: bytes) -> None:
+    def _dispatch(self, cob_id: int, data: bytes, arrived: float) -> None:
         if cob_id == c.NMT:
             if len(data) >= 2:
                 for node, drive in self.drives.items():
@@ -229,7 +263,7 @@ class SimulatedSegment:
             self.nmt_count += 1
             return
         if cob_id == c.SYNC:
-            self._on_sync()
+            self._on_sync(arrived)
             return
         route = self._fixed_routes.get(cob_id)
         if route is not None:
@@ -240,21 +274,20 @@ class SimulatedSegment:
             rpdo[0].on_rpdo(rpdo[1], data)
             return
         if c.HEARTBEAT < cob_id <= c.HEARTBEAT + 0x7F and data:
-            now = self.clock()
             for drive in self.drives.values():
-                drive.on_heartbeat(cob_id - c.HEARTBEAT, now)
+                drive.on_heartbeat(cob_id - c.HEARTBEAT, arrived)
 
-    def _on_sync(self) -> None:
-        self._step(on_sync=True)
+    def _on_sync(self, arrived: float) -> None:
+        self._step(on_sync=True, now=arrived)
         self.sync_count += 1
 
-    def _step(self, on_sync: bool) -> None:
-        now = self.clock()
+    def _step(self, on_sync: bool, now: float) -> None:
+        last = self._last_step if self._last_step is not None else now
         if on_sync and self.sync_period is not None:
             dt = self.sync_period
-        else:
-            dt = min(now - (self._last_step or now), self.max_dt)
-        self._last_step = now
+        else:  # a SYNC that arrived before a free-running step was handled: no step back
+            dt = min(max(now - last, 0.0), self.max_dt)
+        self._last_step = max(now, last)
         drives = self.drives.values()
         for drive in drives:
             drive.prepare_step(dt, on_sync)
@@ -265,7 +298,7 @@ class SimulatedSegment:
     def _free_run(self) -> None:
         now = self.clock()
         if self._last_step is None or now - self._last_step >= self.free_run_period:
-            self._step(on_sync=False)
+            self._step(on_sync=False, now=now)
         self.schedule(now + self.free_run_period, self._free_run)
 
     def _run_timer(self, fn: Callable[..., Any], args: tuple) -> None:

@@ -1,0 +1,149 @@
+"""Cheap frame I/O for threads that see every frame on a bus: the simulated drives, recorders.
+
+python-can's ``recv`` costs three system calls per frame (a clock read, ``select``,
+``recvmsg``) and ``send`` three (clock, ``select``, ``send``). Natively that is a few
+microseconds; inside a user-mode-linux guest, where even a clock read is a trapped system
+call (~0.1-0.6 ms each), a simulated segment of six drives at 25 Hz spent half the guest's
+only CPU on it and fell a second behind the kernel. On SocketCAN this module reads every
+waiting frame after one ``select`` with one non-blocking ``recvmsg`` each, and writes with
+one ``send``; on any other interface it uses python-can's API unchanged.
+
+Frames keep the arrival time the kernel (SocketCAN) or python-can (virtual: send time)
+stamped on them, in ``time.time()`` seconds. ``to_monotonic`` converts them, so a reader
+that lags can still judge deadlines by when frames arrived rather than when it got to them.
+"""
+from __future__ import annotations
+
+import select
+import socket
+import struct
+import time
+
+import can
+from can.interfaces.socketcan.constants import (
+    CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, CANFD_MTU)
+from can.interfaces.socketcan.socketcan import (
+    RECEIVED_ANCILLARY_BUFFER_SIZE, RECEIVED_TIMESTAMP_STRUCT, build_can_frame,
+    dissect_can_frame)
+
+_CLASSIC_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: id, dlc, pad, data
+
+
+def _raw_socket(bus: can.BusABC) -> socket.socket | None:
+    sock = getattr(bus, "socket", None)
+    if isinstance(sock, socket.socket) and sock.family == getattr(socket, "AF_CAN", -1):
+        return sock
+    return None
+
+
+def _message(frame: bytes, ancillary: list) -> can.Message:
+    can_id, dlc, _flags, data = dissect_can_frame(frame)
+    timestamp = 0.0
+    for level, kind, payload in ancillary:
+        if level == socket.SOL_SOCKET and len(payload) >= RECEIVED_TIMESTAMP_STRUCT.size:
+            seconds, nanoseconds = RECEIVED_TIMESTAMP_STRUCT.unpack_from(payload)
+            timestamp = seconds + nanoseconds * 1e-9
+    extended = bool(can_id & CAN_EFF_FLAG)
+    return can.Message(timestamp=timestamp,
+                       arbitration_id=can_id & (0x1FFFFFFF if extended else 0x7FF),
+                       is_extended_id=extended, is_remote_frame=bool(can_id & CAN_RTR_FLAG),
+                       is_error_frame=bool(can_id & CAN_ERR_FLAG),
+                       is_fd=len(frame) == CANFD_MTU, dlc=dlc, data=data[:dlc],
+                       check=False)
+
+
+class FrameReader:
+    """Batches of received frames from one bus; the reader must be the bus's only reader."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self._sock = _raw_socket(bus)
+
+    def read(self, timeout: float, limit: int = 256) -> list[can.Message]:
+        """The frames waiting now (at most ``limit``), after waiting up to ``timeout`` s for
+        the first; [] when none came. An empty return after a batch shorter than ``limit``
+        means the receive queue was empty at some instant during the call.
+
+        Raises can.CanOperationError when the bus fails (interface down, socket closed).
+        """
+        sock = self._sock
+        if sock is None:
+            first = self.bus.recv(timeout)
+            if first is None:
+                return []
+            batch = [first]
+            while len(batch) < limit:
+                msg = self.bus.recv(0.0)
+                if msg is None:
+                    break
+                batch.append(msg)
+            return batch
+        try:
+            if not select.select([sock], [], [], timeout)[0]:
+                return []
+            batch = []
+            while len(batch) < limit:
+                try:
+                    frame, ancillary, _flags, _addr = sock.recvmsg(
+                        CANFD_MTU, RECEIVED_ANCILLARY_BUFFER_SIZE, socket.MSG_DONTWAIT)
+                except BlockingIOError:
+                    break
+                batch.append(_message(frame, ancillary))
+            return batch
+        except (OSError, ValueError) as exc:  # ValueError: select on a closed socket
+            raise can.CanOperationError(f"receiving from {self.bus.channel_info}: {exc}",
+                                        getattr(exc, "errno", None)) from exc
+
+
+class FrameWriter:
+    """Sends frames without ever blocking; a failure raises can.CanError (callers count it).
+
+    On SocketCAN a full transmit queue fails at once (ENOBUFS, or EAGAIN when the socket's
+    own buffer is full), as python-can's ``send(timeout=0)`` does, with one system call.
+    """
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self._sock = _raw_socket(bus)
+
+    def send(self, cob_id: int, data: bytes) -> None:
+        """A classic 11-bit data frame."""
+        if self._sock is None:
+            self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False),
+                          timeout=0)
+            return
+        self._send_raw(_CLASSIC_FRAME.pack(cob_id, len(data), data))
+
+    def send_message(self, msg: can.Message) -> None:
+        """Any frame python-can can describe (extended, remote, FD)."""
+        if self._sock is None:
+            self.bus.send(msg, timeout=0)
+            return
+        self._send_raw(build_can_frame(msg))
+
+    def _send_raw(self, frame: bytes) -> None:
+        try:
+            self._sock.send(frame, socket.MSG_DONTWAIT)  # type: ignore[union-attr]
+        except OSError as exc:  # ENOBUFS, EAGAIN, ENETDOWN, a closed socket
+            raise can.CanOperationError(f"sending on {self.bus.channel_info}: {exc}",
+                                        exc.errno) from exc
+
+
+#: Oldest plausible arrival: older stamps come from another epoch (some interfaces count
+#: from the adapter's power-on) or a wall-clock step, and are taken as "now".
+MAX_FRAME_AGE = 10.0
+
+
+def to_monotonic(offset: float, stamp: float, now: float) -> float:
+    """A frame's ``time.time()`` stamp on the monotonic clock, never later than ``now``.
+
+    ``offset`` is ``clock_offset()`` read once per batch. A frame without a plausible stamp
+    (none, in the future, or more than MAX_FRAME_AGE old) is taken as arrived ``now``.
+    """
+    arrived = stamp + offset
+    return arrived if now - MAX_FRAME_AGE < arrived <= now else now
+
+
+def clock_offset() -> float:
+    """``time.monotonic() - time.time()`` now: converts frame stamps to the monotonic clock."""
+    return time.monotonic() - time.time()
