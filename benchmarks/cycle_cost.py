@@ -6,7 +6,7 @@ Every drive runs CSP + CSV + CST with position, velocity and torque feedback: 2 
 2 TPDOs per drive. One cycle is:
 
 * ours: every TPDO frame through the receive listener (filter, stamp, append; what runs on
-  the Notifier thread), then ``CanopenHardware.read`` (drain, struct unpack, numpy scaling,
+  the bus reader thread), then ``CanopenHardware.read`` (drain, struct unpack, numpy scaling,
   CiA 402 states, supervision) and ``write`` (numpy encode, enable logic, struct pack of every
   RPDO, SYNC, heartbeat) with the bus send replaced by a no-op;
 * canopen: every TPDO frame through ``Network.notify`` into subscribed ``PdoMap`` objects,
@@ -74,7 +74,7 @@ def time_ours(n: int, repeat: int, channel: str) -> list[float]:
             hw.supervisor.arm(i, now)
         hw.supervisor.heartbeat_deadline[:] = np.inf  # no heartbeats in this benchmark
         hw._send = lambda msg: None                   # leave the bus out (see docstring)
-        receiver = hw._canopen.network.notifier.listeners[-1]
+        receiver = hw._canopen.reader._listeners[-1]
         frames = tpdo_frames(drives)
         command(hw.command)
         samples = []

@@ -12,7 +12,7 @@ The safety path, top to bottom (each step names where it lives):
    EMCY, statusword fault bit, heartbeat deadline or non-operational heartbeat, TPDOs missing
    for k cycles, a drive dropping out of operation enabled or not enabling in time
    (``_command_frames`` below), or a bus-off error frame (``_on_error_frames``). Frames
-   arrive on the Notifier thread, which only appends them to a deque; ``read`` drains it on
+   arrive on the bus reader thread (bus.py), which only appends them to a deque; ``read`` drains it on
    the cycle thread, so no lock is shared with a slow thread.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
    a latched drive is never sent anything but controlword 0x0000), until recovery.
@@ -63,6 +63,7 @@ from rocoma_can import eds as shipped_eds
 from . import cia402
 from .bringup import DriveBringup, Phase, Timeouts
 from .bus import CanopenBus, open_bus
+from .frame_io import FrameWriter, clock_offset, to_monotonic
 from .cia402 import State402
 from .config import DriveConfig, check_drives
 from .joints import JointCommand, JointMode, JointState
@@ -115,7 +116,11 @@ CAN_ERR_BUSOFF = 0x40
 
 
 class _Receiver(can.Listener):
-    """Runs on the Notifier thread: filter by COB-ID, stamp, append. Nothing else."""
+    """Runs on the bus reader thread: filter by COB-ID, append. Nothing else.
+
+    Frames keep their arrival stamp (kernel or python-can, wall clock); ``read`` converts it
+    to the monotonic clock once per cycle, so a reader that lags does not make frames late.
+    """
 
     def __init__(self, cob_ids: set[int], sink: collections.deque,
                  errors: collections.deque) -> None:
@@ -125,11 +130,11 @@ class _Receiver(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
-            self._errors.append((time.monotonic(), msg))
+            self._errors.append(msg)
         elif msg.arbitration_id in self._ids:
-            self._sink.append((time.monotonic(), msg))
+            self._sink.append(msg)
 
-    def on_error(self, exc: Exception) -> None:  # keep the Notifier alive
+    def on_error(self, exc: Exception) -> None:  # counted by the reader; nothing to do here
         pass
 
 
@@ -233,6 +238,7 @@ class CanopenHardware:
         self._next_heartbeat = -math.inf
 
         self._canopen: CanopenBus | None = None
+        self._writer: FrameWriter | None = None
         self._bringup: list[DriveBringup] = []
         self._executor: ThreadPoolExecutor | None = None
         self._manager: Any = None
@@ -270,6 +276,7 @@ class CanopenHardware:
         else:
             cb = CanopenBus(self._bus_arg)
         self._canopen = cb
+        self._writer = cb.writer
         cob_ids = set(self._tpdo_of) | set(self._heartbeat_of) | set(self._emcy_of)
         cb.add_listener(_Receiver(cob_ids, self._rx, self._rx_errors))
         self._executor = ThreadPoolExecutor(
@@ -289,7 +296,7 @@ class CanopenHardware:
         self._now = now
 
     def close(self) -> None:
-        """Join the configuration workers and the Notifier; shut the bus if opened here."""
+        """Join the configuration workers and the bus reader; shut the bus if opened here."""
         for b in self._bringup:
             b.cancel()
         if self._executor is not None:
@@ -348,8 +355,10 @@ class CanopenHardware:
         rx = self._rx
         tpdo_of, heartbeat_of, emcy_of = self._tpdo_of, self._heartbeat_of, self._emcy_of
         stamp = self.state.stamp
+        offset = clock_offset()
         while rx:
-            t, msg = rx.popleft()
+            msg = rx.popleft()
+            t = to_monotonic(offset, msg.timestamp, now)
             cob = msg.arbitration_id
             entry = tpdo_of.get(cob)
             if entry is not None:
@@ -377,7 +386,7 @@ class CanopenHardware:
                     self._bringup[i].sto_seen = True
                 sup.on_emcy(i, code, t)
         if self._rx_errors:
-            self._on_error_frames()
+            self._on_error_frames(offset, now)
         np.equal(got, self._expected, out=self._complete)
         self._decode(now)
         self._step_bringup(now)
@@ -386,14 +395,15 @@ class CanopenHardware:
         self._deliver(sup.take_pending())
         self.cycles += 1
 
-    def _on_error_frames(self) -> None:
+    def _on_error_frames(self, offset: float, now: float) -> None:
         errors = self._rx_errors
         while errors:
-            t, msg = errors.popleft()
+            msg = errors.popleft()
             self.error_frames += 1
             if msg.arbitration_id & CAN_ERR_BUSOFF:
                 self.supervisor.bus_fault(f"CAN bus-off (error frame class "
-                                          f"0x{msg.arbitration_id:X})", t)
+                                          f"0x{msg.arbitration_id:X})",
+                                          to_monotonic(offset, msg.timestamp, now))
 
     def _on_heartbeat(self, i: int, nmt_state: int, t: float) -> None:
         self._hb_state[i] = nmt_state
@@ -456,8 +466,8 @@ class CanopenHardware:
 
     def _send(self, msg: can.Message) -> None:
         try:
-            self._canopen.bus.send(msg, timeout=0)  # type: ignore[union-attr]
-        except Exception:
+            self._writer.send_message(msg)  # type: ignore[union-attr]
+        except Exception:  # a full queue, a failed interface, or not started/closed
             self.tx_errors += 1
 
     def _torque_off(self) -> None:

@@ -70,7 +70,7 @@ class Report:
 
 
 class _TorqueOffProbe(can.Listener):
-    """On the operator's bus (Notifier thread): once armed, which drives got RPDO1 with
+    """On the operator's bus (its reader thread): once armed, which drives got RPDO1 with
     controlword 0x0000 (disable voltage), i.e. the torque-off frames of the loop's stop."""
 
     def __init__(self, node_ids: tuple[int, ...]) -> None:
@@ -209,7 +209,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         with Runtime(config, on_cycle=watch) as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
             probe = _TorqueOffProbe(seg.node_ids)
-            client.network.notifier.add_listener(probe)
+            client.reader.add_listener(probe)
             out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
                 f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} (virtual bus {channel})")
             operator = threading.Thread(
@@ -225,7 +225,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                 stop.set()
                 operator.join(15.0)
                 status.join(2.0)
-            time.sleep(0.1)  # the probe runs on the Notifier thread
+            time.sleep(0.1)  # the probe runs on the client's bus reader thread
             seen = int(rt.loop.last_state) == 0 and probe.seen == set(seg.node_ids)
             step = Step("loop stop -> torque-off frames", seen,
                         f"{rt.loop.stop_reason}; controlword 0x0000 seen from "

@@ -268,7 +268,7 @@ class Runtime:
                 restore()
 
     def close(self) -> None:
-        """Node, manager threads, hardware (joins its Notifier), then the node's bus."""
+        """Node, manager threads, hardware (joins its bus reader), then the node's bus."""
         if self.node is not None:
             self.node.close()
         if self.manager is not None:

@@ -12,7 +12,7 @@ Server side, ``ManagerNode`` (objects; README "CLI and CAN services" has the ful
   (comma separated); 0x2124 last e-stop cause; 0x2130 U32 rw e-stop COB-ID (0 = off);
   0x2131 U8 r e-stop latched
 
-Why a switch is answered at once: canopen's SDO server answers on the Notifier thread, and
+Why a switch is answered at once: canopen's SDO server answers on the bus reader's thread, and
 the same thread carries the e-stop COB-ID listener. Waiting there for a switch (which runs
 initialize/swap of the new controller, for any length of time) would delay e-stops and make
 the client's SDO time out. So a write to 0x2100/0x2101 is checked synchronously (unknown
@@ -26,10 +26,10 @@ Frames the node sends (from its own status thread, never from the control loop):
   EMCY 0x080+id on every e-stop: code 0x9000 (external error), register 0x01, byte 3 =
   the new state; EMCY 0x0000 (error reset) when the e-stop latch is cleared.
 Any frame on the e-stop COB-ID (0x2130), whatever its data, calls ``manager.emergency_stop``
-from the Notifier thread: the next control cycle handles it.
+from the bus reader's thread: the next control cycle handles it.
 
 The node uses a bus of its own (a second socket on the same interface, or a second
-virtual-bus instance) so its Notifier and SDO traffic never share a thread with the driver.
+virtual-bus instance) so its reader thread and SDO traffic never share a thread with the driver.
 """
 from __future__ import annotations
 
@@ -43,6 +43,7 @@ import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from . import eds as shipped_eds
+from .drivers.bus import BusReader
 from .events import EventKind, ManagerEvent
 
 log = logging.getLogger(__name__)
@@ -89,10 +90,11 @@ class ManagerNode:
         self._unsubscribe: Callable[[], None] | None = None
         self._initial_cob = estop_cob_id
         self._started = False
+        self._reader: BusReader | None = None
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self) -> ManagerNode:
-        self._network.connect()  # with a bus given, this only starts the Notifier
+        self._reader = BusReader(self.bus, self._network.listeners, name="manager-node-rx")
         self._network.add_node(self._node)
         self.set_estop_cob_id(self._initial_cob)
         self._unsubscribe = self.manager.subscribe(self._on_event)
@@ -108,10 +110,9 @@ class ManagerNode:
         self._wake.set()
         if self._thread.is_alive():
             self._thread.join(2.0)
-        notifier = self._network.notifier
-        if notifier is not None:
-            notifier.stop(timeout=2.0)
-            self._network.notifier = None
+        if self._reader is not None:
+            self._reader.stop()
+            self._reader = None
 
     def __enter__(self) -> ManagerNode:
         return self.start()
@@ -281,16 +282,14 @@ class ManagerClient:
     def __init__(self, bus: can.BusABC, node_id: int = 100, timeout: float = 0.5) -> None:
         self.bus = bus
         self.network = canopen.Network(bus)
-        self.network.connect()
+        self.reader = BusReader(bus, self.network.listeners, name="manager-client-rx")
         od = canopen.import_od(str(shipped_eds.path(shipped_eds.MANAGER_NODE)), node_id)
         self.node = self.network.add_node(canopen.RemoteNode(node_id, od))
         self.node.sdo.RESPONSE_TIMEOUT = timeout
         self.node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry for ever in canopen 2.4)
 
     def close(self) -> None:
-        if self.network.notifier is not None:
-            self.network.notifier.stop(timeout=2.0)
-            self.network.notifier = None
+        self.reader.stop()
 
     def __enter__(self) -> ManagerClient:
         return self
