@@ -58,15 +58,31 @@ def vcan_outcomes(stats: dict[str, list]) -> dict[str, str]:
     return outcomes
 
 
+def vcan_durations(stats: dict[str, list]) -> dict[str, float]:
+    """Seconds per vcan test id, setup + call + teardown."""
+    durations: dict[str, float] = {}
+    for reports in stats.values():
+        for report in reports:
+            if "vcan" in getattr(report, "keywords", {}) and hasattr(report, "duration"):
+                durations[report.nodeid] = durations.get(report.nodeid, 0.0) + report.duration
+    return durations
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:
-    """Say how many vcan tests really ran; tools/test reads the same numbers from the file
-    named by ROCOMA_VCAN_SUMMARY."""
-    outcomes = list(vcan_outcomes(terminalreporter.stats).values())
+    """Say how many vcan tests really ran; tools/test reads the same numbers, the slowest
+    tests and any retried one (a rerun plugin's "rerun" reports: there must be none) from the
+    file named by ROCOMA_VCAN_SUMMARY."""
+    stats = terminalreporter.stats
+    outcomes = list(vcan_outcomes(stats).values())
     runner = os.environ.get("ROCOMA_VCAN_RUNNER", "none")
     counts = {name: outcomes.count(name) for name in ("passed", "failed", "skipped")}
     summary_path = os.environ.get("ROCOMA_VCAN_SUMMARY")
     if summary_path:
-        Path(summary_path).write_text(json.dumps(dict(counts, runner=runner)))
+        durations = vcan_durations(stats)
+        slowest = sorted(durations.items(), key=lambda item: -item[1])[:10]
+        retried = sorted({r.nodeid for r in stats.get("rerun", ())})
+        Path(summary_path).write_text(json.dumps(dict(counts, runner=runner, slowest=slowest,
+                                                      retried=retried)))
     if outcomes or runner != "none":
         terminalreporter.write_sep(
             "-", f"vcan tests: {counts['passed'] + counts['failed']} ran ({counts['passed']} "

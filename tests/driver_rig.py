@@ -6,18 +6,21 @@ cycles exactly like the runtime's loop would (e-stop before update, frames after
 """
 from __future__ import annotations
 
+import inspect
 import math
 import time
+from dataclasses import dataclass
 from typing import Sequence
 
 import can
 
 from rocoma_can import Controller, EmergencyController, ManagerState
-from rocoma_can.drivers.bringup import Timeouts
+from rocoma_can.drivers.bringup import CONFIG_ATTEMPTS, Timeouts
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.sim_dynamics import JointParams
 
 MANAGER_NODE_ID = 100
 INCREMENTS_PER_REV = 1 << 20  # the simulated drive's 0x608F default
@@ -29,6 +32,66 @@ def drive_configs(node_ids: Sequence[int], modes: Sequence[str] = ("csp", "csv",
     return [DriveConfig(name=f"j{n}", node_id=n, increments_per_rev=INCREMENTS_PER_REV,
                         rated_torque_nm=RATED_TORQUE_NM, modes=tuple(modes), **kw)
             for n in node_ids]
+
+
+@dataclass(frozen=True)
+class Can:
+    """A bus, the supervision margins its scheduler needs, and the test budgets that follow
+    from them. The margins are config (the tests check behaviour, not the margins); every
+    wait in a driver test is one of the budgets below, never a bare number of seconds."""
+    interface: str
+    dt: float
+    pd: tuple[float, float, float]  # CST hold: kp, kd, tolerance (25 Hz + VM latency: softer)
+    heartbeat_ms: int        # the manager's heartbeat period
+    drive_heartbeat_ms: int  # the drives' heartbeat period
+    tpdo_timeout_cycles: int
+    timeouts: Timeouts
+    joints: JointParams | None = None  # simulated joints (None: the simulator's defaults)
+    sdo_timeout: float = 0.5
+    heartbeat_timeout_factor: float = 2.5  # drives' heartbeats supervised at this many periods
+    config_workers: int = 4  # drives configured over SDO at once
+    stall: float = 2.0  # the longest the machine may stop a process for (a loaded 2-core host)
+
+    def channel(self, virtual_channel: str) -> str:
+        return virtual_channel if self.interface == "virtual" else "vcan0"
+
+    def bring_up_budget(self, drives: int) -> float:
+        """Boot wait, every configuration attempt of the slowest worker's queue (a drive that
+        never answers: SDO timeout + the pause before the next attempt, each time), NMT
+        start, fault reset and shutdown probe."""
+        t = self.timeouts
+        queue = -(-drives // self.config_workers)
+        configure = queue * CONFIG_ATTEMPTS * 3 * self.sdo_timeout
+        return t.boot_wait + configure + t.start + 2 * t.reset + self.stall
+
+    def enable_budget(self) -> float:
+        """The hardware reports a drive that did not enable within timeouts.enable."""
+        return self.timeouts.enable + 10 * self.dt + self.stall
+
+    def detect_budget(self) -> float:
+        """The slowest supervision path: missing TPDOs or a drive's heartbeat deadline."""
+        return max(self.tpdo_timeout_cycles * self.dt,
+                   self.heartbeat_timeout_factor * self.drive_heartbeat_ms / 1000) + self.stall
+
+    def recovery_budget(self) -> float:
+        return RECOVERY_TIMEOUT + self.stall
+
+
+RECOVERY_TIMEOUT = inspect.signature(CanopenHardware.recover).parameters["timeout"].default
+
+
+VIRTUAL = Can("virtual", 0.005, (4.0, 0.3, 0.02), 250, 200, 40, Timeouts())
+# The user-mode-linux guest has one CPU and every system call costs 0.1-0.6 ms (even a clock
+# read): six drives at 25 Hz, the loop and the simulator keep it nearly busy, so a process
+# can lag for a second. Hence 25 Hz, supervision of about a second (TPDOs, the drives'
+# heartbeats), SDO answers allowed 2 s, two drives configured at a time (no burst of SDO
+# traffic on top of the cycle) and longer start-up steps. With the VM's stalls, a CST PD on the default
+# 0.01 kg m^2 joint is too lively: ten times the inertia with the drive's loop gains scaled
+# alike (CSP/CSV behave the same) and a gentler PD (omega ~4.5 rad/s).
+VCAN = Can("socketcan", 0.04, (2.0, 0.6, 0.05), 250, 200, 25,
+           Timeouts(start=5.0, reset=3.0, enable=3.0),
+           JointParams(inertia=0.1, viscous=0.1, velocity_gain=8.0, velocity_integral=80.0),
+           sdo_timeout=2.0, heartbeat_timeout_factor=5.0, config_workers=2, stall=5.0)
 
 
 class Rig:
@@ -47,7 +110,22 @@ class Rig:
         self.mgr = self.hw.create_manager(estop_must_be_cleared=estop_must_be_cleared)
         self.states: list[ManagerState] = []
         self._next = time.monotonic()
+        self.setup: Can | None = None
         self.hw.start()
+
+    @classmethod
+    def for_setup(cls, bus: can.BusABC, node_ids: Sequence[int], setup: Can, **kw) -> Rig:
+        """A rig with the setup's rate and supervision margins (``kw`` overrides them)."""
+        kw.setdefault("manager_heartbeat_ms", setup.heartbeat_ms)
+        kw.setdefault("drive_heartbeat_ms", setup.drive_heartbeat_ms)
+        kw.setdefault("tpdo_timeout_cycles", setup.tpdo_timeout_cycles)
+        kw.setdefault("timeouts", setup.timeouts)
+        kw.setdefault("sdo_timeout", setup.sdo_timeout)
+        kw.setdefault("heartbeat_timeout_factor", setup.heartbeat_timeout_factor)
+        kw.setdefault("config_workers", setup.config_workers)
+        rig = cls(bus, node_ids, setup.dt, **kw)
+        rig.setup = setup
+        return rig
 
     def cycle(self) -> ManagerState:
         now = time.monotonic()
@@ -168,18 +246,20 @@ def seconds_until_all_off(segment, since: float, bound: float) -> float:
     return elapsed
 
 
-def serve(channel: str, interface: str, node_ids: Sequence[int], dt: float,
-          heartbeat_ms: int, seconds: float) -> None:
-    """A manager process for the SIGKILL test: bring up, enable, print ENABLED, keep cycling."""
+def serve(channel: str, interface: str, node_ids: Sequence[int], heartbeat_ms: int,
+          seconds: float) -> None:
+    """A manager process for the SIGKILL test (VCAN setup): bring up, enable, print ENABLED,
+    keep cycling."""
     bus = can.Bus(interface=interface, channel=channel, receive_own_messages=False,
                   ignore_config=True)
-    rig = Rig(bus, node_ids, dt, manager_heartbeat_ms=heartbeat_ms)
+    setup = VCAN if interface == "socketcan" else VIRTUAL
+    rig = Rig.for_setup(bus, node_ids, setup, manager_heartbeat_ms=heartbeat_ms)
     try:
-        if not rig.run_until(lambda: not rig.hw.starting, 20.0):
+        if not rig.run_until(lambda: not rig.hw.starting, setup.bring_up_budget(len(node_ids))):
             raise SystemExit(f"bring-up timed out: {rig.hw.drive_status()}")
         rig.mgr.add_controller(HoldPD())
         rig.switch("hold")
-        if not rig.run_until(lambda: rig.hw.all_enabled, 10.0):
+        if not rig.run_until(lambda: rig.hw.all_enabled, setup.enable_budget()):
             raise SystemExit(f"enable timed out: {rig.hw.drive_status()}")
         print("ENABLED", flush=True)
         rig.run(seconds)

@@ -10,55 +10,21 @@ from __future__ import annotations
 import struct
 import threading
 import time
-from dataclasses import dataclass
 
 import can
 import numpy as np
 import pytest
 
-from driver_rig import MANAGER_NODE_ID, Brake, HoldPD, Rig, Sine, seconds_until_all_off
+from driver_rig import (MANAGER_NODE_ID, VCAN, VIRTUAL, Brake, HoldPD, Rig, Sine,
+                        seconds_until_all_off)
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import bus, cia402
-from rocoma_can.drivers.bringup import Phase, Timeouts
+from rocoma_can.drivers.bringup import Phase
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.joints import JointMode
-from rocoma_can.drivers.sim_dynamics import JointParams
 
 NODES = tuple(range(1, 7))
 RPDO1 = {cia402.RPDO_BASE[0] + n: n for n in NODES}
-START_TIMEOUT = 15.0
-
-
-@dataclass(frozen=True)
-class Can:
-    """A bus and the margins its scheduler needs (they are config; the tests check behaviour,
-    not the margins). The user-mode-linux VM runs at 50 Hz with longer start-up timeouts."""
-    interface: str
-    dt: float
-    pd: tuple[float, float, float]  # CST hold: kp, kd, tolerance (50 Hz + VM latency: softer)
-    heartbeat_ms: int        # the manager's heartbeat period
-    drive_heartbeat_ms: int  # the drives' heartbeat period (supervised at 2.5x)
-    tpdo_timeout_cycles: int
-    timeouts: Timeouts
-    joints: JointParams | None = None  # simulated joints (None: the simulator's defaults)
-    sdo_timeout: float = 0.5  # the VM's single CPU answers SDO late while drives cycle
-
-    def channel(self, virtual_channel: str) -> str:
-        return virtual_channel if self.interface == "virtual" else "vcan0"
-
-
-# Margins for a shared 2-core machine (other suites and a user-mode-linux VM beside these):
-# a process can stall for a few hundred ms, which supervision would rightly report.
-VIRTUAL = Can("virtual", 0.005, (4.0, 0.3, 0.02), 250, 200, 40, Timeouts())
-# 25 Hz: at 50 Hz, six cycling drives and three Python receivers saturate the VM's one CPU
-# (SDO answers then take ~0.6 s and late drives never finish configuring).
-# With the VM's stalls, a CST PD on the default 0.01 kg m^2 joint is too lively:
-# ten times the inertia with the drive's loop gains scaled alike (CSP/CSV behave the same)
-# and a gentler PD (omega ~4.5 rad/s).
-VCAN = Can("socketcan", 0.04, (2.0, 0.6, 0.05), 250, 200, 10,
-           Timeouts(start=5.0, reset=3.0, enable=3.0),
-           JointParams(inertia=0.1, viscous=0.1, velocity_gain=8.0, velocity_integral=80.0),
-           sdo_timeout=2.0)
 
 
 @pytest.fixture(params=[pytest.param(VIRTUAL, id="virtual"),
@@ -83,12 +49,7 @@ def make_rig(can_setup, virtual_channel, bus_factory):
 
     def make(nodes=NODES, **kw) -> Rig:
         bus = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
-        kw.setdefault("manager_heartbeat_ms", can_setup.heartbeat_ms)
-        kw.setdefault("drive_heartbeat_ms", can_setup.drive_heartbeat_ms)
-        kw.setdefault("tpdo_timeout_cycles", can_setup.tpdo_timeout_cycles)
-        kw.setdefault("timeouts", can_setup.timeouts)
-        kw.setdefault("sdo_timeout", can_setup.sdo_timeout)
-        rig = Rig(bus, nodes, can_setup.dt, **kw)
+        rig = Rig.for_setup(bus, nodes, can_setup, **kw)
         rigs.append(rig)
         return rig
 
@@ -107,13 +68,15 @@ def recorder(can_setup, virtual_channel, frame_recorder):
 
 
 def bring_up(rig: Rig) -> None:
-    assert rig.run_until(lambda: not rig.hw.starting, START_TIMEOUT), rig.hw.drive_status()
+    budget = rig.setup.bring_up_budget(len(rig.hw.drives_config))
+    assert rig.run_until(lambda: not rig.hw.starting, budget), rig.hw.drive_status()
 
 
 def enable_with(rig: Rig, controller, emergency=None) -> None:
     rig.mgr.add_controller(controller, emergency=emergency)
     assert rig.switch(controller.name) == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.hw.all_enabled, 5.0), rig.hw.drive_status()
+    assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget()), \
+        rig.hw.drive_status()
 
 
 MARKER = 0x7F0  # a COB-ID nothing else uses
@@ -127,8 +90,8 @@ def synced_mark(recorder, rig: Rig) -> int:
                          is_extended_id=False)
     since = recorder.mark()
     rig.hw._canopen.bus.send(marker, timeout=1.0)
-    recorder.wait_for(lambda f: f.cob_id == MARKER and f.data == bytes(marker.data), 5.0,
-                      since=since)
+    recorder.wait_for(lambda f: f.cob_id == MARKER and f.data == bytes(marker.data),
+                      rig.setup.stall, since=since)
     return recorder.mark()
 
 
@@ -175,7 +138,8 @@ def test_drive_with_sto_low_does_not_hold_the_others_back(segment, make_rig):
     assert rig.switch("hold") == SwitchResult.SWITCHED
     others = [n for n in NODES if n != 3]
     assert rig.run_until(lambda: all(segment.drives[n].state402 == State402.OPERATION_ENABLED
-                                     for n in others), 5.0), rig.hw.drive_status()
+                                     for n in others), rig.setup.enable_budget()), \
+        rig.hw.drive_status()
     rig.run(0.2)
     assert rig.mgr.state == ManagerState.OK
     assert segment.drives[3].state402 == State402.SWITCH_ON_DISABLED
@@ -238,7 +202,8 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
     bring_up(rig)
     enable_with(rig, HoldPD(), emergency=Brake())
     segment.drives[2].trip_fault(cia402.EMCY_OVERCURRENT)
-    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget())
     latched = rig.hw.supervisor.latched[1]
     assert latched is not None and latched.node_id == 2 and "0x2310" in latched.cause
     rig.run(0.2)
@@ -247,7 +212,8 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
 
     mark = synced_mark(recorder, rig)
     segment.drives[5].trip_fault(cia402.EMCY_OVERTEMPERATURE)
-    assert rig.run_until(lambda: rig.states[-1] == ManagerState.FAILPROOF, 2.0)
+    assert rig.run_until(lambda: rig.states[-1] == ManagerState.FAILPROOF,
+                         rig.setup.detect_budget())
     assert rig.states[-2] == ManagerState.EMERGENCY
     rig.run(0.1)
     # Each cycle sends RPDO1 of drives 1..6 in order. The first cycle in which a healthy
@@ -257,7 +223,8 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
     first = next(c for c in cycles if any(c.get(n) == 0 for n in (1, 3, 4, 6)))
     assert first == {n: 0 for n in NODES}, cycles
     assert rig.run_until(lambda: all(d.state402 in (State402.SWITCH_ON_DISABLED, State402.FAULT)
-                                     for d in segment.drives.values()), 2.0)
+                                     for d in segment.drives.values()),
+                         rig.setup.enable_budget())
     # and every following cycle keeps sending controlword 0 to every drive
     mark = synced_mark(recorder, rig)
     rig.run(0.1)
@@ -273,7 +240,8 @@ def test_heartbeat_loss_of_one_drive_is_an_estop(segment, make_rig):
     bring_up(rig)
     enable_with(rig, HoldPD(), emergency=Brake())
     segment.drives[4].set_silent(True)
-    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget())
     latched = rig.hw.supervisor.latched[3]
     assert latched.node_id == 4 and "heartbeat lost" in latched.cause
     assert [s.fault is not None for s in rig.hw.drive_status()] == [n == 4 for n in NODES]
@@ -286,7 +254,8 @@ def test_missing_tpdos_are_an_estop(segment, make_rig):
     bring_up(rig)
     enable_with(rig, HoldPD(), emergency=Brake())
     segment.drives[1].set_sync_response(False)  # heartbeat goes on, TPDOs stop
-    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget())
     latched = rig.hw.supervisor.latched[0]
     assert latched.node_id == 1 and "TPDOs missing" in latched.cause
 
@@ -297,14 +266,16 @@ def test_recovery_after_a_fault_returns_to_ok(segment, make_rig):
     rig.mgr.clear_emergency_stop()
     enable_with(rig, HoldPD(), emergency=Brake())
     segment.drives[6].trip_fault(cia402.EMCY_FOLLOWING_ERROR)
-    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget())
     assert rig.switch("hold") == SwitchResult.ERROR  # latched until recovered
     future = rig.hw.recover()
-    assert rig.run_until(future.done, 5.0)
+    assert rig.run_until(future.done, rig.setup.recovery_budget())
     assert future.result() is True, rig.hw.drive_status()
     assert not rig.mgr.estop_latched
     assert rig.switch("hold") == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.hw.all_enabled, 5.0), rig.hw.drive_status()
+    assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget()), \
+        rig.hw.drive_status()
     assert rig.mgr.state == ManagerState.OK
     assert segment.drives[6].state402 == State402.OPERATION_ENABLED
 
@@ -347,7 +318,7 @@ def test_torque_off_frames_do_not_depend_on_the_failproof_controller(segment, ma
     mark = synced_mark(recorder, rig)
     rig.run(10 * rig.dt)
     assert set(rig.states[-10:]) == {ManagerState.FAILPROOF}
-    recorder.wait_for_count(6 * 10, 5.0, set(RPDO1), since=mark)
+    recorder.wait_for_count(6 * 10, rig.setup.stall, set(RPDO1), since=mark)
     frames = recorder.frames(set(RPDO1), since=mark)
     assert {struct.unpack_from("<Hbi", f.data) for f in frames} == {(0, 8, 0)}
     assert all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values())
@@ -362,7 +333,7 @@ def test_every_ready_drive_already_watches_the_manager_heartbeat(segment, make_r
     mark = synced_mark(recorder, rig)  # and the loop stops here
     emcy = {cia402.EMCY + n for n in NODES}
     lost = recorder.wait_for_count(
-        len(NODES), 5.0, emcy, since=mark,
+        len(NODES), rig.hw.consumer_ms / 1000 + rig.setup.stall, emcy, since=mark,
         where=lambda f: struct.unpack_from("<H", f.data)[0] == cia402.EMCY_HEARTBEAT)
     assert {f.cob_id - cia402.EMCY for f in lost} == set(NODES)
 
@@ -371,19 +342,17 @@ def test_bus_off_error_frame_is_an_estop(virtual_channel, sim_segment_factory, b
     """SocketCAN reports bus-off only as an error frame (bus.state stays ACTIVE); here one
     is injected on the virtual bus (a real vcan never goes bus-off)."""
     segment = sim_segment_factory(NODES, channel=virtual_channel)
-    rig = Rig(bus_factory(virtual_channel), NODES, VIRTUAL.dt,
-              manager_heartbeat_ms=VIRTUAL.heartbeat_ms,
-              drive_heartbeat_ms=VIRTUAL.drive_heartbeat_ms,
-              tpdo_timeout_cycles=VIRTUAL.tpdo_timeout_cycles)
+    rig = Rig.for_setup(bus_factory(virtual_channel), NODES, VIRTUAL)
     try:
         bring_up(rig)
         enable_with(rig, HoldPD(), emergency=Brake())
         bus_factory(virtual_channel).send(can.Message(
             arbitration_id=0x40, is_error_frame=True, is_extended_id=False, data=bytes(8)))
-        assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY, 2.0)
+        assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget())
         assert rig.hw.bus_fault is not None and "bus-off" in rig.hw.bus_fault
         future = rig.hw.recover()
-        assert rig.run_until(future.done, 5.0) and future.result() is True
+        assert rig.run_until(future.done, rig.setup.recovery_budget()) and future.result() is True
         assert rig.hw.bus_fault is None
         assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
     finally:
@@ -403,7 +372,8 @@ def test_unconfigured_mode_is_not_sent_even_without_limit_command(segment, make_
     rig.mgr.add_controller(HoldPD())  # CST
     mark = synced_mark(recorder, rig)
     assert rig.switch("hold") == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.mgr.state == ManagerState.FAILPROOF, 2.0)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.FAILPROOF,
+                         rig.setup.detect_budget())
     assert all("CST" in rig.hw.supervisor.latched[i].cause for i in range(len(NODES)))
     synced_mark(recorder, rig)
     sent_modes = {struct.unpack_from("<b", f.data, 2)[0]

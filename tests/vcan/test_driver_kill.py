@@ -28,11 +28,11 @@ TESTS = Path(__file__).resolve().parents[1]
 def test_killed_manager_process_drives_switch_off_within_three_heartbeats(sim_segment_factory):
     segment = sim_segment_factory(NODES, channel="vcan0", interface="socketcan")
     code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import driver_rig; "
-            f"driver_rig.serve('vcan0', 'socketcan', {NODES!r}, 0.02, {HEARTBEAT_MS}, 60.0)")
+            f"driver_rig.serve('vcan0', 'socketcan', {NODES!r}, {HEARTBEAT_MS}, 120.0)")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
-        line = proc.stdout.readline()  # bounded: serve() exits within ~30 s without ENABLED
+        line = proc.stdout.readline()  # bounded: serve() exits by its budgets without ENABLED
         assert line.strip() == "ENABLED", (line, proc.stderr.read() if proc.poll() else "")
         assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
         time.sleep(0.3)  # a few heartbeats while enabled
