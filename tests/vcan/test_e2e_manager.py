@@ -46,9 +46,13 @@ def config(tmp_path: Path) -> Path:
     return path
 
 
-def cli(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
-    return subprocess.run([str(BIN), *args, "--interface", "socketcan", "--channel", "vcan0",
-                           "--node", str(NODE), "--timeout", "2.0"],
+def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    """The CLI client as an operator runs it: below the control loop's priority. In the
+    single-CPU user-mode-linux guest, starting the client takes ~5 s of CPU (its imports are
+    thousands of trapped system calls); at equal priority that starves the manager and the
+    simulator, and the drives' heartbeats reach supervision late (an e-stop for nothing)."""
+    return subprocess.run(["nice", "-n", "19", str(BIN), *args, "--interface", "socketcan",
+                           "--channel", "vcan0", "--node", str(NODE), "--timeout", "2.0"],
                           capture_output=True, text=True, timeout=timeout)
 
 
