@@ -131,8 +131,8 @@ class _Receiver(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             self._errors.append(msg)
-        elif msg.arbitration_id in self._ids:
-            self._sink.append(msg)
+        elif msg.arbitration_id in self._ids and not (msg.is_extended_id or msg.is_remote_frame):
+            self._sink.append(msg)  # only 11-bit data frames are CANopen: 0x181 (29 bit) is not
 
     def on_error(self, exc: Exception) -> None:  # counted by the reader; nothing to do here
         pass
@@ -212,10 +212,11 @@ class CanopenHardware:
         self._hb_time = np.full(n, -math.inf)
 
         # --- receive tables: COB-ID -> what to do with the frame ---------------------------
-        self._tpdo_of: dict[int, tuple[int, int, Any, tuple[np.ndarray, ...]]] = {}
+        self._tpdo_of: dict[int, tuple[int, int, int, Any, tuple[np.ndarray, ...]]] = {}
         for i, layout in enumerate(self.layouts):
             for pdo in layout.tpdos:
-                self._tpdo_of[pdo.cob_id] = (i, 1 << (pdo.number - 1), pdo.codec.unpack_from,
+                self._tpdo_of[pdo.cob_id] = (i, 1 << (pdo.number - 1), pdo.size,
+                                             pdo.codec.unpack_from,
                                              tuple(self._raw[name] for name in pdo.names))
         self._heartbeat_of = {cia402.HEARTBEAT + d.node_id: i for i, d in enumerate(drives)}
         self._emcy_of = {cia402.EMCY + d.node_id: i for i, d in enumerate(drives)}
@@ -249,7 +250,7 @@ class CanopenHardware:
         self._now = 0.0
         self.fault_events: collections.deque[FaultEvent] = self.supervisor.history
         self.tx_errors = 0     # frames the bus refused (counted, never raised)
-        self.rx_bad = 0        # frames with a wrong length for their layout
+        self.rx_bad = 0        # TPDOs with a length other than their mapping's (never decoded)
         self.hook_errors = 0   # on_fault calls that raised (counted, never raised)
         self.error_frames = 0  # CAN error frames received (bus-off ones are a fault)
         self.cycles = 0
@@ -362,12 +363,12 @@ class CanopenHardware:
             cob = msg.arbitration_id
             entry = tpdo_of.get(cob)
             if entry is not None:
-                i, bit, unpack, targets = entry
-                try:
-                    values = unpack(msg.data)
-                except Exception:  # struct.error: a frame shorter than its layout
+                i, bit, size, unpack, targets = entry
+                if msg.dlc != size:  # not what we mapped: never decoded, a fault once supervised
                     self.rx_bad += 1
+                    sup.on_bad_tpdo(i, cob, msg.dlc, size, t)
                     continue
+                values = unpack(msg.data)
                 for arr, v in zip(targets, values):
                     arr[i] = v
                 got[i] |= bit

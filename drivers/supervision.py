@@ -2,7 +2,8 @@
 
 Causes: heartbeat deadline missed (monotonic clock, not canopen's wall-clock timestamps),
 heartbeat reporting a state other than operational (the drive rebooted or was stopped), an
-EMCY with a non-zero code, the statusword fault bit, TPDOs missing for k cycles, a drive
+EMCY with a non-zero code, the statusword fault bit, TPDOs missing for k cycles, a TPDO
+whose length is not its mapping's, a drive
 that does not reach operation enabled when commanded, or the bus going bus-off (an error
 frame: python-can's ``bus.state`` does not say so on SocketCAN). ros2_canopen logs these and carries
 on; here each one is an e-stop.
@@ -117,6 +118,11 @@ class Supervisor:
             name = cia402.NmtState(state).name if state in cia402.NmtState._value2member_map_ \
                 else f"0x{state:02X}"
             self.fault(i, f"NMT state {name} reported in heartbeat", now)
+
+    def on_bad_tpdo(self, i: int, cob_id: int, dlc: int, size: int, now: float) -> None:
+        """A TPDO whose length is not its mapping's: garbled or remapped, never feedback."""
+        if self.active[i]:
+            self.fault(i, f"TPDO 0x{cob_id:03X} with {dlc} bytes, its mapping has {size}", now)
 
     def on_emcy(self, i: int, code: int, now: float) -> None:
         if code != cia402.EMCY_NO_ERROR and self.active[i]:

@@ -423,3 +423,29 @@ def test_hung_advance_gets_torque_off_frames_while_update_is_stuck(segment, make
     calls = rig.mgr.hang_calls
     rig.run(0.2)
     assert rig.mgr.hang_calls == calls  # quiet again once update() returns
+
+
+def test_only_exact_frames_are_drive_feedback(segment, make_rig, bus_factory, can_setup,
+                                              virtual_channel):
+    """A 29-bit or a remote frame on a TPDO's identifier is not CANopen and never feedback
+    (a 29-bit 0x181 used to be decoded as drive 1's TPDO); an 11-bit TPDO whose length is not
+    its mapping's is never decoded, and it is that drive's fault (the e-stop path)."""
+    rig = make_rig()
+    bring_up(rig)
+    enable_with(rig, HoldPD(), emergency=Brake())
+    intruder = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
+    tpdo1 = cia402.TPDO_BASE[0] + NODES[0]
+    four_turns = struct.pack("<Hih", 0x0027, 4 << 20, 0)  # operation enabled at 25 rad
+    for _ in range(5):
+        intruder.send(can.Message(arbitration_id=tpdo1, is_extended_id=True, data=four_turns))
+        intruder.send(can.Message(arbitration_id=tpdo1, is_extended_id=False,
+                                  is_remote_frame=True, dlc=8))
+        rig.run(2 * rig.dt)
+        assert abs(rig.hw.state.position[0]) < 1.0, rig.hw.state.position
+    assert rig.mgr.state == ManagerState.OK and rig.hw.rx_bad == 0
+    intruder.send(can.Message(arbitration_id=tpdo1, is_extended_id=False, data=bytes(3)))
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget())
+    assert rig.hw.rx_bad >= 1
+    assert "TPDO 0x181 with 3 bytes" in rig.hw.supervisor.latched[0].cause
+    assert abs(rig.hw.state.position[0]) < 1.0
