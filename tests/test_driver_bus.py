@@ -1,7 +1,8 @@
 """The CAN driver against simulated CiA 402 drives, over a real python-can bus.
 
-Every test runs twice: on python-can's virtual bus at 200 Hz (fast suite) and on SocketCAN
-vcan0 at 50 Hz (vcan suite, through tools/vcan-run). Assertions are on states, events and
+Every test runs twice: on python-can's virtual bus at 200 Hz with six drives (fast suite) and
+on SocketCAN vcan0 at 25 Hz with three (vcan suite, through tools/vcan-run; see driver_rig.VCAN
+for why). Assertions are on states, events and
 the frames seen on the bus, never on wall time, except where the safety model itself is a
 time bound (drives off within 3 heartbeat periods).
 """
@@ -23,8 +24,8 @@ from rocoma_can.drivers.bringup import Phase
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.joints import JointMode
 
-NODES = tuple(range(1, 7))
-RPDO1 = {cia402.RPDO_BASE[0] + n: n for n in NODES}
+NODES = VIRTUAL.nodes
+RPDO1 = {cia402.RPDO_BASE[0] + n: n for n in NODES}  # any drive's RPDO1 in these tests
 
 
 @pytest.fixture(params=[pytest.param(VIRTUAL, id="virtual"),
@@ -35,7 +36,7 @@ def can_setup(request) -> Can:
 
 @pytest.fixture
 def segment(can_setup, virtual_channel, sim_segment_factory):
-    seg = sim_segment_factory(NODES, channel=can_setup.channel(virtual_channel),
+    seg = sim_segment_factory(can_setup.nodes, channel=can_setup.channel(virtual_channel),
                               interface=can_setup.interface, params=can_setup.joints)
     sock = getattr(seg.bus, "socket", None)
     if sock is not None:  # SocketCAN: do not let a stalled VM drop the manager's heartbeat
@@ -47,7 +48,8 @@ def segment(can_setup, virtual_channel, sim_segment_factory):
 def make_rig(can_setup, virtual_channel, bus_factory):
     rigs: list[Rig] = []
 
-    def make(nodes=NODES, **kw) -> Rig:
+    def make(nodes=None, **kw) -> Rig:
+        nodes = can_setup.nodes if nodes is None else nodes
         bus = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
         rig = Rig.for_setup(bus, nodes, can_setup, **kw)
         rigs.append(rig)
@@ -100,7 +102,7 @@ def rpdo1_cycles(frames) -> list[dict[int, int]]:
     cycles: list[dict[int, int]] = []
     for f in frames:
         node = RPDO1[f.cob_id]
-        if node == NODES[0] or not cycles:
+        if node == 1 or not cycles:
             cycles.append({})
         cycles[-1][node] = struct.unpack_from("<H", f.data)[0]
     return cycles
@@ -120,7 +122,7 @@ def test_bring_up_six_drives_to_operation_enabled(segment, make_rig, can_setup):
             cia402.AbortConnectionOption.DISABLE_VOLTAGE
     assert rig.hw.consumer_ms == 2 * can_setup.heartbeat_ms
     # 3 modes per drive: 2 RPDOs + 2 TPDOs each, + SYNC
-    assert rig.hw.frames_per_cycle == 6 * 4 + 1
+    assert rig.hw.frames_per_cycle == len(segment.drives) * 4 + 1
     enable_with(rig, HoldPD())
     assert rig.mgr.state == ManagerState.OK
     assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
@@ -128,38 +130,41 @@ def test_bring_up_six_drives_to_operation_enabled(segment, make_rig, can_setup):
 
 
 def test_drive_with_sto_low_does_not_hold_the_others_back(segment, make_rig):
-    segment.drives[3].set_sto(True)
+    nodes = tuple(segment.drives)
+    sto = nodes[-1]
+    segment.drives[sto].set_sto(True)
     rig = make_rig()
     bring_up(rig)
     status = {s.node_id: s for s in rig.hw.drive_status()}
-    assert status[3].phase == "FAILED" and "STO" in status[3].fault
-    assert all(status[n].phase == "READY" for n in NODES if n != 3)
+    assert status[sto].phase == "FAILED" and "STO" in status[sto].fault
+    assert all(status[n].phase == "READY" for n in nodes if n != sto)
     rig.mgr.add_controller(HoldPD())
     assert rig.switch("hold") == SwitchResult.SWITCHED
-    others = [n for n in NODES if n != 3]
+    others = [n for n in nodes if n != sto]
     assert rig.run_until(lambda: all(segment.drives[n].state402 == State402.OPERATION_ENABLED
                                      for n in others), rig.setup.enable_budget()), \
         rig.hw.drive_status()
     rig.run(0.2)
     assert rig.mgr.state == ManagerState.OK
-    assert segment.drives[3].state402 == State402.SWITCH_ON_DISABLED
+    assert segment.drives[sto].state402 == State402.SWITCH_ON_DISABLED
 
 
 def test_drive_that_does_not_answer_is_reported(segment, make_rig):
-    rig = make_rig(nodes=NODES + (9,))  # no drive 9 on the segment
+    nodes = tuple(segment.drives)
+    rig = make_rig(nodes=nodes + (9,))  # no drive 9 on the segment
     bring_up(rig)
     status = {s.node_id: s for s in rig.hw.drive_status()}
     assert status[9].phase == "FAILED" and "does not answer" in status[9].fault
-    assert all(status[n].phase == "READY" for n in NODES)
+    assert all(status[n].phase == "READY" for n in nodes)
 
 
 # --- control ---------------------------------------------------------------------------------
 def test_pd_holds_in_cst_then_tracks_a_sine_in_csp_and_csv(segment, make_rig, can_setup):
     rig = make_rig()
     bring_up(rig)
-    kp, kd, tolerance = can_setup.pd
+    kp, kd, tolerance, settle = can_setup.pd
     enable_with(rig, HoldPD(kp=kp, kd=kd, target=0.2))
-    rig.run(1.5)
+    rig.run(settle)
     assert abs(rig.hw.state.position - 0.2).max() < tolerance, rig.hw.state.position
     assert abs(rig.hw.state.torque).max() < 0.5
     for mode in (JointMode.CSP, JointMode.CSV):
@@ -177,13 +182,13 @@ def test_pd_holds_in_cst_then_tracks_a_sine_in_csp_and_csv(segment, make_rig, ca
         # a 0.3 rad sine; allowed: transport lag of a few cycles at its peak speed
         assert rms < 0.03 + 3 * rig.dt * sine.a * 2 * np.pi * sine.f, (mode, rms)
         modes = rig.hw.state.statusword  # still enabled with the new mode
-        assert all(segment.drives[n].mode_display == mode for n in NODES), modes
+        assert all(d.mode_display == mode for d in segment.drives.values()), modes
 
 
 def test_unconfigured_mode_is_rejected_not_sent(segment, make_rig, recorder):
     rig = make_rig(modes=("csp",))
     bring_up(rig)
-    assert rig.hw.frames_per_cycle == 6 * 3 + 1  # 1 RPDO + 2 TPDOs per drive
+    assert rig.hw.frames_per_cycle == len(segment.drives) * 3 + 1  # 1 RPDO + 2 TPDOs each
     mark = synced_mark(recorder, rig)
     rig.mgr.add_controller(HoldPD())  # commands CST, which no drive is configured for
     rig.switch("hold")
@@ -201,27 +206,31 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
     rig = make_rig()
     bring_up(rig)
     enable_with(rig, HoldPD(), emergency=Brake())
-    segment.drives[2].trip_fault(cia402.EMCY_OVERCURRENT)
+    nodes = tuple(segment.drives)
+    first_fault, second_fault = nodes[1], nodes[-1]
+    healthy = [n for n in nodes if n not in (first_fault, second_fault)]
+    segment.drives[first_fault].trip_fault(cia402.EMCY_OVERCURRENT)
     assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
                          rig.setup.detect_budget())
-    latched = rig.hw.supervisor.latched[1]
-    assert latched is not None and latched.node_id == 2 and "0x2310" in latched.cause
+    latched = rig.hw.supervisor.latched[nodes.index(first_fault)]
+    assert latched is not None and latched.node_id == first_fault and "0x2310" in latched.cause
     rig.run(0.2)
     assert rig.mgr.state == ManagerState.EMERGENCY  # one broken drive is one e-stop
-    assert all(segment.drives[n].state402 == State402.OPERATION_ENABLED for n in NODES if n != 2)
+    assert all(segment.drives[n].state402 == State402.OPERATION_ENABLED
+               for n in nodes if n != first_fault)
 
     mark = synced_mark(recorder, rig)
-    segment.drives[5].trip_fault(cia402.EMCY_OVERTEMPERATURE)
+    segment.drives[second_fault].trip_fault(cia402.EMCY_OVERTEMPERATURE)
     assert rig.run_until(lambda: rig.states[-1] == ManagerState.FAILPROOF,
                          rig.setup.detect_budget())
     assert rig.states[-2] == ManagerState.EMERGENCY
     rig.run(0.1)
-    # Each cycle sends RPDO1 of drives 1..6 in order. The first cycle in which a healthy
-    # drive (not 2, not 5) got controlword 0 is the FAILPROOF cycle: every drive got 0 in it.
+    # Each cycle sends RPDO1 of every drive in order. The first cycle in which a healthy
+    # drive (neither faulted one) got controlword 0 is the FAILPROOF cycle: every drive got 0.
     synced_mark(recorder, rig)
     cycles = rpdo1_cycles(recorder.frames(set(RPDO1), since=mark))
-    first = next(c for c in cycles if any(c.get(n) == 0 for n in (1, 3, 4, 6)))
-    assert first == {n: 0 for n in NODES}, cycles
+    first = next(c for c in cycles if any(c.get(n) == 0 for n in healthy))
+    assert first == {n: 0 for n in nodes}, cycles
     assert rig.run_until(lambda: all(d.state402 in (State402.SWITCH_ON_DISABLED, State402.FAULT)
                                      for d in segment.drives.values()),
                          rig.setup.enable_budget())
@@ -239,12 +248,14 @@ def test_heartbeat_loss_of_one_drive_is_an_estop(segment, make_rig):
     rig = make_rig(tpdo_timeout_cycles=1_000_000)
     bring_up(rig)
     enable_with(rig, HoldPD(), emergency=Brake())
-    segment.drives[4].set_silent(True)
+    nodes = tuple(segment.drives)
+    silent = nodes[-1]
+    segment.drives[silent].set_silent(True)
     assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
                          rig.setup.detect_budget())
-    latched = rig.hw.supervisor.latched[3]
-    assert latched.node_id == 4 and "heartbeat lost" in latched.cause
-    assert [s.fault is not None for s in rig.hw.drive_status()] == [n == 4 for n in NODES]
+    latched = rig.hw.supervisor.latched[nodes.index(silent)]
+    assert latched.node_id == silent and "heartbeat lost" in latched.cause
+    assert [s.fault is not None for s in rig.hw.drive_status()] == [n == silent for n in nodes]
     rig.run(0.2)
     assert rig.mgr.state == ManagerState.EMERGENCY
 
@@ -265,7 +276,8 @@ def test_recovery_after_a_fault_returns_to_ok(segment, make_rig):
     bring_up(rig)
     rig.mgr.clear_emergency_stop()
     enable_with(rig, HoldPD(), emergency=Brake())
-    segment.drives[6].trip_fault(cia402.EMCY_FOLLOWING_ERROR)
+    faulty = tuple(segment.drives)[-1]
+    segment.drives[faulty].trip_fault(cia402.EMCY_FOLLOWING_ERROR)
     assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
                          rig.setup.detect_budget())
     assert rig.switch("hold") == SwitchResult.ERROR  # latched until recovered
@@ -277,7 +289,7 @@ def test_recovery_after_a_fault_returns_to_ok(segment, make_rig):
     assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget()), \
         rig.hw.drive_status()
     assert rig.mgr.state == ManagerState.OK
-    assert segment.drives[6].state402 == State402.OPERATION_ENABLED
+    assert segment.drives[faulty].state402 == State402.OPERATION_ENABLED
 
 
 def test_a_stopped_loop_goes_silent_and_drives_switch_off_by_themselves(segment, make_rig):
@@ -318,7 +330,7 @@ def test_torque_off_frames_do_not_depend_on_the_failproof_controller(segment, ma
     mark = synced_mark(recorder, rig)
     rig.run(10 * rig.dt)
     assert set(rig.states[-10:]) == {ManagerState.FAILPROOF}
-    recorder.wait_for_count(6 * 10, rig.setup.stall, set(RPDO1), since=mark)
+    recorder.wait_for_count(len(segment.drives) * 10, rig.setup.stall, set(RPDO1), since=mark)
     frames = recorder.frames(set(RPDO1), since=mark)
     assert {struct.unpack_from("<Hbi", f.data) for f in frames} == {(0, 8, 0)}
     assert all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values())
@@ -331,11 +343,12 @@ def test_every_ready_drive_already_watches_the_manager_heartbeat(segment, make_r
     rig = make_rig()
     bring_up(rig)
     mark = synced_mark(recorder, rig)  # and the loop stops here
-    emcy = {cia402.EMCY + n for n in NODES}
+    nodes = tuple(segment.drives)
+    emcy = {cia402.EMCY + n for n in nodes}
     lost = recorder.wait_for_count(
-        len(NODES), rig.hw.consumer_ms / 1000 + rig.setup.stall, emcy, since=mark,
+        len(nodes), rig.hw.consumer_ms / 1000 + rig.setup.stall, emcy, since=mark,
         where=lambda f: struct.unpack_from("<H", f.data)[0] == cia402.EMCY_HEARTBEAT)
-    assert {f.cob_id - cia402.EMCY for f in lost} == set(NODES)
+    assert {f.cob_id - cia402.EMCY for f in lost} == set(nodes)
 
 
 def test_bus_off_error_frame_is_an_estop(virtual_channel, sim_segment_factory, bus_factory):
@@ -374,7 +387,7 @@ def test_unconfigured_mode_is_not_sent_even_without_limit_command(segment, make_
     assert rig.switch("hold") == SwitchResult.SWITCHED
     assert rig.run_until(lambda: rig.mgr.state == ManagerState.FAILPROOF,
                          rig.setup.detect_budget())
-    assert all("CST" in rig.hw.supervisor.latched[i].cause for i in range(len(NODES)))
+    assert all("CST" in rig.hw.supervisor.latched[i].cause for i in range(len(segment.drives)))
     synced_mark(recorder, rig)
     sent_modes = {struct.unpack_from("<b", f.data, 2)[0]
                   for f in recorder.frames(set(RPDO1), since=mark)}
@@ -411,9 +424,9 @@ def test_hung_advance_gets_torque_off_frames_while_update_is_stuck(segment, make
     try:
         # controlword 0 to every drive, twice over, while the cycle is still inside update()
         frames = recorder.wait_for_count(
-            2 * len(NODES), 10.0, tuple(RPDO1),
+            2 * len(segment.drives), 10.0, tuple(RPDO1),
             since=mark, where=lambda f: struct.unpack_from("<H", f.data)[0] == 0)
-        assert {RPDO1[f.cob_id] for f in frames} == set(NODES)
+        assert {RPDO1[f.cob_id] for f in frames} == set(segment.drives)
         assert stuck.is_alive() and rig.mgr.hang_calls >= 2
     finally:
         ctrl.release.set()
@@ -434,7 +447,7 @@ def test_only_exact_frames_are_drive_feedback(segment, make_rig, bus_factory, ca
     bring_up(rig)
     enable_with(rig, HoldPD(), emergency=Brake())
     intruder = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
-    tpdo1 = cia402.TPDO_BASE[0] + NODES[0]
+    tpdo1 = cia402.TPDO_BASE[0] + 1
     four_turns = struct.pack("<Hih", 0x0027, 4 << 20, 0)  # operation enabled at 25 rad
     for _ in range(5):
         intruder.send(can.Message(arbitration_id=tpdo1, is_extended_id=True, data=four_turns))

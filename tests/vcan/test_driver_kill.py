@@ -19,7 +19,7 @@ import pytest
 import driver_rig  # tests/ (conftest.py's folder is on sys.path); the subprocess imports it too
 from rocoma_can.drivers.cia402 import State402
 
-NODES = (1, 2, 3, 4, 5, 6)
+NODES = driver_rig.VCAN.nodes
 HEARTBEAT_MS = 200
 TESTS = Path(__file__).resolve().parents[1]
 

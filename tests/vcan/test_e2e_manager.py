@@ -49,10 +49,12 @@ def config(tmp_path: Path) -> Path:
 def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     """The CLI client as an operator runs it: below the control loop's priority. In the
     single-CPU user-mode-linux guest, starting the client takes ~5 s of CPU (its imports are
-    thousands of trapped system calls); at equal priority that starves the manager and the
-    simulator, and the drives' heartbeats reach supervision late (an e-stop for nothing)."""
-    return subprocess.run(["nice", "-n", "19", str(BIN), *args, "--interface", "socketcan",
-                           "--channel", "vcan0", "--node", str(NODE), "--timeout", "2.0"],
+    thousands of trapped system calls); at equal priority that starved the manager and the
+    simulator, and the drives' heartbeats reached supervision late (an e-stop for nothing).
+    At the lowest priority (19) the client itself then missed its 2 s SDO answers: nice 10,
+    and 5 s for an answer."""
+    return subprocess.run(["nice", "-n", "10", str(BIN), *args, "--interface", "socketcan",
+                           "--channel", "vcan0", "--node", str(NODE), "--timeout", "5.0"],
                           capture_output=True, text=True, timeout=timeout)
 
 
