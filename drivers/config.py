@@ -61,9 +61,9 @@ class DriveConfig:
         where = f"drive {self.name!r}"
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"drive name must be a non-empty string, got {self.name!r}")
-        if not isinstance(self.node_id, int) or not 1 <= self.node_id <= 127:
+        if not _whole(self.node_id) or not 1 <= self.node_id <= 127:
             raise ValueError(f"{where}: node_id must be an integer 1..127, got {self.node_id!r}")
-        if not isinstance(self.increments_per_rev, int) or self.increments_per_rev <= 0:
+        if not _whole(self.increments_per_rev) or self.increments_per_rev <= 0:
             raise ValueError(f"{where}: increments_per_rev must be a positive integer, "
                              f"got {self.increments_per_rev!r}")
         _positive(where, "rated_torque_nm", self.rated_torque_nm)
@@ -88,7 +88,7 @@ class DriveConfig:
         if self.position_min >= self.position_max:
             raise ValueError(f"{where}: position_min ({self.position_min}) must be below "
                              f"position_max ({self.position_max})")
-        if not isinstance(self.heartbeat_ms, int) or not 1 <= self.heartbeat_ms <= 0xFFFF:
+        if not _whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
             raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
                              f"got {self.heartbeat_ms!r}")
         if self.eds is not None and not Path(self.eds).is_file():
@@ -108,8 +108,14 @@ class DriveConfig:
         return cls(**dict(data))
 
 
+def _whole(value: Any) -> bool:
+    """An integer, and not a bool (YAML ``true`` is not node 1)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def _finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and math.isfinite(value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool) \
+        and math.isfinite(value)
 
 
 def _positive(where: str, name: str, value: Any) -> None:
@@ -121,7 +127,7 @@ def check_drives(drives: list[DriveConfig], manager_node_id: int) -> None:
     """Checks across drives: unique names and node ids, none equal to the manager's."""
     if not drives:
         raise ValueError("drives: at least one drive is needed")
-    if not isinstance(manager_node_id, int) or not 1 <= manager_node_id <= 127:
+    if not _whole(manager_node_id) or not 1 <= manager_node_id <= 127:
         raise ValueError(f"manager_node_id must be an integer 1..127, got {manager_node_id!r}")
     seen_names: set[str] = set()
     seen_ids: dict[int, str] = {}

@@ -55,19 +55,16 @@ from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import can
-import canopen
 import numpy as np
-
-from rocoma_can import eds as shipped_eds
 
 from . import cia402
 from .bringup import DriveBringup, Phase, Timeouts
 from .bus import CanopenBus, open_bus
-from .frame_io import FrameWriter, clock_offset, to_monotonic
 from .cia402 import State402
 from .config import DriveConfig, check_drives
+from .frame_io import FrameWriter, clock_offset, to_monotonic
 from .joints import JointCommand, JointMode, JointState
-from .pdo_layout import RPDO_FIELDS, DriveLayout, check_against_od, layout_for
+from .pdo_layout import RPDO_FIELDS, DriveLayout, drive_object_dictionary, layout_for
 from .scaling import Scaling
 from .supervision import FaultEvent, Supervisor
 
@@ -182,12 +179,7 @@ class CanopenHardware:
         self.layouts: list[DriveLayout] = [layout_for(d) for d in drives]
         self.scaling = Scaling(drives)
         self.supervisor = Supervisor(drives, tpdo_timeout_cycles, heartbeat_timeout_factor)
-        self._ods = []
-        for d, layout in zip(drives, self.layouts):
-            path = d.eds or str(shipped_eds.path(shipped_eds.CIA402_DRIVE))
-            od = canopen.import_od(path, d.node_id)
-            check_against_od(layout, od, d.name)
-            self._ods.append(od)
+        self._ods = [drive_object_dictionary(d, layout) for d, layout in zip(drives, self.layouts)]
 
         # --- raw bus values, one slot per drive (the codecs read and write these) ---------
         self._raw = {name: np.zeros(n, dtype=np.int64) for name in

@@ -13,6 +13,10 @@ import struct
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
+import canopen
+
+from rocoma_can import eds as shipped_eds
+
 from . import cia402
 from .config import DriveConfig
 from .joints import JointMode
@@ -153,3 +157,17 @@ def check_against_od(layout: DriveLayout, od, drive: str) -> None:
                 if len(var) != e.size * 8:
                     raise ValueError(f"drive {drive!r}: 0x{e.index:04X} ({e.name}) is "
                                      f"{len(var)} bits in the EDS, expected {e.size * 8}")
+
+
+def drive_object_dictionary(drive: DriveConfig, layout: DriveLayout) -> canopen.ObjectDictionary:
+    """The drive's EDS/DCF (the shipped generic one when none is configured), parsed for its
+    node id and checked against the layout: ValueError naming the drive and the file when it
+    is not a readable EDS/DCF or cannot carry the layout (never a parser's traceback)."""
+    path = drive.eds or str(shipped_eds.path(shipped_eds.CIA402_DRIVE))
+    try:
+        od = canopen.import_od(path, drive.node_id)
+    except Exception as exc:  # configparser, UnicodeDecodeError, ...: a file that is not an EDS
+        raise ValueError(f"drive {drive.name!r}: {path} is not a readable EDS/DCF file "
+                         f"({type(exc).__name__}: {str(exc)[:200]})") from None
+    check_against_od(layout, od, drive.name)
+    return od

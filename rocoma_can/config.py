@@ -34,7 +34,7 @@ import yaml
 
 from .drivers.config import DriveConfig
 from .drivers.hardware import BusConfig
-from .drivers.pdo_layout import layout_for
+from .drivers.pdo_layout import drive_object_dictionary, layout_for
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
 _TOP_KEYS = {"bus", "rate", "manager", "realtime", "supervision", "drives", "controllers",
@@ -149,18 +149,62 @@ def bus_load(drives: list[DriveConfig], rate: float, bitrate: int) -> BusLoad:
 
 # -- loading and validation ---------------------------------------------------------------------
 
+#: A config is a page of YAML: these bound what a hostile or broken file can cost to read.
+MAX_CONFIG_BYTES = 1 << 20
+MAX_CONFIG_NODES = 100_000  # YAML nodes after expanding aliases ("billion laughs": 10^9)
+
+
 def load(path: str | Path) -> RuntimeConfig:
     """Read and validate a YAML file; ConfigError lists every problem."""
     p = Path(path)
     try:
-        text = p.read_text()
+        with p.open("rb") as f:
+            raw = f.read(MAX_CONFIG_BYTES + 1)
     except OSError as exc:
         raise ConfigError([f"{path}: cannot read: {exc.strerror or exc}"]) from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError([f"{path}: larger than {MAX_CONFIG_BYTES} bytes; not a config file"])
     try:
+        text = raw.decode("utf-8")
+        _check_expanded_size(yaml.compose(text, Loader=yaml.SafeLoader), str(path))
         data = yaml.safe_load(text)
+    except UnicodeDecodeError as exc:
+        raise ConfigError([f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})"]) \
+            from None
     except yaml.YAMLError as exc:
         raise ConfigError([f"{path}: not valid YAML: {exc}"]) from None
+    except RecursionError:
+        raise ConfigError([f"{path}: nested too deeply; not a config file"]) from None
     return validate(data, source=str(p), base=p.parent)
+
+
+def _check_expanded_size(root: yaml.Node | None, source: str) -> None:
+    """Refuse a document whose aliases expand to more than MAX_CONFIG_NODES nodes, or that
+    refers to itself, before anything walks the expanded data."""
+    sizes: dict[int, int] = {}
+    active: set[int] = set()
+
+    def size(node: yaml.Node) -> int:
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in active:
+            raise ConfigError([f"{source}: a YAML alias refers to itself"])
+        active.add(key)
+        total = 1
+        if isinstance(node, yaml.SequenceNode):
+            total += sum(size(child) for child in node.value)
+        elif isinstance(node, yaml.MappingNode):
+            total += sum(size(k) + size(v) for k, v in node.value)
+        active.discard(key)
+        if total > MAX_CONFIG_NODES:
+            raise ConfigError([f"{source}: expands to more than {MAX_CONFIG_NODES} YAML nodes "
+                               "(aliases?); not a config file"])
+        sizes[key] = total
+        return total
+
+    if root is not None:
+        size(root)
 
 
 def validate(data: Any, source: str = "<memory>", base: Path | None = None,
@@ -305,7 +349,7 @@ def _drives(entries: Any, manager_id: int, base: Path | None,
                 if not Path(entry["eds"]).is_absolute() else entry["eds"]
         try:
             drive = DriveConfig.from_dict(entry)
-            layout_for(drive)
+            drive_object_dictionary(drive, layout_for(drive))  # the EDS parsed and checked
         except (ValueError, TypeError) as exc:
             problems.append(f"{where}: {exc}")
             continue
