@@ -72,9 +72,30 @@ class TimingBudget:
     hang_ns: int = 0
 
 
+def _succeeded(result: Any) -> bool:
+    """Only True (a Python or numpy bool) is success. Anything else is the call's failure:
+    None, 1, a non-empty list, and values with no clear truth value (a numpy array, an
+    object whose ``__bool__`` raises), which would otherwise raise outside the guard."""
+    return result is True or (type(result) is np.bool_ and bool(result))
+
+
 def _describe(result: Any) -> str:
-    return "returned None (must return True on success)" if result is None else \
-        f"returned {result!r}"
+    if result is None:
+        return "returned None (must return True on success)"
+    try:
+        text = repr(result)
+    except Exception:  # a hostile __repr__ must not turn a failure into an escape
+        text = f"<{type(result).__name__}>"
+    if len(text) > 80:
+        text = text[:77] + "..."
+    return f"returned {text} (must return True on success)"
+
+
+def _exc_text(exc: BaseException) -> str:
+    try:
+        return repr(exc)
+    except Exception:
+        return f"<{type(exc).__name__}>"
 
 
 class _Adapter:
@@ -100,11 +121,14 @@ class _Adapter:
         t0 = time.perf_counter_ns()
         try:
             result = fn(*args)
+            if _succeeded(result):
+                return True
+            why = _describe(result)
         except Exception as exc:
-            return self._fail(call, f"raised {exc!r}", exc)
+            return self._fail(call, f"raised {_exc_text(exc)}", exc)
         finally:
             self.stats[call].add(time.perf_counter_ns() - t0)
-        return True if result else self._fail(call, _describe(result))
+        return self._fail(call, why)
 
     def create(self, dt: float) -> bool:
         self.created = self._call("create", self.controller.create, dt)
@@ -152,7 +176,7 @@ class ControllerAdapter(_Adapter):
         try:
             return self.controller.get_swap_state()
         except Exception as exc:
-            self._fail("get_swap_state", f"raised {exc!r}", exc)
+            self._fail("get_swap_state", f"raised {_exc_text(exc)}", exc)
             return None
 
     def advance(self, dt: float) -> bool:
@@ -164,12 +188,12 @@ class ControllerAdapter(_Adapter):
             if self._check_state is not None and not self._check_state(controller.state):
                 return self._fail("advance", "not called: check_state failed")
             result = controller.advance(dt)
-            if not result:
+            if result is not True and not _succeeded(result):
                 return self._fail("advance", _describe(result))
             if self._limit_command is not None and not self._limit_command(controller.command):
                 return self._fail("advance", "wrote a command that limit_command rejected")
         except Exception as exc:
-            return self._fail("advance", f"raised {exc!r}", exc)
+            return self._fail("advance", f"raised {_exc_text(exc)}", exc)
         finally:
             ns = time.perf_counter_ns() - t0
             self._advance_stats.add(ns)
@@ -248,7 +272,7 @@ class FailproofControllerAdapter(_Adapter):
         except Exception as exc:  # swallowed by contract; the hardware layer still torques off
             self.errors += 1
             if self.errors == 1 or self.errors % 1000 == 0:
-                self._fail("advance", f"raised {exc!r} ({self.errors} times)", exc)
+                self._fail("advance", f"raised {_exc_text(exc)} ({self.errors} times)", exc)
         finally:
             self._advance_stats.add(time.perf_counter_ns() - t0)
 

@@ -173,6 +173,7 @@ class ControllerManager:
         self._latched = estop_must_be_cleared  # like an e-stop button after power-on
         self._closed = False
         self.cycle_count = 0
+        self.internal_errors = 0  # update() steps that raised inside the manager itself
 
         self._stoppers = _Stoppers(name)
         self._switch_busy = threading.Lock()
@@ -258,8 +259,33 @@ class ControllerManager:
             self._update_started = time.monotonic()
             try:
                 return self._update()
+            except Exception as exc:  # a bug in the manager itself: never kill the loop
+                return self._internal_failure(exc)
             finally:
                 self._update_started = 0.0
+
+    def _internal_failure(self, exc: Exception) -> ManagerState:
+        """The last resort of update(): the failproof layer commands, latched if must-clear.
+
+        Adapters already turn every controller failure into False, so this only runs when
+        the manager's own step failed (e.g. no thread could be started for a stopper): the
+        state is forced to FAILPROOF and the call returns normally, so the hardware still
+        writes its torque-off frames this cycle.
+        """
+        self.internal_errors += 1
+        previous = self._state
+        self._state = ManagerState.FAILPROOF
+        if self._must_clear:
+            self._latched = True
+        self._failproof.advance(self.dt)
+        try:
+            self._events.log(logging.CRITICAL, f"manager update failed: {exc!r}", exc)
+            if previous is not ManagerState.FAILPROOF:
+                self._emit(EventKind.EMERGENCY_STOP, f"manager error: {exc!r}")
+                self._emit_changed()
+        except Exception:  # noqa: BLE001 - counted above; the state is safe already
+            pass
+        return self._state
 
     def _update(self) -> ManagerState:
         self.cycle_count += 1

@@ -66,18 +66,30 @@ class Journal:
                 self._changed.wait(left)
 
 
+#: (layer, method) of every user callback the manager calls, for fault matrices
+LAYER_METHODS = [
+    ("controller", "create"), ("controller", "initialize"), ("controller", "advance"),
+    ("controller", "pre_stop"), ("controller", "stop"), ("controller", "get_swap_state"),
+    ("controller", "cleanup"), ("emergency", "initialize_fast"), ("emergency", "advance"),
+    ("emergency", "stop"), ("failproof", "advance"), ("failproof", "cleanup"),
+]
+
+
 class NumberSwapState(SwapState):
     def __init__(self, value: float) -> None:
         self.value = value
 
 
 class _Behaviour:
-    """Mixin: record, then delay / wait on a gate / raise / return False as configured."""
+    """Mixin: record, then delay / wait on a gate / raise / return False or a given value
+    (``returns``: method -> what to return instead of True) as configured."""
 
-    def _setup(self, journal: Journal, fail=(), raises=(), delay=None, gates=None) -> None:
+    def _setup(self, journal: Journal, fail=(), raises=(), delay=None, gates=None,
+               returns=None) -> None:
         self.journal = journal
         self.fail = set(fail)
         self.raises = set(raises)
+        self.returns = dict(returns or {})
         self.delay = dict(delay or {})
         self.gates = dict(gates or {})
         self.received_swap_state: SwapState | None = None
@@ -92,6 +104,8 @@ class _Behaviour:
                 raise AssertionError(f"gate for {self.name}.{method} never opened")
         if method in self.raises:
             raise RuntimeError(f"{self.name}.{method} raised on purpose")
+        if method in self.returns:
+            return self.returns[method]
         return method not in self.fail
 
 
@@ -109,7 +123,7 @@ class Probe(_Behaviour, Controller):
 
     def advance(self, dt):
         ok = self._do("advance")
-        if ok and self.command is not None:
+        if ok is True and self.command is not None:
             self.command.append(self.name)  # who wrote this cycle's command
         return ok
 

@@ -6,7 +6,8 @@ import threading
 
 import pytest
 
-from manager_probes import WAIT, CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
+from manager_probes import (LAYER_METHODS, WAIT, CommandLog, EmergencyProbe, FailproofProbe,
+                            Journal, Probe)
 from rocoma_can import (ControllerManager, EventKind, ManagerState, ManagerTimeouts,
                         SwitchResult)
 
@@ -289,14 +290,6 @@ def test_check_state_and_limit_command_failures_are_failures():
         n = len(journal.of("a", "advance"))
         assert mgr.update() is FAILPROOF
         assert len(journal.of("a", "advance")) == n  # not advanced on a bad state
-
-
-LAYER_METHODS = [
-    ("controller", "create"), ("controller", "initialize"), ("controller", "advance"),
-    ("controller", "pre_stop"), ("controller", "stop"), ("controller", "get_swap_state"),
-    ("controller", "cleanup"), ("emergency", "initialize_fast"), ("emergency", "advance"),
-    ("emergency", "stop"), ("failproof", "advance"), ("failproof", "cleanup"),
-]
 
 
 @pytest.mark.parametrize("layer,method", LAYER_METHODS)
