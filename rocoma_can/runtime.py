@@ -249,7 +249,8 @@ class Runtime:
                                       receive_own_messages=False)
             self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
                                     estop_cob_id=m.estop_cob_id, status_period=m.status_period,
-                                    recover=self.hardware.recover)
+                                    recover=self.hardware.recover,
+                                    heartbeat_ms=m.heartbeat_ms)
         except BaseException:
             self.close()
             raise

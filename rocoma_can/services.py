@@ -40,11 +40,14 @@ from typing import Any, Callable
 
 import can
 import canopen
+from canopen.objectdictionary import NUMBER_TYPES
+from canopen.sdo import SdoServer
+from canopen.sdo.constants import EXPEDITED, NO_MORE_DATA, SDO_STRUCT, SIZE_SPECIFIED
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from . import eds as shipped_eds
 from .drivers.bus import BusReader
-from .events import EventKind, ManagerEvent
+from .events import EventKind, ManagerEvent, ManagerState
 
 log = logging.getLogger(__name__)
 
@@ -53,20 +56,72 @@ ESTOP, FAILPROOF_STOP, CLEAR, RECOVER = 0x2110, 0x2111, 0x2112, 0x2113
 STATE, ACTIVE_NAME, ACTIVE_INDEX, CONTROLLER_LIST, ESTOP_CAUSE = (
     0x2120, 0x2121, 0x2122, 0x2123, 0x2124)
 ESTOP_COB_ID, ESTOP_LATCHED = 0x2130, 0x2131
+PRODUCER_HEARTBEAT_TIME = 0x1017
 PENDING = 0xFF
 ABORT_NOT_FOUND = 0x06090030     # value range of parameter exceeded
+ABORT_COMMAND_SPECIFIER = 0x05040001  # client/server command specifier not valid
 ABORT_REFUSED = 0x08000022       # cannot transfer because of the present device state
 ABORT_NO_RECOVERY = 0x08000021   # local control: this manager has no drives to recover
 ABORT_NO_DATA = 0x08000024
 TPDO1, EMCY = 0x180, 0x080
 
 
-class ManagerNode:
+class _StrictSdoServer(SdoServer):
+    """canopen's SDO server without the ways a transfer could take effect that must not.
+
+    - A segmented download that was aborted (by either side) or has completed is forgotten:
+      a stray last segment cannot complete it, a segment with no download open is refused.
+    - An expedited download without the size indicated carries the object's own size
+      (CiA 301: the trailing bytes are unspecified), so a one-byte e-stop written that way is
+      an e-stop, not a length error.
+    """
+
+    def init_download(self, request: bytes) -> None:
+        self._buffer = None
+        command, index, subindex = SDO_STRUCT.unpack_from(request)
+        if command & EXPEDITED and not command & SIZE_SPECIFIED:
+            var = self._node.object_dictionary.get_variable(index, subindex)
+            size = len(var) // 8 if var is not None and var.data_type in NUMBER_TYPES else 0
+            if 1 <= size <= 4:
+                request = bytes([command | SIZE_SPECIFIED | (4 - size) << 2]) + bytes(request[1:])
+        super().init_download(request)
+
+    def segmented_download(self, command: int, request: bytes) -> None:
+        if self._buffer is None:
+            raise SdoAbortedError(ABORT_COMMAND_SPECIFIER)
+        super().segmented_download(command, request)
+        if command & NO_MORE_DATA:
+            self._buffer = None
+
+    def request_aborted(self, data: bytes) -> None:
+        self._buffer = None
+        super().request_aborted(data)
+
+    def abort(self, abort_code: int = 0x08000000) -> None:
+        self._buffer = None
+        super().abort(abort_code)
+
+
+def _never_produce_heartbeats(node: canopen.LocalNode) -> None:
+    """Only the control loop sends this node's heartbeat (CanopenHardware.write).
+
+    canopen's NmtSlave starts a periodic sender of its own on a write to 0x1017 or on its
+    INITIALISING -> PRE-OPERATIONAL transition: a thread, or a kernel BCM task on SocketCAN,
+    that keeps beating when the loop hangs, so the drives' heartbeat consumers would never
+    time out and 0x6007 would never switch them off. 0x1017 is read-only in the shipped EDS
+    (writes are aborted before any callback); for any EDS, the sender is taken out here.
+    """
+    node._write_callbacks.remove(node.nmt.on_write)  # canopen has no public way to undo it
+    node.nmt.start_heartbeat = lambda heartbeat_time_ms: None  # type: ignore[method-assign]
+
+
+class ManagerNode(can.Listener):
     """Serves a ControllerManager on a CAN bus (lent, not shut down here)."""
 
     def __init__(self, manager: Any, node_id: int, bus: can.BusABC, *,
                  estop_cob_id: int = 0, status_period: float = 0.1,
-                 recover: Callable[[], Any] | None = None, eds_path: str | None = None) -> None:
+                 recover: Callable[[], Any] | None = None, eds_path: str | None = None,
+                 heartbeat_ms: int | None = None) -> None:
         self.manager = manager
         self.node_id = node_id
         self.bus = bus
@@ -80,7 +135,11 @@ class ManagerNode:
         self._network = canopen.Network(bus)
         od = canopen.import_od(eds_path or str(shipped_eds.path(shipped_eds.MANAGER_NODE)),
                                node_id)
+        self.heartbeat_ms = heartbeat_ms  # the loop's period, answered on 0x1017 reads
         self._node = canopen.LocalNode(node_id, od)
+        self._node.sdo = _StrictSdoServer(self._node.sdo.rx_cobid, self._node.sdo.tx_cobid,
+                                          self._node)
+        _never_produce_heartbeats(self._node)
         self._node.add_read_callback(self._on_read)
         self._node.add_write_callback(self._on_write)
         self._wake = threading.Event()
@@ -94,7 +153,8 @@ class ManagerNode:
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self) -> ManagerNode:
-        self._reader = BusReader(self.bus, self._network.listeners, name="manager-node-rx")
+        self._reader = BusReader(self.bus, (*self._network.listeners, self),
+                                 name="manager-node-rx")
         self._network.add_node(self._node)
         self.set_estop_cob_id(self._initial_cob)
         self._unsubscribe = self.manager.subscribe(self._on_event)
@@ -126,17 +186,23 @@ class ManagerNode:
         return self._estop_cob_id
 
     def set_estop_cob_id(self, cob_id: int) -> None:
+        """0 switches the e-stop frame off; 1..0x7FF is an 11-bit identifier."""
         if not 0 <= cob_id <= 0x7FF:
             raise SdoAbortedError(ABORT_NOT_FOUND)
-        if self._estop_cob_id:
-            self._network.unsubscribe(self._estop_cob_id, self._on_estop_frame)
         self._estop_cob_id = cob_id
-        if cob_id:
-            self._network.subscribe(cob_id, self._on_estop_frame)
 
-    def _on_estop_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self.manager.emergency_stop(cause=f"CAN e-stop from 0x{can_id:03X}")
-        self.estop_frames.append(time.monotonic())
+    def on_message_received(self, msg: can.Message) -> None:
+        """On the bus reader's thread: any 11-bit frame on the e-stop COB-ID, data or remote
+        (RTR), of any length, is an e-stop. (canopen's own listener drops remote frames, so
+        this does not go through it.) A 29-bit frame is another identifier."""
+        cob_id = self._estop_cob_id
+        if cob_id and msg.arbitration_id == cob_id and not (msg.is_extended_id
+                                                              or msg.is_error_frame):
+            self.manager.emergency_stop(cause=f"CAN e-stop from 0x{cob_id:03X}")
+            self.estop_frames.append(time.monotonic())
+
+    def on_error(self, exc: Exception) -> None:  # the reader counts and retries bus errors
+        pass
 
     # --- SDO ----------------------------------------------------------------------------------
     def _controller_index(self) -> int:
@@ -146,6 +212,8 @@ class ManagerNode:
 
     def _on_read(self, index: int, subindex: int, od: Any) -> Any:
         m = self.manager
+        if index == PRODUCER_HEARTBEAT_TIME and self.heartbeat_ms is not None:
+            return self.heartbeat_ms
         if index == STATE:
             return int(m.state)
         if index == ACTIVE_NAME:
@@ -167,7 +235,12 @@ class ManagerNode:
     def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
         m = self.manager
         if index == SWITCH_NAME:
-            self._switch(od.decode_raw(data).strip("\x00 "))
+            try:  # strictly: canopen's decoding drops bytes it cannot read ("h\xffold" -> hold)
+                name = bytes(data).decode("utf-8").strip("\x00 ")
+            except UnicodeDecodeError:
+                self.last_result = 2
+                raise SdoAbortedError(ABORT_NOT_FOUND) from None
+            self._switch(name)
         elif index == SWITCH_INDEX:
             names = m.available_controllers()
             n = od.decode_raw(data)
@@ -187,8 +260,22 @@ class ManagerNode:
                 raise SdoAbortedError(ABORT_NO_RECOVERY)
             self.recover()
         elif index == ESTOP_COB_ID:
-            self.set_estop_cob_id(od.decode_raw(data) & 0x7FF
-                                  if not od.decode_raw(data) >> 31 else 0)
+            self._change_estop_cob_id(od.decode_raw(data))
+
+    def _change_estop_cob_id(self, value: int) -> None:
+        """An SDO write of 0x2130: bit 31 set (CiA 301 "not valid") or 0 switches the e-stop
+        frame off, 1..0x7FF sets it; anything else is refused, never masked into another
+        identifier. Allowed only while no controller commands (FAILPROOF) or the e-stop is
+        latched: the e-stop path of a running machine is not changed under it."""
+        cob_id = 0 if value >> 31 else value
+        if not 0 <= cob_id <= 0x7FF:
+            raise SdoAbortedError(ABORT_NOT_FOUND)
+        m = self.manager
+        if m.state is not ManagerState.FAILPROOF and not m.estop_latched:
+            raise SdoAbortedError(ABORT_REFUSED)
+        log.warning("manager node %d: e-stop COB-ID changed by SDO from 0x%03X to 0x%03X%s",
+                    self.node_id, self._estop_cob_id, cob_id, " (off)" if not cob_id else "")
+        self.set_estop_cob_id(cob_id)
 
     def _switch(self, name: str) -> None:
         m = self.manager
