@@ -159,6 +159,7 @@ class SimulatedDrive:
         self._nm_per_permille = 1.0
         # injected faults and inputs
         self._silent = False
+        self._statusword_xor = 0
         self._answer_sync = True
         self._tpdo_delay = 0.0
         self._sto_low = False
@@ -258,6 +259,15 @@ class SimulatedDrive:
         with self._seg.lock:
             self._fault(code)
             self._emit_event_tpdos()
+
+    def garble_statusword(self, xor: int = 0x0008) -> None:
+        """Every statusword this drive reports (TPDO, SDO) is XORed with ``xor`` from now on
+        (0 = healthy again): a bit error in firmware. The default flips the fault bit, which
+        makes switch on disabled, ready to switch on and switched on read as no CiA 402
+        state, and operation enabled as fault reaction active."""
+        with self._seg.lock:
+            self._values[STATUSWORD] ^= self._statusword_xor ^ xor
+            self._statusword_xor = xor
 
     def set_silent(self, silent: bool = True) -> None:
         """Transmit nothing at all (heartbeat, TPDO, EMCY, SDO), like a dead TX line.
@@ -714,7 +724,7 @@ class SimulatedDrive:
             sw |= c.SW_VOLTAGE_ENABLED
         if self._sto_low:
             sw |= c.SW_WARNING
-        self._values[STATUSWORD] = sw
+        self._values[STATUSWORD] = sw ^ self._statusword_xor
         if state not in POWERED:
             self._ramping = False
 

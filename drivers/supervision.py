@@ -2,7 +2,8 @@
 
 Causes: heartbeat deadline missed (monotonic clock, not canopen's wall-clock timestamps),
 heartbeat reporting a state other than operational (the drive rebooted or was stopped), an
-EMCY with a non-zero code, the statusword fault bit, TPDOs missing for k cycles, a TPDO
+EMCY with a non-zero code, the statusword fault bit or a statusword that is no CiA 402 state,
+TPDOs missing for k cycles, a TPDO
 whose length is not its mapping's, a drive
 that does not reach operation enabled when commanded, or the bus going bus-off (an error
 frame: python-can's ``bus.state`` does not say so on SocketCAN). ros2_canopen logs these and carries
@@ -155,6 +156,11 @@ class Supervisor:
                 code = int(error_codes[i])
                 self.fault(int(i), "statusword fault bit"
                            + (f", {emcy_text(code)}" if code else ""), now, code)
+        # UNKNOWN (-1): a statusword that is no CiA 402 state is garbled or broken firmware;
+        # taken as an enable step it would only be reported when the enable timed out
+        if states.min() < 0:
+            for i in np.flatnonzero(watch & (states < 0)):
+                self.fault(int(i), "statusword matches no CiA 402 state (garbled?)", now)
 
     def take_pending(self) -> list[FaultEvent]:
         events, self.pending = self.pending, []

@@ -68,7 +68,8 @@ class TimingSupervision:
     controller whose initialize_fast overruns, has failed. An update() that has not returned
     after ``hang`` × dt is hung: the watchdog thread calls ``on_hang`` every dt until it
     returns (the CAN layer sends the failproof torque-off frames from there), and the hung
-    advance counts as a failure when it finally returns.
+    advance counts as a failure when it finally returns: straight to FAILPROOF when
+    ``on_hang`` ran (the drives are off already), as any failure otherwise.
     """
     advance: float = 0.5
     initialize_fast: float = 0.5
@@ -292,13 +293,19 @@ class ControllerManager:
         if self._requests:
             self._apply_requests()
         dt = self.dt
+        hangs = self.hang_calls
         while True:  # a failure falls through to the next layer within this call
             state = self._state
             if state is ManagerState.OK:
                 adapter = self._active.controller
                 if adapter.advance(dt):
                     break
-                self._estop(False, adapter.failure)
+                if self.hang_calls != hangs:
+                    # The watchdog already switched the drives off while this advance hung:
+                    # nothing is left for an emergency controller to stop smartly.
+                    self._estop(True, f"{adapter.failure}; on_hang commanded torque-off")
+                else:
+                    self._estop(False, adapter.failure)
             elif state is ManagerState.EMERGENCY:
                 adapter = self._active.emergency
                 if adapter.advance(dt):

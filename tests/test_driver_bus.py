@@ -411,7 +411,9 @@ class HangingHold(HoldPD):
 def test_hung_advance_gets_torque_off_frames_while_update_is_stuck(segment, make_rig,
                                                                    recorder):
     """Issue 8: the watchdog sends the failproof frames itself while the update thread is
-    stuck; when the advance returns it has failed, and the emergency controller commands."""
+    stuck; when the advance returns it has failed, and the manager is FAILPROOF: the drives
+    are off already, there is nothing for the emergency controller to stop (one documented
+    end state, instead of EMERGENCY and then FAILPROOF on the drives' "drop-outs")."""
     rig = make_rig()
     bring_up(rig)
     ctrl = HangingHold()
@@ -431,8 +433,9 @@ def test_hung_advance_gets_torque_off_frames_while_update_is_stuck(segment, make
     finally:
         ctrl.release.set()
         stuck.join(10.0)
-    assert result == [ManagerState.EMERGENCY]
+    assert result == [ManagerState.FAILPROOF]
     assert "hung for" in rig.mgr.adapters()["hanging"].failure
+    assert not any("dropped out" in e.cause for e in rig.hw.fault_events)
     calls = rig.mgr.hang_calls
     rig.run(0.2)
     assert rig.mgr.hang_calls == calls  # quiet again once update() returns
@@ -462,3 +465,22 @@ def test_only_exact_frames_are_drive_feedback(segment, make_rig, bus_factory, ca
     assert rig.hw.rx_bad >= 1
     assert "TPDO 0x181 with 3 bytes" in rig.hw.supervisor.latched[0].cause
     assert abs(rig.hw.state.position[0]) < 1.0
+
+
+def test_a_statusword_that_is_no_state_is_a_fault_at_once(segment, make_rig):
+    """A garbled statusword in the first cycles of enabling used to be taken as one more
+    enable step, reported only when the enable timed out; it is that drive's fault at once."""
+    rig = make_rig()
+    bring_up(rig)
+    rig.mgr.add_controller(HoldPD(), emergency=Brake())
+    garbled = tuple(segment.drives)[1]
+    future = rig.mgr.request_switch("hold")
+    segment.drives[garbled].garble_statusword(0x0008)  # not enabled yet: reads as no state
+    enable_cycles = int(rig.setup.timeouts.enable / rig.dt)
+    before = len(rig.states)
+    assert rig.run_until(lambda: rig.hw.supervisor.latched[1] is not None,
+                         rig.setup.detect_budget())
+    assert future.result(timeout=rig.setup.stall) == SwitchResult.SWITCHED
+    latched = rig.hw.supervisor.latched[1]
+    assert latched.node_id == garbled and "no CiA 402 state" in latched.cause
+    assert len(rig.states) - before < enable_cycles  # before the enable timeout would say
