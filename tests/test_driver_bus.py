@@ -16,7 +16,7 @@ import can
 import numpy as np
 import pytest
 
-from driver_rig import (MANAGER_NODE_ID, VCAN, VIRTUAL, Brake, HoldPD, Rig, Sine,
+from driver_rig import (MANAGER_NODE_ID, VCAN, VIRTUAL, Brake, Can, HoldPD, Rig, Sine,
                         seconds_until_all_off)
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import bus, cia402
