@@ -4,7 +4,7 @@
 
 Computed, not measured: frames per cycle come from the driver's own PDO layouts
 (drivers/pdo_layout.py, the same ``layout_for`` the hardware layer uses) and bits per frame
-from the classic-CAN formula in reference/canopen-cia402.md: 8n + 47 bits for n data bytes
+from the classic-CAN formula (rocoma_can.config.frame_bits): 8n + 47 bits for n data bytes
 (with intermission), plus up to floor((34 + 8n - 1) / 4) stuff bits in the worst case.
 Per cycle: every drive's RPDOs and TPDOs and one SYNC; per second on top: the manager's and
 every drive's heartbeat (1 byte each, --heartbeat-ms). "fits" means the worst case (full

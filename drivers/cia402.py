@@ -1,7 +1,7 @@
 """CiA 402 (drive profile) and CiA 301 constants shared by the driver and the simulated drive.
 
 One table for both sides, so the simulator cannot drift from what the driver expects.
-Values are from ../shared/reference/canopen-cia402.md.
+Values are CiA 402 / CiA 301 (statusword masks, controlword commands, modes, COB-IDs).
 """
 from __future__ import annotations
 

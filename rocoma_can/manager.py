@@ -1,6 +1,7 @@
 """The controller manager: run-time switching over two safety layers (rocoma, made exact).
 
-Threads and who calls what (the seed's tables; design.md "The manager"):
+Threads and who calls what (rocoma's timestep tables, made exact; README, Writing a
+controller):
 
 * update thread (whoever calls ``update()``): advances exactly one layer per call. A failure
   (advance False or raising, check_state or limit_command False) or a pending e-stop request

@@ -1,4 +1,4 @@
-"""rocoma's own test scenarios, plus the precise points of design.md "The manager"."""
+"""rocoma's own test scenarios, plus the precise points the manager adds (rocoma_can/manager.py)."""
 from __future__ import annotations
 
 import logging
