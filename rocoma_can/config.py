@@ -49,6 +49,7 @@ _SUPERVISION = {
     "heartbeat_timeout_factor": (False, 1.5, 100.0),
     "consumer_factor": (False, 1.5, 100.0),
     "sdo_timeout": (False, 0.01, 30.0),
+    "enable_timeout": (False, 0.1, 60.0),
 }
 
 

@@ -228,15 +228,19 @@ class Runtime:
     CANopen node (on a second bus handle of the same channel), and the loop."""
 
     def __init__(self, config: Any, *, on_cycle: Callable[[float], None] | None = None) -> None:
+        from .drivers.bringup import Timeouts
         from .drivers.bus import open_bus
         from .drivers.hardware import CanopenHardware
         from .plugins import add_to_manager
         from .services import ManagerNode
         self.config = config
         m = config.manager
+        margins = dict(config.supervision)
+        enable = margins.pop("enable_timeout", None)
+        if enable is not None:
+            margins["timeouts"] = Timeouts(enable=enable)
         self.hardware = CanopenHardware(config.bus, config.drives, m.node_id, config.dt,
-                                        manager_heartbeat_ms=m.heartbeat_ms,
-                                        **config.supervision)
+                                        manager_heartbeat_ms=m.heartbeat_ms, **margins)
         self.manager = None
         self.node = None
         self._node_bus = None

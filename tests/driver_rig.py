@@ -52,6 +52,7 @@ class Can:
     sdo_timeout: float = 0.5
     heartbeat_timeout_factor: float = 2.5  # drives' heartbeats supervised at this many periods
     config_workers: int = 4  # drives configured over SDO at once
+    consumer_factor: float = 2.0  # the drives' consumer of the manager heartbeat, in periods
     stall: float = 2.0  # the longest the machine may stop a process for (a loaded 2-core host)
 
     def channel(self, virtual_channel: str) -> str:
@@ -87,7 +88,9 @@ VIRTUAL = Can("virtual", tuple(range(1, 7)), 0.005, (4.0, 0.3, 0.02, 1.5), 250, 
 # The user-mode-linux guest has one CPU and every system call costs 0.1-0.6 ms (even a clock
 # read): six drives at 25 Hz, the loop and the simulator (one process) kept it busy, and a
 # thread could lag for a second. Hence three drives at 25 Hz, supervision of about a second
-# (TPDOs, the drives' heartbeats), SDO answers allowed 2 s, two drives configured at a time
+# (TPDOs, the drives' heartbeats, and the drives' consumer of the manager's heartbeat: a
+# stall of the test process is a real loss to the drives), SDO answers allowed 2 s, two
+# drives configured at a time
 # (no burst of SDO traffic on top of the cycle) and longer start-up steps; six drives run in
 # the fast suite. A CST PD on the default 0.01 kg m^2 joint is too lively for the guest's
 # stalls: ten times the inertia with the drive's loop gains scaled alike (CSP/CSV behave the
@@ -96,7 +99,8 @@ VIRTUAL = Can("virtual", tuple(range(1, 7)), 0.005, (4.0, 0.3, 0.02, 1.5), 250, 
 VCAN = Can("socketcan", (1, 2, 3), 0.04, (2.0, 0.6, 0.1, 3.0), 250, 200, 25,
            Timeouts(start=5.0, reset=3.0, enable=3.0),
            JointParams(inertia=0.1, viscous=0.1, velocity_gain=8.0, velocity_integral=80.0),
-           sdo_timeout=2.0, heartbeat_timeout_factor=5.0, config_workers=2, stall=5.0)
+           sdo_timeout=2.0, heartbeat_timeout_factor=5.0, config_workers=2, consumer_factor=4.0,
+           stall=5.0)
 
 
 class Rig:
@@ -128,6 +132,7 @@ class Rig:
         kw.setdefault("sdo_timeout", setup.sdo_timeout)
         kw.setdefault("heartbeat_timeout_factor", setup.heartbeat_timeout_factor)
         kw.setdefault("config_workers", setup.config_workers)
+        kw.setdefault("consumer_factor", setup.consumer_factor)
         rig = cls(bus, node_ids, setup.dt, **kw)
         rig.setup = setup
         return rig

@@ -31,11 +31,11 @@ def config(tmp_path: Path) -> Path:
         # thousands of files read through hostfs, each a synchronous host call of the guest's
         # kernel (measured: 8.5 s to import the CLI, 1.5 s for a bare python). Nothing runs
         # meanwhile, so about 10 s of supervision (TPDOs, the drives' heartbeats, the drives'
-        # consumer of the manager's heartbeat) lets this test check the processes' wiring;
-        # supervision itself is tested by the driver tests (defaults: 5 cycles, 2.5 periods,
-        # 0.5 s SDO, consumer 2 periods).
+        # consumer of the manager's heartbeat, enabling) lets this test check the processes'
+        # wiring; supervision itself is tested by the driver tests (defaults: 5 cycles, 2.5
+        # periods, 0.5 s SDO, consumer 2 periods, 1 s to enable).
         "supervision": {"tpdo_timeout_cycles": 250, "heartbeat_timeout_factor": 50.0,
-                        "sdo_timeout": 5.0, "consumer_factor": 40.0},
+                        "sdo_timeout": 5.0, "consumer_factor": 40.0, "enable_timeout": 10.0},
         "drives": [{"name": f"j{n}", "node_id": n, "increments_per_rev": 1048576,
                     "rated_torque_nm": 1.0, "modes": ["csp", "cst"], "heartbeat_ms": 200}
                    for n in DRIVES],
