@@ -50,10 +50,11 @@ def config(tmp_path: Path) -> Path:
     return path
 
 
-def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+def cli(*args: str, timeout: float = 180.0) -> subprocess.CompletedProcess:
     """The CLI client as an operator runs it, with 5 s for an SDO answer in the slow guest
     (see config() for what its start costs). Not niced: at a lower priority than the busy
-    manager and simulator it missed its own answers."""
+    manager and simulator it missed its own answers. Bound: 180 s; a start that costs 8.5 s
+    alone once took over 60 s beside the manager, the simulator and the test process."""
     return subprocess.run([str(BIN), *args, "--interface", "socketcan", "--channel", "vcan0",
                            "--node", str(NODE), "--timeout", "5.0"],
                           capture_output=True, text=True, timeout=timeout)
