@@ -188,3 +188,19 @@ def rig():
     assert not [t for t in threading.enumerate() if t.name.startswith("rocoma/")]
 
 
+def layered_manager(layer: str, **behaviour) -> tuple[ControllerManager, bool]:
+    """A manager with failproof probe, controller "a" paired with emergency "e", and a
+    healthy "b"; ``behaviour`` (raises=, returns=, fail=...) goes to the probe of ``layer``.
+    Returns the manager and whether adding "a" succeeded."""
+    journal = Journal(update_thread=threading.get_ident())
+
+    def of(name: str) -> dict:
+        return behaviour if layer == name else {}
+    mgr = ControllerManager(FailproofProbe("failproof", journal, **of("failproof")), dt=0.001,
+                            command=CommandLog())
+    journal.manager = mgr
+    added = mgr.add_controller(Probe("a", journal, **of("controller")),
+                               emergency=EmergencyProbe("e", journal, **of("emergency")))
+    mgr.add_controller(Probe("b", journal))
+    return mgr, added
+

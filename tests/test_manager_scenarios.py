@@ -7,7 +7,7 @@ import threading
 import pytest
 
 from manager_probes import (LAYER_METHODS, WAIT, CommandLog, EmergencyProbe, FailproofProbe,
-                            Journal, Probe)
+                            Journal, Probe, layered_manager)
 from rocoma_can import (ControllerManager, EventKind, ManagerState, ManagerTimeouts,
                         SwitchResult)
 
@@ -294,16 +294,7 @@ def test_check_state_and_limit_command_failures_are_failures():
 
 @pytest.mark.parametrize("layer,method", LAYER_METHODS)
 def test_exceptions_in_every_callback_of_every_layer(layer, method, caplog):
-    journal = Journal(update_thread=threading.get_ident())
-    raising = {"raises": {method}}
-    fp = FailproofProbe("failproof", journal, **(raising if layer == "failproof" else {}))
-    command = CommandLog()
-    mgr = ControllerManager(fp, dt=0.001, command=command)
-    journal.manager = mgr
-    e = EmergencyProbe("e", journal, **(raising if layer == "emergency" else {}))
-    a = Probe("a", journal, **(raising if layer == "controller" else {}))
-    added = mgr.add_controller(a, emergency=e)
-    mgr.add_controller(Probe("b", journal))
+    mgr, added = layered_manager(layer, raises={method})
     if (layer, method) == ("controller", "create"):
         assert not added and mgr.available_controllers() == ["b"]
     else:

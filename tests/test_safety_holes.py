@@ -20,9 +20,8 @@ import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
 from driver_rig import MANAGER_NODE_ID, VIRTUAL, HoldPD, Rig, seconds_until_all_off
-from manager_probes import (LAYER_METHODS, CommandLog, EmergencyProbe, FailproofProbe, Journal,
-                            Probe)
-from rocoma_can import ControllerManager, ManagerState, SwitchResult, eds
+from manager_probes import LAYER_METHODS, layered_manager
+from rocoma_can import ManagerState, SwitchResult, eds
 from rocoma_can.config import ConfigError, load, validate
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.services import ABORT_NOT_FOUND, ABORT_REFUSED, ManagerNode, Refused
@@ -143,15 +142,7 @@ def test_only_true_is_success_and_nothing_escapes(layer, method, result, caplog)
     """Whatever a callback returns, only True is success; anything else is that call's
     failure, handled as rocoma does (the same as a raise): nothing escapes update(), the
     switcher, the stoppers or shutdown, every e-stop ends in FAILPROOF, no thread is left."""
-    journal = Journal(update_thread=threading.get_ident())
-    bad = {"returns": {method: result}}
-    fp = FailproofProbe("failproof", journal, **(bad if layer == "failproof" else {}))
-    mgr = ControllerManager(fp, dt=0.001, command=CommandLog())
-    journal.manager = mgr
-    e = EmergencyProbe("e", journal, **(bad if layer == "emergency" else {}))
-    a = Probe("a", journal, **(bad if layer == "controller" else {}))
-    added = mgr.add_controller(a, emergency=e)
-    mgr.add_controller(Probe("b", journal))
+    mgr, added = layered_manager(layer, returns={method: result})
     if (layer, method) == ("controller", "create"):
         assert not added and mgr.available_controllers() == ["b"]
     else:
