@@ -74,6 +74,11 @@ class BusReader:
     def add_listener(self, listener: can.Listener) -> None:
         self._listeners = (*self._listeners, listener)
 
+    @property
+    def alive(self) -> bool:
+        """The reader thread runs (it ends only on ``stop``)."""
+        return self._thread.is_alive()
+
     def stop(self, timeout: float = 2.0) -> None:
         self._stopping.set()
         if self._thread is not threading.current_thread():

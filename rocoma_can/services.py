@@ -42,7 +42,9 @@ import can
 import canopen
 from canopen.objectdictionary import NUMBER_TYPES
 from canopen.sdo import SdoServer
-from canopen.sdo.constants import EXPEDITED, NO_MORE_DATA, SDO_STRUCT, SIZE_SPECIFIED
+from canopen.sdo.constants import (EXPEDITED, NO_MORE_DATA, REQUEST_SEGMENT_DOWNLOAD,
+                                   REQUEST_SEGMENT_UPLOAD, REQUEST_UPLOAD, SDO_STRUCT,
+                                   SIZE_SPECIFIED)
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from . import eds as shipped_eds
@@ -67,17 +69,47 @@ TPDO1, EMCY = 0x180, 0x080
 
 
 class _StrictSdoServer(SdoServer):
-    """canopen's SDO server without the ways a transfer could take effect that must not.
+    """canopen's SDO server without the ways a transfer could take effect that must not, and
+    without a traceback in the log for a request it cannot serve (a hostile or garbled bus
+    must not flood the log; it gets an abort, or nothing when the frame is no SDO request).
 
-    - A segmented download that was aborted (by either side) or has completed is forgotten:
-      a stray last segment cannot complete it, a segment with no download open is refused.
+    - A frame that is not 8 bytes is not an SDO request (CiA 301) and is ignored.
+    - Segments continue only the transfer open in their own direction: a download segment
+      never appends to an upload's data, and a segmented download that was aborted (by either
+      side) or has completed is forgotten, so a stray last segment cannot complete it.
+    - Every abort carries the multiplexer of the request it answers (0000:00 when no request
+      named one), so the abort itself cannot fail.
+    - Block download is refused with "command specifier not valid" (not supported; block
+      upload falls back to a normal upload, which CiA 301 allows).
     - An expedited download without the size indicated carries the object's own size
       (CiA 301: the trailing bytes are unspecified), so a one-byte e-stop written that way is
       an e-stop, not a length error.
     """
 
+    _open: int | None = None  # REQUEST_SEGMENT_UPLOAD / _DOWNLOAD while one is open
+
+    def on_request(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if len(data) != 8:
+            return
+        if data[0] & 0xE0 not in (REQUEST_SEGMENT_DOWNLOAD, REQUEST_SEGMENT_UPLOAD):
+            _, self._index, self._subindex = SDO_STRUCT.unpack_from(data)
+        super().on_request(can_id, data, timestamp)
+
+    def init_upload(self, request: bytes) -> None:
+        self._open, self._buffer = None, None
+        super().init_upload(request)
+        if self._buffer and request[0] & 0xE0 == REQUEST_UPLOAD:
+            self._open = REQUEST_SEGMENT_UPLOAD
+
+    def segmented_upload(self, command: int) -> None:
+        if self._open != REQUEST_SEGMENT_UPLOAD:
+            raise SdoAbortedError(ABORT_COMMAND_SPECIFIER)
+        super().segmented_upload(command)
+        if not self._buffer:
+            self._open = None
+
     def init_download(self, request: bytes) -> None:
-        self._buffer = None
+        self._open, self._buffer = None, None
         command, index, subindex = SDO_STRUCT.unpack_from(request)
         if command & EXPEDITED and not command & SIZE_SPECIFIED:
             var = self._node.object_dictionary.get_variable(index, subindex)
@@ -85,21 +117,46 @@ class _StrictSdoServer(SdoServer):
             if 1 <= size <= 4:
                 request = bytes([command | SIZE_SPECIFIED | (4 - size) << 2]) + bytes(request[1:])
         super().init_download(request)
+        if not command & EXPEDITED:
+            self._open = REQUEST_SEGMENT_DOWNLOAD
 
     def segmented_download(self, command: int, request: bytes) -> None:
-        if self._buffer is None:
+        if self._open != REQUEST_SEGMENT_DOWNLOAD:
             raise SdoAbortedError(ABORT_COMMAND_SPECIFIER)
-        super().segmented_download(command, request)
         if command & NO_MORE_DATA:
-            self._buffer = None
+            self._open = None  # completed or refused: either way it is over
+        super().segmented_download(command, request)
+
+    def block_download(self, data: bytes) -> None:
+        self._open = None
+        raise SdoAbortedError(ABORT_COMMAND_SPECIFIER)
 
     def request_aborted(self, data: bytes) -> None:
-        self._buffer = None
+        self._open = None
         super().request_aborted(data)
 
     def abort(self, abort_code: int = 0x08000000) -> None:
-        self._buffer = None
+        self._open = None
+        self._index = self._index or 0
+        self._subindex = self._subindex or 0
         super().abort(abort_code)
+
+
+class _ServiceFrames(can.Listener):
+    """What canopen's node services (NMT slave, SDO server) are given: 11-bit data frames
+    only, and an NMT command only as its two bytes (CiA 301). canopen's own listener passes
+    29-bit frames on as if they were 11-bit ones (an extended 0x664 would be served as an
+    SDO request) and logs an error for every short NMT frame."""
+
+    def __init__(self, network: canopen.Network) -> None:
+        self.network = network
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+            return
+        if msg.arbitration_id == 0 and msg.dlc != 2:
+            return
+        self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
 
 def _never_produce_heartbeats(node: canopen.LocalNode) -> None:
@@ -153,7 +210,7 @@ class ManagerNode(can.Listener):
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self) -> ManagerNode:
-        self._reader = BusReader(self.bus, (*self._network.listeners, self),
+        self._reader = BusReader(self.bus, (_ServiceFrames(self._network), self),
                                  name="manager-node-rx")
         self._network.add_node(self._node)
         self.set_estop_cob_id(self._initial_cob)
@@ -179,6 +236,11 @@ class ManagerNode(can.Listener):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    @property
+    def reader(self) -> BusReader | None:
+        """The node's bus reader (None until started): its thread serves SDO and e-stops."""
+        return self._reader
 
     # --- e-stop frame -------------------------------------------------------------------------
     @property

@@ -14,71 +14,22 @@ import threading
 import time
 
 import can
-import canopen
 import numpy as np
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
-from driver_rig import MANAGER_NODE_ID, VIRTUAL, HoldPD, Rig, seconds_until_all_off
+from driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
 from manager_probes import LAYER_METHODS, layered_manager
-from rocoma_can import ManagerState, SwitchResult, eds
+from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.config import ConfigError, load, validate
 from rocoma_can.drivers.cia402 import State402
-from rocoma_can.services import ABORT_NOT_FOUND, ABORT_REFUSED, ManagerNode, Refused
+from rocoma_can.services import ABORT_NOT_FOUND, ABORT_REFUSED, Refused
+from safety_rig import SDO_RX, cycle_while, sdo_exchange
 from test_services import ESTOP_COB as SERVICE_ESTOP
-from test_services import NODE as SERVICE_NODE
-from test_services import Rig as ServiceRig
 
-NODES = (1, 2, 3)
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 ABORT_READ_ONLY = 0x06010002
 OK, FAILPROOF = ManagerState.OK, ManagerState.FAILPROOF
-
-
-@pytest.fixture
-def served(virtual_channel, sim_segment_factory, bus_factory):
-    """Drives, a rig cycled by the test (brought up, enabled, holding), the manager node on a
-    bus of its own and an SDO/NMT client on a third; yields (segment, rig, node, client)."""
-    segment = sim_segment_factory(NODES, channel=virtual_channel)
-    rig = Rig.for_setup(bus_factory(), NODES, VIRTUAL)
-    node = ManagerNode(rig.mgr, MANAGER_NODE_ID, bus_factory(),
-                       heartbeat_ms=VIRTUAL.heartbeat_ms).start()
-    network = canopen.Network(bus_factory())
-    network.connect()
-    client = network.add_node(MANAGER_NODE_ID, str(eds.path(eds.MANAGER_NODE)))
-    client.sdo.RESPONSE_TIMEOUT = 1.0
-    try:
-        assert rig.run_until(lambda: not rig.hw.starting,
-                             VIRTUAL.bring_up_budget(len(NODES))), rig.hw.drive_status()
-        rig.mgr.add_controller(HoldPD())
-        assert rig.switch("hold") == SwitchResult.SWITCHED
-        assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget())
-        yield segment, rig, node, client, network
-    finally:
-        network.disconnect()
-        node.close()
-        rig.close()
-
-
-def _cycle_while(rig: Rig, action) -> None:
-    """Run ``action`` (SDO/NMT traffic) while the loop keeps cycling, as in the field."""
-    done = threading.Event()
-    errors: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            action()
-        except BaseException as exc:  # noqa: BLE001 - re-raised on the test's thread
-            errors.append(exc)
-        finally:
-            done.set()
-    thread = threading.Thread(target=run)
-    thread.start()
-    while not done.is_set():
-        rig.cycle()
-    thread.join()
-    if errors:
-        raise errors[0]
 
 
 SEQUENCES = {
@@ -96,7 +47,7 @@ SEQUENCES = {
 
 @pytest.mark.parametrize("sequence", list(SEQUENCES.values()), ids=list(SEQUENCES))
 def test_only_the_loop_produces_the_manager_heartbeat(served, sequence):
-    segment, rig, node, client, network = served
+    segment, rig, client, network = served.segment, served.rig, served.client, served.network
 
     def traffic() -> None:
         for kind, a, b in sequence:
@@ -106,7 +57,7 @@ def test_only_the_loop_produces_the_manager_heartbeat(served, sequence):
                 assert refused.value.code == ABORT_READ_ONLY
             else:
                 network.send_message(0x000, bytes((a, b)))
-    _cycle_while(rig, traffic)
+    cycle_while(rig, traffic)
     rig.run(10 * rig.dt)
     # the period the loop uses is what 0x1017 says
     assert struct.unpack("<H", client.sdo.upload(0x1017, 0))[0] == VIRTUAL.heartbeat_ms
@@ -165,29 +116,6 @@ def test_only_true_is_success_and_nothing_escapes(layer, method, result, caplog)
 
 
 # --- the manager node's services refuse what they cannot honour -----------------------------
-SDO_RX = 0x600 + SERVICE_NODE
-SDO_TX = 0x580 + SERVICE_NODE
-
-
-@pytest.fixture
-def service(bus_factory):
-    rig = ServiceRig(bus_factory, must_clear=False)
-    rig.raw = bus_factory()  # a third node's own bus: raw frames, read here and nowhere else
-    yield rig
-    rig.close()
-
-
-def _sdo_exchange(bus, request: bytes) -> bytes:
-    """One raw SDO request to the manager node, its answer (bounded)."""
-    bus.send(can.Message(arbitration_id=SDO_RX, data=request, is_extended_id=False))
-    deadline = time.monotonic() + 2.0
-    while time.monotonic() < deadline:
-        msg = bus.recv(0.1)
-        if msg is not None and msg.arbitration_id == SDO_TX:
-            return bytes(msg.data)
-    raise AssertionError(f"no SDO answer to {request.hex()}")
-
-
 @pytest.mark.parametrize("value", [0x800, 0x7FFFFFFF, 0x40000000])
 def test_estop_cob_id_out_of_range_is_refused_never_masked(service, value):
     service.manager.failproof_stop()  # a stopped manager: changing it is allowed
@@ -215,9 +143,9 @@ def test_estop_cob_id_changes_only_while_stopped_or_latched(service, caplog):
 def test_switch_name_that_is_not_utf8_is_refused(service):
     """b"p\xffd" used to be decoded with errors ignored, as "pd", and switched."""
     name = b"p\xffd"
-    answer = _sdo_exchange(service.raw, bytes([0x21, 0x00, 0x21, 0x00, len(name), 0, 0, 0]))
+    answer = sdo_exchange(service.raw, bytes([0x21, 0x00, 0x21, 0x00, len(name), 0, 0, 0]))
     assert answer[0] == 0x60  # segmented download initiated
-    answer = _sdo_exchange(service.raw,
+    answer = sdo_exchange(service.raw,
                            bytes([(7 - len(name)) << 1 | 1]) + name.ljust(7, b"\x00"))
     assert answer[0] == 0x80 and struct.unpack_from("<I", answer, 4)[0] == ABORT_NOT_FOUND
     assert service.manager.active_controller_name == "torque_off"
@@ -226,12 +154,12 @@ def test_switch_name_that_is_not_utf8_is_refused(service):
 def test_aborted_segmented_write_never_takes_effect(service):
     bus = service.raw
     name = b"pd"
-    answer = _sdo_exchange(bus, bytes([0x21, 0x00, 0x21, 0x00, len(name), 0, 0, 0]))
+    answer = sdo_exchange(bus, bytes([0x21, 0x00, 0x21, 0x00, len(name), 0, 0, 0]))
     assert answer[0] == 0x60
     # the client aborts the transfer, then a stray last segment arrives
     bus.send(can.Message(arbitration_id=SDO_RX, is_extended_id=False,
                          data=bytes([0x80, 0x00, 0x21, 0x00]) + struct.pack("<I", 0x08000000)))
-    answer = _sdo_exchange(bus, bytes([(7 - len(name)) << 1 | 1]) + name.ljust(7, b"\x00"))
+    answer = sdo_exchange(bus, bytes([(7 - len(name)) << 1 | 1]) + name.ljust(7, b"\x00"))
     assert answer[0] == 0x80  # refused: no download is open
     time.sleep(0.2)
     assert service.manager.active_controller_name == "torque_off"
@@ -246,7 +174,7 @@ def test_remote_frame_on_the_estop_cob_id_estops(service):
 
 def test_expedited_estop_without_size_indicated_estops(service):
     assert service.client.switch("pd") == 0
-    answer = _sdo_exchange(service.raw, bytes([0x22, 0x10, 0x21, 0x00, 1, 0, 0, 0]))
+    answer = sdo_exchange(service.raw, bytes([0x22, 0x10, 0x21, 0x00, 1, 0, 0, 0]))
     assert answer[0] == 0x60, answer.hex()  # accepted
     assert service.wait_state(1)
 
