@@ -11,7 +11,8 @@ The safety path, top to bottom (each step names where it lives):
 1. A drive goes wrong. Supervision (supervision.py) turns every symptom into a FaultEvent:
    EMCY, statusword fault bit, heartbeat deadline or non-operational heartbeat, TPDOs missing
    for k cycles, a drive dropping out of operation enabled or not enabling in time
-   (``_command_frames`` below), or a bus-off error frame (``_on_error_frames``). Frames
+   (``_command_frames`` below), a bus-off error frame (``_on_error_frames``), or the bus
+   refusing frames in ``tpdo_timeout_cycles`` cycles in a row (``_end_of_write``). Frames
    arrive on the bus reader thread (bus.py), which only appends them to a deque; ``read`` drains it on
    the cycle thread, so no lock is shared with a slow thread.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
@@ -191,6 +192,7 @@ class CanopenHardware:
         self._allowed_list = self._allowed_modes.tolist()
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
+        self._finite = np.zeros(n, dtype=bool)
         self._default_mode = [int(d.modes[0]) for d in drives]
         self._got = np.zeros(n, dtype=np.int64)             # TPDO bits seen this cycle
         self._expected = np.array([(1 << len(lay.tpdos)) - 1 for lay in self.layouts],
@@ -242,6 +244,9 @@ class CanopenHardware:
         self._now = 0.0
         self.fault_events: collections.deque[FaultEvent] = self.supervisor.history
         self.tx_errors = 0     # frames the bus refused (counted, never raised)
+        self.last_tx_error: Exception | None = None
+        self._tx_refused = False     # a frame was refused since the last write
+        self._tx_refused_cycles = 0  # writes in a row with a refused frame
         self.rx_bad = 0        # TPDOs with a length other than their mapping's (never decoded)
         self.hook_errors = 0   # on_fault calls that raised (counted, never raised)
         self.error_frames = 0  # CAN error frames received (bus-off ones are a fault)
@@ -323,11 +328,14 @@ class CanopenHardware:
         if "failproof" in kwargs:
             raise TypeError("the CAN hardware layer always installs TorqueOff as failproof "
                             "controller; it cannot be replaced")
-        if "limit_command" in kwargs:
-            raise TypeError("limit_command is the hardware's own check (modes, NaN, limits)")
+        for own in ("limit_command", "reset_command"):
+            if own in kwargs:
+                raise TypeError(f"{own} is the hardware's own (modes, NaN, limits; a neutral "
+                                "command on every fall to a lower layer)")
         kwargs.setdefault("on_hang", self.send_torque_off)
         manager = ControllerManager(TorqueOff(), self.dt, self.state, self.command,
-                                    limit_command=self.limit_command, **kwargs)
+                                    limit_command=self.limit_command,
+                                    reset_command=self.neutral_command, **kwargs)
         self.attach(manager)
         return manager
 
@@ -456,12 +464,30 @@ class CanopenHardware:
         if self._now >= self._next_heartbeat:
             self._send(self._heartbeat)
             self._next_heartbeat = self._now + self.manager_heartbeat_period
+        self._end_of_write()
 
     def _send(self, msg: can.Message) -> None:
         try:
             self._writer.send_message(msg)  # type: ignore[union-attr]
-        except Exception:  # a full queue, a failed interface, or not started/closed
+        except Exception as exc:  # a full queue, a failed interface, or not started/closed
             self.tx_errors += 1
+            self.last_tx_error = exc
+            self._tx_refused = True
+
+    def _end_of_write(self) -> None:
+        """A bus that refuses frames cycle after cycle (transmit queue full, interface down)
+        delivers no command and no heartbeat: after as many cycles as missing TPDOs are
+        tolerated it is a bus fault, an e-stop like bus-off. One refused frame is not (a
+        transmit queue can be full for a moment); the frames are tried again every cycle."""
+        if not self._tx_refused:
+            self._tx_refused_cycles = 0
+            return
+        self._tx_refused = False
+        self._tx_refused_cycles += 1
+        sup = self.supervisor
+        if self._tx_refused_cycles >= sup.tpdo_timeout_cycles and sup.bus_latched is None:
+            sup.bus_fault(f"the bus refused frames in {self._tx_refused_cycles} cycles in a "
+                          f"row (last: {self.last_tx_error})", self._now)
 
     def _torque_off(self) -> None:
         """FAILPROOF: pre-encoded disable-voltage frames to every configured drive."""
@@ -564,11 +590,22 @@ class CanopenHardware:
         np.bitwise_and(self._mode_bits, self._allowed_modes, out=self._mode_bits)
         if np.count_nonzero(self._mode_bits) != len(self._mode_bits):
             return False
-        total = float(command.position.sum() + command.velocity.sum() + command.torque.sum())
-        if not math.isfinite(total):
-            return False
+        finite = self._finite  # isfinite, not a sum: inf + -inf would warn (and allocate)
+        for targets in (command.position, command.velocity, command.torque):
+            np.isfinite(targets, out=finite)
+            if not finite.all():
+                return False
         self.scaling.clip_command(command.position, command.velocity, command.torque)
         return True
+
+    def neutral_command(self, command: JointCommand) -> None:
+        """Targets that move nothing: position targets at the actual position, velocity and
+        torque 0 (the mode is left to the layer that takes over). The manager calls it on
+        every fall to a lower layer, so an emergency controller that writes only some
+        fields never sends the failed controller's targets (or its NaNs) in the others."""
+        np.copyto(command.position, self.state.position)
+        command.velocity.fill(0.0)
+        command.torque.fill(0.0)
 
     # --- recovery --------------------------------------------------------------------------------
     def recover(self, timeout: float = 5.0) -> Future:
@@ -609,7 +646,8 @@ class CanopenHardware:
                 elif b.phase != Phase.CONFIGURING:
                     b.restart(now, probe_at_once=True)
             return
-        if all(b.phase == Phase.READY for b in self._bringup) and not any(sup.latched):
+        if (all(b.phase == Phase.READY for b in self._bringup) and not any(sup.latched)
+                and sup.bus_latched is None):
             if self._manager is not None:
                 try:
                     self._manager.clear_emergency_stop()

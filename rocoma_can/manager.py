@@ -136,6 +136,7 @@ class ControllerManager:
                  command: Any = None, *, estop_must_be_cleared: bool = False,
                  check_state: StateCheck | None = None,
                  limit_command: StateCheck | None = None,
+                 reset_command: Callable[[Any], None] | None = None,
                  timeouts: ManagerTimeouts | None = None,
                  timing: TimingSupervision | None = TimingSupervision(),
                  on_hang: Callable[[], None] | None = None, name: str = "rocoma") -> None:
@@ -151,6 +152,10 @@ class ControllerManager:
         self._must_clear = estop_must_be_cleared
         self._check_state = check_state
         self._limit_command = limit_command
+        # On every fall to a lower layer, before that layer writes the command: a smart stop
+        # must not inherit the failed controller's targets (a NaN in a field the emergency
+        # controller does not write would fail it too and skip the smart stop).
+        self._reset_command = reset_command
         self.timing = timing
         self._on_hang = on_hang
         self.hang_calls = 0       # how often on_hang ran while update() was stuck
@@ -328,6 +333,13 @@ class ControllerManager:
             self._latched = True
         previous = self._state
         pair = self._active
+        if self._reset_command is not None and previous is not ManagerState.FAILPROOF:
+            try:
+                self._reset_command(self.command_object)
+            except Exception as exc:  # noqa: BLE001 - the safe way on is the failproof layer
+                self.internal_errors += 1
+                to_failproof = True
+                self._events.log(logging.CRITICAL, f"reset_command failed: {exc!r}", exc)
         if previous is ManagerState.OK:
             self._stop_in_background(pair.controller)
             emcy = pair.emergency

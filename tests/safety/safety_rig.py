@@ -56,6 +56,8 @@ def served_rig(segment: SimulatedSegment, rig_bus: can.BusABC, node_bus: can.Bus
         network.disconnect()
         node.close()
         rig.close()
+    left = [t.name for t in threading.enumerate() if t.name.startswith("rocoma/")]
+    assert not left, f"threads left after shutdown: {left}"
 
 
 def cycle_while(rig: Rig, action: Callable[[], object]) -> None:

@@ -19,8 +19,9 @@ import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
 from driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
-from manager_probes import LAYER_METHODS, layered_manager
-from rocoma_can import ManagerState, SwitchResult
+from manager_probes import (LAYER_METHODS, CommandLog, EmergencyProbe, FailproofProbe, Journal,
+                            Probe, layered_manager)
+from rocoma_can import ControllerManager, ManagerState, SwitchResult
 from rocoma_can.config import ConfigError, load, validate
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.services import ABORT_NOT_FOUND, ABORT_REFUSED, Refused
@@ -225,3 +226,26 @@ def test_every_eds_is_parsed_and_checked_at_config_time(tmp_path, content):
     problem = "\n".join(refused.value.problems)
     assert problem.startswith("robot.yaml: drives[0]: drive 'j1': ") and (
         "vendor.eds" in problem or "EDS has no" in problem), problem
+
+
+# --- a lower layer never inherits the failed layer's command ----------------------------------
+def test_a_failing_reset_command_falls_through_to_failproof():
+    """reset_command (the hardware's neutral command) runs on every fall; if it raises, the
+    emergency controller would start from the failed controller's command: FAILPROOF."""
+    journal = Journal(update_thread=threading.get_ident())
+    resets: list[object] = []
+
+    def reset(command) -> None:
+        resets.append(command)
+        raise RuntimeError("reset_command broken")
+    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001,
+                            command=CommandLog(), reset_command=reset)
+    mgr.add_controller(Probe("a", journal, fail={"advance"}),
+                       emergency=EmergencyProbe("e", journal))
+    try:
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        assert mgr.update() is FAILPROOF
+        assert len(resets) == 1 and mgr.internal_errors == 1
+        assert not journal.of("e", "initialize_fast")
+    finally:
+        assert mgr.shutdown()
