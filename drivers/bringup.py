@@ -23,10 +23,13 @@ controller commands a cyclic mode (see hardware.py).
 from __future__ import annotations
 
 import enum
+import logging
 import struct
+import threading
 import time
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import canopen
 
@@ -37,6 +40,8 @@ from .pdo_layout import PDO_SLOTS, DriveLayout, Pdo
 #: Transmission type: synchronous, every SYNC (RPDO: act on the next SYNC).
 SYNC_EVERY_CYCLE = 1
 _COB_INVALID = 0x8000_0000
+
+log = logging.getLogger(__name__)
 
 
 class Phase(enum.IntEnum):
@@ -191,6 +196,13 @@ def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveL
     return ConfigResult(statusword, error_code)
 
 
+def _write_controlword_zero(node: canopen.RemoteNode, name: str) -> None:
+    try:
+        node.sdo.download(cia402.CONTROLWORD, 0, b"\x00\x00")
+    except Exception as exc:  # noqa: BLE001 - best effort beside the RPDO and the consumer
+        log.warning("drive %r: switching off by SDO failed: %s", name, exc)
+
+
 class DriveBringup:
     """Start-up state of one drive; ``step`` is called from the cycle and never blocks."""
 
@@ -210,6 +222,20 @@ class DriveBringup:
         self.reset_cycles = 0       # cycles spent in RESETTING (edge: 0x00 first, then 0x80)
         self.sto_seen = False       # an EMCY 0x5441 arrived during start-up
         self._job: Future[ConfigResult] | None = None
+        # canopen's SdoClient has no lock: configuration and the SDO switch-off of this
+        # drive, both on the worker pool, must never overlap on its node
+        self._sdo_lock = threading.Lock()
+
+    def _locked(self, job: Callable[..., Any], *args: Any) -> Any:
+        with self._sdo_lock:
+            return job(*args)
+
+    def switch_off_by_sdo(self, executor: Executor) -> None:
+        """Controlword 0x0000 (disable voltage) by SDO, once, on the worker pool: the path
+        to a latched drive that may no longer apply its RPDOs (left operational by another
+        node's NMT command, or ignoring SYNC) while still answering SDO. Never raises; a
+        drive that does not answer is left to its RPDOs and heartbeat consumer."""
+        executor.submit(self._locked, _write_controlword_zero, self.node, self.drive.name)
 
     def restart(self, now: float, probe_at_once: bool = False) -> None:
         """Back to the beginning (start-up, or recovery of a drive that failed or rebooted)."""
@@ -237,8 +263,9 @@ class DriveBringup:
         phase = self.phase
         if phase == Phase.WAIT_BOOT:
             if self.alive or now - self.since >= self.timeouts.boot_wait:
-                self._job = executor.submit(configure, self.node, self.drive, self.layout,
-                                            self.manager_node_id, self.consumer_ms)
+                self._job = executor.submit(self._locked, configure, self.node, self.drive,
+                                            self.layout, self.manager_node_id,
+                                            self.consumer_ms)
                 self._enter(Phase.CONFIGURING, now)
         elif phase == Phase.CONFIGURING:
             job = self._job

@@ -16,7 +16,9 @@ The safety path, top to bottom (each step names where it lives):
    arrive on the bus reader thread (bus.py), which only appends them to a deque; ``read`` drains it on
    the cycle thread, so no lock is shared with a slow thread.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
-   a latched drive is never sent anything but controlword 0x0000), until recovery.
+   a latched drive is never sent anything but controlword 0x0000), until recovery, and
+   controlword 0x0000 once by SDO on the worker pool (``_deliver``): a drive that no longer
+   applies RPDOs (pre-operational, ignoring SYNC) still switches off.
 3. ``read`` hands the event to the manager before update(): ``manager.emergency_stop(cause)``
    (``attach`` / ``create_manager``). In update() the manager switches OK -> EMERGENCY: the
    emergency controller's initialize_fast and advance write this cycle's command, so the
@@ -212,6 +214,7 @@ class CanopenHardware:
                 self._tpdo_of[pdo.cob_id] = (i, 1 << (pdo.number - 1), pdo.size,
                                              pdo.codec.unpack_from,
                                              tuple(self._raw[name] for name in pdo.names))
+        self._index_of_node = {d.node_id: i for i, d in enumerate(drives)}
         self._heartbeat_of = {cia402.HEARTBEAT + d.node_id: i for i, d in enumerate(drives)}
         self._emcy_of = {cia402.EMCY + d.node_id: i for i, d in enumerate(drives)}
         self._rx: collections.deque = collections.deque()
@@ -442,6 +445,9 @@ class CanopenHardware:
 
     def _deliver(self, events: list[FaultEvent]) -> None:
         for event in events:
+            i = self._index_of_node.get(event.node_id)
+            if i is not None and self._executor is not None and self._bringup[i].mapped:
+                self._bringup[i].switch_off_by_sdo(self._executor)  # a submit: never blocks
             if self._manager is not None:
                 self._manager.emergency_stop(cause=str(event))  # a deque append: cannot fail
             if self.on_fault is not None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import struct
 import time
 from dataclasses import dataclass
 from typing import Sequence
@@ -276,3 +277,19 @@ def serve(channel: str, interface: str, node_ids: Sequence[int], heartbeat_ms: i
     finally:
         rig.close()
         bus.shutdown()
+
+
+MARKER = 0x7F0  # a COB-ID nothing else uses
+
+
+def synced_mark(recorder, rig: Rig) -> int:
+    """A recorder mark after every frame the rig has sent so far: the recorder reads on a
+    thread of its own and may lag, but frames of one sender arrive in order, so once it has
+    seen a marker frame sent now, it has seen everything sent before."""
+    marker = can.Message(arbitration_id=MARKER, data=struct.pack("<d", time.monotonic()),
+                         is_extended_id=False)
+    since = recorder.mark()
+    rig.hw._canopen.bus.send(marker, timeout=1.0)
+    recorder.wait_for(lambda f: f.cob_id == MARKER and f.data == bytes(marker.data),
+                      rig.setup.stall, since=since)
+    return recorder.mark()

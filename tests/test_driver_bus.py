@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from driver_rig import (MANAGER_NODE_ID, VCAN, VIRTUAL, Brake, Can, HoldPD, Rig, Sine,
-                        seconds_until_all_off)
+                        seconds_until_all_off, synced_mark)
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import bus, cia402
 from rocoma_can.drivers.bringup import Phase
@@ -79,22 +79,6 @@ def enable_with(rig: Rig, controller, emergency=None) -> None:
     assert rig.switch(controller.name) == SwitchResult.SWITCHED
     assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget()), \
         rig.hw.drive_status()
-
-
-MARKER = 0x7F0  # a COB-ID nothing else uses
-
-
-def synced_mark(recorder, rig: Rig) -> int:
-    """A recorder mark after every frame the rig has sent so far: the recorder reads on a
-    thread of its own and may lag, but frames of one sender arrive in order, so once it has
-    seen a marker frame sent now, it has seen everything sent before."""
-    marker = can.Message(arbitration_id=MARKER, data=struct.pack("<d", time.monotonic()),
-                         is_extended_id=False)
-    since = recorder.mark()
-    rig.hw._canopen.bus.send(marker, timeout=1.0)
-    recorder.wait_for(lambda f: f.cob_id == MARKER and f.data == bytes(marker.data),
-                      rig.setup.stall, since=since)
-    return recorder.mark()
 
 
 def rpdo1_cycles(frames) -> list[dict[int, int]]:
