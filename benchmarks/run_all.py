@@ -26,6 +26,7 @@ SHORT = {
     "loop_run": ["--duration", "10"],
     "estop_latency": [],
     "switch_missed_cycles": [],
+    "cli_start": [],
 }
 
 

@@ -12,11 +12,11 @@ import signal
 import sys
 import threading
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-from . import cia402 as c
-from .sim_drive import SimulatedDrive
-from .sim_segment import SimulatedSegment
+if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
+    from .sim_drive import SimulatedDrive
+    from .sim_segment import SimulatedSegment
 
 
 def parse_node_ids(text: str) -> list[int]:
@@ -64,7 +64,7 @@ def _int(text: str) -> int:
 # flag -> (number of ARGs min/max, help, action on the drive)
 INJECTIONS: dict[str, tuple[tuple[int, int], str, Callable[[SimulatedDrive, tuple], Any]]] = {
     "fault": ((0, 1), "NODE[:CODE][@S]: trip a fault (EMCY code, default 0x1000)",
-              lambda d, a: d.trip_fault(_int(a[0]) if a else c.EMCY_GENERIC)),
+              lambda d, a: d.trip_fault(_int(a[0])) if a else d.trip_fault()),
     "silent": ((0, 0), "NODE[@S]: the drive transmits nothing any more",
                lambda d, a: d.set_silent(True)),
     "no-sync": ((0, 0), "NODE[@S]: the drive stops answering SYNC",
@@ -108,6 +108,7 @@ def _inject(segment: SimulatedSegment, inj: Injection) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .sim_segment import SimulatedSegment
     injections = [inj for flag in INJECTIONS for inj in getattr(args, flag.replace("-", "_"))]
     for inj in injections:
         if inj.node not in args.nodes:

@@ -1,10 +1,12 @@
-"""rocoma-can: the rocoma controller manager for CANopen actuator buses."""
-from .events import EventKind, ManagerEvent, ManagerState
-from .interfaces import Controller, EmergencyController, FailproofController, SwapState
-from .manager import ControllerManager, ManagerTimeouts, SwitchResult, TimingSupervision
-from .plugins import PluginError, add_to_manager, create_controller, load_config
-from .tuples import ControllerTuple, EmergencyControllerTuple, TupleSwapState
-from .workers import WorkerEvent, WorkerHandle, WorkerManager, WorkerOptions
+"""rocoma-can: the rocoma controller manager for CANopen actuator buses.
+
+The public names are imported on first use (``_lazy.py`` says why).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from ._lazy import lazy_exports
 
 __all__ = [
     "ControllerManager", "ManagerState", "ManagerTimeouts", "SwitchResult", "TimingSupervision",
@@ -14,3 +16,25 @@ __all__ = [
     "WorkerEvent", "WorkerHandle", "WorkerManager", "WorkerOptions",
     "PluginError", "add_to_manager", "create_controller", "load_config",
 ]
+_MODULE_OF = {
+    "ControllerManager": "manager", "ManagerTimeouts": "manager", "SwitchResult": "manager",
+    "TimingSupervision": "manager",
+    "EventKind": "events", "ManagerEvent": "events", "ManagerState": "events",
+    "Controller": "interfaces", "EmergencyController": "interfaces",
+    "FailproofController": "interfaces", "SwapState": "interfaces",
+    "ControllerTuple": "tuples", "EmergencyControllerTuple": "tuples",
+    "TupleSwapState": "tuples",
+    "WorkerEvent": "workers", "WorkerHandle": "workers", "WorkerManager": "workers",
+    "WorkerOptions": "workers",
+    "PluginError": "plugins", "add_to_manager": "plugins", "create_controller": "plugins",
+    "load_config": "plugins",
+}
+__getattr__, __dir__ = lazy_exports(__name__, _MODULE_OF)
+
+if TYPE_CHECKING:
+    from .events import EventKind, ManagerEvent, ManagerState
+    from .interfaces import Controller, EmergencyController, FailproofController, SwapState
+    from .manager import ControllerManager, ManagerTimeouts, SwitchResult, TimingSupervision
+    from .plugins import PluginError, add_to_manager, create_controller, load_config
+    from .tuples import ControllerTuple, EmergencyControllerTuple, TupleSwapState
+    from .workers import WorkerEvent, WorkerHandle, WorkerManager, WorkerOptions

@@ -15,14 +15,15 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import can
 
-from .config import validate
-from .drivers.sim_segment import SimulatedSegment
-from .runtime import Runtime
 from .services import ManagerClient, STATE_NAMES
+
+if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
+    from .drivers.sim_segment import SimulatedSegment
+    from .runtime import Runtime
 
 MANAGER_ID = 100
 ESTOP_COB_ID = 0x0A0
@@ -195,6 +196,9 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
 
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              out: Callable[[str], None] = print) -> Report:
+    from .config import validate
+    from .drivers.sim_segment import SimulatedSegment
+    from .runtime import Runtime
     channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
     config = validate(demo_config(channel, drives, rate), source="demo")
     report = Report()

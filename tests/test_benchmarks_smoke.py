@@ -30,6 +30,9 @@ CASES = {
     "cycle_cost": lambda r: [row["drives"] for row in r] == [1, 6, 12, 24] and all(
         {"frames_per_cycle", "ours_us", "canopen_us", "speedup_median"} <= set(row)
         for row in r),
+    "cli_start": lambda r: all({"seconds", "modules", "numpy", "exit_code"} <= set(c)
+                               for c in r.values())
+    and not r["rocoma-can status --help"]["numpy"],
     "switch_missed_cycles": lambda r: {"plain", "drives"} <= set(r) and all(
         {"missed_during", "max_period_ms_during", "missed_baseline", "results"} <= set(s)
         for s in r.values()),
