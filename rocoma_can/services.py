@@ -34,6 +34,7 @@ virtual-bus instance) so its reader thread and SDO traffic never share a thread 
 from __future__ import annotations
 
 import logging
+import struct
 import threading
 import time
 from typing import Any, Callable
@@ -43,7 +44,7 @@ import canopen
 from canopen.objectdictionary import NUMBER_TYPES
 from canopen.sdo import SdoServer
 from canopen.sdo.constants import (EXPEDITED, NO_MORE_DATA, REQUEST_SEGMENT_DOWNLOAD,
-                                   REQUEST_SEGMENT_UPLOAD, REQUEST_UPLOAD, SDO_STRUCT,
+                                   REQUEST_SEGMENT_UPLOAD, RESPONSE_UPLOAD, SDO_STRUCT,
                                    SIZE_SPECIFIED)
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
@@ -58,7 +59,7 @@ ESTOP, FAILPROOF_STOP, CLEAR, RECOVER = 0x2110, 0x2111, 0x2112, 0x2113
 STATE, ACTIVE_NAME, ACTIVE_INDEX, CONTROLLER_LIST, ESTOP_CAUSE = (
     0x2120, 0x2121, 0x2122, 0x2123, 0x2124)
 ESTOP_COB_ID, ESTOP_LATCHED = 0x2130, 0x2131
-PRODUCER_HEARTBEAT_TIME = 0x1017
+PRODUCER_HEARTBEAT_TIME, TPDO1_COMMUNICATION = 0x1017, 0x1800
 PENDING = 0xFF
 ABORT_NOT_FOUND = 0x06090030     # value range of parameter exceeded
 ABORT_COMMAND_SPECIFIER = 0x05040001  # client/server command specifier not valid
@@ -96,10 +97,22 @@ class _StrictSdoServer(SdoServer):
         super().on_request(can_id, data, timestamp)
 
     def init_upload(self, request: bytes) -> None:
+        """canopen's, except that no data (an empty string) is a segmented upload of 0 bytes:
+        an empty value is a value, not the "no data available" abort canopen sends."""
         self._open, self._buffer = None, None
-        super().init_upload(request)
-        if self._buffer and request[0] & 0xE0 == REQUEST_UPLOAD:
+        _, index, subindex = SDO_STRUCT.unpack_from(request)
+        data = self._node.get_data(index, subindex, check_readable=True)
+        response = bytearray(8)
+        if 1 <= len(data) <= 4:
+            command = RESPONSE_UPLOAD | SIZE_SPECIFIED | EXPEDITED | (4 - len(data)) << 2
+            response[4:4 + len(data)] = data
+        else:
+            command = RESPONSE_UPLOAD | SIZE_SPECIFIED
+            struct.pack_into("<L", response, 4, len(data))
+            self._buffer, self._toggle = bytearray(data), 0
             self._open = REQUEST_SEGMENT_UPLOAD
+        SDO_STRUCT.pack_into(response, 0, command, index, subindex)
+        self.send_response(response)
 
     def segmented_upload(self, command: int) -> None:
         if self._open != REQUEST_SEGMENT_UPLOAD:
@@ -276,6 +289,8 @@ class ManagerNode(can.Listener):
         m = self.manager
         if index == PRODUCER_HEARTBEAT_TIME and self.heartbeat_ms is not None:
             return self.heartbeat_ms
+        if index == TPDO1_COMMUNICATION and subindex == 5:  # the status frame's period
+            return min(0xFFFF, round(self.status_period * 1000))
         if index == STATE:
             return int(m.state)
         if index == ACTIVE_NAME:

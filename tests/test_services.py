@@ -169,3 +169,43 @@ def test_no_answer_from_a_wrong_node(bus_factory):
     with ManagerClient(bus_factory(), 42, timeout=0.2) as client:
         with pytest.raises(NoAnswer):
             client.status()
+
+
+def test_a_plain_remote_node_from_the_eds_reads_what_the_node_serves(rig, bus_factory):
+    """canopen's RemoteNode built from eds/rocoma_manager.eds, nothing else: every readable
+    object answers, decoded with the EDS's type, with what the node really does; the command
+    objects are write-only; no object is missing from the answers or aborts."""
+    import canopen
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    from rocoma_can import eds
+    network = canopen.Network(bus_factory())
+    network.connect()
+    try:
+        node = network.add_node(NODE, str(eds.path(eds.MANAGER_NODE)))
+        node.sdo.RESPONSE_TIMEOUT = 1.0
+        expected = {
+            (0x1017, 0): 100,                      # no heartbeat_ms given: the EDS default
+            (0x1800, 1): 0x180 + NODE, (0x1800, 2): 255, (0x1800, 5): 50,  # status_period
+            (0x1A00, 0): 2, (0x1A00, 1): 0x21200008, (0x1A00, 2): 0x21220008,
+            (0x2102, 0): 0, (0x2120, 0): 0, (0x2121, 0): "torque_off", (0x2122, 0): 0,
+            (0x2123, 0): "pd,trajectory", (0x2124, 0): "", (0x2130, 0): ESTOP_COB,
+            (0x2131, 0): 0,
+        }
+        read, write_only = {}, []
+        for obj in node.object_dictionary.values():
+            variables = obj.values() if hasattr(obj, "values") else [obj]
+            for var in variables:
+                sdo_var = node.sdo[var.index] if var.subindex == 0 and not hasattr(obj, "values") \
+                    else node.sdo[var.index][var.subindex]
+                if not var.readable:
+                    write_only.append(var.index)
+                    with pytest.raises(SdoAbortedError) as refused:
+                        sdo_var.raw
+                    assert refused.value.code == 0x06010001, hex(var.index)
+                    continue
+                read[var.index, var.subindex] = sdo_var.raw
+        assert sorted(write_only) == [0x2100, 0x2101, 0x2110, 0x2111, 0x2112, 0x2113]
+        assert {k: read[k] for k in expected} == expected
+    finally:
+        network.disconnect()
