@@ -23,7 +23,6 @@ controller commands a cyclic mode (see hardware.py).
 from __future__ import annotations
 
 import enum
-import logging
 import struct
 import threading
 import time
@@ -40,9 +39,6 @@ from .pdo_layout import PDO_SLOTS, DriveLayout, Pdo
 #: Transmission type: synchronous, every SYNC (RPDO: act on the next SYNC).
 SYNC_EVERY_CYCLE = 1
 _COB_INVALID = 0x8000_0000
-
-log = logging.getLogger(__name__)
-
 
 class Phase(enum.IntEnum):
     WAIT_BOOT = 0
@@ -196,13 +192,6 @@ def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveL
     return ConfigResult(statusword, error_code)
 
 
-def _write_controlword_zero(node: canopen.RemoteNode, name: str) -> None:
-    try:
-        node.sdo.download(cia402.CONTROLWORD, 0, b"\x00\x00")
-    except Exception as exc:  # noqa: BLE001 - best effort beside the RPDO and the consumer
-        log.warning("drive %r: switching off by SDO failed: %s", name, exc)
-
-
 class DriveBringup:
     """Start-up state of one drive; ``step`` is called from the cycle and never blocks."""
 
@@ -222,20 +211,28 @@ class DriveBringup:
         self.reset_cycles = 0       # cycles spent in RESETTING (edge: 0x00 first, then 0x80)
         self.sto_seen = False       # an EMCY 0x5441 arrived during start-up
         self._job: Future[ConfigResult] | None = None
-        # canopen's SdoClient has no lock: configuration and the SDO switch-off of this
-        # drive, both on the worker pool, must never overlap on its node
+        # canopen's SdoClient has no lock: configuration (worker pool) and the SDO
+        # switch-off (switch_off.py) must never overlap on this drive's node
         self._sdo_lock = threading.Lock()
 
     def _locked(self, job: Callable[..., Any], *args: Any) -> Any:
         with self._sdo_lock:
             return job(*args)
 
-    def switch_off_by_sdo(self, executor: Executor) -> None:
-        """Controlword 0x0000 (disable voltage) by SDO, once, on the worker pool: the path
-        to a latched drive that may no longer apply its RPDOs (left operational by another
-        node's NMT command, or ignoring SYNC) while still answering SDO. Never raises; a
-        drive that does not answer is left to its RPDOs and heartbeat consumer."""
-        executor.submit(self._locked, _write_controlword_zero, self.node, self.drive.name)
+    @property
+    def name(self) -> str:
+        return self.drive.name
+
+    def write_controlword_by_sdo(self, value: int) -> bool:
+        """For the SDO switch-off (switch_off.py): False, without writing, while this
+        drive's configuration holds its SDO client (it is in start-up: torque off)."""
+        if not self._sdo_lock.acquire(blocking=False):
+            return False
+        try:
+            self.node.sdo.download(cia402.CONTROLWORD, 0, struct.pack("<H", value))
+            return True
+        finally:
+            self._sdo_lock.release()
 
     def restart(self, now: float, probe_at_once: bool = False) -> None:
         """Back to the beginning (start-up, or recovery of a drive that failed or rebooted)."""

@@ -17,8 +17,8 @@ The safety path, top to bottom (each step names where it lives):
    the cycle thread, so no lock is shared with a slow thread.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
    a latched drive is never sent anything but controlword 0x0000), until recovery, and
-   controlword 0x0000 once by SDO on the worker pool (``_deliver``): a drive that no longer
-   applies RPDOs (pre-operational, ignoring SYNC) still switches off.
+   controlword 0x0000 once by SDO from a thread of its own (``_deliver``, switch_off.py): a
+   drive that no longer applies RPDOs (pre-operational, ignoring SYNC) still switches off.
 3. ``read`` hands the event to the manager before update(): ``manager.emergency_stop(cause)``
    (``attach`` / ``create_manager``). In update() the manager switches OK -> EMERGENCY: the
    emergency controller's initialize_fast and advance write this cycle's command, so the
@@ -54,6 +54,7 @@ import collections
 import math
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -70,6 +71,7 @@ from .joints import JointCommand, JointMode, JointState
 from .pdo_layout import RPDO_FIELDS, DriveLayout, drive_object_dictionary, layout_for
 from .scaling import Scaling
 from .supervision import FaultEvent, Supervisor
+from .switch_off import SdoSwitchOff
 
 #: ManagerState.FAILPROOF (rocoma_can.events); compared as an int so the hot path needs no import.
 FAILPROOF = 0
@@ -109,6 +111,8 @@ class DriveStatus:
     cia402_state: str
     enabled: bool
     fault: str | None     # the latched fault or start-up failure, None when healthy
+    nmt_state: str = "UNKNOWN"          # from the drive's last heartbeat
+    heartbeat_age: float | None = None  # s since that heartbeat arrived; None: none yet
 
 
 #: Linux CAN error class of a bus-off error frame (linux/can/error.h CAN_ERR_BUSOFF)
@@ -195,6 +199,7 @@ class CanopenHardware:
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
         self._finite = np.zeros(n, dtype=bool)
+        self._position_fed = np.array(["position" in d.feedback for d in drives], dtype=bool)
         self._default_mode = [int(d.modes[0]) for d in drives]
         self._got = np.zeros(n, dtype=np.int64)             # TPDO bits seen this cycle
         self._expected = np.array([(1 << len(lay.tpdos)) - 1 for lay in self.layouts],
@@ -239,6 +244,7 @@ class CanopenHardware:
         self._writer: FrameWriter | None = None
         self._bringup: list[DriveBringup] = []
         self._executor: ThreadPoolExecutor | None = None
+        self._switch_off = SdoSwitchOff()  # started with the bus (start)
         self._manager: Any = None
         self._recovery: Future | None = None
         self._recovery_started = False
@@ -250,6 +256,7 @@ class CanopenHardware:
         self.last_tx_error: Exception | None = None
         self._tx_refused = False     # a frame was refused since the last write
         self._tx_refused_cycles = 0  # writes in a row with a refused frame
+        self._tx_clean_cycles = 0    # writes in a row without one (a recovery needs a run)
         self.rx_bad = 0        # TPDOs with a length other than their mapping's (never decoded)
         self.hook_errors = 0   # on_fault calls that raised (counted, never raised)
         self.error_frames = 0  # CAN error frames received (bus-off ones are a fault)
@@ -280,6 +287,8 @@ class CanopenHardware:
         self._writer = cb.writer
         cob_ids = set(self._tpdo_of) | set(self._heartbeat_of) | set(self._emcy_of)
         cb.add_listener(_Receiver(cob_ids, self._rx, self._rx_errors))
+        self._switch_off = SdoSwitchOff()
+        self._switch_off.start()
         self._executor = ThreadPoolExecutor(
             max_workers=min(self.config_workers, len(self.drives_config)),
             thread_name_prefix="canopen-config")
@@ -303,6 +312,7 @@ class CanopenHardware:
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
             self._executor = None
+        self._switch_off.close()
         if self._canopen is not None:
             self._canopen.close()
             self._canopen = None
@@ -444,12 +454,14 @@ class CanopenHardware:
                 self._next_heartbeat = -math.inf
 
     def _deliver(self, events: list[FaultEvent]) -> None:
+        sup = self.supervisor
         for event in events:
-            i = self._index_of_node.get(event.node_id)
-            if i is not None and self._executor is not None and self._bringup[i].mapped:
-                self._bringup[i].switch_off_by_sdo(self._executor)  # a submit: never blocks
             if self._manager is not None:
                 self._manager.emergency_stop(cause=str(event))  # a deque append: cannot fail
+            i = self._index_of_node.get(event.node_id)
+            if i is not None and self._bringup[i].mapped and sup.latched[i] is event:
+                self._switch_off.request(self._bringup[i],  # a queue append: cannot block
+                                         lambda i=i, event=event: sup.latched[i] is event)
             if self.on_fault is not None:
                 try:
                     self.on_fault(event)
@@ -484,13 +496,17 @@ class CanopenHardware:
         """A bus that refuses frames cycle after cycle (transmit queue full, interface down)
         delivers no command and no heartbeat: after as many cycles as missing TPDOs are
         tolerated it is a bus fault, an e-stop like bus-off. One refused frame is not (a
-        transmit queue can be full for a moment); the frames are tried again every cycle."""
+        transmit queue can be full for a moment); the frames are tried again every cycle. A
+        recovery succeeds only after as many cycles in a row without a refused frame."""
+        sup = self.supervisor
         if not self._tx_refused:
             self._tx_refused_cycles = 0
+            if self._tx_clean_cycles < sup.tpdo_timeout_cycles:
+                self._tx_clean_cycles += 1
             return
         self._tx_refused = False
+        self._tx_clean_cycles = 0
         self._tx_refused_cycles += 1
-        sup = self.supervisor
         if self._tx_refused_cycles >= sup.tpdo_timeout_cycles and sup.bus_latched is None:
             sup.bus_fault(f"the bus refused frames in {self._tx_refused_cycles} cycles in a "
                           f"row (last: {self.last_tx_error})", self._now)
@@ -605,11 +621,21 @@ class CanopenHardware:
         return True
 
     def neutral_command(self, command: JointCommand) -> None:
-        """Targets that move nothing: position targets at the actual position, velocity and
-        torque 0 (the mode is left to the layer that takes over). The manager calls it on
-        every fall to a lower layer, so an emergency controller that writes only some
-        fields never sends the failed controller's targets (or its NaNs) in the others."""
-        np.copyto(command.position, self.state.position)
+        """Targets for the fields a lower layer does not write itself: velocity and torque
+        0; the position target at the actual position where the drive reports it (else
+        the previous target when it is finite, else that joint quick-stops in firmware).
+        The manager calls it on every fall to a lower layer, before the emergency
+        controller writes, so the failed controller's targets (or its NaNs) are never sent
+        in fields the emergency controller leaves alone. The emergency controller still
+        owns its command: torque 0 in CST is no holding torque."""
+        position = command.position
+        np.copyto(position, self.state.position, where=self._position_fed)
+        finite = self._finite
+        np.isfinite(position, out=finite)
+        if not finite.all():  # a fault path, rare: allocation is fine here
+            stuck = ~finite
+            position[stuck] = 0.0
+            command.mode[stuck] = JointMode.QUICK_STOP
         command.velocity.fill(0.0)
         command.torque.fill(0.0)
 
@@ -652,16 +678,17 @@ class CanopenHardware:
                 elif b.phase != Phase.CONFIGURING:
                     b.restart(now, probe_at_once=True)
             return
-        if (all(b.phase == Phase.READY for b in self._bringup) and not any(sup.latched)
-                and sup.bus_latched is None):
+        drives_ready = (all(b.phase == Phase.READY for b in self._bringup)
+                        and not any(sup.latched) and sup.bus_latched is None)
+        if drives_ready and self._tx_clean_cycles >= sup.tpdo_timeout_cycles:
             if self._manager is not None:
                 try:
                     self._manager.clear_emergency_stop()
                 except Exception:
                     pass
             future.set_result(True)
-        elif now > self._recovery_deadline or all(
-                b.phase in (Phase.READY, Phase.FAILED) for b in self._bringup):
+        elif now > self._recovery_deadline or (not drives_ready and all(
+                b.phase in (Phase.READY, Phase.FAILED) for b in self._bringup)):
             future.set_result(False)
 
     # --- status --------------------------------------------------------------------------------
@@ -699,14 +726,57 @@ class CanopenHardware:
     def all_enabled(self) -> bool:
         return bool(self._bringup) and bool(self.enabled.all())
 
+    def not_ready(self, required: Sequence[int] | None = None) -> str | None:
+        """Why the drives cannot be commanded now, or None: the manager's switch guard (a
+        switch into a controller needs its drives brought up and free of latched faults,
+        so clearing an e-stop latch never re-arms a faulted drive). ``required``: indices
+        of the drives that must be ready (default: every drive)."""
+        if not self._bringup:
+            return "the drives are not started"
+        sup = self.supervisor
+        if sup.bus_latched is not None:
+            return f"bus fault: {sup.bus_latched.cause} (recover first)"
+        waiting = []
+        for i in range(len(self._bringup)) if required is None else required:
+            b, latched, name = self._bringup[i], sup.latched[i], self.drives_config[i].name
+            if latched is not None:
+                waiting.append(f"{name} (fault: {latched.cause}; recover first)")
+            elif b.phase != Phase.READY:
+                waiting.append(f"{name} ({b.phase.name}" + (f": {b.failure})" if b.failure
+                                                             else ")"))
+        return "drives not ready: " + ", ".join(waiting) if waiting else None
+
     def drive_status(self) -> list[DriveStatus]:
+        """A snapshot (from any thread: it only reads), one entry per configured drive."""
         out = []
         enabled = self.enabled if self._bringup else np.zeros(len(self.drives_config), bool)
+        now = time.monotonic()
         for i, d in enumerate(self.drives_config):
             b = self._bringup[i] if self._bringup else None
             latched = self.supervisor.latched[i]
             fault = str(latched.cause) if latched is not None else (b.failure if b else None)
-            out.append(DriveStatus(d.name, d.node_id, b.phase.name if b else "NOT_STARTED",
-                                   State402(int(self.state.cia402_state[i])).name,
-                                   bool(enabled[i]), fault))
+            nmt = self._hb_state[i]
+            seen = float(self._hb_time[i])
+            out.append(DriveStatus(
+                d.name, d.node_id, b.phase.name if b else "NOT_STARTED",
+                State402(int(self.state.cia402_state[i])).name, bool(enabled[i]), fault,
+                cia402.NmtState(nmt).name if nmt in cia402.NmtState._value2member_map_
+                else "UNKNOWN",
+                round(now - seen, 3) if math.isfinite(seen) else None))
         return out
+
+    def status_report(self) -> dict[str, Any]:
+        """What the manager node serves as 0x2140 (JSON) and ``rocoma-can status`` prints:
+        whether start-up has finished, what a recovery is doing, and every drive."""
+        future = self._recovery
+        if future is None:
+            recovery = "none"
+        elif not future.done():
+            waiting = [f"{d.name} ({d.phase})" for d in self.drive_status()
+                       if d.phase != "READY" or d.fault]
+            recovery = "running" + (f": waiting for {', '.join(waiting)}" if waiting else "")
+        else:
+            recovery = "succeeded" if future.result() else "failed"
+        return {"startup_finished": bool(self._bringup) and not self.starting,
+                "recovery": recovery, "bus_fault": self.bus_fault,
+                "drives": [dataclasses.asdict(d) for d in self.drive_status()]}

@@ -11,6 +11,7 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
       estop_must_be_cleared: true  # every e-stop latches until "clear"
       switch_clients: null         # must stay null: any SDO client may switch (README)
       status_period: 0.1           # s, state TPDO repeat period
+      required_drives: null        # drives a switch needs ready (null = all; [] = none)
     realtime: {priority: null, cpus: null}   # SCHED_FIFO priority, CPU list
     supervision: {tpdo_timeout_cycles: 5, heartbeat_timeout_factor: 2.5,
                   consumer_factor: 2.0, sdo_timeout: 0.5}   # CanopenHardware's margins
@@ -41,7 +42,7 @@ _TOP_KEYS = {"bus", "rate", "manager", "realtime", "supervision", "drives", "con
              "emergency_controllers"}
 _BUS_KEYS = {"interface", "channel", "bitrate"}
 _MANAGER_KEYS = {"node_id", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
-                 "switch_clients", "status_period"}
+                 "switch_clients", "status_period", "required_drives"}
 _REALTIME_KEYS = {"priority", "cpus"}
 #: supervision margins: key -> (whole number?, minimum, maximum); CanopenHardware has the defaults
 _SUPERVISION = {
@@ -68,6 +69,8 @@ class ManagerNodeConfig:
     estop_cob_id: int = 0x0A0
     estop_must_be_cleared: bool = True
     status_period: float = 0.1
+    # names of the drives a switch into a controller needs ready (None: every drive)
+    required_drives: list[str] | None = None
 
 
 @dataclass
@@ -289,6 +292,19 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     supervision = _supervision(_section(data, "supervision", problems), problems)
 
     drives = _drives(data.get("drives"), manager.node_id, base, problems)
+    required = m.get("required_drives")
+    names = [d.name for d in drives]
+    if required is not None:
+        if not isinstance(required, list) or not all(isinstance(n, str) for n in required):
+            problems.append("manager.required_drives: expected null (every drive) or a list "
+                            f"of drive names, got {required!r}")
+        else:
+            unknown = [n for n in required if n not in names]
+            if unknown:
+                problems.append(f"manager.required_drives: no drive named "
+                                f"{', '.join(map(repr, unknown))} (drives: {', '.join(names)})")
+            else:
+                manager.required_drives = list(required)
 
     controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
     if not data.get("controllers"):

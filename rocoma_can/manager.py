@@ -137,6 +137,7 @@ class ControllerManager:
                  check_state: StateCheck | None = None,
                  limit_command: StateCheck | None = None,
                  reset_command: Callable[[Any], None] | None = None,
+                 switch_guard: Callable[[], str | None] | None = None,
                  timeouts: ManagerTimeouts | None = None,
                  timing: TimingSupervision | None = TimingSupervision(),
                  on_hang: Callable[[], None] | None = None, name: str = "rocoma") -> None:
@@ -156,6 +157,10 @@ class ControllerManager:
         # must not inherit the failed controller's targets (a NaN in a field the emergency
         # controller does not write would fail it too and skip the smart stop).
         self._reset_command = reset_command
+        # Why a switch into a controller must be refused now (e.g. drives not ready), or
+        # None: asked when a switch is requested, from the requesting thread.
+        self._switch_guard = switch_guard
+        self.last_refusal = ""  # why the last switch request was refused ("" = it was not)
         self.timing = timing
         self._on_hang = on_hang
         self.hang_calls = 0       # how often on_hang ran while update() was stuck
@@ -424,13 +429,31 @@ class ControllerManager:
         elif self._closed:
             log.error("switch to %r refused: manager is shut down", name)
             future.set_result(SwitchResult.ERROR)
+        elif (blocked := self.switch_blocked()) is not None:
+            self.last_refusal = blocked
+            log.error("switch to %r refused: %s", name, blocked)
+            future.set_result(SwitchResult.ERROR)
         elif not self._switch_busy.acquire(blocking=False):
+            self.last_refusal = "another switch is in progress"
             log.error("switch to %r refused: another switch is in progress", name)
             future.set_result(SwitchResult.ERROR)
         else:
+            self.last_refusal = ""
             future.set_running_or_notify_cancel()
             self._switch_jobs.put((pair, future))
         return future
+
+    def switch_blocked(self) -> str | None:
+        """Why a switch would be refused now, or None: the e-stop latch, then the switch
+        guard's reason (a guard that raises blocks too: it could not say all is well)."""
+        if self._latched:
+            return "emergency stop not cleared"
+        if self._switch_guard is None:
+            return None
+        try:
+            return self._switch_guard()
+        except Exception as exc:  # noqa: BLE001 - reported as the reason
+            return f"switch guard failed: {exc!r}"
 
     def switch_controller(self, name: str, timeout: float | None = None) -> SwitchResult:
         """Switch and wait for the result (at most ``timeout``, default timeouts.switch)."""

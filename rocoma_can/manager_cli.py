@@ -11,11 +11,12 @@ Exit codes (for shell scripts):
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from typing import Any, Callable
 
-from .services import (CLEAR, ESTOP, FAILPROOF_STOP, RECOVER, RESULT_NAMES, ManagerClient,
-                       NoAnswer, Refused)
+from .services import (ABORT_NOT_FOUND, CLEAR, ESTOP, FAILPROOF_STOP, RECOVER, RESULT_NAMES,
+                       SWITCH_REFUSAL, ManagerClient, NoAnswer, Refused)
 
 OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
 
@@ -96,9 +97,22 @@ def _client(args: argparse.Namespace, action: Callable[[ManagerClient], int]) ->
 
 
 def _switch(args: argparse.Namespace) -> int:
+    """Prints the result (SWITCHED, RUNNING, NOT_FOUND, ERROR) on stdout in every case; a
+    refusal's reason (e-stop latched, drives not ready) goes to stderr."""
     def action(client: ManagerClient) -> int:
-        result = client.switch(args.name, timeout=args.wait)
+        try:
+            result = client.switch(args.name, timeout=args.wait)
+        except Refused as exc:
+            if exc.code == ABORT_NOT_FOUND:
+                print("NOT_FOUND", flush=True)
+                _err(f"no controller {args.name!r} (`rocoma-can list` names them)")
+                return FAILED
+            print("ERROR", flush=True)
+            _err(f"switch refused: {client.read(SWITCH_REFUSAL) or exc}")
+            return FAILED
         print(RESULT_NAMES.get(result, str(result)), flush=True)
+        if result == 3:
+            _err(f"switch failed: {client.read(SWITCH_REFUSAL) or 'see the manager log'}")
         return OK if result in (0, 1) else FAILED
     return _client(args, action)
 
@@ -115,9 +129,23 @@ def _command(index: int, done: str) -> Callable[[argparse.Namespace], int]:
 
 def _status(args: argparse.Namespace) -> int:
     def action(client: ManagerClient) -> int:
-        for key, value in client.status().items():
-            print(f"{key}: {value:#05x}" if key == "estop_cob_id" else f"{key}: {value}",
-                  flush=True)
+        status = client.status()
+        if args.json:
+            print(json.dumps(status, indent=2), flush=True)
+            return OK
+        drives = status.pop("drives")
+        for key, value in status.items():
+            if key == "estop_cob_id":
+                value = f"{value:#05x}"
+            elif value in ("", None) and key in ("switch_refused", "estop_cause", "bus_fault"):
+                value = "none"
+            print(f"{key}: {value}", flush=True)
+        for d in drives:
+            age = d.get("heartbeat_age")
+            print(f"drive {d['name']} (node {d['node_id']}): {d['phase']}, {d['cia402_state']}"
+                  f"{', enabled' if d['enabled'] else ''}, NMT {d['nmt_state']}, heartbeat "
+                  f"{'never' if age is None else f'{age:.2f} s ago'}"
+                  f"{', fault: ' + d['fault'] if d['fault'] else ''}", flush=True)
         return OK
     return _client(args, action)
 
@@ -162,7 +190,9 @@ def register(subparsers: Any) -> None:
         p = subparsers.add_parser(name, help=text)
         _bus_options(p)
         p.set_defaults(func=_command(index, done))
-    p = subparsers.add_parser("status", help="state, active controller, e-stop latch and cause")
+    p = subparsers.add_parser("status", help="state, active controller, e-stop latch and cause, "
+                                              "every drive's bring-up, CiA 402 state and fault")
+    p.add_argument("--json", action="store_true", help="everything as one JSON document")
     _bus_options(p)
     p.set_defaults(func=_status)
     p = subparsers.add_parser("list", help="the switchable controllers, numbered")

@@ -245,8 +245,12 @@ class Runtime:
         self.node = None
         self._node_bus = None
         try:
+            names = [d.name for d in config.drives]
+            required = (None if m.required_drives is None
+                        else [names.index(n) for n in m.required_drives])
             self.manager = self.hardware.create_manager(
-                estop_must_be_cleared=m.estop_must_be_cleared)
+                estop_must_be_cleared=m.estop_must_be_cleared,
+                switch_guard=lambda: self.hardware.not_ready(required))
             add_to_manager(self.manager, config.controllers)
             bus = config.bus
             self._node_bus = open_bus(bus.interface, bus.channel, bus.bitrate,
@@ -254,7 +258,8 @@ class Runtime:
             self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
                                     estop_cob_id=m.estop_cob_id, status_period=m.status_period,
                                     recover=self.hardware.recover,
-                                    heartbeat_ms=m.heartbeat_ms)
+                                    heartbeat_ms=m.heartbeat_ms,
+                                    drive_status=self.hardware.status_report)
         except BaseException:
             self.close()
             raise

@@ -5,20 +5,21 @@ Server side, ``ManagerNode`` (objects; README "CLI and CAN services" has the ful
   0x2100 VISIBLE_STRING w  switch to the controller with this name
   0x2101 U8 w              switch to controller number n of 0x2123 (1-based)
   0x2102 U8 r              last switch result: 0 SWITCHED, 1 RUNNING, 2 NOT_FOUND, 3 ERROR,
-                           0xFF PENDING (accepted, switcher still working)
+                           0xFF PENDING (accepted, switcher still working), 0xFE none yet
+  0x2103 VISIBLE_STRING r  why the last switch request was refused ("" = it was not)
   0x2110 / 0x2111 / 0x2112 / 0x2113 U8 w   e-stop / failproof stop / clear / recover drives
   0x2120 U8 r state (0 FAILPROOF, 1 EMERGENCY, 2 OK); 0x2121 active controller name;
   0x2122 U8 r active controller number (0 = none of 0x2123); 0x2123 controller list
   (comma separated); 0x2124 last e-stop cause; 0x2130 U32 rw e-stop COB-ID (0 = off);
-  0x2131 U8 r e-stop latched
+  0x2131 U8 r e-stop latched; 0x2140 VISIBLE_STRING r drive status (JSON, see README)
 
 Why a switch is answered at once: canopen's SDO server answers on the bus reader's thread, and
 the same thread carries the e-stop COB-ID listener. Waiting there for a switch (which runs
 initialize/swap of the new controller, for any length of time) would delay e-stops and make
 the client's SDO time out. So a write to 0x2100/0x2101 is checked synchronously (unknown
-name -> abort 0x06090030 and 0x2102 = NOT_FOUND; e-stop latched or a switch running -> abort
-0x08000022 and 0x2102 = ERROR), otherwise accepted with 0x2102 = 0xFF (PENDING); the result
-lands in 0x2102 when the switch ends. ``rocoma-can switch`` polls 0x2102 for it.
+name -> abort 0x06090030 and 0x2102 = NOT_FOUND; e-stop latched, drives not ready or a switch
+running -> abort 0x08000022, 0x2102 = ERROR and the reason in 0x2103), otherwise accepted
+with 0x2102 = 0xFF (PENDING); the result lands in 0x2102 when the switch ends. ``rocoma-can switch`` polls 0x2102 for it.
 
 Frames the node sends (from its own status thread, never from the control loop):
   TPDO1 0x180+id, 2 bytes [state, active controller number]: on every state or controller
@@ -33,6 +34,7 @@ virtual-bus instance) so its reader thread and SDO traffic never share a thread 
 """
 from __future__ import annotations
 
+import json
 import logging
 import struct
 import threading
@@ -54,13 +56,14 @@ from .events import EventKind, ManagerEvent, ManagerState
 
 log = logging.getLogger(__name__)
 
-SWITCH_NAME, SWITCH_INDEX, SWITCH_RESULT = 0x2100, 0x2101, 0x2102
+SWITCH_NAME, SWITCH_INDEX, SWITCH_RESULT, SWITCH_REFUSAL = 0x2100, 0x2101, 0x2102, 0x2103
+DRIVE_STATUS = 0x2140
 ESTOP, FAILPROOF_STOP, CLEAR, RECOVER = 0x2110, 0x2111, 0x2112, 0x2113
 STATE, ACTIVE_NAME, ACTIVE_INDEX, CONTROLLER_LIST, ESTOP_CAUSE = (
     0x2120, 0x2121, 0x2122, 0x2123, 0x2124)
 ESTOP_COB_ID, ESTOP_LATCHED = 0x2130, 0x2131
 PRODUCER_HEARTBEAT_TIME, TPDO1_COMMUNICATION = 0x1017, 0x1800
-PENDING = 0xFF
+PENDING, NO_SWITCH_YET = 0xFF, 0xFE
 ABORT_NOT_FOUND = 0x06090030     # value range of parameter exceeded
 ABORT_COMMAND_SPECIFIER = 0x05040001  # client/server command specifier not valid
 ABORT_REFUSED = 0x08000022       # cannot transfer because of the present device state
@@ -191,14 +194,16 @@ class ManagerNode(can.Listener):
     def __init__(self, manager: Any, node_id: int, bus: can.BusABC, *,
                  estop_cob_id: int = 0, status_period: float = 0.1,
                  recover: Callable[[], Any] | None = None, eds_path: str | None = None,
-                 heartbeat_ms: int | None = None) -> None:
+                 heartbeat_ms: int | None = None,
+                 drive_status: Callable[[], dict[str, Any]] | None = None) -> None:
         self.manager = manager
         self.node_id = node_id
         self.bus = bus
         self.status_period = status_period
         self.recover = recover
-        self.last_result = 0
+        self.last_result = NO_SWITCH_YET
         self.last_cause = ""
+        self.drive_status = drive_status  # -> the 0x2140 report (JSON), None: no drives
         self.estop_frames: list[float] = []  # monotonic receive times of e-stop frames
         self.frames_sent = 0
         self._estop_cob_id = 0
@@ -305,6 +310,12 @@ class ManagerNode(can.Listener):
             return int(m.estop_latched)
         if index == SWITCH_RESULT:
             return self.last_result
+        if index == SWITCH_REFUSAL:
+            return m.last_refusal
+        if index == DRIVE_STATUS:
+            report = (self.drive_status() if self.drive_status is not None
+                      else {"startup_finished": True, "recovery": "", "drives": []})
+            return json.dumps(report, separators=(",", ":"))
         if index == ESTOP_COB_ID:
             return self._estop_cob_id
         return None
@@ -359,7 +370,9 @@ class ManagerNode(can.Listener):
         if name not in m.available_controllers():
             self.last_result = 2
             raise SdoAbortedError(ABORT_NOT_FOUND)
-        if m.estop_latched:
+        blocked = m.switch_blocked()  # e-stop latched, drives not ready: m.last_refusal says
+        if blocked is not None:
+            m.last_refusal = blocked
             self.last_result = 3
             raise SdoAbortedError(ABORT_REFUSED)
         self.last_result = PENDING
@@ -436,7 +449,8 @@ _ABORT_TEXT = {
     ABORT_REFUSED: "e-stop latched (clear it first) or a switch is running",
     ABORT_NO_RECOVERY: "this manager has no drives to recover",
 }
-RESULT_NAMES = {0: "SWITCHED", 1: "RUNNING", 2: "NOT_FOUND", 3: "ERROR", PENDING: "PENDING"}
+RESULT_NAMES = {0: "SWITCHED", 1: "RUNNING", 2: "NOT_FOUND", 3: "ERROR", PENDING: "PENDING",
+                NO_SWITCH_YET: "none"}
 STATE_NAMES = {0: "FAILPROOF", 1: "EMERGENCY", 2: "OK"}
 
 
@@ -493,13 +507,23 @@ class ManagerClient:
             time.sleep(0.02)
 
     def status(self) -> dict[str, Any]:
+        """Everything the node serves about itself and its drives (0x2140 decoded)."""
+        try:
+            drives = json.loads(self.read(DRIVE_STATUS) or "{}")
+        except ValueError:
+            drives = {}
         return {
             "state": STATE_NAMES.get(self.read(STATE), "?"),
             "active": self.read(ACTIVE_NAME),
             "latched": bool(self.read(ESTOP_LATCHED)),
             "last_switch": RESULT_NAMES.get(self.read(SWITCH_RESULT), "?"),
+            "switch_refused": self.read(SWITCH_REFUSAL),
             "estop_cause": self.read(ESTOP_CAUSE),
             "estop_cob_id": self.read(ESTOP_COB_ID),
+            "startup_finished": drives.get("startup_finished"),
+            "recovery": drives.get("recovery"),
+            "bus_fault": drives.get("bus_fault"),
+            "drives": drives.get("drives", []),
         }
 
     def controllers(self) -> list[str]:

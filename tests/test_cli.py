@@ -44,12 +44,14 @@ def test_client_commands_against_a_manager(bus_factory, virtual_channel, capsys)
     rig = Rig(bus_factory, must_clear=True)
     opts = ["--interface", "virtual", "--channel", virtual_channel, "--node", str(NODE)]
     try:
-        assert main(["switch", "pd", *opts]) == 1          # latched: refused
-        assert "e-stop latched" in capsys.readouterr().err
+        assert main(["switch", "pd", *opts]) == 1          # latched: refused, and why
+        out, err = capsys.readouterr()
+        assert out.strip() == "ERROR" and "switch refused: emergency stop not cleared" in err
         assert main(["clear", *opts]) == 0
         assert main(["switch", "pd", *opts]) == 0
         assert capsys.readouterr().out.strip().splitlines()[-1] == "SWITCHED"
         assert main(["switch", "nope", *opts]) == 1
+        assert capsys.readouterr().out.strip() == "NOT_FOUND"  # on stdout, as documented
         assert main(["list", *opts]) == 0
         assert capsys.readouterr().out.splitlines() == ["1 pd", "2 trajectory"]
         assert main(["estop", *opts]) == 0

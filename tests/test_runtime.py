@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import threading
+import time
 
 import pytest
 
@@ -27,8 +28,10 @@ def test_stop_from_another_thread_ends_in_torque_off(runtime, frame_recorder):
     result = {}
 
     def operate():
-        if rec.wait_for(lambda f: f.cob_id == 0x181, timeout=10.0) and \
-                rt.manager.switch_controller("pd", timeout=10.0) == 0:
+        deadline = time.monotonic() + 10.0  # a switch needs every drive brought up
+        while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if rt.manager.switch_controller("pd", timeout=10.0) == 0:
             rec.wait_for(lambda f: f.cob_id == 0x201 and f.data[:2] == b"\x0f\x00",
                          timeout=10.0)  # enable operation: the pd commands
             result["mark"] = rec.mark()

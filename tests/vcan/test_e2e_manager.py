@@ -4,6 +4,7 @@ seen by a third listener; SIGTERM -> torque-off frames before the manager exits.
 Low rates (25 Hz): user-mode-linux system calls are slow. Asserts frames and order only."""
 from __future__ import annotations
 
+import json
 import shutil
 import signal
 import subprocess
@@ -112,8 +113,12 @@ def test_manager_sim_and_cli_as_three_processes(tmp_path, processes, frame_recor
         (switched, cli("status").stdout)
     wait_for(lambda: state_frames(bytes([2, 1])) > 0, 20, "state OK / pd (frame [2, 1])")
 
-    status = cli("status")
-    assert status.returncode == 0 and "state: OK" in status.stdout and "active: pd" in status.stdout
+    status = cli("status", "--json")
+    assert status.returncode == 0, status
+    report = json.loads(status.stdout)
+    assert (report["state"], report["active"], report["startup_finished"]) == ("OK", "pd", True)
+    assert [(d["node_id"], d["phase"], d["enabled"], d["fault"]) for d in report["drives"]] \
+        == [(n, "READY", True, None) for n in DRIVES]
 
     # e-stop by a raw CAN frame from python-can
     mark = rec.mark()
