@@ -14,7 +14,9 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
       required_drives: null        # drives a switch needs ready (null = all; [] = none)
     realtime: {priority: null, cpus: null}   # SCHED_FIFO priority, CPU list
     supervision: {tpdo_timeout_cycles: 5, heartbeat_timeout_factor: 2.5,
-                  consumer_factor: 2.0, sdo_timeout: 0.5}   # CanopenHardware's margins
+                  consumer_factor: 2.0, sdo_timeout: 0.5,   # CanopenHardware's margins
+                  boot_wait: 1.0, start_timeout: 2.0, reset_timeout: 1.0,
+                  enable_timeout: 1.0}                      # start-up (bringup.Timeouts)
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
     controllers: [ ... ]           # rocoma_can.plugins format
     emergency_controllers: [ ... ]
@@ -51,7 +53,13 @@ _SUPERVISION = {
     "consumer_factor": (False, 1.5, 100.0),
     "sdo_timeout": (False, 0.01, 30.0),
     "enable_timeout": (False, 0.1, 60.0),
+    "boot_wait": (False, 0.0, 60.0),
+    "start_timeout": (False, 0.1, 60.0),
+    "reset_timeout": (False, 0.1, 60.0),
 }
+#: the supervision keys that are start-up timeouts: key -> drivers.bringup.Timeouts field
+TIMEOUT_KEYS = {"boot_wait": "boot_wait", "start_timeout": "start", "reset_timeout": "reset",
+                "enable_timeout": "enable"}
 
 
 class ConfigError(ValueError):

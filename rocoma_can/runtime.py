@@ -235,10 +235,12 @@ class Runtime:
         from .services import ManagerNode
         self.config = config
         m = config.manager
+        from .config import TIMEOUT_KEYS
         margins = dict(config.supervision)
-        enable = margins.pop("enable_timeout", None)
-        if enable is not None:
-            margins["timeouts"] = Timeouts(enable=enable)
+        timeouts = {field: margins.pop(key) for key, field in TIMEOUT_KEYS.items()
+                    if key in margins}
+        if timeouts:
+            margins["timeouts"] = Timeouts(**timeouts)
         self.hardware = CanopenHardware(config.bus, config.drives, m.node_id, config.dt,
                                         manager_heartbeat_ms=m.heartbeat_ms, **margins)
         self.manager = None

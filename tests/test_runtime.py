@@ -72,3 +72,12 @@ def test_cycle_stats_ring():
 def test_rate_must_be_positive():
     with pytest.raises(ValueError):
         ControlLoop(object(), object(), 0)
+
+
+def test_start_up_timeouts_come_from_the_yaml(virtual_channel):
+    from rocoma_can.drivers.bringup import Timeouts
+    cfg = demo_config(virtual_channel, drives=2, rate=100.0)
+    cfg["supervision"] = {"boot_wait": 0.5, "start_timeout": 3.0, "reset_timeout": 4.0,
+                          "enable_timeout": 2.0}
+    with Runtime(validate(cfg)) as rt:
+        assert rt.hardware.timeouts == Timeouts(boot_wait=0.5, start=3.0, reset=4.0, enable=2.0)
