@@ -11,6 +11,7 @@ import argparse
 import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -122,15 +123,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"rocoma-can sim: cannot open {args.interface} channel {args.channel}: {exc}",
               file=sys.stderr)
         return 1
-    stop = threading.Event()
-    status = threading.Event()
+    # Set by signal handlers, polled below: a handler runs on this (main) thread between two
+    # bytecodes and must take no lock (Event.set could wait for ever for the lock that the
+    # interrupted Event.wait holds).
+    signalled = {"stop": False, "status": False}
     previous: dict[int, Any] = {}
 
     def on_stop(signum: int, frame: Any) -> None:
-        stop.set()
+        signalled["stop"] = True
 
     def on_status(signum: int, frame: Any) -> None:
-        status.set()
+        signalled["status"] = True
 
     if threading.current_thread() is threading.main_thread():
         for sig, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop),
@@ -148,17 +151,17 @@ def run(args: argparse.Namespace) -> int:
             interval = args.status_interval if args.status_interval > 0 else None
             next_status = start + interval if interval else None
             end = start + args.duration if args.duration is not None else None
-            while not stop.is_set():
+            while not signalled["stop"]:
                 now = segment.clock()
                 if end is not None and now >= end:
                     break
-                if status.is_set() or (next_status is not None and now >= next_status):
-                    status.clear()
+                if signalled["status"] or (next_status is not None and now >= next_status):
+                    signalled["status"] = False
                     print("\n".join(segment.status_lines()), flush=True)
                     if next_status is not None:
                         next_status = max(next_status + interval, now)
                 waits = [t - now for t in (end, next_status) if t is not None]
-                stop.wait(min(waits + [0.2]))  # bounded: SIGUSR1 is seen within 0.2 s
+                time.sleep(min(waits + [0.2]))  # bounded: a signal is seen within 0.2 s
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -11,7 +11,9 @@ Exit codes (for shell scripts):
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import json
+import signal
 import sys
 from typing import Any, Callable
 
@@ -61,6 +63,8 @@ def _run(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         _err(str(exc))
         return USAGE
+    if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
+        faulthandler.register(signal.SIGUSR2, all_threads=True)
     with runtime:
         print(f"rocoma-can: running {len(config.drives)} drives at {config.rate:g} Hz on "
               f"{config.bus.interface}:{config.bus.channel}, manager node "

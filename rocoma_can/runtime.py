@@ -126,26 +126,33 @@ class ControlLoop:
         self.stats = CycleStats(self.period, stats_size)
         self.stop_reason = ""
         self._stop = threading.Event()
+        self._signalled: str | None = None  # set by the signal handler, taken by the loop
         self.last_state: Any = None
 
     def stop(self, reason: str = "stop requested") -> None:
-        """From any thread or a signal handler: the loop torque-offs and returns."""
+        """From any thread (not a signal handler: see ``on_signal``): the loop torque-offs
+        and returns."""
         if not self._stop.is_set():
             self.stop_reason = reason
             self._stop.set()
 
+    def on_signal(self, signum: int, frame: Any) -> None:
+        """SIGINT/SIGTERM handler. It takes no lock: Python runs it on the main thread (the
+        loop's) between two bytecodes, possibly while that thread holds the stop Event's
+        lock inside ``Event.wait``; ``Event.set`` here would then wait for that lock for ever
+        and the process would never stop. A plain attribute is set instead; the loop sees it
+        within one period."""
+        self._signalled = f"signal {signal.Signals(signum).name}"
+
     @property
     def stopping(self) -> bool:
-        return self._stop.is_set()
+        return self._stop.is_set() or self._signalled is not None
 
     def install_signal_handlers(self) -> Callable[[], None]:
-        """SIGINT/SIGTERM -> stop(); returns a function restoring the previous handlers."""
+        """SIGINT/SIGTERM -> on_signal; returns a function restoring the previous handlers."""
         previous = {}
-
-        def handler(signum: int, frame: Any) -> None:
-            self.stop(f"signal {signal.Signals(signum).name}")
         for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, handler)
+            previous[sig] = signal.signal(sig, self.on_signal)
 
         def restore() -> None:
             for sig, old in previous.items():
@@ -166,6 +173,9 @@ class ControlLoop:
         deadline = start
         try:
             while not self._stop.is_set():
+                if self._signalled is not None:
+                    self.stop(self._signalled)
+                    break
                 now = clock()
                 if now >= end:
                     self.stop("duration reached")
@@ -197,7 +207,7 @@ class ControlLoop:
         remaining = deadline - clock() - _SPIN
         if remaining > 0:
             self._stop.wait(remaining)
-        while clock() < deadline and not self._stop.is_set():
+        while clock() < deadline and not self._stop.is_set() and self._signalled is None:
             pass
 
     def _torque_off(self) -> None:

@@ -3,6 +3,7 @@ torque-off frames on every stop path, timing statistics."""
 from __future__ import annotations
 
 import gc
+import signal
 import threading
 import time
 
@@ -81,3 +82,23 @@ def test_start_up_timeouts_come_from_the_yaml(virtual_channel):
                           "enable_timeout": 2.0}
     with Runtime(validate(cfg)) as rt:
         assert rt.hardware.timeouts == Timeouts(boot_wait=0.5, start=3.0, reset=4.0, enable=2.0)
+
+
+def test_the_signal_handler_takes_no_lock(runtime):
+    """Python runs a signal handler on the main thread (the loop's) between two bytecodes,
+    possibly while that thread holds the stop Event's lock inside ``Event.wait``. A handler
+    calling ``Event.set`` then waits for ever for that lock: SIGTERM hung `rocoma-can run`
+    (seen once in the vcan end-to-end test). Here the handler runs while its thread holds
+    exactly that lock (CPython's Event keeps it in ``_cond``): it must return, and the loop
+    must then stop for that signal, with torque-off."""
+    loop = runtime.loop
+    returned = threading.Event()
+
+    def interrupted_inside_wait() -> None:
+        with loop._stop._cond:
+            loop.on_signal(signal.SIGTERM, None)
+        returned.set()
+    threading.Thread(target=interrupted_inside_wait, daemon=True).start()
+    assert returned.wait(5.0), "the signal handler blocked on the stop Event's lock"
+    runtime.run(duration=5.0, signals=False)
+    assert loop.stop_reason == "signal SIGTERM" and int(loop.last_state) == 0

@@ -122,7 +122,15 @@ def test_manager_sim_and_cli_as_three_processes(processes, frame_recorder, bus_f
     # SIGTERM: torque-off frames (RPDO1 controlword 0x0000 to every drive) before the exit
     mark = rec.mark()
     manager.send_signal(signal.SIGTERM)
-    assert manager.wait(30) == 0
+    try:
+        manager.wait(30)
+    except subprocess.TimeoutExpired:  # a hang: its threads' stacks are the report
+        manager.send_signal(signal.SIGUSR2)
+        time.sleep(5)
+        manager.kill()
+        raise AssertionError("rocoma-can run did not exit within 30 s of SIGTERM:\n"
+                             + manager.communicate(timeout=30)[0][-6000:]) from None
+    assert manager.returncode == 0
     out = manager.stdout.read()
     assert "stopped (signal SIGTERM)" in out, out
     time.sleep(0.5)
