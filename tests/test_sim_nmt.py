@@ -149,3 +149,24 @@ def test_nmt_stop_applies_0x6007(sim_bench):
     bench.enable(1, Mode.CSV)
     bench.nmt(NmtCommand.STOP)
     assert bench.drive(1).state402 == State402.SWITCH_ON_DISABLED
+
+
+def test_heartbeats_handled_late_are_judged_by_their_arrival(sim_bench):
+    """A CPU hog can keep the simulator's receive thread from handling frames for longer
+    than the consumer time. Heartbeats that arrived in time must not count as lost: they
+    used to, stamped when handled (all drives reported EMCY 0x8130 29 ms after a heartbeat).
+    Here the segment's lock is held for 4 consumer times while heartbeats keep arriving
+    every third of one: the exact starvation, made deterministic."""
+    bench = sim_bench(1)
+    drive, rec = bench.drive(1), bench.recorder
+    _consume_master(bench, 150, AbortConnectionOption.DISABLE_VOLTAGE)
+    mark = rec.mark()
+    _beat(bench, 5, 0.05)
+    with bench.segment.lock:  # the receive thread cannot handle anything meanwhile
+        _beat(bench, 12, 0.05)
+    _beat(bench, 5, 0.05)
+    assert rec.count(0x81, since=mark) == 0, rec.frames(0x81, since=mark)
+    assert drive.state402 == State402.OPERATION_ENABLED
+    # the consumer is live: heartbeats stop, the loss is seen
+    rec.wait_for(lambda f: f.cob_id == 0x81, 3.0, since=mark)
+    bench.wait(lambda: drive.state402 == State402.SWITCH_ON_DISABLED, 1.0, "0x6007 reaction")
