@@ -144,10 +144,6 @@ class ControlLoop:
         within one period."""
         self._signalled = f"signal {signal.Signals(signum).name}"
 
-    @property
-    def stopping(self) -> bool:
-        return self._stop.is_set() or self._signalled is not None
-
     def install_signal_handlers(self) -> Callable[[], None]:
         """SIGINT/SIGTERM -> on_signal; returns a function restoring the previous handlers."""
         previous = {}
