@@ -21,10 +21,11 @@ import numpy as np
 from rocoma_can.drivers.bus import open_bus
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
-from rocoma_can.drivers.sim_segment import SimulatedSegment
+from rocoma_can.drivers.sim.segment import SimulatedSegment
 from rocoma_can.interfaces import Controller, EmergencyController
 from rocoma_can.runtime import ControlLoop
-from rocoma_can.services import ManagerNode
+from rocoma_can.runtime.node import ManagerNode
+from rocoma_can.runtime.system import manager_for
 
 MANAGER_NODE_ID = 100
 ESTOP_COB_ID = 0x010
@@ -82,7 +83,7 @@ class Rig:
             self.hardware = CanopenHardware(self.bus, drive_configs(drives), MANAGER_NODE_ID,
                                             self.dt)
             self._closers.append(self.hardware.close)
-            self.manager = self.hardware.create_manager()
+            self.manager = manager_for(self.hardware)
             self._closers.append(self.manager.shutdown)
             self.node_bus = open_bus(self.interface, self.channel,
                                     receive_own_messages=False)

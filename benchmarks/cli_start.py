@@ -47,7 +47,7 @@ def served_manager(interface: str, channel: str):
 
     from rocoma_can import ControllerManager
     from rocoma_can.controllers.torque_off import TorqueOff
-    from rocoma_can.services import ManagerNode
+    from rocoma_can.runtime.node import ManagerNode
     manager = ControllerManager(TorqueOff(), 0.01)
     bus = can.Bus(interface=interface, channel=channel, ignore_config=True)
     node = ManagerNode(manager, 100, bus).start()

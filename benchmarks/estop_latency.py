@@ -8,7 +8,7 @@
     FAILPROOF) is sent in the same cycle. Measured from the failing advance call to the
     first such frame received by a listener on the bus, and to the last drive's one.
 (b) e-stop CAN frame in -> torque-off frames out: an e-stop frame on the manager node's
-    e-stop COB-ID (rocoma_can.services.ManagerNode, 0x2130) while a controller with no
+    e-stop COB-ID (rocoma_can.runtime.node.ManagerNode, 0x2130) while a controller with no
     emergency controller runs: the manager goes to FAILPROOF and every drive gets
     controlword 0x0000. Measured from the send of the e-stop frame.
 Cycles = loop cycle of the frame minus loop cycle of the failure (a) / of the last cycle

@@ -13,6 +13,15 @@ from typing import Any, Mapping
 
 from .joints import JointMode
 
+
+@dataclass(frozen=True)
+class BusConfig:
+    """Where the drives are: any python-can interface (socketcan, virtual, pcan, ...)."""
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int | None = None  # socketcan ignores it: set it with `ip link`
+
+
 #: Modes a drive can be configured for (JointMode.TORQUE_OFF / QUICK_STOP are always allowed).
 CYCLIC_MODES = (JointMode.CSP, JointMode.CSV, JointMode.CST)
 #: Feedback objects a drive can report in its TPDOs (statusword is always mapped).

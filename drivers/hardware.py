@@ -20,7 +20,7 @@ The safety path, top to bottom (each step names where it lives):
    controlword 0x0000 once by SDO from a thread of its own (``_deliver``, switch_off.py): a
    drive that no longer applies RPDOs (pre-operational, ignoring SYNC) still switches off.
 3. ``read`` hands the event to the manager before update(): ``manager.emergency_stop(cause)``
-   (``attach`` / ``create_manager``). In update() the manager switches OK -> EMERGENCY: the
+   (``attach``; ``rocoma_can.runtime.system.manager_for`` wires it). In update() the manager switches OK -> EMERGENCY: the
    emergency controller's initialize_fast and advance write this cycle's command, so the
    failed controller never commands again.
 4. A second fault (another drive, or the emergency controller failing) -> FAILPROOF.
@@ -65,7 +65,7 @@ from . import cia402
 from .bringup import DriveBringup, Phase, Timeouts
 from .bus import CanopenBus, open_bus
 from .cia402 import State402
-from .config import DriveConfig, check_drives
+from .config import BusConfig, DriveConfig, check_drives
 from .frame_io import FrameWriter, clock_offset, to_monotonic
 from .joints import JointCommand, JointMode, JointState
 from .pdo_layout import RPDO_FIELDS, DriveLayout, drive_object_dictionary, layout_for
@@ -92,14 +92,6 @@ _ENABLE_STEP = {
 }
 ENABLE_STEP = tuple(_ENABLE_STEP.get(State402(s), int(cia402.Controlword.DISABLE_VOLTAGE))
                     for s in range(-1, 8))
-
-
-@dataclass(frozen=True)
-class BusConfig:
-    """Where the drives are: any python-can interface (socketcan, virtual, pcan, ...)."""
-    interface: str = "socketcan"
-    channel: str = "can0"
-    bitrate: int | None = None  # socketcan ignores it: set it with `ip link`
 
 
 @dataclass(frozen=True)
@@ -330,30 +322,9 @@ class CanopenHardware:
         """Route fault events to ``manager.emergency_stop`` (before its update, from read)."""
         self._manager = manager
 
-    def create_manager(self, **kwargs: Any) -> Any:
-        """A ControllerManager over this hardware with TorqueOff as its failproof layer.
-
-        The failproof layer is not configurable: passing ``failproof`` is a TypeError. The
-        torque-off frames in FAILPROOF do not depend on it anyway (see the module docstring).
-        """
-        from rocoma_can import ControllerManager
-        from rocoma_can.controllers.torque_off import TorqueOff
-        if "failproof" in kwargs:
-            raise TypeError("the CAN hardware layer always installs TorqueOff as failproof "
-                            "controller; it cannot be replaced")
-        for own in ("limit_command", "reset_command"):
-            if own in kwargs:
-                raise TypeError(f"{own} is the hardware's own (modes, NaN, limits; a neutral "
-                                "command on every fall to a lower layer)")
-        kwargs.setdefault("on_hang", self.send_torque_off)
-        manager = ControllerManager(TorqueOff(), self.dt, self.state, self.command,
-                                    limit_command=self.limit_command,
-                                    reset_command=self.neutral_command, **kwargs)
-        self.attach(manager)
-        return manager
-
     def run_cycle(self, now: float | None = None) -> Any:
-        """read, manager.update, write: one whole cycle (needs ``attach``/``create_manager``)."""
+        """read, manager.update, write: one whole cycle (needs ``attach``, which
+        ``rocoma_can.runtime.system.manager_for`` does)."""
         self.read(time.monotonic() if now is None else now)
         state = self._manager.update()
         self.write(state)
@@ -459,7 +430,8 @@ class CanopenHardware:
             if self._manager is not None:
                 self._manager.emergency_stop(cause=str(event))  # a deque append: cannot fail
             i = self._index_of_node.get(event.node_id)
-            if i is not None and self._bringup[i].mapped and sup.latched[i] is event:
+            if (i is not None and i < len(self._bringup) and self._bringup[i].mapped
+                    and sup.latched[i] is event):
                 self._switch_off.request(self._bringup[i],  # a queue append: cannot block
                                          lambda i=i, event=event: sup.latched[i] is event)
             if self.on_fault is not None:

@@ -11,10 +11,10 @@ from typing import Sequence
 
 # Modules that contribute sub-commands, in help order.
 COMMAND_MODULES: tuple[str, ...] = (
-    "rocoma_can.demo",
-    "rocoma_can.manager_cli",
-    "rocoma_can.new_controller",
-    "rocoma_can.drivers.sim_cli",
+    "rocoma_can.runtime.demo",
+    "rocoma_can.runtime.commands",
+    "rocoma_can.runtime.scaffold",
+    "rocoma_can.drivers.sim.cli",
 )
 
 

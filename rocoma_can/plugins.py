@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Mapping, Sequence
 
+from .errors import PluginError
 from .interfaces import Controller, EmergencyController, FailproofController
 from .tuples import ControllerTuple, EmergencyControllerTuple
 
@@ -43,10 +44,6 @@ GROUP = "rocoma_can.controllers"
 
 _ENTRY_KEYS = frozenset({"name", "plugin", "params", "tuple"})
 _LAYERS = (FailproofController, EmergencyController, Controller)  # most specific first
-
-
-class PluginError(ValueError):
-    """A controller entry that cannot be loaded; the message starts with its config path."""
 
 
 @dataclass(frozen=True)

@@ -15,13 +15,14 @@ from typing import Sequence
 
 import can
 
-from rocoma_can import Controller, EmergencyController, ManagerState
+from rocoma_can import Controller, EmergencyController, ManagerState, TimingSupervision
 from rocoma_can.drivers.bringup import CONFIG_ATTEMPTS, Timeouts
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.joints import JointMode
-from rocoma_can.drivers.sim_dynamics import JointParams
+from rocoma_can.drivers.sim.dynamics import JointParams
+from rocoma_can.runtime.system import manager_for
 
 MANAGER_NODE_ID = 100
 INCREMENTS_PER_REV = 1 << 20  # the simulated drive's 0x608F default
@@ -77,6 +78,17 @@ class Can:
         return max(self.tpdo_timeout_cycles * self.dt,
                    self.heartbeat_timeout_factor * self.drive_heartbeat_ms / 1000) + self.stall
 
+    def timing(self) -> TimingSupervision:
+        """The manager's wall-time supervision, widened to what this machine may stall a
+        cycle (``stall``): a preempted initialize_fast or advance on a loaded CI machine is
+        not a controller fault. The hang watchdog still fires, after ``stall``."""
+        per_dt = self.stall / self.dt
+        return TimingSupervision(advance=per_dt, initialize_fast=per_dt, hang=per_dt)
+
+    def hang_budget(self) -> float:
+        """The watchdog fires after ``stall`` (``timing``), then sends every dt."""
+        return 2 * self.stall + 10 * self.dt
+
     def recovery_budget(self) -> float:
         return RECOVERY_TIMEOUT + self.stall
 
@@ -111,13 +123,14 @@ class Rig:
                  modes: Sequence[str] = ("csp", "csv", "cst"), *,
                  estop_must_be_cleared: bool = False, manager_heartbeat_ms: int = 100,
                  timeouts: Timeouts = Timeouts(), drive_heartbeat_ms: int = 100,
-                 **hw_kw) -> None:
+                 timing: TimingSupervision | None = TimingSupervision(), **hw_kw) -> None:
         self.dt = dt
         drives = drive_configs(node_ids, modes, heartbeat_ms=drive_heartbeat_ms)
         self.hw = CanopenHardware(bus, drives, MANAGER_NODE_ID, dt,
                                   manager_heartbeat_ms=manager_heartbeat_ms,
                                   timeouts=timeouts, **hw_kw)
-        self.mgr = self.hw.create_manager(estop_must_be_cleared=estop_must_be_cleared)
+        self.mgr = manager_for(self.hw, estop_must_be_cleared=estop_must_be_cleared,
+                               timing=timing)
         self.states: list[ManagerState] = []
         self._next = time.monotonic()
         self.setup: Can | None = None
@@ -134,6 +147,7 @@ class Rig:
         kw.setdefault("heartbeat_timeout_factor", setup.heartbeat_timeout_factor)
         kw.setdefault("config_workers", setup.config_workers)
         kw.setdefault("consumer_factor", setup.consumer_factor)
+        kw.setdefault("timing", setup.timing())
         rig = cls(bus, node_ids, setup.dt, **kw)
         rig.setup = setup
         return rig

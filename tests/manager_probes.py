@@ -181,7 +181,11 @@ class Rig:
 def rig():
     journal = Journal(update_thread=threading.get_ident())
     command = CommandLog()
-    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001, command=command)
+    # Wall-time supervision off: these are the seed's tables and rocoma's semantics; on a
+    # loaded machine a preempted call must not count as a failure (test_manager_timing.py
+    # tests the supervision itself).
+    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001, command=command,
+                            timing=None)
     journal.manager = mgr
     yield Rig(mgr, journal, command)
     assert mgr.shutdown()
@@ -197,7 +201,7 @@ def layered_manager(layer: str, **behaviour) -> tuple[ControllerManager, bool]:
     def of(name: str) -> dict:
         return behaviour if layer == name else {}
     mgr = ControllerManager(FailproofProbe("failproof", journal, **of("failproof")), dt=0.001,
-                            command=CommandLog())
+                            command=CommandLog(), timing=None)
     journal.manager = mgr
     added = mgr.add_controller(Probe("a", journal, **of("controller")),
                                emergency=EmergencyProbe("e", journal, **of("emergency")))

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from rocoma_can.config import ConfigError, bus_load, frame_bits, load, validate
+from rocoma_can.runtime.config import ConfigError, bus_load, frame_bits, load, validate
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
 

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from rocoma_can.cli import main
-from rocoma_can.demo import run_demo
+from rocoma_can.runtime.demo import run_demo
 
 
 def test_demo_walk_through_passes():

@@ -17,6 +17,7 @@ from rocoma_can.drivers.joints import JointCommand, JointMode
 from rocoma_can.drivers.pdo_layout import (CONTROLWORD, MODE, STATUSWORD, TARGET_POSITION,
                                            check_against_od, first_fit, layout_for)
 from rocoma_can.drivers.scaling import Scaling
+from rocoma_can.runtime.system import manager_for
 
 
 def drive(name="j0", node_id=1, **kw) -> DriveConfig:
@@ -212,7 +213,7 @@ def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
     bus = can.Bus(interface="virtual", channel="hook-errors", ignore_config=True)
     hw = CanopenHardware(bus, [DriveConfig(name="j1", node_id=1, increments_per_rev=4096,
                                            rated_torque_nm=1.0)], 100, 0.01, on_fault=hook)
-    mgr = hw.create_manager()
+    mgr = manager_for(hw)
     estops = []
     seen = threading.Event()
     mgr.subscribe(lambda ev: (estops.append(ev.cause), seen.set())

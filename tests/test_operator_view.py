@@ -13,8 +13,8 @@ import pytest
 
 from rocoma_can import ManagerState
 from rocoma_can.cli import main
-from rocoma_can.config import validate
-from rocoma_can.demo import MANAGER_ID, demo_config
+from rocoma_can.runtime.config import validate
+from rocoma_can.runtime.demo import MANAGER_ID, demo_config
 from rocoma_can.drivers import cia402
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.runtime import Runtime

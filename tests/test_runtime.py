@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from rocoma_can.config import validate
-from rocoma_can.demo import demo_config
+from rocoma_can.runtime.config import validate
+from rocoma_can.runtime.demo import demo_config
 from rocoma_can.runtime import CycleStats, ControlLoop, Runtime
 
 
@@ -102,3 +102,12 @@ def test_the_signal_handler_takes_no_lock(runtime):
     assert returned.wait(5.0), "the signal handler blocked on the stop Event's lock"
     runtime.run(duration=5.0, signals=False)
     assert loop.stop_reason == "signal SIGTERM" and int(loop.last_state) == 0
+
+
+def test_timing_supervision_comes_from_the_yaml(virtual_channel):
+    from rocoma_can import TimingSupervision
+    cfg = demo_config(virtual_channel, drives=2, rate=100.0)
+    cfg["timing"] = {"advance": 2.0, "initialize_fast": 3.0, "overruns": 7, "hang": 50}
+    with Runtime(validate(cfg)) as rt:
+        assert rt.manager.timing == TimingSupervision(advance=2.0, initialize_fast=3.0,
+                                                      overruns=7, hang=50)

@@ -11,8 +11,10 @@ import pytest
 from joint_plant import JointPlant
 from rocoma_can import ControllerManager, add_to_manager
 from rocoma_can.controllers.torque_off import TorqueOff
-from rocoma_can.services import (ABORT_NOT_FOUND, ABORT_REFUSED, ManagerClient, ManagerNode,
-                                 NoAnswer, Refused)
+from rocoma_can.errors import NoAnswer, Refused
+from rocoma_can.runtime.client import ManagerClient
+from rocoma_can.runtime.node import ManagerNode
+from rocoma_can.runtime.objects import ABORT_NOT_FOUND, ABORT_REFUSED
 
 NODE = 100
 ESTOP_COB = 0x0A0
@@ -32,7 +34,7 @@ class Rig:
     def __init__(self, bus_factory, must_clear: bool) -> None:
         self.plant = JointPlant(3, dt=0.005)
         self.manager = ControllerManager(TorqueOff(), 0.005, self.plant.state, self.plant.command,
-                                         estop_must_be_cleared=must_clear)
+                                         estop_must_be_cleared=must_clear, timing=None)
         add_to_manager(self.manager, CONTROLLERS)
         self.recovered = 0
         self.node = ManagerNode(self.manager, NODE, bus_factory(), estop_cob_id=ESTOP_COB,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rocoma_can.drivers.cia402 import Mode, State402
-from rocoma_can.drivers.sim_dynamics import JointDynamics, JointParams, LoopMode
+from rocoma_can.drivers.sim.dynamics import JointDynamics, JointParams, LoopMode
 
 REV = 2 ** 20  # increments per revolution (0x608F default)
 PERIOD = 0.002  # the sim_bench default sync_period

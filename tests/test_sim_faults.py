@@ -12,7 +12,7 @@ import pytest
 from rocoma_can import cli
 from rocoma_can.drivers import cia402 as c
 from rocoma_can.drivers.cia402 import Mode, NmtCommand, NmtState, State402
-from rocoma_can.drivers.sim_cli import parse_node_ids
+from rocoma_can.drivers.sim.cli import parse_node_ids
 
 
 def _emcy(frame):

@@ -13,8 +13,8 @@ import canopen
 from driver_rig import MANAGER_NODE_ID, VIRTUAL, HoldPD, Rig
 from fixtures.recorder import FrameRecorder
 from rocoma_can import SwitchResult, eds
-from rocoma_can.drivers.sim_segment import SimulatedSegment
-from rocoma_can.services import ManagerNode
+from rocoma_can.drivers.sim.segment import SimulatedSegment
+from rocoma_can.runtime.node import ManagerNode
 
 NODES = (1, 2, 3)
 ESTOP_COB = 0x0A0

@@ -22,9 +22,10 @@ from driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
 from manager_probes import (LAYER_METHODS, CommandLog, EmergencyProbe, FailproofProbe, Journal,
                             Probe, layered_manager)
 from rocoma_can import ControllerManager, ManagerState, SwitchResult
-from rocoma_can.config import ConfigError, load, validate
+from rocoma_can.runtime.config import ConfigError, load, validate
 from rocoma_can.drivers.cia402 import State402
-from rocoma_can.services import ABORT_NOT_FOUND, ABORT_REFUSED, Refused
+from rocoma_can.errors import Refused
+from rocoma_can.runtime.objects import ABORT_NOT_FOUND, ABORT_REFUSED
 from safety_rig import SDO_RX, cycle_while, sdo_exchange
 from test_services import ESTOP_COB as SERVICE_ESTOP
 
@@ -134,7 +135,7 @@ def test_estop_cob_id_changes_only_while_stopped_or_latched(service, caplog):
     assert refused.value.code == ABORT_REFUSED and service.node.estop_cob_id == SERVICE_ESTOP
     service.client.write(0x2111, 1)  # failproof stop
     assert service.wait_state(0)
-    with caplog.at_level(logging.WARNING, logger="rocoma_can.services"):
+    with caplog.at_level(logging.WARNING, logger="rocoma_can.runtime.node"):
         service.client.write(0x2130, 0x0B0)
     assert service.node.estop_cob_id == 0x0B0 and "e-stop COB-ID changed" in caplog.text
     service.client.write(0x2130, 0x80000000)  # bit 31: not valid = off
@@ -238,7 +239,7 @@ def test_a_failing_reset_command_falls_through_to_failproof():
     def reset(command) -> None:
         resets.append(command)
         raise RuntimeError("reset_command broken")
-    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001,
+    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001, timing=None,
                             command=CommandLog(), reset_command=reset)
     mgr.add_controller(Probe("a", journal, fail={"advance"}),
                        emergency=EmergencyProbe("e", journal))

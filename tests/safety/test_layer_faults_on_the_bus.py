@@ -48,7 +48,7 @@ class Fault:
         if kind == "raise":
             raise RuntimeError("fault injected")
         if kind == "hang":  # then returns as if all was well: having hung is the failure
-            self.release.wait(10 * VIRTUAL.detect_budget())
+            self.release.wait(10 * VIRTUAL.hang_budget())
             return real
         if kind in ("nan", "inf"):  # a command that looks fine to the controller
             command.position[0] = math.nan if kind == "nan" else math.inf
@@ -99,13 +99,13 @@ def _cycle_stuck(served: Served, fault: Fault) -> ManagerState:
     stuck.start()
     try:
         frames = served.recorder.wait_for_count(
-            2 * len(NODES), VIRTUAL.detect_budget(), tuple(RPDO1), since=mark,
+            2 * len(NODES), VIRTUAL.hang_budget(), tuple(RPDO1), since=mark,
             where=lambda f: struct.unpack_from("<H", f.data)[0] == 0)
         assert {RPDO1[f.cob_id] for f in frames} == set(NODES)
         assert stuck.is_alive() and rig.mgr.hang_calls >= 2
     finally:
         fault.release.set()
-        stuck.join(VIRTUAL.detect_budget())
+        stuck.join(VIRTUAL.hang_budget())
     assert not stuck.is_alive()
     return result[0]
 

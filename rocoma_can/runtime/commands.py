@@ -17,8 +17,10 @@ import signal
 import sys
 from typing import Any, Callable
 
-from .services import (ABORT_NOT_FOUND, CLEAR, ESTOP, FAILPROOF_STOP, RECOVER, RESULT_NAMES,
-                       SWITCH_REFUSAL, ManagerClient, NoAnswer, Refused)
+from ..errors import NoAnswer, Refused
+from .client import ManagerClient
+from .objects import (ABORT_NOT_FOUND, CLEAR, ESTOP, FAILPROOF_STOP, RECOVER, RESULT_NAMES,
+                      SWITCH_REFUSAL)
 
 OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
 
@@ -49,7 +51,7 @@ def _check_config(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from .config import ConfigError, load
-    from .runtime import Runtime
+    from .system import Runtime
     try:
         config = load(args.config)
     except ConfigError as exc:
@@ -81,7 +83,7 @@ def _run(args: argparse.Namespace) -> int:
 # --- client commands --------------------------------------------------------------------------
 
 def _client(args: argparse.Namespace, action: Callable[[ManagerClient], int]) -> int:
-    from .drivers.bus import open_bus
+    from ..drivers.bus import open_bus
     try:
         bus = open_bus(args.interface, args.channel, receive_own_messages=False)
     except OSError as exc:

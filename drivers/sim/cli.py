@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable
 
 if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
-    from .sim_drive import SimulatedDrive
-    from .sim_segment import SimulatedSegment
+    from .drive import SimulatedDrive
+    from .segment import SimulatedSegment
 
 
 def parse_node_ids(text: str) -> list[int]:
@@ -109,7 +109,7 @@ def _inject(segment: SimulatedSegment, inj: Injection) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .sim_segment import SimulatedSegment
+    from .segment import SimulatedSegment
     injections = [inj for flag in INJECTIONS for inj in getattr(args, flag.replace("-", "_"))]
     for inj in injections:
         if inj.node not in args.nodes:

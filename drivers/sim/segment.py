@@ -31,10 +31,10 @@ from typing import Any, Callable, Iterable, Mapping
 import can
 import numpy as np
 
-from . import cia402 as c
-from .frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
-from .sim_drive import SimulatedDrive, load_object_dictionary
-from .sim_dynamics import JointDynamics, JointParams
+from .. import cia402 as c
+from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
+from .drive import SimulatedDrive, load_object_dictionary
+from .dynamics import JointDynamics, JointParams
 
 log = logging.getLogger(__name__)
 

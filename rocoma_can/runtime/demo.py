@@ -19,11 +19,12 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import can
 
-from .services import ManagerClient, STATE_NAMES
+from .client import ManagerClient
+from .objects import STATE_NAMES
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
-    from .drivers.sim_segment import SimulatedSegment
-    from .runtime import Runtime
+    from ..drivers.sim.segment import SimulatedSegment
+    from .system import Runtime
 
 MANAGER_ID = 100
 ESTOP_COB_ID = 0x0A0
@@ -197,8 +198,8 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              out: Callable[[str], None] = print) -> Report:
     from .config import validate
-    from .drivers.sim_segment import SimulatedSegment
-    from .runtime import Runtime
+    from ..drivers.sim.segment import SimulatedSegment
+    from .system import Runtime
     channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
     config = validate(demo_config(channel, drives, rate), source="demo")
     report = Report()

@@ -22,12 +22,12 @@ import canopen
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoServer
 
-from . import cia402 as c
-from .cia402 import NmtCommand, NmtState, State402
-from .sim_dynamics import LoopMode
+from .. import cia402 as c
+from ..cia402 import NmtCommand, NmtState, State402
+from .dynamics import LoopMode
 
 if TYPE_CHECKING:
-    from .sim_segment import SimulatedSegment
+    from .segment import SimulatedSegment
 
 # SDO abort codes (CiA 301)
 ABORT_UNSUPPORTED_ACCESS = 0x06010000

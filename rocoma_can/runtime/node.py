@@ -48,29 +48,19 @@ from canopen.sdo import SdoServer
 from canopen.sdo.constants import (EXPEDITED, NO_MORE_DATA, REQUEST_SEGMENT_DOWNLOAD,
                                    REQUEST_SEGMENT_UPLOAD, RESPONSE_UPLOAD, SDO_STRUCT,
                                    SIZE_SPECIFIED)
-from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+from canopen.sdo.exceptions import SdoAbortedError
 
-from . import eds as shipped_eds
-from .drivers.bus import BusReader
-from .events import EventKind, ManagerEvent, ManagerState
+from .. import eds as shipped_eds
+from ..drivers.bus import BusReader
+from ..events import EventKind, ManagerEvent, ManagerState
+from .objects import (ABORT_COMMAND_SPECIFIER, ABORT_NO_RECOVERY, ABORT_NOT_FOUND,
+                      ABORT_REFUSED, ACTIVE_INDEX, ACTIVE_NAME, CLEAR, CONTROLLER_LIST,
+                      DRIVE_STATUS, EMCY, ESTOP, ESTOP_CAUSE, ESTOP_COB_ID, ESTOP_LATCHED,
+                      FAILPROOF_STOP, NO_SWITCH_YET, PENDING, PRODUCER_HEARTBEAT_TIME, RECOVER,
+                      STATE, SWITCH_INDEX, SWITCH_NAME, SWITCH_REFUSAL, SWITCH_RESULT, TPDO1,
+                      TPDO1_COMMUNICATION)
 
 log = logging.getLogger(__name__)
-
-SWITCH_NAME, SWITCH_INDEX, SWITCH_RESULT, SWITCH_REFUSAL = 0x2100, 0x2101, 0x2102, 0x2103
-DRIVE_STATUS = 0x2140
-ESTOP, FAILPROOF_STOP, CLEAR, RECOVER = 0x2110, 0x2111, 0x2112, 0x2113
-STATE, ACTIVE_NAME, ACTIVE_INDEX, CONTROLLER_LIST, ESTOP_CAUSE = (
-    0x2120, 0x2121, 0x2122, 0x2123, 0x2124)
-ESTOP_COB_ID, ESTOP_LATCHED = 0x2130, 0x2131
-PRODUCER_HEARTBEAT_TIME, TPDO1_COMMUNICATION = 0x1017, 0x1800
-PENDING, NO_SWITCH_YET = 0xFF, 0xFE
-ABORT_NOT_FOUND = 0x06090030     # value range of parameter exceeded
-ABORT_COMMAND_SPECIFIER = 0x05040001  # client/server command specifier not valid
-ABORT_REFUSED = 0x08000022       # cannot transfer because of the present device state
-ABORT_NO_RECOVERY = 0x08000021   # local control: this manager has no drives to recover
-ABORT_NO_DATA = 0x08000024
-TPDO1, EMCY = 0x180, 0x080
-
 
 class _StrictSdoServer(SdoServer):
     """canopen's SDO server without the ways a transfer could take effect that must not, and
@@ -427,105 +417,3 @@ class ManagerNode(can.Listener):
             self.frames_sent += 1
         except can.CanError as exc:
             log.warning("manager node: frame 0x%03X not sent: %s", cob_id, exc)
-
-
-# --- client side ------------------------------------------------------------------------------
-
-class NoAnswer(RuntimeError):
-    """The manager node did not answer (not running, wrong node id or channel)."""
-
-
-class Refused(RuntimeError):
-    """The manager answered with an SDO abort."""
-
-    def __init__(self, code: int, what: str) -> None:
-        self.code = code
-        super().__init__(f"{what}: refused by the manager (SDO abort 0x{code:08X}: "
-                         f"{_ABORT_TEXT.get(code, 'see CiA 301')})")
-
-
-_ABORT_TEXT = {
-    ABORT_NOT_FOUND: "no such controller",
-    ABORT_REFUSED: "e-stop latched (clear it first) or a switch is running",
-    ABORT_NO_RECOVERY: "this manager has no drives to recover",
-}
-RESULT_NAMES = {0: "SWITCHED", 1: "RUNNING", 2: "NOT_FOUND", 3: "ERROR", PENDING: "PENDING",
-                NO_SWITCH_YET: "none"}
-STATE_NAMES = {0: "FAILPROOF", 1: "EMERGENCY", 2: "OK"}
-
-
-class ManagerClient:
-    """Talks to a running manager node over SDO (one thread at a time: SdoClient has no lock)."""
-
-    def __init__(self, bus: can.BusABC, node_id: int = 100, timeout: float = 0.5) -> None:
-        self.bus = bus
-        self.network = canopen.Network(bus)
-        self.reader = BusReader(bus, self.network.listeners, name="manager-client-rx")
-        od = canopen.import_od(str(shipped_eds.path(shipped_eds.MANAGER_NODE)), node_id)
-        self.node = self.network.add_node(canopen.RemoteNode(node_id, od))
-        self.node.sdo.RESPONSE_TIMEOUT = timeout
-        self.node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry for ever in canopen 2.4)
-
-    def close(self) -> None:
-        self.reader.stop()
-
-    def __enter__(self) -> ManagerClient:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def read(self, index: int) -> Any:
-        try:
-            return self.node.sdo[index].raw
-        except SdoAbortedError as exc:
-            if exc.code == ABORT_NO_DATA:  # canopen's server cannot upload an empty string
-                return ""
-            raise Refused(exc.code, f"read 0x{index:04X}") from None
-        except SdoCommunicationError as exc:
-            raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
-
-    def write(self, index: int, value: Any) -> None:
-        try:
-            self.node.sdo[index].raw = value
-        except SdoAbortedError as exc:
-            raise Refused(exc.code, f"write 0x{index:04X}") from None
-        except SdoCommunicationError as exc:
-            raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
-
-    def switch(self, name: str, timeout: float = 10.0) -> int:
-        """Request a switch and poll 0x2102 until it is no longer PENDING (bounded)."""
-        if name.isdigit():
-            self.write(SWITCH_INDEX, int(name))
-        else:
-            self.write(SWITCH_NAME, name)
-        deadline = time.monotonic() + timeout
-        while True:
-            result = self.read(SWITCH_RESULT)
-            if result != PENDING or time.monotonic() > deadline:
-                return result
-            time.sleep(0.02)
-
-    def status(self) -> dict[str, Any]:
-        """Everything the node serves about itself and its drives (0x2140 decoded)."""
-        try:
-            drives = json.loads(self.read(DRIVE_STATUS) or "{}")
-        except ValueError:
-            drives = {}
-        return {
-            "state": STATE_NAMES.get(self.read(STATE), "?"),
-            "active": self.read(ACTIVE_NAME),
-            "latched": bool(self.read(ESTOP_LATCHED)),
-            "last_switch": RESULT_NAMES.get(self.read(SWITCH_RESULT), "?"),
-            "switch_refused": self.read(SWITCH_REFUSAL),
-            "estop_cause": self.read(ESTOP_CAUSE),
-            "estop_cob_id": self.read(ESTOP_COB_ID),
-            "startup_finished": drives.get("startup_finished"),
-            "recovery": drives.get("recovery"),
-            "bus_fault": drives.get("bus_fault"),
-            "drives": drives.get("drives", []),
-        }
-
-    def controllers(self) -> list[str]:
-        text = self.read(CONTROLLER_LIST)
-        return [n for n in text.split(",") if n]

@@ -17,6 +17,8 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
                   consumer_factor: 2.0, sdo_timeout: 0.5,   # CanopenHardware's margins
                   boot_wait: 1.0, start_timeout: 2.0, reset_timeout: 1.0,
                   enable_timeout: 1.0}                      # start-up (bringup.Timeouts)
+    timing: {advance: 0.5, initialize_fast: 0.5, overruns: 5, hang: 20}  # in cycles (dt):
+                                   # the manager's wall-time supervision of controllers
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
     controllers: [ ... ]           # rocoma_can.plugins format
     emergency_controllers: [ ... ]
@@ -35,13 +37,13 @@ from typing import Any, Mapping
 
 import yaml
 
-from .drivers.config import DriveConfig
-from .drivers.hardware import BusConfig
-from .drivers.pdo_layout import drive_object_dictionary, layout_for
+from ..drivers.config import BusConfig, DriveConfig
+from ..errors import ConfigError
+from ..drivers.pdo_layout import drive_object_dictionary, layout_for
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
-_TOP_KEYS = {"bus", "rate", "manager", "realtime", "supervision", "drives", "controllers",
-             "emergency_controllers"}
+_TOP_KEYS = {"bus", "rate", "manager", "realtime", "supervision", "timing", "drives",
+             "controllers", "emergency_controllers"}
 _BUS_KEYS = {"interface", "channel", "bitrate"}
 _MANAGER_KEYS = {"node_id", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
                  "switch_clients", "status_period", "required_drives"}
@@ -57,17 +59,17 @@ _SUPERVISION = {
     "start_timeout": (False, 0.1, 60.0),
     "reset_timeout": (False, 0.1, 60.0),
 }
+#: the manager's wall-time supervision (rocoma_can.TimingSupervision), in cycles (dt):
+#: key -> (whole number?, minimum, maximum)
+_TIMING = {
+    "advance": (False, 0.01, 100_000.0),
+    "initialize_fast": (False, 0.01, 100_000.0),
+    "overruns": (True, 1, 1000),
+    "hang": (False, 2.0, 100_000.0),
+}
 #: the supervision keys that are start-up timeouts: key -> drivers.bringup.Timeouts field
 TIMEOUT_KEYS = {"boot_wait": "boot_wait", "start_timeout": "start", "reset_timeout": "reset",
                 "enable_timeout": "enable"}
-
-
-class ConfigError(ValueError):
-    """One or more problems, one per line, each starting with its YAML path."""
-
-    def __init__(self, problems: list[str]) -> None:
-        self.problems = list(problems)
-        super().__init__("\n".join(self.problems))
 
 
 @dataclass
@@ -91,6 +93,7 @@ class RuntimeConfig:
     priority: int | None = None
     cpus: set[int] | None = None
     supervision: dict[str, float] = field(default_factory=dict)  # CanopenHardware keywords
+    timing: dict[str, float] = field(default_factory=dict)  # TimingSupervision keywords
     source: str = "<memory>"
     load: BusLoad | None = field(default=None)
 
@@ -297,7 +300,9 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         problems.append(f"realtime.cpus: expected null or a list of CPU numbers, got {cpus!r}")
         cpus = None
 
-    supervision = _supervision(_section(data, "supervision", problems), problems)
+    supervision = _numbers(_section(data, "supervision", problems), _SUPERVISION,
+                           "supervision", problems)
+    timing = _numbers(_section(data, "timing", problems), _TIMING, "timing", problems)
 
     drives = _drives(data.get("drives"), manager.node_id, base, problems)
     required = m.get("required_drives")
@@ -318,7 +323,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     if not data.get("controllers"):
         problems.append("controllers: at least one controller is needed")
     elif check_controllers:
-        from .plugins import PluginError, load_config
+        from ..plugins import PluginError, load_config
         try:
             load_config(controllers)
         except PluginError as exc:
@@ -334,22 +339,24 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         raise ConfigError([f"{source}: {p}" for p in problems])
     return RuntimeConfig(BusConfig(interface, channel, bitrate), float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
-                         source, load_)
+                         timing, source, load_)
 
 
-def _supervision(section: Mapping[str, Any], problems: list[str]) -> dict[str, float]:
-    """The margins given (the rest keep CanopenHardware's defaults)."""
-    _unknown(section, set(_SUPERVISION), "supervision", problems)
+def _numbers(section: Mapping[str, Any], spec: Mapping[str, tuple[bool, float, float]],
+             where: str, problems: list[str]) -> dict[str, float]:
+    """The numbers given in a section checked against ``spec`` (the rest keep their
+    defaults: CanopenHardware's margins, TimingSupervision's budgets)."""
+    _unknown(section, set(spec), where, problems)
     out: dict[str, float] = {}
     for key, value in section.items():
-        if key not in _SUPERVISION:
+        if key not in spec:
             continue
-        whole, low, high = _SUPERVISION[key]
+        whole, low, high = spec[key]
         number = _is_int(value) if whole else (
             isinstance(value, (int, float)) and not isinstance(value, bool))
         if not number or not low <= value <= high:
             kind = "an integer" if whole else "a number"
-            problems.append(f"supervision.{key}: expected {kind} {low}..{high}, got {value!r}")
+            problems.append(f"{where}.{key}: expected {kind} {low}..{high}, got {value!r}")
         else:
             out[key] = value
     return out

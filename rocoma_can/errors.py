@@ -1,0 +1,32 @@
+"""One root for every error rocoma-can raises on purpose: ``except RocomaError`` catches them
+all. Each also keeps the standard base it always had (ValueError for bad configuration,
+RuntimeError for a refusing or silent manager), so code written against those still works."""
+from __future__ import annotations
+
+
+class RocomaError(Exception):
+    """The root."""
+
+
+class ConfigError(RocomaError, ValueError):
+    """One or more problems, one per line, each starting with its YAML path."""
+
+    def __init__(self, problems: list[str]) -> None:
+        self.problems = list(problems)
+        super().__init__("\n".join(self.problems))
+
+
+class PluginError(RocomaError, ValueError):
+    """A controller entry that cannot be loaded; the message starts with its config path."""
+
+
+class NoAnswer(RocomaError, RuntimeError):
+    """The manager node did not answer (not running, wrong node id or channel)."""
+
+
+class Refused(RocomaError, RuntimeError):
+    """The manager node answered with an SDO abort: ``code``, and what it means."""
+
+    def __init__(self, code: int, what: str, meaning: str = "see CiA 301") -> None:
+        self.code = code
+        super().__init__(f"{what}: refused by the manager (SDO abort 0x{code:08X}: {meaning})")

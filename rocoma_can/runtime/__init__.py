@@ -1,0 +1,20 @@
+"""Everything that runs the manager on a bus: config (the YAML), loop (one thread, fixed rate,
+a safe way out), system (hardware + manager + node wired), node (the manager's CANopen
+server) and client (what the CLI verbs use), commands (the CLI verbs), demo, scaffold
+(``rocoma-can new-controller``). Public names are imported on first use (``_lazy.py``)."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
+
+__all__ = ["ControlLoop", "CycleStats", "TimingSummary", "set_realtime", "Runtime",
+           "manager_for"]
+__getattr__, __dir__ = lazy_exports(__name__, {
+    "ControlLoop": "loop", "CycleStats": "loop", "TimingSummary": "loop",
+    "set_realtime": "loop", "Runtime": "system", "manager_for": "system",
+})
+
+if TYPE_CHECKING:
+    from .loop import ControlLoop, CycleStats, TimingSummary, set_realtime
+    from .system import Runtime, manager_for

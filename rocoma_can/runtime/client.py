@@ -1,0 +1,99 @@
+"""What the CLI verbs (and any Python program) use to talk to a running manager node over
+SDO: one canopen SdoClient, one call at a time (canopen's SdoClient has no lock)."""
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+import can
+import canopen
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from .. import eds as shipped_eds
+from ..drivers.bus import BusReader
+from ..errors import NoAnswer, Refused
+from .objects import (ABORT_TEXT, ACTIVE_NAME, CONTROLLER_LIST, DRIVE_STATUS, ESTOP_CAUSE, ESTOP_COB_ID,
+                      ESTOP_LATCHED, PENDING, RESULT_NAMES, STATE, STATE_NAMES, SWITCH_INDEX,
+                      SWITCH_NAME, SWITCH_REFUSAL, SWITCH_RESULT)
+
+__all__ = ["ManagerClient", "NoAnswer", "Refused"]
+
+
+class ManagerClient:
+    """Talks to a running manager node over SDO (one thread at a time: SdoClient has no lock)."""
+
+    def __init__(self, bus: can.BusABC, node_id: int = 100, timeout: float = 0.5) -> None:
+        self.bus = bus
+        self.network = canopen.Network(bus)
+        self.reader = BusReader(bus, self.network.listeners, name="manager-client-rx")
+        od = canopen.import_od(str(shipped_eds.path(shipped_eds.MANAGER_NODE)), node_id)
+        self.node = self.network.add_node(canopen.RemoteNode(node_id, od))
+        self.node.sdo.RESPONSE_TIMEOUT = timeout
+        self.node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry for ever in canopen 2.4)
+
+    def close(self) -> None:
+        self.reader.stop()
+
+    def __enter__(self) -> ManagerClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def read(self, index: int) -> Any:
+        try:
+            return self.node.sdo[index].raw
+        except SdoAbortedError as exc:
+            raise Refused(exc.code, f"read 0x{index:04X}", _meaning(exc.code)) from None
+        except SdoCommunicationError as exc:
+            raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
+
+    def write(self, index: int, value: Any) -> None:
+        try:
+            self.node.sdo[index].raw = value
+        except SdoAbortedError as exc:
+            raise Refused(exc.code, f"write 0x{index:04X}", _meaning(exc.code)) from None
+        except SdoCommunicationError as exc:
+            raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
+
+    def switch(self, name: str, timeout: float = 10.0) -> int:
+        """Request a switch and poll 0x2102 until it is no longer PENDING (bounded)."""
+        if name.isdigit():
+            self.write(SWITCH_INDEX, int(name))
+        else:
+            self.write(SWITCH_NAME, name)
+        deadline = time.monotonic() + timeout
+        while True:
+            result = self.read(SWITCH_RESULT)
+            if result != PENDING or time.monotonic() > deadline:
+                return result
+            time.sleep(0.02)
+
+    def status(self) -> dict[str, Any]:
+        """Everything the node serves about itself and its drives (0x2140 decoded)."""
+        try:
+            drives = json.loads(self.read(DRIVE_STATUS) or "{}")
+        except ValueError:
+            drives = {}
+        return {
+            "state": STATE_NAMES.get(self.read(STATE), "?"),
+            "active": self.read(ACTIVE_NAME),
+            "latched": bool(self.read(ESTOP_LATCHED)),
+            "last_switch": RESULT_NAMES.get(self.read(SWITCH_RESULT), "?"),
+            "switch_refused": self.read(SWITCH_REFUSAL),
+            "estop_cause": self.read(ESTOP_CAUSE),
+            "estop_cob_id": self.read(ESTOP_COB_ID),
+            "startup_finished": drives.get("startup_finished"),
+            "recovery": drives.get("recovery"),
+            "bus_fault": drives.get("bus_fault"),
+            "drives": drives.get("drives", []),
+        }
+
+    def controllers(self) -> list[str]:
+        text = self.read(CONTROLLER_LIST)
+        return [n for n in text.split(",") if n]
+
+
+def _meaning(code: int) -> str:
+    return ABORT_TEXT.get(code, "see CiA 301")

@@ -1,0 +1,34 @@
+"""The manager node's objects (eds/rocoma_manager.eds), values and SDO abort codes: what the
+node (node.py) serves and the client (client.py) asks for, in one place."""
+from __future__ import annotations
+
+from canopen.sdo.constants import (ABORT_APPLICATION_DEVICE_STATE,
+                                   ABORT_APPLICATION_LOCAL_CONTROL,
+                                   ABORT_INVALID_COMMAND_SPECIFIER, ABORT_INVALID_VALUE)
+
+SWITCH_NAME, SWITCH_INDEX, SWITCH_RESULT, SWITCH_REFUSAL = 0x2100, 0x2101, 0x2102, 0x2103
+DRIVE_STATUS = 0x2140
+ESTOP, FAILPROOF_STOP, CLEAR, RECOVER = 0x2110, 0x2111, 0x2112, 0x2113
+STATE, ACTIVE_NAME, ACTIVE_INDEX, CONTROLLER_LIST, ESTOP_CAUSE = (
+    0x2120, 0x2121, 0x2122, 0x2123, 0x2124)
+ESTOP_COB_ID, ESTOP_LATCHED = 0x2130, 0x2131
+PRODUCER_HEARTBEAT_TIME, TPDO1_COMMUNICATION = 0x1017, 0x1800
+PENDING, NO_SWITCH_YET = 0xFF, 0xFE
+# SDO abort codes the node answers with (CiA 301; canopen's names)
+ABORT_NOT_FOUND = ABORT_INVALID_VALUE  # 0x06090030 value range exceeded: no such controller
+ABORT_COMMAND_SPECIFIER = ABORT_INVALID_COMMAND_SPECIFIER  # 0x05040001
+ABORT_REFUSED = ABORT_APPLICATION_DEVICE_STATE  # 0x08000022 not in the present device state
+ABORT_NO_RECOVERY = ABORT_APPLICATION_LOCAL_CONTROL  # 0x08000021 no drives to recover
+TPDO1, EMCY = 0x180, 0x080
+
+RESULT_NAMES = {0: "SWITCHED", 1: "RUNNING", 2: "NOT_FOUND", 3: "ERROR", PENDING: "PENDING",
+                NO_SWITCH_YET: "none"}
+STATE_NAMES = {0: "FAILPROOF", 1: "EMERGENCY", 2: "OK"}
+
+#: what an abort of the manager node means, for messages (errors.Refused)
+ABORT_TEXT = {
+    ABORT_NOT_FOUND: "no such controller",
+    ABORT_REFUSED: "refused in the present state (e-stop latched, drives not ready, or a "
+                   "switch running: 0x2103 says which)",
+    ABORT_NO_RECOVERY: "this manager has no drives to recover",
+}

@@ -1,0 +1,109 @@
+"""The whole system ``rocoma-can run`` starts from a RuntimeConfig: the drives' hardware layer,
+the manager with its controllers (built here: nothing in drivers/ builds a manager), the
+manager's CANopen node, and the loop."""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from ..controllers.torque_off import TorqueOff
+from ..manager import ControllerManager, TimingSupervision
+from .loop import ControlLoop, TimingSummary
+
+
+def manager_for(hardware: Any, **kwargs: Any) -> ControllerManager:
+    """A ControllerManager over a CanopenHardware, wired to it: TorqueOff as the failproof
+    layer, the hardware's ``limit_command`` (modes, NaN, limits), ``neutral_command`` (on
+    every fall to a lower layer) and ``send_torque_off`` (on a hung update), and its fault
+    events routed to ``emergency_stop`` (``attach``).
+
+    The failproof layer is not configurable: passing ``failproof`` is a TypeError. The
+    torque-off frames in FAILPROOF do not depend on it anyway (drivers/hardware.py).
+    """
+    if "failproof" in kwargs:
+        raise TypeError("the CAN hardware layer always installs TorqueOff as failproof "
+                        "controller; it cannot be replaced")
+    for own in ("limit_command", "reset_command"):
+        if own in kwargs:
+            raise TypeError(f"{own} is the hardware's own (modes, NaN, limits; a neutral "
+                            "command on every fall to a lower layer)")
+    kwargs.setdefault("on_hang", hardware.send_torque_off)
+    manager = ControllerManager(TorqueOff(), hardware.dt, hardware.state, hardware.command,
+                                limit_command=hardware.limit_command,
+                                reset_command=hardware.neutral_command, **kwargs)
+    hardware.attach(manager)
+    return manager
+
+
+class Runtime:
+    """Everything ``rocoma-can run`` starts from a RuntimeConfig, in start-up order:
+    the drives' hardware layer, the manager with the configured controllers, the manager's
+    CANopen node (on a second bus handle of the same channel), and the loop."""
+
+    def __init__(self, config: Any, *, on_cycle: Callable[[float], None] | None = None) -> None:
+        from ..drivers.bringup import Timeouts
+        from ..drivers.bus import open_bus
+        from ..drivers.hardware import CanopenHardware
+        from ..plugins import add_to_manager
+        from .node import ManagerNode
+        self.config = config
+        m = config.manager
+        from .config import TIMEOUT_KEYS
+        margins = dict(config.supervision)
+        timeouts = {field: margins.pop(key) for key, field in TIMEOUT_KEYS.items()
+                    if key in margins}
+        if timeouts:
+            margins["timeouts"] = Timeouts(**timeouts)
+        self.hardware = CanopenHardware(config.bus, config.drives, m.node_id, config.dt,
+                                        manager_heartbeat_ms=m.heartbeat_ms, **margins)
+        self.manager = None
+        self.node = None
+        self._node_bus = None
+        try:
+            names = [d.name for d in config.drives]
+            required = (None if m.required_drives is None
+                        else [names.index(n) for n in m.required_drives])
+            self.manager = manager_for(
+                self.hardware, estop_must_be_cleared=m.estop_must_be_cleared,
+                timing=TimingSupervision(**config.timing),
+                switch_guard=lambda: self.hardware.not_ready(required))
+            add_to_manager(self.manager, config.controllers)
+            bus = config.bus
+            self._node_bus = open_bus(bus.interface, bus.channel, bus.bitrate,
+                                      receive_own_messages=False)
+            self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
+                                    estop_cob_id=m.estop_cob_id, status_period=m.status_period,
+                                    recover=self.hardware.recover,
+                                    heartbeat_ms=m.heartbeat_ms,
+                                    drive_status=self.hardware.status_report)
+        except BaseException:
+            self.close()
+            raise
+        self.loop = ControlLoop(self.hardware, self.manager, config.rate,
+                                priority=config.priority, cpus=config.cpus, on_cycle=on_cycle)
+
+    def run(self, duration: float | None = None, signals: bool = True) -> TimingSummary:
+        """Start the bus side, run the loop until stopped, torque-off; the caller closes."""
+        restore = self.loop.install_signal_handlers() if signals else None
+        try:
+            self.hardware.start()
+            self.node.start()
+            return self.loop.run(duration)
+        finally:
+            if restore is not None:
+                restore()
+
+    def close(self) -> None:
+        """Node, manager threads, hardware (joins its bus reader), then the node's bus."""
+        if self.node is not None:
+            self.node.close()
+        if self.manager is not None:
+            self.manager.shutdown()
+        self.hardware.close()
+        if self._node_bus is not None:
+            self._node_bus.shutdown()
+
+    def __enter__(self) -> Runtime:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
