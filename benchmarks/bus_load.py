@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 
 from _report import report
+
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.joints import JointMode
 from rocoma_can.drivers.pdo_layout import layout_for

@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/controllers.py [--joints 12] [--repeat 20000] [--quick]
 
-Prints median and 99th percentile in µs per call and writes results/controllers.json. An emergency controller's initialize_fast
+Prints median and 99th percentile in µs per call and writes results/controllers.json. An
+emergency controller's initialize_fast
 runs in the failure's cycle, so it must stay far below the cycle time (1000 µs at 1 kHz).
 Numbers are from this process on a shared machine: compare them, do not treat them as bounds.
 """
@@ -10,6 +11,9 @@ from __future__ import annotations
 
 import argparse
 import gc
+
+from _report import report, stats  # benchmarks/ is on sys.path when run as a script
+from manager_overhead import random_joints, timed_ns
 
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.hold import Hold
@@ -19,9 +23,6 @@ from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.controllers.trajectory import Trajectory
 from rocoma_can.controllers.zero_torque import Float
 from rocoma_can.interfaces import EmergencyController
-
-from _report import report, stats  # benchmarks/ is on sys.path when run as a script
-from manager_overhead import random_joints, timed_ns
 
 DT = 0.001
 
@@ -59,10 +60,10 @@ def main() -> None:
             assert ctrl.create(DT) is not False, ctrl
             init = {"median": float("nan"), "p99": float("nan")}
             if isinstance(ctrl, EmergencyController):
-                init = stats(timed_ns(lambda: ctrl.initialize_fast(DT), repeat) / 1000.0)
+                init = stats(timed_ns(lambda c=ctrl: c.initialize_fast(DT), repeat) / 1000.0)
             elif hasattr(ctrl, "initialize"):
                 assert ctrl.initialize(DT)
-            adv = stats(timed_ns(lambda: ctrl.advance(DT), repeat) / 1000.0)
+            adv = stats(timed_ns(lambda c=ctrl: c.advance(DT), repeat) / 1000.0)
             rows.append([ctrl.name, init["median"], init["p99"], adv["median"], adv["p99"]])
             results[ctrl.name] = {"initialize_fast_us": init, "advance_us": adv}
     finally:

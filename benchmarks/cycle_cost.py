@@ -23,8 +23,8 @@ import time
 import can
 import canopen
 import numpy as np
-
 from _report import report, stats
+
 from rocoma_can import eds
 from rocoma_can.drivers.bringup import Phase
 from rocoma_can.drivers.config import DriveConfig

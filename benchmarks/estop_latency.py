@@ -24,9 +24,9 @@ import threading
 import time
 
 import can
-
 from _report import report, stats
 from _rig import ESTOP_COB_ID, Rig, Script, run_script
+
 from rocoma_can import ManagerState
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.quick_stop import QuickStop

@@ -17,9 +17,9 @@ import argparse
 import logging
 
 import numpy as np
-
 from _report import report, stats
 from _rig import Rig, Script, StartLog, missed_cycles, run_script
+
 from rocoma_can import ManagerState
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD

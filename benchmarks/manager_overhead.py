@@ -16,11 +16,11 @@ import argparse
 import gc
 import logging
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
-
 from _report import report, stats
+
 from rocoma_can import ControllerManager, ManagerState, SwitchResult
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.pd import JointPD
@@ -152,7 +152,7 @@ def main() -> None:
         try:
             medians = {}
             for ctrl in (trivial, pd):
-                direct = timed_ns(lambda: ctrl.advance(DT), args.repeat)
+                direct = timed_ns(lambda c=ctrl: c.advance(DT), args.repeat)
                 row(f"{ctrl.name}: advance() direct", direct)
                 _switch(mgr, ctrl.name)
                 updates = timed_ns(mgr.update, args.repeat)
@@ -170,7 +170,8 @@ def main() -> None:
            f"Manager update overhead, {args.joints} joints (ns per call)",
            ["call", "median ns", "p99 ns", "max ns", "overhead ns"], rows, args=args,
            notes=["overhead = median minus the direct advance median (e-stop rows: minus "
-                  "the median of a trivial controller's update: what the e-stop adds); gc disabled while timing."],
+                  "the median of a trivial controller's update: what the e-stop adds); "
+                  "gc disabled while timing."],
            results=data)
 
 

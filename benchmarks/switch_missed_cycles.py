@@ -20,6 +20,7 @@ from typing import Any
 
 from _report import report, stats
 from _rig import Rig, Script, StartLog, missed_cycles, run_script
+
 from rocoma_can import ControllerManager, SwitchResult
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.torque_off import TorqueOff

@@ -8,7 +8,8 @@ that). Needs no model and no position reference, so it is safe to start from any
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

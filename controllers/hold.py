@@ -7,7 +7,8 @@ cycle and the joints are held there, by the PD here (CST) or by the drives' posi
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -6,7 +6,8 @@ command. Optionally the power stage is switched off ``torque_off_after`` seconds
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from rocoma_can.drivers.joints import JointMode
 from rocoma_can.interfaces import EmergencyController

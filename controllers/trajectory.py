@@ -15,7 +15,8 @@ or CST with a PD on (r, ṙ).
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -6,7 +6,7 @@ the next controller takes over without re-enabling the drives.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 from rocoma_can.drivers.joints import JointMode
 from rocoma_can.interfaces import Controller

@@ -26,9 +26,10 @@ import enum
 import struct
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import canopen
 

@@ -13,7 +13,8 @@ from __future__ import annotations
 import logging
 import socket
 import threading
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import can
 import canopen

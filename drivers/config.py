@@ -7,9 +7,10 @@ found at run time is a moving robot doing the wrong thing.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from .joints import JointMode
 
@@ -77,7 +78,8 @@ class DriveConfig:
                              f"got {self.increments_per_rev!r}")
         _positive(where, "rated_torque_nm", self.rated_torque_nm)
         if not _finite(self.gear_ratio) or self.gear_ratio == 0:
-            raise ValueError(f"{where}: gear_ratio must be a non-zero number, got {self.gear_ratio!r}")
+            raise ValueError(f"{where}: gear_ratio must be a non-zero number, "
+                             f"got {self.gear_ratio!r}")
         modes = (self.modes,) if isinstance(self.modes, (str, int)) else tuple(self.modes)
         if not modes:
             raise ValueError(f"{where}: modes must name at least one of csp, csv, cst")

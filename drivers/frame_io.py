@@ -20,11 +20,13 @@ import struct
 import time
 
 import can
-from can.interfaces.socketcan.constants import (
-    CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, CANFD_MTU)
+from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, CANFD_MTU
 from can.interfaces.socketcan.socketcan import (
-    RECEIVED_ANCILLARY_BUFFER_SIZE, RECEIVED_TIMESTAMP_STRUCT, build_can_frame,
-    dissect_can_frame)
+    RECEIVED_ANCILLARY_BUFFER_SIZE,
+    RECEIVED_TIMESTAMP_STRUCT,
+    build_can_frame,
+    dissect_can_frame,
+)
 
 _CLASSIC_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: id, dlc, pad, data
 
@@ -39,7 +41,7 @@ def _raw_socket(bus: can.BusABC) -> socket.socket | None:
 def _message(frame: bytes, ancillary: list) -> can.Message:
     can_id, dlc, _flags, data = dissect_can_frame(frame)
     timestamp = 0.0
-    for level, kind, payload in ancillary:
+    for level, _kind, payload in ancillary:
         if level == socket.SOL_SOCKET and len(payload) >= RECEIVED_TIMESTAMP_STRUCT.size:
             seconds, nanoseconds = RECEIVED_TIMESTAMP_STRUCT.unpack_from(payload)
             timestamp = seconds + nanoseconds * 1e-9

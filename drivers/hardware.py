@@ -13,16 +13,17 @@ The safety path, top to bottom (each step names where it lives):
    for k cycles, a drive dropping out of operation enabled or not enabling in time
    (``_command_frames`` below), a bus-off error frame (``_on_error_frames``), or the bus
    refusing frames in ``tpdo_timeout_cycles`` cycles in a row (``_end_of_write``). Frames
-   arrive on the bus reader thread (bus.py), which only appends them to a deque; ``read`` drains it on
-   the cycle thread, so no lock is shared with a slow thread.
+   arrive on the bus reader thread (bus.py), which only appends them to a deque; ``read``
+   drains it on the cycle thread, so no lock is shared with a slow thread.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
    a latched drive is never sent anything but controlword 0x0000), until recovery, and
    controlword 0x0000 once by SDO from a thread of its own (``_deliver``, switch_off.py): a
    drive that no longer applies RPDOs (pre-operational, ignoring SYNC) still switches off.
 3. ``read`` hands the event to the manager before update(): ``manager.emergency_stop(cause)``
-   (``attach``; ``rocoma_can.runtime.system.manager_for`` wires it). In update() the manager switches OK -> EMERGENCY: the
-   emergency controller's initialize_fast and advance write this cycle's command, so the
-   failed controller never commands again.
+   (``attach``; ``rocoma_can.runtime.system.manager_for`` wires it). In update() the
+   manager switches OK -> EMERGENCY: the emergency controller's initialize_fast and advance
+   write this cycle's command (after ``neutral_command`` reset it), so the failed
+   controller never commands again.
 4. A second fault (another drive, or the emergency controller failing) -> FAILPROOF.
 5. While the manager reports FAILPROOF, ``write`` sends the pre-encoded torque-off frames
    (controlword 0x0000, mode, targets 0; built in ``__init__``) for every drive in the same
@@ -51,12 +52,13 @@ inputs or CANopen Safety (SRDO) are needed for that (see README, safety model).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 import time
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-import dataclasses
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import can
 import numpy as np

@@ -6,8 +6,8 @@ controller may keep references to the arrays (``q = self.state.position``) acros
 from __future__ import annotations
 
 import enum
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 

@@ -10,8 +10,8 @@ precompiled ``struct.Struct``: the cycle never touches canopen's PDO objects.
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
 
 import canopen
 

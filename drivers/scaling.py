@@ -6,7 +6,7 @@ pre-allocated outputs (``out=``), so decoding 24 joints costs the same few numpy
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

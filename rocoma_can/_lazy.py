@@ -6,7 +6,8 @@ bench machine, where the machine's own control loop competes with that start).""
 from __future__ import annotations
 
 import importlib
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 
 def lazy_exports(package: str, where: dict[str, str]) -> tuple[Callable[[str], Any],

@@ -30,12 +30,18 @@ import queue
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
-from .adapters import (ControllerAdapter, EmergencyControllerAdapter,
-                       FailproofControllerAdapter, StateCheck, TimingBudget)
+from .adapters import (
+    ControllerAdapter,
+    EmergencyControllerAdapter,
+    FailproofControllerAdapter,
+    StateCheck,
+    TimingBudget,
+)
 from .events import EventDispatcher, EventKind, ManagerEvent, ManagerState, Subscriber
 from .interfaces import Controller, EmergencyController, FailproofController
 from .workers import WorkerManager
@@ -58,7 +64,7 @@ class ManagerTimeouts:
     shutdown: float = 5.0       # shutdown waits this long for stops and for each thread
 
 
-@dataclass
+@dataclass(frozen=True)
 class TimingSupervision:
     """What rocoma left to the user ("make sure you have no deadlocks"), supervised.
 
@@ -628,7 +634,8 @@ class ControllerManager:
         if self._watchdog is not None:
             self._watchdog.join(limit)
         stuck = self._stoppers.close(limit)
-        stuck += [t.name for t in (self._switcher, self._watchdog) if t is not None and t.is_alive()]
+        stuck += [t.name for t in (self._switcher, self._watchdog)
+                  if t is not None and t.is_alive()]
         if not self._events.close(limit):
             stuck.append(f"{self.name}/events")
         for thread_name in stuck:

@@ -1,7 +1,8 @@
 """Controllers loaded by name from configuration (rocoma's pluginlib plugins).
 
 A controller is named either by an entry point in the ``rocoma_can.controllers`` group (a
-distribution declares ``pd = "my_pkg.pd:PD"`` under ``[project.entry-points."rocoma_can.controllers"]``)
+distribution declares ``pd = "my_pkg.pd:PD"`` under
+``[project.entry-points."rocoma_can.controllers"]``)
 or directly as ``"package.module:Class"``. It is built as ``cls(name, **params)``.
 
 Configuration (YAML), emergency controllers shared by name::
@@ -30,9 +31,10 @@ import difflib
 import importlib
 import inspect
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 from .errors import PluginError
 from .interfaces import Controller, EmergencyController, FailproofController

@@ -22,7 +22,8 @@ whole, as rocoma does, and a member that cares looks inside with ``TupleSwapStat
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable, Sequence, TypeVar
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 from .interfaces import Controller, EmergencyController, SwapState
 

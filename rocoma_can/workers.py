@@ -17,8 +17,8 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Union
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +156,7 @@ class WorkerHandle:
         self.realtime = True
 
 
-HandleOrName = Union[WorkerHandle, str]
+HandleOrName = WorkerHandle | str
 
 
 class WorkerManager:

@@ -10,8 +10,8 @@ import inspect
 import math
 import struct
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import can
 
@@ -235,7 +235,8 @@ class Sine(Controller):
             c.position[:] = ref
         else:
             w = 2 * math.pi * self.f
-            c.velocity[:] = self.a * w * math.cos(w * self.t) + self.kp * (ref - self.state.position)
+            c.velocity[:] = (self.a * w * math.cos(w * self.t)
+                             + self.kp * (ref - self.state.position))
         return True
 
 

@@ -8,7 +8,7 @@ TORQUE_OFF lets the joint coast. It writes the JointState a driver would decode.
 """
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 

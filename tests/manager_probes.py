@@ -9,8 +9,13 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from rocoma_can import (ControllerManager, EmergencyController, FailproofController,
-                        ManagerState, SwapState)
+from rocoma_can import (
+    ControllerManager,
+    EmergencyController,
+    FailproofController,
+    ManagerState,
+    SwapState,
+)
 from rocoma_can.interfaces import Controller
 
 WAIT = 10.0  # upper bound for any wait in these tests; a hit means the test failed

@@ -4,10 +4,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import yaml
-
-from rocoma_can.cli import main
 from test_config import good
 from test_services import NODE, Rig
+
+from rocoma_can.cli import main
 
 EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from rocoma_can.runtime.config import ConfigError, bus_load, frame_bits, load, validate
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
+from rocoma_can.runtime.config import ConfigError, bus_load, frame_bits, load, validate
 
 EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
 
@@ -83,7 +83,8 @@ BAD = [
     ("manager node", _set("drives.1.node_id", 100), "drives[1].node_id: 100 is the manager's"),
     ("no controllers", _set("controllers", []), "controllers: at least one controller"),
     ("plugin", _set("controllers.0.plugin", "pdd"), "controllers[0].plugin: no controller plugin"),
-    ("emergency", _set("controllers.0.emergency", "dmap"), "controllers[0].emergency: no emergency"),
+    ("emergency", _set("controllers.0.emergency", "dmap"),
+     "controllers[0].emergency: no emergency"),
 ]
 
 

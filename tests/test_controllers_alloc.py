@@ -10,8 +10,8 @@ from __future__ import annotations
 import tracemalloc
 
 import pytest
-
 from joint_plant import JointPlant, attach
+
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
@@ -66,10 +66,10 @@ def test_cycle_calls_allocate_no_arrays(make):
         assert ctrl.create(DT) is not False
         init = 0
         if isinstance(ctrl, EmergencyController):
-            init = peak_growth(lambda: ctrl.initialize_fast(DT))
+            init = peak_growth(lambda c=ctrl: c.initialize_fast(DT))
         elif hasattr(ctrl, "initialize"):
             assert ctrl.initialize(DT)
-        peaks[n] = init, peak_growth(lambda: ctrl.advance(DT))
+        peaks[n] = init, peak_growth(lambda c=ctrl: c.advance(DT))
     small, large = peaks[SIZES[0]], peaks[SIZES[1]]
     assert large[0] - small[0] < 2048, peaks  # initialize_fast
     assert large[1] - small[1] < 2048, peaks  # advance

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from joint_plant import JointPlant
+
 from rocoma_can import ControllerManager, ManagerState, SwitchResult
 from rocoma_can.controllers import example_path
 from rocoma_can.controllers.pd import JointPD
@@ -136,7 +136,7 @@ def test_estop_while_moving_damps_to_rest_then_torque_off(robot):
     r.mgr.emergency_stop("test")
     assert r.cycle() == ManagerState.EMERGENCY
     assert r.mgr.active_controller_name == "damp"
-    for cycles in range(1, 5001):
+    for cycles in range(1, 5001):  # noqa: B007 - read after the loop
         r.cycle()
         if (r.plant.command.mode == JointMode.TORQUE_OFF).all():
             break

@@ -7,8 +7,8 @@ from importlib.metadata import entry_points
 
 import numpy as np
 import pytest
-
 from joint_plant import JointPlant, attach
+
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD

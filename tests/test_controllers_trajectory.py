@@ -5,8 +5,8 @@ import math
 
 import numpy as np
 import pytest
-
 from joint_plant import JointPlant, attach
+
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.pose_swap import PoseSwapState
@@ -43,7 +43,7 @@ def test_min_jerk_move_arrives_on_time_at_rest_in_csp():
                    plant)
     assert ctrl.initialize(DT)
     peak = np.zeros(3)
-    for i in range(500):
+    for _i in range(500):
         assert not ctrl.finished
         ctrl.advance(DT)
         np.maximum(peak, np.abs(ctrl.reference_velocity), out=peak)

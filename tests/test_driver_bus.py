@@ -15,9 +15,19 @@ import time
 import can
 import numpy as np
 import pytest
+from driver_rig import (
+    MANAGER_NODE_ID,
+    VCAN,
+    VIRTUAL,
+    Brake,
+    Can,
+    HoldPD,
+    Rig,
+    Sine,
+    seconds_until_all_off,
+    synced_mark,
+)
 
-from driver_rig import (MANAGER_NODE_ID, VCAN, VIRTUAL, Brake, Can, HoldPD, Rig, Sine,
-                        seconds_until_all_off, synced_mark)
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import bus, cia402
 from rocoma_can.drivers.bringup import Phase
@@ -98,7 +108,7 @@ def test_bring_up_six_drives_to_operation_enabled(segment, make_rig, can_setup):
     bring_up(rig)
     assert rig.hw.all_ready, rig.hw.drive_status()
     # every drive was configured as the safety model needs it
-    for n, drive in segment.drives.items():
+    for _n, drive in segment.drives.items():
         assert drive.nmt_state == cia402.NmtState.OPERATIONAL
         assert drive.od_value(cia402.CONSUMER_HEARTBEAT_TIME, 1) == \
             (MANAGER_NODE_ID << 16) | rig.hw.consumer_ms

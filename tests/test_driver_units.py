@@ -7,15 +7,23 @@ import struct
 import canopen
 import numpy as np
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from rocoma_can import eds
 from rocoma_can.drivers import cia402
 from rocoma_can.drivers.config import DriveConfig, check_drives
 from rocoma_can.drivers.hardware import ENABLE_STEP, CanopenHardware
 from rocoma_can.drivers.joints import JointCommand, JointMode
-from rocoma_can.drivers.pdo_layout import (CONTROLWORD, MODE, STATUSWORD, TARGET_POSITION,
-                                           check_against_od, first_fit, layout_for)
+from rocoma_can.drivers.pdo_layout import (
+    CONTROLWORD,
+    MODE,
+    STATUSWORD,
+    TARGET_POSITION,
+    check_against_od,
+    first_fit,
+    layout_for,
+)
 from rocoma_can.drivers.scaling import Scaling
 from rocoma_can.runtime.system import manager_for
 
@@ -204,6 +212,7 @@ def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
     import threading
 
     import can
+
     from rocoma_can import EventKind, ManagerState
     from rocoma_can.drivers.supervision import FaultEvent
 

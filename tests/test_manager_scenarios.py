@@ -9,11 +9,18 @@ import logging
 import threading
 
 import pytest
+from manager_probes import (
+    LAYER_METHODS,
+    WAIT,
+    CommandLog,
+    EmergencyProbe,
+    FailproofProbe,
+    Journal,
+    Probe,
+    layered_manager,
+)
 
-from manager_probes import (LAYER_METHODS, WAIT, CommandLog, EmergencyProbe, FailproofProbe,
-                            Journal, Probe, layered_manager)
-from rocoma_can import (ControllerManager, EventKind, ManagerState, ManagerTimeouts,
-                        SwitchResult)
+from rocoma_can import ControllerManager, EventKind, ManagerState, ManagerTimeouts, SwitchResult
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
 

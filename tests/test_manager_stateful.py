@@ -9,8 +9,8 @@ import threading
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
-
 from manager_probes import WAIT, CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
+
 from rocoma_can import ControllerManager, ManagerState, SwitchResult
 
 NAMES = ("a", "b", "c")

@@ -9,6 +9,7 @@ import threading
 import time
 
 from manager_probes import WAIT, EmergencyProbe, NumberSwapState, Probe
+
 from rocoma_can import ManagerState, SwitchResult
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF

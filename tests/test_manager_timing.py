@@ -6,8 +6,8 @@ import threading
 import time
 
 from manager_probes import CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
-from rocoma_can import (ControllerManager, EventKind, ManagerState, SwitchResult,
-                        TimingSupervision)
+
+from rocoma_can import ControllerManager, EventKind, ManagerState, SwitchResult, TimingSupervision
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
 DT = 0.01  # budgets: advance 5 ms, initialize_fast 5 ms, hang 200 ms

@@ -13,11 +13,11 @@ import pytest
 
 from rocoma_can import ManagerState
 from rocoma_can.cli import main
-from rocoma_can.runtime.config import validate
-from rocoma_can.runtime.demo import MANAGER_ID, demo_config
 from rocoma_can.drivers import cia402
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.runtime import Runtime
+from rocoma_can.runtime.config import validate
+from rocoma_can.runtime.demo import MANAGER_ID, demo_config
 
 RATE = 100.0
 WAIT = 10.0  # bound of every wait; the virtual-bus set-up brings drives up in well under 1 s

@@ -4,18 +4,25 @@ from __future__ import annotations
 import copy
 import logging
 
+import plugin_samples
 import pytest
+from plugin_samples import Brake, Gains
 
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.drivers.joints import JointCommand, JointState
-from rocoma_can.plugins import (GROUP, LoadedController, PluginError, add_to_manager,
-                                available_plugins, create_controller, load_config,
-                                load_controller_class, load_controllers,
-                                load_emergency_controllers)
+from rocoma_can.plugins import (
+    GROUP,
+    LoadedController,
+    PluginError,
+    add_to_manager,
+    available_plugins,
+    create_controller,
+    load_config,
+    load_controller_class,
+    load_controllers,
+    load_emergency_controllers,
+)
 from rocoma_can.tuples import ControllerTuple, EmergencyControllerTuple
-
-import plugin_samples
-from plugin_samples import Brake, Gains
 
 CONFIG = {
     "controllers": [

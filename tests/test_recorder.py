@@ -6,7 +6,6 @@ import threading
 
 import can
 import pytest
-
 from fixtures.recorder import FrameRecorder
 
 

@@ -9,9 +9,9 @@ import time
 
 import pytest
 
+from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
 from rocoma_can.runtime.demo import demo_config
-from rocoma_can.runtime import CycleStats, ControlLoop, Runtime
 
 
 @pytest.fixture

@@ -7,8 +7,8 @@ import time
 
 import can
 import pytest
-
 from joint_plant import JointPlant
+
 from rocoma_can import ControllerManager, add_to_manager
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.errors import NoAnswer, Refused
@@ -190,7 +190,8 @@ def test_a_plain_remote_node_from_the_eds_reads_what_the_node_serves(rig, bus_fa
             (0x1017, 0): 100,                      # no heartbeat_ms given: the EDS default
             (0x1800, 1): 0x180 + NODE, (0x1800, 2): 255, (0x1800, 5): 50,  # status_period
             (0x1A00, 0): 2, (0x1A00, 1): 0x21200008, (0x1A00, 2): 0x21220008,
-            (0x2102, 0): 0xFE, (0x2103, 0): "", (0x2120, 0): 0, (0x2121, 0): "torque_off", (0x2122, 0): 0,
+            (0x2102, 0): 0xFE, (0x2103, 0): "", (0x2120, 0): 0, (0x2121, 0): "torque_off",
+            (0x2122, 0): 0,
             (0x2123, 0): "pd,trajectory", (0x2124, 0): "", (0x2130, 0): ESTOP_COB,
             (0x2131, 0): 0,
         }
@@ -203,7 +204,7 @@ def test_a_plain_remote_node_from_the_eds_reads_what_the_node_serves(rig, bus_fa
                 if not var.readable:
                     write_only.append(var.index)
                     with pytest.raises(SdoAbortedError) as refused:
-                        sdo_var.raw
+                        _ = sdo_var.raw
                     assert refused.value.code == 0x06010001, hex(var.index)
                     continue
                 read[var.index, var.subindex] = sdo_var.raw

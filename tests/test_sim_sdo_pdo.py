@@ -54,7 +54,7 @@ def test_sdo_aborts_like_a_real_drive(sim_bench):
     bench.nmt(NmtCommand.STOP, 1)
     node.sdo.RESPONSE_TIMEOUT = 0.2
     with pytest.raises(SdoCommunicationError):  # no SDO in STOPPED: no answer
-        node.sdo[0x6041].raw
+        _ = node.sdo[0x6041].raw
 
 
 def _remap_tpdo1(node, *variables, trans_type=1):

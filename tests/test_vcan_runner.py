@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from fixtures.bus import in_ci
 
 VCAN_RUN = Path(__file__).resolve().parents[1] / "tools" / "vcan-run"

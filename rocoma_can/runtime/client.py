@@ -13,9 +13,23 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from .. import eds as shipped_eds
 from ..drivers.bus import BusReader
 from ..errors import NoAnswer, Refused
-from .objects import (ABORT_TEXT, ACTIVE_NAME, CONTROLLER_LIST, DRIVE_STATUS, ESTOP_CAUSE, ESTOP_COB_ID,
-                      ESTOP_LATCHED, PENDING, RESULT_NAMES, STATE, STATE_NAMES, SWITCH_INDEX,
-                      SWITCH_NAME, SWITCH_REFUSAL, SWITCH_RESULT)
+from .objects import (
+    ABORT_TEXT,
+    ACTIVE_NAME,
+    CONTROLLER_LIST,
+    DRIVE_STATUS,
+    ESTOP_CAUSE,
+    ESTOP_COB_ID,
+    ESTOP_LATCHED,
+    PENDING,
+    RESULT_NAMES,
+    STATE,
+    STATE_NAMES,
+    SWITCH_INDEX,
+    SWITCH_NAME,
+    SWITCH_REFUSAL,
+    SWITCH_RESULT,
+)
 
 __all__ = ["ManagerClient", "NoAnswer", "Refused"]
 

@@ -15,12 +15,20 @@ import faulthandler
 import json
 import signal
 import sys
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from ..errors import NoAnswer, Refused
 from .client import ManagerClient
-from .objects import (ABORT_NOT_FOUND, CLEAR, ESTOP, FAILPROOF_STOP, RECOVER, RESULT_NAMES,
-                      SWITCH_REFUSAL)
+from .objects import (
+    ABORT_NOT_FOUND,
+    CLEAR,
+    ESTOP,
+    FAILPROOF_STOP,
+    RECOVER,
+    RESULT_NAMES,
+    SWITCH_REFUSAL,
+)
 
 OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
 

@@ -31,15 +31,16 @@ from __future__ import annotations
 
 import difflib
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import yaml
 
 from ..drivers.config import BusConfig, DriveConfig
-from ..errors import ConfigError
 from ..drivers.pdo_layout import drive_object_dictionary, layout_for
+from ..errors import ConfigError
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
 _TOP_KEYS = {"bus", "rate", "manager", "realtime", "supervision", "timing", "drives",

@@ -14,8 +14,9 @@ import argparse
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import can
 
@@ -197,8 +198,8 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
 
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              out: Callable[[str], None] = print) -> Report:
-    from .config import validate
     from ..drivers.sim.segment import SimulatedSegment
+    from .config import validate
     from .system import Runtime
     channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
     config = validate(demo_config(channel, drives, rate), source="demo")

@@ -19,7 +19,8 @@ initialize/swap of the new controller, for any length of time) would delay e-sto
 the client's SDO time out. So a write to 0x2100/0x2101 is checked synchronously (unknown
 name -> abort 0x06090030 and 0x2102 = NOT_FOUND; e-stop latched, drives not ready or a switch
 running -> abort 0x08000022, 0x2102 = ERROR and the reason in 0x2103), otherwise accepted
-with 0x2102 = 0xFF (PENDING); the result lands in 0x2102 when the switch ends. ``rocoma-can switch`` polls 0x2102 for it.
+with 0x2102 = 0xFF (PENDING); the result lands in 0x2102 when the switch ends.
+``rocoma-can switch`` polls 0x2102 for it.
 
 Frames the node sends (from its own status thread, never from the control loop):
   TPDO1 0x180+id, 2 bytes [state, active controller number]: on every state or controller
@@ -39,26 +40,55 @@ import logging
 import struct
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import can
 import canopen
 from canopen.objectdictionary import NUMBER_TYPES
 from canopen.sdo import SdoServer
-from canopen.sdo.constants import (EXPEDITED, NO_MORE_DATA, REQUEST_SEGMENT_DOWNLOAD,
-                                   REQUEST_SEGMENT_UPLOAD, RESPONSE_UPLOAD, SDO_STRUCT,
-                                   SIZE_SPECIFIED)
+from canopen.sdo.constants import (
+    EXPEDITED,
+    NO_MORE_DATA,
+    REQUEST_SEGMENT_DOWNLOAD,
+    REQUEST_SEGMENT_UPLOAD,
+    RESPONSE_UPLOAD,
+    SDO_STRUCT,
+    SIZE_SPECIFIED,
+)
 from canopen.sdo.exceptions import SdoAbortedError
 
 from .. import eds as shipped_eds
 from ..drivers.bus import BusReader
 from ..events import EventKind, ManagerEvent, ManagerState
-from .objects import (ABORT_COMMAND_SPECIFIER, ABORT_NO_RECOVERY, ABORT_NOT_FOUND,
-                      ABORT_REFUSED, ACTIVE_INDEX, ACTIVE_NAME, CLEAR, CONTROLLER_LIST,
-                      DRIVE_STATUS, EMCY, ESTOP, ESTOP_CAUSE, ESTOP_COB_ID, ESTOP_LATCHED,
-                      FAILPROOF_STOP, NO_SWITCH_YET, PENDING, PRODUCER_HEARTBEAT_TIME, RECOVER,
-                      STATE, SWITCH_INDEX, SWITCH_NAME, SWITCH_REFUSAL, SWITCH_RESULT, TPDO1,
-                      TPDO1_COMMUNICATION)
+from .objects import (
+    ABORT_COMMAND_SPECIFIER,
+    ABORT_NO_RECOVERY,
+    ABORT_NOT_FOUND,
+    ABORT_REFUSED,
+    ACTIVE_INDEX,
+    ACTIVE_NAME,
+    CLEAR,
+    CONTROLLER_LIST,
+    DRIVE_STATUS,
+    EMCY,
+    ESTOP,
+    ESTOP_CAUSE,
+    ESTOP_COB_ID,
+    ESTOP_LATCHED,
+    FAILPROOF_STOP,
+    NO_SWITCH_YET,
+    PENDING,
+    PRODUCER_HEARTBEAT_TIME,
+    RECOVER,
+    STATE,
+    SWITCH_INDEX,
+    SWITCH_NAME,
+    SWITCH_REFUSAL,
+    SWITCH_RESULT,
+    TPDO1,
+    TPDO1_COMMUNICATION,
+)
 
 log = logging.getLogger(__name__)
 

@@ -2,9 +2,12 @@
 node (node.py) serves and the client (client.py) asks for, in one place."""
 from __future__ import annotations
 
-from canopen.sdo.constants import (ABORT_APPLICATION_DEVICE_STATE,
+from canopen.sdo.constants import (
+                                   ABORT_APPLICATION_DEVICE_STATE,
                                    ABORT_APPLICATION_LOCAL_CONTROL,
-                                   ABORT_INVALID_COMMAND_SPECIFIER, ABORT_INVALID_VALUE)
+                                   ABORT_INVALID_COMMAND_SPECIFIER,
+                                   ABORT_INVALID_VALUE,
+)
 
 SWITCH_NAME, SWITCH_INDEX, SWITCH_RESULT, SWITCH_REFUSAL = 0x2100, 0x2101, 0x2102, 0x2103
 DRIVE_STATUS = 0x2140

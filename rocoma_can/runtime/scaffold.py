@@ -70,7 +70,7 @@ class {cls}(Controller):
         return True
 '''
 
-TEST = '''"""{cls} under the real ControllerManager: switched in, advanced, and its output checked."""
+TEST = '''"""{cls} under the real ControllerManager: switched in, advanced, output checked."""
 from importlib.metadata import entry_points
 
 import numpy as np

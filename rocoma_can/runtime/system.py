@@ -3,7 +3,8 @@ the manager with its controllers (built here: nothing in drivers/ builds a manag
 manager's CANopen node, and the loop."""
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from ..controllers.torque_off import TorqueOff
 from ..manager import ControllerManager, TimingSupervision

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import pytest
-
 from safety_rig import NODES, served_rig
 from test_services import Rig as ServiceRig
 

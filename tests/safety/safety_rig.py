@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterator
 
 import can
 import canopen
-
 from driver_rig import MANAGER_NODE_ID, VIRTUAL, HoldPD, Rig
 from fixtures.recorder import FrameRecorder
+
 from rocoma_can import SwitchResult, eds
 from rocoma_can.drivers.sim.segment import SimulatedSegment
 from rocoma_can.runtime.node import ManagerNode

@@ -8,9 +8,10 @@ import random
 import threading
 
 from driver_rig import VIRTUAL
+from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
+
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.cia402 import State402
-from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
 
 
 def _torque_off_seen_for_every_drive(served: Served, since: int) -> None:

@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import can
 import pytest
-
 from driver_rig import VIRTUAL, Brake, HoldPD, synced_mark
+from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
+
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import cia402
 from rocoma_can.drivers.cia402 import Mode, State402
-from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
 
 FAULTY = NODES[1]
 NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE = 0x02, 0x80, 0x81

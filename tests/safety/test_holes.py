@@ -17,17 +17,24 @@ import can
 import numpy as np
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
-
 from driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
-from manager_probes import (LAYER_METHODS, CommandLog, EmergencyProbe, FailproofProbe, Journal,
-                            Probe, layered_manager)
-from rocoma_can import ControllerManager, ManagerState, SwitchResult
-from rocoma_can.runtime.config import ConfigError, load, validate
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.errors import Refused
-from rocoma_can.runtime.objects import ABORT_NOT_FOUND, ABORT_REFUSED
+from manager_probes import (
+    LAYER_METHODS,
+    CommandLog,
+    EmergencyProbe,
+    FailproofProbe,
+    Journal,
+    Probe,
+    layered_manager,
+)
 from safety_rig import SDO_RX, cycle_while, sdo_exchange
 from test_services import ESTOP_COB as SERVICE_ESTOP
+
+from rocoma_can import ControllerManager, ManagerState, SwitchResult
+from rocoma_can.drivers.cia402 import State402
+from rocoma_can.errors import Refused
+from rocoma_can.runtime.config import ConfigError, load, validate
+from rocoma_can.runtime.objects import ABORT_NOT_FOUND, ABORT_REFUSED
 
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 ABORT_READ_ONLY = 0x06010002

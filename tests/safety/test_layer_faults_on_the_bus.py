@@ -21,11 +21,11 @@ import threading
 
 import numpy as np
 import pytest
-
 from driver_rig import VIRTUAL, Brake, HoldPD
+from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
+
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.cia402 import Mode, State402
-from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
 
 FAULTS = ("raise", "false", "none", "numpy-array", "nan", "inf", "hang")
 CALLS = (("controller", "advance"), ("emergency", "initialize_fast"), ("emergency", "advance"))

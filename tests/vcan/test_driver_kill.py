@@ -15,9 +15,9 @@ import sys
 import time
 from pathlib import Path
 
+import driver_rig  # tests/ (conftest.py's folder is on sys.path); the subprocess imports it too
 import pytest
 
-import driver_rig  # tests/ (conftest.py's folder is on sys.path); the subprocess imports it too
 from rocoma_can.drivers.cia402 import State402
 
 NODES = driver_rig.VCAN.nodes

@@ -7,9 +7,10 @@ from __future__ import annotations
 import json
 import time
 
+from test_e2e_manager import CONFIG, DRIVES, NODE, cli, processes, wait_for  # noqa: F401
+
 from rocoma_can.drivers import cia402
 from rocoma_can.drivers.cia402 import State402
-from test_e2e_manager import CONFIG, DRIVES, NODE, cli, processes, wait_for  # noqa: F401
 
 
 def test_clear_does_not_rearm_a_faulted_drive(processes, frame_recorder,  # noqa: F811
