@@ -7,7 +7,7 @@ from pathlib import Path
 
 def example_path(name: str = "tuple.yaml") -> Path:
     """A controller configuration shipped in controllers/examples/ (package data)."""
-    path = Path(str(resources.files(__name__).joinpath("examples", name)))
+    path = Path(str(resources.files(__name__).joinpath("examples").joinpath(name)))
     if not path.is_file():
         raise FileNotFoundError(f"no example controller configuration {name!r} in {path.parent}")
     return path

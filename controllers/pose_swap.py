@@ -39,8 +39,7 @@ def find_pose_state(swap_state: SwapState | None) -> PoseSwapState | None:
         return swap_state
     if not isinstance(swap_state, TupleSwapState):
         return None
-    poses = [find_pose_state(s) for s in swap_state.states]
-    poses = [p for p in poses if p is not None]
+    poses = [p for p in map(find_pose_state, swap_state.states) if p is not None]
     if not poses:
         return None
     if len(poses) == 1:

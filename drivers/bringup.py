@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import canopen
+from canopen.sdo.client import SdoClient
 
 from . import cia402
 from .config import DriveConfig
@@ -78,7 +79,7 @@ def _u32(v: int) -> bytes:
     return struct.pack("<I", v)
 
 
-def _configure_pdos(sdo: canopen.sdo.SdoClient, pdos: tuple[Pdo, ...], comm_base: int,
+def _configure_pdos(sdo: SdoClient, pdos: tuple[Pdo, ...], comm_base: int,
                     map_base: int, cob_bases: tuple[int, ...], node_id: int) -> None:
     for k in range(PDO_SLOTS):
         comm, mapping = comm_base + k, map_base + k
@@ -95,18 +96,19 @@ def _configure_pdos(sdo: canopen.sdo.SdoClient, pdos: tuple[Pdo, ...], comm_base
         sdo.download(comm, 1, _u32(pdo.cob_id))
 
 
-def _read_u32(sdo: canopen.sdo.SdoClient, index: int, subindex: int) -> int | None:
+def _read_u32(sdo: SdoClient, index: int, subindex: int) -> int | None:
     """An optional object: None when the drive does not have it."""
     try:
-        return struct.unpack("<I", sdo.upload(index, subindex)[:4].ljust(4, b"\0"))[0]
+        value: int = struct.unpack("<I", sdo.upload(index, subindex)[:4].ljust(4, b"\0"))[0]
+        return value
     except canopen.SdoAbortedError:
         return None
 
 
-def _check_scaling(sdo: canopen.sdo.SdoClient, drive: DriveConfig) -> None:
+def _check_scaling(sdo: SdoClient, drive: DriveConfig) -> None:
     """Where the drive states its scaling (0x608F, 0x6091, 0x6076), the config must agree:
     a wrong increments_per_rev or gear ratio would scale every target wrongly."""
-    checks = []
+    checks: list[tuple[str, float, float, str]] = []
     inc = _read_u32(sdo, cia402.POSITION_ENCODER_RESOLUTION, 1)
     revs = _read_u32(sdo, cia402.POSITION_ENCODER_RESOLUTION, 2)
     if inc and revs:

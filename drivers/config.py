@@ -80,11 +80,13 @@ class DriveConfig:
         if not _finite(self.gear_ratio) or self.gear_ratio == 0:
             raise ValueError(f"{where}: gear_ratio must be a non-zero number, "
                              f"got {self.gear_ratio!r}")
-        modes = (self.modes,) if isinstance(self.modes, (str, int)) else tuple(self.modes)
+        given: Any = self.modes  # YAML: a name, a number or a list of them
+        modes = (given,) if isinstance(given, (str, int)) else tuple(given)
         if not modes:
             raise ValueError(f"{where}: modes must name at least one of csp, csv, cst")
         self.modes = tuple(dict.fromkeys(_mode(m, f"{where}: modes") for m in modes))
-        feedback = (self.feedback,) if isinstance(self.feedback, str) else tuple(self.feedback)
+        named: Any = self.feedback
+        feedback = (named,) if isinstance(named, str) else tuple(named)
         for name in feedback:
             if name not in FEEDBACK:
                 raise ValueError(f"{where}: feedback {name!r} unknown; use {list(FEEDBACK)}")

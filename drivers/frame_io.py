@@ -38,7 +38,7 @@ def _raw_socket(bus: can.BusABC) -> socket.socket | None:
     return None
 
 
-def _message(frame: bytes, ancillary: list) -> can.Message:
+def _message(frame: bytes, ancillary: list[tuple[int, int, bytes]]) -> can.Message:
     can_id, dlc, _flags, data = dissect_can_frame(frame)
     timestamp = 0.0
     for level, _kind, payload in ancillary:

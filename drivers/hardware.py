@@ -120,8 +120,8 @@ class _Receiver(can.Listener):
     to the monotonic clock once per cycle, so a reader that lags does not make frames late.
     """
 
-    def __init__(self, cob_ids: set[int], sink: collections.deque,
-                 errors: collections.deque) -> None:
+    def __init__(self, cob_ids: set[int], sink: collections.deque[can.Message],
+                 errors: collections.deque[can.Message]) -> None:
         self._ids = frozenset(cob_ids)
         self._sink = sink
         self._errors = errors
@@ -216,8 +216,8 @@ class CanopenHardware:
         self._index_of_node = {d.node_id: i for i, d in enumerate(drives)}
         self._heartbeat_of = {cia402.HEARTBEAT + d.node_id: i for i, d in enumerate(drives)}
         self._emcy_of = {cia402.EMCY + d.node_id: i for i, d in enumerate(drives)}
-        self._rx: collections.deque = collections.deque()
-        self._rx_errors: collections.deque = collections.deque(maxlen=1024)
+        self._rx: collections.deque[can.Message] = collections.deque()
+        self._rx_errors: collections.deque[can.Message] = collections.deque(maxlen=1024)
 
         # --- transmit frames, allocated once -------------------------------------------------
         # Per drive and RPDO: (frame, codec.pack_into, positions of its entries in RPDO_FIELDS)
@@ -240,7 +240,7 @@ class CanopenHardware:
         self._executor: ThreadPoolExecutor | None = None
         self._switch_off = SdoSwitchOff()  # started with the bus (start)
         self._manager: Any = None
-        self._recovery: Future | None = None
+        self._recovery: Future[bool] | None = None
         self._recovery_started = False
         self._recovery_timeout = 5.0
         self._recovery_deadline = math.inf
@@ -360,18 +360,18 @@ class CanopenHardware:
                 got[i] |= bit
                 stamp[i] = t
                 continue
-            i = heartbeat_of.get(cob)
-            if i is not None:
+            beat = heartbeat_of.get(cob)
+            if beat is not None:
                 if msg.dlc >= 1:
-                    self._on_heartbeat(i, msg.data[0], t)
+                    self._on_heartbeat(beat, msg.data[0], t)
                 continue
-            i = emcy_of.get(cob)
-            if i is not None and msg.dlc >= 2:
+            j = emcy_of.get(cob)
+            if j is not None and msg.dlc >= 2:
                 code = msg.data[0] | (msg.data[1] << 8)
-                self.state.error_code[i] = code
+                self.state.error_code[j] = code
                 if code == cia402.EMCY_STO:
-                    self._bringup[i].sto_seen = True
-                sup.on_emcy(i, code, t)
+                    self._bringup[j].sto_seen = True
+                sup.on_emcy(j, code, t)
         if self._rx_errors:
             self._on_error_frames(offset, now)
         np.equal(got, self._expected, out=self._complete)
@@ -426,6 +426,11 @@ class CanopenHardware:
                 # the drive is protected before it can become READY (a TPDO round trip later).
                 self._next_heartbeat = -math.inf
 
+    def _still_latched(self, i: int, event: FaultEvent) -> Callable[[], bool]:
+        """For the SDO switch-off: whether drive i is still latched by ``event``."""
+        latched = self.supervisor.latched
+        return lambda: latched[i] is event
+
     def _deliver(self, events: list[FaultEvent]) -> None:
         sup = self.supervisor
         for event in events:
@@ -433,9 +438,8 @@ class CanopenHardware:
                 self._manager.emergency_stop(cause=str(event))  # a deque append: cannot fail
             i = self._index_of_node.get(event.node_id)
             if (i is not None and i < len(self._bringup) and self._bringup[i].mapped
-                    and sup.latched[i] is event):
-                self._switch_off.request(self._bringup[i],  # a queue append: cannot block
-                                         lambda i=i, event=event: sup.latched[i] is event)
+                    and sup.latched[i] is event):  # a queue append: cannot block
+                self._switch_off.request(self._bringup[i], self._still_latched(i, event))
             if self.on_fault is not None:
                 try:
                     self.on_fault(event)
@@ -614,7 +618,7 @@ class CanopenHardware:
         command.torque.fill(0.0)
 
     # --- recovery --------------------------------------------------------------------------------
-    def recover(self, timeout: float = 5.0) -> Future:
+    def recover(self, timeout: float = 5.0) -> Future[bool]:
         """Fault reset / restart every faulted or failed drive; Future[bool] says if all came back.
 
         Runs over the following cycles (never blocks the caller's thread or the cycle). On
@@ -624,7 +628,7 @@ class CanopenHardware:
         """
         if self._recovery is not None and not self._recovery.done():
             return self._recovery
-        future: Future = Future()
+        future: Future[bool] = Future()
         self._recovery_timeout = timeout
         self._recovery_started = False
         self._recovery = future
@@ -694,7 +698,9 @@ class CanopenHardware:
 
     @property
     def enabled(self) -> np.ndarray:
-        return self.ready & (self.state.cia402_state == State402.OPERATION_ENABLED)
+        enabled: np.ndarray = self.ready & (self.state.cia402_state
+                                            == State402.OPERATION_ENABLED)
+        return enabled
 
     @property
     def all_enabled(self) -> bool:

@@ -138,7 +138,7 @@ def layout_for(drive: DriveConfig) -> DriveLayout:
     )
 
 
-def check_against_od(layout: DriveLayout, od, drive: str) -> None:
+def check_against_od(layout: DriveLayout, od: canopen.ObjectDictionary, drive: str) -> None:
     """Fail at start-up, naming the object, if the drive's EDS cannot carry this layout."""
     for pdos, comm, what in ((layout.rpdos, cia402.RPDO_COMM, "RPDO"),
                              (layout.tpdos, cia402.TPDO_COMM, "TPDO")):

@@ -25,7 +25,8 @@ log = logging.getLogger(__name__)
 class SdoControlword(Protocol):
     """The drive side (bringup.DriveBringup): writes the controlword by SDO, or returns
     False without writing when the drive's SDO client is busy (its configuration runs)."""
-    name: str
+    @property
+    def name(self) -> str: ...
 
     def write_controlword_by_sdo(self, value: int) -> bool: ...
 

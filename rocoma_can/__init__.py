@@ -26,15 +26,16 @@ _MODULE_OF = {
     "TupleSwapState": "tuples",
     "WorkerEvent": "workers", "WorkerHandle": "workers", "WorkerManager": "workers",
     "WorkerOptions": "workers",
-    "PluginError": "plugins", "add_to_manager": "plugins", "create_controller": "plugins",
+    "PluginError": "errors", "add_to_manager": "plugins", "create_controller": "plugins",
     "load_config": "plugins",
 }
 __getattr__, __dir__ = lazy_exports(__name__, _MODULE_OF)
 
 if TYPE_CHECKING:
+    from .errors import PluginError
     from .events import EventKind, ManagerEvent, ManagerState
     from .interfaces import Controller, EmergencyController, FailproofController, SwapState
     from .manager import ControllerManager, ManagerTimeouts, SwitchResult, TimingSupervision
-    from .plugins import PluginError, add_to_manager, create_controller, load_config
+    from .plugins import add_to_manager, create_controller, load_config
     from .tuples import ControllerTuple, EmergencyControllerTuple, TupleSwapState
     from .workers import WorkerEvent, WorkerHandle, WorkerManager, WorkerOptions

@@ -103,6 +103,7 @@ class _Adapter:
     """Call wrapper shared by the layers: failures become False plus a reason."""
 
     CALLS: tuple[str, ...] = ()
+    controller: Any  # each layer's adapter narrows it
 
     def __init__(self, controller: Any, report: Report) -> None:
         self.controller = controller
@@ -139,7 +140,9 @@ class _Adapter:
 class ControllerAdapter(_Adapter):
     """Adapter for switchable controllers (and, by subclassing, emergency controllers)."""
 
-    CALLS = ("create", "initialize", "reset", "swap", "advance", "pre_stop", "stop", "cleanup")
+    CALLS: tuple[str, ...] = ("create", "initialize", "reset", "swap", "advance", "pre_stop",
+                              "stop", "cleanup")
+    controller: Controller
 
     def __init__(self, controller: Controller, report: Report,
                  check_state: StateCheck | None = None,

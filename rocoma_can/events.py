@@ -52,7 +52,7 @@ class EventDispatcher:
     """One thread that runs subscribers and failure logging for the manager."""
 
     def __init__(self, name: str) -> None:
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[_LogRecord | ManagerEvent | None] = queue.SimpleQueue()
         self._subscribers: list[Subscriber] = []
         self._lock = threading.Lock()  # guards the subscriber list, never taken in the cycle
         self._thread = threading.Thread(target=self._run, name=f"{name}/events", daemon=True)

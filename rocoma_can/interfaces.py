@@ -54,7 +54,7 @@ class Controller(_Named, abc.ABC):
     def __init__(self, name: str | None = None) -> None:
         super().__init__(name)
         self.workers: WorkerManager | None = None
-        self._initialized = False  # kept in step by the adapter (rocoma's isInitialized)
+        self._initialized: bool = False  # kept in step by the adapter (rocoma's isInitialized)
 
     @property
     def is_initialized(self) -> bool:

@@ -102,7 +102,7 @@ class _Stoppers:
 
     def __init__(self, name: str) -> None:
         self._name = name
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[ControllerAdapter | None] = queue.SimpleQueue()
         self._threads: list[threading.Thread] = []
 
     def grow_to(self, n: int) -> None:
@@ -195,7 +195,8 @@ class ControllerManager:
 
         self._stoppers = _Stoppers(name)
         self._switch_busy = threading.Lock()
-        self._switch_jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._switch_jobs: queue.SimpleQueue[tuple[_Pair, Future[SwitchResult]] | None] = \
+            queue.SimpleQueue()
         self._switcher = threading.Thread(target=self._run_switcher, daemon=True,
                                           name=f"{name}/switcher")
         self._switcher.start()
@@ -314,7 +315,9 @@ class ControllerManager:
         while True:  # a failure falls through to the next layer within this call
             state = self._state
             if state is ManagerState.OK:
-                adapter = self._active.controller
+                pair = self._active
+                assert pair is not None  # OK and EMERGENCY always have an active pair
+                adapter = pair.controller
                 if adapter.advance(dt):
                     break
                 if self.hang_calls != hangs:
@@ -324,10 +327,11 @@ class ControllerManager:
                 else:
                     self._estop(False, adapter.failure)
             elif state is ManagerState.EMERGENCY:
-                adapter = self._active.emergency
-                if adapter.advance(dt):
+                pair = self._active
+                assert pair is not None and pair.emergency is not None
+                if pair.emergency.advance(dt):
                     break
-                self._estop(True, adapter.failure)
+                self._estop(True, pair.emergency.failure)
             else:
                 self._failproof.advance(dt)
                 break
@@ -352,6 +356,7 @@ class ControllerManager:
                 to_failproof = True
                 self._events.log(logging.CRITICAL, f"reset_command failed: {exc!r}", exc)
         if previous is ManagerState.OK:
+            assert pair is not None
             self._stop_in_background(pair.controller)
             emcy = pair.emergency
             if (not to_failproof and emcy is not None and not emcy.being_stopped
@@ -361,6 +366,7 @@ class ControllerManager:
             else:
                 self._state = ManagerState.FAILPROOF
         elif previous is ManagerState.EMERGENCY:
+            assert pair is not None and pair.emergency is not None
             self._stop_in_background(pair.emergency)
             self._state = ManagerState.FAILPROOF
         self._emit(EventKind.EMERGENCY_STOP, cause)
@@ -381,6 +387,7 @@ class ControllerManager:
 
     def _run_watchdog(self) -> None:
         """Torque off through on_hang while an update() is stuck (a hung advance)."""
+        assert self.timing is not None  # the watchdog runs only with timing supervision
         hang = self.timing.hang * self.dt
         reported = 0.0
         while not self._watchdog_stop.wait(hang / 4):
@@ -424,9 +431,9 @@ class ControllerManager:
         return True
 
     # --- switching ------------------------------------------------------------------------
-    def request_switch(self, name: str) -> Future:
+    def request_switch(self, name: str) -> Future[SwitchResult]:
         """Start a switch on the switcher thread; the future resolves to a SwitchResult."""
-        future: Future = Future()
+        future: Future[SwitchResult] = Future()
         pair = self._pairs.get(name)
         if pair is None:
             log.warning("switch to %r: no such controller (available: %s)",
@@ -551,11 +558,10 @@ class ControllerManager:
         return result
 
     def _running_adapter(self) -> ControllerAdapter | None:
-        if self._state is ManagerState.OK:
-            return self._active.controller
-        if self._state is ManagerState.EMERGENCY:
-            return self._active.emergency
-        return None
+        pair = self._active
+        if pair is None or self._state is ManagerState.FAILPROOF:
+            return None
+        return pair.controller if self._state is ManagerState.OK else pair.emergency
 
     # --- what others read -----------------------------------------------------------------
     @property

@@ -122,7 +122,7 @@ def load_config(config: Mapping[str, Any], where: str = "") -> list[LoadedContro
                                            emergency_where)
     controllers_where = _at(where, "controllers")
     entries = config.get("controllers")
-    for i, entry in enumerate(entries if _is_list(entries) else ()):
+    for i, entry in enumerate(entries if isinstance(entries, list) else ()):
         name = entry.get("name") if isinstance(entry, Mapping) else None
         if isinstance(name, str) and name in emergency:
             raise _error(f"{controllers_where}[{i}].name",
@@ -212,7 +212,8 @@ def _build_tuple(entry: Mapping[str, Any], name: str, where: str, base: type) ->
     return tuple_cls(name, [controller for controller, _, _ in built])
 
 
-def _instantiate(cls: type, name: str, params: Any, where: str) -> Any:
+def _instantiate(cls: type, name: str, params: Any,
+                 where: str) -> Controller | EmergencyController | FailproofController:
     params_at = _at(where, "params")
     if params is None:
         params = {}
@@ -230,7 +231,7 @@ def _instantiate(cls: type, name: str, params: Any, where: str) -> Any:
             accepted = ", ".join(list(signature.parameters)[1:]) or "no parameters"
             raise _error(params_at, f"{cls.__name__}() {exc} (accepts: {accepted})") from None
     try:
-        controller = cls(name, **params)
+        controller: Controller | EmergencyController | FailproofController = cls(name, **params)
     except Exception as exc:
         raise _error(params_at, f"{cls.__name__}({name!r}, **params) failed: {exc}") from exc
     # The config's name is the one the manager and the other entries refer to.

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar, cast
 
 from .interfaces import Controller, EmergencyController, SwapState
 
@@ -55,7 +55,7 @@ class TupleSwapState(SwapState):
 class ControllerTuple(Controller):
     """Members run in the order given; the tuple fails as soon as one member fails."""
 
-    MEMBER_TYPE: type[Controller] = Controller
+    MEMBER_TYPE: ClassVar[type] = Controller
 
     def __init__(self, name: str, controllers: Sequence[Controller]) -> None:
         super().__init__(name)
@@ -165,7 +165,7 @@ class EmergencyControllerTuple(ControllerTuple, EmergencyController):
     def initialize_fast(self, dt: float) -> bool:
         # Runs in the update thread within the failure's cycle: no logging here.
         for member in self._members:
-            ok = bool(member.initialize_fast(dt))
+            ok = bool(cast(EmergencyController, member).initialize_fast(dt))
             member._initialized = ok
             if not ok:
                 self.failed_member = member.name

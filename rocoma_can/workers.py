@@ -38,12 +38,13 @@ class WorkerEvent:
 class WorkerOptions:
     """How to run a worker (rocoma's roco::WorkerOptions).
 
-    ``callback`` returns True to keep running; False (or raising) ends the worker.
+    ``callback`` returns True to keep running; False (or raising) ends the worker; None
+    (a callback that forgot to return) ends it with a warning.
     ``frequency`` in Hz; 0 runs the callback once. ``priority`` > 0 asks for SCHED_FIFO at that
     priority for the worker's thread (needs CAP_SYS_NICE; a warning is logged otherwise).
     """
     name: str
-    callback: Callable[[WorkerEvent], bool]
+    callback: Callable[[WorkerEvent], bool | None]
     frequency: float = 0.0
     priority: int = 0
     autostart: bool = False

@@ -64,7 +64,8 @@ def _int(text: str) -> int:
 
 
 # flag -> (number of ARGs min/max, help, action on the drive)
-INJECTIONS: dict[str, tuple[tuple[int, int], str, Callable[[SimulatedDrive, tuple], Any]]] = {
+INJECTIONS: dict[str, tuple[tuple[int, int], str,
+                            Callable[[SimulatedDrive, tuple[str, ...]], Any]]] = {
     "fault": ((0, 1), "NODE[:CODE][@S]: trip a fault (EMCY code, default 0x1000)",
               lambda d, a: d.trip_fault(_int(a[0])) if a else d.trip_fault()),
     "silent": ((0, 0), "NODE[@S]: the drive transmits nothing any more",
@@ -82,7 +83,7 @@ INJECTIONS: dict[str, tuple[tuple[int, int], str, Callable[[SimulatedDrive, tupl
 }
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "sim", help="run simulated CiA 402 drives on a CAN interface",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING, Any
 
 import canopen
 from canopen import objectdictionary
-from canopen.sdo import SdoAbortedError, SdoServer
+from canopen.sdo.exceptions import SdoAbortedError
+from canopen.sdo.server import SdoServer
 
 from .. import cia402 as c
 from ..cia402 import NmtCommand, NmtState, State402
@@ -92,7 +93,7 @@ class _Pdo:
     trans_type: int
     keys: tuple[Key, ...]
     layout: struct.Struct
-    values_of: Callable[[dict], tuple]
+    values_of: Callable[[dict[Key, Any]], tuple[Any, ...]]
     counter: int = 0
     last: bytes | None = None      # event-driven TPDO: what was sent last
     pending: bytes | None = None   # synchronous RPDO: received, applied at the next SYNC
@@ -125,7 +126,7 @@ class SimulatedDrive:
         self._seg = segment
         self._dyn = segment.dynamics
         self._sdo = SdoServer(c.SDO_RX + node_id, c.SDO_TX + node_id, self)
-        self._sdo.network = _SdoLink(self)
+        self._sdo.network = _SdoLink(self)  # type: ignore[assignment]  # send_message only
         self._defaults: dict[Key, Any] = {}
         for obj in object_dictionary.values():
             members = [obj] if isinstance(obj, objectdictionary.ODVariable) else obj.values()
@@ -178,19 +179,19 @@ class SimulatedDrive:
 
     @property
     def statusword(self) -> int:
-        return self._values[STATUSWORD]
+        return int(self._values[STATUSWORD])
 
     @property
     def controlword(self) -> int:
-        return self._values[CONTROLWORD]
+        return int(self._values[CONTROLWORD])
 
     @property
     def mode_display(self) -> int:
-        return self._values[MODE_DISPLAY]
+        return int(self._values[MODE_DISPLAY])
 
     @property
     def error_code(self) -> int:
-        return self._values[ERROR_CODE]
+        return int(self._values[ERROR_CODE])
 
     @property
     def error_register(self) -> int:
@@ -198,15 +199,15 @@ class SimulatedDrive:
 
     @property
     def position_increments(self) -> int:
-        return self._values[POSITION]
+        return int(self._values[POSITION])
 
     @property
     def velocity_increments(self) -> int:
-        return self._values[VELOCITY]
+        return int(self._values[VELOCITY])
 
     @property
     def torque_per_mille(self) -> int:
-        return self._values[TORQUE]
+        return int(self._values[TORQUE])
 
     @property
     def position_rad(self) -> float:
@@ -465,7 +466,8 @@ class SimulatedDrive:
             return obj
         if subindex not in obj:
             raise SdoAbortedError(ABORT_NO_SUBINDEX)
-        return obj[subindex]
+        var: objectdictionary.ODVariable = obj[subindex]
+        return var
 
     def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
         """canopen SdoServer hook: upload."""
@@ -564,7 +566,9 @@ class SimulatedDrive:
             entry = self._values[(mapping, sub)]
             var = self._var(entry >> 16, (entry >> 8) & 0xFF)
             keys.append((var.index, var.subindex))
+            assert var.data_type is not None  # mappable objects have one (_check_mapping)
             fmt += var.STRUCT_TYPES[var.data_type].format.lstrip("<")
+        values_of: Callable[[dict[Key, Any]], tuple[Any, ...]]
         if keys:
             values_of = itemgetter(*keys)
             if len(keys) == 1:
@@ -792,7 +796,7 @@ class SimulatedDrive:
         self._start_ramp(decel, then)
 
     def _quick_stop_decel(self) -> float:
-        return max(self._values[(c.QUICK_STOP_DECELERATION, 0)], 1) / self._inc_per_rad
+        return float(max(self._values[(c.QUICK_STOP_DECELERATION, 0)], 1)) / self._inc_per_rad
 
     def _start_ramp(self, decel: float, then: State402 | None) -> None:
         self._ramping = True

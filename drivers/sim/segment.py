@@ -54,9 +54,9 @@ def _default_eds() -> str:
 class _Timers:
     """Monotonic one-shot timers on one thread (a heap, no thread per timer)."""
 
-    def __init__(self, run: Callable[[Callable[..., Any], tuple], None]) -> None:
+    def __init__(self, run: Callable[[Callable[..., Any], tuple[Any, ...]], None]) -> None:
         self._run = run
-        self._heap: list[tuple[float, int, Callable[..., Any], tuple]] = []
+        self._heap: list[tuple[float, int, Callable[..., Any], tuple[Any, ...]]] = []
         self._seq = itertools.count()
         self._cond = threading.Condition()
         self._stopped = False
@@ -72,7 +72,7 @@ class _Timers:
         if self._thread.is_alive():
             self._thread.join(timeout)
 
-    def call_at(self, when: float, fn: Callable[..., Any], args: tuple) -> None:
+    def call_at(self, when: float, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
         with self._cond:
             heapq.heappush(self._heap, (when, next(self._seq), fn, args))
             self._cond.notify()
@@ -297,12 +297,14 @@ class SimulatedSegment:
             drive.finish_step(on_sync)
 
     def _free_run(self) -> None:
+        period = self.free_run_period
+        assert period is not None  # scheduled only when free running is on
         now = self.clock()
-        if self._last_step is None or now - self._last_step >= self.free_run_period:
+        if self._last_step is None or now - self._last_step >= period:
             self._step(on_sync=False, now=now)
-        self.schedule(now + self.free_run_period, self._free_run)
+        self.schedule(now + period, self._free_run)
 
-    def _run_timer(self, fn: Callable[..., Any], args: tuple) -> None:
+    def _run_timer(self, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
         if self._stopped.is_set():
             return
         try:

@@ -79,7 +79,7 @@ class ManagerClient:
             self.write(SWITCH_NAME, name)
         deadline = time.monotonic() + timeout
         while True:
-            result = self.read(SWITCH_RESULT)
+            result = int(self.read(SWITCH_RESULT))
             if result != PENDING or time.monotonic() > deadline:
                 return result
             time.sleep(0.02)

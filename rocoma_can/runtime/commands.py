@@ -40,7 +40,8 @@ def _err(message: str) -> None:
 # --- run / check-config -----------------------------------------------------------------------
 
 def _check_config(args: argparse.Namespace) -> int:
-    from .config import ConfigError, load
+    from ..errors import ConfigError
+    from .config import load
     try:
         config = load(args.config)
     except ConfigError as exc:
@@ -58,7 +59,8 @@ def _check_config(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .config import ConfigError, load
+    from ..errors import ConfigError
+    from .config import load
     from .system import Runtime
     try:
         config = load(args.config)

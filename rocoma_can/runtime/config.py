@@ -94,7 +94,7 @@ class RuntimeConfig:
     priority: int | None = None
     cpus: set[int] | None = None
     supervision: dict[str, float] = field(default_factory=dict)  # CanopenHardware keywords
-    timing: dict[str, float] = field(default_factory=dict)  # TimingSupervision keywords
+    timing: dict[str, Any] = field(default_factory=dict)  # TimingSupervision keywords
     source: str = "<memory>"
     load: BusLoad | None = field(default=None)
 
@@ -324,7 +324,8 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     if not data.get("controllers"):
         problems.append("controllers: at least one controller is needed")
     elif check_controllers:
-        from ..plugins import PluginError, load_config
+        from ..errors import PluginError
+        from ..plugins import load_config
         try:
             load_config(controllers)
         except PluginError as exc:
@@ -344,11 +345,11 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
 
 
 def _numbers(section: Mapping[str, Any], spec: Mapping[str, tuple[bool, float, float]],
-             where: str, problems: list[str]) -> dict[str, float]:
+             where: str, problems: list[str]) -> dict[str, Any]:
     """The numbers given in a section checked against ``spec`` (the rest keep their
     defaults: CanopenHardware's margins, TimingSupervision's budgets)."""
     _unknown(section, set(spec), where, problems)
-    out: dict[str, float] = {}
+    out: dict[str, Any] = {}
     for key, value in section.items():
         if key not in spec:
             continue

@@ -94,10 +94,11 @@ class _Watch:
         self.changes: list[tuple[float, int, int]] = []  # (time, cycle, new state)
         self.state = -1
         self.cycle = 0
-        self.runtime: Runtime | None = None
+        self.runtime: Runtime | None = None  # set once the runtime exists, before it runs
 
     def __call__(self, now: float) -> None:
         self.cycle += 1
+        assert self.runtime is not None
         state = int(self.runtime.loop.last_state)
         if state != self.state:
             self.state = state

@@ -46,7 +46,6 @@ from typing import Any
 import can
 import canopen
 from canopen.objectdictionary import NUMBER_TYPES
-from canopen.sdo import SdoServer
 from canopen.sdo.constants import (
     EXPEDITED,
     NO_MORE_DATA,
@@ -57,6 +56,7 @@ from canopen.sdo.constants import (
     SIZE_SPECIFIED,
 )
 from canopen.sdo.exceptions import SdoAbortedError
+from canopen.sdo.server import SdoServer
 
 from .. import eds as shipped_eds
 from ..drivers.bus import BusReader

@@ -7,8 +7,14 @@ from collections.abc import Callable
 from typing import Any
 
 from ..controllers.torque_off import TorqueOff
+from ..drivers.bringup import Timeouts
+from ..drivers.bus import open_bus
+from ..drivers.hardware import CanopenHardware
 from ..manager import ControllerManager, TimingSupervision
+from ..plugins import add_to_manager
+from .config import TIMEOUT_KEYS, RuntimeConfig
 from .loop import ControlLoop, TimingSummary
+from .node import ManagerNode
 
 
 def manager_for(hardware: Any, **kwargs: Any) -> ControllerManager:
@@ -40,42 +46,39 @@ class Runtime:
     the drives' hardware layer, the manager with the configured controllers, the manager's
     CANopen node (on a second bus handle of the same channel), and the loop."""
 
-    def __init__(self, config: Any, *, on_cycle: Callable[[float], None] | None = None) -> None:
-        from ..drivers.bringup import Timeouts
-        from ..drivers.bus import open_bus
-        from ..drivers.hardware import CanopenHardware
-        from ..plugins import add_to_manager
-        from .node import ManagerNode
+    def __init__(self, config: RuntimeConfig, *,
+                 on_cycle: Callable[[float], None] | None = None) -> None:
         self.config = config
         m = config.manager
-        from .config import TIMEOUT_KEYS
-        margins = dict(config.supervision)
+        margins: dict[str, Any] = dict(config.supervision)
         timeouts = {field: margins.pop(key) for key, field in TIMEOUT_KEYS.items()
                     if key in margins}
         if timeouts:
             margins["timeouts"] = Timeouts(**timeouts)
         self.hardware = CanopenHardware(config.bus, config.drives, m.node_id, config.dt,
                                         manager_heartbeat_ms=m.heartbeat_ms, **margins)
-        self.manager = None
-        self.node = None
-        self._node_bus = None
+        # built in order; on a failure, what was built so far is closed (_close_parts)
+        self._parts: list[Callable[[], object]] = [self.hardware.close]
         try:
             names = [d.name for d in config.drives]
             required = (None if m.required_drives is None
                         else [names.index(n) for n in m.required_drives])
+            hardware = self.hardware
             self.manager = manager_for(
-                self.hardware, estop_must_be_cleared=m.estop_must_be_cleared,
+                hardware, estop_must_be_cleared=m.estop_must_be_cleared,
                 timing=TimingSupervision(**config.timing),
-                switch_guard=lambda: self.hardware.not_ready(required))
+                switch_guard=lambda: hardware.not_ready(required))
+            self._parts.insert(0, self.manager.shutdown)
             add_to_manager(self.manager, config.controllers)
             bus = config.bus
             self._node_bus = open_bus(bus.interface, bus.channel, bus.bitrate,
                                       receive_own_messages=False)
+            self._parts.append(self._node_bus.shutdown)
             self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
                                     estop_cob_id=m.estop_cob_id, status_period=m.status_period,
-                                    recover=self.hardware.recover,
-                                    heartbeat_ms=m.heartbeat_ms,
-                                    drive_status=self.hardware.status_report)
+                                    recover=hardware.recover, heartbeat_ms=m.heartbeat_ms,
+                                    drive_status=hardware.status_report)
+            self._parts.insert(0, self.node.close)
         except BaseException:
             self.close()
             raise
@@ -95,13 +98,9 @@ class Runtime:
 
     def close(self) -> None:
         """Node, manager threads, hardware (joins its bus reader), then the node's bus."""
-        if self.node is not None:
-            self.node.close()
-        if self.manager is not None:
-            self.manager.shutdown()
-        self.hardware.close()
-        if self._node_bus is not None:
-            self._node_bus.shutdown()
+        parts, self._parts = self._parts, []
+        for close in parts:
+            close()
 
     def __enter__(self) -> Runtime:
         return self
