@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 
 from ._lazy import lazy_exports
 
+__version__ = "0.2.0"  # the distribution's version (pyproject.toml reads it from here)
+
 __all__ = [
     "ControllerManager", "ManagerState", "ManagerTimeouts", "SwitchResult", "TimingSupervision",
     "EventKind", "ManagerEvent",

@@ -10,7 +10,7 @@ from __future__ import annotations
 import tracemalloc
 
 import pytest
-from joint_plant import JointPlant, attach
+from fixtures.joint_plant import JointPlant, attach
 
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.hold import Hold

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from joint_plant import JointPlant, attach
+from fixtures.joint_plant import JointPlant, attach
 
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.hold import Hold

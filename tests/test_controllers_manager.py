@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from joint_plant import JointPlant
+from fixtures.joint_plant import JointPlant
 
 from rocoma_can import ControllerManager, ManagerState, SwitchResult
 from rocoma_can.controllers import example_path

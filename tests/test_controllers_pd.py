@@ -5,7 +5,7 @@ import threading
 
 import numpy as np
 import pytest
-from joint_plant import JointPlant, attach
+from fixtures.joint_plant import JointPlant, attach
 
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.zero_torque import Float

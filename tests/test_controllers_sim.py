@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from driver_rig import Rig
+from fixtures.driver_rig import Rig
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.cia402 import State402

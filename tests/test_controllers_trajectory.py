@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 import pytest
-from joint_plant import JointPlant, attach
+from fixtures.joint_plant import JointPlant, attach
 
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD

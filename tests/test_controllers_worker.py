@@ -4,7 +4,7 @@ from __future__ import annotations
 import threading
 import time
 
-from joint_plant import JointPlant, attach
+from fixtures.joint_plant import JointPlant, attach
 
 from rocoma_can.controllers.tracking_monitor import WORKER_NAME, TrackingMonitor
 

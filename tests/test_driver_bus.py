@@ -15,7 +15,7 @@ import time
 import can
 import numpy as np
 import pytest
-from driver_rig import (
+from fixtures.driver_rig import (
     MANAGER_NODE_ID,
     VCAN,
     VIRTUAL,

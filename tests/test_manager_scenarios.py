@@ -9,7 +9,7 @@ import logging
 import threading
 
 import pytest
-from manager_probes import (
+from fixtures.manager_probes import (
     LAYER_METHODS,
     WAIT,
     CommandLog,

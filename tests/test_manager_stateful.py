@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import threading
 
+from fixtures.manager_probes import WAIT, CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
-from manager_probes import WAIT, CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
 
 from rocoma_can import ControllerManager, ManagerState, SwitchResult
 

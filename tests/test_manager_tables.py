@@ -8,7 +8,7 @@ from __future__ import annotations
 import threading
 import time
 
-from manager_probes import WAIT, EmergencyProbe, NumberSwapState, Probe
+from fixtures.manager_probes import WAIT, EmergencyProbe, NumberSwapState, Probe
 
 from rocoma_can import ManagerState, SwitchResult
 

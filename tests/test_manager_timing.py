@@ -5,7 +5,7 @@ import gc
 import threading
 import time
 
-from manager_probes import CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
+from fixtures.manager_probes import CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
 
 from rocoma_can import ControllerManager, EventKind, ManagerState, SwitchResult, TimingSupervision
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import copy
 import logging
 
-import plugin_samples
 import pytest
-from plugin_samples import Brake, Gains
+from fixtures import plugin_samples
+from fixtures.plugin_samples import Brake, Gains
 
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.drivers.joints import JointCommand, JointState
@@ -26,17 +26,17 @@ from rocoma_can.tuples import ControllerTuple, EmergencyControllerTuple
 
 CONFIG = {
     "controllers": [
-        {"name": "pd", "plugin": "plugin_samples:Gains", "params": {"kp": 100.0, "kd": 2.0},
+        {"name": "pd", "plugin": "fixtures.plugin_samples:Gains", "params": {"kp": 100.0, "kd": 2.0},
          "emergency": "brake"},
-        {"name": "soft", "plugin": "plugin_samples:Gains", "params": {"kp": 5.0},
+        {"name": "soft", "plugin": "fixtures.plugin_samples:Gains", "params": {"kp": 5.0},
          "emergency": "brake"},
         {"name": "legs_and_arm", "tuple": [
-            {"name": "legs", "plugin": "plugin_samples:Gains", "params": {"kp": 1.0}},
-            {"name": "arm", "plugin": "plugin_samples:Outer.Inner", "params": {"kp": 2.0}},
+            {"name": "legs", "plugin": "fixtures.plugin_samples:Gains", "params": {"kp": 1.0}},
+            {"name": "arm", "plugin": "fixtures.plugin_samples:Outer.Inner", "params": {"kp": 2.0}},
         ]},
     ],
     "emergency_controllers": [
-        {"name": "brake", "plugin": "plugin_samples:Brake", "params": {"gain": 5.0}},
+        {"name": "brake", "plugin": "fixtures.plugin_samples:Brake", "params": {"gain": 5.0}},
     ],
     "bus": {"channel": "can0"},  # another part's section: ignored here
 }
@@ -50,14 +50,14 @@ def test_entry_point_lookup():
 
 
 def test_module_class_lookup_and_params():
-    assert load_controller_class("plugin_samples:Gains") is Gains
-    assert load_controller_class("plugin_samples:Outer.Inner") is plugin_samples.Outer.Inner
-    ctrl = create_controller("plugin_samples:Gains", "pd", {"kp": 3.0})
+    assert load_controller_class("fixtures.plugin_samples:Gains") is Gains
+    assert load_controller_class("fixtures.plugin_samples:Outer.Inner") is plugin_samples.Outer.Inner
+    ctrl = create_controller("fixtures.plugin_samples:Gains", "pd", {"kp": 3.0})
     assert (ctrl.name, ctrl.kp, ctrl.kd) == ("pd", 3.0, 1.0)
 
 
 def test_the_config_name_wins_over_the_constructor():
-    assert create_controller("plugin_samples:Renamed", "mine", None).name == "mine"
+    assert create_controller("fixtures.plugin_samples:Renamed", "mine", None).name == "mine"
 
 
 def test_load_config_builds_layers_pairs_and_tuples():
@@ -76,10 +76,10 @@ def test_load_config_builds_layers_pairs_and_tuples():
 
 def test_emergency_tuple_and_lists_on_their_own():
     emergency = load_emergency_controllers([
-        {"name": "both", "tuple": [{"name": "a", "plugin": "plugin_samples:Brake"},
-                                   {"name": "b", "plugin": "plugin_samples:Brake"}]}])
+        {"name": "both", "tuple": [{"name": "a", "plugin": "fixtures.plugin_samples:Brake"},
+                                   {"name": "b", "plugin": "fixtures.plugin_samples:Brake"}]}])
     assert isinstance(emergency["both"], EmergencyControllerTuple)
-    loaded = load_controllers([{"name": "x", "plugin": "plugin_samples:Gains",
+    loaded = load_controllers([{"name": "x", "plugin": "fixtures.plugin_samples:Gains",
                                 "params": {"kp": 1.0}, "emergency": "both"}],
                               emergency_controllers=emergency)
     assert loaded == [LoadedController(loaded[0].controller, emergency["both"],
@@ -88,7 +88,7 @@ def test_emergency_tuple_and_lists_on_their_own():
 
 
 def test_unused_emergency_controller_is_warned_about(caplog):
-    config = {"emergency_controllers": [{"name": "idle", "plugin": "plugin_samples:Brake"}]}
+    config = {"emergency_controllers": [{"name": "idle", "plugin": "fixtures.plugin_samples:Brake"}]}
     with caplog.at_level(logging.WARNING, logger="rocoma_can.plugins"):
         assert load_config(config) == []
     assert any("'idle' is not used" in r.getMessage() for r in caplog.records)
@@ -115,30 +115,30 @@ def bad(config_path: str, value):
      "controllers[0].plugin: no controller plugin named 'pdd', did you mean 'pd'? (known: "),
     (bad("controllers.0.plugin", "plugin_samples.Gains"),
      "controllers[0].plugin: no controller plugin named 'plugin_samples.Gains'"),
-    (bad("controllers.1.plugin", "plugin_samples:Gainz"),
-     "controllers[1].plugin: module 'plugin_samples' has no class 'Gainz'"),
+    (bad("controllers.1.plugin", "fixtures.plugin_samples:Gainz"),
+     "controllers[1].plugin: module 'fixtures.plugin_samples' has no class 'Gainz'"),
     (bad("controllers.1.plugin", "no_such_module:Gains"),
      "controllers[1].plugin: cannot import module 'no_such_module'"),
-    (bad("controllers.1.plugin", "plugin_samples_broken:Gains"),
-     "controllers[1].plugin: importing module 'plugin_samples_broken' raised RuntimeError"),
-    (bad("controllers.1.plugin", "plugin_samples:"),
-     "controllers[1].plugin: expected 'package.module:Class', got 'plugin_samples:'"),
+    (bad("controllers.1.plugin", "fixtures.plugin_samples_broken:Gains"),
+     "controllers[1].plugin: importing module 'fixtures.plugin_samples_broken' raised RuntimeError"),
+    (bad("controllers.1.plugin", "fixtures.plugin_samples:"),
+     "controllers[1].plugin: expected 'package.module:Class', got 'fixtures.plugin_samples:'"),
     (bad("controllers.1.plugin", ""),
      "controllers[1].plugin: expected an entry point name or 'package.module:Class'"),
-    (bad("controllers.1.plugin", "plugin_samples:NotAController"),
-     "controllers[1].plugin: 'plugin_samples:NotAController' is not a Controller subclass"),
-    (bad("controllers.1.plugin", "plugin_samples:NOT_A_CLASS"),
-     "controllers[1].plugin: 'plugin_samples:NOT_A_CLASS' is not a Controller subclass"),
-    (bad("controllers.1.plugin", "plugin_samples:Unfinished"),
-     "controllers[1].plugin: 'plugin_samples:Unfinished' is abstract: it does not implement "
+    (bad("controllers.1.plugin", "fixtures.plugin_samples:NotAController"),
+     "controllers[1].plugin: 'fixtures.plugin_samples:NotAController' is not a Controller subclass"),
+    (bad("controllers.1.plugin", "fixtures.plugin_samples:NOT_A_CLASS"),
+     "controllers[1].plugin: 'fixtures.plugin_samples:NOT_A_CLASS' is not a Controller subclass"),
+    (bad("controllers.1.plugin", "fixtures.plugin_samples:Unfinished"),
+     "controllers[1].plugin: 'fixtures.plugin_samples:Unfinished' is abstract: it does not implement "
      "advance"),
-    (bad("controllers.1.plugin", "plugin_samples:Brake"),
-     "controllers[1].plugin: 'plugin_samples:Brake' is an EmergencyController, but this entry "
+    (bad("controllers.1.plugin", "fixtures.plugin_samples:Brake"),
+     "controllers[1].plugin: 'fixtures.plugin_samples:Brake' is an EmergencyController, but this entry "
      "needs a Controller; declare it under emergency_controllers"),
     (bad("controllers.1.plugin", "torque_off"),
      "controllers[1].plugin: 'torque_off' is a FailproofController"),
-    (bad("emergency_controllers.0.plugin", "plugin_samples:Gains"),
-     "emergency_controllers[0].plugin: 'plugin_samples:Gains' is a Controller, but this entry "
+    (bad("emergency_controllers.0.plugin", "fixtures.plugin_samples:Gains"),
+     "emergency_controllers[0].plugin: 'fixtures.plugin_samples:Gains' is a Controller, but this entry "
      "needs an EmergencyController"),
     (bad("controllers.0.params", {"kp": 1.0, "kpp": 1.0}),
      "controllers[0].params: Gains() got an unexpected keyword argument 'kpp' "
@@ -176,8 +176,8 @@ def bad(config_path: str, value):
      "controllers[2].tuple: expected a non-empty list of member entries"),
     (bad("controllers.2.params", {}),
      "controllers[2].params: a tuple takes no params; give them to its members"),
-    (bad("controllers.2.tuple.1.plugin", "plugin_samples:Gainz"),
-     "controllers[2].tuple[1].plugin: module 'plugin_samples' has no class 'Gainz'"),
+    (bad("controllers.2.tuple.1.plugin", "fixtures.plugin_samples:Gainz"),
+     "controllers[2].tuple[1].plugin: module 'fixtures.plugin_samples' has no class 'Gainz'"),
     (bad("controllers.2.tuple.1.name", "legs"),
      "controllers[2].tuple[1].name: duplicate name 'legs' (first used at "
      "controllers[2].tuple[0])"),
@@ -197,10 +197,10 @@ def test_every_bad_entry_names_its_path(config, message):
 def test_a_plugin_that_fails_to_load_names_its_target(monkeypatch):
     # Only the lookup table is replaced: the real group has no broken entry point to load.
     from importlib.metadata import EntryPoint
-    broken = EntryPoint("broken", "plugin_samples_broken:Gains", GROUP)
+    broken = EntryPoint("broken", "fixtures.plugin_samples_broken:Gains", GROUP)
     monkeypatch.setattr("rocoma_can.plugins.available_plugins", lambda: {"broken": broken})
     with pytest.raises(PluginError, match=r"^x\.plugin: controller plugin 'broken' "
-                                          r"\(plugin_samples_broken:Gains\) failed to load: "
+                                          r"\(fixtures.plugin_samples_broken:Gains\) failed to load: "
                                           r"RuntimeError"):
         create_controller("broken", "b", None, where="x")
 

@@ -7,7 +7,7 @@ import time
 
 import can
 import pytest
-from joint_plant import JointPlant
+from fixtures.joint_plant import JointPlant
 
 from rocoma_can import ControllerManager, add_to_manager
 from rocoma_can.controllers.torque_off import TorqueOff

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import can
 import canopen
-from driver_rig import MANAGER_NODE_ID, VIRTUAL, HoldPD, Rig
+from fixtures.driver_rig import MANAGER_NODE_ID, VIRTUAL, HoldPD, Rig
 from fixtures.recorder import FrameRecorder
 
 from rocoma_can import SwitchResult, eds

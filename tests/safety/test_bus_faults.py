@@ -7,7 +7,7 @@ from __future__ import annotations
 import random
 import threading
 
-from driver_rig import VIRTUAL
+from fixtures.driver_rig import VIRTUAL
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
 
 from rocoma_can import ManagerState, SwitchResult

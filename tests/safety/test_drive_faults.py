@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import can
 import pytest
-from driver_rig import VIRTUAL, Brake, HoldPD, synced_mark
+from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, synced_mark
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
 
 from rocoma_can import ManagerState, SwitchResult

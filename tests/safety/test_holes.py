@@ -17,8 +17,8 @@ import can
 import numpy as np
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
-from driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
-from manager_probes import (
+from fixtures.driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
+from fixtures.manager_probes import (
     LAYER_METHODS,
     CommandLog,
     EmergencyProbe,

@@ -18,7 +18,7 @@ import struct
 import time
 
 import can
-from driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
+from fixtures.driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from safety_rig import CW_DISABLE_VOLTAGE, ESTOP_COB, NODES, SDO_RX, Served

@@ -21,7 +21,7 @@ import threading
 
 import numpy as np
 import pytest
-from driver_rig import VIRTUAL, Brake, HoldPD
+from fixtures.driver_rig import VIRTUAL, Brake, HoldPD
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
 
 from rocoma_can import ManagerState, SwitchResult

@@ -15,8 +15,8 @@ import sys
 import time
 from pathlib import Path
 
-import driver_rig  # tests/ (conftest.py's folder is on sys.path); the subprocess imports it too
 import pytest
+from fixtures import driver_rig  # tests/ is on sys.path (conftest.py); the subprocess too
 
 from rocoma_can.drivers.cia402 import State402
 
@@ -28,7 +28,8 @@ TESTS = Path(__file__).resolve().parents[1]
 @pytest.mark.vcan
 def test_killed_manager_process_drives_switch_off_within_the_consumer_time(sim_segment_factory):
     segment = sim_segment_factory(NODES, channel="vcan0", interface="socketcan")
-    code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import driver_rig; "
+    code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); "
+            "from fixtures import driver_rig; "
             f"driver_rig.serve('vcan0', 'socketcan', {NODES!r}, {HEARTBEAT_MS}, 120.0)")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
