@@ -81,7 +81,8 @@ def test_configuration_failures_and_sto_are_reported(drive):
     drive.alive = True
     step(drive, 0.0)
     step(drive, 0.1)
-    assert (drive.phase, drive.failure) == (Phase.FAILED, "does not answer (no SDO reply to 0x1000)")
+    assert drive.phase == Phase.FAILED
+    assert drive.failure == "does not answer (no SDO reply to 0x1000)"
     drive.restart(1.0)
     assert (drive.phase, drive.failure) == (Phase.WAIT_BOOT, None)
     drive.results[0] = ConfigResult(FAULT, cia402.EMCY_STO)

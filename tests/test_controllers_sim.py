@@ -12,7 +12,7 @@ import pytest
 import yaml
 from fixtures.driver_rig import Rig
 
-from rocoma_can import ManagerState, SwitchResult
+from rocoma_can import ManagerState, SwitchResult, TimingSupervision
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.joints import JointMode
 from rocoma_can.plugins import add_to_manager
@@ -62,9 +62,13 @@ def rig(virtual_channel, sim_segment_factory, bus_factory):
     # 2 cores shared with other test runs: the simulator's and the loop's threads can stall
     # for a few hundred ms, which the default supervision (TPDOs 5 cycles, heartbeats
     # 250 ms) rightly calls lost drives or a dead master. These tests are about the
-    # controllers (the driver's own tests keep the defaults), so supervision gets ~1 s.
+    # controllers (the driver's own tests keep the defaults), so supervision gets ~1 s,
+    # the manager's wall-time supervision too (a preempted initialize_fast over its 2.5 ms
+    # budget sent an e-stop straight to FAILPROOF once in CI).
+    second = 1.0 / DT
     r = Rig(bus_factory(virtual_channel), NODES, DT, tpdo_timeout_cycles=200,
-            heartbeat_timeout_factor=10.0, consumer_factor=10.0)
+            heartbeat_timeout_factor=10.0, consumer_factor=10.0,
+            timing=TimingSupervision(advance=second, initialize_fast=second, hang=second))
     r.segment = segment
     r.events = []  # every manager event, so a failing assertion can show the causes
     r.mgr.subscribe(r.events.append)

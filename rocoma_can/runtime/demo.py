@@ -38,6 +38,11 @@ def demo_config(channel: str, drives: int, rate: float) -> dict[str, Any]:
         "rate": rate,
         "manager": {"node_id": MANAGER_ID, "heartbeat_ms": 100, "estop_cob_id": ESTOP_COB_ID,
                     "estop_must_be_cleared": True, "status_period": 0.2},
+        # The demo runs without real-time priority beside its simulated drives on whatever
+        # the machine is doing: a controller call preempted past its budget (0.5 cycles by
+        # default) would be taken as that controller's failure. Budgets of half a second,
+        # and a hang after one second, keep the walk-through about what it shows.
+        "timing": {"advance": 0.5 * rate, "initialize_fast": 0.5 * rate, "hang": 1.0 * rate},
         "drives": [{"name": name, "node_id": i + 1, "increments_per_rev": 1048576,
                     "rated_torque_nm": 1.0, "modes": ["csp", "cst"], "heartbeat_ms": 100}
                    for i, name in enumerate(joints)],
