@@ -41,7 +41,7 @@ The safety path, top to bottom (each step names where it lives):
    drive's configuration completes, before the drive can become READY.
 
 Start-up (bringup.py) never enables a drive; it ends in READY (torque off). Drives are enabled
-step by step from the cyclic controlword (``_command_frames``, ``ENABLE_STEP``) only while the
+step by step from the cyclic controlword (``_command_frames``, enable.py) only while the
 manager is OK or EMERGENCY and the active layer commands a cyclic mode for them. Recovery
 (``recover``) resets or restarts latched and failed drives over the following cycles.
 
@@ -68,6 +68,7 @@ from .bringup import DriveBringup, Phase, Timeouts
 from .bus import CanopenBus, open_bus
 from .cia402 import State402
 from .config import BusConfig, DriveConfig, check_drives
+from .enable import OP_ENABLED, EnableSequence
 from .frame_io import FrameWriter, clock_offset, to_monotonic
 from .joints import JointCommand, JointMode, JointState
 from .pdo_layout import RPDO_FIELDS, DriveLayout, drive_object_dictionary, layout_for
@@ -79,21 +80,8 @@ from .switch_off import SdoSwitchOff
 FAILPROOF = 0
 
 _CW_FAULT_RESET = int(cia402.Controlword.FAULT_RESET)
-_CW_ENABLE = int(cia402.Controlword.ENABLE_OPERATION)
 _CW_QUICK_STOP = int(cia402.Controlword.QUICK_STOP)
-_OP_ENABLED = int(State402.OPERATION_ENABLED)
 _CYCLIC = (int(JointMode.CSP), int(JointMode.CSV), int(JointMode.CST))
-_DROP_AFTER_CYCLES = 4
-# Next enable step (shutdown, switch on, enable operation) by State402 value + 1; every state
-# the enable sequence cannot leave by itself gets disable voltage.
-_ENABLE_STEP = {
-    State402.SWITCH_ON_DISABLED: int(cia402.Controlword.SHUTDOWN),
-    State402.READY_TO_SWITCH_ON: int(cia402.Controlword.SWITCH_ON),
-    State402.SWITCHED_ON: _CW_ENABLE,
-    State402.OPERATION_ENABLED: _CW_ENABLE,
-}
-ENABLE_STEP = tuple(_ENABLE_STEP.get(State402(s), int(cia402.Controlword.DISABLE_VOLTAGE))
-                    for s in range(-1, 8))
 
 
 @dataclass(frozen=True)
@@ -199,10 +187,7 @@ class CanopenHardware:
         self._expected = np.array([(1 << len(lay.tpdos)) - 1 for lay in self.layouts],
                                   dtype=np.int64)
         self._complete = np.zeros(n, dtype=bool)
-        self._want_since = np.full(n, math.nan)             # commanded cyclic, not enabled yet
-        # Cycles in a row the drive reported operation enabled while we sent enable: a drop
-        # only counts as a fault once it is past the statusword's round-trip lag.
-        self._enabled_cycles = [0] * n
+        self.enable = EnableSequence(n, timeouts.enable, self.supervisor.fault)
         self._hb_state = [-1] * n
         self._hb_time = np.full(n, -math.inf)
 
@@ -495,8 +480,7 @@ class CanopenHardware:
             if b.mapped:
                 for msg in self._start_frames(i, b):
                     self._send(msg)
-            self._enabled_cycles[i] = 0
-        self._want_since.fill(math.nan)
+            self.enable.reset(i)
 
     def send_torque_off(self) -> None:
         """Torque-off frames to every mapped drive, then SYNC, from any thread.
@@ -532,14 +516,14 @@ class CanopenHardware:
         tvel = raw["target_velocity"].tolist()
         ttrq = raw["target_torque"].tolist()
         actual = raw["position"].tolist()
-        now = self._now
+        now, enable = self._now, self.enable
         for i, b in enumerate(self._bringup):
             if not b.mapped:
                 continue
             if b.phase != Phase.READY or sup.latched[i] is not None:
                 for msg in self._start_frames(i, b):
                     self._send(msg)
-                self._enabled_cycles[i] = 0
+                enable.reset(i)
                 continue
             mode, st = modes[i], states[i]
             if mode in _CYCLIC and not self._allowed_list[i] >> mode & 1:
@@ -549,30 +533,15 @@ class CanopenHardware:
                              "for", now)
                 mode = int(JointMode.TORQUE_OFF)
             if mode in _CYCLIC:
-                if st == _OP_ENABLED:
-                    values = (_CW_ENABLE, mode, tpos[i], tvel[i], ttrq[i])
-                    self._enabled_cycles[i] += 1
-                    self._want_since[i] = math.nan
-                elif self._enabled_cycles[i] >= _DROP_AFTER_CYCLES:
-                    sup.fault(i, f"dropped out of operation enabled (now {State402(st).name})",
-                              now)
-                    values = (0, mode, actual[i], 0, 0)
-                    self._enabled_cycles[i] = 0
-                else:
-                    # Enable step by step; hold the actual position so enabling cannot jump.
-                    values = (ENABLE_STEP[st + 1], mode, actual[i], 0, 0)
-                    self._enabled_cycles[i] = 0
-                    since = self._want_since[i]
-                    if since != since:  # NaN: just started wanting
-                        self._want_since[i] = now
-                    elif now - since > self.timeouts.enable:
-                        sup.fault(i, f"not enabled within {self.timeouts.enable} s (stuck in "
-                                     f"{State402(st).name}; STO input low?)", now)
+                cw = enable.controlword(i, st, now)
+                if st == OP_ENABLED:
+                    values = (cw, mode, tpos[i], tvel[i], ttrq[i])
+                else:  # enabling (or dropped out): hold the actual position, no jump
+                    values = (cw, mode, actual[i], 0, 0)
             else:
                 cw = _CW_QUICK_STOP if mode == JointMode.QUICK_STOP else 0
                 values = (cw, self._default_mode[i], actual[i], 0, 0)
-                self._enabled_cycles[i] = 0
-                self._want_since[i] = math.nan
+                enable.reset(i)
             for msg, pack_into, where in self._rpdo_frames[i]:
                 pack_into(msg.data, 0, *[values[k] for k in where])
                 self._send(msg)
@@ -662,8 +631,10 @@ class CanopenHardware:
             if self._manager is not None:
                 try:
                     self._manager.clear_emergency_stop()
-                except Exception:
-                    pass
+                except Exception:  # the latch stays: this recovery did not finish
+                    self.hook_errors += 1
+                    future.set_result(False)
+                    return
             future.set_result(True)
         elif now > self._recovery_deadline or (not drives_ready and all(
                 b.phase in (Phase.READY, Phase.FAILED) for b in self._bringup)):

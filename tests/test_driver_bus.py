@@ -46,8 +46,12 @@ def can_setup(request) -> Can:
 
 @pytest.fixture
 def segment(can_setup, virtual_channel, sim_segment_factory):
+    # Each SYNC moves the joints by exactly one cycle (sync_period = dt), as the controller's
+    # reference moves: a loop stalled by a loaded machine then delays both alike instead of
+    # showing up as a tracking error (the drive side of the lag is tested in test_sim_*).
     seg = sim_segment_factory(can_setup.nodes, channel=can_setup.channel(virtual_channel),
-                              interface=can_setup.interface, params=can_setup.joints)
+                              interface=can_setup.interface, params=can_setup.joints,
+                              sync_period=can_setup.dt)
     sock = getattr(seg.bus, "socket", None)
     if sock is not None:  # SocketCAN: do not let a stalled VM drop the manager's heartbeat
         bus.enlarge_receive_buffer(sock)

@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 from rocoma_can import eds
 from rocoma_can.drivers import cia402
 from rocoma_can.drivers.config import DriveConfig, check_drives
-from rocoma_can.drivers.hardware import ENABLE_STEP, CanopenHardware
+from rocoma_can.drivers.enable import ENABLE_STEP
+from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.joints import JointCommand, JointMode
 from rocoma_can.drivers.pdo_layout import (
     CONTROLWORD,

@@ -1,0 +1,77 @@
+"""The CiA 402 enable sequence, stepped from the cyclic controlword, and the two faults only
+it can see: a drive that does not reach operation enabled in time (STO input low?), and one
+that drops out of operation enabled while commanded.
+
+Why from the cyclic RPDO and not by SDO or canopen's BaseNode402: one step per cycle
+(shutdown, switch on, enable operation) never blocks the cycle, and while enabling the
+targets hold the actual position, so enabling cannot make a joint jump. Called only for a
+drive that is READY, not latched, and commanded a cyclic mode; every other drive is
+``reset`` (the hardware layer sends it torque-off frames).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from . import cia402
+from .cia402 import State402
+
+CW_ENABLE = int(cia402.Controlword.ENABLE_OPERATION)
+OP_ENABLED = int(State402.OPERATION_ENABLED)
+#: cycles a drive must have been in operation enabled before leaving it counts as a drop-out
+#: (not a fault of an enable step that a drive answers a cycle late)
+DROP_AFTER_CYCLES = 4
+# Next enable step (shutdown, switch on, enable operation) by State402 value + 1; every state
+# the enable sequence cannot leave by itself gets disable voltage.
+_ENABLE_STEP = {
+    State402.SWITCH_ON_DISABLED: int(cia402.Controlword.SHUTDOWN),
+    State402.READY_TO_SWITCH_ON: int(cia402.Controlword.SWITCH_ON),
+    State402.SWITCHED_ON: CW_ENABLE,
+    State402.OPERATION_ENABLED: CW_ENABLE,
+}
+ENABLE_STEP = tuple(_ENABLE_STEP.get(State402(s), int(cia402.Controlword.DISABLE_VOLTAGE))
+                    for s in range(-1, 8))
+
+Fault = Callable[[int, str, float], None]  # (drive index, cause, now): Supervisor.fault
+
+
+class EnableSequence:
+    """Per drive: cycles in operation enabled, and since when enabling is wanted."""
+
+    def __init__(self, drives: int, timeout: float, fault: Fault) -> None:
+        self.timeout = timeout
+        self._fault = fault
+        self._enabled_cycles = [0] * drives
+        self._want_since = np.full(drives, math.nan)
+
+    def controlword(self, i: int, state: int, now: float) -> int:
+        """This cycle's controlword for drive i, commanded a cyclic mode and in ``state``:
+        CW_ENABLE once it is enabled (the caller sends the targets then), else the next
+        enable step, or 0 after a drop-out (reported through ``fault``)."""
+        if state == OP_ENABLED:
+            self._enabled_cycles[i] += 1
+            self._want_since[i] = math.nan
+            return CW_ENABLE
+        if self._enabled_cycles[i] >= DROP_AFTER_CYCLES:
+            self._enabled_cycles[i] = 0
+            self._fault(i, f"dropped out of operation enabled (now {State402(state).name})", now)
+            return 0
+        self._enabled_cycles[i] = 0
+        since = self._want_since[i]
+        if since != since:  # NaN: just started wanting
+            self._want_since[i] = now
+        elif now - since > self.timeout:
+            self._fault(i, f"not enabled within {self.timeout} s (stuck in "
+                           f"{State402(state).name}; STO input low?)", now)
+        return ENABLE_STEP[state + 1]
+
+    def reset(self, i: int) -> None:
+        """Drive i is not being enabled this cycle (torque-off, quick stop, not ready)."""
+        self._enabled_cycles[i] = 0
+        self._want_since[i] = math.nan
+
+    def reset_all(self) -> None:
+        for i in range(len(self._enabled_cycles)):
+            self.reset(i)
