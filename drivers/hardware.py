@@ -20,25 +20,28 @@ The safety path, top to bottom (each step names where it lives):
    controlword 0x0000 once by SDO from a thread of its own (``_deliver``, switch_off.py): a
    drive that no longer applies RPDOs (pre-operational, ignoring SYNC) still switches off.
 3. ``read`` hands the event to the manager before update(): ``manager.emergency_stop(cause)``
-   (``attach``; ``rocoma_can.runtime.system.manager_for`` wires it). In update() the
+   (``_deliver``; ``rocoma_can.runtime.system.manager_for`` wires it). In update() the
    manager switches OK -> EMERGENCY: the emergency controller's initialize_fast and advance
-   write this cycle's command (after ``neutral_command`` reset it), so the failed
-   controller never commands again.
-4. A second fault (another drive, or the emergency controller failing) -> FAILPROOF.
+   write this cycle's command (after the manager's ``_estop`` had ``neutral_command``
+   reset it), so the failed controller never commands again.
+4. A second fault (another drive, or the emergency controller failing) -> FAILPROOF
+   (``ControllerManager._estop``).
 5. While the manager reports FAILPROOF, ``write`` sends the pre-encoded torque-off frames
    (controlword 0x0000, mode, targets 0; built in ``__init__``) for every drive in the same
    cycle, whatever JointCommand says. That path has no arithmetic and no branch that can
    raise; a send error is counted, never raised. The failproof controller (TorqueOff) also
    zeroes JointCommand so loggers see the truth, but the frames do not depend on it.
-6. If a controller hangs inside update(), the manager's watchdog thread calls
-   ``send_torque_off`` every cycle until it returns (then the hung advance counts as a
-   failure: step 3). If the loop itself dies or hangs, nothing is sent at all, including the
-   manager heartbeat
-   (produced by ``write``, never by a kernel BCM task that would outlive the process). Each
-   drive's heartbeat consumer (0x1016, set at start-up) times out and its abort connection
-   option (0x6007 = 2, disable voltage) switches the power stage off. A consumer watches only
-   after the first heartbeat it receives, so ``_step_bringup`` has one sent in the cycle a
-   drive's configuration completes, before the drive can become READY.
+6. If a controller hangs inside update(), the manager's watchdog thread
+   (``ControllerManager._run_watchdog``) calls ``send_torque_off`` every cycle until it
+   returns: the pre-encoded frames and SYNC, no heartbeat. The hung advance then counts as a
+   failure and the manager goes straight to FAILPROOF (the drives are off already).
+7. If the loop itself dies or hangs, nothing is sent at all, including the manager
+   heartbeat (produced by ``write``, never by a kernel BCM task that would outlive the
+   process; the manager's CANopen node cannot start one either: runtime/node.py). Each
+   drive's heartbeat consumer (0x1016, set at start-up by bringup.configure) times out and
+   its abort connection option (0x6007 = 2, disable voltage) switches the power stage off.
+   A consumer watches only after the first heartbeat it receives, so ``_step_bringup`` has
+   one sent in the cycle a drive's configuration completes, before it can become READY.
 
 Start-up (bringup.py) never enables a drive; it ends in READY (torque off). Drives are enabled
 step by step from the cyclic controlword (``_command_frames``, enable.py) only while the
@@ -47,7 +50,8 @@ manager is OK or EMERGENCY and the active layer commands a cyclic mode for them.
 
 This is everything software over CAN can do, and it is not a certified safe torque off: a
 bus-off, a babbling node or firmware that ignores the controlword defeats it. Hard-wired STO
-inputs or CANopen Safety (SRDO) are needed for that (see README, safety model).
+inputs or CANopen Safety (SRDO) are needed for that (README, safety model). The README
+points here for these steps instead of keeping a second copy.
 """
 from __future__ import annotations
 
