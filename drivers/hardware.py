@@ -192,6 +192,11 @@ class CanopenHardware:
                                   dtype=np.int64)
         self._complete = np.zeros(n, dtype=bool)
         self.enable = EnableSequence(n, timeouts.enable, self.supervisor.fault)
+        # The drives the active controller may command: those ready when its switch was
+        # committed. A drive ready only later (recovered, late start) stays torque-off
+        # until the next switch: that controller never saw it (its pose, its limits).
+        self._armed = [False] * n
+        self._switches_seen = -1
         self._hb_state = [-1] * n
         self._hb_time = np.full(n, -math.inf)
 
@@ -521,10 +526,16 @@ class CanopenHardware:
         ttrq = raw["target_torque"].tolist()
         actual = raw["position"].tolist()
         now, enable = self._now, self.enable
+        manager = self._manager
+        if manager is not None and manager.switch_count != self._switches_seen:
+            self._switches_seen = manager.switch_count  # a switch committed: arm who is ready
+            self._armed = self.ready.tolist()
+        armed = self._armed if manager is not None else None
         for i, b in enumerate(self._bringup):
             if not b.mapped:
                 continue
-            if b.phase != Phase.READY or sup.latched[i] is not None:
+            if (b.phase != Phase.READY or sup.latched[i] is not None
+                    or (armed is not None and not armed[i])):
                 for msg in self._start_frames(i, b):
                     self._send(msg)
                 enable.reset(i)
@@ -688,6 +699,8 @@ class CanopenHardware:
         of the drives that must be ready (default: every drive)."""
         if not self._bringup:
             return "the drives are not started"
+        if self._recovery is not None and not self._recovery.done():
+            return "a recovery is in progress"
         sup = self.supervisor
         if sup.bus_latched is not None:
             return f"bus fault: {sup.bus_latched.cause} (recover first)"

@@ -167,6 +167,7 @@ class ControllerManager:
         # None: asked when a switch is requested, from the requesting thread.
         self._switch_guard = switch_guard
         self.last_refusal = ""  # why the last switch request was refused ("" = it was not)
+        self.switch_count = 0   # switches committed: the hardware arms the drives ready then
         self.timing = timing
         self._on_hang = on_hang
         self.hang_calls = 0       # how often on_hang ran while update() was stuck
@@ -436,6 +437,7 @@ class ControllerManager:
         future: Future[SwitchResult] = Future()
         pair = self._pairs.get(name)
         if pair is None:
+            self.last_refusal = f"no controller {name!r}"
             log.warning("switch to %r: no such controller (available: %s)",
                         name, ", ".join(self.available_controllers()) or "none")
             future.set_result(SwitchResult.NOT_FOUND)
@@ -461,6 +463,9 @@ class ControllerManager:
         guard's reason (a guard that raises blocks too: it could not say all is well)."""
         if self._latched:
             return "emergency stop not cleared"
+        return self._guard_reason()
+
+    def _guard_reason(self) -> str | None:
         if self._switch_guard is None:
             return None
         try:
@@ -524,15 +529,24 @@ class ControllerManager:
             return self._abort_switch(old, f"switch: {new.failure}")
 
         with self._cycle_lock:
-            committed = self._estop_serial == serial and not self._closed
+            # asked again at the commit: a drive may have faulted while the new controller
+            # initialized (the switch then fails like any other, with an e-stop)
+            blocked = self._guard_reason() if self._estop_serial == serial else None
+            committed = self._estop_serial == serial and not self._closed and blocked is None
             if committed:
                 previous = self._state
                 new.running = True
                 self._active = pair
                 self._state = ManagerState.OK
+                self.switch_count += 1
                 self._emit_changed()
-            else:  # a requested e-stop may not have reached update() yet: the old one
-                self._apply_requests()  # must stop running before its stop is handed over
+            elif blocked is None:  # a requested e-stop may not have reached update() yet:
+                self._apply_requests()  # the old one must stop running before its stop
+        if blocked is not None:
+            self.last_refusal = blocked
+            new.being_stopped = True
+            self._stoppers.hand_over(new)
+            return self._abort_switch(old, f"switch: {blocked}")
         if not committed:
             log.error("switch to %r interrupted by an emergency stop", new.name)
             new.being_stopped = True

@@ -122,7 +122,8 @@ def load_config(config: Mapping[str, Any], where: str = "") -> list[LoadedContro
                                            emergency_where)
     controllers_where = _at(where, "controllers")
     entries = config.get("controllers")
-    for i, entry in enumerate(entries if isinstance(entries, list) else ()):
+    listed: Sequence[Any] = entries if entries is not None and _is_list(entries) else ()
+    for i, entry in enumerate(listed):
         name = entry.get("name") if isinstance(entry, Mapping) else None
         if isinstance(name, str) and name in emergency:
             raise _error(f"{controllers_where}[{i}].name",

@@ -131,11 +131,13 @@ def test_drive_with_sto_low_does_not_hold_the_others_back(segment, make_rig):
     nodes = tuple(segment.drives)
     sto = nodes[-1]
     segment.drives[sto].set_sto(True)
-    rig = make_rig()
+    rig = make_rig(required=range(len(nodes) - 1))  # run degraded without the STO drive
     bring_up(rig)
     status = {s.node_id: s for s in rig.hw.drive_status()}
     assert status[sto].phase == "FAILED" and "STO" in status[sto].fault
     assert all(status[n].phase == "READY" for n in nodes if n != sto)
+    refusal = rig.hw.not_ready()  # with every drive required, a switch would be refused
+    assert refusal is not None and f"j{sto} (FAILED: " in refusal and "STO" in refusal
     rig.mgr.add_controller(HoldPD())
     assert rig.switch("hold") == SwitchResult.SWITCHED
     others = [n for n in nodes if n != sto]
@@ -145,6 +147,37 @@ def test_drive_with_sto_low_does_not_hold_the_others_back(segment, make_rig):
     rig.run(0.2)
     assert rig.mgr.state == ManagerState.OK
     assert segment.drives[sto].state402 == State402.SWITCH_ON_DISABLED
+
+
+def test_a_drive_ready_after_the_switch_stays_off_until_the_next(virtual_channel,
+                                                                sim_segment_factory,
+                                                                bus_factory):
+    """Degraded running: a drive that becomes ready after the switch (here: its STO input
+    goes high again and it is recovered) is never commanded by the controller running
+    since before, which initialized without it (its pose, its targets): it stays
+    torque-off until the next switch arms it."""
+    nodes = (1, 2, 3)
+    segment = sim_segment_factory(nodes, channel=virtual_channel)
+    segment.drives[3].set_sto(True)
+    rig = Rig.for_setup(bus_factory(virtual_channel), nodes, VIRTUAL, required=(0, 1))
+    try:
+        bring_up(rig)
+        rig.mgr.add_controller(HoldPD())
+        rig.mgr.add_controller(HoldPD(name="other"))
+        assert rig.switch("other") == SwitchResult.SWITCHED
+        assert rig.run_until(lambda: rig.hw.enabled[:2].all(), VIRTUAL.enable_budget())
+        segment.drives[3].set_sto(False)
+        recovered = rig.hw.recover(VIRTUAL.recovery_budget())
+        assert rig.run_until(recovered.done, VIRTUAL.recovery_budget())
+        assert recovered.result() and rig.hw.all_ready, rig.hw.drive_status()
+        rig.run(20 * rig.dt)
+        assert rig.mgr.state == ManagerState.OK
+        assert segment.drives[3].state402 == State402.SWITCH_ON_DISABLED  # not armed
+        assert rig.switch("hold") == SwitchResult.SWITCHED  # the next switch arms it
+        assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget()), \
+            rig.hw.drive_status()
+    finally:
+        rig.close()
 
 
 def test_drive_that_does_not_answer_is_reported(segment, make_rig):

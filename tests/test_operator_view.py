@@ -10,6 +10,7 @@ import time
 from contextlib import contextmanager
 
 import pytest
+from fixtures.driver_rig import VIRTUAL
 
 from rocoma_can import ManagerState
 from rocoma_can.cli import main
@@ -20,7 +21,10 @@ from rocoma_can.runtime.config import validate
 from rocoma_can.runtime.demo import MANAGER_ID, demo_config
 
 RATE = 100.0
-WAIT = 10.0  # bound of every wait; the virtual-bus set-up brings drives up in well under 1 s
+# Every wait is a budget of the bus setup the demo config shares with the driver tests
+# (default supervision, SDO timeout and start-up timeouts; tests/fixtures/driver_rig.py),
+# the longest of them: bring-up, which includes SDO retries on a loaded machine.
+WAIT = max(VIRTUAL.bring_up_budget(3), VIRTUAL.recovery_budget(), VIRTUAL.enable_budget())
 
 
 def wait_for(predicate, what: str, timeout: float = WAIT) -> None:

@@ -212,3 +212,10 @@ def test_a_plain_remote_node_from_the_eds_reads_what_the_node_serves(rig, bus_fa
         assert {k: read[k] for k in expected} == expected
     finally:
         network.disconnect()
+
+
+def test_a_name_that_is_not_ascii_is_escaped_not_an_abort(rig):
+    """VISIBLE_STRING is ASCII: a cause naming a drive "jé" used to abort the whole read."""
+    rig.node.last_cause = "drive 'jé' (node 2): EMCY 0x2310"
+    assert rig.client.read(0x2124) == "drive 'j\\xe9' (node 2): EMCY 0x2310"
+    assert rig.client.status()["estop_cause"].startswith("drive 'j\\xe9'")

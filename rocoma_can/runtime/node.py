@@ -195,6 +195,12 @@ class _ServiceFrames(can.Listener):
         self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
 
+def _visible(text: str) -> str:
+    """A VISIBLE_STRING is ASCII (CiA 301; canopen encodes it so and fails on anything else,
+    which made the whole read abort): other characters are escaped, e.g. "j\\xe9"."""
+    return text.encode("ascii", "backslashreplace").decode("ascii")
+
+
 def _never_produce_heartbeats(node: canopen.LocalNode) -> None:
     """Only the control loop sends this node's heartbeat (CanopenHardware.write).
 
@@ -319,19 +325,19 @@ class ManagerNode(can.Listener):
         if index == STATE:
             return int(m.state)
         if index == ACTIVE_NAME:
-            return m.active_controller_name
+            return _visible(m.active_controller_name)
         if index == ACTIVE_INDEX:
             return self._controller_index()
         if index == CONTROLLER_LIST:
-            return ",".join(m.available_controllers())
+            return _visible(",".join(m.available_controllers()))
         if index == ESTOP_CAUSE:
-            return self.last_cause
+            return _visible(self.last_cause)
         if index == ESTOP_LATCHED:
             return int(m.estop_latched)
         if index == SWITCH_RESULT:
             return self.last_result
         if index == SWITCH_REFUSAL:
-            return m.last_refusal
+            return _visible(m.last_refusal)
         if index == DRIVE_STATUS:
             report = (self.drive_status() if self.drive_status is not None
                       else {"startup_finished": True, "recovery": "", "drives": []})
@@ -388,6 +394,7 @@ class ManagerNode(can.Listener):
     def _switch(self, name: str) -> None:
         m = self.manager
         if name not in m.available_controllers():
+            m.last_refusal = f"no controller {name!r}"
             self.last_result = 2
             raise SdoAbortedError(ABORT_NOT_FOUND)
         blocked = m.switch_blocked()  # e-stop latched, drives not ready: m.last_refusal says

@@ -34,6 +34,7 @@ def manager_for(hardware: Any, **kwargs: Any) -> ControllerManager:
             raise TypeError(f"{own} is the hardware's own (modes, NaN, limits; a neutral "
                             "command on every fall to a lower layer)")
     kwargs.setdefault("on_hang", hardware.send_torque_off)
+    kwargs.setdefault("switch_guard", hardware.not_ready)  # every drive ready to switch
     manager = ControllerManager(TorqueOff(), hardware.dt, hardware.state, hardware.command,
                                 limit_command=hardware.limit_command,
                                 reset_command=hardware.neutral_command, **kwargs)

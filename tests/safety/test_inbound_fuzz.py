@@ -117,18 +117,27 @@ def _takes_drives_out(msg: can.Message) -> bool:
 
 
 def _restore(served: Served) -> None:
-    """Back to holding with every drive enabled and the e-stop COB-ID as configured."""
+    """Back to holding with every drive enabled and the e-stop COB-ID as configured.
+
+    Tried up to three times: on a loaded machine this test's own loop can stall past the
+    drives' consumer time (0.5 s), and they then switch off as they must (EMCY 0x8130),
+    which is the last line of defence working, not the property under test here."""
     rig, node, hw = served.rig, served.node, served.rig.hw
     node.set_estop_cob_id(ESTOP_COB)
-    rig.mgr.clear_emergency_stop()
-    if hw.bus_fault or not hw.all_ready:
-        recovered = hw.recover(VIRTUAL.recovery_budget())
-        assert rig.run_until(recovered.done, VIRTUAL.recovery_budget() + VIRTUAL.stall)
-        assert recovered.result(), hw.drive_status()
-    if rig.mgr.state is not ManagerState.OK or rig.mgr.active_controller_name != "hold":
-        assert rig.switch("hold") == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: hw.all_enabled and rig.mgr.state is ManagerState.OK,
-                         VIRTUAL.enable_budget()), hw.drive_status()
+    for _ in range(3):
+        rig.mgr.clear_emergency_stop()
+        if hw.bus_fault or not hw.all_ready:
+            recovered = hw.recover(VIRTUAL.recovery_budget())
+            assert rig.run_until(recovered.done, VIRTUAL.recovery_budget() + VIRTUAL.stall)
+            if not recovered.result():
+                continue
+        if rig.mgr.state is not ManagerState.OK or rig.mgr.active_controller_name != "hold":
+            if rig.switch("hold") != SwitchResult.SWITCHED:
+                continue
+        if rig.run_until(lambda: hw.all_enabled and rig.mgr.state is ManagerState.OK,
+                         VIRTUAL.enable_budget()):
+            return
+    raise AssertionError(f"could not get back to holding: {hw.drive_status()}")
 
 
 def _probe(served: Served, fuzz_bus: can.BusABC) -> None:
