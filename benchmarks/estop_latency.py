@@ -30,7 +30,7 @@ from _rig import ESTOP_COB_ID, Rig, Script, run_script
 from rocoma_can import ManagerState
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.quick_stop import QuickStop
-from rocoma_can.drivers import cia402
+from rocoma_can.drivers import cia301
 from rocoma_can.drivers.bus import open_bus
 
 STOP_CONTROLWORDS = (0x0000, 0x0002)  # torque off (disable voltage), quick stop
@@ -61,7 +61,7 @@ class StopFrames(can.Listener):
     """First frame with a stop controlword per drive after ``arm`` (on the Notifier thread)."""
 
     def __init__(self, drives: int, cycle_of) -> None:
-        self._node_of = {cia402.RPDO_BASE[0] + n: n for n in range(1, drives + 1)}
+        self._node_of = {cia301.RPDO_BASE[0] + n: n for n in range(1, drives + 1)}
         self._cycle_of = cycle_of
         self.seen: dict[int, tuple[float, int]] = {}
         self.armed = False

@@ -11,10 +11,11 @@ from rocoma_can._lazy import lazy_exports
 __all__ = ["Controlword", "Mode", "NmtState", "State402",
            "JointCommand", "JointMode", "JointState"]
 __getattr__, __dir__ = lazy_exports(__name__, {
-    "Controlword": "cia402", "Mode": "cia402", "NmtState": "cia402", "State402": "cia402",
+    "Controlword": "cia402", "Mode": "cia402", "NmtState": "cia301", "State402": "cia402",
     "JointCommand": "joints", "JointMode": "joints", "JointState": "joints",
 })
 
 if TYPE_CHECKING:
-    from .cia402 import Controlword, Mode, NmtState, State402
+    from .cia301 import NmtState
+    from .cia402 import Controlword, Mode, State402
     from .joints import JointCommand, JointMode, JointState

@@ -34,7 +34,7 @@ from typing import Any
 import canopen
 from canopen.sdo.client import SdoClient
 
-from . import cia402
+from . import cia301, cia402
 from .config import DriveConfig
 from .pdo_layout import PDO_SLOTS, DriveLayout, Pdo
 
@@ -161,9 +161,9 @@ def configure(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
 def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
                     manager_node_id: int, consumer_ms: int) -> ConfigResult:
     sdo = node.sdo
-    node.nmt.send_command(cia402.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
+    node.nmt.send_command(cia301.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
     try:
-        device_type = struct.unpack("<I", sdo.upload(cia402.DEVICE_TYPE, 0)[:4])[0]
+        device_type = struct.unpack("<I", sdo.upload(cia301.DEVICE_TYPE, 0)[:4])[0]
     except canopen.SdoCommunicationError as e:
         raise NoAnswer(f"no SDO reply to 0x1000: {e}") from e
     if device_type & 0xFFFF != 402:
@@ -177,12 +177,12 @@ def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveL
         if missing:
             raise RuntimeError(f"does not support mode(s) {missing} (0x6502 = 0x{supported:X})")
     _check_scaling(sdo, drive)
-    _configure_pdos(sdo, layout.rpdos, cia402.RPDO_COMM, cia402.RPDO_MAP, cia402.RPDO_BASE,
+    _configure_pdos(sdo, layout.rpdos, cia301.RPDO_COMM, cia301.RPDO_MAP, cia301.RPDO_BASE,
                     drive.node_id)
-    _configure_pdos(sdo, layout.tpdos, cia402.TPDO_COMM, cia402.TPDO_MAP, cia402.TPDO_BASE,
+    _configure_pdos(sdo, layout.tpdos, cia301.TPDO_COMM, cia301.TPDO_MAP, cia301.TPDO_BASE,
                     drive.node_id)
-    sdo.download(cia402.PRODUCER_HEARTBEAT_TIME, 0, _u16(drive.heartbeat_ms))
-    sdo.download(cia402.CONSUMER_HEARTBEAT_TIME, 1, _u32((manager_node_id << 16) | consumer_ms))
+    sdo.download(cia301.PRODUCER_HEARTBEAT_TIME, 0, _u16(drive.heartbeat_ms))
+    sdo.download(cia301.CONSUMER_HEARTBEAT_TIME, 1, _u32((manager_node_id << 16) | consumer_ms))
     sdo.download(cia402.ABORT_CONNECTION_OPTION, 0,
                  struct.pack("<h", cia402.AbortConnectionOption.DISABLE_VOLTAGE))
     sdo.download(cia402.MODES_OF_OPERATION, 0, struct.pack("<b", int(drive.modes[0])))
@@ -191,7 +191,7 @@ def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveL
         error_code = struct.unpack("<H", sdo.upload(cia402.ERROR_CODE, 0)[:2])[0]
     except canopen.SdoAbortedError:
         error_code = 0
-    node.nmt.send_command(cia402.NmtCommand.START)
+    node.nmt.send_command(cia301.NmtCommand.START)
     return ConfigResult(statusword, error_code)
 
 
@@ -279,7 +279,7 @@ class DriveBringup:
                 result = job.result()
                 if self.sto_seen or (cia402.state_from_statusword(result.statusword)
                                      == cia402.State402.FAULT
-                                     and result.error_code == cia402.EMCY_STO):
+                                     and result.error_code == cia301.EMCY_STO):
                     self._fail("STO input low (safe torque off active)", now)
                     return False
                 self._enter(Phase.STARTING, now)
@@ -300,7 +300,7 @@ class DriveBringup:
                     cia402.State402.UNKNOWN):
                 self._enter(Phase.PROBING, now)
             elif now - self.since > self.timeouts.reset:
-                why = "STO input low" if error_code == cia402.EMCY_STO else "fault persists"
+                why = "STO input low" if error_code == cia301.EMCY_STO else "fault persists"
                 self._fail(f"{why} after fault reset (error code 0x{error_code:04X})", now)
         elif phase == Phase.PROBING:
             if self.sto_seen:

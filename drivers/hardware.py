@@ -67,7 +67,7 @@ from typing import Any
 import can
 import numpy as np
 
-from . import cia402
+from . import cia301, cia402
 from .bringup import DriveBringup, Phase, Timeouts
 from .bus import CanopenBus, open_bus
 from .cia402 import State402
@@ -208,8 +208,8 @@ class CanopenHardware:
                                              pdo.codec.unpack_from,
                                              tuple(self._raw[name] for name in pdo.names))
         self._index_of_node = {d.node_id: i for i, d in enumerate(drives)}
-        self._heartbeat_of = {cia402.HEARTBEAT + d.node_id: i for i, d in enumerate(drives)}
-        self._emcy_of = {cia402.EMCY + d.node_id: i for i, d in enumerate(drives)}
+        self._heartbeat_of = {cia301.HEARTBEAT + d.node_id: i for i, d in enumerate(drives)}
+        self._emcy_of = {cia301.EMCY + d.node_id: i for i, d in enumerate(drives)}
         self._rx: collections.deque[can.Message] = collections.deque()
         self._rx_errors: collections.deque[can.Message] = collections.deque(maxlen=1024)
 
@@ -222,9 +222,9 @@ class CanopenHardware:
         self._fault_reset_frames = [self._preencode(i, _CW_FAULT_RESET) for i in range(n)]
         self._probe_frames = [self._preencode(i, int(cia402.Controlword.SHUTDOWN))
                               for i in range(n)]
-        self._sync = _frame(cia402.SYNC, 0)
-        self._heartbeat = can.Message(arbitration_id=cia402.HEARTBEAT + manager_node_id,
-                                      data=bytearray([cia402.NmtState.OPERATIONAL]),
+        self._sync = _frame(cia301.SYNC, 0)
+        self._heartbeat = can.Message(arbitration_id=cia301.HEARTBEAT + manager_node_id,
+                                      data=bytearray([cia301.NmtState.OPERATIONAL]),
                                       is_extended_id=False)
         self._next_heartbeat = -math.inf
 
@@ -363,7 +363,7 @@ class CanopenHardware:
             if j is not None and msg.dlc >= 2:
                 code = msg.data[0] | (msg.data[1] << 8)
                 self.state.error_code[j] = code
-                if code == cia402.EMCY_STO:
+                if code == cia301.EMCY_STO:
                     self._bringup[j].sto_seen = True
                 sup.on_emcy(j, code, t)
         if self._rx_errors:
@@ -633,7 +633,7 @@ class CanopenHardware:
                 sup.disarm(i)
                 sup.clear(i)
                 self.state.error_code[i] = 0
-                hb_ok = (self._hb_state[i] == cia402.NmtState.OPERATIONAL
+                hb_ok = (self._hb_state[i] == cia301.NmtState.OPERATIONAL
                          and now - self._hb_time[i] < sup.heartbeat_timeout[i])
                 if b.phase == Phase.READY and hb_ok:
                     b.reset_fault(now)
@@ -728,7 +728,7 @@ class CanopenHardware:
             out.append(DriveStatus(
                 d.name, d.node_id, b.phase.name if b else "NOT_STARTED",
                 State402(int(self.state.cia402_state[i])).name, bool(enabled[i]), fault,
-                cia402.NmtState(nmt).name if nmt in cia402.NmtState._value2member_map_
+                cia301.NmtState(nmt).name if nmt in cia301.NmtState._value2member_map_
                 else "UNKNOWN",
                 round(now - seen, 3) if math.isfinite(seen) else None))
         return out

@@ -17,7 +17,7 @@ import canopen
 
 from rocoma_can import eds as shipped_eds
 
-from . import cia402
+from . import cia301, cia402
 from .config import DriveConfig
 from .joints import JointMode
 
@@ -131,17 +131,17 @@ def tpdo_entries(feedback: Iterable[str]) -> list[PdoEntry]:
 def layout_for(drive: DriveConfig) -> DriveLayout:
     return DriveLayout(
         drive.node_id,
-        _pdos(first_fit(rpdo_entries(drive.modes)), cia402.RPDO_BASE, drive.node_id,
+        _pdos(first_fit(rpdo_entries(drive.modes)), cia301.RPDO_BASE, drive.node_id,
               "RPDO", drive.name),
-        _pdos(first_fit(tpdo_entries(drive.feedback)), cia402.TPDO_BASE, drive.node_id,
+        _pdos(first_fit(tpdo_entries(drive.feedback)), cia301.TPDO_BASE, drive.node_id,
               "TPDO", drive.name),
     )
 
 
 def check_against_od(layout: DriveLayout, od: canopen.ObjectDictionary, drive: str) -> None:
     """Fail at start-up, naming the object, if the drive's EDS cannot carry this layout."""
-    for pdos, comm, what in ((layout.rpdos, cia402.RPDO_COMM, "RPDO"),
-                             (layout.tpdos, cia402.TPDO_COMM, "TPDO")):
+    for pdos, comm, what in ((layout.rpdos, cia301.RPDO_COMM, "RPDO"),
+                             (layout.tpdos, cia301.TPDO_COMM, "TPDO")):
         for pdo in pdos:
             if comm + pdo.number - 1 not in od:
                 raise ValueError(f"drive {drive!r}: EDS has no {what}{pdo.number} "

@@ -23,18 +23,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import cia402
+from . import cia301, cia402
 from .config import DriveConfig
 
 EMCY_NAMES = {
-    cia402.EMCY_GENERIC: "generic error",
-    cia402.EMCY_OVERCURRENT: "overcurrent",
-    cia402.EMCY_OVERVOLTAGE: "overvoltage",
-    cia402.EMCY_OVERTEMPERATURE: "overtemperature",
-    cia402.EMCY_HEARTBEAT: "heartbeat error",
-    cia402.EMCY_POSITION_SENSOR: "position sensor",
-    cia402.EMCY_FOLLOWING_ERROR: "following error",
-    cia402.EMCY_STO: "STO input active",
+    cia301.EMCY_GENERIC: "generic error",
+    cia301.EMCY_OVERCURRENT: "overcurrent",
+    cia301.EMCY_OVERVOLTAGE: "overvoltage",
+    cia301.EMCY_OVERTEMPERATURE: "overtemperature",
+    cia301.EMCY_HEARTBEAT: "heartbeat error",
+    cia301.EMCY_POSITION_SENSOR: "position sensor",
+    cia301.EMCY_FOLLOWING_ERROR: "following error",
+    cia301.EMCY_STO: "STO input active",
 }
 
 
@@ -115,8 +115,8 @@ class Supervisor:
         if not self.active[i]:
             return
         self.heartbeat_deadline[i] = now + self.heartbeat_timeout[i]
-        if state != cia402.NmtState.OPERATIONAL:
-            name = cia402.NmtState(state).name if state in cia402.NmtState._value2member_map_ \
+        if state != cia301.NmtState.OPERATIONAL:
+            name = cia301.NmtState(state).name if state in cia301.NmtState._value2member_map_ \
                 else f"0x{state:02X}"
             self.fault(i, f"NMT state {name} reported in heartbeat", now)
 
@@ -126,7 +126,7 @@ class Supervisor:
             self.fault(i, f"TPDO 0x{cob_id:03X} with {dlc} bytes, its mapping has {size}", now)
 
     def on_emcy(self, i: int, code: int, now: float) -> None:
-        if code != cia402.EMCY_NO_ERROR and self.active[i]:
+        if code != cia301.EMCY_NO_ERROR and self.active[i]:
             self.fault(i, emcy_text(code), now, code)
 
     def tick(self, now: float, tpdos_complete: np.ndarray, states: np.ndarray,

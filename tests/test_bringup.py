@@ -11,7 +11,7 @@ import canopen
 import pytest
 from fixtures.driver_rig import drive_configs
 
-from rocoma_can.drivers import bringup, cia402
+from rocoma_can.drivers import bringup, cia301
 from rocoma_can.drivers.bringup import ConfigResult, DriveBringup, Phase, Timeouts
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.pdo_layout import layout_for
@@ -85,7 +85,7 @@ def test_configuration_failures_and_sto_are_reported(drive):
     assert drive.failure == "does not answer (no SDO reply to 0x1000)"
     drive.restart(1.0)
     assert (drive.phase, drive.failure) == (Phase.WAIT_BOOT, None)
-    drive.results[0] = ConfigResult(FAULT, cia402.EMCY_STO)
+    drive.results[0] = ConfigResult(FAULT, cia301.EMCY_STO)
     drive.alive = True
     step(drive, 1.0)
     step(drive, 1.1)
@@ -120,9 +120,9 @@ def test_a_fault_that_persists_and_a_refused_shutdown_fail_with_the_reason(drive
     drive.alive = True
     step(drive, 0.0)
     step(drive, 0.0)
-    step(drive, 0.1, fresh=True, state=State402.FAULT, code=cia402.EMCY_OVERCURRENT)
+    step(drive, 0.1, fresh=True, state=State402.FAULT, code=cia301.EMCY_OVERCURRENT)
     step(drive, 0.1 + TIMEOUTS.reset + 0.01, fresh=True, state=State402.FAULT,
-         code=cia402.EMCY_OVERCURRENT)
+         code=cia301.EMCY_OVERCURRENT)
     assert drive.phase == Phase.FAILED
     assert drive.failure == "fault persists after fault reset (error code 0x2310)"
 

@@ -29,13 +29,13 @@ from fixtures.driver_rig import (
 )
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import bus, cia402
+from rocoma_can.drivers import bus, cia301, cia402
 from rocoma_can.drivers.bringup import Phase
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.joints import JointMode
 
 NODES = VIRTUAL.nodes
-RPDO1 = {cia402.RPDO_BASE[0] + n: n for n in NODES}  # any drive's RPDO1 in these tests
+RPDO1 = {cia301.RPDO_BASE[0] + n: n for n in NODES}  # any drive's RPDO1 in these tests
 
 
 @pytest.fixture(params=[pytest.param(VIRTUAL, id="virtual"),
@@ -113,8 +113,8 @@ def test_bring_up_six_drives_to_operation_enabled(segment, make_rig, can_setup):
     assert rig.hw.all_ready, rig.hw.drive_status()
     # every drive was configured as the safety model needs it
     for _n, drive in segment.drives.items():
-        assert drive.nmt_state == cia402.NmtState.OPERATIONAL
-        assert drive.od_value(cia402.CONSUMER_HEARTBEAT_TIME, 1) == \
+        assert drive.nmt_state == cia301.NmtState.OPERATIONAL
+        assert drive.od_value(cia301.CONSUMER_HEARTBEAT_TIME, 1) == \
             (MANAGER_NODE_ID << 16) | rig.hw.consumer_ms
         assert drive.od_value(cia402.ABORT_CONNECTION_OPTION) == \
             cia402.AbortConnectionOption.DISABLE_VOLTAGE
@@ -240,7 +240,7 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
     nodes = tuple(segment.drives)
     first_fault, second_fault = nodes[1], nodes[-1]
     healthy = [n for n in nodes if n not in (first_fault, second_fault)]
-    segment.drives[first_fault].trip_fault(cia402.EMCY_OVERCURRENT)
+    segment.drives[first_fault].trip_fault(cia301.EMCY_OVERCURRENT)
     assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
                          rig.setup.detect_budget())
     latched = rig.hw.supervisor.latched[nodes.index(first_fault)]
@@ -251,7 +251,7 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
                for n in nodes if n != first_fault)
 
     mark = synced_mark(recorder, rig)
-    segment.drives[second_fault].trip_fault(cia402.EMCY_OVERTEMPERATURE)
+    segment.drives[second_fault].trip_fault(cia301.EMCY_OVERTEMPERATURE)
     assert rig.run_until(lambda: rig.states[-1] == ManagerState.FAILPROOF,
                          rig.setup.detect_budget())
     assert rig.states[-2] == ManagerState.EMERGENCY
@@ -308,7 +308,7 @@ def test_recovery_after_a_fault_returns_to_ok(segment, make_rig):
     rig.mgr.clear_emergency_stop()
     enable_with(rig, HoldPD(), emergency=Brake())
     faulty = tuple(segment.drives)[-1]
-    segment.drives[faulty].trip_fault(cia402.EMCY_FOLLOWING_ERROR)
+    segment.drives[faulty].trip_fault(cia301.EMCY_FOLLOWING_ERROR)
     assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
                          rig.setup.detect_budget())
     assert rig.switch("hold") == SwitchResult.ERROR  # latched until recovered
@@ -377,11 +377,11 @@ def test_every_ready_drive_already_watches_the_manager_heartbeat(segment, make_r
     bring_up(rig)
     mark = synced_mark(recorder, rig)  # and the loop stops here
     nodes = tuple(segment.drives)
-    emcy = {cia402.EMCY + n for n in nodes}
+    emcy = {cia301.EMCY + n for n in nodes}
     lost = recorder.wait_for_count(
         len(nodes), rig.hw.consumer_ms / 1000 + rig.setup.stall, emcy, since=mark,
-        where=lambda f: struct.unpack_from("<H", f.data)[0] == cia402.EMCY_HEARTBEAT)
-    assert {f.cob_id - cia402.EMCY for f in lost} == set(nodes)
+        where=lambda f: struct.unpack_from("<H", f.data)[0] == cia301.EMCY_HEARTBEAT)
+    assert {f.cob_id - cia301.EMCY for f in lost} == set(nodes)
 
 
 def test_bus_off_error_frame_is_an_estop(virtual_channel, sim_segment_factory, bus_factory):
@@ -483,7 +483,7 @@ def test_only_exact_frames_are_drive_feedback(segment, make_rig, bus_factory, ca
     bring_up(rig)
     enable_with(rig, HoldPD(), emergency=Brake())
     intruder = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
-    tpdo1 = cia402.TPDO_BASE[0] + 1
+    tpdo1 = cia301.TPDO_BASE[0] + 1
     four_turns = struct.pack("<Hih", 0x0027, 4 << 20, 0)  # operation enabled at 25 rad
     for _ in range(5):
         intruder.send(can.Message(arbitration_id=tpdo1, is_extended_id=True, data=four_turns))

@@ -14,7 +14,7 @@ from fixtures.driver_rig import VIRTUAL
 
 from rocoma_can import ManagerState
 from rocoma_can.cli import main
-from rocoma_can.drivers import cia402
+from rocoma_can.drivers import cia301
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.runtime import Runtime
 from rocoma_can.runtime.config import validate
@@ -71,7 +71,7 @@ def test_clear_never_rearms_a_faulted_drive(virtual_channel, sim_segment_factory
         assert cli("switch", "pd")[:2] == (0, "SWITCHED\n")
         wait_for(lambda: rt.hardware.all_enabled, "every drive enabled")
 
-        segment.drives[2].trip_fault(cia402.EMCY_OVERCURRENT)
+        segment.drives[2].trip_fault(cia301.EMCY_OVERCURRENT)
         wait_for(lambda: rt.manager.state is ManagerState.EMERGENCY, "the e-stop")
         assert cli("failproof")[0] == 0
         wait_for(lambda: all(d.state402 in (State402.SWITCH_ON_DISABLED, State402.FAULT)

@@ -5,8 +5,10 @@ import struct
 
 import pytest
 
+from rocoma_can.drivers import cia301 as c301
 from rocoma_can.drivers import cia402 as c
-from rocoma_can.drivers.cia402 import Mode, NmtCommand, State402
+from rocoma_can.drivers.cia301 import NmtCommand
+from rocoma_can.drivers.cia402 import Mode, State402
 
 S = State402
 
@@ -64,13 +66,13 @@ def test_walk_through_every_transition(sim_bench, sim_interface):
     assert drive.state402 == S.SWITCH_ON_DISABLED
     for cw, expected in [(0x06, S.READY_TO_SWITCH_ON), (0x0F, S.OPERATION_ENABLED)]:
         _step(bench, cw, expected)
-    drive.trip_fault(c.EMCY_OVERCURRENT)  # 13
+    drive.trip_fault(c301.EMCY_OVERCURRENT)  # 13
     assert drive.state402 == S.FAULT_REACTION_ACTIVE
     assert node.sdo[0x6041].raw & 0x4F == 0x0F
     _step(bench, 0x0F, S.FAULT)            # 14 once the reaction ramp is over
     _step(bench, 0x0F, S.FAULT)            # no enable out of FAULT
     _step(bench, 0x80, S.SWITCH_ON_DISABLED)  # 15 on the rising edge of bit 7
-    drive.trip_fault(c.EMCY_GENERIC)
+    drive.trip_fault(c301.EMCY_GENERIC)
     _step(bench, 0x80, S.FAULT)            # bit 7 still high: no edge, no reset
     _step(bench, 0x00, S.FAULT)
     _step(bench, 0x80, S.SWITCH_ON_DISABLED)

@@ -8,7 +8,7 @@ import canopen
 import pytest
 
 from rocoma_can import eds
-from rocoma_can.drivers import cia402
+from rocoma_can.drivers import cia301, cia402
 
 
 def _import_quietly(name: str, node_id: int, caplog: pytest.LogCaptureFixture):
@@ -23,7 +23,7 @@ def _import_quietly(name: str, node_id: int, caplog: pytest.LogCaptureFixture):
 
 def test_drive_eds_imports_without_warnings(caplog):
     od = _import_quietly(eds.CIA402_DRIVE, 7, caplog)
-    assert od[cia402.DEVICE_TYPE].default == cia402.DEVICE_TYPE_SERVO
+    assert od[cia301.DEVICE_TYPE].default == cia402.DEVICE_TYPE_SERVO
     for index in (0x1000, 0x1001, 0x1003, 0x1016, 0x1017, 0x1018, 0x1029,
                   0x6040, 0x6041, 0x6060, 0x6061, 0x6064, 0x606C, 0x6076, 0x6077, 0x607A,
                   0x60FF, 0x6071, 0x6072, 0x605A, 0x605B, 0x605C, 0x6007, 0x603F, 0x6085,
@@ -33,8 +33,8 @@ def test_drive_eds_imports_without_warnings(caplog):
         for base in (0x1400, 0x1600, 0x1800, 0x1A00):
             assert base + n in od
         # $NODEID resolved in every PDO COB-ID, PDOs 3 and 4 disabled (bit 31)
-        assert od[0x1800 + n][1].default & 0x7FF == cia402.TPDO_BASE[n] + 7
-        assert od[0x1400 + n][1].default & 0x7FF == cia402.RPDO_BASE[n] + 7
+        assert od[0x1800 + n][1].default & 0x7FF == cia301.TPDO_BASE[n] + 7
+        assert od[0x1400 + n][1].default & 0x7FF == cia301.RPDO_BASE[n] + 7
         assert bool(od[0x1800 + n][1].default & 0x80000000) == (n >= 2)
     assert od[0x608F][1].default == 2 ** 20
     assert od[0x6076].default == 1000

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from rocoma_can import cli
-from rocoma_can.drivers import cia402 as c
-from rocoma_can.drivers.cia402 import Mode, NmtCommand, NmtState, State402
+from rocoma_can.drivers import cia301 as c301
+from rocoma_can.drivers.cia301 import NmtCommand, NmtState
+from rocoma_can.drivers.cia402 import Mode, State402
 from rocoma_can.drivers.sim.cli import parse_node_ids
 
 
@@ -26,13 +27,13 @@ def test_trip_fault_emcy_error_objects_and_reset(sim_bench, sim_interface):
     node, drive, rec = bench.node(1), bench.drive(1), bench.recorder
     bench.enable(1, Mode.CST)
     mark = rec.mark()
-    drive.trip_fault(c.EMCY_OVERCURRENT)
+    drive.trip_fault(c301.EMCY_OVERCURRENT)
     bench.sync(2)
-    assert _emcy(rec.wait_for_count(1, 2.0, 0x81, since=mark)[0]) == (c.EMCY_OVERCURRENT, 0x03)
+    assert _emcy(rec.wait_for_count(1, 2.0, 0x81, since=mark)[0]) == (c301.EMCY_OVERCURRENT, 0x03)
     assert drive.state402 == State402.FAULT
-    assert node.sdo[0x603F].raw == c.EMCY_OVERCURRENT
+    assert node.sdo[0x603F].raw == c301.EMCY_OVERCURRENT
     assert node.sdo[0x1001].raw == 0x03  # generic + current
-    assert (node.sdo[0x1003][0].raw, node.sdo[0x1003][1].raw) == (1, c.EMCY_OVERCURRENT)
+    assert (node.sdo[0x1003][0].raw, node.sdo[0x1003][1].raw) == (1, c301.EMCY_OVERCURRENT)
     node.sdo[0x6040].raw = 0x00
     mark = rec.mark()
     node.sdo[0x6040].raw = 0x80
@@ -47,7 +48,7 @@ def test_fault_while_moving_ramps_down_before_fault(sim_bench):
     bench = sim_bench(1)
     drive = bench.drive(1)
     bench.spin(1)
-    drive.trip_fault(c.EMCY_OVERTEMPERATURE)
+    drive.trip_fault(c301.EMCY_OVERTEMPERATURE)
     bench.sync(10)
     assert drive.state402 == State402.FAULT_REACTION_ACTIVE
     assert drive.statusword & 0x4F == 0x0F
@@ -125,7 +126,7 @@ def test_sto_low_drops_out_of_operation_enabled(sim_bench, sim_interface):
     mark = rec.mark()
     drive.set_sto(True)
     code, register = _emcy(rec.wait_for_count(1, 2.0, 0x81, since=mark)[0])
-    assert (code, register & 0x01) == (c.EMCY_STO, 0x01)
+    assert (code, register & 0x01) == (c301.EMCY_STO, 0x01)
     assert drive.state402 == State402.SWITCH_ON_DISABLED
     bench.sync(5)
     assert drive.torque_nm == 0.0 and drive.velocity_rad_s > 1.0  # power off: it coasts
@@ -183,7 +184,7 @@ def test_cli_runs_a_segment_with_faults_and_status(frame_recorder, virtual_chann
     assert code == 0
     assert [f.data for f in rec.frames(0x701)][:1] == [b"\x00"]
     emcys = {f.cob_id: struct.unpack("<H", f.data[:2])[0] for f in rec.frames((0x81, 0x82))}
-    assert emcys == {0x81: c.EMCY_STO, 0x82: c.EMCY_OVERCURRENT}
+    assert emcys == {0x81: c301.EMCY_STO, 0x82: c301.EMCY_OVERCURRENT}
     out = capsys.readouterr().out
     status = [line for line in out.splitlines() if line.startswith("node")]
     assert len(status) >= 2 and "FAULT" in status[-1] and "STO" in status[-2]

@@ -4,8 +4,9 @@ from __future__ import annotations
 import struct
 import time
 
-from rocoma_can.drivers import cia402 as c
-from rocoma_can.drivers.cia402 import AbortConnectionOption, Mode, NmtCommand, NmtState, State402
+from rocoma_can.drivers import cia301 as c301
+from rocoma_can.drivers.cia301 import NmtCommand, NmtState
+from rocoma_can.drivers.cia402 import AbortConnectionOption, Mode, State402
 
 MASTER = 0x7F
 
@@ -103,7 +104,7 @@ def test_master_heartbeat_loss_disables_voltage(sim_bench, sim_interface):
     assert rec.count(0x81, since=mark) == 0  # no false trip while the master is alive
     emcy = rec.wait_for(lambda f: f.cob_id == 0x81, 3.0, since=mark)
     code, register, vendor = struct.unpack("<HB5s", emcy.data)
-    assert (code, register & 0x11, vendor) == (c.EMCY_HEARTBEAT, 0x11, bytes(5))
+    assert (code, register & 0x11, vendor) == (c301.EMCY_HEARTBEAT, 0x11, bytes(5))
     # consumer time + one master period, with slack for a loaded 2-core machine
     assert 0.150 <= emcy.time - last <= 0.150 + 0.030 + 0.3
     bench.wait(lambda: drive.state402 == State402.SWITCH_ON_DISABLED, 1.0, "0x6007 reaction")
@@ -126,7 +127,7 @@ def test_master_heartbeat_loss_with_option_fault(sim_bench):
     bench.sync(2)  # fault reaction ramps down on SYNC, then FAULT
     bench.wait(lambda: drive.state402 == State402.FAULT, 2.0, "FAULT")
     assert rec.count(0x81, since=mark) == 1
-    assert drive.error_code == c.EMCY_HEARTBEAT
+    assert drive.error_code == c301.EMCY_HEARTBEAT
     assert drive.nmt_state == NmtState.OPERATIONAL
 
 

@@ -6,8 +6,10 @@ import struct
 import pytest
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
+from rocoma_can.drivers import cia301 as c301
 from rocoma_can.drivers import cia402 as c
-from rocoma_can.drivers.cia402 import Mode, NmtCommand, State402
+from rocoma_can.drivers.cia301 import NmtCommand
+from rocoma_can.drivers.cia402 import Mode, State402
 
 WRITES = {0x6040: 0x06, 0x6060: int(Mode.CSV), 0x6071: 123, 0x607A: -4567, 0x60FF: 890,
           0x60B1: 11, 0x60B2: -12, 0x6072: 2500}
@@ -160,7 +162,7 @@ def test_short_rpdo_gives_emcy_8210(sim_bench):
     bench.nmt(NmtCommand.START)
     bench.send(0x201, b"\x06\x00")  # mapping is 5 bytes
     frame = bench.recorder.wait_for(lambda f: f.cob_id == 0x81, 2.0)
-    assert struct.unpack("<HB5s", frame.data)[0] == c.EMCY_PDO_LENGTH
+    assert struct.unpack("<HB5s", frame.data)[0] == c301.EMCY_PDO_LENGTH
     assert bench.drive().state402 == State402.SWITCH_ON_DISABLED
 
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from fixtures.driver_rig import drive_configs
 
-from rocoma_can.drivers import cia402
-from rocoma_can.drivers.cia402 import NmtState, State402
+from rocoma_can.drivers import cia301
+from rocoma_can.drivers.cia301 import NmtState
+from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.supervision import Supervisor
 
 TPDO_CYCLES = 3
@@ -35,7 +36,7 @@ def tick(sup: Supervisor, now: float, complete=(True, True),
 def test_nothing_is_supervised_before_arm():
     sup = supervisor(armed=False)
     assert tick(sup, 100.0, complete=(False, False), states=(State402.FAULT,) * 2) == []
-    sup.on_emcy(0, cia402.EMCY_OVERCURRENT, 1.0)
+    sup.on_emcy(0, cia301.EMCY_OVERCURRENT, 1.0)
     sup.on_heartbeat(0, NmtState.STOPPED, 1.0)
     assert sup.take_pending() == []
 
@@ -62,7 +63,7 @@ def test_tpdos_missing_for_k_cycles_and_a_complete_cycle_resets_the_count():
 
 
 @pytest.mark.parametrize("state,code,cause", [
-    (State402.FAULT, cia402.EMCY_OVERCURRENT, "statusword fault bit, EMCY 0x2310 (overcurrent)"),
+    (State402.FAULT, cia301.EMCY_OVERCURRENT, "statusword fault bit, EMCY 0x2310 (overcurrent)"),
     (State402.FAULT_REACTION_ACTIVE, 0, "statusword fault bit"),
     (State402.UNKNOWN, 0, "statusword matches no CiA 402 state (garbled?)"),
 ])
@@ -76,8 +77,8 @@ def test_a_statusword_fault_or_garble_is_a_fault(state, code, cause):
 def test_heartbeat_in_another_nmt_state_and_emcy_are_faults_at_once():
     sup = supervisor()
     sup.on_heartbeat(0, NmtState.PRE_OPERATIONAL, 0.0)
-    sup.on_emcy(1, cia402.EMCY_NO_ERROR, 0.0)  # an error reset is no fault
-    sup.on_emcy(1, cia402.EMCY_OVERTEMPERATURE, 0.0)
+    sup.on_emcy(1, cia301.EMCY_NO_ERROR, 0.0)  # an error reset is no fault
+    sup.on_emcy(1, cia301.EMCY_OVERTEMPERATURE, 0.0)
     assert [(e.drive, e.cause) for e in sup.take_pending()] == [
         ("j1", "NMT state PRE_OPERATIONAL reported in heartbeat"),
         ("j2", "EMCY 0x4310 (overtemperature)")]
@@ -85,7 +86,7 @@ def test_heartbeat_in_another_nmt_state_and_emcy_are_faults_at_once():
 
 def test_one_event_per_drive_later_causes_only_in_the_history():
     sup = supervisor()
-    sup.on_emcy(0, cia402.EMCY_OVERCURRENT, 0.0)
+    sup.on_emcy(0, cia301.EMCY_OVERCURRENT, 0.0)
     sup.on_bad_tpdo(0, 0x181, 3, 8, 0.0)
     assert len(sup.take_pending()) == 1
     assert [e.cause for e in sup.history] == [
@@ -95,7 +96,7 @@ def test_one_event_per_drive_later_causes_only_in_the_history():
 
 def test_clear_watches_again_and_disarm_stops_watching():
     sup = supervisor()
-    sup.on_emcy(0, cia402.EMCY_GENERIC, 0.0)
+    sup.on_emcy(0, cia301.EMCY_GENERIC, 0.0)
     sup.take_pending()
     sup.clear(0)
     assert tick(sup, 0.0, states=(State402.FAULT, State402.OPERATION_ENABLED)) == [

@@ -21,28 +21,30 @@ from typing import TYPE_CHECKING, Any
 
 import canopen
 from canopen import objectdictionary
+from canopen.sdo.constants import (
+    ABORT_APPLICATION_DEVICE_STATE,
+    ABORT_INVALID_VALUE,
+    ABORT_LENGTH_NOT_MATCHED,
+    ABORT_NO_SUBINDEX,
+    ABORT_NOT_IN_OD,
+    ABORT_PDO_CANNOT_MAP,
+    ABORT_PDO_LENGTH_EXCEEDED,
+    ABORT_READ_WRITEONLY,
+    ABORT_VALUE_TOO_LOW,
+    ABORT_WRITE_READONLY,
+)
 from canopen.sdo.exceptions import SdoAbortedError
 from canopen.sdo.server import SdoServer
 
+from .. import cia301 as c301
 from .. import cia402 as c
-from ..cia402 import NmtCommand, NmtState, State402
+from ..cia301 import NmtCommand, NmtState
+from ..cia402 import State402
 from .dynamics import LoopMode
 
 if TYPE_CHECKING:
     from .segment import SimulatedSegment
 
-# SDO abort codes (CiA 301)
-ABORT_UNSUPPORTED_ACCESS = 0x06010000
-ABORT_WRITE_ONLY = 0x06010001
-ABORT_READ_ONLY = 0x06010002
-ABORT_NO_OBJECT = 0x06020000
-ABORT_NOT_MAPPABLE = 0x06040041
-ABORT_PDO_TOO_LONG = 0x06040042
-ABORT_LENGTH = 0x06070010
-ABORT_NO_SUBINDEX = 0x06090011
-ABORT_VALUE_RANGE = 0x06090030
-ABORT_VALUE_TOO_LOW = 0x06090032
-ABORT_DEVICE_STATE = 0x08000022
 
 PDO_NOT_VALID = 0x80000000
 Key = tuple[int, int]
@@ -55,7 +57,7 @@ POSITION = (c.POSITION_ACTUAL, 0)
 VELOCITY = (c.VELOCITY_ACTUAL, 0)
 TORQUE = (c.TORQUE_ACTUAL, 0)
 ERROR_CODE = (c.ERROR_CODE, 0)
-ERROR_REGISTER = (c.ERROR_REGISTER, 0)
+ERROR_REGISTER = (c301.ERROR_REGISTER, 0)
 
 # States in which the power stage is on (the loops may produce torque).
 POWERED = (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE,
@@ -125,7 +127,7 @@ class SimulatedDrive:
         self.object_dictionary = object_dictionary  # the name canopen's SdoServer reads
         self._seg = segment
         self._dyn = segment.dynamics
-        self._sdo = SdoServer(c.SDO_RX + node_id, c.SDO_TX + node_id, self)
+        self._sdo = SdoServer(c301.SDO_RX + node_id, c301.SDO_TX + node_id, self)
         self._sdo.network = _SdoLink(self)  # type: ignore[assignment]  # send_message only
         self._defaults: dict[Key, Any] = {}
         for obj in object_dictionary.values():
@@ -254,7 +256,7 @@ class SimulatedDrive:
                 f"err=0x{self.error_code:04X}{flags}")
 
     # ------------------------------------------------------------------ fault injection
-    def trip_fault(self, code: int = c.EMCY_GENERIC) -> None:
+    def trip_fault(self, code: int = c301.EMCY_GENERIC) -> None:
         """An internal fault: EMCY with ``code``, fault reaction, then FAULT."""
         if not 0 < code <= 0xFFFF:
             raise ValueError(f"EMCY error code must be 0x0001..0xFFFF, got 0x{code:X}")
@@ -335,10 +337,10 @@ class SimulatedDrive:
         """Communication objects to defaults, then boot-up and PRE-OPERATIONAL."""
         for key, value in self._defaults.items():
             if 0x1000 <= key[0] < 0x2000 \
-                    and key[0] not in (c.ERROR_REGISTER, c.PREDEFINED_ERROR_FIELD):
+                    and key[0] not in (c301.ERROR_REGISTER, c301.PREDEFINED_ERROR_FIELD):
                 self._values[key] = value
         self._nmt = NmtState.BOOT_UP
-        self._tx(c.HEARTBEAT + self.node_id, b"\x00")
+        self._tx(c301.HEARTBEAT + self.node_id, b"\x00")
         self._nmt = NmtState.PRE_OPERATIONAL
         self._build_pdos()
         self._load_consumers()
@@ -350,20 +352,20 @@ class SimulatedDrive:
             self._nmt = NmtState.OPERATIONAL
         elif command == NmtCommand.STOP:
             self._nmt = NmtState.STOPPED
-            self._abort_connection(c.EMCY_HEARTBEAT)
+            self._abort_connection(c301.EMCY_HEARTBEAT)
         elif command == NmtCommand.PRE_OPERATIONAL:
             self._nmt = NmtState.PRE_OPERATIONAL
         elif command == NmtCommand.RESET_NODE:
             self.power_on()
         elif command == NmtCommand.RESET_COMMUNICATION:
-            self._abort_connection(c.EMCY_HEARTBEAT)
+            self._abort_connection(c301.EMCY_HEARTBEAT)
             self._reset_communication()
         self._emit_event_tpdos()
 
     # ------------------------------------------------------------------ heartbeat
     def _start_heartbeat(self) -> None:
         self._hb_generation += 1
-        period_ms = self._values[(c.PRODUCER_HEARTBEAT_TIME, 0)]
+        period_ms = self._values[(c301.PRODUCER_HEARTBEAT_TIME, 0)]
         if period_ms:
             due = self._seg.clock() + period_ms / 1000.0
             self._seg.schedule(due, self._heartbeat_tick, self._hb_generation, due)
@@ -371,8 +373,8 @@ class SimulatedDrive:
     def _heartbeat_tick(self, generation: int, due: float) -> None:
         if generation != self._hb_generation:
             return
-        self._tx(c.HEARTBEAT + self.node_id, bytes((self._nmt,)))
-        period = self._values[(c.PRODUCER_HEARTBEAT_TIME, 0)] / 1000.0
+        self._tx(c301.HEARTBEAT + self.node_id, bytes((self._nmt,)))
+        period = self._values[(c301.PRODUCER_HEARTBEAT_TIME, 0)] / 1000.0
         nxt = due + period
         now = self._seg.clock()
         if nxt <= now:  # fell behind (loaded machine): no burst of catch-up heartbeats
@@ -384,9 +386,9 @@ class SimulatedDrive:
         self._consumers.clear()
         self._hb_armed.clear()
         self._hb_lost.clear()
-        count = self._values.get((c.CONSUMER_HEARTBEAT_TIME, 0), 0)
+        count = self._values.get((c301.CONSUMER_HEARTBEAT_TIME, 0), 0)
         for sub in range(1, count + 1):
-            entry = self._values[(c.CONSUMER_HEARTBEAT_TIME, sub)]
+            entry = self._values[(c301.CONSUMER_HEARTBEAT_TIME, sub)]
             node, ms = (entry >> 16) & 0xFF, entry & 0xFFFF
             if node and ms:
                 self._consumers[node] = ms / 1000.0
@@ -400,7 +402,7 @@ class SimulatedDrive:
             self._hb_lost.discard(node)
             if not self._errors_active():
                 self._error_register = 0
-                self._emcy(c.EMCY_NO_ERROR)
+                self._emcy(c301.EMCY_NO_ERROR)
         if node not in self._hb_armed:  # monitoring starts with the first heartbeat
             self._hb_armed.add(node)
             self._seg.schedule(arrived + period, self._heartbeat_check, node,
@@ -422,14 +424,14 @@ class SimulatedDrive:
         option = self._values[(c.ABORT_CONNECTION_OPTION, 0)]
         if option != c.AbortConnectionOption.FAULT:  # the fault sends its own EMCY
             self._error_register |= 1 | ERROR_REGISTER_BIT[0x8]
-            self._record_error(c.EMCY_HEARTBEAT)
-            self._emcy(c.EMCY_HEARTBEAT)
-        behaviour = self._values.get((c.ERROR_BEHAVIOR, 1), 1)
+            self._record_error(c301.EMCY_HEARTBEAT)
+            self._emcy(c301.EMCY_HEARTBEAT)
+        behaviour = self._values.get((c301.ERROR_BEHAVIOR, 1), 1)
         if behaviour == 0 and self._nmt == NmtState.OPERATIONAL:
             self._nmt = NmtState.PRE_OPERATIONAL
         elif behaviour == 2:
             self._nmt = NmtState.STOPPED
-        self._abort_connection(c.EMCY_HEARTBEAT)
+        self._abort_connection(c301.EMCY_HEARTBEAT)
         self._emit_event_tpdos()
 
     def _abort_connection(self, code: int) -> None:
@@ -453,13 +455,13 @@ class SimulatedDrive:
             return  # CiA 301: no SDO in STOPPED
         if len(data) < 8:
             return
-        self._sdo.on_request(c.SDO_RX + self.node_id, data, 0.0)
+        self._sdo.on_request(c301.SDO_RX + self.node_id, data, 0.0)
         self._emit_event_tpdos()
 
     def _var(self, index: int, subindex: int) -> objectdictionary.ODVariable:
         obj = self.object_dictionary.get(index)
         if obj is None:
-            raise SdoAbortedError(ABORT_NO_OBJECT)
+            raise SdoAbortedError(ABORT_NOT_IN_OD)
         if isinstance(obj, objectdictionary.ODVariable):
             if subindex != 0:
                 raise SdoAbortedError(ABORT_NO_SUBINDEX)
@@ -473,7 +475,7 @@ class SimulatedDrive:
         """canopen SdoServer hook: upload."""
         var = self._var(index, subindex)
         if check_readable and not var.readable:
-            raise SdoAbortedError(ABORT_WRITE_ONLY)
+            raise SdoAbortedError(ABORT_READ_WRITEONLY)
         value = self._values[(var.index, var.subindex)]
         return var.encode_raw(value)
 
@@ -482,9 +484,9 @@ class SimulatedDrive:
         """canopen SdoServer hook: download, with the checks a real drive makes."""
         var = self._var(index, subindex)
         if check_writable and not var.writable:
-            raise SdoAbortedError(ABORT_READ_ONLY)
+            raise SdoAbortedError(ABORT_WRITE_READONLY)
         if var.data_type in objectdictionary.NUMBER_TYPES and 8 * len(data) != len(var):
-            raise SdoAbortedError(ABORT_LENGTH)
+            raise SdoAbortedError(ABORT_LENGTH_NOT_MATCHED)
         value = var.decode_raw(bytes(data))
         key = (var.index, var.subindex)
         self._check_write(key, value)
@@ -494,32 +496,32 @@ class SimulatedDrive:
     def _check_write(self, key: Key, value: Any) -> None:
         index, sub = key
         if key == MODE and not self._mode_supported(value):
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
+            raise SdoAbortedError(ABORT_INVALID_VALUE)
         if index in SCALING and value == 0 and (index == c.RATED_TORQUE or sub > 0):
             raise SdoAbortedError(ABORT_VALUE_TOO_LOW)
-        if key == (c.PREDEFINED_ERROR_FIELD, 0) and value != 0:
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
+        if key == (c301.PREDEFINED_ERROR_FIELD, 0) and value != 0:
+            raise SdoAbortedError(ABORT_INVALID_VALUE)
         if 0x1400 <= index <= 0x1403 or 0x1800 <= index <= 0x1803:
             if sub == 1:
                 current = self._values[key]
                 if not current & PDO_NOT_VALID and not value & PDO_NOT_VALID \
                         and (current ^ value) & 0x7FF:
-                    raise SdoAbortedError(ABORT_VALUE_RANGE)  # CiA 301: invalidate first
+                    raise SdoAbortedError(ABORT_INVALID_VALUE)  # CiA 301: invalidate first
                 if value & 0x3FFFF800:  # 11-bit identifiers only
-                    raise SdoAbortedError(ABORT_VALUE_RANGE)
+                    raise SdoAbortedError(ABORT_INVALID_VALUE)
             return
         if 0x1600 <= index <= 0x1603 or 0x1A00 <= index <= 0x1A03:
             comm = index - 0x200
             if not self._values[(comm, 1)] & PDO_NOT_VALID:
-                raise SdoAbortedError(ABORT_DEVICE_STATE)  # mapping of a valid PDO
+                raise SdoAbortedError(ABORT_APPLICATION_DEVICE_STATE)  # mapping of a valid PDO
             if sub == 0:
                 self._check_mapping(index, value, tx=index >= 0x1A00)
             elif self._values[(index, 0)] != 0:
-                raise SdoAbortedError(ABORT_DEVICE_STATE)  # sub 0 must be 0 first
+                raise SdoAbortedError(ABORT_APPLICATION_DEVICE_STATE)  # sub 0 must be 0 first
 
     def _check_mapping(self, map_index: int, count: int, tx: bool) -> None:
         if count > 8:
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
+            raise SdoAbortedError(ABORT_INVALID_VALUE)
         bits = 0
         for sub in range(1, count + 1):
             entry = self._values[(map_index, sub)]
@@ -529,10 +531,10 @@ class SimulatedDrive:
                     or not isinstance(var.STRUCT_TYPES.get(var.data_type), struct.Struct) \
                     or not (var.readable if tx else var.writable) \
                     or length != len(var):
-                raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+                raise SdoAbortedError(ABORT_PDO_CANNOT_MAP)
             bits += length
         if bits > 64:
-            raise SdoAbortedError(ABORT_PDO_TOO_LONG)
+            raise SdoAbortedError(ABORT_PDO_LENGTH_EXCEEDED)
 
     def _after_write(self, key: Key, value: Any) -> None:
         index = key[0]
@@ -540,11 +542,11 @@ class SimulatedDrive:
             self._on_controlword(value)
         elif key == MODE:
             self._values[MODE_DISPLAY] = value
-        elif index == c.PRODUCER_HEARTBEAT_TIME:
+        elif index == c301.PRODUCER_HEARTBEAT_TIME:
             self._start_heartbeat()
-        elif index == c.CONSUMER_HEARTBEAT_TIME:
+        elif index == c301.CONSUMER_HEARTBEAT_TIME:
             self._load_consumers()
-        elif index == c.PREDEFINED_ERROR_FIELD:
+        elif index == c301.PREDEFINED_ERROR_FIELD:
             self._errors.clear()
         elif index in SCALING:
             self._update_scales()
@@ -584,7 +586,7 @@ class SimulatedDrive:
         if self._nmt != NmtState.OPERATIONAL:
             return
         if len(data) < pdo.layout.size:
-            self._emcy(c.EMCY_PDO_LENGTH)
+            self._emcy(c301.EMCY_PDO_LENGTH)
             return
         if pdo.trans_type <= 240:
             pdo.pending = bytes(data)  # synchronous: takes effect at the next SYNC
@@ -828,7 +830,7 @@ class SimulatedDrive:
         self._set_state(State402.SWITCH_ON_DISABLED)
         if self._sto_low:
             self._error_register |= 1
-        self._emcy(c.EMCY_NO_ERROR)
+        self._emcy(c301.EMCY_NO_ERROR)
 
     def _set_sto(self, low: bool) -> None:
         if low == self._sto_low:
@@ -840,12 +842,12 @@ class SimulatedDrive:
                 self._set_state(State402.SWITCH_ON_DISABLED)
             else:
                 self._set_state(self._state)  # warning bit
-            self._emcy(c.EMCY_STO)
+            self._emcy(c301.EMCY_STO)
         else:
             self._set_state(self._state)
             if not self._errors_active():
                 self._error_register = 0
-                self._emcy(c.EMCY_NO_ERROR)
+                self._emcy(c301.EMCY_NO_ERROR)
 
     def _errors_active(self) -> bool:
         return (self._state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)
@@ -856,16 +858,16 @@ class SimulatedDrive:
         self._errors.insert(0, code)
         del self._errors[8:]
         for sub in range(1, 9):
-            key = (c.PREDEFINED_ERROR_FIELD, sub)
+            key = (c301.PREDEFINED_ERROR_FIELD, sub)
             if key in self._values:
                 self._values[key] = self._errors[sub - 1] if sub <= len(self._errors) else 0
-        self._values[(c.PREDEFINED_ERROR_FIELD, 0)] = len(self._errors)
+        self._values[(c301.PREDEFINED_ERROR_FIELD, 0)] = len(self._errors)
 
     def _emcy(self, code: int) -> None:
         self._values[ERROR_REGISTER] = self._error_register
         if self._nmt == NmtState.STOPPED:
             return  # CiA 301: no EMCY in STOPPED
-        self._tx(c.EMCY + self.node_id,
+        self._tx(c301.EMCY + self.node_id,
                  struct.pack("<HB5s", code, self._error_register, bytes(5)))
 
     def _tx(self, cob_id: int, data: bytes) -> None:

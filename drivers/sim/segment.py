@@ -32,7 +32,7 @@ from typing import Any
 import can
 import numpy as np
 
-from .. import cia402 as c
+from .. import cia301 as c301
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
 from .drive import SimulatedDrive, load_object_dictionary
 from .dynamics import JointDynamics, JointParams
@@ -136,7 +136,7 @@ class SimulatedSegment:
             n: SimulatedDrive(self, n, j, load_object_dictionary(eds, n))
             for j, n in enumerate(ids)}
         self._fixed_routes: dict[int, Callable[[bytes], None]] = {
-            c.SDO_RX + n: d.on_sdo for n, d in self.drives.items()}
+            c301.SDO_RX + n: d.on_sdo for n, d in self.drives.items()}
         self._rpdo_routes: dict[int, tuple[SimulatedDrive, Any]] = {}
         self._rpdo_of_drive: dict[int, dict[int, Any]] = {}
         self._last_step: float | None = None
@@ -256,14 +256,14 @@ class SimulatedSegment:
                 self.received_until = before if len(batch) < RX_BATCH else arrived
 
     def _dispatch(self, cob_id: int, data: bytes, arrived: float) -> None:
-        if cob_id == c.NMT:
+        if cob_id == c301.NMT:
             if len(data) >= 2:
                 for node, drive in self.drives.items():
                     if data[1] in (0, node):
                         drive.on_nmt(data[0])
             self.nmt_count += 1
             return
-        if cob_id == c.SYNC:
+        if cob_id == c301.SYNC:
             self._on_sync(arrived)
             return
         route = self._fixed_routes.get(cob_id)
@@ -274,9 +274,9 @@ class SimulatedSegment:
         if rpdo is not None:
             rpdo[0].on_rpdo(rpdo[1], data)
             return
-        if c.HEARTBEAT < cob_id <= c.HEARTBEAT + 0x7F and data:
+        if c301.HEARTBEAT < cob_id <= c301.HEARTBEAT + 0x7F and data:
             for drive in self.drives.values():
-                drive.on_heartbeat(cob_id - c.HEARTBEAT, arrived)
+                drive.on_heartbeat(cob_id - c301.HEARTBEAT, arrived)
 
     def _on_sync(self, arrived: float) -> None:
         self._step(on_sync=True, now=arrived)

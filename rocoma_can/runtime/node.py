@@ -60,6 +60,7 @@ from canopen.sdo.server import SdoServer
 
 from .. import eds as shipped_eds
 from ..drivers.bus import BusReader
+from ..drivers.cia301 import EMCY, PRODUCER_HEARTBEAT_TIME, TPDO_BASE, TPDO_COMM
 from ..events import EventKind, ManagerEvent, ManagerState
 from .objects import (
     ABORT_COMMAND_SPECIFIER,
@@ -71,7 +72,6 @@ from .objects import (
     CLEAR,
     CONTROLLER_LIST,
     DRIVE_STATUS,
-    EMCY,
     ESTOP,
     ESTOP_CAUSE,
     ESTOP_COB_ID,
@@ -79,15 +79,12 @@ from .objects import (
     FAILPROOF_STOP,
     NO_SWITCH_YET,
     PENDING,
-    PRODUCER_HEARTBEAT_TIME,
     RECOVER,
     STATE,
     SWITCH_INDEX,
     SWITCH_NAME,
     SWITCH_REFUSAL,
     SWITCH_RESULT,
-    TPDO1,
-    TPDO1_COMMUNICATION,
 )
 
 log = logging.getLogger(__name__)
@@ -320,7 +317,7 @@ class ManagerNode(can.Listener):
         m = self.manager
         if index == PRODUCER_HEARTBEAT_TIME and self.heartbeat_ms is not None:
             return self.heartbeat_ms
-        if index == TPDO1_COMMUNICATION and subindex == 5:  # the status frame's period
+        if index == TPDO_COMM and subindex == 5:  # the status frame's period
             return min(0xFFFF, round(self.status_period * 1000))
         if index == STATE:
             return int(m.state)
@@ -443,7 +440,7 @@ class ManagerNode(can.Listener):
             current = (int(self.manager.state), self._controller_index())
             now = time.monotonic()
             if current != last or now >= next_due:
-                self._send(TPDO1 + self.node_id, bytes(current))
+                self._send(TPDO_BASE[0] + self.node_id, bytes(current))
                 last = current
                 next_due = now + self.status_period
 

@@ -11,7 +11,7 @@ from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, synced_mark
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia402
+from rocoma_can.drivers import cia301
 from rocoma_can.drivers.cia402 import Mode, State402
 
 FAULTY = NODES[1]
@@ -28,7 +28,7 @@ def _nmt_from_another_node(command: int):
 
 FAULTS = {
     "emcy-overcurrent": lambda s, bus: s.segment.drives[FAULTY].trip_fault(
-        cia402.EMCY_OVERCURRENT),
+        cia301.EMCY_OVERCURRENT),
     "garbled-statusword": lambda s, bus: s.segment.drives[FAULTY].garble_statusword(),
     "silent": lambda s, bus: s.segment.drives[FAULTY].set_silent(),
     "ignores-sync": lambda s, bus: s.segment.drives[FAULTY].set_sync_response(False),

@@ -16,6 +16,7 @@ import time
 import can
 import numpy as np
 import pytest
+from canopen.sdo.constants import ABORT_WRITE_READONLY
 from canopen.sdo.exceptions import SdoAbortedError
 from fixtures.driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
 from fixtures.manager_probes import (
@@ -37,7 +38,6 @@ from rocoma_can.runtime.config import ConfigError, load, validate
 from rocoma_can.runtime.objects import ABORT_NOT_FOUND, ABORT_REFUSED
 
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
-ABORT_READ_ONLY = 0x06010002
 OK, FAILPROOF = ManagerState.OK, ManagerState.FAILPROOF
 
 
@@ -63,7 +63,7 @@ def test_only_the_loop_produces_the_manager_heartbeat(served, sequence):
             if kind == "sdo":
                 with pytest.raises(SdoAbortedError) as refused:
                     client.sdo.download(0x1017, 0, struct.pack("<H", b))
-                assert refused.value.code == ABORT_READ_ONLY
+                assert refused.value.code == ABORT_WRITE_READONLY
             else:
                 network.send_message(0x000, bytes((a, b)))
     cycle_while(rig, traffic)

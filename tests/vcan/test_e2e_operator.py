@@ -9,7 +9,7 @@ import time
 
 from test_e2e_manager import CONFIG, DRIVES, NODE, cli, processes, wait_for  # noqa: F401
 
-from rocoma_can.drivers import cia402
+from rocoma_can.drivers import cia301
 from rocoma_can.drivers.cia402 import State402
 
 
@@ -22,7 +22,7 @@ def test_clear_does_not_rearm_a_faulted_drive(processes, frame_recorder,  # noqa
     wait_for(lambda: all(rec.count(0x180 + n) >= 25 for n in DRIVES), 60,
              "TPDO1 from every drive")
     mark = rec.mark()
-    segment.drives[2].trip_fault(cia402.EMCY_OVERCURRENT)
+    segment.drives[2].trip_fault(cia301.EMCY_OVERCURRENT)
     # the manager latches the fault as an e-stop: its node says so with EMCY 0x9000
     rec.wait_for(lambda f: f.cob_id == 0x80 + NODE, timeout=60, since=mark)
 
