@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import math
 import struct
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from operator import itemgetter
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import canopen
+import numpy as np
 from canopen import objectdictionary
 from canopen.sdo.constants import (
     ABORT_APPLICATION_DEVICE_STATE,
@@ -40,10 +42,22 @@ from .. import cia301 as c301
 from .. import cia402 as c
 from ..cia301 import NmtCommand, NmtState
 from ..cia402 import State402
-from .dynamics import LoopMode
+from .dynamics import JointDynamics, LoopMode
 
-if TYPE_CHECKING:
-    from .segment import SimulatedSegment
+
+class Segment(Protocol):
+    """What a drive needs from the bus segment it sits on (segment.SimulatedSegment): a
+    drive owns no thread and no socket, so this is its whole view of the world, and the
+    drive module does not import the segment module."""
+    lock: threading.RLock
+    rng: np.random.Generator
+    dynamics: JointDynamics
+
+    def clock(self) -> float: ...
+    def schedule(self, when: float, fn: Callable[..., Any], *args: Any) -> None: ...
+    def send(self, cob_id: int, data: bytes) -> None: ...
+    def judge_at(self, deadline: float) -> float | None: ...
+    def set_rpdo_routes(self, drive: SimulatedDrive, routes: dict[int, Any]) -> None: ...
 
 
 PDO_NOT_VALID = 0x80000000
@@ -118,7 +132,7 @@ class SimulatedDrive:
     segment lock.
     """
 
-    def __init__(self, segment: SimulatedSegment, node_id: int, joint: int,
+    def __init__(self, segment: Segment, node_id: int, joint: int,
                  object_dictionary: objectdictionary.ObjectDictionary) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError(f"CANopen node id must be 1..127, got {node_id}")
