@@ -40,9 +40,13 @@ def demo_config(channel: str, drives: int, rate: float) -> dict[str, Any]:
                     "estop_must_be_cleared": True, "status_period": 0.2},
         # The demo runs without real-time priority beside its simulated drives on whatever
         # the machine is doing: a controller call preempted past its budget (0.5 cycles by
-        # default) would be taken as that controller's failure. Budgets of half a second,
-        # and a hang after one second, keep the walk-through about what it shows.
+        # default), or TPDOs late for 5 cycles, would be taken as a controller's or a
+        # drive's failure. Half a second for calls and TPDOs, drive heartbeats and the
+        # drives' consumer of the manager's, and a hang after one second, keep the
+        # walk-through about what it shows (its faults are injected, and reported at once).
         "timing": {"advance": 0.5 * rate, "initialize_fast": 0.5 * rate, "hang": 1.0 * rate},
+        "supervision": {"tpdo_timeout_cycles": max(5, round(0.5 * rate)),
+                        "heartbeat_timeout_factor": 5.0, "consumer_factor": 5.0},
         "drives": [{"name": name, "node_id": i + 1, "increments_per_rev": 1048576,
                     "rated_torque_nm": 1.0, "modes": ["csp", "cst"], "heartbeat_ms": 100}
                    for i, name in enumerate(joints)],
@@ -145,7 +149,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
             report.latencies.append((what, hit[0] - t0, max(1, round((hit[0] - t0) / dt))))
 
     try:
-        if not step("bring-up", _wait(lambda: hw.all_ready, 10.0, stop),
+        if not step("bring-up", _wait(lambda: hw.all_ready, 30.0, stop),
                     f"{len(hw.drives_config)} drives configured, mapped and started"):
             return
         client.write(0x2112, 1)  # clear: must-clear starts latched, like an e-stop button
