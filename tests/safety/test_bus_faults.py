@@ -7,8 +7,7 @@ from __future__ import annotations
 import random
 import threading
 
-from fixtures.driver_rig import VIRTUAL
-from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
+from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.cia402 import State402
@@ -18,16 +17,16 @@ def _torque_off_seen_for_every_drive(served: Served, since: int) -> None:
     for n in NODES:
         served.recorder.wait_for(lambda f, n=n: f.cob_id == 0x200 + n
                                  and f.data[:2] == CW_DISABLE_VOLTAGE,
-                                 VIRTUAL.detect_budget(), since=since)
+                                 SAFETY.detect_budget(), since=since)
 
 
 def _back_to_holding(served: Served) -> None:
     rig = served.rig
-    recovered = rig.hw.recover(VIRTUAL.recovery_budget())
-    assert rig.run_until(recovered.done, VIRTUAL.recovery_budget() + VIRTUAL.stall)
+    recovered = rig.hw.recover(SAFETY.recovery_budget())
+    assert rig.run_until(recovered.done, SAFETY.recovery_budget() + SAFETY.stall)
     assert recovered.result() is True, rig.hw.drive_status()
     assert rig.switch("hold") == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget())
+    assert rig.run_until(lambda: rig.hw.all_enabled, SAFETY.enable_budget())
 
 
 def test_a_bus_that_refuses_frames_is_a_bus_fault(served, bus_factory, virtual_channel):
@@ -42,17 +41,17 @@ def test_a_bus_that_refuses_frames_is_a_bus_fault(served, bus_factory, virtual_c
     for _ in range(budget - 1):
         assert rig.cycle() is ManagerState.OK
     assert rig.hw.tx_errors > 0 and rig.hw.bus_fault is None
-    assert rig.run_until(lambda: rig.mgr.state is not ManagerState.OK, VIRTUAL.detect_budget())
+    assert rig.run_until(lambda: rig.mgr.state is not ManagerState.OK, SAFETY.detect_budget())
     assert "refused frames" in rig.hw.bus_fault
     assert rig.cycle() is ManagerState.FAILPROOF  # "hold" has no emergency controller
     _torque_off_seen_for_every_drive(served, mark)
     assert rig.run_until(lambda: all(d.state402 == State402.SWITCH_ON_DISABLED
                                      for d in served.segment.drives.values()),
-                         VIRTUAL.enable_budget())
+                         SAFETY.enable_budget())
 
     # still refusing: recovery does not succeed, and the fault stays
-    failed = rig.hw.recover(VIRTUAL.recovery_budget())
-    assert rig.run_until(failed.done, VIRTUAL.recovery_budget() + VIRTUAL.stall)
+    failed = rig.hw.recover(SAFETY.recovery_budget())
+    assert rig.run_until(failed.done, SAFETY.recovery_budget() + SAFETY.stall)
     assert failed.result() is False and "refused frames" in rig.hw.bus_fault
     # the node reads again (here: leaves the bus): recovery, and holding again
     stuck.shutdown()
@@ -96,7 +95,7 @@ def test_switch_and_estop_storms_from_several_threads(served):
     assert not errors
     # every switch and recovery ends (the loop keeps cycling) with a result, never an error
     assert rig.run_until(lambda: all(f.done() for f in futures),
-                         rig.mgr.timeouts.being_stopped + VIRTUAL.recovery_budget())
+                         rig.mgr.timeouts.being_stopped + SAFETY.recovery_budget())
     assert {type(f.result()) for f in futures} <= {SwitchResult, bool}
     assert rig.mgr.internal_errors == 0
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import can
 import pytest
-from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, synced_mark
-from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
+from fixtures.driver_rig import Brake, HoldPD, synced_mark
+from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import cia301
@@ -47,16 +47,16 @@ def test_a_drive_fault_is_isolated_and_braked_then_torque_off(served, bus_factor
     i = NODES.index(FAULTY)
     rig.mgr.add_controller(HoldPD("braked"), emergency=Brake())
     assert rig.switch("braked") == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget())
+    assert rig.run_until(lambda: rig.hw.all_enabled, SAFETY.enable_budget())
 
     fault(served, bus_factory())
     assert rig.run_until(lambda: rig.hw.supervisor.latched[i] is not None,
-                         VIRTUAL.detect_budget()), rig.hw.drive_status()
+                         SAFETY.detect_budget()), rig.hw.drive_status()
     since = synced_mark(recorder, rig)  # every frame sent before the latch is behind us
     rig.run(10 * rig.dt)
     assert rig.mgr.state is ManagerState.EMERGENCY, rig.hw.fault_events
     # isolated: nothing but controlword 0 to the faulted drive ...
-    recorder.wait_for(lambda f: f.cob_id == 0x200 + FAULTY, VIRTUAL.detect_budget(), since=since)
+    recorder.wait_for(lambda f: f.cob_id == 0x200 + FAULTY, SAFETY.detect_budget(), since=since)
     assert {f.data[:2] for f in recorder.frames(0x200 + FAULTY, since=since)} \
         == {CW_DISABLE_VOLTAGE}
     # ... while the others are braked, enabled in CSV
@@ -69,13 +69,13 @@ def test_a_drive_fault_is_isolated_and_braked_then_torque_off(served, bus_factor
     assert rig.cycle() is ManagerState.FAILPROOF
     for n in NODES:
         recorder.wait_for(lambda f, n=n: f.cob_id == 0x200 + n
-                          and f.data[:2] == CW_DISABLE_VOLTAGE, VIRTUAL.detect_budget(),
+                          and f.data[:2] == CW_DISABLE_VOLTAGE, SAFETY.detect_budget(),
                           since=mark)
     assert rig.run_until(lambda: all(segment.drives[n].state402 == State402.SWITCH_ON_DISABLED
-                                     for n in NODES if n != FAULTY), VIRTUAL.enable_budget())
+                                     for n in NODES if n != FAULTY), SAFETY.enable_budget())
     # the faulted drive is off too, even one that no longer applies RPDOs (pre-operational,
     # ignoring SYNC): it got controlword 0 by SDO as well
     assert rig.run_until(lambda: segment.drives[FAULTY].state402 in OFF,
-                         VIRTUAL.enable_budget() + VIRTUAL.sdo_timeout), segment.status_lines()
+                         SAFETY.enable_budget() + SAFETY.sdo_timeout), segment.status_lines()
     assert rig.mgr.internal_errors == 0
     assert rig.cycle() is ManagerState.FAILPROOF  # the loop lives

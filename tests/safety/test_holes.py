@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from canopen.sdo.constants import ABORT_WRITE_READONLY
 from canopen.sdo.exceptions import SdoAbortedError
-from fixtures.driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
+from fixtures.driver_rig import MANAGER_NODE_ID, seconds_until_all_off
 from fixtures.manager_probes import (
     LAYER_METHODS,
     CommandLog,
@@ -28,7 +28,7 @@ from fixtures.manager_probes import (
     Probe,
     layered_manager,
 )
-from safety_rig import SDO_RX, cycle_while, sdo_exchange
+from safety_rig import SAFETY, SDO_RX, cycle_while, sdo_exchange
 from test_services import ESTOP_COB as SERVICE_ESTOP
 
 from rocoma_can import ControllerManager, ManagerState, SwitchResult
@@ -69,12 +69,12 @@ def test_only_the_loop_produces_the_manager_heartbeat(served, sequence):
     cycle_while(rig, traffic)
     rig.run(10 * rig.dt)
     # the period the loop uses is what 0x1017 says
-    assert struct.unpack("<H", client.sdo.upload(0x1017, 0))[0] == VIRTUAL.heartbeat_ms
+    assert struct.unpack("<H", client.sdo.upload(0x1017, 0))[0] == SAFETY.heartbeat_ms
     # the loop hangs (no more cycles): nothing else beats, every drive switches itself off
     stopped = time.monotonic()
     consumer = rig.hw.consumer_ms / 1000
-    elapsed = seconds_until_all_off(segment, stopped, consumer + VIRTUAL.stall)
-    assert elapsed <= consumer + VIRTUAL.stall
+    elapsed = seconds_until_all_off(segment, stopped, consumer + SAFETY.stall)
+    assert elapsed <= consumer + SAFETY.stall
     assert all(d.state402 == State402.SWITCH_ON_DISABLED for d in segment.drives.values())
 
 

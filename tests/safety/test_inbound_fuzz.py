@@ -18,10 +18,10 @@ import struct
 import time
 
 import can
-from fixtures.driver_rig import MANAGER_NODE_ID, VIRTUAL, seconds_until_all_off
+from fixtures.driver_rig import MANAGER_NODE_ID, seconds_until_all_off
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from safety_rig import CW_DISABLE_VOLTAGE, ESTOP_COB, NODES, SDO_RX, Served
+from safety_rig import CW_DISABLE_VOLTAGE, ESTOP_COB, NODES, SAFETY, SDO_RX, Served
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.cia402 import State402
@@ -120,22 +120,22 @@ def _restore(served: Served) -> None:
     """Back to holding with every drive enabled and the e-stop COB-ID as configured.
 
     Tried up to three times: on a loaded machine this test's own loop can stall past the
-    drives' consumer time (0.5 s), and they then switch off as they must (EMCY 0x8130),
+    drives' consumer time, and they then switch off as they must (EMCY 0x8130),
     which is the last line of defence working, not the property under test here."""
     rig, node, hw = served.rig, served.node, served.rig.hw
     node.set_estop_cob_id(ESTOP_COB)
     for _ in range(3):
         rig.mgr.clear_emergency_stop()
         if hw.bus_fault or not hw.all_ready:
-            recovered = hw.recover(VIRTUAL.recovery_budget())
-            assert rig.run_until(recovered.done, VIRTUAL.recovery_budget() + VIRTUAL.stall)
+            recovered = hw.recover(SAFETY.recovery_budget())
+            assert rig.run_until(recovered.done, SAFETY.recovery_budget() + SAFETY.stall)
             if not recovered.result():
                 continue
         if rig.mgr.state is not ManagerState.OK or rig.mgr.active_controller_name != "hold":
             if rig.switch("hold") != SwitchResult.SWITCHED:
                 continue
         if rig.run_until(lambda: hw.all_enabled and rig.mgr.state is ManagerState.OK,
-                         VIRTUAL.enable_budget()):
+                         SAFETY.enable_budget()):
             return
     raise AssertionError(f"could not get back to holding: {hw.drive_status()}")
 
@@ -145,7 +145,7 @@ def _probe(served: Served, fuzz_bus: can.BusABC) -> None:
     thread, frames in order), while the loop keeps cycling."""
     rig = served.rig
     request = struct.pack("<BHB4x", 0x40, *PROBE)
-    deadline = time.monotonic() + 2.0 + VIRTUAL.stall
+    deadline = time.monotonic() + 2.0 + SAFETY.stall
     fuzz_bus.send(can.Message(arbitration_id=SDO_RX, data=request, is_extended_id=False))
     while time.monotonic() < deadline:
         rig.cycle()
@@ -177,7 +177,7 @@ def test_fuzzed_inbound_frames_leave_the_manager_safe_and_serving(served, bus_fa
         for _ in range(3):  # an e-stop request is taken by the next update()
             rig.cycle()
         if any(_takes_drives_out(m) for m in sequence):  # detected as the drives' faults
-            assert rig.run_until(lambda: not rig.hw.ready.any(), VIRTUAL.detect_budget())
+            assert rig.run_until(lambda: not rig.hw.ready.any(), SAFETY.detect_budget())
             assert rig.mgr.state is not ManagerState.OK
         estop_frames = sum(1 for m in sequence
                            if m.arbitration_id == ESTOP_COB and not m.is_extended_id)
@@ -202,11 +202,11 @@ def test_fuzzed_inbound_frames_leave_the_manager_safe_and_serving(served, bus_fa
     for n in NODES:
         served.recorder.wait_for(lambda f, n=n: f.cob_id == 0x200 + n
                                  and f.data[:2] == CW_DISABLE_VOLTAGE,
-                                 timeout=VIRTUAL.detect_budget(), since=mark)
+                                 timeout=SAFETY.detect_budget(), since=mark)
     # ... and once the loop stops, nothing else beats for it: every drive switches itself off
     assert rig.switch("hold") == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget())
+    assert rig.run_until(lambda: rig.hw.all_enabled, SAFETY.enable_budget())
     stopped = time.monotonic()
-    bound = rig.hw.consumer_ms / 1000 + VIRTUAL.stall
+    bound = rig.hw.consumer_ms / 1000 + SAFETY.stall
     seconds_until_all_off(served.segment, stopped, bound)
     assert all(d.state402 == State402.SWITCH_ON_DISABLED for d in served.segment.drives.values())

@@ -21,8 +21,8 @@ import threading
 
 import numpy as np
 import pytest
-from fixtures.driver_rig import VIRTUAL, Brake, HoldPD
-from safety_rig import CW_DISABLE_VOLTAGE, NODES, Served
+from fixtures.driver_rig import Brake, HoldPD
+from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.cia402 import Mode, State402
@@ -48,7 +48,7 @@ class Fault:
         if kind == "raise":
             raise RuntimeError("fault injected")
         if kind == "hang":  # then returns as if all was well: having hung is the failure
-            self.release.wait(10 * VIRTUAL.hang_budget())
+            self.release.wait(10 * SAFETY.hang_budget())
             return real
         if kind in ("nan", "inf"):  # a command that looks fine to the controller
             command.position[0] = math.nan if kind == "nan" else math.inf
@@ -99,13 +99,13 @@ def _cycle_stuck(served: Served, fault: Fault) -> ManagerState:
     stuck.start()
     try:
         frames = served.recorder.wait_for_count(
-            2 * len(NODES), VIRTUAL.hang_budget(), tuple(RPDO1), since=mark,
+            2 * len(NODES), SAFETY.hang_budget(), tuple(RPDO1), since=mark,
             where=lambda f: struct.unpack_from("<H", f.data)[0] == 0)
         assert {RPDO1[f.cob_id] for f in frames} == set(NODES)
         assert stuck.is_alive() and rig.mgr.hang_calls >= 2
     finally:
         fault.release.set()
-        stuck.join(VIRTUAL.hang_budget())
+        stuck.join(SAFETY.hang_budget())
     assert not stuck.is_alive()
     return result[0]
 
@@ -119,7 +119,7 @@ def test_a_faulty_cycle_callback_ends_in_its_documented_state(served, layer, met
     emergency = FaultyBrake({method: fault} if layer == "emergency" else {})
     rig.mgr.add_controller(FaultyHold(controller_fault), emergency=emergency)
     assert rig.switch("faulty") == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget())
+    assert rig.run_until(lambda: rig.hw.all_enabled, SAFETY.enable_budget())
     mark = served.recorder.mark()
 
     fault.armed.set()
@@ -136,15 +136,15 @@ def test_a_faulty_cycle_callback_ends_in_its_documented_state(served, layer, met
                    for d in segment.drives.values()), segment.status_lines()
     else:
         assert rig.cycle() is ManagerState.FAILPROOF  # EMERGENCY and FAILPROOF in one update()
-        _controlwords_zero_for_every_drive(served, mark, VIRTUAL.detect_budget())
+        _controlwords_zero_for_every_drive(served, mark, SAFETY.detect_budget())
 
     # whatever happened, the operator's e-stops end in torque-off for every drive
     rig.mgr.emergency_stop()
     rig.cycle()
     rig.mgr.emergency_stop()
     assert rig.cycle() is ManagerState.FAILPROOF
-    _controlwords_zero_for_every_drive(served, mark, VIRTUAL.detect_budget())
+    _controlwords_zero_for_every_drive(served, mark, SAFETY.detect_budget())
     assert rig.run_until(lambda: all(d.state402 == State402.SWITCH_ON_DISABLED
-                                     for d in segment.drives.values()), VIRTUAL.enable_budget())
+                                     for d in segment.drives.values()), SAFETY.enable_budget())
     assert rig.mgr.internal_errors == 0
     assert [rig.cycle() for _ in range(3)] == [ManagerState.FAILPROOF] * 3  # the loop lives
