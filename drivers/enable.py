@@ -71,7 +71,3 @@ class EnableSequence:
         """Drive i is not being enabled this cycle (torque-off, quick stop, not ready)."""
         self._enabled_cycles[i] = 0
         self._want_since[i] = math.nan
-
-    def reset_all(self) -> None:
-        for i in range(len(self._enabled_cycles)):
-            self.reset(i)

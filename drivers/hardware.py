@@ -574,13 +574,17 @@ class CanopenHardware:
         np.bitwise_and(self._mode_bits, self._allowed_modes, out=self._mode_bits)
         if np.count_nonzero(self._mode_bits) != len(self._mode_bits):
             return False
-        finite = self._finite  # isfinite, not a sum: inf + -inf would warn (and allocate)
-        for targets in (command.position, command.velocity, command.torque):
-            np.isfinite(targets, out=finite)
-            if not finite.all():
-                return False
+        if not (self._all_finite(command.position) and self._all_finite(command.velocity)
+                and self._all_finite(command.torque)):
+            return False
         self.scaling.clip_command(command.position, command.velocity, command.torque)
         return True
+
+    def _all_finite(self, targets: np.ndarray) -> bool:
+        """isfinite into a preallocated buffer, not a sum: inf + -inf would warn (and
+        allocate)."""
+        np.isfinite(targets, out=self._finite)
+        return bool(self._finite.all())
 
     def neutral_command(self, command: JointCommand) -> None:
         """Targets for the fields a lower layer does not write itself: velocity and torque
