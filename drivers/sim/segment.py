@@ -34,8 +34,10 @@ import numpy as np
 
 from .. import cia301 as c301
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
-from .drive import SimulatedDrive, load_object_dictionary
+from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
+from .objects import load_object_dictionary
+from .port import Route
 
 log = logging.getLogger(__name__)
 
@@ -135,10 +137,10 @@ class SimulatedSegment:
         self.drives: dict[int, SimulatedDrive] = {
             n: SimulatedDrive(self, n, j, load_object_dictionary(eds, n))
             for j, n in enumerate(ids)}
-        self._fixed_routes: dict[int, Callable[[bytes], None]] = {
+        self._fixed_routes: dict[int, Route] = {
             c301.SDO_RX + n: d.on_sdo for n, d in self.drives.items()}
-        self._rpdo_routes: dict[int, tuple[SimulatedDrive, Any]] = {}
-        self._rpdo_of_drive: dict[int, dict[int, Any]] = {}
+        self._rpdo_routes: dict[int, Route] = {}
+        self._rpdo_of_drive: dict[int, dict[int, Route]] = {}
         self._last_step: float | None = None
         # Every frame that arrived (monotonic) before this has been handled: see the docstring.
         self.received_until = -math.inf
@@ -220,12 +222,11 @@ class SimulatedSegment:
             return None
         return max(deadline, self.clock() + RX_IDLE)
 
-    def set_rpdo_routes(self, drive: SimulatedDrive, routes: dict[int, Any]) -> None:
-        for cob_id in self._rpdo_of_drive.get(drive.node_id, {}):
+    def set_rpdo_routes(self, node_id: int, routes: dict[int, Route]) -> None:
+        for cob_id in self._rpdo_of_drive.get(node_id, {}):
             self._rpdo_routes.pop(cob_id, None)
-        self._rpdo_of_drive[drive.node_id] = routes
-        for cob_id, pdo in routes.items():
-            self._rpdo_routes[cob_id] = (drive, pdo)
+        self._rpdo_of_drive[node_id] = routes
+        self._rpdo_routes.update(routes)
 
     # ------------------------------------------------------------------ receiving
     def _receive_loop(self) -> None:
@@ -272,7 +273,7 @@ class SimulatedSegment:
             return
         rpdo = self._rpdo_routes.get(cob_id)
         if rpdo is not None:
-            rpdo[0].on_rpdo(rpdo[1], data)
+            rpdo(data)
             return
         if c301.HEARTBEAT < cob_id <= c301.HEARTBEAT + 0x7F and data:
             for drive in self.drives.values():

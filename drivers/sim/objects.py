@@ -1,0 +1,194 @@
+"""The simulated drive's object dictionary and its SDO server.
+
+Values live in one flat dict keyed by (index, subindex), initialised from the EDS; the other
+services of the drive read and write it directly, so the SDO server, the PDOs and the state
+machine always see the same object. canopen's SdoServer speaks the protocol (expedited,
+segmented, block); this module makes the checks a real drive makes before a download takes
+effect: access type, length, supported modes, scaling denominators, and the CiA 301 rules
+for changing PDO communication and mapping objects (invalidate first, sub-index 0 to 0
+first, only mappable objects, at most 64 bits).
+"""
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable
+from typing import Any
+
+import canopen
+from canopen import objectdictionary
+from canopen.sdo.constants import (
+    ABORT_APPLICATION_DEVICE_STATE,
+    ABORT_INVALID_VALUE,
+    ABORT_LENGTH_NOT_MATCHED,
+    ABORT_NO_SUBINDEX,
+    ABORT_NOT_IN_OD,
+    ABORT_PDO_CANNOT_MAP,
+    ABORT_PDO_LENGTH_EXCEEDED,
+    ABORT_READ_WRITEONLY,
+    ABORT_VALUE_TOO_LOW,
+    ABORT_WRITE_READONLY,
+)
+from canopen.sdo.exceptions import SdoAbortedError
+from canopen.sdo.server import SdoServer
+
+from .. import cia301 as c301
+from .. import cia402 as c
+
+Key = tuple[int, int]
+PDO_NOT_VALID = 0x80000000
+
+CONTROLWORD = (c.CONTROLWORD, 0)
+STATUSWORD = (c.STATUSWORD, 0)
+MODE = (c.MODES_OF_OPERATION, 0)
+MODE_DISPLAY = (c.MODES_OF_OPERATION_DISPLAY, 0)
+POSITION = (c.POSITION_ACTUAL, 0)
+VELOCITY = (c.VELOCITY_ACTUAL, 0)
+TORQUE = (c.TORQUE_ACTUAL, 0)
+ERROR_CODE = (c.ERROR_CODE, 0)
+ERROR_REGISTER = (c301.ERROR_REGISTER, 0)
+SCALING = {c.POSITION_ENCODER_RESOLUTION, c.GEAR_RATIO, c.RATED_TORQUE}
+
+
+class _SdoLink:
+    """What canopen's SdoServer needs of a network: a way to send its responses."""
+
+    def __init__(self, send: Callable[[int, bytes], None]) -> None:
+        self._send = send
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        self._send(can_id, bytes(data))
+
+
+class ObjectDictionaryServer:
+    """The drive's objects and the SDO server on them.
+
+    ``on_write(key, value)`` runs after every accepted SDO download, so the drive can make
+    the write take effect (a controlword transition, a new heartbeat period, new PDOs).
+    """
+
+    def __init__(self, od: objectdictionary.ObjectDictionary, node_id: int,
+                 send: Callable[[int, bytes], None],
+                 on_write: Callable[[Key, Any], None]) -> None:
+        self.object_dictionary = od  # the name canopen's SdoServer reads
+        self._node_id = node_id
+        self._on_write = on_write
+        self.defaults: dict[Key, Any] = {}
+        for obj in od.values():
+            members = [obj] if isinstance(obj, objectdictionary.ODVariable) else obj.values()
+            for var in members:
+                value = var.value if var.value is not None else var.default
+                self.defaults[(var.index, var.subindex)] = value
+        self.values: dict[Key, Any] = dict(self.defaults)
+        self._sdo = SdoServer(c301.SDO_RX + node_id, c301.SDO_TX + node_id, self)
+        self._sdo.network = _SdoLink(send)  # type: ignore[assignment]  # send_message only
+
+    def request(self, data: bytes) -> None:
+        """One SDO request frame from a client."""
+        self._sdo.on_request(c301.SDO_RX + self._node_id, data, 0.0)
+
+    def reset_all(self) -> None:
+        """Reset node: every object to its default (in place: the services hold ``values``)."""
+        self.values.clear()
+        self.values.update(self.defaults)
+
+    def reset_communication(self) -> None:
+        """Reset communication: the communication area (0x1000-0x1FFF) to defaults, except
+        the error register and error history, which belong to the device."""
+        for key, value in self.defaults.items():
+            if 0x1000 <= key[0] < 0x2000 \
+                    and key[0] not in (c301.ERROR_REGISTER, c301.PREDEFINED_ERROR_FIELD):
+                self.values[key] = value
+
+    def mode_supported(self, mode: int) -> bool:
+        """Mode 0 (none) or a mode whose bit is set in 0x6502."""
+        supported = self.values[(c.SUPPORTED_DRIVE_MODES, 0)]
+        return mode == 0 or (0 < mode <= 32 and bool(supported >> (mode - 1) & 1))
+
+    def var(self, index: int, subindex: int) -> objectdictionary.ODVariable:
+        obj = self.object_dictionary.get(index)
+        if obj is None:
+            raise SdoAbortedError(ABORT_NOT_IN_OD)
+        if isinstance(obj, objectdictionary.ODVariable):
+            if subindex != 0:
+                raise SdoAbortedError(ABORT_NO_SUBINDEX)
+            return obj
+        if subindex not in obj:
+            raise SdoAbortedError(ABORT_NO_SUBINDEX)
+        var: objectdictionary.ODVariable = obj[subindex]
+        return var
+
+    # ------------------------------------------------------------------ SdoServer hooks
+    def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
+        """canopen SdoServer hook: upload."""
+        var = self.var(index, subindex)
+        if check_readable and not var.readable:
+            raise SdoAbortedError(ABORT_READ_WRITEONLY)
+        value = self.values[(var.index, var.subindex)]
+        return var.encode_raw(value)
+
+    def set_data(self, index: int, subindex: int, data: bytes,
+                 check_writable: bool = False) -> None:
+        """canopen SdoServer hook: download, with the checks a real drive makes."""
+        var = self.var(index, subindex)
+        if check_writable and not var.writable:
+            raise SdoAbortedError(ABORT_WRITE_READONLY)
+        if var.data_type in objectdictionary.NUMBER_TYPES and 8 * len(data) != len(var):
+            raise SdoAbortedError(ABORT_LENGTH_NOT_MATCHED)
+        value = var.decode_raw(bytes(data))
+        key = (var.index, var.subindex)
+        self._check_write(key, value)
+        self.values[key] = value
+        self._on_write(key, value)
+
+    # ------------------------------------------------------------------ write checks
+    def _check_write(self, key: Key, value: Any) -> None:
+        index, sub = key
+        if key == MODE and not self.mode_supported(value):
+            raise SdoAbortedError(ABORT_INVALID_VALUE)
+        if index in SCALING and value == 0 and (index == c.RATED_TORQUE or sub > 0):
+            raise SdoAbortedError(ABORT_VALUE_TOO_LOW)
+        if key == (c301.PREDEFINED_ERROR_FIELD, 0) and value != 0:
+            raise SdoAbortedError(ABORT_INVALID_VALUE)
+        if 0x1400 <= index <= 0x1403 or 0x1800 <= index <= 0x1803:
+            if sub == 1:
+                current = self.values[key]
+                if not current & PDO_NOT_VALID and not value & PDO_NOT_VALID \
+                        and (current ^ value) & 0x7FF:
+                    raise SdoAbortedError(ABORT_INVALID_VALUE)  # CiA 301: invalidate first
+                if value & 0x3FFFF800:  # 11-bit identifiers only
+                    raise SdoAbortedError(ABORT_INVALID_VALUE)
+            return
+        if 0x1600 <= index <= 0x1603 or 0x1A00 <= index <= 0x1A03:
+            comm = index - 0x200
+            if not self.values[(comm, 1)] & PDO_NOT_VALID:
+                raise SdoAbortedError(ABORT_APPLICATION_DEVICE_STATE)  # mapping of a valid PDO
+            if sub == 0:
+                self._check_mapping(index, value, tx=index >= 0x1A00)
+            elif self.values[(index, 0)] != 0:
+                raise SdoAbortedError(ABORT_APPLICATION_DEVICE_STATE)  # sub 0 must be 0 first
+
+    def _check_mapping(self, map_index: int, count: int, tx: bool) -> None:
+        if count > 8:
+            raise SdoAbortedError(ABORT_INVALID_VALUE)
+        bits = 0
+        for sub in range(1, count + 1):
+            entry = self.values[(map_index, sub)]
+            index, subindex, length = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+            var = self.var(index, subindex)
+            if not var.pdo_mappable or var.data_type not in objectdictionary.NUMBER_TYPES \
+                    or not isinstance(var.STRUCT_TYPES.get(var.data_type), struct.Struct) \
+                    or not (var.readable if tx else var.writable) \
+                    or length != len(var):
+                raise SdoAbortedError(ABORT_PDO_CANNOT_MAP)
+            bits += length
+        if bits > 64:
+            raise SdoAbortedError(ABORT_PDO_LENGTH_EXCEEDED)
+
+
+def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.ObjectDictionary:
+    """Import an EDS for one node ($NODEID resolved), with a clear error for a bad path."""
+    try:
+        return canopen.import_od(str(eds_path), node_id)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"simulated drive {node_id}: EDS file {eds_path} not found") \
+            from None

@@ -1,0 +1,287 @@
+"""The simulated drive's CiA 402 side: the state machine, its ramps and the drive's loops.
+
+The state machine follows the controlword (transitions 2-16, with the shutdown, disable
+operation and quick stop option codes), the fault reaction (transition 13: a quick-stop ramp
+when powered, then FAULT), fault reset on the rising edge of controlword bit 7, the STO input
+and the 0x6007 reaction to a lost connection. Each SYNC, ``command_joint`` turns the state,
+the mode (CSP/CSV/CST) and the targets into this joint's loop command in the segment's
+dynamics; ``end_ramp`` ends a ramp once the joint stands still.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from .. import cia301 as c301
+from .. import cia402 as c
+from ..cia402 import State402
+from .dynamics import JointDynamics, LoopMode
+from .faults import EmcyProducer, InjectedFaults
+from .nmt import NmtSlave
+from .objects import CONTROLWORD, ERROR_CODE, MODE_DISPLAY, STATUSWORD, Key
+
+# States in which the power stage is on (the loops may produce torque).
+POWERED = (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE,
+           State402.FAULT_REACTION_ACTIVE)
+# States left for switch on disabled when STO goes low or on "disable voltage".
+VOLTAGE_STATES = (State402.READY_TO_SWITCH_ON, State402.SWITCHED_ON,
+                  State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE)
+# A ramp has ended once its command is zero and the joint is slower than this, or after
+# its command has been zero this long (standstill window and time of a real drive).
+STOPPED_VELOCITY = 0.01  # rad/s
+STANDSTILL_TIME = 0.05  # s
+
+
+class Scaling:
+    """Joint units from the factor group: 0x608F encoder resolution, 0x6091 gear ratio,
+    0x6076 rated torque (torque objects are motor torque; an ideal gearbox multiplies it
+    by the ratio)."""
+
+    def __init__(self) -> None:
+        self.increments_per_rad = 1.0
+        self.nm_per_permille = 1.0
+
+    def update(self, v: dict[Key, Any]) -> None:
+        increments = v[(c.POSITION_ENCODER_RESOLUTION, 1)] / v[(c.POSITION_ENCODER_RESOLUTION, 2)]
+        ratio = v[(c.GEAR_RATIO, 1)] / v[(c.GEAR_RATIO, 2)]
+        self.increments_per_rad = increments * ratio / (2.0 * math.pi)
+        self.nm_per_permille = v[(c.RATED_TORQUE, 0)] / 1e6 * ratio
+
+
+class StateMachine402:
+    def __init__(self, joint: int, dynamics: JointDynamics, values: dict[Key, Any],
+                 scaling: Scaling, emcy: EmcyProducer, nmt: NmtSlave,
+                 faults: InjectedFaults) -> None:
+        self._j = joint
+        self._dyn = dynamics
+        self._values = values
+        self._scale = scaling
+        self._emcy = emcy
+        self._nmt = nmt
+        self._faults = faults
+        self.state = State402.NOT_READY_TO_SWITCH_ON
+        self.sto_low = False
+        self._last_controlword = 0
+        # ramps (quick stop, halt, fault reaction, shutdown/disable operation option 1)
+        self._ramping = False
+        self._ramp_velocity = 0.0
+        self._ramp_decel = 0.0
+        self._ramp_then: State402 | None = None
+        self._ramp_zero_time = 0.0
+
+    def power_on(self) -> None:
+        """NOT READY TO SWITCH ON, then transition 1 (automatic) to SWITCH ON DISABLED."""
+        self._last_controlword = 0
+        self._ramping = False
+        self.state = State402.NOT_READY_TO_SWITCH_ON
+        self.set_state(State402.SWITCH_ON_DISABLED)
+
+    def set_state(self, state: State402) -> None:
+        self.state = state
+        sw = c.STATUSWORD_OF_STATE[state] | c.SW_REMOTE
+        if state != State402.QUICK_STOP_ACTIVE:
+            sw |= c.SW_QUICK_STOP
+        if state in VOLTAGE_STATES and not self.sto_low:
+            sw |= c.SW_VOLTAGE_ENABLED
+        if self.sto_low:
+            sw |= c.SW_WARNING
+        self._values[STATUSWORD] = sw ^ self._faults.statusword_xor
+        if state not in POWERED:
+            self._ramping = False
+
+    # ------------------------------------------------------------------ controlword
+    def on_controlword(self, cw: int) -> None:
+        rising_reset = bool(cw & 0x80) and not self._last_controlword & 0x80
+        self._last_controlword = cw
+        s = self.state
+        S = State402
+        if s == S.FAULT:
+            if rising_reset:
+                self._fault_reset()
+            return
+        if s in (S.NOT_READY_TO_SWITCH_ON, S.FAULT_REACTION_ACTIVE):
+            return
+        if not cw & 0x02:  # disable voltage: transitions 7, 9, 10, 12
+            if s in VOLTAGE_STATES:
+                self.set_state(S.SWITCH_ON_DISABLED)
+            return
+        if not cw & 0x04:  # quick stop: transitions 7, 10, 11
+            if s in (S.READY_TO_SWITCH_ON, S.SWITCHED_ON):
+                self.set_state(S.SWITCH_ON_DISABLED)
+            elif s == S.OPERATION_ENABLED:
+                self._quick_stop()
+            return
+        if s == S.QUICK_STOP_ACTIVE:  # transition 16, only for options 5-8
+            if cw & 0x0F == 0x0F and self._values[(c.QUICK_STOP_OPTION, 0)] in (5, 6, 7, 8):
+                self._ramping = False
+                self.set_state(S.OPERATION_ENABLED)
+            return
+        if not cw & 0x01:  # shutdown: transitions 2, 6, 8
+            if s == S.SWITCH_ON_DISABLED:
+                if not self.sto_low:
+                    self.set_state(S.READY_TO_SWITCH_ON)
+            elif s == S.SWITCHED_ON:
+                self.set_state(S.READY_TO_SWITCH_ON)
+            elif s == S.OPERATION_ENABLED:
+                self._leave_operation(c.SHUTDOWN_OPTION, S.READY_TO_SWITCH_ON)
+            return
+        if s == S.READY_TO_SWITCH_ON:  # switch on (3), with enable operation also 4
+            self.set_state(S.SWITCHED_ON)
+            s = S.SWITCHED_ON
+        if s == S.SWITCHED_ON and cw & 0x08:
+            self._ramping = False
+            self.set_state(S.OPERATION_ENABLED)
+        elif s == S.OPERATION_ENABLED and not cw & 0x08:  # disable operation (5)
+            self._leave_operation(c.DISABLE_OPERATION_OPTION, S.SWITCHED_ON)
+
+    def _leave_operation(self, option_index: int, target: State402) -> None:
+        """Shutdown / disable operation from operation enabled: option 1 ramps down first."""
+        if self._values[(option_index, 0)] == 1 and not self.sto_low:
+            self._start_ramp(self._quick_stop_decel(), then=target)
+        else:
+            self.set_state(target)
+
+    def _quick_stop(self) -> None:
+        option = self._values[(c.QUICK_STOP_OPTION, 0)]
+        if option <= 0 or self.sto_low:  # disable drive function: coast
+            self.set_state(State402.SWITCH_ON_DISABLED)
+            return
+        self.set_state(State402.QUICK_STOP_ACTIVE)
+        # 1/5 slow-down ramp, 2/6 quick-stop ramp (both 0x6085 here), 3/4/7/8 current limit
+        decel = self._quick_stop_decel() if option in (1, 2, 5, 6) else math.inf
+        then = State402.SWITCH_ON_DISABLED if option <= 4 else None
+        self._start_ramp(decel, then)
+
+    def _quick_stop_decel(self) -> float:
+        return (float(max(self._values[(c.QUICK_STOP_DECELERATION, 0)], 1))
+                / self._scale.increments_per_rad)
+
+    def _start_ramp(self, decel: float, then: State402 | None) -> None:
+        self._ramping = True
+        self._ramp_velocity = float(self._dyn.velocity[self._j])
+        self._ramp_decel = decel
+        self._ramp_then = then
+        self._ramp_zero_time = 0.0
+
+    # ------------------------------------------------------------------ faults and inputs
+    def abort_connection(self, code: int) -> None:
+        """0x6007 reaction to heartbeat loss, NMT stop or reset communication."""
+        option = self._values[(c.ABORT_CONNECTION_OPTION, 0)]
+        if option == c.AbortConnectionOption.FAULT:
+            if self.state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+                self.fault(code)
+        elif option == c.AbortConnectionOption.DISABLE_VOLTAGE:
+            if self.state in VOLTAGE_STATES:
+                self.set_state(State402.SWITCH_ON_DISABLED)
+        elif option == c.AbortConnectionOption.QUICK_STOP:
+            if self.state == State402.OPERATION_ENABLED:
+                self._quick_stop()
+            elif self.state in (State402.READY_TO_SWITCH_ON, State402.SWITCHED_ON):
+                self.set_state(State402.SWITCH_ON_DISABLED)
+
+    def fault(self, code: int) -> None:
+        """Transition 13 (fault reaction: quick-stop ramp if powered), then 14."""
+        self._emcy.flag(code)
+        self._values[ERROR_CODE] = code
+        self._emcy.record(code)
+        self._emcy.emit(code)
+        if self.state == State402.FAULT:
+            return
+        powered = self.state in POWERED and not self.sto_low
+        self.set_state(State402.FAULT_REACTION_ACTIVE)
+        if powered:
+            self._start_ramp(self._quick_stop_decel(), then=State402.FAULT)
+        else:
+            self.set_state(State402.FAULT)
+
+    def _fault_reset(self) -> None:
+        """Transition 15 on the rising edge of controlword bit 7: EMCY 0x0000."""
+        self._emcy.register = 0
+        self._nmt.lost.clear()
+        self._values[ERROR_CODE] = 0
+        self.set_state(State402.SWITCH_ON_DISABLED)
+        if self.sto_low:
+            self._emcy.register |= 1
+        self._emcy.emit(c301.EMCY_NO_ERROR)
+
+    def set_sto(self, low: bool) -> None:
+        """The STO input: low switches the power stage off (EMCY, warning bit)."""
+        if low == self.sto_low:
+            return
+        self.sto_low = low
+        if low:
+            self._emcy.register |= 1
+            if self.state in VOLTAGE_STATES:
+                self.set_state(State402.SWITCH_ON_DISABLED)
+            else:
+                self.set_state(self.state)  # warning bit
+            self._emcy.emit(c301.EMCY_STO)
+        else:
+            self.set_state(self.state)
+            self.errors_cleared()
+
+    def errors_cleared(self) -> None:
+        """A condition went away: EMCY 0x0000 if nothing else is wrong now."""
+        if not (self.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)
+                or self.sto_low or self._nmt.lost):
+            self._emcy.register = 0
+            self._emcy.emit(c301.EMCY_NO_ERROR)
+
+    # ------------------------------------------------------------------ each SYNC
+    def command_joint(self, dt: float) -> None:
+        """Write this joint's loop command for the next dynamics step."""
+        dyn, j, values = self._dyn, self._j, self._values
+        nm_per_permille = self._scale.nm_per_permille
+        dyn.torque_limit[j] = values[(c.MAX_TORQUE, 0)] * nm_per_permille
+        dyn.target_velocity[j] = 0.0
+        dyn.torque_feedforward[j] = 0.0
+        state = self.state
+        if state not in POWERED or self.sto_low:
+            dyn.mode[j] = LoopMode.OFF
+            return
+        halt = bool(values[CONTROLWORD] & c.CW_HALT)
+        if state == State402.OPERATION_ENABLED and halt and not self._ramping:
+            self._start_ramp(self._quick_stop_decel(), then=None)
+        elif state == State402.OPERATION_ENABLED and not halt and self._ramping \
+                and self._ramp_then is None:
+            self._ramping = False  # halt released
+        if self._ramping:
+            v = self._ramp_velocity
+            step = self._ramp_decel * dt
+            self._ramp_velocity = math.copysign(max(abs(v) - step, 0.0), v)
+            if self._ramp_velocity == 0.0:
+                self._ramp_zero_time += dt
+            dyn.mode[j] = LoopMode.VELOCITY
+            dyn.target_velocity[j] = self._ramp_velocity
+            return
+        if state != State402.OPERATION_ENABLED:  # quick stop active after its ramp: hold
+            dyn.mode[j] = LoopMode.VELOCITY
+            return
+        scale = self._scale.increments_per_rad
+        mode = values[MODE_DISPLAY]
+        if mode == c.Mode.CSP:
+            dyn.mode[j] = LoopMode.POSITION
+            dyn.target_position[j] = values[(c.TARGET_POSITION, 0)] / scale
+            dyn.target_velocity[j] = values[(c.VELOCITY_OFFSET, 0)] / scale
+            dyn.torque_feedforward[j] = values[(c.TORQUE_OFFSET, 0)] * nm_per_permille
+        elif mode == c.Mode.CSV:
+            dyn.mode[j] = LoopMode.VELOCITY
+            dyn.target_velocity[j] = (values[(c.TARGET_VELOCITY, 0)]
+                                      + values[(c.VELOCITY_OFFSET, 0)]) / scale
+            dyn.torque_feedforward[j] = values[(c.TORQUE_OFFSET, 0)] * nm_per_permille
+        elif mode == c.Mode.CST:
+            dyn.mode[j] = LoopMode.TORQUE
+            dyn.torque_feedforward[j] = ((values[(c.TARGET_TORQUE, 0)]
+                                          + values[(c.TORQUE_OFFSET, 0)]) * nm_per_permille)
+        else:
+            dyn.mode[j] = LoopMode.OFF  # no cyclic mode selected: no torque
+
+    def end_ramp(self) -> None:
+        """After the dynamics step: a ramp with a next state ends at standstill."""
+        if self._ramping and self._ramp_velocity == 0.0 and (
+                abs(self._dyn.velocity[self._j]) < STOPPED_VELOCITY
+                or self._ramp_zero_time >= STANDSTILL_TIME):
+            then = self._ramp_then
+            if then is not None:
+                self._ramping = False
+                self.set_state(then)
