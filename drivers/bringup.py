@@ -35,7 +35,7 @@ import canopen
 from canopen.sdo.client import SdoClient
 
 from . import cia301, cia402
-from .config import DriveConfig
+from .config import DriveConfig, Timeouts
 from .pdo_layout import PDO_SLOTS, DriveLayout, Pdo
 
 #: Transmission type: synchronous, every SYNC (RPDO: act on the next SYNC).
@@ -50,15 +50,6 @@ class Phase(enum.IntEnum):
     PROBING = 4
     READY = 5
     FAILED = 6
-
-
-@dataclass(frozen=True)
-class Timeouts:
-    """Seconds each start-up step may take before the drive is reported FAILED."""
-    boot_wait: float = 1.0   # wait this long for boot-up/heartbeat, then probe by SDO anyway
-    start: float = 2.0       # NMT start -> first TPDO
-    reset: float = 1.0       # fault reset -> statusword without fault
-    enable: float = 1.0      # commanded cyclic mode -> operation enabled (hardware.py)
 
 
 @dataclass(frozen=True)

@@ -15,12 +15,75 @@ from typing import Any
 from .joints import JointMode
 
 
+def _whole(value: Any) -> bool:
+    """An integer, and not a bool (YAML ``true`` is not node 1)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) \
+        and math.isfinite(value)
+
+
+def _positive(where: str, name: str, value: Any) -> None:
+    if not _finite(value) or value <= 0:
+        raise ValueError(f"{where}: {name} must be a positive number, got {value!r}")
+
+
 @dataclass(frozen=True)
 class BusConfig:
     """Where the drives are: any python-can interface (socketcan, virtual, pcan, ...)."""
     interface: str = "socketcan"
     channel: str = "can0"
     bitrate: int | None = None  # socketcan ignores it: set it with `ip link`
+
+
+@dataclass(frozen=True)
+class Timeouts:
+    """Seconds each start-up step may take before the drive is reported FAILED. Wall time:
+    give a machine that may stall the process more than its longest stall."""
+    boot_wait: float = 1.0   # wait this long for boot-up/heartbeat, then probe by SDO anyway
+    start: float = 2.0       # NMT start -> first TPDO
+    reset: float = 1.0       # fault reset -> statusword without fault
+    enable: float = 1.0      # commanded cyclic mode -> operation enabled (enable.py)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not _finite(value) or value < 0:
+                raise ValueError(f"timeouts.{f.name} must be a number of seconds >= 0, "
+                                 f"got {value!r}")
+
+
+@dataclass(frozen=True)
+class Supervision:
+    """How the hardware layer judges its drives, and how long it waits for them.
+
+    TPDO supervision counts cycles, so it sleeps through a stalled machine; heartbeat
+    deadlines are a factor of each drive's heartbeat period; the drives' consumer of the
+    manager's heartbeat is ``consumer_factor`` manager periods (0x1016, written at bring-up).
+    """
+    tpdo_timeout_cycles: int = 5         # cycles without a drive's TPDOs -> fault
+    heartbeat_timeout_factor: float = 2.5  # drive heartbeat periods -> heartbeat lost
+    consumer_factor: float = 2.0         # manager heartbeat periods the drives wait
+    sdo_timeout: float = 0.5             # s, one SDO answer at start-up and recovery
+    sdo_retries: int = 0                 # extra tries of an SDO request that got no answer
+    timeouts: Timeouts = Timeouts()
+
+    def __post_init__(self) -> None:
+        if not _whole(self.tpdo_timeout_cycles) or self.tpdo_timeout_cycles < 1:
+            raise ValueError("supervision.tpdo_timeout_cycles must be a whole number >= 1, "
+                             f"got {self.tpdo_timeout_cycles!r}")
+        for name in ("heartbeat_timeout_factor", "consumer_factor"):
+            value = getattr(self, name)
+            if not _finite(value) or value <= 1.0:
+                raise ValueError(f"supervision.{name} must be > 1 (a deadline shorter than "
+                                 f"the heartbeat period always trips), got {value!r}")
+        if not _finite(self.sdo_timeout) or self.sdo_timeout <= 0:
+            raise ValueError(f"supervision.sdo_timeout must be > 0 s, got {self.sdo_timeout!r}")
+        if not _whole(self.sdo_retries) or self.sdo_retries < 0:
+            raise ValueError("supervision.sdo_retries must be a whole number >= 0, "
+                             f"got {self.sdo_retries!r}")
 
 
 #: Modes a drive can be configured for (JointMode.TORQUE_OFF / QUICK_STOP are always allowed).
@@ -119,21 +182,6 @@ class DriveConfig:
         if missing:
             raise ValueError(f"drive {data.get('name', '?')!r}: missing keys {missing}")
         return cls(**dict(data))
-
-
-def _whole(value: Any) -> bool:
-    """An integer, and not a bool (YAML ``true`` is not node 1)."""
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) \
-        and math.isfinite(value)
-
-
-def _positive(where: str, name: str, value: Any) -> None:
-    if not _finite(value) or value <= 0:
-        raise ValueError(f"{where}: {name} must be a positive number, got {value!r}")
 
 
 def check_drives(drives: list[DriveConfig], manager_node_id: int) -> None:

@@ -62,16 +62,17 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import can
 import numpy as np
 
+from ..events import ManagerState
 from . import cia301, cia402
-from .bringup import DriveBringup, Phase, Timeouts
+from .bringup import DriveBringup, Phase
 from .bus import CanopenBus, open_bus
 from .cia402 import State402
-from .config import BusConfig, DriveConfig, check_drives
+from .config import BusConfig, DriveConfig, Supervision, check_drives
 from .enable import OP_ENABLED, EnableSequence
 from .frame_io import FrameWriter, clock_offset, to_monotonic
 from .joints import JointCommand, JointMode, JointState
@@ -79,9 +80,6 @@ from .pdo_layout import RPDO_FIELDS, DriveLayout, drive_object_dictionary, layou
 from .scaling import Scaling
 from .supervision import FaultEvent, Supervisor
 from .switch_off import SdoSwitchOff
-
-#: ManagerState.FAILPROOF (rocoma_can.events); compared as an int so the hot path needs no import.
-FAILPROOF = 0
 
 _CW_FAULT_RESET = int(cia402.Controlword.FAULT_RESET)
 _CW_QUICK_STOP = int(cia402.Controlword.QUICK_STOP)
@@ -128,6 +126,16 @@ class _Receiver(can.Listener):
         pass
 
 
+class Manager(Protocol):
+    """What the hardware needs of the manager it is attached to (rocoma_can's
+    ControllerManager): nothing in drivers/ builds or imports one."""
+    switch_count: int
+
+    def update(self) -> ManagerState: ...
+    def emergency_stop(self, cause: str = ...) -> None: ...
+    def clear_emergency_stop(self) -> bool: ...
+
+
 def _frame(cob_id: int, size: int) -> can.Message:
     return can.Message(arbitration_id=cob_id, data=bytearray(size), is_extended_id=False)
 
@@ -137,32 +145,28 @@ class CanopenHardware:
 
     def __init__(self, bus: can.BusABC | BusConfig, drives: Sequence[DriveConfig],
                  manager_node_id: int, dt: float, *,
-                 manager_heartbeat_ms: int = 100, consumer_factor: float = 2.0,
-                 heartbeat_timeout_factor: float = 2.5, tpdo_timeout_cycles: int = 5,
-                 timeouts: Timeouts = Timeouts(), config_workers: int = 4,
-                 sdo_timeout: float = 0.5, sdo_retries: int = 0,
+                 manager_heartbeat_ms: int = 100, supervision: Supervision | None = None,
+                 config_workers: int = 4,
                  on_fault: Callable[[FaultEvent], None] | None = None) -> None:
         drives = list(drives)
         check_drives(drives, manager_node_id)
+        supervision = supervision or Supervision()
         if not dt > 0:
             raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
-        consumer_ms = int(round(manager_heartbeat_ms * consumer_factor))
-        if not 1 <= manager_heartbeat_ms or not consumer_factor > 1 or consumer_ms > 0xFFFF:
-            raise ValueError("manager_heartbeat_ms must be >= 1 and consumer_factor > 1 with "
-                             "their product <= 65535 ms (the drives' heartbeat consumer time); "
-                             f"got {manager_heartbeat_ms} and {consumer_factor}")
+        consumer_ms = int(round(manager_heartbeat_ms * supervision.consumer_factor))
+        if not 1 <= manager_heartbeat_ms or consumer_ms > 0xFFFF:
+            raise ValueError("manager_heartbeat_ms must be >= 1 and its product with "
+                             "supervision.consumer_factor <= 65535 ms (the drives' heartbeat "
+                             f"consumer time); got {manager_heartbeat_ms} and "
+                             f"{supervision.consumer_factor}")
         self.drives_config = drives
         self.manager_node_id = manager_node_id
         self.dt = float(dt)
         self.manager_heartbeat_period = manager_heartbeat_ms / 1000.0
         self.consumer_ms = consumer_ms
-        self.timeouts = timeouts
+        self.supervision = supervision
+        self.timeouts = supervision.timeouts
         self.config_workers = max(1, int(config_workers))
-        if not sdo_timeout > 0 or int(sdo_retries) != sdo_retries or sdo_retries < 0:
-            raise ValueError(f"sdo_timeout must be > 0 s and sdo_retries a whole number >= 0, "
-                             f"got {sdo_timeout!r} and {sdo_retries!r}")
-        self.sdo_timeout = sdo_timeout
-        self.sdo_retries = int(sdo_retries)
         self.on_fault = on_fault
         self._bus_arg = bus
         n = len(drives)
@@ -171,7 +175,8 @@ class CanopenHardware:
         self.command = JointCommand.zeros(names)
         self.layouts: list[DriveLayout] = [layout_for(d) for d in drives]
         self.scaling = Scaling(drives)
-        self.supervisor = Supervisor(drives, tpdo_timeout_cycles, heartbeat_timeout_factor)
+        self.supervisor = Supervisor(drives, supervision.tpdo_timeout_cycles,
+                                     supervision.heartbeat_timeout_factor)
         self._ods = [drive_object_dictionary(d, layout) for d, layout in zip(drives, self.layouts)]
 
         # --- raw bus values, one slot per drive (the codecs read and write these) ---------
@@ -191,7 +196,7 @@ class CanopenHardware:
         self._expected = np.array([(1 << len(lay.tpdos)) - 1 for lay in self.layouts],
                                   dtype=np.int64)
         self._complete = np.zeros(n, dtype=bool)
-        self.enable = EnableSequence(n, timeouts.enable, self.supervisor.fault)
+        self.enable = EnableSequence(n, supervision.timeouts.enable, self.supervisor.fault)
         # The drives the active controller may command: those ready when its switch was
         # committed. A drive ready only later (recovered, late start) stays torque-off
         # until the next switch: that controller never saw it (its pose, its limits).
@@ -201,7 +206,8 @@ class CanopenHardware:
         self._hb_time = np.full(n, -math.inf)
 
         # --- receive tables: COB-ID -> what to do with the frame ---------------------------
-        self._tpdo_of: dict[int, tuple[int, int, int, Any, tuple[np.ndarray, ...]]] = {}
+        self._tpdo_of: dict[int, tuple[int, int, int, Callable[..., tuple[int, ...]],
+                                       tuple[np.ndarray, ...]]] = {}
         for i, layout in enumerate(self.layouts):
             for pdo in layout.tpdos:
                 self._tpdo_of[pdo.cob_id] = (i, 1 << (pdo.number - 1), pdo.size,
@@ -233,7 +239,7 @@ class CanopenHardware:
         self._bringup: list[DriveBringup] = []
         self._executor: ThreadPoolExecutor | None = None
         self._switch_off = SdoSwitchOff()  # started with the bus (start)
-        self._manager: Any = None
+        self._manager: Manager | None = None
         self._recovery: Future[bool] | None = None
         self._recovery_started = False
         self._recovery_timeout = 5.0
@@ -285,8 +291,9 @@ class CanopenHardware:
             # No retransmission by default (CiA 301 clients abort on timeout): a late answer
             # to the first copy would be taken as the answer to the next request. configure()
             # repeats a whole failed attempt instead, after stale answers have drained.
-            node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
-            node.sdo.MAX_RETRIES = self.sdo_retries + 1  # canopen counts tries (0 = forever)
+            node.sdo.RESPONSE_TIMEOUT = self.supervision.sdo_timeout
+            # canopen counts tries (0 = forever)
+            node.sdo.MAX_RETRIES = self.supervision.sdo_retries + 1
             b = DriveBringup(d, layout, node, self.manager_node_id, self.consumer_ms,
                              self.timeouts)
             b.restart(now)
@@ -314,13 +321,15 @@ class CanopenHardware:
         self.close()
 
     # --- manager wiring -------------------------------------------------------------------------
-    def attach(self, manager: Any) -> None:
+    def attach(self, manager: Manager) -> None:
         """Route fault events to ``manager.emergency_stop`` (before its update, from read)."""
         self._manager = manager
 
-    def run_cycle(self, now: float | None = None) -> Any:
+    def run_cycle(self, now: float | None = None) -> ManagerState:
         """read, manager.update, write: one whole cycle (needs ``attach``, which
         ``rocoma_can.runtime.system.manager_for`` does)."""
+        if self._manager is None:
+            raise RuntimeError("run_cycle needs a manager: attach() one first")
         self.read(time.monotonic() if now is None else now)
         state = self._manager.update()
         self.write(state)
@@ -440,9 +449,9 @@ class CanopenHardware:
                 except Exception:  # a reporting hook must not take the cycle down
                     self.hook_errors += 1
 
-    def write(self, manager_state: int) -> None:
+    def write(self, manager_state: ManagerState) -> None:
         """Command frames (or torque-off frames in FAILPROOF), then SYNC, then heartbeat."""
-        if int(manager_state) == FAILPROOF:
+        if manager_state == ManagerState.FAILPROOF:
             self._torque_off()
         else:
             try:

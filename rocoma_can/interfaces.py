@@ -16,7 +16,7 @@ import abc
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .workers import WorkerManager
+    from .workers import HandleOrName, WorkerHandle, WorkerManager, WorkerOptions
 
 
 class SwapState:
@@ -33,6 +33,8 @@ class _Named:
     def __init__(self, name: str | None = None) -> None:
         self.name: str = name or type(self).__name__
         self.dt: float = 0.0
+        # Whatever the manager was given: the core runs any robot, so these are not typed
+        # here (on a CAN bus: drivers.joints.JointState and JointCommand).
         self.state: Any = None
         self.command: Any = None
 
@@ -90,13 +92,14 @@ class Controller(_Named, abc.ABC):
         return None
 
     # Workers (rocoma's worker extension), delegated to this controller's WorkerManager.
-    def add_worker(self, options: Any) -> Any:
+    def add_worker(self, options: WorkerOptions) -> WorkerHandle:
         return self._worker_manager().add_worker(options)
 
-    def start_worker(self, handle: Any) -> bool:
+    def start_worker(self, handle: HandleOrName) -> bool:
         return self._worker_manager().start_worker(handle)
 
-    def cancel_worker(self, handle: Any, wait: bool = True, timeout: float = 1.0) -> bool:
+    def cancel_worker(self, handle: HandleOrName, wait: bool = True,
+                      timeout: float = 1.0) -> bool:
         return self._worker_manager().cancel_worker(handle, wait=wait, timeout=timeout)
 
     def _worker_manager(self) -> WorkerManager:

@@ -83,7 +83,7 @@ class TimingSupervision:
     overruns: int = 5
     hang: float = 20.0
 
-    def budget_for(self, controller: Any, dt: float) -> TimingBudget:
+    def budget_for(self, controller: object, dt: float) -> TimingBudget:
         advance = getattr(controller, "advance_budget", None) or self.advance * dt
         return TimingBudget(advance_ns=int(advance * 1e9),
                             initialize_fast_ns=int(self.initialize_fast * dt * 1e9),
@@ -209,7 +209,7 @@ class ControllerManager:
             self._watchdog.start()
 
     # --- set-up ---------------------------------------------------------------------------
-    def _attach(self, controller: Any) -> None:
+    def _attach(self, controller: Controller | FailproofController) -> None:
         controller.dt = self.dt
         controller.state = self.state_object
         controller.command = self.command_object
@@ -267,7 +267,7 @@ class ControllerManager:
         self._stoppers.grow_to(len(self._pairs) + len(self._emergencies))
         return True
 
-    def _budget_for(self, controller: Any) -> TimingBudget:
+    def _budget_for(self, controller: object) -> TimingBudget:
         if self.timing is None:
             return TimingBudget()
         return self.timing.budget_for(controller, self.dt)
@@ -610,9 +610,10 @@ class ControllerManager:
         return {name: {call: st.summary() for call, st in adapter.stats.items() if st.count}
                 for name, adapter in self.adapters().items()}
 
-    def adapters(self) -> dict[str, Any]:
+    def adapters(self) -> dict[str, ControllerAdapter | FailproofControllerAdapter]:
         """Every registered controller's adapter by name (flags and call statistics)."""
-        out: dict[str, Any] = {p.controller.name: p.controller for p in self._pairs.values()}
+        out: dict[str, ControllerAdapter | FailproofControllerAdapter] = {
+            p.controller.name: p.controller for p in self._pairs.values()}
         out.update(self._emergencies)
         out[self._failproof.name] = self._failproof
         return out
@@ -638,16 +639,17 @@ class ControllerManager:
                 self._estop(True, "shutdown")
             self._failproof.advance(self.dt)
         deadline = time.monotonic() + limit
-        pending = [a for a in self.adapters().values() if getattr(a, "being_stopped", False)]
+        pending = [a for a in self.adapters().values()
+                   if isinstance(a, ControllerAdapter) and a.being_stopped]
         while pending and time.monotonic() < deadline:
             time.sleep(0.005)
             pending = [a for a in pending if a.being_stopped]
         for adapter in pending:
             log.error("shutdown: controller %r still stopping after %.1f s", adapter.name, limit)
         ok = ok and not pending
-        for adapter in self.adapters().values():
-            if adapter.created and adapter not in pending:
-                ok = adapter.cleanup() and ok
+        for each in self.adapters().values():
+            if each.created and each not in pending:
+                ok = each.cleanup() and ok
         self._switch_jobs.put(None)
         self._switcher.join(limit)
         self._watchdog_stop.set()

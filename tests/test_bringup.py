@@ -12,8 +12,9 @@ import pytest
 from fixtures.driver_rig import drive_configs
 
 from rocoma_can.drivers import bringup, cia301
-from rocoma_can.drivers.bringup import ConfigResult, DriveBringup, Phase, Timeouts
+from rocoma_can.drivers.bringup import ConfigResult, DriveBringup, Phase
 from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.config import Timeouts
 from rocoma_can.drivers.pdo_layout import layout_for
 
 TIMEOUTS = Timeouts(boot_wait=1.0, start=2.0, reset=1.0, enable=1.0)

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from rocoma_can.drivers.config import DriveConfig
+from rocoma_can import TimingSupervision
+from rocoma_can.drivers.config import DriveConfig, Supervision
 from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.runtime.config import ConfigError, bus_load, frame_bits, load, validate
 
@@ -94,13 +95,23 @@ def test_supervision_margins_reach_the_hardware():
     cfg["supervision"] = {"tpdo_timeout_cycles": 25, "heartbeat_timeout_factor": 5.0,
                           "consumer_factor": 3, "sdo_timeout": 2.0}
     config = validate(cfg)
+    assert config.supervision == Supervision(tpdo_timeout_cycles=25, heartbeat_timeout_factor=5.0,
+                                             consumer_factor=3, sdo_timeout=2.0)
     hw = CanopenHardware(config.bus, config.drives, config.manager.node_id, config.dt,
-                         **config.supervision)  # the keys are the hardware's own keywords
+                         supervision=config.supervision)
     try:
-        assert (hw.sdo_timeout, hw.supervisor.tpdo_timeout_cycles) == (2.0, 25)
+        assert hw.supervisor.tpdo_timeout_cycles == 25
+        assert hw.consumer_ms == 3 * 100  # consumer_factor x the manager's heartbeat
     finally:
         hw.close()
-    assert validate(good()).supervision == {}  # nothing given: the hardware's defaults
+    assert validate(good()).supervision == Supervision()  # nothing given: the defaults
+
+
+def test_timing_budgets_come_from_the_yaml():
+    cfg = good()
+    cfg["timing"] = {"advance": 0.8, "hang": 40}
+    assert validate(cfg).timing == TimingSupervision(advance=0.8, hang=40)
+    assert validate(good()).timing == TimingSupervision()
 
 
 @pytest.mark.parametrize("label, edit, expected", BAD, ids=[b[0] for b in BAD])

@@ -16,7 +16,6 @@ import json
 import signal
 import sys
 from collections.abc import Callable
-from typing import Any
 
 from ..errors import NoAnswer, Refused
 from .client import ManagerClient
@@ -181,7 +180,7 @@ def _bus_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout", type=float, default=0.5, help="SDO answer timeout, s (0.5)")
 
 
-def register(subparsers: Any) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("run", help="run the manager from a YAML config")
     p.add_argument("config", help="YAML file (see README, Configuration)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many s")

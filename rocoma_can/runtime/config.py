@@ -14,9 +14,9 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
       required_drives: null        # drives a switch needs ready (null = all; [] = none)
     realtime: {priority: null, cpus: null}   # SCHED_FIFO priority, CPU list
     supervision: {tpdo_timeout_cycles: 5, heartbeat_timeout_factor: 2.5,
-                  consumer_factor: 2.0, sdo_timeout: 0.5,   # CanopenHardware's margins
+                  consumer_factor: 2.0, sdo_timeout: 0.5,   # drivers.config.Supervision
                   boot_wait: 1.0, start_timeout: 2.0, reset_timeout: 1.0,
-                  enable_timeout: 1.0}                      # start-up (bringup.Timeouts)
+                  enable_timeout: 1.0}                      # start-up (Timeouts)
     timing: {advance: 0.5, initialize_fast: 0.5, overruns: 5, hang: 20}  # in cycles (dt):
                                    # the manager's wall-time supervision of controllers
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
@@ -38,9 +38,10 @@ from typing import Any
 
 import yaml
 
-from ..drivers.config import BusConfig, DriveConfig
+from ..drivers.config import BusConfig, DriveConfig, Supervision, Timeouts
 from ..drivers.pdo_layout import drive_object_dictionary, layout_for
 from ..errors import ConfigError
+from ..manager import TimingSupervision
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
 _TOP_KEYS = {"bus", "rate", "manager", "realtime", "supervision", "timing", "drives",
@@ -49,7 +50,8 @@ _BUS_KEYS = {"interface", "channel", "bitrate"}
 _MANAGER_KEYS = {"node_id", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
                  "switch_clients", "status_period", "required_drives"}
 _REALTIME_KEYS = {"priority", "cpus"}
-#: supervision margins: key -> (whole number?, minimum, maximum); CanopenHardware has the defaults
+#: supervision margins: key -> (whole number?, minimum, maximum); drivers.config.Supervision
+#: has the defaults
 _SUPERVISION = {
     "tpdo_timeout_cycles": (True, 1, 10_000),
     "heartbeat_timeout_factor": (False, 1.5, 100.0),
@@ -68,7 +70,7 @@ _TIMING = {
     "overruns": (True, 1, 1000),
     "hang": (False, 2.0, 100_000.0),
 }
-#: the supervision keys that are start-up timeouts: key -> drivers.bringup.Timeouts field
+#: the supervision keys that are start-up timeouts: key -> drivers.config.Timeouts field
 TIMEOUT_KEYS = {"boot_wait": "boot_wait", "start_timeout": "start", "reset_timeout": "reset",
                 "enable_timeout": "enable"}
 
@@ -93,8 +95,8 @@ class RuntimeConfig:
     controllers: dict[str, Any]  # {"controllers": [...], "emergency_controllers": [...]}
     priority: int | None = None
     cpus: set[int] | None = None
-    supervision: dict[str, float] = field(default_factory=dict)  # CanopenHardware keywords
-    timing: dict[str, Any] = field(default_factory=dict)  # TimingSupervision keywords
+    supervision: Supervision = field(default_factory=Supervision)
+    timing: TimingSupervision = field(default_factory=TimingSupervision)
     source: str = "<memory>"
     load: BusLoad | None = field(default=None)
 
@@ -301,9 +303,12 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         problems.append(f"realtime.cpus: expected null or a list of CPU numbers, got {cpus!r}")
         cpus = None
 
-    supervision = _numbers(_section(data, "supervision", problems), _SUPERVISION,
-                           "supervision", problems)
-    timing = _numbers(_section(data, "timing", problems), _TIMING, "timing", problems)
+    margins = _numbers(_section(data, "supervision", problems), _SUPERVISION,
+                       "supervision", problems)
+    timeouts = {name: margins.pop(key) for key, name in TIMEOUT_KEYS.items() if key in margins}
+    supervision = Supervision(**margins, timeouts=Timeouts(**timeouts))  # ranges checked above
+    timing = TimingSupervision(**_numbers(_section(data, "timing", problems), _TIMING,
+                                          "timing", problems))
 
     drives = _drives(data.get("drives"), manager.node_id, base, problems)
     required = m.get("required_drives")
@@ -347,7 +352,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
 def _numbers(section: Mapping[str, Any], spec: Mapping[str, tuple[bool, float, float]],
              where: str, problems: list[str]) -> dict[str, Any]:
     """The numbers given in a section checked against ``spec`` (the rest keep their
-    defaults: CanopenHardware's margins, TimingSupervision's budgets)."""
+    defaults: Supervision's margins, TimingSupervision's budgets)."""
     _unknown(section, set(spec), where, problems)
     out: dict[str, Any] = {}
     for key, value in section.items():

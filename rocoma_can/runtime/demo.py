@@ -25,6 +25,7 @@ from .objects import STATE_NAMES
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
     from ..drivers.sim.segment import SimulatedSegment
+    from .loop import TimingSummary
     from .system import Runtime
 
 MANAGER_ID = 100
@@ -265,7 +266,8 @@ def _status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None]
             f"overruns {s.overruns} tx errors {hw.tx_errors}")
 
 
-def _summary(out: Callable[[str], None], report: Report, timing: Any, rt: Runtime) -> None:
+def _summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
+             rt: Runtime) -> None:
     out("")
     out("summary")
     out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
@@ -284,7 +286,7 @@ def _summary(out: Callable[[str], None], report: Report, timing: Any, rt: Runtim
         s.name for s in report.steps if not s.ok)))
 
 
-def register(subparsers: Any) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "demo", help="run the embedded demo (virtual bus, simulated drives)",
         description=__doc__.split("\n\n")[0])

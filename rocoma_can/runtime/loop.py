@@ -21,9 +21,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from types import FrameType
+from typing import Protocol
 
 import numpy as np
+
+from ..events import ManagerState
 
 log = logging.getLogger(__name__)
 
@@ -103,15 +106,28 @@ def set_realtime(priority: int | None, cpus: set[int] | None) -> list[str]:
     return warnings
 
 
+class CycleHardware(Protocol):
+    """What the loop needs of a hardware layer (drivers.hardware.CanopenHardware)."""
+
+    def read(self, now: float) -> None: ...
+    def write(self, manager_state: ManagerState) -> None: ...
+
+
+class CycleManager(Protocol):
+    """What the loop needs of a manager (rocoma_can.ControllerManager)."""
+
+    def update(self) -> ManagerState: ...
+    def failproof_stop(self, cause: str = ...) -> None: ...
+
+
 class ControlLoop:
     """Runs ``hardware`` + ``manager`` at ``rate`` Hz on the calling thread until stopped.
 
-    ``hardware`` needs ``read(now)``, ``write(state)``; ``manager`` needs ``update()`` and
-    ``failproof_stop(cause)``. ``on_cycle(now)`` (optional) runs after each cycle on the
-    loop thread; it must be cheap (the demo uses it for its script and status line).
+    ``on_cycle(now)`` (optional) runs after each cycle on the loop thread; it must be cheap
+    (the demo uses it for its script and status line).
     """
 
-    def __init__(self, hardware: Any, manager: Any, rate: float, *,
+    def __init__(self, hardware: CycleHardware, manager: CycleManager, rate: float, *,
                  priority: int | None = None, cpus: set[int] | None = None,
                  stop_cycles: int = 3, on_cycle: Callable[[float], None] | None = None,
                  stats_size: int = 4096) -> None:
@@ -128,7 +144,7 @@ class ControlLoop:
         self.stop_reason = ""
         self._stop = threading.Event()
         self._signalled: str | None = None  # set by the signal handler, taken by the loop
-        self.last_state: Any = None
+        self.last_state = ManagerState.FAILPROOF  # the manager's start state
 
     def stop(self, reason: str = "stop requested") -> None:
         """From any thread (not a signal handler: see ``on_signal``): the loop torque-offs
@@ -137,7 +153,7 @@ class ControlLoop:
             self.stop_reason = reason
             self._stop.set()
 
-    def on_signal(self, signum: int, frame: Any) -> None:
+    def on_signal(self, signum: int, frame: FrameType | None) -> None:
         """SIGINT/SIGTERM handler. It takes no lock: Python runs it on the main thread (the
         loop's) between two bytecodes, possibly while that thread holds the stop Event's
         lock inside ``Event.wait``; ``Event.set`` here would then wait for that lock for ever
@@ -223,7 +239,8 @@ class ControlLoop:
             except Exception:
                 log.exception("torque-off cycle raised while stopping the loop")
                 try:
-                    self.hardware.write(0)  # FAILPROOF: the pre-encoded torque-off frames
+                    # the pre-encoded torque-off frames
+                    self.hardware.write(ManagerState.FAILPROOF)
                 except Exception:
                     log.exception("torque-off frames could not be sent")
             time.sleep(min(self.period, 0.02))

@@ -41,12 +41,14 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from typing import Any
 
 import can
 import canopen
-from canopen.objectdictionary import NUMBER_TYPES
+from canopen.objectdictionary import NUMBER_TYPES, ODVariable
 from canopen.sdo.constants import (
+    ABORT_GENERAL_ERROR,
     EXPEDITED,
     NO_MORE_DATA,
     REQUEST_SEGMENT_DOWNLOAD,
@@ -62,6 +64,7 @@ from .. import eds as shipped_eds
 from ..drivers.bus import BusReader
 from ..drivers.cia301 import EMCY, PRODUCER_HEARTBEAT_TIME, TPDO_BASE, TPDO_COMM
 from ..events import EventKind, ManagerEvent, ManagerState
+from ..manager import ControllerManager, SwitchResult
 from .objects import (
     ABORT_COMMAND_SPECIFIER,
     ABORT_NO_RECOVERY,
@@ -211,12 +214,22 @@ def _never_produce_heartbeats(node: canopen.LocalNode) -> None:
     node.nmt.start_heartbeat = lambda heartbeat_time_ms: None  # type: ignore[method-assign]
 
 
+def _integer(od: ODVariable, data: bytes) -> int:
+    """An integer object's written value (the node's EDS types these objects as integers;
+    anything else is a wrong EDS, refused like any write the node cannot take)."""
+    value = od.decode_raw(data)
+    if not isinstance(value, int):
+        raise SdoAbortedError(ABORT_GENERAL_ERROR)
+    return value
+
+
 class ManagerNode(can.Listener):
     """Serves a ControllerManager on a CAN bus (lent, not shut down here)."""
 
-    def __init__(self, manager: Any, node_id: int, bus: can.BusABC, *,
+    def __init__(self, manager: ControllerManager, node_id: int, bus: can.BusABC, *,
                  estop_cob_id: int = 0, status_period: float = 0.1,
-                 recover: Callable[[], Any] | None = None, eds_path: str | None = None,
+                 recover: Callable[[], Future[bool]] | None = None,
+                 eds_path: str | None = None,
                  heartbeat_ms: int | None = None,
                  drive_status: Callable[[], dict[str, Any]] | None = None) -> None:
         self.manager = manager
@@ -313,7 +326,7 @@ class ManagerNode(can.Listener):
         active = self.manager.active_controller_name
         return names.index(active) + 1 if active in names else 0
 
-    def _on_read(self, index: int, subindex: int, od: Any) -> Any:
+    def _on_read(self, index: int, subindex: int, od: ODVariable) -> int | str | None:
         m = self.manager
         if index == PRODUCER_HEARTBEAT_TIME and self.heartbeat_ms is not None:
             return self.heartbeat_ms
@@ -343,7 +356,7 @@ class ManagerNode(can.Listener):
             return self._estop_cob_id
         return None
 
-    def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+    def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
         m = self.manager
         if index == SWITCH_NAME:
             try:  # strictly: canopen's decoding drops bytes it cannot read ("h\xffold" -> hold)
@@ -354,7 +367,7 @@ class ManagerNode(can.Listener):
             self._switch(name)
         elif index == SWITCH_INDEX:
             names = m.available_controllers()
-            n = od.decode_raw(data)
+            n = _integer(od, data)
             if not 1 <= n <= len(names):
                 self.last_result = 2
                 raise SdoAbortedError(ABORT_NOT_FOUND)
@@ -371,7 +384,7 @@ class ManagerNode(can.Listener):
                 raise SdoAbortedError(ABORT_NO_RECOVERY)
             self.recover()
         elif index == ESTOP_COB_ID:
-            self._change_estop_cob_id(od.decode_raw(data))
+            self._change_estop_cob_id(_integer(od, data))
 
     def _change_estop_cob_id(self, value: int) -> None:
         """An SDO write of 0x2130: bit 31 set (CiA 301 "not valid") or 0 switches the e-stop
@@ -405,7 +418,7 @@ class ManagerNode(can.Listener):
         if future.done() and future.result() == 3:
             raise SdoAbortedError(ABORT_REFUSED)
 
-    def _switch_done(self, future: Any) -> None:
+    def _switch_done(self, future: Future[SwitchResult]) -> None:
         try:
             self.last_result = int(future.result())
         except Exception:

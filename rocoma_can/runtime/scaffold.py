@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import keyword
 from pathlib import Path
-from typing import Any
 
 PYPROJECT = '''[build-system]
 requires = ["setuptools>=68", "wheel"]
@@ -160,7 +159,7 @@ def create_package(name: str, where: Path) -> Path:
     return root
 
 
-def register(subparsers: Any) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("new-controller", help="write a controller package template")
     p.add_argument("name", help="controller (and package) name, e.g. my_pd")
     p.add_argument("--dir", default=".", help="where to create the folder (default: here)")

@@ -7,17 +7,16 @@ from collections.abc import Callable
 from typing import Any
 
 from ..controllers.torque_off import TorqueOff
-from ..drivers.bringup import Timeouts
 from ..drivers.bus import open_bus
 from ..drivers.hardware import CanopenHardware
-from ..manager import ControllerManager, TimingSupervision
+from ..manager import ControllerManager
 from ..plugins import add_to_manager
-from .config import TIMEOUT_KEYS, RuntimeConfig
+from .config import RuntimeConfig
 from .loop import ControlLoop, TimingSummary
 from .node import ManagerNode
 
 
-def manager_for(hardware: Any, **kwargs: Any) -> ControllerManager:
+def manager_for(hardware: CanopenHardware, **kwargs: Any) -> ControllerManager:
     """A ControllerManager over a CanopenHardware, wired to it: TorqueOff as the failproof
     layer, the hardware's ``limit_command`` (modes, NaN, limits), ``neutral_command`` (on
     every fall to a lower layer) and ``send_torque_off`` (on a hung update), and its fault
@@ -51,13 +50,9 @@ class Runtime:
                  on_cycle: Callable[[float], None] | None = None) -> None:
         self.config = config
         m = config.manager
-        margins: dict[str, Any] = dict(config.supervision)
-        timeouts = {field: margins.pop(key) for key, field in TIMEOUT_KEYS.items()
-                    if key in margins}
-        if timeouts:
-            margins["timeouts"] = Timeouts(**timeouts)
         self.hardware = CanopenHardware(config.bus, config.drives, m.node_id, config.dt,
-                                        manager_heartbeat_ms=m.heartbeat_ms, **margins)
+                                        manager_heartbeat_ms=m.heartbeat_ms,
+                                        supervision=config.supervision)
         # built in order; on a failure, what was built so far is closed (_close_parts)
         self._parts: list[Callable[[], object]] = [self.hardware.close]
         try:
@@ -67,7 +62,7 @@ class Runtime:
             hardware = self.hardware
             self.manager = manager_for(
                 hardware, estop_must_be_cleared=m.estop_must_be_cleared,
-                timing=TimingSupervision(**config.timing),
+                timing=config.timing,
                 switch_guard=lambda: hardware.not_ready(required))
             self._parts.insert(0, self.manager.shutdown)
             add_to_manager(self.manager, config.controllers)
