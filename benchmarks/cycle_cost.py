@@ -73,8 +73,12 @@ def time_ours(n: int, repeat: int, channel: str) -> list[float]:
             b.phase, b.mapped = Phase.READY, True
             hw.supervisor.arm(i, now)
         hw.supervisor.heartbeat_deadline[:] = np.inf  # no heartbeats in this benchmark
-        hw._send = lambda msg: None                   # leave the bus out (see docstring)
-        receiver = hw._canopen.reader._listeners[-1]
+        def leave_out(msg: can.Message) -> None:    # leave the bus out (see docstring)
+            pass
+        hw._send_of = [leave_out] * len(drives)
+        for port in hw.ports:
+            port.send = leave_out
+        receiver = hw.ports[0].canopen.reader._listeners[-1]
         frames = tpdo_frames(drives)
         command(hw.command)
         samples = []

@@ -7,7 +7,7 @@ found at run time is a moving robot doing the wrong thing.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -32,10 +32,33 @@ def _positive(where: str, name: str, value: Any) -> None:
 
 @dataclass(frozen=True)
 class BusConfig:
-    """Where the drives are: any python-can interface (socketcan, virtual, pcan, ...)."""
+    """Where the drives are: any python-can interface (socketcan, virtual, pcan, ...).
+
+    ``name`` is what drives call their bus (``DriveConfig.bus``); it defaults to the
+    channel. ``fd``: CAN FD frames (bit rate switching in the data phase at
+    ``data_bitrate``); on socketcan both bit rates are set with ``ip link``, as the
+    classic one is.
+    """
     interface: str = "socketcan"
     channel: str = "can0"
     bitrate: int | None = None  # socketcan ignores it: set it with `ip link`
+    name: str = ""
+    fd: bool = False
+    data_bitrate: int | None = None
+
+    def __post_init__(self) -> None:
+        where = f"bus {self.label!r}"
+        if self.data_bitrate is not None and not self.fd:
+            raise ValueError(f"{where}: data_bitrate needs fd: true")
+        for name in ("bitrate", "data_bitrate"):
+            value = getattr(self, name)
+            if value is not None and (not _whole(value) or value <= 0):
+                raise ValueError(f"{where}: {name} must be a positive integer (bit/s), "
+                                 f"got {value!r}")
+
+    @property
+    def label(self) -> str:
+        return self.name or self.channel
 
 
 @dataclass(frozen=True)
@@ -129,6 +152,7 @@ class DriveConfig:
     position_min: float = -math.inf         # rad, joint side
     position_max: float = math.inf
     heartbeat_ms: int = 100                 # the drive's heartbeat producer (0x1017)
+    bus: str = ""                           # its bus's name; "" = the first (or only) bus
 
     def __post_init__(self) -> None:
         where = f"drive {self.name!r}"
@@ -167,6 +191,8 @@ class DriveConfig:
         if not _whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
             raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
                              f"got {self.heartbeat_ms!r}")
+        if not isinstance(self.bus, str):
+            raise ValueError(f"{where}: bus must be the name of a bus, got {self.bus!r}")
         if self.eds is not None and not Path(self.eds).is_file():
             raise ValueError(f"{where}: eds file {self.eds!r} does not exist")
 
@@ -184,21 +210,29 @@ class DriveConfig:
         return cls(**dict(data))
 
 
-def check_drives(drives: list[DriveConfig], manager_node_id: int) -> None:
-    """Checks across drives: unique names and node ids, none equal to the manager's."""
+def check_drives(drives: list[DriveConfig], manager_node_id: int,
+                 buses: Sequence[str] = ("",)) -> None:
+    """Checks across drives: unique names, each drive on one of ``buses`` ("" = the first),
+    node ids unique on each bus and none equal to the manager's (the manager is a node on
+    every bus: its heartbeat goes to all of them)."""
     if not drives:
         raise ValueError("drives: at least one drive is needed")
     if not _whole(manager_node_id) or not 1 <= manager_node_id <= 127:
         raise ValueError(f"manager_node_id must be an integer 1..127, got {manager_node_id!r}")
     seen_names: set[str] = set()
-    seen_ids: dict[int, str] = {}
+    seen_ids: dict[tuple[str, int], str] = {}
     for d in drives:
         if d.name in seen_names:
             raise ValueError(f"drive name {d.name!r} is used twice")
         seen_names.add(d.name)
-        if d.node_id in seen_ids:
+        if d.bus and d.bus not in buses:
+            raise ValueError(f"drive {d.name!r}: no bus named {d.bus!r} (buses: "
+                             f"{', '.join(repr(b) for b in buses)})")
+        bus = d.bus or buses[0]
+        on = f" on bus {bus!r}" if len(buses) > 1 else ""
+        if (bus, d.node_id) in seen_ids:
             raise ValueError(f"drive {d.name!r}: node_id {d.node_id} is already used by "
-                             f"drive {seen_ids[d.node_id]!r}")
+                             f"drive {seen_ids[bus, d.node_id]!r}{on}")
         if d.node_id == manager_node_id:
             raise ValueError(f"drive {d.name!r}: node_id {d.node_id} is the manager's node id")
-        seen_ids[d.node_id] = d.name
+        seen_ids[bus, d.node_id] = d.name

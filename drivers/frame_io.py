@@ -104,12 +104,18 @@ class FrameWriter:
     own buffer is full), as python-can's ``send(timeout=0)`` does, with one system call.
     """
 
-    def __init__(self, bus: can.BusABC) -> None:
+    def __init__(self, bus: can.BusABC, fd: bool = False) -> None:
         self.bus = bus
+        self.fd = fd
         self._sock = _raw_socket(bus)
 
     def send(self, cob_id: int, data: bytes) -> None:
-        """A classic 11-bit data frame."""
+        """An 11-bit data frame: classic, or CAN FD with bit rate switching when ``fd``."""
+        if self.fd:
+            self.send_message(can.Message(arbitration_id=cob_id, data=data,
+                                          is_extended_id=False, is_fd=True,
+                                          bitrate_switch=True))
+            return
         if self._sock is None:
             self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False),
                           timeout=0)

@@ -11,16 +11,20 @@ The safety path, top to bottom (each step names where it lives):
 1. A drive goes wrong. Supervision (supervision.py) turns every symptom into a FaultEvent:
    EMCY, statusword fault bit, heartbeat deadline or non-operational heartbeat, TPDOs missing
    for k cycles, a drive dropping out of operation enabled or not enabling in time
-   (``_command_frames`` below), a bus-off error frame (``_on_error_frames``), or the bus
-   refusing frames in ``tpdo_timeout_cycles`` cycles in a row (``_end_of_write``). Frames
-   arrive on the bus reader thread (bus.py), which only appends them to a deque; ``read``
-   drains it on the cycle thread, so no lock is shared with a slow thread.
+   (``_command_frames`` below). A whole bus can fail too: a bus-off error frame or the bus
+   refusing frames in ``tpdo_timeout_cycles`` cycles in a row (``BusPort.bus_off`` and
+   ``BusPort.end_of_write``, bus_port.py) is a fault of every drive on it (``_bus_failed``).
+   Frames arrive on each bus's reader thread (bus.py), which only appends them to a deque;
+   ``read`` drains every bus on the cycle thread, so no lock is shared with a slow thread.
+   An e-stop frame (``estop_cob_id``, any bus) is drained the same way (``_on_estop_frame``)
+   and reaches the manager before this cycle's update.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
    a latched drive is never sent anything but controlword 0x0000), until recovery, and
    controlword 0x0000 once by SDO from a thread of its own (``_deliver``, switch_off.py): a
    drive that no longer applies RPDOs (pre-operational, ignoring SYNC) still switches off.
 3. ``read`` hands the event to the manager before update(): ``manager.emergency_stop(cause)``
-   (``_deliver``; ``rocoma_can.runtime.system.manager_for`` wires it). In update() the
+   (``_deliver``; ``rocoma_can.runtime.system.manager_for`` wires it), or
+   ``failproof_stop`` for a failed bus (a smart stop needs every joint). In update() the
    manager switches OK -> EMERGENCY: the emergency controller's initialize_fast and advance
    write this cycle's command (after the manager's ``_estop`` had ``neutral_command``
    reset it), so the failed controller never commands again.
@@ -59,7 +63,7 @@ import collections
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -70,11 +74,11 @@ import numpy as np
 from ..events import ManagerState
 from . import cia301, cia402
 from .bringup import DriveBringup, Phase
-from .bus import CanopenBus, open_bus
+from .bus_port import BusPort
 from .cia402 import State402
 from .config import BusConfig, DriveConfig, Supervision, check_drives
 from .enable import OP_ENABLED, EnableSequence
-from .frame_io import FrameWriter, clock_offset, to_monotonic
+from .frame_io import clock_offset, to_monotonic
 from .joints import JointCommand, JointMode, JointState
 from .pdo_layout import RPDO_FIELDS, DriveLayout, drive_object_dictionary, layout_for
 from .scaling import Scaling
@@ -99,33 +103,6 @@ class DriveStatus:
     heartbeat_age: float | None = None  # s since that heartbeat arrived; None: none yet
 
 
-#: Linux CAN error class of a bus-off error frame (linux/can/error.h CAN_ERR_BUSOFF)
-CAN_ERR_BUSOFF = 0x40
-
-
-class _Receiver(can.Listener):
-    """Runs on the bus reader thread: filter by COB-ID, append. Nothing else.
-
-    Frames keep their arrival stamp (kernel or python-can, wall clock); ``read`` converts it
-    to the monotonic clock once per cycle, so a reader that lags does not make frames late.
-    """
-
-    def __init__(self, cob_ids: set[int], sink: collections.deque[can.Message],
-                 errors: collections.deque[can.Message]) -> None:
-        self._ids = frozenset(cob_ids)
-        self._sink = sink
-        self._errors = errors
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.is_error_frame:
-            self._errors.append(msg)
-        elif msg.arbitration_id in self._ids and not (msg.is_extended_id or msg.is_remote_frame):
-            self._sink.append(msg)  # only 11-bit data frames are CANopen: 0x181 (29 bit) is not
-
-    def on_error(self, exc: Exception) -> None:  # counted by the reader; nothing to do here
-        pass
-
-
 class Manager(Protocol):
     """What the hardware needs of the manager it is attached to (rocoma_can's
     ControllerManager): nothing in drivers/ builds or imports one."""
@@ -133,23 +110,47 @@ class Manager(Protocol):
 
     def update(self) -> ManagerState: ...
     def emergency_stop(self, cause: str = ...) -> None: ...
+    def failproof_stop(self, cause: str = ...) -> None: ...
     def clear_emergency_stop(self) -> bool: ...
 
 
-def _frame(cob_id: int, size: int) -> can.Message:
-    return can.Message(arbitration_id=cob_id, data=bytearray(size), is_extended_id=False)
+Bus = can.BusABC | BusConfig
+#: A TPDO's receive entry: drive index, its bit in the cycle's mask, size, unpack, targets
+_TpdoEntry = tuple[int, int, int, Callable[..., tuple[int, ...]], tuple[np.ndarray, ...]]
+
+
+def _whole_cob_id(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0x7FF
+
+
+def _named_buses(bus: Bus | Mapping[str, Bus]) -> dict[str, Bus]:
+    """One bus (named by its config, or "bus" when lent) or a name -> bus mapping."""
+    if isinstance(bus, Mapping):
+        if not bus:
+            raise ValueError("buses: at least one bus is needed")
+        return dict(bus)
+    return {bus.label if isinstance(bus, BusConfig) else "bus": bus}
 
 
 class CanopenHardware:
-    """CiA 402 drives on one CAN bus, cycled by the control loop."""
+    """CiA 402 drives on one or several CAN buses, cycled by the control loop.
 
-    def __init__(self, bus: can.BusABC | BusConfig, drives: Sequence[DriveConfig],
+    ``bus``: one bus (a python-can bus lent by the caller, or a BusConfig opened by
+    ``start``), or a mapping from bus name to bus for several; each drive names its bus in
+    ``DriveConfig.bus`` ("" = the first). One JointState / JointCommand covers every joint.
+    """
+
+    def __init__(self, bus: Bus | Mapping[str, Bus], drives: Sequence[DriveConfig],
                  manager_node_id: int, dt: float, *,
                  manager_heartbeat_ms: int = 100, supervision: Supervision | None = None,
-                 config_workers: int = 4,
+                 config_workers: int = 4, estop_cob_id: int = 0,
                  on_fault: Callable[[FaultEvent], None] | None = None) -> None:
         drives = list(drives)
-        check_drives(drives, manager_node_id)
+        buses = _named_buses(bus)
+        check_drives(drives, manager_node_id, list(buses))
+        if not _whole_cob_id(estop_cob_id):
+            raise ValueError(f"estop_cob_id must be 0 (off) or an 11-bit COB-ID, "
+                             f"got {estop_cob_id!r}")
         supervision = supervision or Supervision()
         if not dt > 0:
             raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
@@ -168,8 +169,15 @@ class CanopenHardware:
         self.timeouts = supervision.timeouts
         self.config_workers = max(1, int(config_workers))
         self.on_fault = on_fault
-        self._bus_arg = bus
         n = len(drives)
+        first = next(iter(buses))
+        self.ports = [BusPort(name, arg, [i for i, d in enumerate(drives)
+                                          if (d.bus or first) == name], manager_node_id)
+                      for name, arg in buses.items()]
+        port_of = {p.name: p for p in self.ports}
+        self._port_of = [port_of[d.bus or first] for d in drives]
+        self._estop_cob_id = estop_cob_id
+        self.estop_frames = 0  # e-stop frames received (any bus)
         names = [d.name for d in drives]
         self.state = JointState.zeros(names)
         self.command = JointCommand.zeros(names)
@@ -205,37 +213,31 @@ class CanopenHardware:
         self._hb_state = [-1] * n
         self._hb_time = np.full(n, -math.inf)
 
-        # --- receive tables: COB-ID -> what to do with the frame ---------------------------
-        self._tpdo_of: dict[int, tuple[int, int, int, Callable[..., tuple[int, ...]],
-                                       tuple[np.ndarray, ...]]] = {}
-        for i, layout in enumerate(self.layouts):
-            for pdo in layout.tpdos:
-                self._tpdo_of[pdo.cob_id] = (i, 1 << (pdo.number - 1), pdo.size,
-                                             pdo.codec.unpack_from,
-                                             tuple(self._raw[name] for name in pdo.names))
-        self._index_of_node = {d.node_id: i for i, d in enumerate(drives)}
-        self._heartbeat_of = {cia301.HEARTBEAT + d.node_id: i for i, d in enumerate(drives)}
-        self._emcy_of = {cia301.EMCY + d.node_id: i for i, d in enumerate(drives)}
-        self._rx: collections.deque[can.Message] = collections.deque()
-        self._rx_errors: collections.deque[can.Message] = collections.deque(maxlen=1024)
+        # --- receive tables per bus: COB-ID -> what to do with the frame -------------------
+        self._tpdo_of: list[dict[int, _TpdoEntry]] = [{} for _ in self.ports]
+        for k, port in enumerate(self.ports):
+            for i in port.drives:
+                d = drives[i]
+                for pdo in self.layouts[i].tpdos:
+                    self._tpdo_of[k][pdo.cob_id] = (
+                        i, 1 << (pdo.number - 1), pdo.size, pdo.codec.unpack_from,
+                        tuple(self._raw[name] for name in pdo.names))
+                port.heartbeat_of[cia301.HEARTBEAT + d.node_id] = i
+                port.emcy_of[cia301.EMCY + d.node_id] = i
 
         # --- transmit frames, allocated once -------------------------------------------------
         # Per drive and RPDO: (frame, codec.pack_into, positions of its entries in RPDO_FIELDS)
-        self._rpdo_frames = [[(_frame(p.cob_id, p.size), p.codec.pack_into,
+        self._rpdo_frames = [[(self._port_of[i].frame(p.cob_id, p.size), p.codec.pack_into,
                                p.positions_in(RPDO_FIELDS)) for p in lay.rpdos]
-                             for lay in self.layouts]
+                             for i, lay in enumerate(self.layouts)]
+        self._send_of = [port.send for port in self._port_of]
         self._torque_off_frames = [self._preencode(i, 0) for i in range(n)]
         self._fault_reset_frames = [self._preencode(i, _CW_FAULT_RESET) for i in range(n)]
         self._probe_frames = [self._preencode(i, int(cia402.Controlword.SHUTDOWN))
                               for i in range(n)]
-        self._sync = _frame(cia301.SYNC, 0)
-        self._heartbeat = can.Message(arbitration_id=cia301.HEARTBEAT + manager_node_id,
-                                      data=bytearray([cia301.NmtState.OPERATIONAL]),
-                                      is_extended_id=False)
         self._next_heartbeat = -math.inf
 
-        self._canopen: CanopenBus | None = None
-        self._writer: FrameWriter | None = None
+        self._started = False
         self._bringup: list[DriveBringup] = []
         self._executor: ThreadPoolExecutor | None = None
         self._switch_off = SdoSwitchOff()  # started with the bus (start)
@@ -246,14 +248,9 @@ class CanopenHardware:
         self._recovery_deadline = math.inf
         self._now = 0.0
         self.fault_events: collections.deque[FaultEvent] = self.supervisor.history
-        self.tx_errors = 0     # frames the bus refused (counted, never raised)
-        self.last_tx_error: Exception | None = None
-        self._tx_refused = False     # a frame was refused since the last write
-        self._tx_refused_cycles = 0  # writes in a row with a refused frame
-        self._tx_clean_cycles = 0    # writes in a row without one (a recovery needs a run)
         self.rx_bad = 0        # TPDOs with a length other than their mapping's (never decoded)
+        self.internal_errors = 0  # bugs caught in the cycle (each ended in torque-off frames)
         self.hook_errors = 0   # on_fault calls that raised (counted, never raised)
-        self.error_frames = 0  # CAN error frames received (bus-off ones are a fault)
         self.cycles = 0
 
     def _preencode(self, i: int, controlword: int) -> list[can.Message]:
@@ -261,33 +258,36 @@ class CanopenHardware:
         values = (controlword, self._default_mode[i], 0, 0, 0)
         frames = []
         for pdo in self.layouts[i].rpdos:
-            msg = _frame(pdo.cob_id, pdo.size)
+            msg = self._port_of[i].frame(pdo.cob_id, pdo.size)
             pdo.codec.pack_into(msg.data, 0, *(values[k] for k in pdo.positions_in(RPDO_FIELDS)))
             frames.append(msg)
         return frames
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self, now: float | None = None) -> None:
-        """Open the bus (unless lent), attach the receiver, begin every drive's bring-up."""
-        if self._canopen is not None:
+        """Open the buses (unless lent), attach the receivers, begin every drive's bring-up.
+        A bus that cannot be opened closes the ones opened before it and raises OSError."""
+        if self._started:
             raise RuntimeError("CanopenHardware.start() called twice")
+        self._started = True
         now = time.monotonic() if now is None else now
-        if isinstance(self._bus_arg, BusConfig):
-            cfg = self._bus_arg
-            cb = CanopenBus(open_bus(cfg.interface, cfg.channel, cfg.bitrate), own_bus=True)
-        else:
-            cb = CanopenBus(self._bus_arg)
-        self._canopen = cb
-        self._writer = cb.writer
-        cob_ids = set(self._tpdo_of) | set(self._heartbeat_of) | set(self._emcy_of)
-        cb.add_listener(_Receiver(cob_ids, self._rx, self._rx_errors))
+        try:
+            for k, port in enumerate(self.ports):
+                port.open(set(self._tpdo_of[k]) | set(port.heartbeat_of) | set(port.emcy_of))
+                port.set_estop_cob_id(self._estop_cob_id)
+        except BaseException:
+            for port in self.ports:
+                port.close()
+            raise
         self._switch_off = SdoSwitchOff()
         self._switch_off.start()
         self._executor = ThreadPoolExecutor(
             max_workers=min(self.config_workers, len(self.drives_config)),
             thread_name_prefix="canopen-config")
-        for d, layout, od in zip(self.drives_config, self.layouts, self._ods):
-            node = cb.network.add_node(d.node_id, od)
+        for d, layout, od, port in zip(self.drives_config, self.layouts, self._ods,
+                                       self._port_of):
+            assert port.canopen is not None  # opened above
+            node = port.canopen.network.add_node(d.node_id, od)
             # No retransmission by default (CiA 301 clients abort on timeout): a late answer
             # to the first copy would be taken as the answer to the next request. configure()
             # repeats a whole failed attempt instead, after stale answers have drained.
@@ -308,9 +308,8 @@ class CanopenHardware:
             self._executor.shutdown(wait=True, cancel_futures=True)
             self._executor = None
         self._switch_off.close()
-        if self._canopen is not None:
-            self._canopen.close()
-            self._canopen = None
+        for port in self.ports:
+            port.close()
         if self._recovery is not None and not self._recovery.done():
             self._recovery.set_result(False)
 
@@ -342,41 +341,48 @@ class CanopenHardware:
         sup = self.supervisor
         got = self._got
         got.fill(0)
-        rx = self._rx
-        tpdo_of, heartbeat_of, emcy_of = self._tpdo_of, self._heartbeat_of, self._emcy_of
         stamp = self.state.stamp
         offset = clock_offset()
-        while rx:
-            msg = rx.popleft()
-            t = to_monotonic(offset, msg.timestamp, now)
-            cob = msg.arbitration_id
-            entry = tpdo_of.get(cob)
-            if entry is not None:
-                i, bit, size, unpack, targets = entry
-                if msg.dlc != size:  # not what we mapped: never decoded, a fault once supervised
-                    self.rx_bad += 1
-                    sup.on_bad_tpdo(i, cob, msg.dlc, size, t)
+        for k, port in enumerate(self.ports):
+            rx = port.rx
+            tpdo_of, heartbeat_of, emcy_of = self._tpdo_of[k], port.heartbeat_of, port.emcy_of
+            while rx:
+                msg = rx.popleft()
+                t = to_monotonic(offset, msg.timestamp, now)
+                cob = msg.arbitration_id
+                entry = tpdo_of.get(cob)
+                if entry is not None:
+                    i, bit, size, unpack, targets = entry
+                    if msg.dlc != size:  # not what we mapped: never decoded, a fault once armed
+                        self.rx_bad += 1
+                        sup.on_bad_tpdo(i, cob, msg.dlc, size, t)
+                        continue
+                    values = unpack(msg.data)
+                    for arr, v in zip(targets, values):
+                        arr[i] = v
+                    got[i] |= bit
+                    stamp[i] = t
                     continue
-                values = unpack(msg.data)
-                for arr, v in zip(targets, values):
-                    arr[i] = v
-                got[i] |= bit
-                stamp[i] = t
-                continue
-            beat = heartbeat_of.get(cob)
-            if beat is not None:
-                if msg.dlc >= 1:
-                    self._on_heartbeat(beat, msg.data[0], t)
-                continue
-            j = emcy_of.get(cob)
-            if j is not None and msg.dlc >= 2:
-                code = msg.data[0] | (msg.data[1] << 8)
-                self.state.error_code[j] = code
-                if code == cia301.EMCY_STO:
-                    self._bringup[j].sto_seen = True
-                sup.on_emcy(j, code, t)
-        if self._rx_errors:
-            self._on_error_frames(offset, now)
+                beat = heartbeat_of.get(cob)
+                if beat is not None:
+                    if msg.dlc >= 1:
+                        self._on_heartbeat(beat, msg.data[0], t)
+                    continue
+                j = emcy_of.get(cob)
+                if j is not None:
+                    if msg.dlc >= 2:
+                        code = msg.data[0] | (msg.data[1] << 8)
+                        self.state.error_code[j] = code
+                        if code == cia301.EMCY_STO:
+                            self._bringup[j].sto_seen = True
+                        sup.on_emcy(j, code, t)
+                    continue
+                if cob == self._estop_cob_id:
+                    self._on_estop_frame(port)
+            if port.rx_errors:
+                cause = port.bus_off()
+                if cause is not None:
+                    self._bus_failed(port, cause, now)
         np.equal(got, self._expected, out=self._complete)
         self._decode(now)
         self._step_bringup(now)
@@ -385,15 +391,22 @@ class CanopenHardware:
         self._deliver(sup.take_pending())
         self.cycles += 1
 
-    def _on_error_frames(self, offset: float, now: float) -> None:
-        errors = self._rx_errors
-        while errors:
-            msg = errors.popleft()
-            self.error_frames += 1
-            if msg.arbitration_id & CAN_ERR_BUSOFF:
-                self.supervisor.bus_fault(f"CAN bus-off (error frame class "
-                                          f"0x{msg.arbitration_id:X})",
-                                          to_monotonic(offset, msg.timestamp, now))
+    def _on_estop_frame(self, port: BusPort) -> None:
+        """An e-stop frame: the manager's update, which runs right after this read, acts on
+        it (any 11-bit frame on the COB-ID, data or remote, on any bus)."""
+        self.estop_frames += 1
+        if self._manager is not None:
+            self._manager.emergency_stop(
+                cause=f"CAN e-stop from 0x{self._estop_cob_id:03X} on bus {port.name!r}")
+
+    def _bus_failed(self, port: BusPort, cause: str, now: float) -> None:
+        """A fault of every drive on the bus and one event (Supervisor.bus_fault), latched
+        on the port until recovery; ``_deliver`` makes it a failproof stop: an emergency
+        controller written for the whole robot cannot stop it smartly with a bus of joints
+        gone, so every other bus gets torque-off frames from this cycle on."""
+        if port.latched is None:
+            port.latched = cause
+            self.supervisor.bus_fault(cause, now, port.drives, bus=port.name)
 
     def _on_heartbeat(self, i: int, nmt_state: int, t: float) -> None:
         self._hb_state[i] = nmt_state
@@ -437,10 +450,14 @@ class CanopenHardware:
     def _deliver(self, events: list[FaultEvent]) -> None:
         sup = self.supervisor
         for event in events:
-            if self._manager is not None:
-                self._manager.emergency_stop(cause=str(event))  # a deque append: cannot fail
-            i = self._index_of_node.get(event.node_id)
-            if (i is not None and i < len(self._bringup) and self._bringup[i].mapped
+            manager = self._manager
+            if manager is not None:  # a deque append: cannot fail
+                if event.index < 0:  # a whole bus: no smart stop without those joints
+                    manager.failproof_stop(cause=str(event))
+                else:
+                    manager.emergency_stop(cause=str(event))
+            i = event.index
+            if (0 <= i < len(self._bringup) and self._bringup[i].mapped
                     and sup.latched[i] is event):  # a queue append: cannot block
                 self._switch_off.request(self._bringup[i], self._still_latched(i, event))
             if self.on_fault is not None:
@@ -457,47 +474,37 @@ class CanopenHardware:
             try:
                 self._command_frames()
             except Exception:  # a bug here must still end in torque-off
-                self.tx_errors += 1
+                self.internal_errors += 1
                 self._torque_off()
-        self._send(self._sync)
-        if self._now >= self._next_heartbeat:
-            self._send(self._heartbeat)
-            self._next_heartbeat = self._now + self.manager_heartbeat_period
         self._end_of_write()
 
-    def _send(self, msg: can.Message) -> None:
-        try:
-            self._writer.send_message(msg)  # type: ignore[union-attr]
-        except Exception as exc:  # a full queue, a failed interface, or not started/closed
-            self.tx_errors += 1
-            self.last_tx_error = exc
-            self._tx_refused = True
-
     def _end_of_write(self) -> None:
-        """A bus that refuses frames cycle after cycle (transmit queue full, interface down)
-        delivers no command and no heartbeat: after as many cycles as missing TPDOs are
-        tolerated it is a bus fault, an e-stop like bus-off. One refused frame is not (a
-        transmit queue can be full for a moment); the frames are tried again every cycle. A
-        recovery succeeds only after as many cycles in a row without a refused frame."""
-        sup = self.supervisor
-        if not self._tx_refused:
-            self._tx_refused_cycles = 0
-            if self._tx_clean_cycles < sup.tpdo_timeout_cycles:
-                self._tx_clean_cycles += 1
-            return
-        self._tx_refused = False
-        self._tx_clean_cycles = 0
-        self._tx_refused_cycles += 1
-        if self._tx_refused_cycles >= sup.tpdo_timeout_cycles and sup.bus_latched is None:
-            sup.bus_fault(f"the bus refused frames in {self._tx_refused_cycles} cycles in a "
-                          f"row (last: {self.last_tx_error})", self._now)
+        """SYNC, then the manager heartbeat when due, on every bus back to back; then each
+        bus's transmit health. A bus that refuses frames cycle after cycle (transmit queue
+        full, interface down) delivers no command and no heartbeat: after as many cycles as
+        missing TPDOs are tolerated it is a bus fault, an e-stop like bus-off. A recovery
+        succeeds only after as many cycles in a row without a refused frame on every bus."""
+        ports = self.ports
+        for port in ports:
+            port.send(port.sync)
+        if self._now >= self._next_heartbeat:
+            for port in ports:
+                port.send(port.heartbeat)
+            self._next_heartbeat = self._now + self.manager_heartbeat_period
+        limit = self.supervisor.tpdo_timeout_cycles
+        for port in ports:
+            cause = port.end_of_write(limit)
+            if cause is not None:
+                self._bus_failed(port, cause, self._now)
 
     def _torque_off(self) -> None:
         """FAILPROOF: pre-encoded disable-voltage frames to every configured drive."""
+        send_of = self._send_of
         for i, b in enumerate(self._bringup):
             if b.mapped:
+                send = send_of[i]
                 for msg in self._start_frames(i, b):
-                    self._send(msg)
+                    send(msg)
             self.enable.reset(i)
 
     def send_torque_off(self) -> None:
@@ -508,11 +515,14 @@ class CanopenHardware:
         state; it sends no heartbeat, so the drives' own heartbeat consumers still time out
         if the loop never comes back.
         """
+        send_of = self._send_of
         for i, b in enumerate(self._bringup):
             if b.mapped:
+                send = send_of[i]
                 for msg in self._torque_off_frames[i]:
-                    self._send(msg)
-        self._send(self._sync)
+                    send(msg)
+        for port in self.ports:
+            port.send(port.sync)
 
     def _start_frames(self, i: int, b: DriveBringup) -> list[can.Message]:
         """Pre-encoded frames for a drive not under command: torque off, or the fault-reset
@@ -540,13 +550,15 @@ class CanopenHardware:
             self._switches_seen = manager.switch_count  # a switch committed: arm who is ready
             self._armed = self.ready.tolist()
         armed = self._armed if manager is not None else None
+        send_of = self._send_of
         for i, b in enumerate(self._bringup):
             if not b.mapped:
                 continue
+            send = send_of[i]
             if (b.phase != Phase.READY or sup.latched[i] is not None
                     or (armed is not None and not armed[i])):
                 for msg in self._start_frames(i, b):
-                    self._send(msg)
+                    send(msg)
                 enable.reset(i)
                 continue
             mode, st = modes[i], states[i]
@@ -568,7 +580,7 @@ class CanopenHardware:
                 enable.reset(i)
             for msg, pack_into, where in self._rpdo_frames[i]:
                 pack_into(msg.data, 0, *[values[k] for k in where])
-                self._send(msg)
+                send(msg)
 
     # --- the manager's limit_command -------------------------------------------------------------
     def limit_command(self, command: JointCommand) -> bool:
@@ -640,6 +652,8 @@ class CanopenHardware:
             self._recovery_started = True
             self._recovery_deadline = now + self._recovery_timeout
             sup.bus_latched = None
+            for port in self.ports:
+                port.latched = None
             for i, b in enumerate(self._bringup):
                 if b.phase == Phase.READY and sup.latched[i] is None:
                     continue
@@ -655,7 +669,7 @@ class CanopenHardware:
             return
         drives_ready = (all(b.phase == Phase.READY for b in self._bringup)
                         and not any(sup.latched) and sup.bus_latched is None)
-        if drives_ready and self._tx_clean_cycles >= sup.tpdo_timeout_cycles:
+        if drives_ready and min(p.clean_cycles for p in self.ports) >= sup.tpdo_timeout_cycles:
             if self._manager is not None:
                 try:
                     self._manager.clear_emergency_stop()
@@ -671,14 +685,43 @@ class CanopenHardware:
     # --- status --------------------------------------------------------------------------------
     @property
     def bus_fault(self) -> str | None:
-        """The latched bus-level fault (bus-off), None when there is none."""
-        event = self.supervisor.bus_latched
-        return None if event is None else event.cause
+        """The latched bus faults (bus-off, frames refused), None when there is none."""
+        causes = [p.latched for p in self.ports if p.latched is not None]
+        return "; ".join(causes) if causes else None
+
+    @property
+    def tx_errors(self) -> int:
+        """Frames the buses refused (counted, never raised)."""
+        return sum(p.tx_errors for p in self.ports)
+
+    @property
+    def last_tx_error(self) -> Exception | None:
+        errors = [p.last_tx_error for p in self.ports if p.last_tx_error is not None]
+        return errors[-1] if errors else None
+
+    @property
+    def error_frames(self) -> int:
+        """CAN error frames received on every bus (bus-off ones are a fault)."""
+        return sum(p.error_frames for p in self.ports)
+
+    @property
+    def estop_cob_id(self) -> int:
+        return self._estop_cob_id
+
+    def set_estop_cob_id(self, cob_id: int) -> None:
+        """The e-stop frame's COB-ID on every bus (0 = off), from any thread: the manager
+        node calls it when 0x2130 is written."""
+        if not _whole_cob_id(cob_id):
+            raise ValueError(f"estop_cob_id must be 0 (off) or an 11-bit COB-ID, got {cob_id!r}")
+        self._estop_cob_id = cob_id
+        for port in self.ports:
+            port.set_estop_cob_id(cob_id)
 
     @property
     def frames_per_cycle(self) -> int:
-        """RPDOs + TPDOs of every drive + 1 SYNC (the manager heartbeat is not per cycle)."""
-        return sum(lay.frames_per_cycle for lay in self.layouts) + 1
+        """RPDOs + TPDOs of every drive + 1 SYNC per bus (the manager heartbeat is not per
+        cycle)."""
+        return sum(lay.frames_per_cycle for lay in self.layouts) + len(self.ports)
 
     @property
     def ready(self) -> np.ndarray:
@@ -760,4 +803,7 @@ class CanopenHardware:
             recovery = "succeeded" if future.result() else "failed"
         return {"startup_finished": bool(self._bringup) and not self.starting,
                 "recovery": recovery, "bus_fault": self.bus_fault,
+                "buses": [{"name": p.name, "channel": p.channel, "fault": p.latched,
+                           "tx_errors": p.tx_errors, "error_frames": p.error_frames}
+                          for p in self.ports],
                 "drives": [dataclasses.asdict(d) for d in self.drive_status()]}

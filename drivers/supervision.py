@@ -50,8 +50,11 @@ class FaultEvent:
     cause: str
     code: int = 0      # EMCY / 0x603F error code when known
     time: float = 0.0  # time.monotonic()
+    index: int = -1    # the drive's index in the hardware (-1: a bus, not one drive)
 
     def __str__(self) -> str:
+        if self.index < 0:  # a bus event: the cause names the bus
+            return self.cause
         return f"drive {self.drive!r} (node {self.node_id}): {self.cause}"
 
 
@@ -96,20 +99,34 @@ class Supervisor:
         self.watch[i] = self.active[i]
 
     def fault(self, i: int, cause: str, now: float, code: int = 0) -> None:
-        event = FaultEvent(self.drives[i].node_id, self.drives[i].name, cause, code, now)
+        event = FaultEvent(self.drives[i].node_id, self.drives[i].name, cause, code, now, i)
         self.history.append(event)
         if self.latched[i] is None:
             self.latched[i] = event
             self.watch[i] = False
             self.pending.append(event)
 
-    def bus_fault(self, cause: str, now: float) -> None:
-        """The bus itself failed (bus-off): one event, node id 0, until recovery."""
-        event = FaultEvent(0, "CAN bus", cause, 0, now)
+    def bus_fault(self, cause: str, now: float, drives: Sequence[int] = (),
+                  bus: str = "bus") -> FaultEvent:
+        """A bus itself failed (bus-off, frames refused): one event, node id 0, latched on
+        ``drives`` (those on that bus: nothing reaches them, they must be brought back) and
+        as the bus latch until recovery. One event, not one per drive: a second event in the
+        same cycle would take the manager past its emergency layer to FAILPROOF, and the
+        drives on the other buses are still worth a smart stop."""
+        event = FaultEvent(0, bus, cause, 0, now)
         self.history.append(event)
+        fresh = False
+        for i in drives:
+            if self.latched[i] is None:
+                self.latched[i] = event
+                self.watch[i] = False
+                fresh = True
         if self.bus_latched is None:
             self.bus_latched = event
+            fresh = True
+        if fresh:
             self.pending.append(event)
+        return event
 
     def on_heartbeat(self, i: int, state: int, now: float) -> None:
         if not self.active[i]:

@@ -188,4 +188,96 @@ def test_virtual_bus_has_no_bitrate_limit():
     cfg = good()
     cfg["bus"] = {"interface": "virtual", "channel": "x"}
     cfg["rate"] = 5000
-    assert validate(cfg).load is None
+    assert validate(cfg).loads == {}
+
+
+def four_buses() -> dict:
+    """12 drives at 1 kHz on four 1 Mbit/s buses, three drives each, node ids 1-3 on each;
+    one RPDO and one TPDO per drive (position and torque feedback: with velocity too, a
+    second TPDO makes 10 frames per cycle, 10,000 frames/s, over a bus's ~7,400)."""
+    cfg = good()
+    del cfg["bus"]
+    cfg["rate"] = 1000
+    cfg["buses"] = [{"name": limb, "interface": "socketcan", "channel": f"can{k}",
+                     "bitrate": 1_000_000} for k, limb in enumerate(("lf", "rf", "lh", "rh"))]
+    cfg["drives"] = [{"name": f"{limb}{n}", "node_id": n, "bus": limb,
+                      "increments_per_rev": 4096, "rated_torque_nm": 1.0,
+                      "feedback": ["position", "torque"]}
+                     for limb in ("lf", "rf", "lh", "rh") for n in (1, 2, 3)]
+    return cfg
+
+
+def test_several_buses_each_with_its_drives_and_load():
+    config = validate(four_buses())
+    assert [b.label for b in config.buses] == ["lf", "rf", "lh", "rh"]
+    assert [b.channel for b in config.buses] == ["can0", "can1", "can2", "can3"]
+    assert [d.name for d in config.drives_on(config.buses[2])] == ["lh1", "lh2", "lh3"]
+    assert set(config.loads) == {"lf", "rf", "lh", "rh"}
+    assert all(load_.drives == 3 and load_.load < 1.0 for load_ in config.loads.values())
+    assert config.node_bus.label == "lf"  # manager.bus not given: the first bus
+
+
+def test_twelve_drives_at_1khz_overload_one_bus_but_fit_on_four():
+    cfg = four_buses()
+    for d in cfg["drives"]:
+        d["bus"] = "lf"
+        d["node_id"] = len([x for x in cfg["drives"] if x is not d and "seen" in x]) + 1
+        d["seen"] = True
+    for d in cfg["drives"]:
+        del d["seen"]
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    (problem,) = info.value.problems
+    assert "buses[0] (lf): bus overload" in problem and "12 drives at 1000 Hz" in problem
+
+
+@pytest.mark.parametrize("label, edit, expected", [
+    ("both", lambda c: c.update(bus={"channel": "can0"}),
+     "bus, buses: give one bus as bus: or several as buses:, not both"),
+    ("unnamed", lambda c: c["buses"][1].pop("name"), "buses[1].name: expected the bus's name"),
+    ("twice", lambda c: c["buses"][1].update(name="lf"), "buses[1].name: 'lf' is already buses[0]"),
+    ("no such bus", lambda c: c["drives"][0].update(bus="tail"),
+     "drives[0].bus: no bus named 'tail' (buses: 'lf', 'rf', 'lh', 'rh')"),
+    ("same node id on a bus", lambda c: c["drives"][1].update(node_id=1),
+     "drives[1].node_id: 1 is already used by drives[0] on bus 'lf'"),
+    ("manager bus", lambda c: c["manager"].update(bus="tail"),
+     "manager.bus: expected the name of one of the buses"),
+    ("data bitrate without fd", lambda c: c["buses"][0].update(data_bitrate=5_000_000),
+     "buses[0].data_bitrate: only for a CAN FD bus (fd: true)"),
+    ("fd not a bool", lambda c: c["buses"][0].update(fd="yes"), "buses[0].fd: expected true"),
+])
+def test_bus_problems_name_their_path(label, edit, expected):
+    cfg = four_buses()
+    edit(cfg)
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert any(expected in p for p in info.value.problems), info.value.problems
+
+
+def test_node_ids_may_repeat_across_buses():
+    config = validate(four_buses())
+    assert sorted(d.node_id for d in config.drives) == [1] * 4 + [2] * 4 + [3] * 4
+
+
+def test_can_fd_frames_are_shorter_on_the_wire():
+    """CAN FD with bit rate switching: the data phase at 5 Mbit/s makes an 8-byte frame
+    take about half the time of a classic one at 1 Mbit/s (arbitration stays at 1 Mbit/s),
+    so one FD bus carries eight drives at 1 kHz (a classic one: three)."""
+    classic, fd = frame_bits(8), frame_bits(8, data_ratio=1_000_000 / 5_000_000)
+    assert 0.35 < fd / classic < 0.6
+    assert frame_bits(8, data_ratio=1.0) > classic  # FD without switching: a longer CRC
+    cfg = four_buses()
+    cfg["buses"] = [{"name": "all", "channel": "can0", "bitrate": 1_000_000, "fd": True,
+                     "data_bitrate": 5_000_000}]
+    cfg["drives"] = [{"name": f"j{n}", "node_id": n, "increments_per_rev": 4096,
+                      "rated_torque_nm": 1.0, "feedback": ["position", "torque"]}
+                     for n in range(1, 9)]
+    config = validate(cfg)
+    (load_,) = config.loads.values()
+    assert load_.load < 1.0 and "CAN FD bus (1/5 Mbit/s)" in load_.explain()
+    assert load_.drives_that_fit == 8
+    assert config.bus.fd and config.bus.data_bitrate == 5_000_000
+    cfg["buses"][0].update(fd=False, data_bitrate=None)
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert "1000 Hz fits 3" in info.value.problems[0]

@@ -16,5 +16,17 @@ def test_demo_walk_through_passes():
     assert lines[-1] == "demo passed"
 
 
+def test_demo_on_several_buses_passes():
+    """Six drives on three buses: the faults go to the first bus, the loop's stop sends
+    torque-off frames to every drive on every bus."""
+    lines: list[str] = []
+    report = run_demo(drives=6, rate=100.0, duration=3.0, out=lines.append, buses=3)
+    assert report.ok, "\n".join(lines)
+    assert "3 virtual buses" in lines[0]
+    assert report.steps[-1].detail.endswith("6/6 drives' RPDO1 on 3 buses")
+
+
 def test_demo_cli_rejects_bad_options(capsys):
     assert main(["demo", "--drives", "0"]) == 2
+    assert main(["demo", "--drives", "6", "--buses", "4"]) == 2
+    assert "--buses 1..drives/2" in capsys.readouterr().out

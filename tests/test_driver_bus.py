@@ -384,9 +384,12 @@ def test_every_ready_drive_already_watches_the_manager_heartbeat(segment, make_r
     assert {f.cob_id - cia301.EMCY for f in lost} == set(nodes)
 
 
-def test_bus_off_error_frame_is_an_estop(virtual_channel, sim_segment_factory, bus_factory):
+def test_bus_off_error_frame_is_a_failproof_stop(virtual_channel, sim_segment_factory,
+                                                  bus_factory):
     """SocketCAN reports bus-off only as an error frame (bus.state stays ACTIVE); here one
-    is injected on the virtual bus (a real vcan never goes bus-off)."""
+    is injected on the virtual bus (a real vcan never goes bus-off). A failed bus is a fault
+    of every drive on it and a failproof stop, even with an emergency controller: once the
+    bus is back the drives get torque-off frames, not the emergency layer's commands."""
     segment = sim_segment_factory(NODES, channel=virtual_channel)
     rig = Rig.for_setup(bus_factory(virtual_channel), NODES, VIRTUAL)
     try:
@@ -394,13 +397,18 @@ def test_bus_off_error_frame_is_an_estop(virtual_channel, sim_segment_factory, b
         enable_with(rig, HoldPD(), emergency=Brake())
         bus_factory(virtual_channel).send(can.Message(
             arbitration_id=0x40, is_error_frame=True, is_extended_id=False, data=bytes(8)))
-        assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
-                         rig.setup.detect_budget())
+        assert rig.run_until(lambda: rig.mgr.state == ManagerState.FAILPROOF,
+                             rig.setup.detect_budget())
         assert rig.hw.bus_fault is not None and "bus-off" in rig.hw.bus_fault
+        assert all(rig.hw.supervisor.latched)  # every drive on the bus
+        assert rig.run_until(lambda: all(d.state402 == State402.SWITCH_ON_DISABLED
+                                         for d in segment.drives.values()),
+                             rig.setup.enable_budget())
         future = rig.hw.recover()
         assert rig.run_until(future.done, rig.setup.recovery_budget()) and future.result() is True
-        assert rig.hw.bus_fault is None
-        assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
+        assert rig.hw.bus_fault is None and rig.hw.all_ready
+        assert rig.switch("hold") == SwitchResult.SWITCHED
+        assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget())
     finally:
         rig.close()
 

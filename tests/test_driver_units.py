@@ -229,7 +229,7 @@ def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
     mgr.subscribe(lambda ev: (estops.append(ev.cause), seen.set())
                   if ev.kind is EventKind.EMERGENCY_STOP else None)
     try:
-        hw._deliver([FaultEvent(node_id=1, drive="j1", cause="test", code=0)])
+        hw._deliver([FaultEvent(node_id=1, drive="j1", cause="test", code=0, index=0)])
         assert hw.hook_errors == 1
         assert mgr.update() is ManagerState.FAILPROOF
         assert seen.wait(5.0) and "test" in estops[0]

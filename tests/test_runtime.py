@@ -7,6 +7,7 @@ import signal
 import threading
 import time
 
+import can
 import pytest
 
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
@@ -111,3 +112,47 @@ def test_timing_supervision_comes_from_the_yaml(virtual_channel):
     with Runtime(validate(cfg)) as rt:
         assert rt.manager.timing == TimingSupervision(advance=2.0, initialize_fast=3.0,
                                                       overruns=7, hang=50)
+
+
+def test_a_runtime_on_two_buses_takes_the_estop_frame_from_either(
+        virtual_channel, sim_segment_factory, frame_recorder, bus_factory):
+    """``buses:`` with two buses of two drives each (node ids 1, 2 on both): one manager
+    brings all four up and commands them; an e-stop frame on the second bus (the manager's
+    node serves on the first) e-stops, taken by the hardware in the cycle, not by the node."""
+    from rocoma_can import ManagerState, SwitchResult
+    channels = [f"{virtual_channel}-a", f"{virtual_channel}-b"]
+    for ch in channels:
+        sim_segment_factory(2, channel=ch)
+    cfg = demo_config(channels[0], drives=4, rate=100.0)
+    del cfg["bus"]
+    cfg["buses"] = [{"name": n, "interface": "virtual", "channel": ch}
+                    for n, ch in zip("ab", channels)]
+    for k, d in enumerate(cfg["drives"]):
+        d["bus"], d["node_id"] = "ab"[k // 2], k % 2 + 1
+    cfg["manager"]["estop_must_be_cleared"] = False
+    rec_b = frame_recorder(channels[1])
+    estop_bus = bus_factory(channels[1])
+    result = {}
+    with Runtime(validate(cfg)) as rt:
+        def operate():
+            deadline = time.monotonic() + 10.0  # a switch needs every drive brought up
+            while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
+                time.sleep(0.01)
+            result["switch"] = rt.manager.switch_controller("pd", timeout=10.0)
+            rec_b.wait_for(lambda f: f.cob_id == 0x202 and f.data[:2] == b"\x0f\x00",
+                           timeout=10.0)  # the second bus's drive 2 is enabled
+            estop_bus.send(can.Message(arbitration_id=0x0A0, data=b"", is_extended_id=False))
+            deadline = time.monotonic() + 10.0
+            while rt.manager.state is ManagerState.OK and time.monotonic() < deadline:
+                time.sleep(0.01)
+            result["state"] = rt.manager.state
+            rt.loop.stop("test")
+
+        t = threading.Thread(target=operate)
+        t.start()
+        rt.run(duration=30.0, signals=False)
+        t.join(10.0)
+        assert result["switch"] == SwitchResult.SWITCHED
+        assert result["state"] is ManagerState.EMERGENCY
+        assert rt.hardware.estop_frames == 1 and rt.node.estop_frames == []
+        assert [p.name for p in rt.hardware.ports] == ["a", "b"]

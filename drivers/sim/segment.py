@@ -105,7 +105,7 @@ class SimulatedSegment:
                  params: JointParams | Mapping[int, JointParams] | None = None, *,
                  sync_period: float | None = None, max_dt: float = 0.05,
                  free_run_period: float | None = 0.05, seed: int = 0,
-                 own_bus: bool = False) -> None:
+                 own_bus: bool = False, fd: bool = False) -> None:
         ids = sorted(set(int(n) for n in node_ids))
         if not ids:
             raise ValueError("a simulated segment needs at least one node id")
@@ -144,7 +144,7 @@ class SimulatedSegment:
         self._last_step: float | None = None
         # Every frame that arrived (monotonic) before this has been handled: see the docstring.
         self.received_until = -math.inf
-        self._writer = FrameWriter(bus)
+        self._writer = FrameWriter(bus, fd=fd)  # an FD bus: the drives answer in FD frames
         self._timers = _Timers(self._run_timer)
         self._stopped = threading.Event()
         self._rx_thread = threading.Thread(target=self._receive_loop,
@@ -155,8 +155,10 @@ class SimulatedSegment:
     def open(cls, channel: str, interface: str = "virtual", node_ids: Iterable[int] = (1,),
              **kwargs: Any) -> SimulatedSegment:
         """A segment on its own new bus (shut down with the segment)."""
+        extra: dict[str, Any] = {"fd": True} if kwargs.get("fd") and interface == "socketcan" \
+            else {}
         bus = can.Bus(interface=interface, channel=channel, receive_own_messages=False,
-                      ignore_config=True)
+                      ignore_config=True, **extra)
         try:
             return cls(bus, node_ids, own_bus=True, **kwargs)
         except BaseException:

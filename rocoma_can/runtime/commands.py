@@ -16,6 +16,7 @@ import json
 import signal
 import sys
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from ..errors import NoAnswer, Refused
 from .client import ManagerClient
@@ -28,6 +29,9 @@ from .objects import (
     RESULT_NAMES,
     SWITCH_REFUSAL,
 )
+
+if TYPE_CHECKING:  # the client verbs do not import the config (a fast start)
+    from .config import RuntimeConfig
 
 OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
 
@@ -48,13 +52,22 @@ def _check_config(args: argparse.Namespace) -> int:
             print(problem, flush=True)
         print(f"{len(exc.problems)} problem(s)", flush=True)
         return USAGE
-    load_ = config.load
-    print(f"{args.config}: ok: {len(config.drives)} drives on {config.bus.interface}:"
-          f"{config.bus.channel} at {config.rate:g} Hz, manager node {config.manager.node_id}, "
+    print(f"{args.config}: ok: {len(config.drives)} drives on {_buses(config)} at "
+          f"{config.rate:g} Hz, manager node {config.manager.node_id}, "
           f"e-stop COB-ID 0x{config.manager.estop_cob_id:03X}", flush=True)
-    if load_ is not None:
-        print(f"bus load: {load_.explain()}", flush=True)
+    several = len(config.buses) > 1
+    for name, load_ in config.loads.items():
+        print(f"bus load{f' {name}' if several else ''}: {load_.explain()}", flush=True)
     return OK
+
+
+def _buses(config: RuntimeConfig) -> str:
+    """"socketcan:can0", or per bus "left (socketcan:can0, 3 drives), ..."."""
+    if len(config.buses) == 1:
+        b = config.bus
+        return f"{b.interface}:{b.channel}" + (" (CAN FD)" if b.fd else "")
+    return ", ".join(f"{b.label} ({b.interface}:{b.channel}{', CAN FD' if b.fd else ''}, "
+                     f"{len(config.drives_on(b))} drives)" for b in config.buses)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -78,7 +91,7 @@ def _run(args: argparse.Namespace) -> int:
         faulthandler.register(signal.SIGUSR2, all_threads=True)
     with runtime:
         print(f"rocoma-can: running {len(config.drives)} drives at {config.rate:g} Hz on "
-              f"{config.bus.interface}:{config.bus.channel}, manager node "
+              f"{_buses(config)}, manager node "
               f"{config.manager.node_id} (Ctrl-C / SIGTERM: torque-off, then exit)", flush=True)
         try:
             summary = runtime.run(duration=args.duration)

@@ -44,10 +44,10 @@ from ..errors import ConfigError
 from ..manager import TimingSupervision
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
-_TOP_KEYS = {"bus", "rate", "manager", "realtime", "supervision", "timing", "drives",
+_TOP_KEYS = {"bus", "buses", "rate", "manager", "realtime", "supervision", "timing", "drives",
              "controllers", "emergency_controllers"}
-_BUS_KEYS = {"interface", "channel", "bitrate"}
-_MANAGER_KEYS = {"node_id", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
+_BUS_KEYS = {"interface", "channel", "bitrate", "name", "fd", "data_bitrate"}
+_MANAGER_KEYS = {"node_id", "bus", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
                  "switch_clients", "status_period", "required_drives"}
 _REALTIME_KEYS = {"priority", "cpus"}
 #: supervision margins: key -> (whole number?, minimum, maximum); drivers.config.Supervision
@@ -84,11 +84,12 @@ class ManagerNodeConfig:
     status_period: float = 0.1
     # names of the drives a switch into a controller needs ready (None: every drive)
     required_drives: list[str] | None = None
+    bus: str = ""  # the bus its SDO services are on ("" = the first bus)
 
 
 @dataclass
 class RuntimeConfig:
-    bus: BusConfig
+    buses: list[BusConfig]
     rate: float
     manager: ManagerNodeConfig
     drives: list[DriveConfig]
@@ -98,7 +99,21 @@ class RuntimeConfig:
     supervision: Supervision = field(default_factory=Supervision)
     timing: TimingSupervision = field(default_factory=TimingSupervision)
     source: str = "<memory>"
-    load: BusLoad | None = field(default=None)
+    loads: dict[str, BusLoad] = field(default_factory=dict)  # per bus, none on virtual buses
+
+    @property
+    def bus(self) -> BusConfig:
+        """The first bus: the only one of a single-bus config."""
+        return self.buses[0]
+
+    @property
+    def node_bus(self) -> BusConfig:
+        """The bus the manager's CANopen node serves on (``manager.bus``)."""
+        return next((b for b in self.buses if b.label == self.manager.bus), self.buses[0])
+
+    def drives_on(self, bus: BusConfig) -> list[DriveConfig]:
+        first = self.buses[0].label
+        return [d for d in self.drives if (d.bus or first) == bus.label]
 
     @property
     def dt(self) -> float:
@@ -107,12 +122,30 @@ class RuntimeConfig:
 
 # -- bus load -----------------------------------------------------------------------------------
 
-def frame_bits(data_bytes: int, worst_case: bool = True) -> int:
-    """Bits on the wire of a classic 11-bit CAN frame, 3-bit intermission included."""
-    bits = 8 * data_bytes + 47
+def frame_bits(data_bytes: int, worst_case: bool = True,
+               data_ratio: float | None = None) -> float:
+    """Bits on the wire of an 11-bit CAN frame, 3-bit intermission included, counted at the
+    nominal (arbitration) bit rate.
+
+    ``data_ratio`` None: a classic frame, 47 + 8n bits plus stuffing. Otherwise a CAN FD
+    frame whose data phase (ESI, DLC, data, stuff count, CRC-17 up to 16 bytes or CRC-21,
+    the fixed stuff bits and the CRC delimiter) runs at the data bit rate: ``data_ratio`` =
+    nominal / data bit rate (1.0 without bit rate switching). Worst case: one stuff bit per
+    four bits where stuffing is dynamic."""
+    if data_ratio is None:
+        bits = 8 * data_bytes + 47
+        if worst_case:
+            bits += (34 + 8 * data_bytes - 1) // 4
+        return bits
+    arbitration = 17  # SOF, 11-bit id, RRS, IDE, FDF, res, BRS
+    tail = 12         # ACK slot and delimiter, EOF, intermission
+    dynamic = 1 + 4 + 8 * data_bytes  # ESI, DLC, data
+    fixed = 4 + (17 if data_bytes <= 16 else 21)  # stuff count with parity, CRC
+    data_phase = dynamic + fixed + -(-fixed // 4) + 1  # fixed stuff bits, CRC delimiter
     if worst_case:
-        bits += (34 + 8 * data_bytes - 1) // 4
-    return bits
+        arbitration += (arbitration - 1) // 4
+        data_phase += (dynamic - 1) // 4
+    return arbitration + tail + data_phase * data_ratio
 
 
 @dataclass(frozen=True)
@@ -121,8 +154,9 @@ class BusLoad:
     rate: float
     bitrate: int
     frames_per_cycle: int
-    bits_per_cycle: int          # worst-case stuffing
+    bits_per_cycle: float        # worst-case stuffing, at the nominal bit rate
     bits_per_drive: float        # mean over the drives, worst case
+    data_bitrate: int | None = None  # CAN FD data phase (None: classic CAN)
 
     @property
     def frames_per_second(self) -> float:
@@ -139,30 +173,39 @@ class BusLoad:
 
     @property
     def drives_that_fit(self) -> int:
-        sync = frame_bits(0)
+        sync = frame_bits(0, data_ratio=self.data_ratio)
         return max(0, int((self.bitrate / self.rate - sync) // self.bits_per_drive))
 
     def explain(self) -> str:
-        full_frames = self.bitrate / frame_bits(8)
+        full_frames = self.bitrate / frame_bits(8, data_ratio=self.data_ratio)
+        kind = (f"CAN FD bus ({self.bitrate / 1e6:g}/{self.data_bitrate / 1e6:g} Mbit/s)"
+                if self.data_bitrate else f"{self.bitrate / 1e6:g} Mbit/s bus")
         return (f"{self.drives} drives at {self.rate:g} Hz need "
                 f"{self.frames_per_second:,.0f} frames/s ({self.load:.0%} of the bus, worst "
-                f"case); a {self.bitrate / 1e6:g} Mbit/s bus carries ~{full_frames:,.0f} "
-                f"8-byte frames/s worst case; {math.floor(self.max_rate):,} Hz fits "
-                f"{self.drives} drives, {self.rate:g} Hz fits {self.drives_that_fit}")
+                f"case); a {kind} carries ~{full_frames:,.0f} 8-byte frames/s worst case; "
+                f"{math.floor(self.max_rate):,} Hz fits {self.drives} drives, "
+                f"{self.rate:g} Hz fits {self.drives_that_fit}")
+
+    @property
+    def data_ratio(self) -> float | None:
+        return None if self.data_bitrate is None else self.bitrate / self.data_bitrate
 
 
-def bus_load(drives: list[DriveConfig], rate: float, bitrate: int) -> BusLoad:
-    """Per cycle: every drive's RPDOs and TPDOs (the driver's layouts) and one SYNC."""
-    frames, bits = 1, frame_bits(0)
-    drive_bits = 0
+def bus_load(drives: list[DriveConfig], rate: float, bitrate: int,
+             data_bitrate: int | None = None) -> BusLoad:
+    """Per cycle on one bus: every drive's RPDOs and TPDOs (the driver's layouts) and one
+    SYNC; ``data_bitrate``: a CAN FD bus with bit rate switching at that data rate."""
+    ratio = None if data_bitrate is None else bitrate / data_bitrate
+    frames, bits = 1, frame_bits(0, data_ratio=ratio)
+    drive_bits = 0.0
     for d in drives:
         layout = layout_for(d)
         for pdo in layout.rpdos + layout.tpdos:
             frames += 1
-            drive_bits += frame_bits(pdo.size)
+            drive_bits += frame_bits(pdo.size, data_ratio=ratio)
     bits += drive_bits
     return BusLoad(len(drives), rate, bitrate, frames, bits,
-                   drive_bits / max(1, len(drives)))
+                   drive_bits / max(1, len(drives)), data_bitrate)
 
 
 # -- loading and validation ---------------------------------------------------------------------
@@ -234,17 +277,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                            f"got {type(data).__name__}"])
     _unknown(data, _TOP_KEYS, "", problems)
 
-    bus_data = _section(data, "bus", problems)
-    _unknown(bus_data, _BUS_KEYS, "bus", problems)
-    interface = bus_data.get("interface", "socketcan")
-    channel = bus_data.get("channel", "can0")
-    bitrate = bus_data.get("bitrate")
-    for key, value in (("interface", interface), ("channel", channel)):
-        if not isinstance(value, str) or not value:
-            problems.append(f"bus.{key}: expected a non-empty string, got {value!r}")
-    if bitrate is not None and (not _is_int(bitrate) or not 10_000 <= bitrate <= 1_000_000):
-        problems.append(f"bus.bitrate: expected an integer 10000..1000000 bit/s, got {bitrate!r}")
-        bitrate = None
+    buses = _buses(data, problems)
 
     rate = data.get("rate", 500)
     if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not 0 < rate <= 10_000:
@@ -310,7 +343,15 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     timing = TimingSupervision(**_numbers(_section(data, "timing", problems), _TIMING,
                                           "timing", problems))
 
-    drives = _drives(data.get("drives"), manager.node_id, base, problems)
+    drives = _drives(data.get("drives"), manager.node_id, base, problems,
+                     [b.label for b in buses])
+    node_bus = m.get("bus", "")
+    if not isinstance(node_bus, str) or (node_bus and node_bus not in
+                                         [b.label for b in buses]):
+        problems.append(f"manager.bus: expected the name of one of the buses "
+                        f"({', '.join(repr(b.label) for b in buses)}), got {node_bus!r}")
+    else:
+        manager.bus = node_bus
     required = m.get("required_drives")
     names = [d.name for d in drives]
     if required is not None:
@@ -336,17 +377,83 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         except PluginError as exc:
             problems.append(str(exc))
 
-    load_ = None
-    if drives and rate is not None and interface != "virtual":
-        load_ = bus_load(drives, float(rate), bitrate or DEFAULT_BITRATE)
+    loads: dict[str, BusLoad] = {}
+    first = buses[0].label if buses else ""
+    for k, b in enumerate(buses):
+        on = [d for d in drives if (d.bus or first) == b.label]
+        if not on or rate is None or b.interface == "virtual":
+            continue
+        bitrate = b.bitrate or DEFAULT_BITRATE
+        data_bitrate = (b.data_bitrate or bitrate) if b.fd else None
+        loads[b.label] = load_ = bus_load(on, float(rate), bitrate, data_bitrate)
         if load_.load > 1.0:
-            assumed = "" if bitrate else f" (no bus.bitrate given: {DEFAULT_BITRATE:,} assumed)"
-            problems.append(f"rate: bus overload{assumed}: {load_.explain()}")
+            where = f"buses[{k}] ({b.label})" if "buses" in data else "rate"
+            assumed = "" if b.bitrate else f" (no bitrate given: {DEFAULT_BITRATE:,} assumed)"
+            problems.append(f"{where}: bus overload{assumed}: {load_.explain()}")
     if problems:
         raise ConfigError([f"{source}: {p}" for p in problems])
-    return RuntimeConfig(BusConfig(interface, channel, bitrate), float(rate), manager, drives,
+    return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
-                         timing, source, load_)
+                         timing, source, loads)
+
+
+def _buses(data: Mapping[str, Any], problems: list[str]) -> list[BusConfig]:
+    """``bus:`` (one bus, every key optional) or ``buses:`` (a list, each with a name)."""
+    if "bus" in data and "buses" in data:
+        problems.append("bus, buses: give one bus as bus: or several as buses:, not both")
+    if "buses" not in data:
+        one = _bus(_section(data, "bus", problems), "bus", problems, named=False)
+        return [one] if one is not None else [BusConfig()]
+    entries = data["buses"]
+    if not isinstance(entries, list) or not entries:
+        problems.append(f"buses: expected a non-empty list of buses, got {entries!r}")
+        return [BusConfig()]
+    buses: list[BusConfig] = []
+    seen: dict[str, int] = {}
+    for k, entry in enumerate(entries):
+        where = f"buses[{k}]"
+        if not isinstance(entry, Mapping):
+            problems.append(f"{where}: expected a mapping, got {entry!r}")
+            continue
+        b = _bus(entry, where, problems, named=True)
+        if b is None:
+            continue
+        if b.label in seen:
+            problems.append(f"{where}.name: {b.label!r} is already buses[{seen[b.label]}]")
+            continue
+        seen[b.label] = k
+        buses.append(b)
+    return buses or [BusConfig()]
+
+
+def _bus(section: Mapping[str, Any], where: str, problems: list[str],
+         named: bool) -> BusConfig | None:
+    _unknown(section, _BUS_KEYS, where, problems)
+    before = len(problems)
+    interface = section.get("interface", "socketcan")
+    channel = section.get("channel", "can0")
+    name = section.get("name", "")
+    for key, value in (("interface", interface), ("channel", channel)):
+        if not isinstance(value, str) or not value:
+            problems.append(f"{where}.{key}: expected a non-empty string, got {value!r}")
+    if not isinstance(name, str) or (named and not name):
+        problems.append(f"{where}.name: expected the bus's name (drives name it in their "
+                        f"bus:), got {name!r}")
+    fd = section.get("fd", False)
+    if not isinstance(fd, bool):
+        problems.append(f"{where}.fd: expected true or false, got {fd!r}")
+    rates = {}
+    for key, low, high in (("bitrate", 10_000, 1_000_000), ("data_bitrate", 10_000, 15_000_000)):
+        value = section.get(key)
+        if value is not None and (not _is_int(value) or not low <= value <= high):
+            problems.append(f"{where}.{key}: expected an integer {low}..{high} bit/s, "
+                            f"got {value!r}")
+        rates[key] = value
+    if rates["data_bitrate"] is not None and fd is not True:
+        problems.append(f"{where}.data_bitrate: only for a CAN FD bus (fd: true)")
+    if len(problems) > before:
+        return None
+    return BusConfig(interface, channel, rates["bitrate"], name, fd, rates["data_bitrate"])
 
 
 def _numbers(section: Mapping[str, Any], spec: Mapping[str, tuple[bool, float, float]],
@@ -370,13 +477,13 @@ def _numbers(section: Mapping[str, Any], spec: Mapping[str, tuple[bool, float, f
 
 
 def _drives(entries: Any, manager_id: int, base: Path | None,
-            problems: list[str]) -> list[DriveConfig]:
+            problems: list[str], buses: list[str]) -> list[DriveConfig]:
     if not isinstance(entries, list) or not entries:
         problems.append(f"drives: expected a non-empty list of drives, got {entries!r}")
         return []
     drives: list[DriveConfig] = []
     names: dict[str, int] = {}
-    ids: dict[int, int] = {}
+    ids: dict[tuple[str, int], int] = {}
     for i, entry in enumerate(entries):
         where = f"drives[{i}]"
         if not isinstance(entry, Mapping):
@@ -394,14 +501,19 @@ def _drives(entries: Any, manager_id: int, base: Path | None,
             continue
         if drive.name in names:
             problems.append(f"{where}.name: {drive.name!r} is already drives[{names[drive.name]}]")
-        if drive.node_id in ids:
+        if drive.bus and drive.bus not in buses:
+            problems.append(f"{where}.bus: no bus named {drive.bus!r} (buses: "
+                            f"{', '.join(repr(b) for b in buses)})")
+        bus = drive.bus or buses[0]
+        if (bus, drive.node_id) in ids:
+            on = f" on bus {bus!r}" if len(buses) > 1 else ""
             problems.append(f"{where}.node_id: {drive.node_id} is already used by "
-                            f"drives[{ids[drive.node_id]}]")
+                            f"drives[{ids[bus, drive.node_id]}]{on}")
         if drive.node_id == manager_id:
             problems.append(f"{where}.node_id: {drive.node_id} is the manager's node id "
                             "(manager.node_id)")
         names.setdefault(drive.name, i)
-        ids.setdefault(drive.node_id, i)
+        ids.setdefault((bus, drive.node_id), i)
         drives.append(drive)
     return drives
 

@@ -32,10 +32,24 @@ MANAGER_ID = 100
 ESTOP_COB_ID = 0x0A0
 
 
-def demo_config(channel: str, drives: int, rate: float) -> dict[str, Any]:
+def default_buses(drives: int) -> int:
+    """One bus up to six drives; beyond, a bus per three drives, as a robot with one bus per
+    limb has (a classic 1 Mbit/s bus carries ~7,400 frames/s: a few drives at 1 kHz)."""
+    return 1 if drives <= 6 else -(-drives // 3)
+
+
+def demo_config(channel: str, drives: int, rate: float, buses: int = 1) -> dict[str, Any]:
+    """The demo's config: ``buses`` > 1 gives virtual channels ``channel-0`` ... each with
+    its share of the drives (node ids from 1 on each bus)."""
     joints = [f"joint{i}" for i in range(1, drives + 1)]
+    per_bus = -(-drives // buses)
+    if buses == 1:
+        bus_section: dict[str, Any] = {"bus": {"interface": "virtual", "channel": channel}}
+    else:
+        bus_section = {"buses": [{"name": f"bus{k}", "interface": "virtual",
+                                  "channel": f"{channel}-{k}"} for k in range(buses)]}
     return {
-        "bus": {"interface": "virtual", "channel": channel},
+        **bus_section,
         "rate": rate,
         "manager": {"node_id": MANAGER_ID, "heartbeat_ms": 100, "estop_cob_id": ESTOP_COB_ID,
                     "estop_must_be_cleared": True, "status_period": 0.2},
@@ -48,8 +62,9 @@ def demo_config(channel: str, drives: int, rate: float) -> dict[str, Any]:
         "timing": {"advance": 0.5 * rate, "initialize_fast": 0.5 * rate, "hang": 1.0 * rate},
         "supervision": {"tpdo_timeout_cycles": max(5, round(0.5 * rate)),
                         "heartbeat_timeout_factor": 5.0, "consumer_factor": 5.0},
-        "drives": [{"name": name, "node_id": i + 1, "increments_per_rev": 1048576,
-                    "rated_torque_nm": 1.0, "modes": ["csp", "cst"], "heartbeat_ms": 100}
+        "drives": [{"name": name, "node_id": i % per_bus + 1, "increments_per_rev": 1048576,
+                    "rated_torque_nm": 1.0, "modes": ["csp", "cst"], "heartbeat_ms": 100,
+                    **({"bus": f"bus{i // per_bus}"} if buses > 1 else {})}
                    for i, name in enumerate(joints)],
         "controllers": [
             {"name": "pd", "plugin": "pd", "emergency": "damp",
@@ -131,7 +146,8 @@ def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) 
 
 
 def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: _Watch,
-              probe: _TorqueOffProbe, report: Report, hold: float, stop: threading.Event,
+              probes: list[_TorqueOffProbe], report: Report, hold: float,
+              stop: threading.Event,
               say: Callable[[str], None]) -> None:
     hw, mgr = rt.hardware, rt.manager
     dt = rt.config.dt
@@ -203,35 +219,48 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
     except Exception as exc:  # an SDO failure is a failed step, and the demo ends
         step("operator", False, f"{type(exc).__name__}: {exc}")
     finally:
-        probe.armed = True
+        for probe in probes:
+            probe.armed = True
         rt.loop.stop("walk-through finished")
 
 
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
-             out: Callable[[str], None] = print) -> Report:
+             out: Callable[[str], None] = print, buses: int | None = None) -> Report:
+    from ..drivers.bus import BusReader
     from ..drivers.sim.segment import SimulatedSegment
     from .config import validate
     from .system import Runtime
+    buses = default_buses(drives) if buses is None else buses
     channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
-    config = validate(demo_config(channel, drives, rate), source="demo")
+    config = validate(demo_config(channel, drives, rate, buses), source="demo")
     report = Report()
     watch = _Watch()
     stop = threading.Event()
     hold = max(0.2, duration / 10)
-    seg = SimulatedSegment.open(channel, "virtual", range(1, drives + 1))
-    client_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False,
-                         ignore_config=True)
+    segments = [SimulatedSegment.open(b.channel, "virtual",
+                                      [d.node_id for d in config.drives_on(b)])
+                for b in config.buses]
+    seg = segments[0]  # the operator's faults go to drives on the first bus
+    client_bus = can.Bus(interface="virtual", channel=config.node_bus.channel,
+                         receive_own_messages=False, ignore_config=True)
+    # one torque-off probe per bus, each on a bus handle and reader of its own
+    probe_buses = [can.Bus(interface="virtual", channel=b.channel, receive_own_messages=False,
+                           ignore_config=True) for b in config.buses]
+    probes = [_TorqueOffProbe(s.node_ids) for s in segments]
+    readers: list[BusReader] = []
     try:
-        seg.start()
+        for s in segments:
+            s.start()
+        readers = [BusReader(b, (p,), name="demo-probe") for b, p in zip(probe_buses, probes)]
         with Runtime(config, on_cycle=watch) as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
-            probe = _TorqueOffProbe(seg.node_ids)
-            client.reader.add_listener(probe)
+            on = (f"virtual bus {config.bus.channel}" if buses == 1
+                  else f"{buses} virtual buses {channel}-0..{buses - 1}")
             out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
-                f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} (virtual bus {channel})")
+                f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
             operator = threading.Thread(
                 target=_operator, name="demo-operator",
-                args=(rt, seg, client, watch, probe, report, hold, stop, out))
+                args=(rt, seg, client, watch, probes, report, hold, stop, out))
             status = threading.Thread(target=_status_lines, name="demo-status",
                                       args=(rt, stop, out))
             operator.start()
@@ -242,18 +271,25 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                 stop.set()
                 operator.join(15.0)
                 status.join(2.0)
-            time.sleep(0.1)  # the probe runs on the client's bus reader thread
-            seen = int(rt.loop.last_state) == 0 and probe.seen == set(seg.node_ids)
+            time.sleep(0.1)  # the probes run on their buses' reader threads
+            got = sum(len(p.seen) for p in probes)
+            seen = int(rt.loop.last_state) == 0 and got == drives
             step = Step("loop stop -> torque-off frames", seen,
                         f"{rt.loop.stop_reason}; controlword 0x0000 seen from "
-                        f"{len(probe.seen)}/{len(seg.node_ids)} drives' RPDO1")
+                        f"{got}/{drives} drives' RPDO1"
+                        + (f" on {buses} buses" if buses > 1 else ""))
             report.steps.append(step)
             out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
             _summary(out, report, summary, rt)
-        seg.check()
+        for s in segments:
+            s.check()
     finally:
-        client_bus.shutdown()
-        seg.stop()
+        for r in readers:
+            r.stop()
+        for b in (client_bus, *probe_buses):
+            b.shutdown()
+        for s in segments:
+            s.stop()
     return report
 
 
@@ -291,6 +327,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "demo", help="run the embedded demo (virtual bus, simulated drives)",
         description=__doc__.split("\n\n")[0])
     p.add_argument("--drives", type=int, default=6, help="simulated drives (default 6)")
+    p.add_argument("--buses", type=int, default=None,
+                   help="virtual CAN buses the drives are spread over (default: one up to "
+                        "6 drives, else one per 3 drives)")
     p.add_argument("--rate", type=float, default=200.0, help="loop rate, Hz (default 200)")
     p.add_argument("--duration", type=float, default=16.0,
                    help="approximate length of the walk-through, s (default 16)")
@@ -298,9 +337,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _main(args: argparse.Namespace) -> int:
-    if not 2 <= args.drives <= 32 or not 10 <= args.rate <= 2000 or not args.duration > 0:
-        print("demo: --drives 2..32, --rate 10..2000 Hz, --duration > 0", flush=True)
+    buses = default_buses(args.drives) if args.buses is None else args.buses
+    if not 2 <= args.drives <= 32 or not 10 <= args.rate <= 2000 or not args.duration > 0 \
+            or not 1 <= buses <= args.drives // 2:
+        print("demo: --drives 2..32, --rate 10..2000 Hz, --duration > 0, --buses 1.."
+              "drives/2 (the walk-through faults two drives of the first bus)", flush=True)
         return 2
     report = run_demo(args.drives, args.rate, args.duration,
-                      out=lambda line: print(line, flush=True))
+                      out=lambda line: print(line, flush=True), buses=buses)
     return 0 if report.ok else 1

@@ -134,7 +134,11 @@ class ManagerNode(can.Listener):
                  recover: Callable[[], Future[bool]] | None = None,
                  eds_path: str | None = None,
                  heartbeat_ms: int | None = None,
-                 drive_status: Callable[[], dict[str, Any]] | None = None) -> None:
+                 drive_status: Callable[[], dict[str, Any]] | None = None,
+                 estop_in_cycle: Callable[[int], None] | None = None) -> None:
+        """``estop_in_cycle``: the hardware takes e-stop frames itself, on every bus, in
+        the cycle (CanopenHardware.set_estop_cob_id): the node then only owns the COB-ID
+        (0x2130) and hands it over on every change, and ignores the frames."""
         self.manager = manager
         self.node_id = node_id
         self.bus = bus
@@ -162,6 +166,7 @@ class ManagerNode(can.Listener):
                                         daemon=True)
         self._unsubscribe: Callable[[], None] | None = None
         self._initial_cob = estop_cob_id
+        self._estop_in_cycle = estop_in_cycle
         self._started = False
         self._reader: BusReader | None = None
 
@@ -209,14 +214,16 @@ class ManagerNode(can.Listener):
         if not 0 <= cob_id <= 0x7FF:
             raise SdoAbortedError(ABORT_NOT_FOUND)
         self._estop_cob_id = cob_id
+        if self._estop_in_cycle is not None:
+            self._estop_in_cycle(cob_id)
 
     def on_message_received(self, msg: can.Message) -> None:
         """On the bus reader's thread: any 11-bit frame on the e-stop COB-ID, data or remote
         (RTR), of any length, is an e-stop. (canopen's own listener drops remote frames, so
         this does not go through it.) A 29-bit frame is another identifier."""
         cob_id = self._estop_cob_id
-        if cob_id and msg.arbitration_id == cob_id and not (msg.is_extended_id
-                                                              or msg.is_error_frame):
+        if cob_id and msg.arbitration_id == cob_id and self._estop_in_cycle is None \
+                and not (msg.is_extended_id or msg.is_error_frame):
             self.manager.emergency_stop(cause=f"CAN e-stop from 0x{cob_id:03X}")
             self.estop_frames.append(time.monotonic())
 

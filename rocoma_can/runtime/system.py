@@ -44,15 +44,18 @@ def manager_for(hardware: CanopenHardware, **kwargs: Any) -> ControllerManager:
 class Runtime:
     """Everything ``rocoma-can run`` starts from a RuntimeConfig, in start-up order:
     the drives' hardware layer, the manager with the configured controllers, the manager's
-    CANopen node (on a second bus handle of the same channel), and the loop."""
+    CANopen node (on a second handle of its bus, `manager.bus`), and the loop. E-stop frames
+    are the hardware's, on every bus, in the cycle (the node owns the COB-ID, 0x2130)."""
 
     def __init__(self, config: RuntimeConfig, *,
                  on_cycle: Callable[[float], None] | None = None) -> None:
         self.config = config
         m = config.manager
-        self.hardware = CanopenHardware(config.bus, config.drives, m.node_id, config.dt,
+        self.hardware = CanopenHardware({b.label: b for b in config.buses}, config.drives,
+                                        m.node_id, config.dt,
                                         manager_heartbeat_ms=m.heartbeat_ms,
-                                        supervision=config.supervision)
+                                        supervision=config.supervision,
+                                        estop_cob_id=m.estop_cob_id)
         # built in order; on a failure, what was built so far is closed (_close_parts)
         self._parts: list[Callable[[], object]] = [self.hardware.close]
         try:
@@ -66,14 +69,16 @@ class Runtime:
                 switch_guard=lambda: hardware.not_ready(required))
             self._parts.insert(0, self.manager.shutdown)
             add_to_manager(self.manager, config.controllers)
-            bus = config.bus
+            bus = config.node_bus
+            extra = {"fd": True} if bus.fd else {}
             self._node_bus = open_bus(bus.interface, bus.channel, bus.bitrate,
-                                      receive_own_messages=False)
+                                      receive_own_messages=False, **extra)
             self._parts.append(self._node_bus.shutdown)
             self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
                                     estop_cob_id=m.estop_cob_id, status_period=m.status_period,
                                     recover=hardware.recover, heartbeat_ms=m.heartbeat_ms,
-                                    drive_status=hardware.status_report)
+                                    drive_status=hardware.status_report,
+                                    estop_in_cycle=hardware.set_estop_cob_id)
             self._parts.insert(0, self.node.close)
         except BaseException:
             self.close()

@@ -177,7 +177,8 @@ def test_fuzzed_inbound_frames_leave_the_manager_safe_and_serving(served, bus_fa
         for _ in range(3):  # an e-stop request is taken by the next update()
             rig.cycle()
         if any(_takes_drives_out(m) for m in sequence):  # detected as the drives' faults
-            assert rig.run_until(lambda: not rig.hw.ready.any(), SAFETY.detect_budget())
+            assert rig.run_until(lambda: not rig.hw.ready.any(), SAFETY.detect_budget()), \
+                (rig.hw.drive_status(), sequence)
             assert rig.mgr.state is not ManagerState.OK
         estop_frames = sum(1 for m in sequence
                            if m.arbitration_id == ESTOP_COB and not m.is_extended_id)
@@ -188,7 +189,8 @@ def test_fuzzed_inbound_frames_leave_the_manager_safe_and_serving(served, bus_fa
             assert rig.mgr.state is ManagerState.OK, rig.hw.drive_status()
             assert rig.mgr.active_controller_name == "hold"
         assert reader.alive and reader.listener_errors == 0
-        assert rig.mgr.internal_errors == 0 and rig.hw.tx_errors == 0
+        assert rig.mgr.internal_errors == 0 and rig.hw.internal_errors == 0
+        assert rig.hw.tx_errors == 0
 
     one_sequence()
 

@@ -1,0 +1,167 @@
+"""One bus of the hardware layer: its handle, its receiver, its cycle frames, its health.
+
+A robot with several CAN buses (one per limb is common: a classic 1 Mbit/s bus carries
+~7,400-9,000 frames/s, so 12 drives at 1 kHz need several) has one ``BusPort`` per bus. The
+hardware's cycle is still one: ``read`` drains every port, ``write`` sends every drive's
+frames on its own port and then SYNC and the manager's heartbeat on each port, back to back,
+so every bus sees its SYNC at the same instant of the cycle.
+
+Per port: a receiver on the bus's reader thread that only filters and appends (so no lock
+is shared with the cycle), pre-allocated SYNC and heartbeat frames (CAN FD on an FD bus),
+and the transmit health that makes a bus that refuses frames cycle after cycle a bus fault.
+"""
+from __future__ import annotations
+
+import collections
+
+import can
+
+from . import cia301
+from .bus import CanopenBus, open_bus
+from .config import BusConfig
+from .frame_io import FrameWriter
+
+_FD = (can.CanProtocol.CAN_FD, can.CanProtocol.CAN_FD_NON_ISO)
+
+#: Linux CAN error class of a bus-off error frame (linux/can/error.h CAN_ERR_BUSOFF)
+CAN_ERR_BUSOFF = 0x40
+
+
+class _Receiver(can.Listener):
+    """Runs on the bus reader thread: filter by COB-ID, append. Nothing else.
+
+    Frames keep their arrival stamp (kernel or python-can, wall clock); the cycle converts
+    it to the monotonic clock once per cycle, so a reader that lags does not make frames
+    late. Only 11-bit data frames are CANopen (0x181 as a 29-bit id is another frame); the
+    e-stop COB-ID is taken in any form an 11-bit frame has, data or remote (RTR).
+    """
+
+    def __init__(self, cob_ids: set[int], sink: collections.deque[can.Message],
+                 errors: collections.deque[can.Message]) -> None:
+        self._ids = frozenset(cob_ids)
+        self._sink = sink
+        self._errors = errors
+        self.estop_cob_id = 0  # set by the hardware; read once per frame
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self._errors.append(msg)
+        elif msg.is_extended_id:
+            return
+        elif msg.arbitration_id in self._ids and not msg.is_remote_frame:
+            self._sink.append(msg)
+        elif msg.arbitration_id == self.estop_cob_id and self.estop_cob_id:
+            self._sink.append(msg)
+
+    def on_error(self, exc: Exception) -> None:  # counted by the reader; nothing to do here
+        pass
+
+
+def _frame(cob_id: int, size: int, fd: bool) -> can.Message:
+    """A pre-allocated 11-bit frame; on an FD bus with bit rate switching."""
+    return can.Message(arbitration_id=cob_id, data=bytearray(size), is_extended_id=False,
+                       is_fd=fd, bitrate_switch=fd)
+
+
+class BusPort:
+    """One bus: lent (a python-can bus) or opened here (a BusConfig) by ``open``."""
+
+    def __init__(self, name: str, bus: can.BusABC | BusConfig, drives: list[int],
+                 manager_node_id: int) -> None:
+        self.name = name
+        self.drives = drives  # indices of the hardware's drives on this bus
+        self._arg = bus
+        # a lent bus says whether it is FD (python-can's protocol); a config says so itself
+        self.fd = bus.fd if isinstance(bus, BusConfig) else bus.protocol in _FD
+        self.rx: collections.deque[can.Message] = collections.deque()
+        self.rx_errors: collections.deque[can.Message] = collections.deque(maxlen=1024)
+        self.canopen: CanopenBus | None = None
+        self._writer: FrameWriter | None = None
+        self._receiver: _Receiver | None = None
+        self.sync = self.frame(cia301.SYNC, 0)
+        self.heartbeat = self.frame(cia301.HEARTBEAT + manager_node_id, 1)
+        self.heartbeat.data[0] = cia301.NmtState.OPERATIONAL
+        # receive tables, COB-ID -> drive index (filled by the hardware)
+        self.heartbeat_of: dict[int, int] = {}
+        self.emcy_of: dict[int, int] = {}
+        # transmit health
+        self.tx_errors = 0
+        self.last_tx_error: Exception | None = None
+        self.refused = False       # a frame was refused since the last end_of_write
+        self.refused_cycles = 0    # writes in a row with a refused frame
+        self.clean_cycles = 0      # writes in a row without one (a recovery needs a run)
+        self.error_frames = 0
+        self.latched: str | None = None  # the bus fault's cause until recovery
+
+    def frame(self, cob_id: int, size: int) -> can.Message:
+        return _frame(cob_id, size, self.fd)
+
+    @property
+    def channel(self) -> str:
+        arg = self._arg
+        return arg.channel if isinstance(arg, BusConfig) else str(arg.channel_info)
+
+    def open(self, cob_ids: set[int]) -> CanopenBus:
+        """Open the bus (unless lent) and attach the receiver for ``cob_ids``."""
+        arg = self._arg
+        if isinstance(arg, BusConfig):
+            extra: dict[str, object] = {"fd": True} if arg.fd else {}
+            if arg.data_bitrate is not None:
+                extra["data_bitrate"] = arg.data_bitrate
+            cb = CanopenBus(open_bus(arg.interface, arg.channel, arg.bitrate, **extra),
+                            own_bus=True)
+        else:
+            cb = CanopenBus(arg)
+        self.canopen = cb
+        self._writer = cb.writer
+        self._receiver = _Receiver(cob_ids, self.rx, self.rx_errors)
+        cb.add_listener(self._receiver)
+        return cb
+
+    def set_estop_cob_id(self, cob_id: int) -> None:
+        if self._receiver is not None:
+            self._receiver.estop_cob_id = cob_id
+
+    def close(self) -> None:
+        if self.canopen is not None:
+            self.canopen.close()
+            self.canopen = None
+            self._writer = None
+
+    def send(self, msg: can.Message) -> None:
+        """Never raises, never blocks: a refused frame is counted (``end_of_write``)."""
+        try:
+            self._writer.send_message(msg)  # type: ignore[union-attr]
+        except Exception as exc:  # a full queue, a failed interface, or not started/closed
+            self.tx_errors += 1
+            self.last_tx_error = exc
+            self.refused = True
+
+    def end_of_write(self, limit: int) -> str | None:
+        """After a cycle's frames: the cause while the bus has refused frames ``limit`` or
+        more cycles in a row (a bus fault), else None. One refused frame is not a fault (a
+        transmit queue can be full for a moment); the frames are tried again every cycle."""
+        if not self.refused:
+            self.refused_cycles = 0
+            if self.clean_cycles < limit:
+                self.clean_cycles += 1
+            return None
+        self.refused = False
+        self.clean_cycles = 0
+        self.refused_cycles += 1
+        if self.refused_cycles >= limit:
+            return (f"bus {self.name!r} refused frames in {self.refused_cycles} cycles in a "
+                    f"row (last: {self.last_tx_error})")
+        return None
+
+    def bus_off(self) -> str | None:
+        """Drain error frames (cycle thread): the cause of the first bus-off, else None."""
+        errors, cause = self.rx_errors, None
+        while errors:
+            msg = errors.popleft()
+            self.error_frames += 1
+            if msg.arbitration_id & CAN_ERR_BUSOFF and cause is None:
+                cause = (f"CAN bus-off on bus {self.name!r} (error frame class "
+                         f"0x{msg.arbitration_id:X})")
+        return cause
+
