@@ -35,8 +35,11 @@ INCREMENTS_PER_REV = 1 << 20
 RATED_TORQUE_NM = 1.0
 
 
-def drive_configs(n: int) -> list[DriveConfig]:
-    return [DriveConfig(f"j{i}", i, INCREMENTS_PER_REV, RATED_TORQUE_NM) for i in range(1, n + 1)]
+def drive_configs(n: int, buses: int = 1) -> list[DriveConfig]:
+    """n drives spread over ``buses`` buses named bus0, bus1, ... (node ids from 1 on each)."""
+    per_bus = -(-n // buses)
+    return [DriveConfig(f"j{i + 1}", i % per_bus + 1, INCREMENTS_PER_REV, RATED_TORQUE_NM,
+                        bus=f"bus{i // per_bus}" if buses > 1 else "") for i in range(n)]
 
 
 def missed_cycles(starts: np.ndarray, period: float) -> int:
@@ -68,44 +71,57 @@ class Rig:
     """Drives + hardware + manager + node; ``run(duration, on_cycle)`` runs the loop."""
 
     def __init__(self, drives: int, rate: float, *, separate_process: bool = False,
-                 channel: str | None = None) -> None:
+                 channel: str | None = None, buses: int = 1) -> None:
         self.rate = rate
         self.dt = 1.0 / rate
         self.separate_process = separate_process
         self.interface = "socketcan" if separate_process else "virtual"
-        self.channel = channel or ("vcan0" if separate_process
-                                   else f"bench-{uuid.uuid4().hex[:8]}")
-        self.node_ids = list(range(1, drives + 1))
+        if separate_process and buses > 2:
+            raise ValueError("--separate-process runs on vcan0 and vcan1: at most 2 buses")
+        base = channel or ("vcan" if separate_process else f"bench-{uuid.uuid4().hex[:8]}")
+        # one channel per bus: vcan0, vcan1 / bench-xxxx-0, -1, ... (one bus: as given)
+        self.channels = ([channel or ("vcan0" if separate_process else base)] if buses == 1
+                         else [f"{base}{k}" if separate_process else f"{base}-{k}"
+                               for k in range(buses)])
+        self.channel = self.channels[0]
+        self.configs = drive_configs(drives, buses)
+        self.node_ids = sorted({d.node_id for d in self.configs})
         self._closers: list[Callable[[], Any]] = []
         try:
-            self._start_simulator()
-            self.bus = open_bus(self.interface, self.channel, receive_own_messages=False)
-            self._closers.append(self.bus.shutdown)
-            self.hardware = CanopenHardware(self.bus, drive_configs(drives), MANAGER_NODE_ID,
-                                            self.dt)
+            self.segments = [self._start_simulator(ch) for ch in self.channels]
+            self.segment = self.segments[0]
+            self.buses = [open_bus(self.interface, ch, receive_own_messages=False)
+                          for ch in self.channels]
+            for bus in self.buses:
+                self._closers.append(bus.shutdown)
+            self.bus = self.buses[0]
+            named = ({"bus": self.bus} if buses == 1
+                     else {f"bus{k}": b for k, b in enumerate(self.buses)})
+            self.hardware = CanopenHardware(named, self.configs, MANAGER_NODE_ID, self.dt,
+                                            estop_cob_id=ESTOP_COB_ID)
             self._closers.append(self.hardware.close)
             self.manager = manager_for(self.hardware)
             self._closers.append(self.manager.shutdown)
             self.node_bus = open_bus(self.interface, self.channel,
                                     receive_own_messages=False)
             self._closers.append(self.node_bus.shutdown)
+            # as Runtime wires it: e-stop frames are the hardware's, on every bus, in the cycle
             self.node = ManagerNode(self.manager, MANAGER_NODE_ID, self.node_bus,
-                                    estop_cob_id=ESTOP_COB_ID)
+                                    estop_cob_id=ESTOP_COB_ID,
+                                    estop_in_cycle=self.hardware.set_estop_cob_id)
         except BaseException:
             self.close()
             raise
 
-    def _start_simulator(self) -> None:
+    def _start_simulator(self, channel: str) -> SimulatedSegment | None:
         if not self.separate_process:
-            segment = SimulatedSegment.open(self.channel, "virtual", self.node_ids).start()
-            self.segment = segment
+            segment = SimulatedSegment.open(channel, "virtual", self.node_ids).start()
             self._closers.append(segment.check)
             self._closers.append(segment.stop)
-            return
+            return segment
         nodes = f"{self.node_ids[0]}-{self.node_ids[-1]}"
         proc = subprocess.Popen([sys.executable, "-m", "rocoma_can", "sim", "--interface",
-                                 "socketcan", "--channel", self.channel, "--nodes", nodes])
-        self.segment = None
+                                 "socketcan", "--channel", channel, "--nodes", nodes])
 
         def stop() -> None:
             proc.terminate()
@@ -117,8 +133,9 @@ class Rig:
         self._closers.append(stop)
         time.sleep(1.0)  # let the simulator open its socket and send boot-ups
         if proc.poll() is not None:
-            raise RuntimeError(f"rocoma-can sim exited with {proc.returncode} (is vcan0 up? "
-                               "run under tools/vcan-run)")
+            raise RuntimeError(f"rocoma-can sim exited with {proc.returncode} (is {channel} "
+                               "up? run under tools/vcan-run)")
+        return None
 
     def add(self, controller: Controller, emergency: EmergencyController | None = None) -> None:
         if not self.manager.add_controller(controller, emergency=emergency):

@@ -7,13 +7,15 @@
     RPDO (controlword 0x0002 quick stop, or 0x0000 torque off if the manager fell to
     FAILPROOF) is sent in the same cycle. Measured from the failing advance call to the
     first such frame received by a listener on the bus, and to the last drive's one.
-(b) e-stop CAN frame in -> torque-off frames out: an e-stop frame on the manager node's
-    e-stop COB-ID (rocoma_can.runtime.node.ManagerNode, 0x2130) while a controller with no
-    emergency controller runs: the manager goes to FAILPROOF and every drive gets
-    controlword 0x0000. Measured from the send of the e-stop frame.
-Cycles = loop cycle of the frame minus loop cycle of the failure (a) / of the last cycle
-before the e-stop frame was sent (b): 0 = same cycle, 1 = next cycle. Each repetition
-re-enables the drives first (not timed).
+(b) e-stop CAN frame in -> torque-off frames out: an e-stop frame on the e-stop COB-ID
+    (0x2130; drained by the hardware's read with the drives' frames, as Runtime wires it)
+    while a controller with no emergency controller runs: the manager goes to FAILPROOF and
+    every drive gets controlword 0x0000. Measured from the send of the e-stop frame, which
+    the loop thread sends right after a cycle's write.
+Cycles = loop cycle of the frame minus loop cycle of the failure (a) / of the cycle that sent
+the e-stop frame (b): (a) 0 = same cycle; (b) 1 = the next cycle, the first whose read can
+see the frame (the target: it acts in the cycle that reads it). Each repetition re-enables
+the drives first (not timed).
 """
 from __future__ import annotations
 

@@ -1,6 +1,7 @@
 """A steady run of the real control loop with simulated drives: missed cycles, period, jitter.
 
-    .venv/bin/python benchmarks/loop_run.py [--drives 12] [--rate 1000] [--duration 60]
+    .venv/bin/python benchmarks/loop_run.py [--drives 12] [--buses 4] [--rate 1000]
+                                            [--duration 60]
     tools/vcan-run .venv/bin/python benchmarks/loop_run.py --separate-process --rate 200
 
 The loop is rocoma_can.runtime.ControlLoop (read -> manager.update -> write, sleep then spin
@@ -9,7 +10,9 @@ loop runs for --duration seconds. Default: the simulator is a thread in this pro
 python-can's virtual bus (it shares the GIL and the 2 cores with the loop). With
 --separate-process the simulator is a ``rocoma-can sim`` subprocess on SocketCAN vcan0,
 which this machine only has inside user-mode-linux (tools/vcan-run), where every syscall
-is slow: use a rate the VM can sustain there. The JSON records which mode ran.
+is slow: use a rate the VM can sustain there. The JSON records which mode ran. ``--buses N``
+spreads the drives over N buses (one simulated segment each; vcan0 and vcan1 with
+--separate-process), one manager over all of them.
 """
 from __future__ import annotations
 
@@ -28,6 +31,7 @@ from rocoma_can.controllers.pd import JointPD
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--drives", type=int, default=12)
+    parser.add_argument("--buses", type=int, default=1, help="buses the drives are spread over")
     parser.add_argument("--rate", type=float, default=1000.0, help="Hz")
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of steady run")
     parser.add_argument("--separate-process", action="store_true",
@@ -37,11 +41,14 @@ def main() -> None:
     if args.quick:
         args.duration = 2.0
     logging.basicConfig(level=logging.ERROR)
-    mode = ("separate process, socketcan vcan0" if args.separate_process
+    mode = ("separate process, socketcan" if args.separate_process
             else "in-process thread, virtual bus")
+    if args.buses > 1:
+        mode += f" x{args.buses}"
 
     estops: list[str] = []
-    with Rig(args.drives, args.rate, separate_process=args.separate_process) as rig:
+    with Rig(args.drives, args.rate, separate_process=args.separate_process,
+             buses=args.buses) as rig:
         rig.add(JointPD("pd", mode="CSP"), emergency=Hold("hold", mode="CSP"))
         rig.manager.subscribe(lambda e: estops.append(e.cause) if e.kind.name ==
                               "EMERGENCY_STOP" else None)
@@ -69,8 +76,8 @@ def main() -> None:
     j = stats(jitter_us)
     missed = missed_cycles(starts, dt)
     steady_s = float(starts[-1] - starts[0]) if len(starts) > 1 else 0.0
-    rows = [[mode, args.drives, f"{args.rate:g}", f"{steady_s:.1f}", len(starts), missed,
-             p["median"], p["p99"], p["max"], j["p99"], len(estops), final_state]]
+    rows = [[mode, args.drives, args.buses, f"{args.rate:g}", f"{steady_s:.1f}", len(starts),
+             missed, p["median"], p["p99"], p["max"], j["p99"], len(estops), final_state]]
     notes = [f"period and jitter (|period - {dt * 1e6:.0f} us|) over the steady run after "
              "bring-up and enable; missed = cycle slots with no cycle start (a gap of k "
              "periods misses k - 1).",
@@ -78,11 +85,12 @@ def main() -> None:
     if script.timed_out:
         notes.append(f"TIMED OUT in phase {script.phase}: the numbers are partial.")
     report("loop_run", f"Control loop at {args.rate:g} Hz with {args.drives} simulated drives",
-           ["simulator", "drives", "Hz", "run s", "cycles", "missed", "period p50 us",
+           ["simulator", "drives", "buses", "Hz", "run s", "cycles", "missed", "period p50 us",
             "p99 us", "max us", "jitter p99 us", "e-stops", "end state"],
            rows, args=args, notes=notes,
            results={"mode": "separate-process" if args.separate_process else "in-process",
-                    "simulator": mode, "drives": args.drives, "rate_hz": args.rate,
+                    "simulator": mode, "drives": args.drives, "buses": args.buses,
+                    "rate_hz": args.rate,
                     "steady_seconds": steady_s, "cycles": len(starts),
                     "missed_cycles": missed, "period_us": p, "jitter_us": j,
                     "estops": len(estops), "estop_causes": estops[:10],

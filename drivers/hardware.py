@@ -109,6 +109,7 @@ class Manager(Protocol):
     switch_count: int
 
     def update(self) -> ManagerState: ...
+    def post_cycle(self) -> None: ...
     def emergency_stop(self, cause: str = ...) -> None: ...
     def failproof_stop(self, cause: str = ...) -> None: ...
     def clear_emergency_stop(self) -> bool: ...
@@ -325,13 +326,14 @@ class CanopenHardware:
         self._manager = manager
 
     def run_cycle(self, now: float | None = None) -> ManagerState:
-        """read, manager.update, write: one whole cycle (needs ``attach``, which
-        ``rocoma_can.runtime.system.manager_for`` does)."""
+        """read, manager.update, write, manager.post_cycle: one whole cycle (needs
+        ``attach``, which ``rocoma_can.runtime.system.manager_for`` does)."""
         if self._manager is None:
             raise RuntimeError("run_cycle needs a manager: attach() one first")
         self.read(time.monotonic() if now is None else now)
         state = self._manager.update()
         self.write(state)
+        self._manager.post_cycle()
         return state
 
     # --- the cycle ------------------------------------------------------------------------------

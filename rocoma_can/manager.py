@@ -174,7 +174,12 @@ class ControllerManager:
         self._update_started = 0.0  # monotonic start of the update() in progress, else 0
 
         self._events = EventDispatcher(name)
-        self._failproof = FailproofControllerAdapter(failproof, self._events.log)
+        # Wake-ups of other threads (events, log records, stop hand-overs) that an update()
+        # produced, held until post_cycle(): see update().
+        self._held: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
+        self._in_update = False
+        self._deferring = False  # a caller calls post_cycle (the loop does): hold till then
+        self._failproof = FailproofControllerAdapter(failproof, self._log)
         self._attach(failproof)
         if not self._failproof.create(self.dt):
             self._events.close(self.timeouts.shutdown)
@@ -245,7 +250,7 @@ class ControllerManager:
                               "controller %r not added", emergency.name, name)
                     return False
                 emcy_adapter = EmergencyControllerAdapter(
-                    emergency, self._events.log, self._check_state, self._limit_command,
+                    emergency, self._log, self._check_state, self._limit_command,
                     self._budget_for(emergency))
                 self._attach(emergency)
                 if not emcy_adapter.create(self.dt):
@@ -257,7 +262,7 @@ class ControllerManager:
                 log.warning("a second emergency controller named %r was dropped; "
                             "the first instance is shared", emergency.name)
 
-        adapter = ControllerAdapter(controller, self._events.log, self._check_state,
+        adapter = ControllerAdapter(controller, self._log, self._check_state,
                                     self._limit_command, self._budget_for(controller))
         self._attach(controller)
         if not adapter.create(self.dt):
@@ -274,15 +279,44 @@ class ControllerManager:
 
     # --- the cycle ------------------------------------------------------------------------
     def update(self) -> ManagerState:
-        """One control cycle; returns the layer that wrote this cycle's command."""
+        """One control cycle; returns the layer that wrote this cycle's command.
+
+        It wakes no other thread while it runs: the events, log records and stop hand-overs
+        it produces (an e-stop makes all three) are held to its end, and, once the caller
+        has called ``post_cycle`` (the loop does, after the cycle's frames are written),
+        until post_cycle. A thread woken earlier would take the GIL at the next point that
+        releases it (a numpy call, a socket send) and run its work (the failed controller's
+        stop, subscribers, logging) before this cycle's command is out."""
         with self._cycle_lock:
+            if self._held:  # a caller that stopped calling post_cycle
+                self._wake()
             self._update_started = time.monotonic()
+            self._in_update = True
             try:
                 return self._update()
             except Exception as exc:  # a bug in the manager itself: never kill the loop
                 return self._internal_failure(exc)
             finally:
+                self._in_update = False
                 self._update_started = 0.0
+                if self._held and not self._deferring:
+                    self._wake()
+
+    def post_cycle(self) -> None:
+        """After the cycle's write: wake the threads the last update() has work for (the
+        stopper of a failed controller, event delivery). From the thread that calls update;
+        from the first call on, update() leaves that to it."""
+        self._deferring = True
+        self._wake()
+
+    def _wake(self) -> None:
+        held = self._held
+        while held:
+            fn, args = held.popleft()
+            try:
+                fn(*args)
+            except Exception:  # noqa: BLE001 - a queue put; nothing may stop the others
+                self.internal_errors += 1
 
     def _internal_failure(self, exc: Exception) -> ManagerState:
         """The last resort of update(): the failproof layer commands, latched if must-clear.
@@ -299,7 +333,7 @@ class ControllerManager:
             self._latched = True
         self._failproof.advance(self.dt)
         try:
-            self._events.log(logging.CRITICAL, f"manager update failed: {exc!r}", exc)
+            self._log(logging.CRITICAL, f"manager update failed: {exc!r}", exc)
             if previous is not ManagerState.FAILPROOF:
                 self._emit(EventKind.EMERGENCY_STOP, f"manager error: {exc!r}")
                 self._emit_changed()
@@ -355,7 +389,7 @@ class ControllerManager:
             except Exception as exc:  # noqa: BLE001 - the safe way on is the failproof layer
                 self.internal_errors += 1
                 to_failproof = True
-                self._events.log(logging.CRITICAL, f"reset_command failed: {exc!r}", exc)
+                self._log(logging.CRITICAL, f"reset_command failed: {exc!r}", exc)
         if previous is ManagerState.OK:
             assert pair is not None
             self._stop_in_background(pair.controller)
@@ -384,7 +418,10 @@ class ControllerManager:
         adapter.running = False
         if not adapter.being_stopped:  # else its stop is owned by a switch in progress
             adapter.being_stopped = True
-            self._stoppers.hand_over(adapter)
+            if self._in_update:
+                self._held.append((self._stoppers.hand_over, (adapter,)))
+            else:
+                self._stoppers.hand_over(adapter)
 
     def _run_watchdog(self) -> None:
         """Torque off through on_hang while an update() is stuck (a hung advance)."""
@@ -599,7 +636,18 @@ class ControllerManager:
         return self._events.subscribe(callback)
 
     def _emit(self, kind: EventKind, cause: str = "") -> None:
-        self._events.emit(ManagerEvent(kind, self._state, self.active_controller_name, cause))
+        event = ManagerEvent(kind, self._state, self.active_controller_name, cause)
+        if self._in_update:
+            self._held.append((self._events.emit, (event,)))
+        else:
+            self._events.emit(event)
+
+    def _log(self, level: int, message: str, exc: BaseException | None = None) -> None:
+        """Log without I/O, and from update() without waking the event thread (update)."""
+        if self._in_update:
+            self._held.append((self._events.log, (level, message, exc)))
+        else:
+            self._events.log(level, message, exc)
 
     def _emit_changed(self) -> None:
         self._emit(EventKind.STATE_CHANGED)
@@ -627,6 +675,7 @@ class ControllerManager:
         if self._closed:
             return True
         self._closed = True
+        self._wake()  # whatever the last update() held back
         limit = self.timeouts.shutdown
         ok = True
         if self._switch_busy.acquire(timeout=limit):

@@ -396,3 +396,24 @@ def test_shutdown_stops_cleans_up_and_joins_everything():
     assert journal.of("a", "stop")
     assert not [t for t in threading.enumerate() if t.name.startswith("rocoma/")]
     assert mgr.switch_controller("a") == SwitchResult.ERROR
+
+
+def test_an_update_wakes_no_thread_before_post_cycle(rig):
+    """Once the loop calls post_cycle (after the cycle's frames are written), the stop of a
+    failed controller and the events of the e-stop wait for it: no thread woken inside the
+    cycle can take the GIL from the frames. Without post_cycle (a caller that only calls
+    update) they go out at the end of update, as the tests above rely on."""
+    a = add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    events = []
+    delivered = threading.Event()
+    rig.mgr.subscribe(lambda ev: (events.append(ev.kind), delivered.set())
+                      if ev.kind is EventKind.EMERGENCY_STOP else None)
+    assert rig.mgr.switch_controller("a") == SwitchResult.SWITCHED
+    rig.mgr.post_cycle()  # the loop's way from here on
+    a.fail.add("advance")
+    assert rig.step() == (EMERGENCY, ["e"])
+    # nothing was handed over: however long we wait, a's stop cannot have started
+    assert not delivered.wait(0.2) and not rig.journal.of("a", "pre_stop")
+    rig.mgr.post_cycle()
+    rig.journal.wait_for("a", "stop")
+    assert delivered.wait(WAIT) and events == [EventKind.EMERGENCY_STOP]

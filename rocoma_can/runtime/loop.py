@@ -1,6 +1,8 @@
 """The control loop: one thread, a fixed rate on the monotonic clock, and a safe way out.
 
-Each cycle is ``hardware.read(now)`` -> ``manager.update()`` -> ``hardware.write(state)``.
+Each cycle is ``hardware.read(now)`` -> ``manager.update()`` -> ``hardware.write(state)``
+-> ``manager.post_cycle()`` (the threads the update has work for are woken only once the
+cycle's frames are out).
 Timing: sleep until shortly before the deadline, then spin to it (``time.sleep`` alone
 overshoots by the scheduler's slack). The garbage collector is frozen after start-up and
 disabled; a generation-0 collection runs between cycles only when the cycle left slack, so
@@ -117,6 +119,7 @@ class CycleManager(Protocol):
     """What the loop needs of a manager (rocoma_can.ControllerManager)."""
 
     def update(self) -> ManagerState: ...
+    def post_cycle(self) -> None: ...
     def failproof_stop(self, cause: str = ...) -> None: ...
 
 
@@ -196,6 +199,7 @@ class ControlLoop:
                 hw.read(now)
                 state = mgr.update()
                 hw.write(state)
+                mgr.post_cycle()  # the threads update() has work for, after the frames
                 self.last_state = state
                 if on_cycle is not None:
                     on_cycle(now)
@@ -235,6 +239,7 @@ class ControlLoop:
                 self.hardware.read(now)
                 state = self.manager.update()
                 self.hardware.write(state)
+                self.manager.post_cycle()
                 self.last_state = state
             except Exception:
                 log.exception("torque-off cycle raised while stopping the loop")
