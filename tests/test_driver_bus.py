@@ -510,18 +510,22 @@ def test_only_exact_frames_are_drive_feedback(segment, make_rig, bus_factory, ca
 
 def test_a_statusword_that_is_no_state_is_a_fault_at_once(segment, make_rig):
     """A garbled statusword in the first cycles of enabling used to be taken as one more
-    enable step, reported only when the enable timed out; it is that drive's fault at once."""
+    enable step, reported only when the enable timed out; it is that drive's fault at once.
+
+    The switch is committed before the statusword is garbled and before the next cycle (the
+    switcher commits between cycles, so no enable frame has been sent yet). Garbled first,
+    the switch raced the fault: a loaded switcher thread committed after the fault was
+    latched, and the switch guard rightly refused it."""
     rig = make_rig()
     bring_up(rig)
     rig.mgr.add_controller(HoldPD(), emergency=Brake())
     garbled = tuple(segment.drives)[1]
-    future = rig.mgr.request_switch("hold")
+    assert rig.mgr.switch_controller("hold", timeout=rig.setup.stall) == SwitchResult.SWITCHED
     segment.drives[garbled].garble_statusword(0x0008)  # not enabled yet: reads as no state
     enable_cycles = int(rig.setup.timeouts.enable / rig.dt)
     before = len(rig.states)
     assert rig.run_until(lambda: rig.hw.supervisor.latched[1] is not None,
                          rig.setup.detect_budget())
-    assert future.result(timeout=rig.setup.stall) == SwitchResult.SWITCHED
     latched = rig.hw.supervisor.latched[1]
     assert latched.node_id == garbled and "no CiA 402 state" in latched.cause
     assert len(rig.states) - before < enable_cycles  # before the enable timeout would say

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import can
 from canopen import objectdictionary
 
 from .. import cia301 as c301
@@ -89,7 +90,8 @@ class SimulatedDrive:
         self.cia402 = StateMachine402(joint, self._dyn, self._values, self._scaling,
                                       self.emcy, self.nmt, self._faults)
         self.pdos = PdoService(node_id, segment, self.objects, self.nmt, self.emcy,
-                               self._faults, self._tx, self.cia402.on_controlword)
+                               self._faults, self._tx, self._tx_frame,
+                               self.cia402.on_controlword)
 
     # ------------------------------------------------------------------ read-only view
     @property
@@ -346,3 +348,7 @@ class SimulatedDrive:
     def _tx(self, cob_id: int, data: bytes) -> None:
         if not self._faults.silent:
             self._seg.send(cob_id, data)
+
+    def _tx_frame(self, msg: can.Message) -> None:
+        if not self._faults.silent:
+            self._seg.send_frame(msg)

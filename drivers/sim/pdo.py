@@ -16,6 +16,8 @@ from functools import partial
 from operator import itemgetter
 from typing import Any
 
+import can
+
 from .. import cia301 as c301
 from ..cia301 import NmtState
 from .faults import EmcyProducer, InjectedFaults
@@ -34,6 +36,7 @@ class Pdo:
     keys: tuple[Key, ...]
     layout: struct.Struct
     values_of: Callable[[dict[Key, Any]], tuple[Any, ...]]
+    frame: can.Message             # TPDO: pre-encoded, filled in place before each send
     counter: int = 0
     last: bytes | None = None      # event-driven TPDO: what was sent last
     pending: bytes | None = None   # synchronous RPDO: received, applied at the next SYNC
@@ -43,6 +46,7 @@ class PdoService:
     def __init__(self, node_id: int, segment: Segment, objects: ObjectDictionaryServer,
                  nmt: NmtSlave, emcy: EmcyProducer, faults: InjectedFaults,
                  send: Callable[[int, bytes], None],
+                 send_frame: Callable[[can.Message], None],
                  on_controlword: Callable[[int], None]) -> None:
         self._node_id = node_id
         self._seg = segment
@@ -52,6 +56,7 @@ class PdoService:
         self._emcy = emcy
         self._faults = faults
         self._send = send
+        self._send_frame = send_frame
         self._on_controlword = on_controlword
         self._tpdos: list[Pdo] = []
         self._rpdos: list[Pdo] = []
@@ -83,9 +88,13 @@ class PdoService:
                 values_of = lambda values: (single(values),)  # noqa: E731
         else:
             values_of = lambda values: ()  # noqa: E731
+        layout = struct.Struct(fmt)
+        fd = self._seg.fd
+        frame = can.Message(arbitration_id=raw & 0x7FF, data=bytearray(layout.size),
+                            is_extended_id=False, is_fd=fd, bitrate_switch=fd)
         return Pdo(number=number, cob_id=raw & 0x7FF, valid=not raw & PDO_NOT_VALID,
                    trans_type=self._values[(comm, 2)], keys=tuple(keys),
-                   layout=struct.Struct(fmt), values_of=values_of)
+                   layout=layout, values_of=values_of, frame=frame)
 
     # ------------------------------------------------------------------ RPDOs
     def on_rpdo(self, pdo: Pdo, data: bytes) -> None:
@@ -119,18 +128,24 @@ class PdoService:
 
     # ------------------------------------------------------------------ TPDOs
     def send_synchronous(self) -> None:
-        """On SYNC: the synchronous TPDOs that are due."""
+        """On SYNC: the synchronous TPDOs that are due, packed into their pre-encoded
+        frames (no frame is built per SYNC)."""
+        values = self._values
         for pdo in self._tpdos:
             if not pdo.valid or pdo.trans_type > 240:
                 continue
             if pdo.trans_type == 0:  # acyclic synchronous: on SYNC, when changed
-                if pdo.layout.pack(*pdo.values_of(self._values)) != pdo.last:
+                if pdo.layout.pack(*pdo.values_of(values)) != pdo.last:
                     self._send_tpdo(pdo)
                 continue
             pdo.counter += 1
             if pdo.counter >= pdo.trans_type:
                 pdo.counter = 0
-                self._send_tpdo(pdo)
+                if self._faults.tpdo_delay > 0:  # sent later: the frame would change
+                    self._send_tpdo(pdo)
+                    continue
+                pdo.layout.pack_into(pdo.frame.data, 0, *pdo.values_of(values))
+                self._send_frame(pdo.frame)
 
     def emit_event_tpdos(self) -> None:
         """Event-driven TPDOs whose data changed (called after anything that may change it)."""

@@ -10,6 +10,7 @@ import threading
 from collections.abc import Callable
 from typing import Protocol
 
+import can
 import numpy as np
 
 from .dynamics import JointDynamics
@@ -30,7 +31,16 @@ class Segment(Protocol):
         """Call ``fn(*args)`` at ``when`` on the segment's timer thread, lock held."""
         ...
 
+    @property
+    def fd(self) -> bool:
+        """An FD bus: the drives' pre-encoded frames are FD frames."""
+        ...
+
     def send(self, cob_id: int, data: bytes) -> None: ...
+
+    def send_frame(self, msg: can.Message) -> None:
+        """A frame the caller keeps and re-fills (sent as it is now)."""
+        ...
 
     def judge_at(self, deadline: float) -> float | None:
         """None once every frame that arrived before ``deadline`` has been handled;

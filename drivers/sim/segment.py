@@ -208,14 +208,28 @@ class SimulatedSegment:
     def schedule(self, when: float, fn: Callable[..., Any], *args: Any) -> None:
         self._timers.call_at(when, fn, args)
 
+    @property
+    def fd(self) -> bool:
+        return self._writer.fd
+
     def send(self, cob_id: int, data: bytes) -> None:
         try:
             self._writer.send(cob_id, data)
         except can.CanError as exc:  # ENOBUFS, bus closed: a real drive just loses it
-            self.send_errors += 1
-            if self.send_errors in (1, 10, 100, 1000):
-                log.warning("simulated segment: send of 0x%03X failed (%d so far): %s",
-                            cob_id, self.send_errors, exc)
+            self._send_failed(cob_id, exc)
+
+    def send_frame(self, msg: can.Message) -> None:
+        """A pre-encoded frame (the drives' TPDOs): no frame built per send."""
+        try:
+            self._writer.send_message(msg)
+        except can.CanError as exc:
+            self._send_failed(msg.arbitration_id, exc)
+
+    def _send_failed(self, cob_id: int, exc: can.CanError) -> None:
+        self.send_errors += 1
+        if self.send_errors in (1, 10, 100, 1000):
+            log.warning("simulated segment: send of 0x%03X failed (%d so far): %s",
+                        cob_id, self.send_errors, exc)
 
     def judge_at(self, deadline: float) -> float | None:
         """None once every frame that arrived before ``deadline`` has been handled (a timeout
