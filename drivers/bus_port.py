@@ -72,7 +72,7 @@ class BusPort:
         self.drives = drives  # indices of the hardware's drives on this bus
         self._arg = bus
         # a lent bus says whether it is FD (python-can's protocol); a config says so itself
-        self.fd = bus.fd if isinstance(bus, BusConfig) else bus.protocol in _FD
+        self.fd = bus.fd if isinstance(bus, BusConfig) else getattr(bus, "protocol", None) in _FD
         self.rx: collections.deque[can.Message] = collections.deque()
         self.rx_errors: collections.deque[can.Message] = collections.deque(maxlen=1024)
         self.canopen: CanopenBus | None = None
