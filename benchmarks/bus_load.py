@@ -4,8 +4,9 @@
 
 Computed, not measured: frames per cycle come from the driver's own PDO layouts
 (drivers/pdo_layout.py, the same ``layout_for`` the hardware layer uses) and bits per frame
-from the classic-CAN formula (rocoma_can.config.frame_bits): 8n + 47 bits for n data bytes
-(with intermission), plus up to floor((34 + 8n - 1) / 4) stuff bits in the worst case.
+from the classic-CAN formula the config check uses (rocoma_can.runtime.bus_load.frame_bits):
+8n + 47 bits for n data bytes (with intermission), plus up to floor((34 + 8n - 1) / 4) stuff
+bits in the worst case.
 Per cycle: every drive's RPDOs and TPDOs and one SYNC; per second on top: the manager's and
 every drive's heartbeat (1 byte each, --heartbeat-ms). "fits" means the worst case (full
 stuffing) stays at or below --max-load percent of the bit rate.
@@ -19,6 +20,7 @@ from _report import report
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.joints import JointMode
 from rocoma_can.drivers.pdo_layout import layout_for
+from rocoma_can.runtime.bus_load import frame_bits as wire_bits
 
 BITRATES = (500_000, 1_000_000)
 #: name -> (modes, feedback): the default drive and the leanest CSP drive
@@ -30,8 +32,7 @@ LAYOUTS = {
 
 def frame_bits(n: int) -> tuple[int, int]:
     """(no stuffing, worst-case stuffing) bits of a classic 11-bit frame with n data bytes."""
-    nominal = 8 * n + 47
-    return nominal, nominal + (34 + 8 * n - 1) // 4
+    return int(wire_bits(n, worst_case=False)), int(wire_bits(n))
 
 
 def drive_cycle(modes: tuple, feedback: tuple) -> tuple[int, int, int]:
