@@ -12,7 +12,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from .. import eds as shipped_eds
 from ..drivers.bus import BusReader
-from ..errors import NoAnswer, Refused
+from ..errors import NoAnswer, Refused, RocomaError
 from .objects import (
     ABORT_TEXT,
     ACTIVE_NAME,
@@ -32,6 +32,9 @@ from .objects import (
 )
 
 __all__ = ["ManagerClient", "NoAnswer", "Refused"]
+
+#: What an object of the manager node holds: integers and visible strings (its EDS).
+SdoValue = int | float | str | bytes
 
 
 class ManagerClient:
@@ -55,15 +58,32 @@ class ManagerClient:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def read(self, index: int) -> Any:
+    def read(self, index: int) -> SdoValue:
         try:
-            return self.node.sdo[index].raw
+            value: SdoValue = self.node.sdo[index].raw
+            return value
         except SdoAbortedError as exc:
             raise Refused(exc.code, f"read 0x{index:04X}", _meaning(exc.code)) from None
         except SdoCommunicationError as exc:
             raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
 
-    def write(self, index: int, value: Any) -> None:
+    def read_int(self, index: int) -> int:
+        """An integer object (the node's EDS says which): anything else is a wrong EDS."""
+        value = self.read(index)
+        if not isinstance(value, int):
+            raise RocomaError(f"read 0x{index:04X}: expected an integer, got {value!r}: is "
+                              f"node {self.node.id} a rocoma-can manager?")
+        return value
+
+    def read_text(self, index: int) -> str:
+        """A VISIBLE_STRING object."""
+        value = self.read(index)
+        if not isinstance(value, str):
+            raise RocomaError(f"read 0x{index:04X}: expected text, got {value!r}: is "
+                              f"node {self.node.id} a rocoma-can manager?")
+        return value
+
+    def write(self, index: int, value: SdoValue) -> None:
         try:
             self.node.sdo[index].raw = value
         except SdoAbortedError as exc:
@@ -79,7 +99,7 @@ class ManagerClient:
             self.write(SWITCH_NAME, name)
         deadline = time.monotonic() + timeout
         while True:
-            result = int(self.read(SWITCH_RESULT))
+            result = self.read_int(SWITCH_RESULT)
             if result != PENDING or time.monotonic() > deadline:
                 return result
             time.sleep(0.02)
@@ -87,17 +107,17 @@ class ManagerClient:
     def status(self) -> dict[str, Any]:
         """Everything the node serves about itself and its drives (0x2140 decoded)."""
         try:
-            drives = json.loads(self.read(DRIVE_STATUS) or "{}")
+            drives = json.loads(self.read_text(DRIVE_STATUS) or "{}")
         except ValueError:
             drives = {}
         return {
-            "state": STATE_NAMES.get(self.read(STATE), "?"),
-            "active": self.read(ACTIVE_NAME),
-            "latched": bool(self.read(ESTOP_LATCHED)),
-            "last_switch": RESULT_NAMES.get(self.read(SWITCH_RESULT), "?"),
-            "switch_refused": self.read(SWITCH_REFUSAL),
-            "estop_cause": self.read(ESTOP_CAUSE),
-            "estop_cob_id": self.read(ESTOP_COB_ID),
+            "state": STATE_NAMES.get(self.read_int(STATE), "?"),
+            "active": self.read_text(ACTIVE_NAME),
+            "latched": bool(self.read_int(ESTOP_LATCHED)),
+            "last_switch": RESULT_NAMES.get(self.read_int(SWITCH_RESULT), "?"),
+            "switch_refused": self.read_text(SWITCH_REFUSAL),
+            "estop_cause": self.read_text(ESTOP_CAUSE),
+            "estop_cob_id": self.read_int(ESTOP_COB_ID),
             "startup_finished": drives.get("startup_finished"),
             "recovery": drives.get("recovery"),
             "bus_fault": drives.get("bus_fault"),
@@ -105,7 +125,7 @@ class ManagerClient:
         }
 
     def controllers(self) -> list[str]:
-        text = self.read(CONTROLLER_LIST)
+        text = self.read_text(CONTROLLER_LIST)
         return [n for n in text.split(",") if n]
 
 

@@ -18,7 +18,7 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from ..errors import NoAnswer, Refused
+from ..errors import NoAnswer, Refused, RocomaError
 from .client import ManagerClient
 from .objects import (
     ABORT_NOT_FOUND,
@@ -117,7 +117,7 @@ def _client(args: argparse.Namespace, action: Callable[[ManagerClient], int]) ->
     except NoAnswer as exc:
         _err(f"{exc} (is `rocoma-can run` running on {args.interface}:{args.channel}?)")
         return NO_ANSWER
-    except Refused as exc:
+    except (Refused, RocomaError) as exc:  # refused, or not a rocoma-can manager node
         _err(str(exc))
         return FAILED
     finally:
@@ -136,11 +136,11 @@ def _switch(args: argparse.Namespace) -> int:
                 _err(f"no controller {args.name!r} (`rocoma-can list` names them)")
                 return FAILED
             print("ERROR", flush=True)
-            _err(f"switch refused: {client.read(SWITCH_REFUSAL) or exc}")
+            _err(f"switch refused: {client.read_text(SWITCH_REFUSAL) or exc}")
             return FAILED
         print(RESULT_NAMES.get(result, str(result)), flush=True)
         if result == 3:
-            _err(f"switch failed: {client.read(SWITCH_REFUSAL) or 'see the manager log'}")
+            _err(f"switch failed: {client.read_text(SWITCH_REFUSAL) or 'see the manager log'}")
         return OK if result in (0, 1) else FAILED
     return _client(args, action)
 
