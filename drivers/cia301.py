@@ -32,6 +32,25 @@ SDO_RX = 0x600
 HEARTBEAT = 0x700
 
 
+def reserved_cob_id(cob_id: int) -> str | None:
+    """Why an 11-bit COB-ID cannot be a free-standing identifier such as the e-stop frame's
+    (NMT, SYNC, SDO and heartbeat ranges), or None. PDO and EMCY ids depend on the nodes on
+    the bus: ``used_cob_ids`` gives those."""
+    if cob_id in (NMT, SYNC) or SDO_TX <= cob_id <= SDO_RX + 0x7F or cob_id >= HEARTBEAT:
+        return "reserved for NMT, SYNC, SDO or heartbeat frames"
+    return None
+
+
+def node_cob_ids(node_id: int) -> dict[int, str]:
+    """The predefined connection set of one node: its EMCY and PDO COB-IDs, named."""
+    ids = {EMCY + node_id: f"the EMCY of node {node_id}"}
+    for k, base in enumerate(TPDO_BASE):
+        ids[base + node_id] = f"TPDO{k + 1} of node {node_id}"
+    for k, base in enumerate(RPDO_BASE):
+        ids[base + node_id] = f"RPDO{k + 1} of node {node_id}"
+    return ids
+
+
 class NmtCommand(enum.IntEnum):
     START = 0x01
     STOP = 0x02

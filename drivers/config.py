@@ -12,6 +12,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from . import cia301
 from .joints import JointMode
 
 
@@ -236,3 +237,18 @@ def check_drives(drives: list[DriveConfig], manager_node_id: int,
         if d.node_id == manager_node_id:
             raise ValueError(f"drive {d.name!r}: node_id {d.node_id} is the manager's node id")
         seen_ids[bus, d.node_id] = d.name
+
+
+def estop_conflict(cob_id: int, drives: Sequence[DriveConfig],
+                   manager_node_id: int) -> str | None:
+    """Why ``cob_id`` cannot be the e-stop COB-ID with these drives (on any of their buses)
+    and this manager node, or None."""
+    why = cia301.reserved_cob_id(cob_id)
+    if why is not None:
+        return why
+    for d in drives:
+        used = cia301.node_cob_ids(d.node_id).get(cob_id)
+        if used is not None:
+            return f"{used} (drive {d.name!r})"
+    used = cia301.node_cob_ids(manager_node_id).get(cob_id)
+    return None if used is None else f"{used}, the manager's own"

@@ -16,7 +16,7 @@ The safety path, top to bottom (each step names where it lives):
    ``BusPort.end_of_write``, bus_port.py) is a fault of every drive on it (``_bus_failed``).
    Frames arrive on each bus's reader thread (bus.py), which only appends them to a deque;
    ``read`` drains every bus on the cycle thread, so no lock is shared with a slow thread.
-   An e-stop frame (``estop_cob_id``, any bus) is drained the same way (``_on_estop_frame``)
+   An e-stop frame (``estop_cob_id``, any bus) is drained the same way (``_on_estop_frames``)
    and reaches the manager before this cycle's update.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
    a latched drive is never sent anything but controlword 0x0000), until recovery, and
@@ -76,7 +76,7 @@ from . import cia301, cia402
 from .bringup import DriveBringup, Phase
 from .bus_port import BusPort
 from .cia402 import State402
-from .config import BusConfig, DriveConfig, Supervision, check_drives
+from .config import BusConfig, DriveConfig, Supervision, check_drives, estop_conflict
 from .enable import OP_ENABLED, EnableSequence
 from .frame_io import clock_offset, to_monotonic
 from .joints import JointCommand, JointMode, JointState
@@ -149,9 +149,6 @@ class CanopenHardware:
         drives = list(drives)
         buses = _named_buses(bus)
         check_drives(drives, manager_node_id, list(buses))
-        if not _whole_cob_id(estop_cob_id):
-            raise ValueError(f"estop_cob_id must be 0 (off) or an 11-bit COB-ID, "
-                             f"got {estop_cob_id!r}")
         supervision = supervision or Supervision()
         if not dt > 0:
             raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
@@ -177,7 +174,8 @@ class CanopenHardware:
                       for name, arg in buses.items()]
         port_of = {p.name: p for p in self.ports}
         self._port_of = [port_of[d.bus or first] for d in drives]
-        self._estop_cob_id = estop_cob_id
+        self._estop_cob_id = 0
+        self.set_estop_cob_id(estop_cob_id)
         self.estop_frames = 0  # e-stop frames received (any bus)
         names = [d.name for d in drives]
         self.state = JointState.zeros(names)
@@ -345,13 +343,17 @@ class CanopenHardware:
         got.fill(0)
         stamp = self.state.stamp
         offset = clock_offset()
+        estop, estops = self._estop_cob_id or -1, 0
         for k, port in enumerate(self.ports):
             rx = port.rx
             tpdo_of, heartbeat_of, emcy_of = self._tpdo_of[k], port.heartbeat_of, port.emcy_of
             while rx:
                 msg = rx.popleft()
-                t = to_monotonic(offset, msg.timestamp, now)
                 cob = msg.arbitration_id
+                if cob == estop:  # first: an e-stop is never taken for anything else
+                    estops += 1
+                    continue
+                t = to_monotonic(offset, msg.timestamp, now)
                 entry = tpdo_of.get(cob)
                 if entry is not None:
                     i, bit, size, unpack, targets = entry
@@ -378,9 +380,9 @@ class CanopenHardware:
                         if code == cia301.EMCY_STO:
                             self._bringup[j].sto_seen = True
                         sup.on_emcy(j, code, t)
-                    continue
-                if cob == self._estop_cob_id:
-                    self._on_estop_frame(port)
+            if estops:
+                self._on_estop_frames(port, estops)
+                estops = 0
             if port.rx_errors:
                 cause = port.bus_off()
                 if cause is not None:
@@ -393,10 +395,11 @@ class CanopenHardware:
         self._deliver(sup.take_pending())
         self.cycles += 1
 
-    def _on_estop_frame(self, port: BusPort) -> None:
-        """An e-stop frame: the manager's update, which runs right after this read, acts on
-        it (any 11-bit frame on the COB-ID, data or remote, on any bus)."""
-        self.estop_frames += 1
+    def _on_estop_frames(self, port: BusPort, count: int) -> None:
+        """E-stop frames on one bus in this read: one request (a sender that repeats its
+        frame must not cost the cycle a request each); the manager's update, which runs
+        right after this read, acts on it."""
+        self.estop_frames += count
         if self._manager is not None:
             self._manager.emergency_stop(
                 cause=f"CAN e-stop from 0x{self._estop_cob_id:03X} on bus {port.name!r}")
@@ -651,6 +654,8 @@ class CanopenHardware:
             return
         sup = self.supervisor
         if not self._recovery_started:
+            if sup.pending:  # a fault of this very cycle is delivered first, never erased
+                return
             self._recovery_started = True
             self._recovery_deadline = now + self._recovery_timeout
             sup.bus_latched = None
@@ -710,11 +715,20 @@ class CanopenHardware:
     def estop_cob_id(self) -> int:
         return self._estop_cob_id
 
+    def estop_conflict(self, cob_id: int) -> str | None:
+        """Why ``cob_id`` cannot be the e-stop frame's on these buses, or None: a reserved
+        id, or one a drive or the manager's own node uses (an e-stop taken for a drive's
+        frame, or a drive's frame taken for an e-stop, would both be wrong)."""
+        return estop_conflict(cob_id, self.drives_config, self.manager_node_id)
+
     def set_estop_cob_id(self, cob_id: int) -> None:
         """The e-stop frame's COB-ID on every bus (0 = off), from any thread: the manager
-        node calls it when 0x2130 is written."""
+        node calls it when 0x2130 is written. ValueError for an id that is not free."""
         if not _whole_cob_id(cob_id):
             raise ValueError(f"estop_cob_id must be 0 (off) or an 11-bit COB-ID, got {cob_id!r}")
+        why = self.estop_conflict(cob_id) if cob_id else None
+        if why is not None:
+            raise ValueError(f"estop_cob_id 0x{cob_id:03X} is {why}")
         self._estop_cob_id = cob_id
         for port in self.ports:
             port.set_estop_cob_id(cob_id)

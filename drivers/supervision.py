@@ -110,9 +110,9 @@ class Supervisor:
                   bus: str = "bus") -> FaultEvent:
         """A bus itself failed (bus-off, frames refused): one event, node id 0, latched on
         ``drives`` (those on that bus: nothing reaches them, they must be brought back) and
-        as the bus latch until recovery. One event, not one per drive: a second event in the
-        same cycle would take the manager past its emergency layer to FAILPROOF, and the
-        drives on the other buses are still worth a smart stop."""
+        as the bus latch until recovery. One event, not one per drive: the hardware makes
+        it one failproof stop (a smart stop needs every joint), and a later fault of another
+        bus is an event of its own."""
         event = FaultEvent(0, bus, cause, 0, now)
         self.history.append(event)
         fresh = False

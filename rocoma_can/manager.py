@@ -311,8 +311,11 @@ class ControllerManager:
 
     def _wake(self) -> None:
         held = self._held
-        while held:
-            fn, args = held.popleft()
+        while True:
+            try:
+                fn, args = held.popleft()  # atomic: a second caller never gets an item twice
+            except IndexError:
+                return
             try:
                 fn(*args)
             except Exception:  # noqa: BLE001 - a queue put; nothing may stop the others
@@ -637,14 +640,14 @@ class ControllerManager:
 
     def _emit(self, kind: EventKind, cause: str = "") -> None:
         event = ManagerEvent(kind, self._state, self.active_controller_name, cause)
-        if self._in_update:
+        if self._in_update or self._held:  # behind what this cycle holds, in order
             self._held.append((self._events.emit, (event,)))
         else:
             self._events.emit(event)
 
     def _log(self, level: int, message: str, exc: BaseException | None = None) -> None:
         """Log without I/O, and from update() without waking the event thread (update)."""
-        if self._in_update:
+        if self._in_update or self._held:
             self._held.append((self._events.log, (level, message, exc)))
         else:
             self._events.log(level, message, exc)
@@ -675,7 +678,8 @@ class ControllerManager:
         if self._closed:
             return True
         self._closed = True
-        self._wake()  # whatever the last update() held back
+        with self._cycle_lock:  # no update() holds anything back meanwhile
+            self._wake()
         limit = self.timeouts.shutdown
         ok = True
         if self._switch_busy.acquire(timeout=limit):

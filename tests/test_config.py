@@ -255,6 +255,35 @@ def test_bus_problems_name_their_path(label, edit, expected):
     assert any(expected in p for p in info.value.problems), info.value.problems
 
 
+def test_the_estop_cob_id_must_be_free_on_every_bus():
+    """0x0A0 is also the EMCY of node 32: an RTR e-stop would be dropped as a short EMCY, an
+    EMCY of that drive taken for an e-stop. Same for a TPDO/RPDO id or the manager's own."""
+    cfg = four_buses()
+    cfg["drives"][4]["node_id"] = 32
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert any("manager.estop_cob_id: 0x0A0 is the EMCY of node 32 (drive 'rf2')" in p
+               for p in info.value.problems), info.value.problems
+    cfg = four_buses()
+    cfg["manager"]["estop_cob_id"] = 0x181
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert any("0x181 is TPDO1 of node 1" in p for p in info.value.problems)
+    cfg["manager"]["estop_cob_id"] = 0x080 + 100
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert any("the EMCY of node 100, the manager's own" in p for p in info.value.problems)
+
+
+def test_one_wire_is_one_bus():
+    cfg = four_buses()
+    cfg["buses"][3]["channel"] = "can0"
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert any("buses[3].channel: socketcan:can0 is already buses[0]" in p
+               for p in info.value.problems), info.value.problems
+
+
 def test_node_ids_may_repeat_across_buses():
     config = validate(four_buses())
     assert sorted(d.node_id for d in config.drives) == [1] * 4 + [2] * 4 + [3] * 4

@@ -406,8 +406,11 @@ def test_an_update_wakes_no_thread_before_post_cycle(rig):
     a = add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
     events = []
     delivered = threading.Event()
-    rig.mgr.subscribe(lambda ev: (events.append(ev.kind), delivered.set())
-                      if ev.kind is EventKind.EMERGENCY_STOP else None)
+    rig.mgr.subscribe(lambda ev: (events.append(ev.kind),
+                                  delivered.set() if ev.kind is EventKind.EMERGENCY_STOP
+                                  else None)
+                      if ev.kind in (EventKind.EMERGENCY_STOP, EventKind.STATE_CHANGED)
+                      else None)
     assert rig.mgr.switch_controller("a") == SwitchResult.SWITCHED
     rig.mgr.post_cycle()  # the loop's way from here on
     a.fail.add("advance")
@@ -416,4 +419,38 @@ def test_an_update_wakes_no_thread_before_post_cycle(rig):
     assert not delivered.wait(0.2) and not rig.journal.of("a", "pre_stop")
     rig.mgr.post_cycle()
     rig.journal.wait_for("a", "stop")
-    assert delivered.wait(WAIT) and events == [EventKind.EMERGENCY_STOP]
+    assert delivered.wait(WAIT) and events[-2:] == [EventKind.EMERGENCY_STOP,
+                                                    EventKind.STATE_CHANGED]
+
+
+def test_an_event_from_another_thread_queues_behind_the_cycles():
+    """Between an update() that held its e-stop events and post_cycle, a clear from the
+    node's SDO thread must not overtake them: subscribers see e-stop, then cleared."""
+    journal = Journal(update_thread=threading.get_ident())
+    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001,
+                            command=CommandLog(), timing=None, estop_must_be_cleared=True)
+    try:
+        a = Probe("a", journal)
+        assert mgr.add_controller(a, emergency=EmergencyProbe("e", journal))
+        seen = []
+        done = threading.Event()
+        mgr.subscribe(lambda ev: (seen.append((ev.kind, ev.cause)),
+                                  done.set() if ev.cause == "emergency stop cleared" else None))
+        mgr.clear_emergency_stop()  # it starts latched
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        assert done.wait(WAIT)  # that clear's event is through: from here on, only ours
+        done.clear()
+        seen.clear()
+        mgr.post_cycle()
+        a.fail.add("advance")
+        assert mgr.update() is EMERGENCY
+        clearing = threading.Thread(target=mgr.clear_emergency_stop)
+        clearing.start()
+        clearing.join(WAIT)
+        mgr.post_cycle()
+        assert done.wait(WAIT)
+        kinds = [kind for kind, _ in seen]
+        cleared = seen.index((EventKind.STATE_CHANGED, "emergency stop cleared"))
+        assert kinds.index(EventKind.EMERGENCY_STOP) < cleared, seen
+    finally:
+        assert mgr.shutdown()

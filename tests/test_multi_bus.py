@@ -163,6 +163,9 @@ def test_the_estop_cob_id_can_be_changed_and_switched_off(two_buses, bus_factory
                          VIRTUAL.detect_budget())
     with pytest.raises(ValueError, match="11-bit COB-ID"):
         rig.hw.set_estop_cob_id(0x800)
+    with pytest.raises(ValueError, match="TPDO1 of node 2"):  # any bus's drive
+        rig.hw.set_estop_cob_id(0x182)
+    assert rig.hw.estop_cob_id == 0x0A1  # a refused id changes nothing
 
 
 def test_can_fd_buses_carry_fd_frames_both_ways(two_buses):

@@ -37,7 +37,8 @@ from typing import Any
 
 import yaml
 
-from ..drivers.config import BusConfig, DriveConfig, Supervision, Timeouts
+from ..drivers.cia301 import reserved_cob_id
+from ..drivers.config import BusConfig, DriveConfig, Supervision, Timeouts, estop_conflict
 from ..drivers.pdo_layout import drive_object_dictionary, layout_for
 from ..errors import ConfigError
 from ..manager import TimingSupervision
@@ -213,10 +214,9 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     if not _is_int(cob) or not 0 <= cob <= 0x7FF:
         problems.append(f"manager.estop_cob_id: expected an 11-bit COB-ID 0x001..0x7FF "
                         f"(0 = off), got {cob!r}")
-    elif cob in (0x000, 0x080) or 0x580 <= cob <= 0x67F or cob >= 0x700:
-        if cob != 0:
-            problems.append(f"manager.estop_cob_id: 0x{cob:03X} is reserved for NMT, SYNC, "
-                            "SDO or heartbeat frames; pick e.g. 0x0A0")
+    elif cob and reserved_cob_id(cob):
+        problems.append(f"manager.estop_cob_id: 0x{cob:03X} is {reserved_cob_id(cob)}; "
+                        "pick e.g. 0x0A0")
         manager.estop_cob_id = 0
     else:
         manager.estop_cob_id = cob
@@ -257,6 +257,11 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
 
     drives = _drives(data.get("drives"), manager.node_id, base, problems,
                      [b.label for b in buses])
+    cob = manager.estop_cob_id
+    why = estop_conflict(cob, drives, manager.node_id) if cob else None
+    if why is not None:
+        problems.append(f"manager.estop_cob_id: 0x{cob:03X} is {why}: an e-stop frame must "
+                        "have an identifier no node uses")
     node_bus = m.get("bus", "")
     if not isinstance(node_bus, str) or (node_bus and node_bus not in
                                          [b.label for b in buses]):
@@ -322,6 +327,7 @@ def _buses(data: Mapping[str, Any], problems: list[str]) -> list[BusConfig]:
         return [BusConfig()]
     buses: list[BusConfig] = []
     seen: dict[str, int] = {}
+    wires: dict[tuple[str, str], int] = {}
     for k, entry in enumerate(entries):
         where = f"buses[{k}]"
         if not isinstance(entry, Mapping):
@@ -333,7 +339,13 @@ def _buses(data: Mapping[str, Any], problems: list[str]) -> list[BusConfig]:
         if b.label in seen:
             problems.append(f"{where}.name: {b.label!r} is already buses[{seen[b.label]}]")
             continue
+        wire = (b.interface, b.channel)
+        if wire in wires:  # two SYNCs per cycle on one wire, node ids checked per name
+            problems.append(f"{where}.channel: {b.interface}:{b.channel} is already "
+                            f"buses[{wires[wire]}]: give each bus once")
+            continue
         seen[b.label] = k
+        wires[wire] = k
         buses.append(b)
     return buses or [BusConfig()]
 

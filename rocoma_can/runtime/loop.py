@@ -239,7 +239,6 @@ class ControlLoop:
                 self.hardware.read(now)
                 state = self.manager.update()
                 self.hardware.write(state)
-                self.manager.post_cycle()
                 self.last_state = state
             except Exception:
                 log.exception("torque-off cycle raised while stopping the loop")
@@ -248,4 +247,9 @@ class ControlLoop:
                     self.hardware.write(ManagerState.FAILPROOF)
                 except Exception:
                     log.exception("torque-off frames could not be sent")
+            finally:
+                try:
+                    self.manager.post_cycle()  # the stop's events reach the subscribers
+                except Exception:
+                    log.exception("post_cycle raised while stopping the loop")
             time.sleep(min(self.period, 0.02))

@@ -51,7 +51,13 @@ from canopen.sdo.exceptions import SdoAbortedError
 
 from .. import eds as shipped_eds
 from ..drivers.bus import BusReader
-from ..drivers.cia301 import EMCY, PRODUCER_HEARTBEAT_TIME, TPDO_BASE, TPDO_COMM
+from ..drivers.cia301 import (
+    EMCY,
+    PRODUCER_HEARTBEAT_TIME,
+    TPDO_BASE,
+    TPDO_COMM,
+    reserved_cob_id,
+)
 from ..events import EventKind, ManagerEvent, ManagerState
 from ..manager import ControllerManager, SwitchResult
 from .objects import (
@@ -210,12 +216,18 @@ class ManagerNode(can.Listener):
         return self._estop_cob_id
 
     def set_estop_cob_id(self, cob_id: int) -> None:
-        """0 switches the e-stop frame off; 1..0x7FF is an 11-bit identifier."""
+        """0 switches the e-stop frame off; 1..0x7FF is an 11-bit identifier. With
+        ``estop_in_cycle`` the hardware checks it against the drives' identifiers too."""
         if not 0 <= cob_id <= 0x7FF:
             raise SdoAbortedError(ABORT_NOT_FOUND)
-        self._estop_cob_id = cob_id
         if self._estop_in_cycle is not None:
-            self._estop_in_cycle(cob_id)
+            try:
+                self._estop_in_cycle(cob_id)
+            except ValueError as exc:  # a drive's or a reserved identifier
+                log.warning("manager node %d: e-stop COB-ID 0x%03X refused: %s",
+                            self.node_id, cob_id, exc)
+                raise SdoAbortedError(ABORT_NOT_FOUND) from None
+        self._estop_cob_id = cob_id
 
     def on_message_received(self, msg: can.Message) -> None:
         """On the bus reader's thread: any 11-bit frame on the e-stop COB-ID, data or remote
@@ -302,7 +314,7 @@ class ManagerNode(can.Listener):
         identifier. Allowed only while no controller commands (FAILPROOF) or the e-stop is
         latched: the e-stop path of a running machine is not changed under it."""
         cob_id = 0 if value >> 31 else value
-        if not 0 <= cob_id <= 0x7FF:
+        if not 0 <= cob_id <= 0x7FF or (cob_id and reserved_cob_id(cob_id)):
             raise SdoAbortedError(ABORT_NOT_FOUND)
         m = self.manager
         if m.state is not ManagerState.FAILPROOF and not m.estop_latched:

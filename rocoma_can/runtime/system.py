@@ -70,7 +70,9 @@ class Runtime:
             self._parts.insert(0, self.manager.shutdown)
             add_to_manager(self.manager, config.controllers)
             bus = config.node_bus
-            extra = {"fd": True} if bus.fd else {}
+            extra: dict[str, object] = {"fd": True} if bus.fd else {}
+            if bus.data_bitrate is not None:
+                extra["data_bitrate"] = bus.data_bitrate
             self._node_bus = open_bus(bus.interface, bus.channel, bus.bitrate,
                                       receive_own_messages=False, **extra)
             self._parts.append(self._node_bus.shutdown)
