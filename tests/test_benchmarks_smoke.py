@@ -19,17 +19,19 @@ COMMON = {"benchmark", "title", "machine", "args", "headers", "rows", "results"}
 CASES = {
     "bus_load": lambda r: {"frames_per_cycle", "fits_500k", "fits_1000k"} <= set(r[0]),
     "manager_overhead": lambda r: {"trivial: mgr.update()", "pd: mgr.update()",
-                                   "e-stop: advance fails -> damp"} <= set(r),
+                                   "e-stop: advance fails -> damp",
+                                   "damp: mgr.update() in EMERGENCY",
+                                   "estop_over_steady_emergency"} <= set(r),
     "loop_run": lambda r: {"mode", "missed_cycles", "period_us", "jitter_us", "estops",
-                           "final_state"} <= set(r) and r["mode"] == "in-process",
+                           "final_state", "buses"} <= set(r) and r["mode"] == "in-process",
     "estop_latency": lambda r: len(r["cases"]) == 2 and all(
         {"first_frame_us", "all_drives_us", "first_frame_cycles", "lost"} <= set(c)
         for c in r["cases"].values()),
     "controllers": lambda r: {"damp", "hold", "pd", "torque_off"} <= set(r) and all(
         {"initialize_fast_us", "advance_us"} <= set(c) for c in r.values()),
     "cycle_cost": lambda r: [row["drives"] for row in r] == [1, 6, 12, 24] and all(
-        {"frames_per_cycle", "ours_us", "canopen_us", "speedup_median"} <= set(row)
-        for row in r),
+        {"frames_per_cycle", "ours_us", "canopen_us", "speedup_median", "ns_per_frame",
+         "core_share_at_30k_frames_s"} <= set(row) for row in r),
     "cli_start": lambda r: all({"seconds", "modules", "numpy", "exit_code"} <= set(c)
                                for c in r.values())
     and not r["rocoma-can status --help"]["numpy"],
