@@ -93,6 +93,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--nodes", type=parse_node_ids, default=[1], metavar="IDS",
                    help="node ids, e.g. 1-12 or 1,3,5-7 (default 1)")
     p.add_argument("--eds", default=None, help="EDS of the drives (default: the shipped one)")
+    p.add_argument("--fd", action="store_true",
+                   help="a CAN FD bus: the drives answer in FD frames with bit rate switching "
+                        "(on vcan: ip link set vcan0 mtu 72)")
     p.add_argument("--sync-period", type=float, default=None, metavar="S",
                    help="integrate each SYNC over this fixed period instead of measured time")
     p.add_argument("--status-interval", type=float, default=0.0, metavar="S",
@@ -120,7 +123,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
     try:
         segment = SimulatedSegment.open(args.channel, args.interface, args.nodes,
-                                        eds_path=args.eds, sync_period=args.sync_period)
+                                        eds_path=args.eds, sync_period=args.sync_period,
+                                        fd=args.fd)
     except (OSError, ValueError, ImportError) as exc:
         print(f"rocoma-can sim: cannot open {args.interface} channel {args.channel}: {exc}",
               file=sys.stderr)
@@ -145,8 +149,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         with segment:
             print(f"sim: {len(segment.drives)} drive(s) {args.nodes[0]}..{args.nodes[-1]} on "
-                  f"{args.interface} {args.channel}; Ctrl-C to stop", file=sys.stderr,
-                  flush=True)
+                  f"{args.interface} {args.channel}{' (CAN FD)' if args.fd else ''}; Ctrl-C "
+                  "to stop", file=sys.stderr, flush=True)
             start = segment.clock()
             for inj in injections:
                 segment.schedule(start + inj.after, _inject, segment, inj)
