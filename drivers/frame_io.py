@@ -20,7 +20,14 @@ import struct
 import time
 
 import can
-from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, CANFD_MTU
+from can.interfaces.socketcan.constants import (
+    CAN_EFF_FLAG,
+    CAN_ERR_FLAG,
+    CAN_RTR_FLAG,
+    CANFD_BRS,
+    CANFD_ESI,
+    CANFD_MTU,
+)
 from can.interfaces.socketcan.socketcan import (
     RECEIVED_ANCILLARY_BUFFER_SIZE,
     RECEIVED_TIMESTAMP_STRUCT,
@@ -39,7 +46,7 @@ def _raw_socket(bus: can.BusABC) -> socket.socket | None:
 
 
 def _message(frame: bytes, ancillary: list[tuple[int, int, bytes]]) -> can.Message:
-    can_id, dlc, _flags, data = dissect_can_frame(frame)
+    can_id, dlc, flags, data = dissect_can_frame(frame)
     timestamp = 0.0
     for level, _kind, payload in ancillary:
         if level == socket.SOL_SOCKET and len(payload) >= RECEIVED_TIMESTAMP_STRUCT.size:
@@ -50,8 +57,9 @@ def _message(frame: bytes, ancillary: list[tuple[int, int, bytes]]) -> can.Messa
                        arbitration_id=can_id & (0x1FFFFFFF if extended else 0x7FF),
                        is_extended_id=extended, is_remote_frame=bool(can_id & CAN_RTR_FLAG),
                        is_error_frame=bool(can_id & CAN_ERR_FLAG),
-                       is_fd=len(frame) == CANFD_MTU, dlc=dlc, data=data[:dlc],
-                       check=False)
+                       is_fd=len(frame) == CANFD_MTU, bitrate_switch=bool(flags & CANFD_BRS),
+                       error_state_indicator=bool(flags & CANFD_ESI), dlc=dlc,
+                       data=data[:dlc], check=False)
 
 
 class FrameReader:

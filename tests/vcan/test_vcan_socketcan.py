@@ -48,6 +48,28 @@ def test_frame_flags_survive_the_kernel(bus_factory):
     assert (remote.arbitration_id, remote.is_remote_frame, remote.dlc) == (0x601, True, 8)
 
 
+def test_can_fd_frames_with_bit_rate_switching_pass_vcan(bus_factory):
+    """tools/vcan-run gives vcan0/vcan1 an MTU of 72, so FD sockets exchange FD frames: the
+    frames an FD bus's manager and simulated drives send (FrameWriter) arrive as FD frames
+    with BRS through the batched reader (FrameReader), and classic sockets still work."""
+    from rocoma_can.drivers.frame_io import FrameReader, FrameWriter
+    sender = bus_factory("vcan1", "socketcan", fd=True)
+    receiver = bus_factory("vcan1", "socketcan", fd=True)
+    FrameWriter(sender, fd=True).send(0x181, bytes(range(8)))
+    FrameWriter(sender).send(0x701, b"\x05")  # a classic frame on the FD bus
+    batch: list[can.Message] = []
+    reader = FrameReader(receiver)
+    deadline = time.monotonic() + 5
+    while len(batch) < 2 and time.monotonic() < deadline:
+        batch += reader.read(0.5)
+    fd_frame, classic = batch
+    assert (fd_frame.arbitration_id, fd_frame.is_fd, fd_frame.bitrate_switch) == (0x181, True,
+                                                                                  True)
+    assert bytes(fd_frame.data) == bytes(range(8))
+    assert (classic.arbitration_id, classic.is_fd, bytes(classic.data)) == (0x701, False,
+                                                                            b"\x05")
+
+
 def test_vcan1_is_a_separate_bus(bus_factory, frame_recorder):
     recorder0 = frame_recorder("vcan0", "socketcan")
     recorder1 = frame_recorder("vcan1", "socketcan")
