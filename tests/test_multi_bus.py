@@ -70,24 +70,28 @@ def test_each_bus_gets_its_own_frames_and_the_manager_heartbeat(two_buses):
     marks = {side: r.mark() for side, r in recorders.items()}
     # longer than the drives' consumer of the manager heartbeat: each drive gets it on its bus
     consumer = rig.hw.consumer_ms / 1000
+    cycles = max(1, int(round(2 * consumer / rig.dt)))
     rig.run(2 * consumer)
     assert rig.mgr.state is ManagerState.OK and rig.hw.all_enabled, rig.hw.drive_status()
     for side, r in recorders.items():
+        # the recorder reads on a thread of its own and may trail: wait for the cycles' SYNCs
+        r.wait_for_count(cycles, VIRTUAL.detect_budget(), cob_id=cia301.SYNC,
+                         since=marks[side])
         frames = r.frames(since=marks[side])
-        syncs = sum(1 for f in frames if f.cob_id == cia301.SYNC)
         heartbeats = [f for f in frames if f.cob_id == cia301.HEARTBEAT + 100]
-        rpdos = {f.cob_id for f in frames if _rpdo(f.cob_id)}
-        assert syncs >= 2 * consumer / rig.dt * 0.5, (side, syncs)
         assert heartbeats and all(f.data == bytes([cia301.NmtState.OPERATIONAL])
                                   for f in heartbeats)
-        assert rpdos == {0x201, 0x202, 0x301, 0x302}
-        # per SYNC only this bus's two drives' RPDOs (the recorder may trail by a cycle)
-        rpdo_frames = sum(1 for f in frames if _rpdo(f.cob_id))
-        assert 4 * (syncs - 1) <= rpdo_frames <= 4 * (syncs + 1), (rpdo_frames, syncs)
+        # between two SYNCs, one cycle: this bus's two drives' two RPDOs each, nothing more
+        at = [k for k, f in enumerate(frames) if f.cob_id == cia301.SYNC]
+        between = frames[at[0] + 1:at[-1]]
+        rpdos = [f.cob_id for f in between if _rpdo(f.cob_id)]
+        assert set(rpdos) == {0x201, 0x202, 0x301, 0x302}
+        assert len(rpdos) == 4 * (len(at) - 1), (side, len(rpdos), len(at))
         assert all(d.state402 == State402.OPERATION_ENABLED
                    for d in segments[side].drives.values())
-    # one JointState over all four joints, fed from both buses
-    assert rig.hw.state.fresh.all()
+    # one JointState over all four joints, fed from both buses (each cycle whose TPDOs all
+    # arrived before its read; on a loaded machine not every one does)
+    assert rig.run_until(lambda: rig.hw.state.fresh.all(), VIRTUAL.detect_budget())
 
 
 def test_a_failed_bus_is_a_failproof_stop_with_torque_off_on_every_bus(two_buses,
@@ -177,6 +181,8 @@ def test_can_fd_buses_carry_fd_frames_both_ways(two_buses):
     mark = {side: r.mark() for side, r in recorders.items()}
     rig.run(10 * rig.dt)
     for side, r in recorders.items():
+        for first in (lambda f: f.cob_id == cia301.SYNC, lambda f: 0x180 <= f.cob_id < 0x200):
+            r.wait_for(first, VIRTUAL.detect_budget(), since=mark[side])  # the recorder trails
         frames = r.frames(since=mark[side])
         ours = [f for f in frames if f.cob_id == cia301.SYNC or _rpdo(f.cob_id)]
         theirs = [f for f in frames if 0x180 <= f.cob_id < 0x200 or 0x280 <= f.cob_id < 0x300]
