@@ -311,10 +311,10 @@ class ControllerManager:
 
     def _wake(self) -> None:
         held = self._held
-        while True:
+        while held:  # the usual cycle holds nothing: no exception raised per cycle
             try:
                 fn, args = held.popleft()  # atomic: a second caller never gets an item twice
-            except IndexError:
+            except IndexError:  # another caller took the last one meanwhile
                 return
             try:
                 fn(*args)
