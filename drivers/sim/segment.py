@@ -155,8 +155,8 @@ class SimulatedSegment:
     def open(cls, channel: str, interface: str = "virtual", node_ids: Iterable[int] = (1,),
              **kwargs: Any) -> SimulatedSegment:
         """A segment on its own new bus (shut down with the segment)."""
-        extra: dict[str, Any] = {"fd": True} if kwargs.get("fd") and interface == "socketcan" \
-            else {}
+        extra: dict[str, Any] = ({"fd": True} if kwargs.get("fd")
+                                 and interface in ("socketcan", "inproc") else {})
         bus = can.Bus(interface=interface, channel=channel, receive_own_messages=False,
                       ignore_config=True, **extra)
         try:

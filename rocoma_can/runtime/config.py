@@ -45,6 +45,8 @@ from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
+#: interfaces between threads of one process: no wire, no bit rate, no load to check
+IN_PROCESS = frozenset({"virtual", "inproc"})
 _TOP_KEYS = {"bus", "buses", "rate", "manager", "realtime", "supervision", "timing", "drives",
              "controllers", "emergency_controllers"}
 _BUS_KEYS = {"interface", "channel", "bitrate", "name", "fd", "data_bitrate"}
@@ -100,7 +102,7 @@ class RuntimeConfig:
     supervision: Supervision = field(default_factory=Supervision)
     timing: TimingSupervision = field(default_factory=TimingSupervision)
     source: str = "<memory>"
-    loads: dict[str, BusLoad] = field(default_factory=dict)  # per bus, none on virtual buses
+    loads: dict[str, BusLoad] = field(default_factory=dict)  # per bus, none on in-process buses
 
     @property
     def bus(self) -> BusConfig:
@@ -298,7 +300,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     first = buses[0].label if buses else ""
     for k, b in enumerate(buses):
         on = [d for d in drives if (d.bus or first) == b.label]
-        if not on or rate is None or b.interface == "virtual":
+        if not on or rate is None or b.interface in IN_PROCESS:
             continue
         bitrate = b.bitrate or DEFAULT_BITRATE
         data_bitrate = (b.data_bitrate or bitrate) if b.fd else None

@@ -1,4 +1,4 @@
-"""``rocoma-can demo``: the whole system in one process on python-can's virtual bus.
+"""``rocoma-can demo``: the whole system in one process on an in-process CAN bus.
 
 Simulated CiA 402 drives, the control loop with the manager and its CANopen node, and an
 "operator" that talks to the manager only the way another CAN node would (SDO and raw
@@ -29,6 +29,9 @@ if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import
     from .system import Runtime
 
 MANAGER_ID = 100
+#: the demo's buses: drivers/inproc.py, which copies a frame once per send, not once per
+#: receiver as python-can's virtual does (the demo has 3-4 receivers per bus)
+DEFAULT_INTERFACE = "inproc"
 ESTOP_COB_ID = 0x0A0
 
 
@@ -38,15 +41,17 @@ def default_buses(drives: int) -> int:
     return 1 if drives <= 6 else -(-drives // 3)
 
 
-def demo_config(channel: str, drives: int, rate: float, buses: int = 1) -> dict[str, Any]:
-    """The demo's config: ``buses`` > 1 gives virtual channels ``channel-0`` ... each with
-    its share of the drives (node ids from 1 on each bus)."""
+def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
+                interface: str = "virtual") -> dict[str, Any]:
+    """The demo's config: ``buses`` > 1 gives channels ``channel-0`` ... each with its share
+    of the drives (node ids from 1 on each bus); ``interface`` is an in-process one
+    (python-can's ``virtual``, or ``inproc``, drivers/inproc.py)."""
     joints = [f"joint{i}" for i in range(1, drives + 1)]
     per_bus = -(-drives // buses)
     if buses == 1:
-        bus_section: dict[str, Any] = {"bus": {"interface": "virtual", "channel": channel}}
+        bus_section: dict[str, Any] = {"bus": {"interface": interface, "channel": channel}}
     else:
-        bus_section = {"buses": [{"name": f"bus{k}", "interface": "virtual",
+        bus_section = {"buses": [{"name": f"bus{k}", "interface": interface,
                                   "channel": f"{channel}-{k}"} for k in range(buses)]}
     return {
         **bus_section,
@@ -225,26 +230,27 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
 
 
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
-             out: Callable[[str], None] = print, buses: int | None = None) -> Report:
+             out: Callable[[str], None] = print, buses: int | None = None,
+             interface: str = DEFAULT_INTERFACE) -> Report:
     from ..drivers.bus import BusReader
     from ..drivers.sim.segment import SimulatedSegment
     from .config import validate
     from .system import Runtime
     buses = default_buses(drives) if buses is None else buses
     channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
-    config = validate(demo_config(channel, drives, rate, buses), source="demo")
+    config = validate(demo_config(channel, drives, rate, buses, interface), source="demo")
     report = Report()
     watch = _Watch()
     stop = threading.Event()
     hold = max(0.2, duration / 10)
-    segments = [SimulatedSegment.open(b.channel, "virtual",
+    segments = [SimulatedSegment.open(b.channel, interface,
                                       [d.node_id for d in config.drives_on(b)])
                 for b in config.buses]
     seg = segments[0]  # the operator's faults go to drives on the first bus
-    client_bus = can.Bus(interface="virtual", channel=config.node_bus.channel,
+    client_bus = can.Bus(interface=interface, channel=config.node_bus.channel,
                          receive_own_messages=False, ignore_config=True)
     # one torque-off probe per bus, each on a bus handle and reader of its own
-    probe_buses = [can.Bus(interface="virtual", channel=b.channel, receive_own_messages=False,
+    probe_buses = [can.Bus(interface=interface, channel=b.channel, receive_own_messages=False,
                            ignore_config=True) for b in config.buses]
     probes = [_TorqueOffProbe(s.node_ids) for s in segments]
     readers: list[BusReader] = []
@@ -254,8 +260,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         readers = [BusReader(b, (p,), name="demo-probe") for b, p in zip(probe_buses, probes)]
         with Runtime(config, on_cycle=watch) as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
-            on = (f"virtual bus {config.bus.channel}" if buses == 1
-                  else f"{buses} virtual buses {channel}-0..{buses - 1}")
+            on = (f"{interface} bus {config.bus.channel}" if buses == 1
+                  else f"{buses} {interface} buses {channel}-0..{buses - 1}")
             out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
                 f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
             operator = threading.Thread(
@@ -324,13 +330,16 @@ def _summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
-        "demo", help="run the embedded demo (virtual bus, simulated drives)",
+        "demo", help="run the embedded demo (in-process bus, simulated drives)",
         description=__doc__.split("\n\n")[0])
     p.add_argument("--drives", type=int, default=6, help="simulated drives (default 6)")
     p.add_argument("--buses", type=int, default=None,
-                   help="virtual CAN buses the drives are spread over (default: one up to "
+                   help="in-process CAN buses the drives are spread over (default: one up to "
                         "6 drives, else one per 3 drives)")
     p.add_argument("--rate", type=float, default=200.0, help="loop rate, Hz (default 200)")
+    p.add_argument("--interface", choices=("inproc", "virtual"), default=DEFAULT_INTERFACE,
+                   help="in-process bus: inproc (default; one copy per frame, fit for "
+                        "1 kHz) or python-can's virtual (a copy per frame and receiver)")
     p.add_argument("--duration", type=float, default=16.0,
                    help="approximate length of the walk-through, s (default 16)")
     p.set_defaults(func=_main)
@@ -344,5 +353,6 @@ def _main(args: argparse.Namespace) -> int:
               "drives/2 (the walk-through faults two drives of the first bus)", flush=True)
         return 2
     report = run_demo(args.drives, args.rate, args.duration,
-                      out=lambda line: print(line, flush=True), buses=buses)
+                      out=lambda line: print(line, flush=True), buses=buses,
+                      interface=args.interface)
     return 0 if report.ok else 1
