@@ -3,9 +3,10 @@ a manager, the manager's CANopen node and the project's own ControlLoop (rocoma_
 
 Wired the way ``rocoma_can.runtime.Runtime`` wires it, but with controllers given in code,
 so a benchmark can add ones that fail or initialize slowly on purpose. The simulator runs
-in this process on a thread over python-can's virtual bus (default), or as a separate
-``rocoma-can sim`` process over SocketCAN vcan0 (``separate_process=True``; needs vcan, i.e.
-run the benchmark under tools/vcan-run).
+in this process on a thread over an in-process bus (default ``inproc``, drivers/inproc.py;
+``interface="virtual"`` for python-can's, which copies every frame once per receiver), or as
+a separate ``rocoma-can sim`` process over SocketCAN vcan0 (``separate_process=True``; needs
+vcan, i.e. run the benchmark under tools/vcan-run).
 """
 from __future__ import annotations
 
@@ -71,11 +72,12 @@ class Rig:
     """Drives + hardware + manager + node; ``run(duration, on_cycle)`` runs the loop."""
 
     def __init__(self, drives: int, rate: float, *, separate_process: bool = False,
-                 channel: str | None = None, buses: int = 1) -> None:
+                 channel: str | None = None, buses: int = 1,
+                 interface: str = "inproc") -> None:
         self.rate = rate
         self.dt = 1.0 / rate
         self.separate_process = separate_process
-        self.interface = "socketcan" if separate_process else "virtual"
+        self.interface = "socketcan" if separate_process else interface
         if separate_process and buses > 2:
             raise ValueError("--separate-process runs on vcan0 and vcan1: at most 2 buses")
         base = channel or ("vcan" if separate_process else f"bench-{uuid.uuid4().hex[:8]}")
@@ -115,7 +117,7 @@ class Rig:
 
     def _start_simulator(self, channel: str) -> SimulatedSegment | None:
         if not self.separate_process:
-            segment = SimulatedSegment.open(channel, "virtual", self.node_ids).start()
+            segment = SimulatedSegment.open(channel, self.interface, self.node_ids).start()
             self._closers.append(segment.check)
             self._closers.append(segment.stop)
             return segment

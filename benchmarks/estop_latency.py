@@ -171,8 +171,8 @@ def main() -> None:
         pd_b = FailingPD("pd_no_emergency", cycle_of, mode="CSP")
         rig.add(pd_a, emergency=QuickStop("quick_stop"))
         rig.add(pd_b)
-        listen_bus = open_bus("virtual", rig.channel, receive_own_messages=False)
-        injector = open_bus("virtual", rig.channel, receive_own_messages=False)
+        listen_bus = open_bus(rig.interface, rig.channel, receive_own_messages=False)
+        injector = open_bus(rig.interface, rig.channel, receive_own_messages=False)
         listener = StopFrames(args.drives, cycle_of)
         notifier = can.Notifier(listen_bus, [listener], timeout=0.05)
         try:
@@ -200,7 +200,7 @@ def main() -> None:
         data[name] = {"first_frame_us": first, "all_drives_us": last,
                       "first_frame_cycles": c_first, "all_drives_cycles": c_last,
                       "lost": trials.lost[name]}
-    notes = [f"{args.drives} simulated drives (in-process, virtual bus), loop at "
+    notes = [f"{args.drives} simulated drives (in-process, {rig.interface} bus), loop at "
              f"{args.rate:g} Hz (period {1e6 / args.rate:.0f} us); cycles: median / max; "
              "lost = no reaction seen within 1 s.",
              "Times are when a listener thread in this process received the frame: they "

@@ -7,7 +7,8 @@
 The loop is rocoma_can.runtime.ControlLoop (read -> manager.update -> write, sleep then spin
 to an absolute deadline); the drives are brought up, a JointPD (CSP) holds them, then the
 loop runs for --duration seconds. Default: the simulator is a thread in this process on
-python-can's virtual bus (it shares the GIL and the 2 cores with the loop). With
+an in-process bus, ``--interface inproc`` (default) or ``virtual`` (python-can's, which
+copies every frame once per receiver); it shares the GIL and the 2 cores with the loop. With
 --separate-process the simulator is a ``rocoma-can sim`` subprocess on SocketCAN vcan0,
 which this machine only has inside user-mode-linux (tools/vcan-run), where every syscall
 is slow: use a rate the VM can sustain there. The JSON records which mode ran. ``--buses N``
@@ -36,19 +37,21 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of steady run")
     parser.add_argument("--separate-process", action="store_true",
                         help="simulator as a subprocess on socketcan vcan0 (tools/vcan-run)")
+    parser.add_argument("--interface", choices=("inproc", "virtual"), default="inproc",
+                        help="in-process bus of the default mode")
     parser.add_argument("--quick", action="store_true", help="--duration 2")
     args = parser.parse_args()
     if args.quick:
         args.duration = 2.0
     logging.basicConfig(level=logging.ERROR)
     mode = ("separate process, socketcan" if args.separate_process
-            else "in-process thread, virtual bus")
+            else f"in-process thread, {args.interface} bus")
     if args.buses > 1:
         mode += f" x{args.buses}"
 
     estops: list[str] = []
     with Rig(args.drives, args.rate, separate_process=args.separate_process,
-             buses=args.buses) as rig:
+             buses=args.buses, interface=args.interface) as rig:
         rig.add(JointPD("pd", mode="CSP"), emergency=Hold("hold", mode="CSP"))
         rig.manager.subscribe(lambda e: estops.append(e.cause) if e.kind.name ==
                               "EMERGENCY_STOP" else None)
@@ -89,7 +92,8 @@ def main() -> None:
             "p99 us", "max us", "jitter p99 us", "e-stops", "end state"],
            rows, args=args, notes=notes,
            results={"mode": "separate-process" if args.separate_process else "in-process",
-                    "simulator": mode, "drives": args.drives, "buses": args.buses,
+                    "simulator": mode, "interface": None if args.separate_process
+                    else args.interface, "drives": args.drives, "buses": args.buses,
                     "rate_hz": args.rate,
                     "steady_seconds": steady_s, "cycles": len(starts),
                     "missed_cycles": missed, "period_us": p, "jitter_us": j,

@@ -6,9 +6,10 @@
 The switch runs on the manager's switcher thread; the loop (rocoma_can.runtime.ControlLoop)
 must keep its rate meanwhile. Two set-ups: "plain" = the manager over a plain JointState /
 JointCommand of 12 joints (no bus), and "drives" = the hardware layer with simulated drives
-on the virtual bus (simulator on a thread in this process). For each switch: cycles missed
-and the longest period between the switch request and its result, next to the same numbers
-for a window of equal length just before it (baseline), so the switch's own cost shows.
+on the in-process bus (inproc; simulator on a thread in this process). For each switch:
+cycles missed and the longest period between the switch request and its result, next to the
+same numbers for a window of equal length just before it (baseline), so the switch's own
+cost shows.
 """
 from __future__ import annotations
 
