@@ -35,11 +35,17 @@ import canopen
 from canopen.sdo.client import SdoClient
 
 from . import cia301, cia402
+from .capabilities import DriveCapabilities, PdoChannel
 from .config import DriveConfig, Timeouts
-from .pdo_layout import PDO_SLOTS, DriveLayout, Pdo
+from .drive_plan import DrivePlan
+from .pdo_layout import Pdo
 
 #: Transmission type: synchronous, every SYNC (RPDO: act on the next SYNC).
 SYNC_EVERY_CYCLE = 1
+#: 0x1029:1 (CiA 301 error behaviour, communication error): 0 = to pre-operational,
+#: 1 = no state change, 2 = to stopped
+ERROR_BEHAVIOUR_PRE_OPERATIONAL = 0
+ERROR_BEHAVIOUR_NO_CHANGE = 1
 _COB_INVALID = 0x8000_0000
 
 class Phase(enum.IntEnum):
@@ -70,21 +76,28 @@ def _u32(v: int) -> bytes:
     return struct.pack("<I", v)
 
 
-def _configure_pdos(sdo: SdoClient, pdos: tuple[Pdo, ...], comm_base: int,
-                    map_base: int, cob_bases: tuple[int, ...], node_id: int) -> None:
-    for k in range(PDO_SLOTS):
-        comm, mapping = comm_base + k, map_base + k
-        default_cob = cob_bases[k] + node_id
-        sdo.download(comm, 1, _u32(_COB_INVALID | default_cob))  # disable before remapping
-        if k >= len(pdos):
+def _configure_pdos(sdo: SdoClient, pdos: tuple[Pdo, ...],
+                    channels: tuple[PdoChannel, ...]) -> None:
+    """Every PDO channel the drive has: ours mapped (a fixed one left as it is), each sent
+    or applied every SYNC where the drive lets us say so; the others switched off."""
+    used = {p.number: p for p in pdos}
+    for ch in channels:
+        comm, mapping = ch.communication_index, ch.mapping_index
+        pdo = used.get(ch.number)
+        if ch.cob_id_writable:  # invalid first: CiA 301 forbids remapping a valid PDO
+            sdo.download(comm, 1, _u32(_COB_INVALID | (ch.cob_id & 0x7FF
+                                                       or (pdo.cob_id if pdo else 0))))
+        if pdo is None:
             continue
-        pdo = pdos[k]
-        sdo.download(mapping, 0, _u8(0))
-        for j, entry in enumerate(pdo.entries, start=1):
-            sdo.download(mapping, j, _u32(entry.mapping))
-        sdo.download(mapping, 0, _u8(len(pdo.entries)))
-        sdo.download(comm, 2, _u8(SYNC_EVERY_CYCLE))
-        sdo.download(comm, 1, _u32(pdo.cob_id))
+        if not pdo.fixed:
+            sdo.download(mapping, 0, _u8(0))
+            for j, entry in enumerate(pdo.entries, start=1):
+                sdo.download(mapping, j, _u32(entry.mapping))
+            sdo.download(mapping, 0, _u8(len(pdo.entries)))
+        if ch.transmission_type_writable:
+            sdo.download(comm, 2, _u8(SYNC_EVERY_CYCLE))
+        if ch.cob_id_writable:
+            sdo.download(comm, 1, _u32(pdo.cob_id))
 
 
 def _read_u32(sdo: SdoClient, index: int, subindex: int) -> int | None:
@@ -117,6 +130,24 @@ def _check_scaling(sdo: SdoClient, drive: DriveConfig) -> None:
                                f"{reported:g} ({where})")
 
 
+def _arm_against_manager_loss(sdo: SdoClient, caps: DriveCapabilities, manager_node_id: int,
+                              consumer_ms: int) -> None:
+    """What makes the drive let go when the manager dies or hangs, as far as its objects
+    allow (drive_plan.py refuses a drive with none of them unless the config accepts it):
+    the heartbeat consumer watches the manager; 0x6007 = disable voltage switches the power
+    stage off on its timeout; a 0x1029:1 of "no state change" becomes "pre-operational", so
+    the drive at least stops applying RPDOs."""
+    if caps.heartbeat_consumer:
+        sdo.download(cia301.CONSUMER_HEARTBEAT_TIME, 1,
+                     _u32((manager_node_id << 16) | consumer_ms))
+    if caps.abort_connection:
+        sdo.download(cia402.ABORT_CONNECTION_OPTION, 0,
+                     struct.pack("<h", cia402.AbortConnectionOption.DISABLE_VOLTAGE))
+    if caps.error_behaviour and sdo.upload(cia301.ERROR_BEHAVIOR, 1)[:1] == _u8(
+            ERROR_BEHAVIOUR_NO_CHANGE):
+        sdo.download(cia301.ERROR_BEHAVIOR, 1, _u8(ERROR_BEHAVIOUR_PRE_OPERATIONAL))
+
+
 CONFIG_ATTEMPTS = 3
 
 
@@ -124,9 +155,8 @@ class NoAnswer(canopen.SdoCommunicationError):
     """The drive did not answer the first request of a configuration attempt."""
 
 
-def configure(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
-              manager_node_id: int, consumer_ms: int,
-              attempts: int = CONFIG_ATTEMPTS) -> ConfigResult:
+def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
+              consumer_ms: int, attempts: int = CONFIG_ATTEMPTS) -> ConfigResult:
     """Everything a drive needs before NMT start, by SDO; runs on the configuration worker.
 
     A garbled exchange is transient on a loaded bus: canopen retransmits a request on
@@ -139,7 +169,7 @@ def configure(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
     """
     for attempt in range(1, attempts + 1):
         try:
-            return _configure_once(node, drive, layout, manager_node_id, consumer_ms)
+            return _configure_once(node, plan, manager_node_id, consumer_ms)
         except canopen.SdoCommunicationError as exc:
             failure = exc
             if attempt < attempts:
@@ -149,9 +179,9 @@ def configure(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
     raise RuntimeError(f"SDO exchange failed {attempts} times: {failure}") from failure
 
 
-def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveLayout,
-                    manager_node_id: int, consumer_ms: int) -> ConfigResult:
-    sdo = node.sdo
+def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
+                    consumer_ms: int) -> ConfigResult:
+    sdo, drive, layout, caps = node.sdo, plan.drive, plan.layout, plan.caps
     node.nmt.send_command(cia301.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
     try:
         device_type = struct.unpack("<I", sdo.upload(cia301.DEVICE_TYPE, 0)[:4])[0]
@@ -168,14 +198,10 @@ def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveL
         if missing:
             raise RuntimeError(f"does not support mode(s) {missing} (0x6502 = 0x{supported:X})")
     _check_scaling(sdo, drive)
-    _configure_pdos(sdo, layout.rpdos, cia301.RPDO_COMM, cia301.RPDO_MAP, cia301.RPDO_BASE,
-                    drive.node_id)
-    _configure_pdos(sdo, layout.tpdos, cia301.TPDO_COMM, cia301.TPDO_MAP, cia301.TPDO_BASE,
-                    drive.node_id)
+    _configure_pdos(sdo, layout.rpdos, caps.rpdos)
+    _configure_pdos(sdo, layout.tpdos, caps.tpdos)
     sdo.download(cia301.PRODUCER_HEARTBEAT_TIME, 0, _u16(drive.heartbeat_ms))
-    sdo.download(cia301.CONSUMER_HEARTBEAT_TIME, 1, _u32((manager_node_id << 16) | consumer_ms))
-    sdo.download(cia402.ABORT_CONNECTION_OPTION, 0,
-                 struct.pack("<h", cia402.AbortConnectionOption.DISABLE_VOLTAGE))
+    _arm_against_manager_loss(sdo, caps, manager_node_id, consumer_ms)
     sdo.download(cia402.MODES_OF_OPERATION, 0, struct.pack("<b", int(drive.modes[0])))
     statusword = struct.unpack("<H", sdo.upload(cia402.STATUSWORD, 0)[:2])[0]
     try:
@@ -189,10 +215,11 @@ def _configure_once(node: canopen.RemoteNode, drive: DriveConfig, layout: DriveL
 class DriveBringup:
     """Start-up state of one drive; ``step`` is called from the cycle and never blocks."""
 
-    def __init__(self, drive: DriveConfig, layout: DriveLayout, node: canopen.RemoteNode,
-                 manager_node_id: int, consumer_ms: int, timeouts: Timeouts) -> None:
-        self.drive = drive
-        self.layout = layout
+    def __init__(self, plan: DrivePlan, node: canopen.RemoteNode, manager_node_id: int,
+                 consumer_ms: int, timeouts: Timeouts) -> None:
+        self.plan = plan
+        self.drive = plan.drive
+        self.layout = plan.layout
         self.node = node
         self.manager_node_id = manager_node_id
         self.consumer_ms = consumer_ms
@@ -254,9 +281,8 @@ class DriveBringup:
         phase = self.phase
         if phase == Phase.WAIT_BOOT:
             if self.alive or now - self.since >= self.timeouts.boot_wait:
-                self._job = executor.submit(self._locked, configure, self.node, self.drive,
-                                            self.layout, self.manager_node_id,
-                                            self.consumer_ms)
+                self._job = executor.submit(self._locked, configure, self.node, self.plan,
+                                            self.manager_node_id, self.consumer_ms)
                 self._enter(Phase.CONFIGURING, now)
         elif phase == Phase.CONFIGURING:
             job = self._job

@@ -146,7 +146,7 @@ class DriveConfig:
     rated_torque_nm: float
     gear_ratio: float = 1.0
     modes: tuple[JointMode, ...] = (JointMode.CSP,)
-    feedback: tuple[str, ...] = FEEDBACK
+    feedback: tuple[str, ...] | None = None  # None: every one the drive's file has
     eds: str | None = None                  # path; None = the shipped generic CiA 402 EDS
     max_torque_nm: float = math.inf         # joint side; commands are clipped to it
     max_velocity: float = math.inf          # rad/s, joint side
@@ -154,6 +154,7 @@ class DriveConfig:
     position_max: float = math.inf
     heartbeat_ms: int = 100                 # the drive's heartbeat producer (0x1017)
     bus: str = ""                           # its bus's name; "" = the first (or only) bus
+    accept_unsupervised: bool = False       # run a drive that ignores losing the manager
 
     def __post_init__(self) -> None:
         where = f"drive {self.name!r}"
@@ -174,11 +175,13 @@ class DriveConfig:
             raise ValueError(f"{where}: modes must name at least one of csp, csv, cst")
         self.modes = tuple(dict.fromkeys(_mode(m, f"{where}: modes") for m in modes))
         named: Any = self.feedback
-        feedback = (named,) if isinstance(named, str) else tuple(named)
-        for name in feedback:
-            if name not in FEEDBACK:
-                raise ValueError(f"{where}: feedback {name!r} unknown; use {list(FEEDBACK)}")
-        self.feedback = tuple(f for f in FEEDBACK if f in feedback)
+        if named is not None:
+            feedback = (named,) if isinstance(named, str) else tuple(named)
+            for name in feedback:
+                if name not in FEEDBACK:
+                    raise ValueError(f"{where}: feedback {name!r} unknown; use "
+                                     f"{list(FEEDBACK)}")
+            self.feedback = tuple(f for f in FEEDBACK if f in feedback)
         for name in ("max_torque_nm", "max_velocity"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or math.isnan(value) or value <= 0:
@@ -192,6 +195,9 @@ class DriveConfig:
         if not _whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
             raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
                              f"got {self.heartbeat_ms!r}")
+        if not isinstance(self.accept_unsupervised, bool):
+            raise ValueError(f"{where}: accept_unsupervised must be true or false, "
+                             f"got {self.accept_unsupervised!r}")
         if not isinstance(self.bus, str):
             raise ValueError(f"{where}: bus must be the name of a bus, got {self.bus!r}")
         if self.eds is not None and not Path(self.eds).is_file():

@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import logging
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -77,10 +78,11 @@ from .bringup import DriveBringup, Phase
 from .bus_port import BusPort
 from .cia402 import State402
 from .config import BusConfig, DriveConfig, Supervision, check_drives, estop_conflict
+from .drive_plan import plan_drive
 from .enable import OP_ENABLED, EnableSequence
 from .frame_io import clock_offset, to_monotonic
 from .joints import JointCommand, JointMode, JointState
-from .pdo_layout import RPDO_FIELDS, DriveLayout, drive_object_dictionary, layout_for
+from .pdo_layout import IGNORED, DriveLayout
 from .scaling import Scaling
 from .supervision import FaultEvent, Supervisor
 from .switch_off import SdoSwitchOff
@@ -117,6 +119,8 @@ class Manager(Protocol):
 
 Bus = can.BusABC | BusConfig
 #: A TPDO's receive entry: drive index, its bit in the cycle's mask, size, unpack, targets
+log = logging.getLogger(__name__)
+
 _TpdoEntry = tuple[int, int, int, Callable[..., tuple[int, ...]], tuple[np.ndarray, ...]]
 
 
@@ -146,9 +150,14 @@ class CanopenHardware:
                  manager_heartbeat_ms: int = 100, supervision: Supervision | None = None,
                  config_workers: int = 4, estop_cob_id: int = 0,
                  on_fault: Callable[[FaultEvent], None] | None = None) -> None:
-        drives = list(drives)
         buses = _named_buses(bus)
-        check_drives(drives, manager_node_id, list(buses))
+        check_drives(list(drives), manager_node_id, list(buses))
+        # each drive measured against its EDS/DCF: modes, feedback, PDOs, manager loss
+        self.plans = [plan_drive(d) for d in drives]
+        drives = [p.drive for p in self.plans]
+        for p in self.plans:
+            for note in p.notes:
+                log.warning("drive %r: %s", p.drive.name, note)
         supervision = supervision or Supervision()
         if not dt > 0:
             raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
@@ -180,16 +189,15 @@ class CanopenHardware:
         names = [d.name for d in drives]
         self.state = JointState.zeros(names)
         self.command = JointCommand.zeros(names)
-        self.layouts: list[DriveLayout] = [layout_for(d) for d in drives]
+        self.layouts: list[DriveLayout] = [p.layout for p in self.plans]
         self.scaling = Scaling(drives)
         self.supervisor = Supervisor(drives, supervision.tpdo_timeout_cycles,
                                      supervision.heartbeat_timeout_factor)
-        self._ods = [drive_object_dictionary(d, layout) for d, layout in zip(drives, self.layouts)]
 
         # --- raw bus values, one slot per drive (the codecs read and write these) ---------
         self._raw = {name: np.zeros(n, dtype=np.int64) for name in
                      ("statusword", "position", "velocity", "torque",
-                      "target_position", "target_velocity", "target_torque")}
+                      "target_position", "target_velocity", "target_torque", IGNORED)}
         self._allowed_modes = np.array(
             [(1 << JointMode.TORQUE_OFF) | (1 << JointMode.QUICK_STOP)
              | sum(1 << int(m) for m in d.modes) for d in drives], dtype=np.int64)
@@ -197,7 +205,8 @@ class CanopenHardware:
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
         self._finite = np.zeros(n, dtype=bool)
-        self._position_fed = np.array(["position" in d.feedback for d in drives], dtype=bool)
+        self._position_fed = np.array([lay.maps("position") for lay in self.layouts],
+                                      dtype=bool)
         self._default_mode = [int(d.modes[0]) for d in drives]
         self._got = np.zeros(n, dtype=np.int64)             # TPDO bits seen this cycle
         self._expected = np.array([(1 << len(lay.tpdos)) - 1 for lay in self.layouts],
@@ -225,10 +234,12 @@ class CanopenHardware:
                 port.emcy_of[cia301.EMCY + d.node_id] = i
 
         # --- transmit frames, allocated once -------------------------------------------------
-        # Per drive and RPDO: (frame, codec.pack_into, positions of its entries in RPDO_FIELDS)
+        # Per drive and RPDO: (frame, codec.pack_into, positions of its entries in the
+        # drive's RPDO fields: RPDO_FIELDS, then the constants of a fixed mapping)
         self._rpdo_frames = [[(self._port_of[i].frame(p.cob_id, p.size), p.codec.pack_into,
-                               p.positions_in(RPDO_FIELDS)) for p in lay.rpdos]
+                               p.positions_in(lay.rpdo_fields)) for p in lay.rpdos]
                              for i, lay in enumerate(self.layouts)]
+        self._rpdo_constants = [lay.rpdo_constants for lay in self.layouts]
         self._send_of = [port.send for port in self._port_of]
         self._torque_off_frames = [self._preencode(i, 0) for i in range(n)]
         self._fault_reset_frames = [self._preencode(i, _CW_FAULT_RESET) for i in range(n)]
@@ -254,11 +265,13 @@ class CanopenHardware:
 
     def _preencode(self, i: int, controlword: int) -> list[can.Message]:
         """Torque-off frames for drive i: controlword, the default mode, every target 0."""
-        values = (controlword, self._default_mode[i], 0, 0, 0)
+        layout = self.layouts[i]
+        values = (controlword, self._default_mode[i], 0, 0, 0, *layout.rpdo_constants)
         frames = []
-        for pdo in self.layouts[i].rpdos:
+        for pdo in layout.rpdos:
             msg = self._port_of[i].frame(pdo.cob_id, pdo.size)
-            pdo.codec.pack_into(msg.data, 0, *(values[k] for k in pdo.positions_in(RPDO_FIELDS)))
+            where = pdo.positions_in(layout.rpdo_fields)
+            pdo.codec.pack_into(msg.data, 0, *(values[k] for k in where))
             frames.append(msg)
         return frames
 
@@ -283,17 +296,17 @@ class CanopenHardware:
         self._executor = ThreadPoolExecutor(
             max_workers=min(self.config_workers, len(self.drives_config)),
             thread_name_prefix="canopen-config")
-        for d, layout, od, port in zip(self.drives_config, self.layouts, self._ods,
-                                       self._port_of):
+        for plan, port in zip(self.plans, self._port_of):
             assert port.canopen is not None  # opened above
-            node = port.canopen.network.add_node(d.node_id, od)
+            node = port.canopen.network.add_node(plan.drive.node_id,
+                                                 plan.caps.object_dictionary)
             # No retransmission by default (CiA 301 clients abort on timeout): a late answer
             # to the first copy would be taken as the answer to the next request. configure()
             # repeats a whole failed attempt instead, after stale answers have drained.
             node.sdo.RESPONSE_TIMEOUT = self.supervision.sdo_timeout
             # canopen counts tries (0 = forever)
             node.sdo.MAX_RETRIES = self.supervision.sdo_retries + 1
-            b = DriveBringup(d, layout, node, self.manager_node_id, self.consumer_ms,
+            b = DriveBringup(plan, node, self.manager_node_id, self.consumer_ms,
                              self.timeouts)
             b.restart(now)
             self._bringup.append(b)
@@ -567,6 +580,7 @@ class CanopenHardware:
                 enable.reset(i)
                 continue
             mode, st = modes[i], states[i]
+            values: tuple[int, ...]
             if mode in _CYCLIC and not self._allowed_list[i] >> mode & 1:
                 # limit_command stops this before it gets here; if a caller skipped it, the
                 # drive's RPDO has no target for this mode: never send it, stop instead.
@@ -583,6 +597,9 @@ class CanopenHardware:
                 cw = _CW_QUICK_STOP if mode == JointMode.QUICK_STOP else 0
                 values = (cw, self._default_mode[i], actual[i], 0, 0)
                 enable.reset(i)
+            constants = self._rpdo_constants[i]
+            if constants:  # a fixed mapping's other objects: sent as the file gives them
+                values += constants
             for msg, pack_into, where in self._rpdo_frames[i]:
                 pack_into(msg.data, 0, *[values[k] for k in where])
                 send(msg)

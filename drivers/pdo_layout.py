@@ -15,10 +15,9 @@ from dataclasses import dataclass, field
 
 import canopen
 
-from rocoma_can import eds as shipped_eds
-
 from . import cia301, cia402
-from .config import DriveConfig
+from .capabilities import PDO_NOT_VALID, DriveCapabilities, PdoChannel
+from .config import FEEDBACK, DriveConfig
 from .joints import JointMode
 
 PDO_BYTES = 8
@@ -27,11 +26,16 @@ PDO_SLOTS = 4
 
 @dataclass(frozen=True)
 class PdoEntry:
-    """One mapped object: a name the codec uses, where it lives, and its struct format."""
+    """One mapped object: a name the codec uses, where it lives, and its struct format.
+
+    Objects of a drive's fixed mapping that rocoma-can does not command are ``constant``
+    entries in RPDOs (sent as the file's value, never as a guess) and named ``IGNORED`` in
+    TPDOs (read past)."""
     name: str
     index: int
     subindex: int
     fmt: str  # struct format character, little endian
+    constant: int | None = None
 
     @property
     def size(self) -> int:
@@ -56,17 +60,25 @@ TORQUE = PdoEntry("torque", cia402.TORQUE_ACTUAL, 0, "h")
 TARGET_OF_MODE = {JointMode.CSP: TARGET_POSITION, JointMode.CSV: TARGET_VELOCITY,
                   JointMode.CST: TARGET_TORQUE}
 ENTRY_OF_FEEDBACK = {"position": POSITION, "velocity": VELOCITY, "torque": TORQUE}
-#: Every name an RPDO codec can be asked to fill, in the order ``Pdo.pack`` takes them.
+#: Every name an RPDO codec can be asked to fill, in the order ``Pdo.pack`` takes them
+#: (a drive's constant entries follow: ``DriveLayout.rpdo_fields``).
 RPDO_FIELDS = ("controlword", "mode", "target_position", "target_velocity", "target_torque")
+#: The name of a fixed TPDO's entries that rocoma-can does not read.
+IGNORED = "ignored"
+_KNOWN = {(e.index, e.subindex): e for e in (CONTROLWORD, MODE, TARGET_POSITION,
+                                             TARGET_VELOCITY, TARGET_TORQUE, STATUSWORD,
+                                             POSITION, VELOCITY, TORQUE)}
 
 
 @dataclass(frozen=True)
 class Pdo:
-    """One PDO of one drive: its slot (1..4), COB-ID, mapped entries and codec."""
+    """One PDO of one drive: its slot (1..4), COB-ID, mapped entries and codec. ``fixed``:
+    the drive's own mapping, used as it is (bring-up writes no mapping for it)."""
     number: int
     cob_id: int
     entries: tuple[PdoEntry, ...]
     codec: struct.Struct = field(compare=False, repr=False)
+    fixed: bool = False
 
     @property
     def size(self) -> int:
@@ -81,13 +93,15 @@ class Pdo:
         return tuple(fields.index(e.name) for e in self.entries)
 
 
-def first_fit(entries: Iterable[PdoEntry], max_bytes: int = PDO_BYTES) -> list[list[PdoEntry]]:
-    """Pack entries in order into as few PDOs as first fit allows (order kept within a PDO)."""
+def first_fit(entries: Iterable[PdoEntry], max_bytes: int = PDO_BYTES,
+              max_objects: int = 8) -> list[list[PdoEntry]]:
+    """Pack entries in order into as few PDOs as first fit allows (order kept within a PDO),
+    at most ``max_objects`` entries per PDO."""
     pdos: list[list[PdoEntry]] = []
     used: list[int] = []
     for e in entries:
         for i, u in enumerate(used):
-            if u + e.size <= max_bytes:
+            if u + e.size <= max_bytes and len(pdos[i]) < max_objects:
                 pdos[i].append(e)
                 used[i] += e.size
                 break
@@ -97,26 +111,39 @@ def first_fit(entries: Iterable[PdoEntry], max_bytes: int = PDO_BYTES) -> list[l
     return pdos
 
 
-def _pdos(groups: list[list[PdoEntry]], bases: tuple[int, ...], node_id: int,
-          what: str, drive: str) -> tuple[Pdo, ...]:
-    if len(groups) > PDO_SLOTS:
-        raise ValueError(f"drive {drive!r}: {what} needs {len(groups)} PDOs, a drive has "
-                         f"{PDO_SLOTS}")
-    return tuple(Pdo(k + 1, bases[k] + node_id, tuple(g),
-                     struct.Struct("<" + "".join(e.fmt for e in g)))
-                 for k, g in enumerate(groups))
+def _pdo(number: int, cob_id: int, entries: Sequence[PdoEntry], fixed: bool = False) -> Pdo:
+    return Pdo(number, cob_id, tuple(entries),
+               struct.Struct("<" + "".join(e.fmt for e in entries)), fixed)
 
 
 @dataclass(frozen=True)
 class DriveLayout:
-    """Every PDO one drive exchanges per cycle."""
+    """Every PDO one drive exchanges per cycle. ``unused``: the drive's PDO channels that
+    bring-up switches off (invalid COB-ID), as (tx, number)."""
     node_id: int
     rpdos: tuple[Pdo, ...]
     tpdos: tuple[Pdo, ...]
+    unused: tuple[tuple[bool, int], ...] = ()
 
     @property
     def frames_per_cycle(self) -> int:
         return len(self.rpdos) + len(self.tpdos)
+
+    @property
+    def constants(self) -> tuple[PdoEntry, ...]:
+        return tuple(e for p in self.rpdos for e in p.entries if e.constant is not None)
+
+    @property
+    def rpdo_fields(self) -> tuple[str, ...]:
+        """RPDO_FIELDS, then the names of this drive's constant entries."""
+        return RPDO_FIELDS + tuple(e.name for e in self.constants)
+
+    @property
+    def rpdo_constants(self) -> tuple[int, ...]:
+        return tuple(int(e.constant or 0) for e in self.constants)
+
+    def maps(self, name: str) -> bool:
+        return any(name in p.names for p in (*self.rpdos, *self.tpdos))
 
 
 def rpdo_entries(modes: Iterable[JointMode]) -> list[PdoEntry]:
@@ -124,18 +151,125 @@ def rpdo_entries(modes: Iterable[JointMode]) -> list[PdoEntry]:
     return [CONTROLWORD, MODE] + [TARGET_OF_MODE[m] for m in sorted(set(modes))]
 
 
-def tpdo_entries(feedback: Iterable[str]) -> list[PdoEntry]:
-    return [STATUSWORD] + [ENTRY_OF_FEEDBACK[f] for f in feedback]
+def tpdo_entries(feedback: Iterable[str] | None) -> list[PdoEntry]:
+    return [STATUSWORD] + [ENTRY_OF_FEEDBACK[f] for f in (FEEDBACK if feedback is None
+                                                          else feedback)]
 
 
-def layout_for(drive: DriveConfig) -> DriveLayout:
-    return DriveLayout(
-        drive.node_id,
-        _pdos(first_fit(rpdo_entries(drive.modes)), cia301.RPDO_BASE, drive.node_id,
-              "RPDO", drive.name),
-        _pdos(first_fit(tpdo_entries(drive.feedback)), cia301.TPDO_BASE, drive.node_id,
-              "TPDO", drive.name),
-    )
+def layout_for(drive: DriveConfig, caps: DriveCapabilities | None = None) -> DriveLayout:
+    """The PDOs for what the drive's modes and feedback need: mapped first-fit where the
+    drive lets us write its mapping, taken as they are where its mapping is fixed. Without
+    ``caps``, a drive whose four RPDOs and TPDOs are all remappable (the generic one).
+    Raises ValueError saying precisely what the drive cannot carry."""
+    rx_need = rpdo_entries(drive.modes)
+    tx_need = tpdo_entries(drive.feedback)
+    if caps is None:
+        rpdos = _remapped(rx_need, _generic(False), drive, "RPDO")
+        tpdos = _remapped(tx_need, _generic(True), drive, "TPDO")
+        return DriveLayout(drive.node_id, rpdos, tpdos)
+    rpdos, r_unused = _fit(rx_need, caps.rpdos, caps, drive, tx=False)
+    tpdos, t_unused = _fit(tx_need, caps.tpdos, caps, drive, tx=True)
+    return DriveLayout(drive.node_id, rpdos, tpdos, r_unused + t_unused)
+
+
+def _generic(tx: bool) -> list[tuple[int, int, int]]:
+    """(number, COB-ID base, max objects) of the four remappable PDOs of a generic drive."""
+    bases = cia301.TPDO_BASE if tx else cia301.RPDO_BASE
+    return [(k + 1, bases[k], 8) for k in range(PDO_SLOTS)]
+
+
+def _remapped(need: list[PdoEntry], slots: list[tuple[int, int, int]], drive: DriveConfig,
+              what: str, node_cob: bool = True) -> tuple[Pdo, ...]:
+    """``need`` packed into the remappable ``slots`` (number, COB-ID or base, max objects)."""
+    if not need:
+        return ()
+    limit = min((m for _, _, m in slots), default=0)
+    groups = first_fit(need, PDO_BYTES, max(limit, 1))
+    if len(groups) > len(slots):
+        raise ValueError(f"drive {drive.name!r}: {what} needs {len(groups)} PDOs "
+                         f"({', '.join(e.name for e in need)}), the drive has "
+                         f"{len(slots)} it lets us map")
+    return tuple(_pdo(number, cob + (drive.node_id if node_cob else 0), g)
+                 for (number, cob, _), g in zip(slots, groups))
+
+
+def _entry_of(caps: DriveCapabilities, index: int, subindex: int, bits: int, tx: bool,
+              drive: DriveConfig, where: str) -> PdoEntry:
+    known = _KNOWN.get((index, subindex))
+    if known is not None and known.size * 8 == bits:
+        return known
+    var = caps.variable(index, subindex)
+    if var is None or var.data_type is None or len(var) != bits:
+        raise ValueError(f"drive {drive.name!r}: {where} maps 0x{index:04X}:{subindex} "
+                         f"({bits} bits), which its file does not describe as such")
+    fmt = var.STRUCT_TYPES[var.data_type].format.lstrip("<")
+    if tx:
+        return PdoEntry(IGNORED, index, subindex, fmt)
+    value = caps.value(index, subindex)
+    return PdoEntry(f"0x{index:04X}:{subindex}", index, subindex, fmt,
+                    constant=int(value) if isinstance(value, int) else 0)
+
+
+def _fit(need: list[PdoEntry], channels: tuple[PdoChannel, ...], caps: DriveCapabilities,
+         drive: DriveConfig, tx: bool) -> tuple[tuple[Pdo, ...], tuple[tuple[bool, int], ...]]:
+    """Fixed channels that carry something needed are used as they are; what they do not
+    carry goes first-fit into the remappable ones; every other channel is switched off."""
+    what = "TPDO" if tx else "RPDO"
+    used: list[Pdo] = []
+    carried: set[str] = set()
+    for ch in channels:
+        if ch.mapping_writable or not ch.mapping:
+            continue
+        entries = [_entry_of(caps, i, s, b, tx, drive, ch.name) for i, s, b in _split(ch)]
+        if not any(e in need for e in entries):
+            continue
+        _check_fixed(ch, drive)
+        used.append(_pdo(ch.number, ch.cob_id & 0x7FF, entries, fixed=True))
+        carried.update(e.name for e in entries if e in need)
+    rest = [e for e in need if e.name not in carried]
+    if not tx and MODE in rest and carried:
+        # the controlword travels in a fixed RPDO without 0x6060: the mode is set once by
+        # SDO at bring-up, so the drive cannot change mode in the cycle
+        rest.remove(MODE)
+        if len(drive.modes) > 1:
+            raise ValueError(f"drive {drive.name!r}: its fixed RPDO mapping has no 0x6060 "
+                             "(modes of operation), so the mode cannot change in the cycle: "
+                             f"configure one mode, not {[m.name for m in drive.modes]}")
+    free = [ch for ch in channels if ch.mapping_writable]
+    if rest and not free:
+        names = ", ".join(f"{e.name} (0x{e.index:04X})" for e in rest)
+        raise ValueError(f"drive {drive.name!r}: its {what} mappings are fixed and none "
+                         f"carries {names}; fixed: "
+                         + "; ".join(f"{ch.name} = {_describe(ch)}" for ch in channels))
+    bases = cia301.TPDO_BASE if tx else cia301.RPDO_BASE
+    remapped = _remapped(rest, [(ch.number, ch.cob_id & 0x7FF
+                                 or bases[ch.number - 1] + drive.node_id, ch.max_objects)
+                                for ch in free], drive, what, node_cob=False)
+    pdos = sorted((*used, *remapped), key=lambda p: p.number)
+    taken = {p.number for p in pdos}
+    idle = [ch for ch in channels if ch.number not in taken]
+    for ch in idle:
+        if not ch.cob_id & PDO_NOT_VALID and not ch.cob_id_writable:
+            raise ValueError(f"drive {drive.name!r}: {ch.name} ({_describe(ch)}) is always "
+                             "on and its COB-ID cannot be written to switch it off")
+    return tuple(pdos), tuple((tx, ch.number) for ch in idle)
+
+
+def _split(ch: PdoChannel) -> list[tuple[int, int, int]]:
+    return [(e >> 16, (e >> 8) & 0xFF, e & 0xFF) for e in ch.mapping]
+
+
+def _describe(ch: PdoChannel) -> str:
+    return ", ".join(f"0x{i:04X}:{s}" for i, s, _ in _split(ch)) or "nothing"
+
+
+def _check_fixed(ch: PdoChannel, drive: DriveConfig) -> None:
+    """A fixed PDO is usable only if it goes every SYNC or its transmission type may be set."""
+    if not ch.transmission_type_writable and ch.transmission_type not in (None, 1) and (
+            ch.tx or (ch.transmission_type or 0) <= 240):
+        raise ValueError(f"drive {drive.name!r}: {ch.name} has the fixed transmission type "
+                         f"{ch.transmission_type}; rocoma-can needs 1 (every SYNC)"
+                         + ("" if ch.tx else " or event-driven (254/255)"))
 
 
 def check_against_od(layout: DriveLayout, od: canopen.ObjectDictionary, drive: str) -> None:
@@ -151,23 +285,9 @@ def check_against_od(layout: DriveLayout, od: canopen.ObjectDictionary, drive: s
                 if var is None:
                     raise ValueError(f"drive {drive!r}: EDS has no object "
                                      f"0x{e.index:04X}:{e.subindex} ({e.name})")
-                if not var.pdo_mappable:
+                if not var.pdo_mappable and not pdo.fixed:
                     raise ValueError(f"drive {drive!r}: 0x{e.index:04X} ({e.name}) is not "
                                      "PDO-mappable in the EDS")
                 if len(var) != e.size * 8:
                     raise ValueError(f"drive {drive!r}: 0x{e.index:04X} ({e.name}) is "
                                      f"{len(var)} bits in the EDS, expected {e.size * 8}")
-
-
-def drive_object_dictionary(drive: DriveConfig, layout: DriveLayout) -> canopen.ObjectDictionary:
-    """The drive's EDS/DCF (the shipped generic one when none is configured), parsed for its
-    node id and checked against the layout: ValueError naming the drive and the file when it
-    is not a readable EDS/DCF or cannot carry the layout (never a parser's traceback)."""
-    path = drive.eds or str(shipped_eds.path(shipped_eds.CIA402_DRIVE))
-    try:
-        od = canopen.import_od(path, drive.node_id)
-    except Exception as exc:  # configparser, UnicodeDecodeError, ...: a file that is not an EDS
-        raise ValueError(f"drive {drive.name!r}: {path} is not a readable EDS/DCF file "
-                         f"({type(exc).__name__}: {str(exc)[:200]})") from None
-    check_against_od(layout, od, drive.name)
-    return od

@@ -15,7 +15,7 @@ from rocoma_can.drivers import bringup, cia301
 from rocoma_can.drivers.bringup import ConfigResult, DriveBringup, Phase
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.config import Timeouts
-from rocoma_can.drivers.pdo_layout import layout_for
+from rocoma_can.drivers.drive_plan import plan_drive
 
 TIMEOUTS = Timeouts(boot_wait=1.0, start=2.0, reset=1.0, enable=1.0)
 SWITCH_ON_DISABLED = 0x0040
@@ -45,7 +45,7 @@ def drive(monkeypatch):
         return result
     monkeypatch.setattr(bringup, "configure", configure)
     config = drive_configs((1,))[0]
-    b = DriveBringup(config, layout_for(config), canopen.RemoteNode(1, canopen.ObjectDictionary()),
+    b = DriveBringup(plan_drive(config), canopen.RemoteNode(1, canopen.ObjectDictionary()),
                      100, 200, TIMEOUTS)
     b.results = results  # what the next configuration returns (or raises)
     b.restart(0.0)

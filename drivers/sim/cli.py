@@ -92,7 +92,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="python-can interface: socketcan (default), virtual, ...")
     p.add_argument("--nodes", type=parse_node_ids, default=[1], metavar="IDS",
                    help="node ids, e.g. 1-12 or 1,3,5-7 (default 1)")
-    p.add_argument("--eds", default=None, help="EDS of the drives (default: the shipped one)")
+    p.add_argument("--eds", default=None, metavar="FILE",
+                   help="EDS or DCF the drives emulate: exactly its objects, access types and "
+                        "0x6502 modes (default: the shipped generic drive)")
+    p.add_argument("--increments-per-rev", type=int, default=1 << 20, metavar="N",
+                   help="encoder increments per motor turn where the file has no 0x608F "
+                        "(default 1048576)")
+    p.add_argument("--rated-torque-nm", type=float, default=1.0, metavar="NM",
+                   help="rated torque where the file has no 0x6076 (default 1.0)")
     p.add_argument("--fd", action="store_true",
                    help="a CAN FD bus: the drives answer in FD frames with bit rate switching "
                         "(on vcan: ip link set vcan0 mtu 72)")
@@ -121,14 +128,25 @@ def run(args: argparse.Namespace) -> int:
             print(f"rocoma-can sim: --{inj.flag}: node {inj.node} is not in --nodes",
                   file=sys.stderr)
             return 2
+    from ..capabilities import CapabilityError, read_capabilities
+    try:
+        caps = read_capabilities(args.eds, args.nodes[0])
+    except CapabilityError as exc:
+        print(f"rocoma-can sim: --eds: {exc}", file=sys.stderr)
+        return 2
     try:
         segment = SimulatedSegment.open(args.channel, args.interface, args.nodes,
                                         eds_path=args.eds, sync_period=args.sync_period,
-                                        fd=args.fd)
+                                        fd=args.fd, increments_per_rev=args.increments_per_rev,
+                                        rated_torque_nm=args.rated_torque_nm)
     except (OSError, ValueError, ImportError) as exc:
         print(f"rocoma-can sim: cannot open {args.interface} channel {args.channel}: {exc}",
               file=sys.stderr)
         return 1
+    if args.eds:  # what the drives are, as a master would find out
+        print(f"sim: the drives emulate {caps.source}", flush=True)
+        for line in caps.report():
+            print(f"sim:   {line}", flush=True)
     # Set by signal handlers, polled below: a handler runs on this (main) thread between two
     # bytecodes and must take no lock (Event.set could wait for ever for the lock that the
     # interrupted Event.wait holds).

@@ -18,6 +18,7 @@ the segment lock held, and sends what it transmits (port.Segment).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import can
@@ -41,6 +42,7 @@ from .objects import (
     VELOCITY,
     Key,
     ObjectDictionaryServer,
+    fallback_values,
     load_object_dictionary,
 )
 from .pdo import PdoService
@@ -69,7 +71,8 @@ class SimulatedDrive:
     """
 
     def __init__(self, segment: Segment, node_id: int, joint: int,
-                 object_dictionary: objectdictionary.ObjectDictionary) -> None:
+                 object_dictionary: objectdictionary.ObjectDictionary,
+                 fallbacks: Mapping[Key, Any] | None = None) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError(f"CANopen node id must be 1..127, got {node_id}")
         self.node_id = node_id
@@ -79,8 +82,9 @@ class SimulatedDrive:
         self._dyn = segment.dynamics
         self._faults = InjectedFaults()
         self._babble = Babble(segment)
-        self.objects = ObjectDictionaryServer(object_dictionary, node_id, self._tx,
-                                              self._after_write)
+        self.objects = ObjectDictionaryServer(
+            object_dictionary, node_id, self._tx, self._after_write,
+            fallback_values(1 << 20, 1.0) if fallbacks is None else fallbacks)
         self._values = self.objects.values
         self.nmt = NmtSlave(node_id, segment, self._values, self._tx,
                             on_lost=self._heartbeat_lost, on_regained=self._heartbeat_regained)

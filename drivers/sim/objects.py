@@ -11,11 +11,12 @@ first, only mappable objects, at most 64 bits).
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import canopen
 from canopen import objectdictionary
+from canopen.objectdictionary import datatypes
 from canopen.sdo.constants import (
     ABORT_APPLICATION_DEVICE_STATE,
     ABORT_INVALID_VALUE,
@@ -68,16 +69,21 @@ class ObjectDictionaryServer:
 
     def __init__(self, od: objectdictionary.ObjectDictionary, node_id: int,
                  send: Callable[[int, bytes], None],
-                 on_write: Callable[[Key, Any], None]) -> None:
+                 on_write: Callable[[Key, Any], None],
+                 fallbacks: Mapping[Key, Any] | None = None) -> None:
         self.object_dictionary = od  # the name canopen's SdoServer reads
         self._node_id = node_id
         self._on_write = on_write
-        self.defaults: dict[Key, Any] = {}
+        # What the drive does for objects its file lacks (never visible on the bus: SDO
+        # and PDO mapping look the object up in the file first), then the file's values
+        # (a DCF's ParameterValue over DefaultValue; an empty default is 0).
+        self.defaults: dict[Key, Any] = dict(fallbacks or {})
         for obj in od.values():
             members = [obj] if isinstance(obj, objectdictionary.ODVariable) else obj.values()
             for var in members:
                 value = var.value if var.value is not None else var.default
-                self.defaults[(var.index, var.subindex)] = value
+                self.defaults[(var.index, var.subindex)] = (
+                    value if value is not None else _empty(var.data_type))
         self.values: dict[Key, Any] = dict(self.defaults)
         self._sdo = SdoServer(c301.SDO_RX + node_id, c301.SDO_TX + node_id, self)
         self._sdo.network = _SdoLink(send)  # type: ignore[assignment]  # send_message only
@@ -183,6 +189,41 @@ class ObjectDictionaryServer:
             bits += length
         if bits > 64:
             raise SdoAbortedError(ABORT_PDO_LENGTH_EXCEEDED)
+
+
+def _empty(data_type: int | None) -> Any:
+    if data_type in (datatypes.VISIBLE_STRING, datatypes.UNICODE_STRING):
+        return ""
+    if data_type in (datatypes.OCTET_STRING, datatypes.DOMAIN):
+        return b""
+    return 0
+
+
+#: The modes this simulator implements (0x6502 bits): a file without 0x6502 gets these.
+IMPLEMENTED_MODES = (1 << (c.Mode.CSP - 1)) | (1 << (c.Mode.CSV - 1)) | (1 << (c.Mode.CST - 1))
+
+
+def fallback_values(increments_per_rev: int, rated_torque_nm: float) -> dict[Key, Any]:
+    """How a simulated drive behaves where its file has no object: scaling as given (the
+    config's numbers), no reaction to a lost connection without 0x6007 (no CiA 402 reaction
+    at all: the honest emulation of a drive that cannot be told one), the generic option
+    codes, no torque limit without 0x6072, no offsets, the implemented modes."""
+    return {
+        (c.POSITION_ENCODER_RESOLUTION, 1): increments_per_rev,
+        (c.POSITION_ENCODER_RESOLUTION, 2): 1,
+        (c.GEAR_RATIO, 1): 1, (c.GEAR_RATIO, 2): 1,
+        (c.RATED_TORQUE, 0): max(1, round(rated_torque_nm * 1000)),
+        (c.ABORT_CONNECTION_OPTION, 0): c.AbortConnectionOption.NONE,
+        (c.QUICK_STOP_OPTION, 0): 2, (c.SHUTDOWN_OPTION, 0): 0,
+        (c.DISABLE_OPERATION_OPTION, 0): 1,
+        (c.QUICK_STOP_DECELERATION, 0): 10 * increments_per_rev,
+        (c.MAX_TORQUE, 0): 0x7FFF,
+        (c.VELOCITY_OFFSET, 0): 0, (c.TORQUE_OFFSET, 0): 0,
+        (c.TARGET_POSITION, 0): 0, (c.TARGET_VELOCITY, 0): 0, (c.TARGET_TORQUE, 0): 0,
+        (c.SUPPORTED_DRIVE_MODES, 0): IMPLEMENTED_MODES,
+        (c.ERROR_CODE, 0): 0, (c301.ERROR_BEHAVIOR, 1): 1,
+        (c301.PRODUCER_HEARTBEAT_TIME, 0): 0,
+    }
 
 
 def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.ObjectDictionary:

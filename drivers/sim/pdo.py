@@ -64,8 +64,11 @@ class PdoService:
 
     def build(self) -> None:
         """Compile every PDO from the OD and tell the segment which RPDOs to route here."""
-        self._rpdos = [self._compile(0x1400 + n, 0x1600 + n, n) for n in range(4)]
-        self._tpdos = [self._compile(0x1800 + n, 0x1A00 + n, n) for n in range(4)]
+        present = self._values.__contains__  # a drive may have fewer than four of each
+        self._rpdos = [self._compile(0x1400 + n, 0x1600 + n, n) for n in range(4)
+                       if present((0x1400 + n, 1)) and present((0x1600 + n, 0))]
+        self._tpdos = [self._compile(0x1800 + n, 0x1A00 + n, n) for n in range(4)
+                       if present((0x1800 + n, 1)) and present((0x1A00 + n, 0))]
         self._event_tpdos = [p for p in self._tpdos if p.valid and p.trans_type >= 254]
         self._seg.set_rpdo_routes(self._node_id, {
             p.cob_id: partial(self.on_rpdo, p) for p in self._rpdos if p.valid})
@@ -93,7 +96,7 @@ class PdoService:
         frame = can.Message(arbitration_id=raw & 0x7FF, data=bytearray(layout.size),
                             is_extended_id=False, is_fd=fd, bitrate_switch=fd)
         return Pdo(number=number, cob_id=raw & 0x7FF, valid=not raw & PDO_NOT_VALID,
-                   trans_type=self._values[(comm, 2)], keys=tuple(keys),
+                   trans_type=self._values.get((comm, 2), 255), keys=tuple(keys),
                    layout=layout, values_of=values_of, frame=frame)
 
     # ------------------------------------------------------------------ RPDOs

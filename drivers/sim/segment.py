@@ -36,7 +36,7 @@ from .. import cia301 as c301
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
-from .objects import load_object_dictionary
+from .objects import fallback_values, load_object_dictionary
 from .port import Route
 
 log = logging.getLogger(__name__)
@@ -105,7 +105,8 @@ class SimulatedSegment:
                  params: JointParams | Mapping[int, JointParams] | None = None, *,
                  sync_period: float | None = None, max_dt: float = 0.05,
                  free_run_period: float | None = 0.05, seed: int = 0,
-                 own_bus: bool = False, fd: bool = False) -> None:
+                 own_bus: bool = False, fd: bool = False,
+                 increments_per_rev: int = 1 << 20, rated_torque_nm: float = 1.0) -> None:
         ids = sorted(set(int(n) for n in node_ids))
         if not ids:
             raise ValueError("a simulated segment needs at least one node id")
@@ -133,9 +134,16 @@ class SimulatedSegment:
         else:
             joint_params = [params or JointParams()] * len(ids)
         self.dynamics = JointDynamics(joint_params)
+        if not isinstance(increments_per_rev, int) or increments_per_rev <= 0 \
+                or not rated_torque_nm > 0:
+            raise ValueError("increments_per_rev must be a positive integer and "
+                             f"rated_torque_nm > 0, got {increments_per_rev!r}, "
+                             f"{rated_torque_nm!r}")
         eds = str(eds_path) if eds_path else _default_eds()
+        # what the drives assume where the file has no object (scaling: these numbers)
+        fallbacks = fallback_values(increments_per_rev, rated_torque_nm)
         self.drives: dict[int, SimulatedDrive] = {
-            n: SimulatedDrive(self, n, j, load_object_dictionary(eds, n))
+            n: SimulatedDrive(self, n, j, load_object_dictionary(eds, n), fallbacks)
             for j, n in enumerate(ids)}
         self._fixed_routes: dict[int, Route] = {
             c301.SDO_RX + n: d.on_sdo for n, d in self.drives.items()}

@@ -8,10 +8,11 @@ switching carries more because its data phase runs at the data bit rate.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from ..drivers.config import DriveConfig
-from ..drivers.pdo_layout import layout_for
+from ..drivers.pdo_layout import DriveLayout, layout_for
 
 
 def frame_bits(data_bytes: int, worst_case: bool = True,
@@ -83,15 +84,16 @@ class BusLoad:
         return None if self.data_bitrate is None else self.bitrate / self.data_bitrate
 
 
-def bus_load(drives: list[DriveConfig], rate: float, bitrate: int,
+def bus_load(drives: Sequence[DriveConfig | DriveLayout], rate: float, bitrate: int,
              data_bitrate: int | None = None) -> BusLoad:
-    """Per cycle on one bus: every drive's RPDOs and TPDOs (the driver's layouts) and one
-    SYNC; ``data_bitrate``: a CAN FD bus with bit rate switching at that data rate."""
+    """Per cycle on one bus: every drive's RPDOs and TPDOs (the driver's layouts: give
+    them, or drive configs of generic drives) and one SYNC; ``data_bitrate``: a CAN FD bus
+    with bit rate switching at that data rate."""
     ratio = None if data_bitrate is None else bitrate / data_bitrate
     frames, bits = 1, frame_bits(0, data_ratio=ratio)
     drive_bits = 0.0
     for d in drives:
-        layout = layout_for(d)
+        layout = d if isinstance(d, DriveLayout) else layout_for(d)
         for pdo in layout.rpdos + layout.tpdos:
             frames += 1
             drive_bits += frame_bits(pdo.size, data_ratio=ratio)

@@ -58,6 +58,14 @@ def _check_config(args: argparse.Namespace) -> int:
     several = len(config.buses) > 1
     for name, load_ in config.loads.items():
         print(f"bus load{f' {name}' if several else ''}: {load_.explain()}", flush=True)
+    if args.drives:  # each drive as its EDS/DCF lets rocoma-can drive it
+        for plan in config.plans.values():
+            for line in plan.report():
+                print(line, flush=True)
+    else:  # what is degraded is worth a line each even without --drives
+        for plan in config.plans.values():
+            for note in plan.notes:
+                print(f"drive {plan.drive.name!r}: {note}", flush=True)
     return OK
 
 
@@ -202,6 +210,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
     p = subparsers.add_parser("check-config", help="validate a YAML config, list every problem")
     p.add_argument("config")
+    p.add_argument("--drives", action="store_true",
+                   help="per drive: modes, feedback, PDOs, what its EDS/DCF lacks and what "
+                        "happens when the manager is lost")
     p.set_defaults(func=_check_config)
 
     p = subparsers.add_parser("switch", help="switch the running manager's controller")

@@ -39,7 +39,7 @@ import yaml
 
 from ..drivers.cia301 import reserved_cob_id
 from ..drivers.config import BusConfig, DriveConfig, Supervision, Timeouts, estop_conflict
-from ..drivers.pdo_layout import drive_object_dictionary, layout_for
+from ..drivers.drive_plan import DrivePlan, plan_drive
 from ..errors import ConfigError
 from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
@@ -103,6 +103,7 @@ class RuntimeConfig:
     timing: TimingSupervision = field(default_factory=TimingSupervision)
     source: str = "<memory>"
     loads: dict[str, BusLoad] = field(default_factory=dict)  # per bus, none on in-process buses
+    plans: dict[str, DrivePlan] = field(default_factory=dict)  # per drive name
 
     @property
     def bus(self) -> BusConfig:
@@ -257,8 +258,9 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     timing = TimingSupervision(**_numbers(_section(data, "timing", problems), _TIMING,
                                           "timing", problems))
 
+    plans: dict[str, DrivePlan] = {}
     drives = _drives(data.get("drives"), manager.node_id, base, problems,
-                     [b.label for b in buses])
+                     [b.label for b in buses], plans)
     cob = manager.estop_cob_id
     why = estop_conflict(cob, drives, manager.node_id) if cob else None
     if why is not None:
@@ -304,7 +306,8 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
             continue
         bitrate = b.bitrate or DEFAULT_BITRATE
         data_bitrate = (b.data_bitrate or bitrate) if b.fd else None
-        loads[b.label] = load_ = bus_load(on, float(rate), bitrate, data_bitrate)
+        loads[b.label] = load_ = bus_load([plans[d.name].layout for d in on], float(rate),
+                                          bitrate, data_bitrate)
         if load_.load > 1.0:
             where = f"buses[{k}] ({b.label})" if "buses" in data else "rate"
             assumed = "" if b.bitrate else f" (no bitrate given: {DEFAULT_BITRATE:,} assumed)"
@@ -313,7 +316,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         raise ConfigError([f"{source}: {p}" for p in problems])
     return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
-                         timing, source, loads)
+                         timing, source, loads, plans)
 
 
 def _buses(data: Mapping[str, Any], problems: list[str]) -> list[BusConfig]:
@@ -402,8 +405,8 @@ def _numbers(section: Mapping[str, Any], spec: Mapping[str, tuple[bool, float, f
     return out
 
 
-def _drives(entries: Any, manager_id: int, base: Path | None,
-            problems: list[str], buses: list[str]) -> list[DriveConfig]:
+def _drives(entries: Any, manager_id: int, base: Path | None, problems: list[str],
+            buses: list[str], plans: dict[str, DrivePlan]) -> list[DriveConfig]:
     if not isinstance(entries, list) or not entries:
         problems.append(f"drives: expected a non-empty list of drives, got {entries!r}")
         return []
@@ -420,8 +423,9 @@ def _drives(entries: Any, manager_id: int, base: Path | None,
             entry["eds"] = str((base / entry["eds"]).resolve()) \
                 if not Path(entry["eds"]).is_absolute() else entry["eds"]
         try:
-            drive = DriveConfig.from_dict(entry)
-            drive_object_dictionary(drive, layout_for(drive))  # the EDS parsed and checked
+            # measured against its EDS/DCF: modes, feedback (resolved), PDOs, manager loss
+            plan = plan_drive(DriveConfig.from_dict(entry))
+            drive = plan.drive
         except (ValueError, TypeError) as exc:
             problems.append(f"{where}: {exc}")
             continue
@@ -440,6 +444,7 @@ def _drives(entries: Any, manager_id: int, base: Path | None,
                             "(manager.node_id)")
         names.setdefault(drive.name, i)
         ids.setdefault((bus, drive.node_id), i)
+        plans.setdefault(drive.name, plan)
         drives.append(drive)
     return drives
 

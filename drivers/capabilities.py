@@ -1,0 +1,261 @@
+"""What one drive can do, read once from its EDS or DCF: the single answer check-config,
+bring-up and the simulator all use.
+
+Vendor files differ from the generic drive rocoma-can ships: 0x6502 lists only some modes,
+0x6007, 0x608F, 0x6077 may be missing, some PDO mappings are fixed (read-only mapping
+objects), COB-IDs are written ``$NODEID+0x180``, and a DCF carries the commissioned values
+(``ParameterValue``) over the file's defaults. canopen's importer parses the file; this
+module turns it into facts with the names the rest of the driver asks about, so that a
+missing object is a sentence in check-config, not a KeyError at bring-up.
+"""
+from __future__ import annotations
+
+import configparser
+from dataclasses import dataclass, field
+from typing import Any
+
+import canopen
+from canopen import objectdictionary
+
+from rocoma_can import eds as shipped_eds
+
+from . import cia301, cia402
+
+Key = tuple[int, int]
+
+#: 0x6502 bits (CiA 402): bit n-1 for mode n of 0x6060, except these vendor-neutral ones
+MODE_NAMES = {1: "PP", 2: "VL", 3: "PV", 4: "TQ", 6: "HM", 7: "IP", 8: "CSP", 9: "CSV",
+              10: "CST"}
+NODE_GUARDING = (0x100C, 0x100D)  # guard time (ms), life time factor
+PDO_NOT_VALID = 0x8000_0000
+
+
+class CapabilityError(ValueError):
+    """The file cannot be read as an EDS/DCF, or is not a drive's."""
+
+
+def mode_bit(mode: int) -> int:
+    """The 0x6502 bit of a 0x6060 mode number (PP 1 -> bit 0 ... CST 10 -> bit 9)."""
+    return 1 << (mode - 1)
+
+
+@dataclass(frozen=True)
+class PdoChannel:
+    """One RPDO or TPDO of the drive as its file describes it."""
+    tx: bool
+    number: int                    # 1..4 (the communication object is 0x1400/0x1800 + n-1)
+    cob_id: int                    # sub 1 as the file gives it ($NODEID resolved), bit 31 kept
+    cob_id_writable: bool
+    transmission_type: int | None  # sub 2; None when the file has none
+    transmission_type_writable: bool
+    mapping_writable: bool         # sub 0 and every entry writable: we may remap it
+    max_objects: int               # entries the mapping object has (its highest sub-index)
+    mapping: tuple[int, ...]       # mapped entries (index << 16 | sub << 8 | bits), as given
+
+    @property
+    def name(self) -> str:
+        return f"{'T' if self.tx else 'R'}PDO{self.number}"
+
+    @property
+    def communication_index(self) -> int:
+        return (cia301.TPDO_COMM if self.tx else cia301.RPDO_COMM) + self.number - 1
+
+    @property
+    def mapping_index(self) -> int:
+        return (cia301.TPDO_MAP if self.tx else cia301.RPDO_MAP) + self.number - 1
+
+    def maps(self, index: int, subindex: int = 0) -> bool:
+        return any(e >> 16 == index and (e >> 8) & 0xFF == subindex for e in self.mapping)
+
+
+@dataclass(frozen=True)
+class DriveCapabilities:
+    """Facts of one drive's EDS/DCF for one node id. Build with ``read_capabilities``."""
+    source: str
+    node_id: int
+    object_dictionary: canopen.ObjectDictionary = field(repr=False, compare=False)
+    supported_modes: int | None    # 0x6502, None when the file has no such object
+    rpdos: tuple[PdoChannel, ...]
+    tpdos: tuple[PdoChannel, ...]
+    device_type: int | None = None           # 0x1000
+    commissioned_node_id: int | None = None  # a DCF's [DeviceComissioning] NodeID
+
+    # ------------------------------------------------------------------ objects
+    def variable(self, index: int, subindex: int = 0) -> objectdictionary.ODVariable | None:
+        obj = self.object_dictionary.get(index)
+        if obj is None:
+            return None
+        if isinstance(obj, objectdictionary.ODVariable):
+            return obj if subindex == 0 else None
+        var = obj.get(subindex) if subindex in obj else None
+        return var if isinstance(var, objectdictionary.ODVariable) else None
+
+    def has(self, index: int, subindex: int = 0) -> bool:
+        return self.variable(index, subindex) is not None
+
+    def writable(self, index: int, subindex: int = 0) -> bool:
+        var = self.variable(index, subindex)
+        return var is not None and var.writable
+
+    def value(self, index: int, subindex: int = 0) -> Any:
+        """The commissioned value (a DCF's ParameterValue) over the default; None if neither."""
+        var = self.variable(index, subindex)
+        if var is None:
+            return None
+        return var.value if var.value is not None else var.default
+
+    # ------------------------------------------------------------------ modes
+    def supports(self, mode: int) -> bool:
+        """The mode is listed in 0x6502; a file without 0x6502 is taken at its word (True)."""
+        return self.supported_modes is None or bool(self.supported_modes & mode_bit(mode))
+
+    @property
+    def mode_names(self) -> list[str]:
+        if self.supported_modes is None:
+            return []
+        return [name for mode, name in MODE_NAMES.items()
+                if self.supported_modes & mode_bit(mode)]
+
+    # ------------------------------------------------------------------ supervision
+    @property
+    def abort_connection(self) -> bool:
+        """0x6007 can be set so that losing the manager disables the drive."""
+        return self.writable(cia402.ABORT_CONNECTION_OPTION)
+
+    @property
+    def heartbeat_consumer(self) -> bool:
+        """0x1016:1 is writable: the drive can watch the manager's heartbeat."""
+        return self.writable(cia301.CONSUMER_HEARTBEAT_TIME, 1)
+
+    @property
+    def error_behaviour(self) -> bool:
+        """0x1029:1 is writable: a communication error changes the drive's NMT state."""
+        return self.writable(cia301.ERROR_BEHAVIOR, 1)
+
+    @property
+    def node_guarding(self) -> bool:
+        return all(self.writable(index) for index in NODE_GUARDING)
+
+    def manager_loss(self) -> list[str]:
+        """What the drive does when the manager dies or hangs, strongest first ([] = nothing
+        the file lets a master configure)."""
+        ways = []
+        if self.heartbeat_consumer and self.abort_connection:
+            ways.append("heartbeat consumer 0x1016 -> 0x6007 = 2: disable voltage")
+        elif self.heartbeat_consumer:
+            ways.append("heartbeat consumer 0x1016 -> EMCY 0x8130 only (no 0x6007: the "
+                        "drive's CiA 402 reaction is its vendor's)")
+        if self.heartbeat_consumer and self.error_behaviour:
+            ways.append("0x1029:1 communication error -> leaves OPERATIONAL (no more RPDOs "
+                        "applied)")
+        if self.node_guarding:
+            ways.append("node guarding 0x100C/0x100D (not driven by rocoma-can: the drive's "
+                        "life guarding is not armed)")
+        return ways
+
+    def supervised(self) -> bool:
+        """Losing the manager makes the drive stop applying or obeying commands."""
+        return self.heartbeat_consumer and (self.abort_connection or self.error_behaviour)
+
+    # ------------------------------------------------------------------ report
+    def report(self) -> list[str]:
+        """Lines for check-config: what the file offers and what is missing."""
+        modes = ", ".join(self.mode_names) if self.supported_modes is not None \
+            else "no 0x6502 (not stated)"
+        lines = [f"modes: {modes}"]
+        for what, channels in (("RPDOs", self.rpdos), ("TPDOs", self.tpdos)):
+            parts = []
+            for ch in channels:
+                kind = "remappable" if ch.mapping_writable else "fixed"
+                parts.append(f"{ch.name} {kind} (<= {ch.max_objects} objects)")
+            lines.append(f"{what}: {', '.join(parts) or 'none'}")
+        missing = [f"0x{index:04X} ({name})" for index, name in OPTIONAL_OBJECTS
+                   if not self.has(index, 1 if index in _SUB1 else 0)]
+        if missing:
+            lines.append("missing: " + ", ".join(missing))
+        loss = self.manager_loss()
+        lines.append("manager loss: " + ("; ".join(loss) if loss else
+                                         "NOTHING (no heartbeat consumer, no node guarding)"))
+        return lines
+
+
+#: Objects rocoma-can uses when a drive has them, with what it does without them.
+OPTIONAL_OBJECTS = (
+    (cia402.ABORT_CONNECTION_OPTION, "abort connection option"),
+    (cia402.POSITION_ENCODER_RESOLUTION, "encoder resolution: scaling from config only"),
+    (cia402.GEAR_RATIO, "gear ratio: scaling from config only"),
+    (cia402.RATED_TORQUE, "rated torque: scaling from config only"),
+    (cia402.TORQUE_ACTUAL, "torque actual: no torque feedback"),
+    (cia402.VELOCITY_ACTUAL, "velocity actual: no velocity feedback"),
+    (cia402.SUPPORTED_DRIVE_MODES, "supported modes"),
+)
+_SUB1 = {cia402.POSITION_ENCODER_RESOLUTION, cia402.GEAR_RATIO}
+
+
+def _channels(od: canopen.ObjectDictionary, tx: bool, node_id: int) -> tuple[PdoChannel, ...]:
+    comm_base = cia301.TPDO_COMM if tx else cia301.RPDO_COMM
+    map_base = cia301.TPDO_MAP if tx else cia301.RPDO_MAP
+    cob_base = cia301.TPDO_BASE if tx else cia301.RPDO_BASE
+    found = []
+    for k in range(4):
+        comm, mapping = od.get(comm_base + k), od.get(map_base + k)
+        if not isinstance(comm, objectdictionary.ODRecord | objectdictionary.ODArray) \
+                or not isinstance(mapping, objectdictionary.ODRecord | objectdictionary.ODArray):
+            continue
+        entries = [mapping[s] for s in sorted(mapping.subindices) if s > 0]
+        count_var = mapping.get(0) if 0 in mapping else None
+        count = _value(count_var)
+        given = tuple(_value(e) or 0 for e in entries[:count or 0])
+        cob_var = comm.get(1) if 1 in comm else None
+        cob = _value(cob_var)
+        trans = comm.get(2) if 2 in comm else None
+        found.append(PdoChannel(
+            tx=tx, number=k + 1,
+            cob_id=cob if cob is not None else cob_base[k] + node_id,
+            cob_id_writable=cob_var is not None and cob_var.writable,
+            transmission_type=_value(trans),
+            transmission_type_writable=trans is not None and trans.writable,
+            mapping_writable=(count_var is not None and count_var.writable
+                              and all(e.writable for e in entries)),
+            max_objects=len(entries),
+            mapping=tuple(e for e in given if e)))
+    return tuple(found)
+
+
+def _value(var: objectdictionary.ODVariable | None) -> Any:
+    if var is None:
+        return None
+    return var.value if var.value is not None else var.default
+
+
+def read_capabilities(path: str | None, node_id: int) -> DriveCapabilities:
+    """Parse an EDS/DCF (None: the shipped generic drive) for one node id. Raises
+    CapabilityError naming the file when it is not a readable EDS/DCF (never a parser's
+    traceback)."""
+    source = path or str(shipped_eds.path(shipped_eds.CIA402_DRIVE))
+    try:
+        od = canopen.import_od(source, node_id)
+    except Exception as exc:  # configparser, UnicodeDecodeError, ...: not an EDS
+        raise CapabilityError(f"{source} is not a readable EDS/DCF file "
+                              f"({type(exc).__name__}: {str(exc)[:200]})") from None
+    modes = od.get(cia402.SUPPORTED_DRIVE_MODES)
+    supported = _value(modes) if isinstance(modes, objectdictionary.ODVariable) else None
+    device = od.get(cia301.DEVICE_TYPE)
+    return DriveCapabilities(
+        source=source, node_id=node_id, object_dictionary=od,
+        supported_modes=supported if isinstance(supported, int) else None,
+        rpdos=_channels(od, False, node_id), tpdos=_channels(od, True, node_id),
+        device_type=_value(device) if isinstance(device, objectdictionary.ODVariable) else None,
+        commissioned_node_id=_commissioned_node_id(source))
+
+
+def _commissioned_node_id(source: str) -> int | None:
+    """The node id a DCF was commissioned for ([DeviceComissioning] NodeID), or None."""
+    parser = configparser.ConfigParser(interpolation=None, strict=False)
+    try:
+        parser.read(source, encoding="utf-8")
+        value = parser.get("DeviceComissioning", "NodeID", fallback=None)
+        return int(value, 0) if value else None
+    except (configparser.Error, ValueError, UnicodeDecodeError):
+        return None
+

@@ -1,0 +1,105 @@
+"""What rocoma-can will do with one drive: its config measured against its EDS/DCF.
+
+``plan_drive`` is called by check-config and by the hardware layer at start-up, so both say
+the same thing: the modes the drive's 0x6502 lists, the feedback its objects allow, the PDOs
+it lets us map (or its fixed ones), and what happens when the manager is lost. Missing
+optional objects degrade explicitly (``notes``, printed by check-config and logged once at
+start-up); anything that would make the drive unsafe or undrivable is a ValueError naming
+the drive, the file and the object.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from . import cia301, cia402
+from .capabilities import CapabilityError, DriveCapabilities, read_capabilities
+from .config import FEEDBACK, DriveConfig
+from .pdo_layout import ENTRY_OF_FEEDBACK, DriveLayout, check_against_od, layout_for
+
+
+@dataclass(frozen=True)
+class DrivePlan:
+    drive: DriveConfig          # the config with its feedback resolved against the file
+    caps: DriveCapabilities
+    layout: DriveLayout
+    notes: tuple[str, ...]      # what is degraded, one sentence each
+
+    def report(self) -> list[str]:
+        """check-config's lines for this drive."""
+        d, lay = self.drive, self.layout
+        pdos = "; ".join(f"{'fixed ' if p.fixed else ''}RPDO{p.number} "
+                         f"[{', '.join(p.names)}]" for p in lay.rpdos)
+        pdos += "; " + "; ".join(f"{'fixed ' if p.fixed else ''}TPDO{p.number} "
+                                 f"[{', '.join(p.names)}]" for p in lay.tpdos)
+        lines = [f"{d.name} (node {d.node_id}, {self.caps.source}):",
+                 f"  modes {', '.join(m.name for m in d.modes)}; feedback "
+                 f"{', '.join(d.feedback or ()) or 'statusword only'}",
+                 f"  {pdos}"]
+        lines += [f"  {line}" for line in self.caps.report()]
+        lines += [f"  note: {n}" for n in self.notes]
+        return lines
+
+
+def plan_drive(drive: DriveConfig) -> DrivePlan:
+    """Measure one drive's config against its file; ValueError with every problem found."""
+    where = f"drive {drive.name!r}"
+    try:
+        caps = read_capabilities(drive.eds, drive.node_id)
+    except CapabilityError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    problems: list[str] = []
+    notes: list[str] = []
+    commissioned = caps.commissioned_node_id
+    if commissioned is not None and commissioned != drive.node_id:
+        problems.append(f"node_id {drive.node_id}, but {caps.source} is the DCF of node "
+                        f"{commissioned}")
+    if caps.device_type is not None and caps.device_type & 0xFFFF != 402:
+        problems.append(f"{caps.source} is not a CiA 402 drive's (0x1000 = "
+                        f"0x{caps.device_type:08X})")
+    if not caps.writable(cia301.PRODUCER_HEARTBEAT_TIME):
+        problems.append(f"{caps.source} has no writable heartbeat producer (0x1017): "
+                        "rocoma-can supervises every drive by its heartbeat")
+    for mode in drive.modes:
+        if not caps.supports(int(mode)):
+            problems.append(f"mode {mode.name} is not supported: its 0x6502 = "
+                            f"0x{caps.supported_modes:X} lists {', '.join(caps.mode_names)}")
+    available = tuple(f for f in FEEDBACK if caps.has(ENTRY_OF_FEEDBACK[f].index))
+    if drive.feedback is None:
+        feedback = available
+        for f in FEEDBACK:
+            if f not in available:
+                notes.append(f"no 0x{ENTRY_OF_FEEDBACK[f].index:04X}: {f} feedback off "
+                             f"(JointState.{f} stays 0)")
+    else:
+        feedback = drive.feedback
+        for f in feedback:
+            if f not in available:
+                problems.append(f"feedback {f!r}: the drive has no "
+                                f"0x{ENTRY_OF_FEEDBACK[f].index:04X}")
+    for index, sub, what in ((cia402.POSITION_ENCODER_RESOLUTION, 1, "increments_per_rev"),
+                             (cia402.GEAR_RATIO, 1, "gear_ratio"),
+                             (cia402.RATED_TORQUE, 0, "rated_torque_nm")):
+        if not caps.has(index, sub):
+            notes.append(f"no 0x{index:04X}: {what} comes from the config alone (the drive "
+                         "cannot confirm it)")
+    if not caps.supervised():
+        if drive.accept_unsupervised:
+            notes.append("RISK accepted (accept_unsupervised): if the manager dies or hangs, "
+                         "this drive keeps its last command until its own limits stop it")
+        else:
+            problems.append("losing the manager would leave this drive running: its file has "
+                            "no writable heartbeat consumer (0x1016) with 0x6007 or 0x1029 "
+                            "behind it; set accept_unsupervised: true to run it anyway, with "
+                            "that risk")
+    elif not caps.abort_connection:
+        notes.append("no 0x6007: on manager loss the drive's heartbeat consumer makes it "
+                     "leave OPERATIONAL (0x1029) and stop applying RPDOs; whether it also "
+                     "switches its power stage off is its vendor's choice")
+    if problems:
+        raise ValueError(f"{where}: " + "; ".join(problems))
+    resolved = dataclasses.replace(drive, feedback=feedback)
+    layout = layout_for(resolved, caps)
+    check_against_od(layout, caps.object_dictionary, drive.name)
+    return DrivePlan(resolved, caps, layout, tuple(notes))
+

@@ -1,0 +1,219 @@
+"""Drives described by vendor-like EDS/DCF files (tests/fixtures/eds/, modelled on typical
+vendor files): what check-config reports, that the simulator emulates exactly the file
+(its objects, access types and modes), bring-up, a cyclic command, and e-stop -> torque-off
+frames on the drive's own PDO layout.
+
+    fixed_pdo.eds        read-only mappings: RPDO1 = controlword + target position,
+                         TPDO1 = statusword + position, TPDO2 = velocity + torque; CSP, PP
+    no_abort_option.eds  no 0x6007; 0x1029 and node guarding instead
+    commissioned.dcf     the DCF of node 5: ParameterValue over DefaultValue, $NODEID COB-IDs
+    minimal.eds          no 0x6077, no 0x608F, no 0x6091; empty defaults
+    arm_ip_pp_vl.eds     a robot-arm joint: PP, VL and IP only, no 0x6007 (modes elsewhere)
+"""
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import canopen
+import pytest
+from canopen.sdo.exceptions import SdoAbortedError
+from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Rig, Sine
+
+from rocoma_can import ManagerState, SwitchResult
+from rocoma_can.drivers import cia301, cia402
+from rocoma_can.drivers.capabilities import read_capabilities
+from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.config import DriveConfig
+from rocoma_can.drivers.drive_plan import plan_drive
+from rocoma_can.drivers.joints import JointMode
+
+EDS = Path(__file__).parent / "fixtures" / "eds"
+ABORT_NOT_IN_OD = 0x06020000
+ABORT_WRITE_READONLY = 0x06010002
+ABORT_INVALID_VALUE = 0x06090030
+
+
+def drive(file: str, node_id: int = 1, **kw) -> DriveConfig:
+    kw.setdefault("modes", ("csp",))
+    return DriveConfig("j1", node_id, INCREMENTS_PER_REV, RATED_TORQUE_NM,
+                       eds=str(EDS / file), **kw)
+
+
+# --- what check-config says ------------------------------------------------------------------
+def test_a_fixed_mapping_is_used_as_it_is():
+    plan = plan_drive(drive("fixed_pdo.eds"))
+    (rpdo,), tpdos = plan.layout.rpdos, plan.layout.tpdos
+    assert rpdo.fixed and rpdo.names == ("controlword", "target_position")
+    assert [p.names for p in tpdos] == [("statusword", "position"), ("velocity", "torque")]
+    assert all(p.fixed for p in tpdos)
+    report = "\n".join(plan.report())
+    assert "fixed RPDO1 [controlword, target_position]" in report
+    assert "RPDO1 fixed (<= 2 objects)" in report
+
+
+def test_a_fixed_mapping_says_what_it_cannot_carry(tmp_path):
+    with pytest.raises(ValueError, match="CSV is not supported: its 0x6502 = 0x81 lists PP, CSP"):
+        plan_drive(drive("fixed_pdo.eds", modes=("csv",)))
+    csv_too = tmp_path / "fixed_csv.eds"  # lists CSV, but no fixed RPDO carries 0x60FF
+    csv_too.write_text((EDS / "fixed_pdo.eds").read_text().replace(
+        "DefaultValue=0x00000081", "DefaultValue=0x00000181"))
+    config = DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(csv_too),
+                         modes=("csv",))
+    with pytest.raises(ValueError, match=r"RPDO mappings are fixed and none carries "
+                                         r"target_velocity \(0x60FF\); fixed: RPDO1 = "
+                                         r"0x6040:0, 0x607A:0"):
+        plan_drive(config)
+    with pytest.raises(ValueError, match="no 0x6060 .* configure one mode"):
+        plan_drive(DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(csv_too),
+                               modes=("csp", "csv")))
+
+
+def test_no_abort_option_is_said_and_the_other_ways_are_named():
+    plan = plan_drive(drive("no_abort_option.eds"))
+    report = "\n".join(plan.report())
+    assert "missing: 0x6007" in report
+    assert "heartbeat consumer 0x1016 -> EMCY 0x8130 only" in report
+    assert "0x1029:1 communication error" in report and "node guarding 0x100C/0x100D" in report
+    assert any("no 0x6007" in n for n in plan.notes)
+
+
+def test_a_drive_that_ignores_losing_the_manager_needs_an_explicit_yes(tmp_path):
+    text = (EDS / "no_abort_option.eds").read_text()
+    unsupervised = tmp_path / "unsupervised.eds"  # and no heartbeat consumer either
+    unsupervised.write_text(text.replace("[1016sub1]\nParameterName=Consumer heartbeat time 1"
+                                         "\nObjectType=0x7\nDataType=0x0007\nAccessType=rw",
+                                         "[1016sub1]\nParameterName=Consumer heartbeat time 1"
+                                         "\nObjectType=0x7\nDataType=0x0007\nAccessType=ro"))
+    assert not read_capabilities(str(unsupervised), 1).heartbeat_consumer
+    config = DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(unsupervised))
+    with pytest.raises(ValueError, match="losing the manager would leave this drive running.*"
+                                         "accept_unsupervised: true"):
+        plan_drive(config)
+    accepted = plan_drive(DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM,
+                                      eds=str(unsupervised), accept_unsupervised=True))
+    assert any(n.startswith("RISK accepted") for n in accepted.notes)
+
+
+def test_a_dcf_gives_its_commissioned_values_and_its_node():
+    caps = read_capabilities(str(EDS / "commissioned.dcf"), 5)
+    assert caps.commissioned_node_id == 5
+    assert caps.value(cia301.PRODUCER_HEARTBEAT_TIME) == 50  # ParameterValue, not 100
+    assert caps.value(cia402.POSITION_ENCODER_RESOLUTION, 1) == 0x40000
+    assert caps.rpdos[0].cob_id == 0x205 and caps.tpdos[0].cob_id == 0x185  # $NODEID
+    assert caps.mode_names == ["CSP", "CSV", "CST"]
+    with pytest.raises(ValueError, match="node_id 3, but .*commissioned.dcf is the DCF of "
+                                         "node 5"):
+        plan_drive(drive("commissioned.dcf", node_id=3))
+
+
+def test_missing_feedback_objects_turn_that_feedback_off_and_say_so():
+    plan = plan_drive(drive("minimal.eds"))
+    assert plan.drive.feedback == ("position", "velocity")
+    assert not plan.layout.maps("torque")
+    assert any("no 0x6077: torque feedback off" in n for n in plan.notes)
+    assert any("no 0x608F: increments_per_rev comes from the config alone" in n
+               for n in plan.notes)
+    with pytest.raises(ValueError, match="feedback 'torque': the drive has no 0x6077"):
+        plan_drive(drive("minimal.eds", feedback=("position", "torque")))
+
+
+def test_a_mode_the_drive_does_not_list_is_refused_naming_both():
+    with pytest.raises(ValueError, match=r"mode CSP is not supported: its 0x6502 = 0x43 "
+                                         r"lists PP, VL, IP"):
+        plan_drive(drive("arm_ip_pp_vl.eds"))
+
+
+# --- the simulator emulates the file ---------------------------------------------------------
+def _abort_code(call) -> int:
+    with pytest.raises(SdoAbortedError) as info:
+        call()
+    return info.value.code
+
+
+def test_the_simulator_has_exactly_the_files_objects_and_access(sim_bench):
+    bench = sim_bench(1, eds_path=str(EDS / "fixed_pdo.eds"))
+    sdo = bench.node(1).sdo
+    assert _abort_code(lambda: sdo.upload(cia402.TARGET_VELOCITY, 0)) == ABORT_NOT_IN_OD
+    assert _abort_code(lambda: sdo.upload(cia301.RPDO_COMM + 1, 1)) == ABORT_NOT_IN_OD
+    # a fixed mapping stays fixed
+    assert _abort_code(lambda: sdo.download(cia301.RPDO_MAP, 0, b"\0")) == ABORT_WRITE_READONLY
+    # only the modes of its 0x6502 (CSP, PP)
+    assert _abort_code(lambda: sdo.download(cia402.MODES_OF_OPERATION, 0,
+                                            struct.pack("<b", 9))) == ABORT_INVALID_VALUE
+    sdo.download(cia402.MODES_OF_OPERATION, 0, struct.pack("<b", 8))
+    assert bench.drive(1).mode_display == 8
+
+
+def test_a_simulated_drive_without_0x6007_does_not_switch_itself_off(sim_bench):
+    """The honest emulation: losing the manager's heartbeat gives EMCY 0x8130 and 0x1029's
+    NMT change, but no CiA 402 reaction (a drive that cannot be told one)."""
+    bench = sim_bench(1, eds_path=str(EDS / "no_abort_option.eds"))
+    assert _abort_code(lambda: bench.node(1).sdo.upload(cia402.ABORT_CONNECTION_OPTION, 0)) \
+        == ABORT_NOT_IN_OD
+    drive_ = bench.drive(1)
+    with bench.segment.lock:
+        drive_.cia402.set_state(State402.OPERATION_ENABLED)
+        drive_._heartbeat_lost()
+    assert drive_.state402 == State402.OPERATION_ENABLED  # the joint keeps its command
+    (emcy,) = bench.recorder.wait_for_count(1, 2.0, cia301.EMCY + 1)
+    assert struct.unpack_from("<H", emcy.data)[0] == cia301.EMCY_HEARTBEAT
+
+
+def test_a_simulator_loads_files_with_empty_defaults_and_no_factor_group(sim_bench):
+    bench = sim_bench(1, eds_path=str(EDS / "minimal.eds"), increments_per_rev=4096)
+    assert bench.drive(1).increments_per_rad == pytest.approx(4096 / (2 * 3.141592653589793))
+    assert bench.node(1).sdo.upload(0x1018, 2) == b"\0\0\0\0"  # empty default: 0
+
+
+# --- bring-up, a cyclic command, e-stop -> torque-off, per file -------------------------------
+DRIVABLE = {
+    "fixed_pdo.eds": dict(node=1),
+    "no_abort_option.eds": dict(node=1),
+    "commissioned.dcf": dict(node=5, increments_per_rev=0x40000),
+    "minimal.eds": dict(node=1),
+}
+
+
+@pytest.mark.parametrize("file", sorted(DRIVABLE))
+def test_bring_up_track_and_torque_off_on_each_file(file, sim_segment_factory, bus_factory,
+                                                    frame_recorder, virtual_channel):
+    info = DRIVABLE[file]
+    node, increments = info["node"], info.get("increments_per_rev", INCREMENTS_PER_REV)
+    segment = sim_segment_factory([node], eds_path=str(EDS / file),
+                                  increments_per_rev=increments)
+    recorder = frame_recorder(virtual_channel)
+    rig = Rig.for_setup(bus_factory(), [node], VIRTUAL, modes=("csp",),
+                        drive={"eds": str(EDS / file), "increments_per_rev": increments})
+    try:
+        budget = VIRTUAL.bring_up_budget(1)
+        assert rig.run_until(lambda: not rig.hw.starting, budget), rig.hw.drive_status()
+        assert rig.hw.all_ready, rig.hw.drive_status()
+        sim = segment.drives[node]
+        assert sim.nmt_state == cia301.NmtState.OPERATIONAL
+        assert sim.od_value(cia301.CONSUMER_HEARTBEAT_TIME, 1) >> 16 == 100  # watches us
+        rig.mgr.add_controller(Sine("sine", JointMode.CSP, amplitude=0.2))
+        assert rig.switch("sine") == SwitchResult.SWITCHED
+        assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget()), \
+            rig.hw.drive_status()
+        rig.run(0.5)
+        assert rig.mgr.state == ManagerState.OK and sim.state402 == State402.OPERATION_ENABLED
+        assert abs(sim.position_rad) > 0.01  # it moved as commanded
+        rpdo = rig.hw.layouts[0].rpdos[0]
+        mark = recorder.mark()
+        rig.mgr.emergency_stop("test")  # no emergency controller: FAILPROOF
+        rig.run(10 * rig.dt)
+        assert rig.states[-1] == ManagerState.FAILPROOF
+        frames = recorder.wait_for_count(5, VIRTUAL.stall, rpdo.cob_id, since=mark)
+        controlwords = [struct.unpack_from("<H", f.data)[0] for f in frames]
+        assert controlwords[-1] == 0 and len(frames[-1].data) == rpdo.size
+        assert rig.run_until(lambda: sim.state402 == State402.SWITCH_ON_DISABLED,
+                             VIRTUAL.detect_budget())
+    finally:
+        rig.close()
+
+
+def test_canopen_reads_every_file_as_the_driver_does():
+    for path in sorted(EDS.iterdir()):
+        od = canopen.import_od(str(path), 5)
+        assert cia402.STATUSWORD in od and cia402.CONTROLWORD in od, path.name
