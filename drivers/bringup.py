@@ -38,6 +38,7 @@ from . import cia301, cia402
 from .capabilities import DriveCapabilities, PdoChannel
 from .config import DriveConfig, Timeouts
 from .drive_plan import DrivePlan
+from .modes import DriveMode, interpolation_period
 from .pdo_layout import Pdo
 
 #: Transmission type: synchronous, every SYNC (RPDO: act on the next SYNC).
@@ -156,7 +157,8 @@ class NoAnswer(canopen.SdoCommunicationError):
 
 
 def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
-              consumer_ms: int, attempts: int = CONFIG_ATTEMPTS) -> ConfigResult:
+              consumer_ms: int, dt: float | None = None,
+              attempts: int = CONFIG_ATTEMPTS) -> ConfigResult:
     """Everything a drive needs before NMT start, by SDO; runs on the configuration worker.
 
     A garbled exchange is transient on a loaded bus: canopen retransmits a request on
@@ -169,7 +171,7 @@ def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
     """
     for attempt in range(1, attempts + 1):
         try:
-            return _configure_once(node, plan, manager_node_id, consumer_ms)
+            return _configure_once(node, plan, manager_node_id, consumer_ms, dt)
         except canopen.SdoCommunicationError as exc:
             failure = exc
             if attempt < attempts:
@@ -180,7 +182,7 @@ def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
 
 
 def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
-                    consumer_ms: int) -> ConfigResult:
+                    consumer_ms: int, dt: float | None) -> ConfigResult:
     sdo, drive, layout, caps = node.sdo, plan.drive, plan.layout, plan.caps
     node.nmt.send_command(cia301.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
     try:
@@ -202,6 +204,12 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
     _configure_pdos(sdo, layout.tpdos, caps.tpdos)
     sdo.download(cia301.PRODUCER_HEARTBEAT_TIME, 0, _u16(drive.heartbeat_ms))
     _arm_against_manager_loss(sdo, caps, manager_node_id, consumer_ms)
+    if DriveMode.IP in drive.modes and dt is not None \
+            and caps.writable(cia402.INTERPOLATION_PERIOD, 1):  # IP steps once per cycle
+        value, index = interpolation_period(dt)
+        sdo.download(cia402.INTERPOLATION_PERIOD, 1, _u8(value))
+        if caps.writable(cia402.INTERPOLATION_PERIOD, 2):
+            sdo.download(cia402.INTERPOLATION_PERIOD, 2, struct.pack("<b", index))
     sdo.download(cia402.MODES_OF_OPERATION, 0, struct.pack("<b", int(drive.modes[0])))
     statusword = struct.unpack("<H", sdo.upload(cia402.STATUSWORD, 0)[:2])[0]
     try:
@@ -216,7 +224,8 @@ class DriveBringup:
     """Start-up state of one drive; ``step`` is called from the cycle and never blocks."""
 
     def __init__(self, plan: DrivePlan, node: canopen.RemoteNode, manager_node_id: int,
-                 consumer_ms: int, timeouts: Timeouts) -> None:
+                 consumer_ms: int, timeouts: Timeouts, dt: float | None = None) -> None:
+        self.dt = dt  # the loop period: an IP drive's interpolation period
         self.plan = plan
         self.drive = plan.drive
         self.layout = plan.layout
@@ -282,7 +291,7 @@ class DriveBringup:
         if phase == Phase.WAIT_BOOT:
             if self.alive or now - self.since >= self.timeouts.boot_wait:
                 self._job = executor.submit(self._locked, configure, self.node, self.plan,
-                                            self.manager_node_id, self.consumer_ms)
+                                            self.manager_node_id, self.consumer_ms, self.dt)
                 self._enter(Phase.CONFIGURING, now)
         elif phase == Phase.CONFIGURING:
             job = self._job

@@ -33,6 +33,11 @@ POSITION_ENCODER_RESOLUTION = 0x608F  # :1 increments per :2 motor revolutions
 GEAR_RATIO = 0x6091  # :1 motor revolutions per :2 shaft revolutions
 VELOCITY_OFFSET = 0x60B1
 TORQUE_OFFSET = 0x60B2
+PROFILE_VELOCITY = 0x6081
+PROFILE_ACCELERATION = 0x6083
+PROFILE_DECELERATION = 0x6084
+INTERPOLATION_DATA = 0x60C1  # :1 the position target in IP
+INTERPOLATION_PERIOD = 0x60C2  # :1 value, :2 index (period = value x 10^index s)
 SUPPORTED_DRIVE_MODES = 0x6502
 
 DEVICE_TYPE_SERVO = 0x00020192  # CiA 402, servo drive

@@ -14,6 +14,7 @@ from typing import Any
 
 from . import cia301
 from .joints import JointMode
+from .modes import BY_NAME, KIND, DriveMode
 
 
 def _whole(value: Any) -> bool:
@@ -110,26 +111,20 @@ class Supervision:
                              f"got {self.sdo_retries!r}")
 
 
-#: Modes a drive can be configured for (JointMode.TORQUE_OFF / QUICK_STOP are always allowed).
-CYCLIC_MODES = (JointMode.CSP, JointMode.CSV, JointMode.CST)
 #: Feedback objects a drive can report in its TPDOs (statusword is always mapped).
 FEEDBACK = ("position", "velocity", "torque")
 _REQUIRED = ("name", "node_id", "increments_per_rev", "rated_torque_nm")
+_MODE_NAMES = ", ".join(BY_NAME)
 
 
-def _mode(value: Any, where: str) -> JointMode:
-    if isinstance(value, str):
-        try:
-            value = JointMode[value.strip().upper()]
-        except KeyError:
-            raise ValueError(f"{where}: unknown mode {value!r}; use csp, csv or cst") from None
-    try:
-        mode = JointMode(int(value))
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: unknown mode {value!r}; use csp, csv or cst") from None
-    if mode not in CYCLIC_MODES:
-        raise ValueError(f"{where}: {mode.name} is not a cyclic mode; use csp, csv or cst")
-    return mode
+def _mode(value: Any, where: str) -> DriveMode:
+    """A mode by config name (csp, ip, pv, ...) or by its 0x6060 number."""
+    if isinstance(value, str) and value.strip().lower() in BY_NAME:
+        return BY_NAME[value.strip().lower()]
+    if _whole(value) and value in {int(m) for m in DriveMode}:
+        return DriveMode(value)
+    raise ValueError(f"{where}: unknown mode {value!r}; use {_MODE_NAMES} (position: csp, ip "
+                     "or pp; velocity: csv or pv; torque: cst)")
 
 
 @dataclass
@@ -145,7 +140,7 @@ class DriveConfig:
     increments_per_rev: int
     rated_torque_nm: float
     gear_ratio: float = 1.0
-    modes: tuple[JointMode, ...] = (JointMode.CSP,)
+    modes: tuple[DriveMode, ...] = (DriveMode.CSP,)
     feedback: tuple[str, ...] | None = None  # None: every one the drive's file has
     eds: str | None = None                  # path; None = the shipped generic CiA 402 EDS
     max_torque_nm: float = math.inf         # joint side; commands are clipped to it
@@ -172,8 +167,14 @@ class DriveConfig:
         given: Any = self.modes  # YAML: a name, a number or a list of them
         modes = (given,) if isinstance(given, (str, int)) else tuple(given)
         if not modes:
-            raise ValueError(f"{where}: modes must name at least one of csp, csv, cst")
+            raise ValueError(f"{where}: modes must name at least one of {_MODE_NAMES}")
         self.modes = tuple(dict.fromkeys(_mode(m, f"{where}: modes") for m in modes))
+        kinds: dict[JointMode, DriveMode] = {}
+        for m in self.modes:  # a controller's target of one kind goes in one mode
+            other = kinds.setdefault(KIND[m], m)
+            if other != m:
+                raise ValueError(f"{where}: modes {other.name.lower()} and {m.name.lower()} "
+                                 f"both carry {KIND[m].name} targets: configure one of them")
         named: Any = self.feedback
         if named is not None:
             feedback = (named,) if isinstance(named, str) else tuple(named)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from . import cia301, cia402
 from .capabilities import CapabilityError, DriveCapabilities, read_capabilities
 from .config import FEEDBACK, DriveConfig
+from .modes import DriveMode
 from .pdo_layout import ENTRY_OF_FEEDBACK, DriveLayout, check_against_od, layout_for
 
 
@@ -64,6 +65,9 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
         if not caps.supports(int(mode)):
             problems.append(f"mode {mode.name} is not supported: its 0x6502 = "
                             f"0x{caps.supported_modes:X} lists {', '.join(caps.mode_names)}")
+    if DriveMode.IP in drive.modes and not caps.writable(cia402.INTERPOLATION_PERIOD, 1):
+        notes.append("IP without a writable 0x60C2: the drive interpolates over its own "
+                     "period, which must equal the loop's")
     available = tuple(f for f in FEEDBACK if caps.has(ENTRY_OF_FEEDBACK[f].index))
     if drive.feedback is None:
         feedback = available

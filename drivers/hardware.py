@@ -82,6 +82,7 @@ from .drive_plan import plan_drive
 from .enable import OP_ENABLED, EnableSequence
 from .frame_io import clock_offset, to_monotonic
 from .joints import JointCommand, JointMode, JointState
+from .modes import CW_ENABLE_INTERPOLATION, KIND, DriveMode, SetPointHandshake, carrier
 from .pdo_layout import IGNORED, DriveLayout
 from .scaling import Scaling
 from .supervision import FaultEvent, Supervisor
@@ -90,6 +91,7 @@ from .switch_off import SdoSwitchOff
 _CW_FAULT_RESET = int(cia402.Controlword.FAULT_RESET)
 _CW_QUICK_STOP = int(cia402.Controlword.QUICK_STOP)
 _CYCLIC = (int(JointMode.CSP), int(JointMode.CSV), int(JointMode.CST))
+_PP, _IP = int(DriveMode.PP), int(DriveMode.IP)
 
 
 @dataclass(frozen=True)
@@ -200,7 +202,10 @@ class CanopenHardware:
                       "target_position", "target_velocity", "target_torque", IGNORED)}
         self._allowed_modes = np.array(
             [(1 << JointMode.TORQUE_OFF) | (1 << JointMode.QUICK_STOP)
-             | sum(1 << int(m) for m in d.modes) for d in drives], dtype=np.int64)
+             | sum(1 << int(KIND[m]) for m in d.modes) for d in drives], dtype=np.int64)
+        # the 0x6060 value that carries each commanded JointMode, per drive (modes.py)
+        self._carrier = [carrier(d.modes) for d in drives]
+        self._setpoints = SetPointHandshake(n)  # PP drives' set-point handshake
         self._allowed_list = self._allowed_modes.tolist()
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
@@ -307,7 +312,7 @@ class CanopenHardware:
             # canopen counts tries (0 = forever)
             node.sdo.MAX_RETRIES = self.supervision.sdo_retries + 1
             b = DriveBringup(plan, node, self.manager_node_id, self.consumer_ms,
-                             self.timeouts)
+                             self.timeouts, self.dt)
             b.restart(now)
             self._bringup.append(b)
         self._now = now
@@ -562,6 +567,7 @@ class CanopenHardware:
         tvel = raw["target_velocity"].tolist()
         ttrq = raw["target_torque"].tolist()
         actual = raw["position"].tolist()
+        statuswords = raw["statusword"]
         now, enable = self._now, self.enable
         manager = self._manager
         if manager is not None and manager.switch_count != self._switches_seen:
@@ -589,14 +595,22 @@ class CanopenHardware:
                 mode = int(JointMode.TORQUE_OFF)
             if mode in _CYCLIC:
                 cw = enable.controlword(i, st, now)
-                if st == OP_ENABLED:
-                    values = (cw, mode, tpos[i], tvel[i], ttrq[i])
-                else:  # enabling (or dropped out): hold the actual position, no jump
-                    values = (cw, mode, actual[i], 0, 0)
+                carried = self._carrier[i][mode]
+                if st != OP_ENABLED:  # enabling (or dropped out): hold the actual position
+                    values = (cw, carried, actual[i], 0, 0)
+                    self._setpoints.reset(i)
+                elif carried == _PP:
+                    bits, target = self._setpoints.step(i, tpos[i], int(statuswords[i]))
+                    values = (cw | bits, carried, target, tvel[i], ttrq[i])
+                else:
+                    if carried == _IP:
+                        cw |= CW_ENABLE_INTERPOLATION
+                    values = (cw, carried, tpos[i], tvel[i], ttrq[i])
             else:
                 cw = _CW_QUICK_STOP if mode == JointMode.QUICK_STOP else 0
                 values = (cw, self._default_mode[i], actual[i], 0, 0)
                 enable.reset(i)
+                self._setpoints.reset(i)
             constants = self._rpdo_constants[i]
             if constants:  # a fixed mapping's other objects: sent as the file gives them
                 values += constants

@@ -18,7 +18,7 @@ import canopen
 from . import cia301, cia402
 from .capabilities import PDO_NOT_VALID, DriveCapabilities, PdoChannel
 from .config import FEEDBACK, DriveConfig
-from .joints import JointMode
+from .modes import KIND, DriveMode
 
 PDO_BYTES = 8
 PDO_SLOTS = 4
@@ -52,20 +52,24 @@ MODE = PdoEntry("mode", cia402.MODES_OF_OPERATION, 0, "b")
 TARGET_POSITION = PdoEntry("target_position", cia402.TARGET_POSITION, 0, "i")
 TARGET_VELOCITY = PdoEntry("target_velocity", cia402.TARGET_VELOCITY, 0, "i")
 TARGET_TORQUE = PdoEntry("target_torque", cia402.TARGET_TORQUE, 0, "h")
+#: IP: the position target goes to the interpolation data record (the codec's name is the
+#: same: controllers write position targets alike for CSP, IP and PP)
+IP_TARGET = PdoEntry("target_position", cia402.INTERPOLATION_DATA, 1, "i")
 STATUSWORD = PdoEntry("statusword", cia402.STATUSWORD, 0, "H")
 POSITION = PdoEntry("position", cia402.POSITION_ACTUAL, 0, "i")
 VELOCITY = PdoEntry("velocity", cia402.VELOCITY_ACTUAL, 0, "i")
 TORQUE = PdoEntry("torque", cia402.TORQUE_ACTUAL, 0, "h")
 
-TARGET_OF_MODE = {JointMode.CSP: TARGET_POSITION, JointMode.CSV: TARGET_VELOCITY,
-                  JointMode.CST: TARGET_TORQUE}
+TARGET_OF_MODE = {DriveMode.CSP: TARGET_POSITION, DriveMode.IP: IP_TARGET,
+                  DriveMode.PP: TARGET_POSITION, DriveMode.CSV: TARGET_VELOCITY,
+                  DriveMode.PV: TARGET_VELOCITY, DriveMode.CST: TARGET_TORQUE}
 ENTRY_OF_FEEDBACK = {"position": POSITION, "velocity": VELOCITY, "torque": TORQUE}
 #: Every name an RPDO codec can be asked to fill, in the order ``Pdo.pack`` takes them
 #: (a drive's constant entries follow: ``DriveLayout.rpdo_fields``).
 RPDO_FIELDS = ("controlword", "mode", "target_position", "target_velocity", "target_torque")
 #: The name of a fixed TPDO's entries that rocoma-can does not read.
 IGNORED = "ignored"
-_KNOWN = {(e.index, e.subindex): e for e in (CONTROLWORD, MODE, TARGET_POSITION,
+_KNOWN = {(e.index, e.subindex): e for e in (CONTROLWORD, MODE, TARGET_POSITION, IP_TARGET,
                                              TARGET_VELOCITY, TARGET_TORQUE, STATUSWORD,
                                              POSITION, VELOCITY, TORQUE)}
 
@@ -146,9 +150,11 @@ class DriveLayout:
         return any(name in p.names for p in (*self.rpdos, *self.tpdos))
 
 
-def rpdo_entries(modes: Iterable[JointMode]) -> list[PdoEntry]:
-    """Controlword and mode first (they must share the first PDO), then one target per mode."""
-    return [CONTROLWORD, MODE] + [TARGET_OF_MODE[m] for m in sorted(set(modes))]
+def rpdo_entries(modes: Iterable[DriveMode]) -> list[PdoEntry]:
+    """Controlword and mode first (they must share the first PDO), then one target per kind
+    (position, velocity, torque: config.py allows one mode per kind)."""
+    return [CONTROLWORD, MODE] + [TARGET_OF_MODE[m] for m in sorted(set(modes),
+                                                                    key=lambda m: KIND[m])]
 
 
 def tpdo_entries(feedback: Iterable[str] | None) -> list[PdoEntry]:

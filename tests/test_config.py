@@ -79,7 +79,7 @@ BAD = [
     ("no drives", _set("drives", []), "drives: expected a non-empty list"),
     ("drive field", _set("drives.1.node_id", 0), "drives[1]: drive 'j2': node_id must be"),
     ("drive key", _set("drives.0.gear", 2), "drives[0]: drive 'j1': unknown keys ['gear']"),
-    ("drive mode", _set("drives.0.modes", ["pp"]), "drives[0]: drive 'j1': modes: unknown mode"),
+    ("drive mode", _set("drives.0.modes", ["vl"]), "drives[0]: drive 'j1': modes: unknown mode"),
     ("same node", _set("drives.1.node_id", 1), "drives[1].node_id: 1 is already used by drives[0]"),
     ("same name", _set("drives.1.name", "j1"), "drives[1].name: 'j1' is already drives[0]"),
     ("manager node", _set("drives.1.node_id", 100), "drives[1].node_id: 100 is the manager's"),

@@ -40,7 +40,7 @@ def drive(name="j0", node_id=1, **kw) -> DriveConfig:
     (dict(node_id=0), "node_id"), (dict(node_id=128), "node_id"),
     (dict(increments_per_rev=0), "increments_per_rev"),
     (dict(rated_torque_nm=-1.0), "rated_torque_nm"), (dict(gear_ratio=0), "gear_ratio"),
-    (dict(modes=["pp"]), "modes"), (dict(modes=[]), "modes"),
+    (dict(modes=["vl"]), "modes"), (dict(modes=[]), "modes"),
     (dict(feedback=["current"]), "feedback"), (dict(max_torque_nm=0), "max_torque_nm"),
     (dict(position_min=1.0, position_max=0.0), "position_min"),
     (dict(heartbeat_ms=0), "heartbeat_ms"), (dict(eds="/no/such.eds"), "eds"),

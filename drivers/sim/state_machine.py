@@ -30,6 +30,10 @@ VOLTAGE_STATES = (State402.READY_TO_SWITCH_ON, State402.SWITCHED_ON,
 # its command has been zero this long (standstill window and time of a real drive).
 STOPPED_VELOCITY = 0.01  # rad/s
 STANDSTILL_TIME = 0.05  # s
+CW_BIT4 = 1 << 4        # IP: enable interpolation; PP: new set-point
+CW_RELATIVE = 1 << 6    # PP: the set-point is relative to the last one
+SW_BIT12 = 1 << 12      # IP: interpolation active; PP: set-point acknowledge
+PP_WINDOW_INCREMENTS = 100  # PP: target reached within this many increments
 
 
 class Scaling:
@@ -68,6 +72,11 @@ class StateMachine402:
         self._ramp_decel = 0.0
         self._ramp_then: State402 | None = None
         self._ramp_zero_time = 0.0
+        # mode-specific statusword bits (12: PP set-point acknowledge / IP active, 10:
+        # target reached) and PP's latched set-point
+        self._mode_bits = 0
+        self._new_setpoint = False  # controlword bit 4 at the last SYNC
+        self._pp_target: float | None = None  # rad
 
     def power_on(self) -> None:
         """NOT READY TO SWITCH ON, then transition 1 (automatic) to SWITCH ON DISABLED."""
@@ -78,7 +87,11 @@ class StateMachine402:
 
     def set_state(self, state: State402) -> None:
         self.state = state
-        sw = c.STATUSWORD_OF_STATE[state] | c.SW_REMOTE
+        if state != State402.OPERATION_ENABLED:
+            self._mode_bits = 0
+            self._pp_target = None
+            self._new_setpoint = False
+        sw = c.STATUSWORD_OF_STATE[state] | c.SW_REMOTE | self._mode_bits
         if state != State402.QUICK_STOP_ACTIVE:
             sw |= c.SW_QUICK_STOP
         if state in VOLTAGE_STATES and not self.sto_low:
@@ -259,7 +272,20 @@ class StateMachine402:
             return
         scale = self._scale.increments_per_rad
         mode = values[MODE_DISPLAY]
-        if mode == c.Mode.CSP:
+        bits = 0
+        if mode == c.Mode.INTERPOLATED_POSITION:
+            if values[CONTROLWORD] & CW_BIT4:  # interpolation enabled: follow 0x60C1:1
+                dyn.mode[j] = LoopMode.POSITION
+                dyn.target_position[j] = values[(c.INTERPOLATION_DATA, 1)] / scale
+                bits = SW_BIT12
+            else:  # interpolation inactive: hold still
+                dyn.mode[j] = LoopMode.VELOCITY
+        elif mode == c.Mode.PROFILE_POSITION:
+            bits = self._profile_position(values, scale)
+        elif mode == c.Mode.PROFILE_VELOCITY:
+            dyn.mode[j] = LoopMode.VELOCITY
+            dyn.target_velocity[j] = values[(c.TARGET_VELOCITY, 0)] / scale
+        elif mode == c.Mode.CSP:
             dyn.mode[j] = LoopMode.POSITION
             dyn.target_position[j] = values[(c.TARGET_POSITION, 0)] / scale
             dyn.target_velocity[j] = values[(c.VELOCITY_OFFSET, 0)] / scale
@@ -274,7 +300,34 @@ class StateMachine402:
             dyn.torque_feedforward[j] = ((values[(c.TARGET_TORQUE, 0)]
                                           + values[(c.TORQUE_OFFSET, 0)]) * nm_per_permille)
         else:
-            dyn.mode[j] = LoopMode.OFF  # no cyclic mode selected: no torque
+            dyn.mode[j] = LoopMode.OFF  # no mode this drive runs selected: no torque
+        if bits != self._mode_bits:
+            self._mode_bits = bits
+            self.set_state(self.state)
+
+    def _profile_position(self, values: dict[Key, Any], scale: float) -> int:
+        """PP: a rising controlword bit 4 latches 0x607A (relative with bit 6) and is
+        acknowledged by statusword bit 12 until bit 4 falls; the joint moves to the latched
+        set-point no faster than 0x6081; bit 10 once it is there."""
+        dyn, j = self._dyn, self._j
+        cw = values[CONTROLWORD]
+        rising = bool(cw & CW_BIT4) and not self._new_setpoint
+        self._new_setpoint = bool(cw & CW_BIT4)
+        if rising:
+            target = values[(c.TARGET_POSITION, 0)] / scale
+            if cw & CW_RELATIVE and self._pp_target is not None:
+                target += self._pp_target
+            self._pp_target = target
+        q = float(dyn.position[j])
+        goal = q if self._pp_target is None else self._pp_target
+        limit = float(values[(c.PROFILE_VELOCITY, 0)]) / scale
+        error = goal - q
+        dyn.mode[j] = LoopMode.VELOCITY
+        dyn.target_velocity[j] = max(-limit, min(limit, dyn.kp[j] * error))
+        bits = SW_BIT12 if self._new_setpoint else 0
+        if abs(error) * scale <= PP_WINDOW_INCREMENTS:
+            bits |= c.SW_TARGET_REACHED
+        return bits
 
     def end_ramp(self) -> None:
         """After the dynamics step: a ramp with a next state ends at standstill."""
