@@ -204,6 +204,8 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
     _configure_pdos(sdo, layout.tpdos, caps.tpdos)
     sdo.download(cia301.PRODUCER_HEARTBEAT_TIME, 0, _u16(drive.heartbeat_ms))
     _arm_against_manager_loss(sdo, caps, manager_node_id, consumer_ms)
+    if drive.homing_method is not None:  # drive_plan.py checked that 0x6098 is writable
+        sdo.download(cia402.HOMING_METHOD, 0, struct.pack("<b", drive.homing_method))
     if DriveMode.IP in drive.modes and dt is not None \
             and caps.writable(cia402.INTERPOLATION_PERIOD, 1):  # IP steps once per cycle
         value, index = interpolation_period(dt)

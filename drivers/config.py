@@ -150,6 +150,8 @@ class DriveConfig:
     heartbeat_ms: int = 100                 # the drive's heartbeat producer (0x1017)
     bus: str = ""                           # its bus's name; "" = the first (or only) bus
     accept_unsupervised: bool = False       # run a drive that ignores losing the manager
+    homing_method: int | None = None        # 0x6098 written at bring-up; None: as commissioned
+    homing_timeout: float = 60.0            # s a homing may take (rocoma-can home DRIVE)
 
     def __post_init__(self) -> None:
         where = f"drive {self.name!r}"
@@ -196,6 +198,11 @@ class DriveConfig:
         if not _whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
             raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
                              f"got {self.heartbeat_ms!r}")
+        if self.homing_method is not None and (not _whole(self.homing_method)
+                                               or not -128 <= self.homing_method <= 127):
+            raise ValueError(f"{where}: homing_method must be a CiA 402 method number "
+                             f"(0x6098, -128..127), got {self.homing_method!r}")
+        _positive(where, "homing_timeout", self.homing_timeout)
         if not isinstance(self.accept_unsupervised, bool):
             raise ValueError(f"{where}: accept_unsupervised must be true or false, "
                              f"got {self.accept_unsupervised!r}")

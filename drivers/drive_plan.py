@@ -68,6 +68,9 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
     if DriveMode.IP in drive.modes and not caps.writable(cia402.INTERPOLATION_PERIOD, 1):
         notes.append("IP without a writable 0x60C2: the drive interpolates over its own "
                      "period, which must equal the loop's")
+    if drive.homing_method is not None and not caps.writable(cia402.HOMING_METHOD):
+        problems.append(f"homing_method {drive.homing_method}: {caps.source} has no "
+                        "writable 0x6098 (homing method)")
     available = tuple(f for f in FEEDBACK if caps.has(ENTRY_OF_FEEDBACK[f].index))
     if drive.feedback is None:
         feedback = available

@@ -72,6 +72,7 @@ from typing import Any, Protocol
 import can
 import numpy as np
 
+from ..errors import HomingFailed
 from ..events import ManagerState
 from . import cia301, cia402
 from .bringup import DriveBringup, Phase
@@ -81,6 +82,7 @@ from .config import BusConfig, DriveConfig, Supervision, check_drives, estop_con
 from .drive_plan import plan_drive
 from .enable import OP_ENABLED, EnableSequence
 from .frame_io import clock_offset, to_monotonic
+from .homing import HOMING_MODE, HomingJob
 from .joints import JointCommand, JointMode, JointState
 from .modes import CW_ENABLE_INTERPOLATION, KIND, DriveMode, SetPointHandshake, carrier
 from .pdo_layout import IGNORED, DriveLayout
@@ -105,6 +107,7 @@ class DriveStatus:
     fault: str | None     # the latched fault or start-up failure, None when healthy
     nmt_state: str = "UNKNOWN"          # from the drive's last heartbeat
     heartbeat_age: float | None = None  # s since that heartbeat arrived; None: none yet
+    homing: str = ""                    # "", "enabling", "homing", "homed", "failed: ..."
 
 
 class Manager(Protocol):
@@ -206,6 +209,10 @@ class CanopenHardware:
         # the 0x6060 value that carries each commanded JointMode, per drive (modes.py)
         self._carrier = [carrier(d.modes) for d in drives]
         self._setpoints = SetPointHandshake(n)  # PP drives' set-point handshake
+        # homing (homing.py): requests from any thread, taken by the cycle
+        self._homing: list[HomingJob | None] = [None] * n
+        self._homing_requests: collections.deque[HomingJob] = collections.deque()
+        self._homing_seen: list[HomingJob | None] = [None] * n  # the last job, for status
         self._allowed_list = self._allowed_modes.tolist()
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
@@ -251,6 +258,7 @@ class CanopenHardware:
         self._probe_frames = [self._preencode(i, int(cia402.Controlword.SHUTDOWN))
                               for i in range(n)]
         self._next_heartbeat = -math.inf
+        self._manager_state = ManagerState.FAILPROOF  # as of the last write
 
         self._started = False
         self._bringup: list[DriveBringup] = []
@@ -491,6 +499,13 @@ class CanopenHardware:
 
     def write(self, manager_state: ManagerState) -> None:
         """Command frames (or torque-off frames in FAILPROOF), then SYNC, then heartbeat."""
+        self._manager_state = manager_state
+        if manager_state != ManagerState.OK:
+            for i, job in enumerate(self._homing):  # an e-stop ends homing
+                if job is not None:
+                    job.fail(f"the manager left OK ({manager_state.name})")
+                    self._homing[i] = None
+                    self._armed[i] = False  # off until the next switch
         if manager_state == ManagerState.FAILPROOF:
             self._torque_off()
         else:
@@ -575,10 +590,21 @@ class CanopenHardware:
             self._armed = self.ready.tolist()
         armed = self._armed if manager is not None else None
         send_of = self._send_of
+        homing = self._homing
+        while self._homing_requests:
+            request = self._homing_requests.popleft()
+            homing[request.index] = self._homing_seen[request.index] = request
         for i, b in enumerate(self._bringup):
             if not b.mapped:
                 continue
             send = send_of[i]
+            job = homing[i]
+            if job is not None:
+                if self._home_step(i, b, job, states[i], now):
+                    continue  # this cycle's homing frames are out
+                homing[i] = None  # done: torque-off until the next switch (new reference)
+                if armed is not None:
+                    armed[i] = False
             if (b.phase != Phase.READY or sup.latched[i] is not None
                     or (armed is not None and not armed[i])):
                 for msg in self._start_frames(i, b):
@@ -617,6 +643,62 @@ class CanopenHardware:
             for msg, pack_into, where in self._rpdo_frames[i]:
                 pack_into(msg.data, 0, *[values[k] for k in where])
                 send(msg)
+
+    def _home_step(self, i: int, b: DriveBringup, job: HomingJob, state: int,
+                   now: float) -> bool:
+        """One cycle of drive i's homing: True when its frames were sent, False when the job
+        has ended (the caller then treats the drive as usual)."""
+        if job.done():
+            return False
+        if b.phase != Phase.READY or self.supervisor.latched[i] is not None:
+            job.fail("the drive faulted or left start-up state READY")
+            return False
+        cw = self.enable.controlword(i, state, now)
+        homing_cw = job.step(state == OP_ENABLED, int(self._raw["statusword"][i]), now)
+        if job.done():
+            self.enable.reset(i)
+            return False
+        values = (homing_cw if homing_cw is not None else cw, HOMING_MODE,
+                  int(self._raw["position"][i]), 0, 0, *self._rpdo_constants[i])
+        send = self._send_of[i]
+        for msg, pack_into, where in self._rpdo_frames[i]:
+            pack_into(msg.data, 0, *[values[k] for k in where])
+            send(msg)
+        return True
+
+    def home(self, drive: str, timeout: float | None = None) -> Future[str]:
+        """Home one drive (CiA 402 mode 6, its own method) over the following cycles, while
+        the active controller keeps the others (homing.py). From any thread.
+
+        Raises HomingFailed at once when the drive cannot be homed now (unknown, no homing
+        mode in its 0x6502, no 0x6060 in its RPDO, not READY, faulted, already homing); the
+        future then says how it ended ("NAME: homed", or HomingFailed)."""
+        names = [d.name for d in self.drives_config]
+        if drive not in names:
+            raise HomingFailed(f"no drive named {drive!r} (drives: {', '.join(names)})")
+        i = names.index(drive)
+        plan, d = self.plans[i], self.drives_config[i]
+        why = None
+        if not plan.caps.supports(HOMING_MODE):
+            why = (f"its 0x6502 (0x{plan.caps.supported_modes or 0:X}) has no homing mode; "
+                   f"it lists {', '.join(plan.caps.mode_names)}")
+        elif not self.layouts[i].maps("mode"):
+            why = "its RPDO mapping carries no 0x6060, so the cycle cannot select homing"
+        elif not self._bringup or self._bringup[i].phase != Phase.READY:
+            why = "it is not READY (start-up or recovery not finished)"
+        elif self.supervisor.latched[i] is not None:
+            why = f"it is faulted ({self.supervisor.latched[i]}); recover it first"
+        elif self._manager is not None and self._manager_state != ManagerState.OK:
+            why = ("the manager is not OK: homing runs while a controller holds the other "
+                   "joints (clear the e-stop and switch to one first)")
+        elif any(j is not None and j.index == i and not j.done()
+                 for j in (*self._homing, *self._homing_requests)):
+            why = "it is already homing"
+        if why is not None:
+            raise HomingFailed(f"{drive}: cannot home: {why}")
+        future: Future[str] = Future()
+        self._homing_requests.append(HomingJob(i, drive, timeout or d.homing_timeout, future))
+        return future
 
     # --- the manager's limit_command -------------------------------------------------------------
     def limit_command(self, command: JointCommand) -> bool:
@@ -833,7 +915,8 @@ class CanopenHardware:
                 State402(int(self.state.cia402_state[i])).name, bool(enabled[i]), fault,
                 cia301.NmtState(nmt).name if nmt in cia301.NmtState._value2member_map_
                 else "UNKNOWN",
-                round(now - seen, 3) if math.isfinite(seen) else None))
+                round(now - seen, 3) if math.isfinite(seen) else None,
+                job.describe() if (job := self._homing_seen[i]) is not None else ""))
         return out
 
     def status_report(self) -> dict[str, Any]:

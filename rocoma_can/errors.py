@@ -30,3 +30,7 @@ class Refused(RocomaError, RuntimeError):
     def __init__(self, code: int, what: str, meaning: str = "see CiA 301") -> None:
         self.code = code
         super().__init__(f"{what}: refused by the manager (SDO abort 0x{code:08X}: {meaning})")
+
+
+class HomingFailed(RocomaError, RuntimeError):
+    """Homing of a drive did not end with it homed (the message names the drive and why)."""

@@ -167,7 +167,7 @@ def test_pp_reaches_a_step_through_the_set_point_handshake(mode_rig):
 def test_pv_carries_csv_commands(mode_rig, tmp_path):
     pv = tmp_path / "pv.eds"  # the generic drive, listing PV too
     pv.write_text((Path(__file__).parent.parent / "eds" / "cia402_drive.eds").read_text()
-                  .replace("DefaultValue=0x00000380", "DefaultValue=0x00000384"))
+                  .replace("DefaultValue=0x000003A0", "DefaultValue=0x000003A4"))
     rig, drive, _ = mode_rig(str(pv), ("csp", "pv"))
     _enable(rig, Spin("spin", 0.5))
     rig.run(0.5)

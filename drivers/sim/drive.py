@@ -342,7 +342,7 @@ class SimulatedDrive:
 
     def _sample(self) -> None:
         j, values, scale = self.joint, self._values, self._scaling
-        q = self._dyn.position[j] * scale.increments_per_rad
+        q = self._dyn.position[j] * scale.increments_per_rad + self.cia402.position_offset
         if self._faults.position_noise:
             q += self._seg.rng.normal(0.0, self._faults.position_noise)
         values[POSITION] = _wrap(q, 32)

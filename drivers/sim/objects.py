@@ -201,7 +201,7 @@ def _empty(data_type: int | None) -> Any:
 
 #: The modes this simulator implements (0x6502 bits): a file without 0x6502 gets these.
 IMPLEMENTED_MODES = sum(1 << (m - 1) for m in (
-    c.Mode.PROFILE_POSITION, c.Mode.PROFILE_VELOCITY, c.Mode.INTERPOLATED_POSITION,
+    c.Mode.PROFILE_POSITION, c.Mode.PROFILE_VELOCITY, c.Mode.HOMING, c.Mode.INTERPOLATED_POSITION,
     c.Mode.CSP, c.Mode.CSV, c.Mode.CST))
 
 
@@ -223,6 +223,7 @@ def fallback_values(increments_per_rev: int, rated_torque_nm: float) -> dict[Key
         (c.VELOCITY_OFFSET, 0): 0, (c.TORQUE_OFFSET, 0): 0,
         (c.TARGET_POSITION, 0): 0, (c.TARGET_VELOCITY, 0): 0, (c.TARGET_TORQUE, 0): 0,
         (c.INTERPOLATION_DATA, 1): 0,
+        (c.HOMING_METHOD, 0): 35, (c.HOME_OFFSET, 0): 0,  # 35: on the current position
         (c.PROFILE_VELOCITY, 0): increments_per_rev,  # one motor turn per second
         (c.SUPPORTED_DRIVE_MODES, 0): IMPLEMENTED_MODES,
         (c.ERROR_CODE, 0): 0, (c301.ERROR_BEHAVIOR, 1): 1,

@@ -34,6 +34,8 @@ CW_BIT4 = 1 << 4        # IP: enable interpolation; PP: new set-point
 CW_RELATIVE = 1 << 6    # PP: the set-point is relative to the last one
 SW_BIT12 = 1 << 12      # IP: interpolation active; PP: set-point acknowledge
 PP_WINDOW_INCREMENTS = 100  # PP: target reached within this many increments
+SW_HOMING_ERROR = 1 << 13
+HOMING_TIME = 0.2  # s a simulated homing takes
 
 
 class Scaling:
@@ -77,11 +79,16 @@ class StateMachine402:
         self._mode_bits = 0
         self._new_setpoint = False  # controlword bit 4 at the last SYNC
         self._pp_target: float | None = None  # rad
+        # homing: time left of a running homing (None: none running), and the offset that
+        # homing puts between the joint and its reported position (increments)
+        self._homing_left: float | None = None
+        self.position_offset = 0.0
 
     def power_on(self) -> None:
         """NOT READY TO SWITCH ON, then transition 1 (automatic) to SWITCH ON DISABLED."""
         self._last_controlword = 0
         self._ramping = False
+        self.position_offset = 0.0  # an incremental encoder forgets its home at power-on
         self.state = State402.NOT_READY_TO_SWITCH_ON
         self.set_state(State402.SWITCH_ON_DISABLED)
 
@@ -91,6 +98,7 @@ class StateMachine402:
             self._mode_bits = 0
             self._pp_target = None
             self._new_setpoint = False
+            self._homing_left = None
         sw = c.STATUSWORD_OF_STATE[state] | c.SW_REMOTE | self._mode_bits
         if state != State402.QUICK_STOP_ACTIVE:
             sw |= c.SW_QUICK_STOP
@@ -282,6 +290,8 @@ class StateMachine402:
                 dyn.mode[j] = LoopMode.VELOCITY
         elif mode == c.Mode.PROFILE_POSITION:
             bits = self._profile_position(values, scale)
+        elif mode == c.Mode.HOMING:
+            bits = self._homing(values, scale, dt)
         elif mode == c.Mode.PROFILE_VELOCITY:
             dyn.mode[j] = LoopMode.VELOCITY
             dyn.target_velocity[j] = values[(c.TARGET_VELOCITY, 0)] / scale
@@ -328,6 +338,31 @@ class StateMachine402:
         if abs(error) * scale <= PP_WINDOW_INCREMENTS:
             bits |= c.SW_TARGET_REACHED
         return bits
+
+    def _homing(self, values: dict[Key, Any], scale: float, dt: float) -> int:
+        """Mode 6: a rising controlword bit 4 starts homing with 0x6098's method; after
+        HOMING_TIME at standstill (a real drive searches its switch meanwhile) the reported
+        position becomes the home offset 0x607C here: statusword bit 12 + 10. A method
+        outside CiA 402's 1..37 ends in bit 13 (homing error)."""
+        dyn, j = self._dyn, self._j
+        dyn.mode[j] = LoopMode.VELOCITY  # held still
+        cw = values[CONTROLWORD]
+        rising = bool(cw & CW_BIT4) and not self._new_setpoint
+        self._new_setpoint = bool(cw & CW_BIT4)
+        if rising:
+            self._homing_left = HOMING_TIME
+        if self._homing_left is None:
+            return self._mode_bits & (SW_BIT12 | c.SW_TARGET_REACHED | SW_HOMING_ERROR)
+        if not 1 <= values[(c.HOMING_METHOD, 0)] <= 37:
+            self._homing_left = None
+            return SW_HOMING_ERROR
+        self._homing_left -= dt
+        if self._homing_left > 0:
+            return 0
+        self._homing_left = None
+        self.position_offset = (values[(c.HOME_OFFSET, 0)]
+                                - float(dyn.position[j]) * scale)
+        return SW_BIT12 | c.SW_TARGET_REACHED
 
     def end_ramp(self) -> None:
         """After the dynamics step: a ramp with a next state ends at standstill."""

@@ -21,6 +21,8 @@ from .objects import (
     ESTOP_CAUSE,
     ESTOP_COB_ID,
     ESTOP_LATCHED,
+    HOME_DRIVE,
+    HOMING_REFUSAL,
     PENDING,
     RESULT_NAMES,
     STATE,
@@ -90,6 +92,32 @@ class ManagerClient:
             raise Refused(exc.code, f"write 0x{index:04X}", _meaning(exc.code)) from None
         except SdoCommunicationError as exc:
             raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
+
+    def home(self, drive: str, timeout: float = 60.0, poll: float = 0.1) -> str:
+        """Home one drive and wait (bounded) until its 0x2140 entry says how it ended:
+        "homed", "failed: ..." (or "timed out" after ``timeout`` s). A refusal raises
+        Refused with the manager's reason (0x2151)."""
+        try:
+            self.write(HOME_DRIVE, drive)
+        except Refused as exc:
+            reason = self.read_text(HOMING_REFUSAL)
+            raise Refused(exc.code, f"home {drive}", reason or _meaning(exc.code)) from None
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for d in self._drives():
+                if d.get("name") == drive and d.get("homing", "").startswith(
+                        ("homed", "failed")):
+                    return str(d["homing"])
+            time.sleep(poll)
+        return "timed out"
+
+    def _drives(self) -> list[dict[str, Any]]:
+        try:
+            report = json.loads(self.read_text(DRIVE_STATUS) or "{}")
+        except ValueError:
+            return []
+        drives = report.get("drives", []) if isinstance(report, dict) else []
+        return [d for d in drives if isinstance(d, dict)]
 
     def switch(self, name: str, timeout: float = 10.0) -> int:
         """Request a switch and poll 0x2102 until it is no longer PENDING (bounded)."""

@@ -1,6 +1,6 @@
 """Sub-commands ``run``, ``check-config`` and the client commands that talk to a running
-manager over the bus: ``switch``, ``estop``, ``failproof``, ``clear``, ``recover``, ``status``,
-``list``.
+manager over the bus: ``switch``, ``estop``, ``failproof``, ``clear``, ``recover``, ``home``,
+``status``, ``list``.
 
 Exit codes (for shell scripts):
   0  done (switch: SWITCHED or RUNNING)
@@ -153,6 +153,15 @@ def _switch(args: argparse.Namespace) -> int:
     return _client(args, action)
 
 
+def _home(args: argparse.Namespace) -> int:
+    """Prints how homing ended ("NAME: homed" / "NAME: failed: why"); exit 0 only if homed."""
+    def action(client: ManagerClient) -> int:
+        result = client.home(args.drive, timeout=args.timeout_homing)
+        print(f"{args.drive}: {result}", flush=True)
+        return OK if result == "homed" else FAILED
+    return _client(args, action)
+
+
 def _command(index: int, done: str) -> Callable[[argparse.Namespace], int]:
     def handler(args: argparse.Namespace) -> int:
         def action(client: ManagerClient) -> int:
@@ -181,7 +190,8 @@ def _status(args: argparse.Namespace) -> int:
             print(f"drive {d['name']} (node {d['node_id']}): {d['phase']}, {d['cia402_state']}"
                   f"{', enabled' if d['enabled'] else ''}, NMT {d['nmt_state']}, heartbeat "
                   f"{'never' if age is None else f'{age:.2f} s ago'}"
-                  f"{', fault: ' + d['fault'] if d['fault'] else ''}", flush=True)
+                  f"{', fault: ' + d['fault'] if d['fault'] else ''}"
+                  f"{', homing: ' + d['homing'] if d.get('homing') else ''}", flush=True)
         return OK
     return _client(args, action)
 
@@ -229,6 +239,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         p = subparsers.add_parser(name, help=text)
         _bus_options(p)
         p.set_defaults(func=_command(index, done))
+    p = subparsers.add_parser(
+        "home", help="home one drive (CiA 402 homing, its own method) while the active "
+                     "controller holds the others; waits for the result")
+    p.add_argument("drive", help="the drive's name in the config")
+    p.add_argument("--timeout-homing", type=float, default=90.0, metavar="S",
+                   help="give up waiting after S seconds (90; the manager's own limit is "
+                        "the drive's homing_timeout)")
+    _bus_options(p)
+    p.set_defaults(func=_home)
     p = subparsers.add_parser("status", help="state, active controller, e-stop latch and cause, "
                                               "every drive's bring-up, CiA 402 state and fault")
     p.add_argument("--json", action="store_true", help="everything as one JSON document")

@@ -11,7 +11,10 @@ Server side, ``ManagerNode`` (objects; README "CLI and CAN services" has the ful
   0x2120 U8 r state (0 FAILPROOF, 1 EMERGENCY, 2 OK); 0x2121 active controller name;
   0x2122 U8 r active controller number (0 = none of 0x2123); 0x2123 controller list
   (comma separated); 0x2124 last e-stop cause; 0x2130 U32 rw e-stop COB-ID (0 = off);
-  0x2131 U8 r e-stop latched; 0x2140 VISIBLE_STRING r drive status (JSON, see README)
+  0x2131 U8 r e-stop latched; 0x2140 VISIBLE_STRING r drive status (JSON, see README);
+  0x2150 VISIBLE_STRING w home the drive of this name (homing runs in the cycle: its
+  progress is the drive's "homing" in 0x2140); 0x2151 VISIBLE_STRING r why the last homing
+  request was refused
 
 Why a switch is answered at once: canopen's SDO server answers on the bus reader's thread, and
 the same thread carries the e-stop COB-ID listener. Waiting there for a switch (which runs
@@ -58,6 +61,7 @@ from ..drivers.cia301 import (
     TPDO_COMM,
     reserved_cob_id,
 )
+from ..errors import HomingFailed
 from ..events import EventKind, ManagerEvent, ManagerState
 from ..manager import ControllerManager, SwitchResult
 from .objects import (
@@ -74,6 +78,8 @@ from .objects import (
     ESTOP_COB_ID,
     ESTOP_LATCHED,
     FAILPROOF_STOP,
+    HOME_DRIVE,
+    HOMING_REFUSAL,
     NO_SWITCH_YET,
     PENDING,
     RECOVER,
@@ -141,7 +147,8 @@ class ManagerNode(can.Listener):
                  eds_path: str | None = None,
                  heartbeat_ms: int | None = None,
                  drive_status: Callable[[], dict[str, Any]] | None = None,
-                 estop_in_cycle: Callable[[int], None] | None = None) -> None:
+                 estop_in_cycle: Callable[[int], None] | None = None,
+                 home: Callable[[str], object] | None = None) -> None:
         """``estop_in_cycle``: the hardware takes e-stop frames itself, on every bus, in
         the cycle (CanopenHardware.set_estop_cob_id): the node then only owns the COB-ID
         (0x2130) and hands it over on every change, and ignores the frames."""
@@ -150,6 +157,8 @@ class ManagerNode(can.Listener):
         self.bus = bus
         self.status_period = status_period
         self.recover = recover
+        self.home = home  # CanopenHardware.home: raises HomingFailed when it refuses
+        self.homing_refusal = ""
         self.last_result = NO_SWITCH_YET
         self.last_cause = ""
         self.drive_status = drive_status  # -> the 0x2140 report (JSON), None: no drives
@@ -276,6 +285,8 @@ class ManagerNode(can.Listener):
             return json.dumps(report, separators=(",", ":"))
         if index == ESTOP_COB_ID:
             return self._estop_cob_id
+        if index == HOMING_REFUSAL:
+            return _visible(self.homing_refusal)
         return None
 
     def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
@@ -307,6 +318,25 @@ class ManagerNode(can.Listener):
             self.recover()
         elif index == ESTOP_COB_ID:
             self._change_estop_cob_id(_integer(od, data))
+        elif index == HOME_DRIVE:
+            self._home(bytes(data))
+
+    def _home(self, data: bytes) -> None:
+        """Answered at once, like a switch: refused (abort, reason in 0x2151) or started."""
+        if self.home is None:
+            self.homing_refusal = "this manager has no drives"
+            raise SdoAbortedError(ABORT_NO_RECOVERY)
+        try:
+            name = data.decode("utf-8").strip("\x00 ")
+        except UnicodeDecodeError:
+            self.homing_refusal = "the drive name is not UTF-8"
+            raise SdoAbortedError(ABORT_NOT_FOUND) from None
+        try:
+            self.home(name)
+        except HomingFailed as exc:
+            self.homing_refusal = str(exc)
+            raise SdoAbortedError(ABORT_REFUSED) from None
+        self.homing_refusal = ""
 
     def _change_estop_cob_id(self, value: int) -> None:
         """An SDO write of 0x2130: bit 31 set (CiA 301 "not valid") or 0 switches the e-stop

@@ -78,7 +78,8 @@ class Runtime:
             self._parts.append(self._node_bus.shutdown)
             self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
                                     estop_cob_id=m.estop_cob_id, status_period=m.status_period,
-                                    recover=hardware.recover, heartbeat_ms=m.heartbeat_ms,
+                                    recover=hardware.recover, home=hardware.home,
+                                    heartbeat_ms=m.heartbeat_ms,
                                     drive_status=hardware.status_report,
                                     estop_in_cycle=hardware.set_estop_cob_id)
             self._parts.insert(0, self.node.close)

@@ -1,0 +1,85 @@
+"""Homing (CiA 402 mode 6) of one drive while the manager keeps the others under control.
+
+Homing is a service, not a controller: ``CanopenHardware.home`` queues a request and the
+cycle runs it. For the drive being homed, the cycle sends mode 6 and the enable sequence
+(enable.py), then raises controlword bit 4 ("homing operation start") and keeps it up until
+the drive reports statusword bit 12 + bit 10 (homing attained, target reached) or bit 13
+(homing error), or the time is up. The drive's own homing method (0x6098, from the config
+at bring-up or as commissioned) and speeds move it. Every other drive stays with the active
+controller; the homed drive's command from it is ignored meanwhile.
+
+Afterwards the drive's position reference has changed, so it stays torque-off until the
+next switch (like a drive that became ready after one: the controller never saw it). An
+e-stop, a fault of the drive or leaving operation enabled ends homing as failed; the
+failproof path is untouched (FAILPROOF sends torque-off to every drive, homing or not).
+"""
+from __future__ import annotations
+
+import enum
+from concurrent.futures import Future
+
+from ..errors import HomingFailed
+from . import cia402
+
+HOMING_MODE = int(cia402.Mode.HOMING)
+CW_HOMING_START = int(cia402.Controlword.ENABLE_OPERATION) | (1 << 4)
+SW_HOMING_ATTAINED = 1 << 12
+SW_HOMING_ERROR = 1 << 13
+#: cycles with bit 4 up before the statusword is judged: a drive clears "attained" when it
+#: starts, and answers the edge a cycle or two later
+SETTLE_CYCLES = 3
+
+
+class Phase(enum.Enum):
+    ENABLING = "enabling"
+    HOMING = "homing"
+
+
+class HomingJob:
+    """One drive's homing; ``step`` is called by the cycle for that drive."""
+
+    def __init__(self, index: int, name: str, timeout: float,
+                 future: Future[str]) -> None:
+        self.index = index
+        self.name = name
+        self.timeout = timeout
+        self.future = future
+        self.phase = Phase.ENABLING
+        self.deadline: float | None = None
+        self._cycles = 0
+
+    def step(self, enabled: bool, statusword: int, now: float) -> int | None:
+        """This cycle's controlword once the drive is enabled (None while the enable sequence
+        still runs); resolves the future when homing ends."""
+        if self.deadline is None:
+            self.deadline = now + self.timeout
+        if now > self.deadline:
+            self.fail(f"not homed within {self.timeout:g} s")
+            return None
+        if not enabled:
+            if self.phase == Phase.HOMING:
+                self.fail("left operation enabled while homing")
+            return None
+        self.phase = Phase.HOMING
+        self._cycles += 1
+        if self._cycles > SETTLE_CYCLES:
+            if statusword & SW_HOMING_ERROR:
+                self.fail("the drive reports a homing error (statusword bit 13)")
+                return None
+            if statusword & SW_HOMING_ATTAINED and statusword & cia402.SW_TARGET_REACHED:
+                self.future.set_result(f"{self.name}: homed")
+                return None
+        return CW_HOMING_START
+
+    def fail(self, why: str) -> None:
+        if not self.future.done():
+            self.future.set_exception(HomingFailed(f"{self.name}: {why}"))
+
+    def done(self) -> bool:
+        return self.future.done()
+
+    def describe(self) -> str:
+        if not self.future.done():
+            return self.phase.value
+        exc = self.future.exception()
+        return "homed" if exc is None else f"failed: {exc}"

@@ -1,0 +1,125 @@
+"""Homing one drive (drivers/homing.py) while the active controller keeps the others: in
+the cycle, against simulated drives on the virtual bus; refusals; an e-stop during homing;
+and the whole path from `rocoma-can home` over the manager node."""
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from fixtures.driver_rig import VIRTUAL, Rig, Sine
+
+from rocoma_can import SwitchResult
+from rocoma_can.cli import main
+from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.homing import CW_HOMING_START, HOMING_MODE
+from rocoma_can.drivers.joints import JointMode
+from rocoma_can.errors import HomingFailed
+from rocoma_can.runtime import Runtime
+from rocoma_can.runtime.config import validate
+from rocoma_can.runtime.demo import demo_config
+
+EDS = Path(__file__).parent / "fixtures" / "eds"
+
+
+@pytest.fixture
+def rig(sim_segment_factory, bus_factory, frame_recorder, virtual_channel):
+    segment = sim_segment_factory([1, 2])
+    recorder = frame_recorder(virtual_channel)
+    r = Rig.for_setup(bus_factory(), [1, 2], VIRTUAL, modes=("csp",))
+    r.segment, r.recorder = segment, recorder
+    assert r.run_until(lambda: not r.hw.starting, VIRTUAL.bring_up_budget(2)), \
+        r.hw.drive_status()
+    r.mgr.add_controller(Sine("sine", JointMode.CSP, amplitude=0.2))
+    assert r.switch("sine") == SwitchResult.SWITCHED
+    assert r.run_until(lambda: r.hw.all_enabled, VIRTUAL.enable_budget()), r.hw.drive_status()
+    r.run(0.3)  # moving: the sine has left the start position
+    yield r
+    r.close()
+
+
+def _run_until_done(rig: Rig, future, timeout: float) -> None:
+    assert rig.run_until(future.done, timeout), rig.hw.drive_status()
+
+
+def test_homing_one_drive_while_the_other_keeps_tracking(rig):
+    j1, j2 = rig.segment.drives[1], rig.segment.drives[2]
+    assert j1.position_rad != 0.0
+    mark = rig.recorder.mark()
+    future = rig.hw.home("j1")
+    _run_until_done(rig, future, 5.0)
+    assert future.result() == "j1: homed"
+    assert abs(j1.position_increments) < 5000  # its reported position is the home offset
+    # the homed drive got mode 6 and "homing operation start"; the other its CSP targets
+    frames = [struct.unpack_from("<Hb", f.data) for f in rig.recorder.frames(0x201, since=mark)]
+    assert (CW_HOMING_START, HOMING_MODE) in frames
+    assert j2.state402 == State402.OPERATION_ENABLED and j2.mode_display == 8
+    assert rig.hw.drive_status()[0].homing == "homed"
+    # its reference changed: off until the next switch, then commanded again
+    assert rig.run_until(lambda: j1.state402 == State402.SWITCH_ON_DISABLED,
+                         VIRTUAL.detect_budget())
+    rig.mgr.add_controller(Sine("sine2", JointMode.CSP, amplitude=0.1))
+    assert rig.switch("sine2") == SwitchResult.SWITCHED
+    assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget())
+
+
+def test_an_estop_during_homing_ends_it_as_failed(rig):
+    future = rig.hw.home("j1")
+    rig.run(3 * rig.dt)
+    rig.mgr.emergency_stop("test")
+    _run_until_done(rig, future, 2.0)
+    with pytest.raises(HomingFailed, match="j1: the manager left OK"):
+        future.result()
+    assert rig.hw.drive_status()[0].homing.startswith("failed")
+
+
+def test_homing_is_refused_with_the_reason(rig, sim_segment_factory, bus_factory):
+    with pytest.raises(HomingFailed, match="no drive named 'j9'"):
+        rig.hw.home("j9")
+    rig.hw.home("j1")
+    with pytest.raises(HomingFailed, match="j1: cannot home: it is already homing"):
+        rig.hw.home("j1")
+    rig.mgr.failproof_stop("test")
+    rig.run(3 * rig.dt)
+    with pytest.raises(HomingFailed, match="j2: cannot home: the manager is not OK"):
+        rig.hw.home("j2")
+
+
+def test_a_drive_without_homing_mode_is_refused(virtual_channel, sim_segment_factory,
+                                                bus_factory):
+    fixed = str(EDS / "fixed_pdo.eds")  # PP + CSP, and no 0x6060 in its fixed RPDO
+    sim_segment_factory([1], eds_path=fixed)
+    r = Rig.for_setup(bus_factory(), [1], VIRTUAL, modes=("csp",), drive={"eds": fixed})
+    try:
+        assert r.run_until(lambda: not r.hw.starting, VIRTUAL.bring_up_budget(1))
+        with pytest.raises(HomingFailed, match=r"no homing mode; it lists PP, CSP"):
+            r.hw.home("j1")
+    finally:
+        r.close()
+
+
+def test_rocoma_can_home_over_the_manager_node(virtual_channel, sim_segment_factory, capsys):
+    sim_segment_factory(2)
+    cfg = demo_config(virtual_channel, drives=2, rate=100.0)
+    cfg["manager"]["estop_must_be_cleared"] = False
+    outcome: dict[str, int] = {}
+    bus = ["--interface", "virtual", "--channel", virtual_channel, "--timeout", "2"]
+    with Runtime(validate(cfg)) as rt:
+        def operate() -> None:
+            deadline = time.monotonic() + 10.0
+            while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
+                time.sleep(0.01)
+            outcome["refused"] = main(["home", "joint1", *bus])  # FAILPROOF: refused
+            outcome["switch"] = int(rt.manager.switch_controller("pd", timeout=10.0))
+            outcome["home"] = main(["home", "joint1", "--timeout-homing", "10", *bus])
+            rt.loop.stop("test")
+        t = threading.Thread(target=operate)
+        t.start()
+        rt.run(duration=40.0, signals=False)
+        t.join(15.0)
+    out, err = capsys.readouterr()
+    assert outcome == {"refused": 1, "switch": 0, "home": 0}, (out, err)
+    assert "cannot home: the manager is not OK" in err
+    assert "joint1: homed" in out
