@@ -213,6 +213,30 @@ def test_bring_up_track_and_torque_off_on_each_file(file, sim_segment_factory, b
         rig.close()
 
 
+@pytest.mark.parametrize("file", sorted(p.name for p in EDS.iterdir()))
+def test_the_demo_walks_through_on_each_file(file):
+    """`rocoma-can demo --eds FILE`: the modes the file supports, the steps it cannot do
+    skipped with the reason, and every step that runs passes."""
+    from rocoma_can.runtime.demo import run_demo
+    lines: list[str] = []
+    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append,
+                      eds=str(EDS / file))
+    assert report.ok, "\n".join(lines)
+    assert lines[0].startswith(f"rocoma-can demo: the drives emulate {EDS / file}")
+    assert report.steps[-1].name == "loop stop -> torque-off frames"
+    if file == "commissioned.dcf":  # one node's file: one drive, the second fault skipped
+        assert any("skipped: one drive" in s.detail for s in report.steps)
+
+
+def test_the_demo_says_why_it_cannot_use_a_file(tmp_path, capsys):
+    from rocoma_can.cli import main
+    velocity_only = tmp_path / "pv_only.eds"
+    velocity_only.write_text((EDS / "minimal.eds").read_text().replace(
+        "DefaultValue=0x00000180", "DefaultValue=0x00000100"))  # CSV only
+    assert main(["demo", "--eds", str(velocity_only)]) == 2
+    assert "no position mode the demo's controllers can use" in capsys.readouterr().out
+
+
 def test_canopen_reads_every_file_as_the_driver_does():
     for path in sorted(EDS.iterdir()):
         od = canopen.import_od(str(path), 5)
