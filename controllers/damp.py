@@ -31,6 +31,8 @@ class Damp(EmergencyController):
                       (default: never; the joints keep being damped)
     """
 
+    feedback_needed = frozenset({"velocity"})
+
     def __init__(self, name: str = "damp", *, joints: Sequence[str] | None = None,
                  damping: Any = 1.0, torque_limit: Any = math.inf, still_velocity: Any = 0.05,
                  still_time: Any = 0.2, timeout: Any = math.inf) -> None:

@@ -29,6 +29,8 @@ class Hold(EmergencyController):
       mode          "CST" (default) or "CSP"
     """
 
+    feedback_needed = frozenset({"position"})
+
     def __init__(self, name: str = "hold", *, joints: Sequence[str] | None = None,
                  kp: Any = 200.0, kd: Any = 5.0, torque_limit: Any = math.inf,
                  mode: Any = "CST") -> None:

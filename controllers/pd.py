@@ -52,6 +52,9 @@ class JointPD(Controller):
         self._p_min = per_joint(self, "position_min", position_min, allow_inf=True)
         self._p_max = per_joint(self, "position_max", position_max, allow_inf=True)
         self.mode = output_mode(self, mode, (JointMode.CST, JointMode.CSP))
+        # in CST the PD runs here on the joint velocity; in CSP the drive's own loop does
+        self.feedback_needed = frozenset(
+            {"position", "velocity"} if self.mode == JointMode.CST else {"position"})
         self._pending: tuple[int, np.ndarray] | None = None  # (sequence, target) from set_target
         self._sequence = 0           # last set_target
         self._applied_sequence = 0   # last target the cycle took over

@@ -81,6 +81,9 @@ class Trajectory(Controller):
                                                   "given by amplitude/frequency/offset/phase)")
             self.blend = number(self, "blend_time", blend_time, minimum=0.0)
         self.mode = output_mode(self, mode, (JointMode.CSP, JointMode.CST))
+        # in CST the PD runs here on the joint velocity; in CSP the drive's own loop does
+        self.feedback_needed = frozenset(
+            {"position", "velocity"} if self.mode == JointMode.CST else {"position"})
         self._gains = PdGains.check(self, kp, kd, torque_limit)
         self.time = 0.0
 

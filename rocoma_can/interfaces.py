@@ -30,6 +30,12 @@ class SwapState:
 class _Named:
     """What all layers share: a name and the manager's state/command objects."""
 
+    #: Joint feedback the controller cannot work without ("position", "velocity",
+    #: "torque"): a config whose drives do not all report it is refused when the controller
+    #: is loaded (a drive whose file has no 0x6077 reports no torque; JointState.torque
+    #: would read 0 for it, silently).
+    feedback_needed: frozenset[str] = frozenset()
+
     def __init__(self, name: str | None = None) -> None:
         self.name: str = name or type(self).__name__
         self.dt: float = 0.0

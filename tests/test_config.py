@@ -195,8 +195,14 @@ def test_virtual_bus_has_no_bitrate_limit():
 def four_buses() -> dict:
     """12 drives at 1 kHz on four 1 Mbit/s buses, three drives each, node ids 1-3 on each;
     one RPDO and one TPDO per drive (position and torque feedback: with velocity too, a
-    second TPDO makes 10 frames per cycle, 10,000 frames/s, over a bus's ~7,400)."""
+    second TPDO makes 10 frames per cycle, 10,000 frames/s, over a bus's ~7,400). Without
+    velocity feedback the controllers are ones that need none: a CSP pd (the drive's own
+    loop) and hold in CSP as the emergency controller (damp needs velocity)."""
     cfg = good()
+    cfg["controllers"] = [{"name": "stand", "plugin": "pd", "emergency": "hold",
+                           "params": {"mode": "CSP"}}]
+    cfg["emergency_controllers"] = [{"name": "hold", "plugin": "hold",
+                                     "params": {"mode": "CSP"}}]
     del cfg["bus"]
     cfg["rate"] = 1000
     cfg["buses"] = [{"name": limb, "interface": "socketcan", "channel": f"can{k}",

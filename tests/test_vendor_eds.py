@@ -272,3 +272,26 @@ def test_canopen_reads_every_file_as_the_driver_does():
     for path in sorted(EDS.iterdir()):
         od = canopen.import_od(str(path), 5)
         assert cia402.STATUSWORD in od and cia402.CONTROLWORD in od, path.name
+
+
+def test_a_controller_that_needs_missing_feedback_is_refused_at_load():
+    from rocoma_can.errors import ConfigError
+    from rocoma_can.runtime.config import validate
+    from rocoma_can.runtime.demo import demo_config
+    cfg = demo_config("x", drives=2, rate=100.0, emulated=None)
+    for d in cfg["drives"]:
+        d["eds"] = str(EDS / "minimal.eds")  # no 0x6077: no torque feedback
+        d["modes"] = ["csp"]
+        d["feedback"] = ["position"]  # and velocity left out on purpose
+    cfg["controllers"][0]["params"]["mode"] = "CSP"
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    text = str(info.value)
+    assert "controller 'damp' needs velocity feedback, which drive(s) joint1, joint2 do " \
+           "not report" in text
+    for d in cfg["drives"]:
+        d["feedback"] = ["position", "velocity"]
+    for entry in cfg["controllers"]:
+        entry["emergency"] = "damp"
+    cfg["emergency_controllers"][0] = {"name": "damp", "plugin": "damp"}
+    assert validate(cfg).plans["joint1"].drive.feedback == ("position", "velocity")

@@ -33,7 +33,7 @@ import difflib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
@@ -43,6 +43,9 @@ from ..drivers.drive_plan import DrivePlan, plan_drive
 from ..errors import ConfigError
 from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
+
+if TYPE_CHECKING:  # loaded with the controllers, only when they are checked
+    from ..plugins import LoadedController
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
 #: interfaces between threads of one process: no wire, no bit rate, no load to check
@@ -294,9 +297,11 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         from ..errors import PluginError
         from ..plugins import load_config
         try:
-            load_config(controllers)
+            loaded = load_config(controllers)
         except PluginError as exc:
             problems.append(str(exc))
+        else:
+            problems += _feedback_problems(loaded, drives)
 
     loads: dict[str, BusLoad] = {}
     first = buses[0].label if buses else ""
@@ -317,6 +322,24 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
                          timing, source, loads, plans)
+
+
+def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]) -> list[str]:
+    """A controller that needs feedback some drive does not report (its file lacks the
+    object, or its config leaves it out) is refused at load, naming both."""
+    problems = []
+    for item in loaded:
+        for controller in (item.controller, item.emergency):
+            if controller is None:
+                continue
+            for needed in sorted(controller.feedback_needed):
+                short = [d.name for d in drives if d.feedback is not None
+                         and needed not in d.feedback]
+                if short:
+                    problems.append(f"{item.where}: controller {controller.name!r} needs "
+                                    f"{needed} feedback, which drive(s) {', '.join(short)} do "
+                                    "not report (check-config --drives says why)")
+    return problems
 
 
 def _buses(data: Mapping[str, Any], problems: list[str]) -> list[BusConfig]:
