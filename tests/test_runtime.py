@@ -59,6 +59,17 @@ def test_duration_stops_the_loop(runtime):
     assert 0 < summary.cycles <= 0.3 * 100 + 2
 
 
+def test_the_gil_is_handed_over_often_while_the_loop_runs(runtime):
+    """A tenth of the period (1 ms at 100 Hz) instead of Python's 5 ms, and restored."""
+    import sys
+    before = sys.getswitchinterval()
+    seen: list[float] = []
+    runtime.loop.on_cycle = lambda now: seen.append(sys.getswitchinterval())
+    runtime.run(duration=0.1, signals=False)
+    assert seen and all(s == pytest.approx(min(before, 0.1 * 0.01)) for s in seen)
+    assert sys.getswitchinterval() == before
+
+
 def test_cycle_stats_ring():
     stats = CycleStats(period=0.01, size=8)
     for k in range(20):

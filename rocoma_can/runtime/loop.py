@@ -4,7 +4,10 @@ Each cycle is ``hardware.read(now)`` -> ``manager.update()`` -> ``hardware.write
 -> ``manager.post_cycle()`` (the threads the update has work for are woken only once the
 cycle's frames are out).
 Timing: sleep until shortly before the deadline, then spin to it (``time.sleep`` alone
-overshoots by the scheduler's slack). The garbage collector is frozen after start-up and
+overshoots by the scheduler's slack). While the loop runs, Python's GIL hand-over interval
+is a tenth of the period (at most its 5 ms default; restored afterwards), so a thread
+running Python code cannot hold the loop off for several periods, and the spin yields to the
+bus readers and an in-process simulator. The garbage collector is frozen after start-up and
 disabled; a generation-0 collection runs between cycles only when the cycle left slack, so
 a collection never lands inside a cycle. Statistics go to a preallocated numpy ring.
 
@@ -19,6 +22,7 @@ import logging
 import math
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -33,6 +37,12 @@ from ..events import ManagerState
 log = logging.getLogger(__name__)
 
 _SPIN = 0.0005  # seconds before the deadline where sleeping stops and spinning starts
+#: The GIL hand-over interval while the loop runs, as a fraction of the period (Python's
+#: default is 5 ms): a thread running Python code keeps the GIL for up to this long, so at
+#: 5 ms a loop that wakes for its 1 ms deadline can wait five periods for a busy simulator
+#: or reader thread, and the loop's own spin before each deadline starves them meanwhile.
+SWITCH_FRACTION = 0.1
+SWITCH_MIN, SWITCH_MAX = 5e-5, 5e-3
 
 
 @dataclass(frozen=True)
@@ -177,6 +187,9 @@ class ControlLoop:
 
     def run(self, duration: float | None = None) -> TimingSummary:
         set_realtime(self.priority, self.cpus)
+        switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(min(switch_interval, max(SWITCH_MIN, min(
+            SWITCH_MAX, SWITCH_FRACTION * self.period))))
         gc.collect()
         gc.freeze()
         gc_was_enabled = gc.isenabled()
@@ -217,6 +230,7 @@ class ControlLoop:
             if gc_was_enabled:
                 gc.enable()
             gc.unfreeze()
+            sys.setswitchinterval(switch_interval)
         return stats.summary()
 
     def _wait_until(self, deadline: float) -> None:
