@@ -68,50 +68,89 @@ class JointDynamics:
         self.target_velocity = np.zeros(n)  # CSV target, or CSP velocity feed-forward
         self.torque_feedforward = np.zeros(n)  # CST target, or CSP/CSV torque offset
         self.torque_limit = np.full(n, np.inf)
-        # scratch, allocated once
+        # scratch, allocated once: a step allocates nothing
         self._vcmd = np.zeros(n)
         self._tau = np.zeros(n)
         self._acc = np.zeros(n)
         self._vnew = np.zeros(n)
+        self._err = np.zeros(n)
+        self._tmp = np.zeros(n)
+        self._inv_inertia = 1.0 / self.inertia
+        self._neg_limit = np.zeros(n)
+        self._not_position = np.zeros(n, dtype=bool)
+        self._looped = np.zeros(n, dtype=bool)
+        self._not_looped = np.zeros(n, dtype=bool)
+        self._off = np.zeros(n, dtype=bool)
+        self._free = np.zeros(n, dtype=bool)
+        self._stick = np.zeros(n, dtype=bool)
+        self._mask = np.zeros(n, dtype=bool)
 
     def step(self, dt: float) -> None:
         if dt <= 0:
             return
         steps = max(1, int(np.ceil(dt / self.max_substep)))
         h = dt / steps
-        looped = self.mode >= LoopMode.VELOCITY
-        self._integral[~looped] = 0.0
+        # what the modes select, once per step (the drives set mode and limits before it)
+        mode = self.mode
+        np.not_equal(mode, LoopMode.POSITION, out=self._not_position)
+        np.greater_equal(mode, LoopMode.VELOCITY, out=self._looped)
+        np.logical_not(self._looped, out=self._not_looped)
+        np.equal(mode, LoopMode.OFF, out=self._off)
+        np.negative(self.torque_limit, out=self._neg_limit)
+        np.copyto(self._integral, 0.0, where=self._not_looped)
         for _ in range(steps):
-            self._substep(h, looped)
+            self._substep(h)
 
-    def _substep(self, h: float, looped: np.ndarray) -> None:
-        q, v, tau, vcmd = self.position, self.velocity, self._tau, self._vcmd
+    def _substep(self, h: float) -> None:
+        q, v, tau, vcmd, err, tmp = (self.position, self.velocity, self._tau, self._vcmd,
+                                     self._err, self._tmp)
+        limit, neg_limit = self.torque_limit, self._neg_limit
         # velocity command: CSP position loop + feed-forward, or the CSV target
         np.subtract(self.target_position, q, out=vcmd)
         vcmd *= self.kp
         vcmd += self.target_velocity
-        np.copyto(vcmd, self.target_velocity, where=self.mode != LoopMode.POSITION)
+        np.copyto(vcmd, self.target_velocity, where=self._not_position)
         # velocity loop (PI) for CSP/CSV, torque target for CST, nothing when off
-        err = vcmd - v
+        np.subtract(vcmd, v, out=err)
         np.multiply(self.kv, err, out=tau)
         tau += self._integral
-        np.copyto(tau, 0.0, where=~looped)
+        np.copyto(tau, 0.0, where=self._not_looped)
         tau += self.torque_feedforward
-        np.clip(tau, -self.torque_limit, self.torque_limit, out=tau)
-        np.copyto(tau, 0.0, where=self.mode == LoopMode.OFF)
+        np.minimum(tau, limit, out=tau)
+        np.maximum(tau, neg_limit, out=tau)
+        np.copyto(tau, 0.0, where=self._off)
         # anti-windup: integrate only while the output is not saturated
-        free = looped & (np.abs(tau) < self.torque_limit)
-        self._integral += np.where(free, self.ki * err * h, 0.0)
-        np.clip(self._integral, -self.torque_limit, self.torque_limit, out=self._integral)
+        np.abs(tau, out=tmp)
+        np.less(tmp, limit, out=self._free)
+        self._free &= self._looped
+        np.multiply(self.ki, err, out=tmp)
+        tmp *= h
+        np.logical_not(self._free, out=self._mask)
+        np.copyto(tmp, 0.0, where=self._mask)
+        self._integral += tmp
+        np.minimum(self._integral, limit, out=self._integral)
+        np.maximum(self._integral, neg_limit, out=self._integral)
         np.copyto(self.torque, tau)
         # rigid joint with viscous friction and Coulomb friction that sticks at rest
         acc, vnew = self._acc, self._vnew
-        np.subtract(tau, self.viscous * v, out=acc)
-        acc -= self.coulomb * np.sign(v)
-        acc /= self.inertia
+        np.multiply(self.viscous, v, out=acc)
+        np.subtract(tau, acc, out=acc)
+        np.sign(v, out=tmp)
+        tmp *= self.coulomb
+        acc -= tmp
+        acc *= self._inv_inertia
         np.multiply(acc, h, out=vnew)
         vnew += v
-        stick = ((v == 0.0) & (np.abs(tau) <= self.coulomb)) | (v * vnew < 0.0)
+        stick, mask = self._stick, self._mask
+        np.equal(v, 0.0, out=stick)
+        np.abs(tau, out=tmp)
+        np.less_equal(tmp, self.coulomb, out=mask)
+        stick &= mask
+        np.multiply(v, vnew, out=tmp)
+        np.less(tmp, 0.0, out=mask)
+        stick |= mask
         np.copyto(vnew, 0.0, where=stick)
-        q += 0.5 * (v + vnew) * h
+        np.add(v, vnew, out=tmp)
+        tmp *= 0.5 * h
+        q += tmp
         np.copyto(v, vnew)
