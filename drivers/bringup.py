@@ -48,6 +48,7 @@ SYNC_EVERY_CYCLE = 1
 ERROR_BEHAVIOUR_PRE_OPERATIONAL = 0
 ERROR_BEHAVIOUR_NO_CHANGE = 1
 _COB_INVALID = 0x8000_0000
+_COB_RTR_NOT_ALLOWED = 0x4000_0000
 
 class Phase(enum.IntEnum):
     WAIT_BOOT = 0
@@ -85,9 +86,10 @@ def _configure_pdos(sdo: SdoClient, pdos: tuple[Pdo, ...],
     for ch in channels:
         comm, mapping = ch.communication_index, ch.mapping_index
         pdo = used.get(ch.number)
+        keep = ch.cob_id & _COB_RTR_NOT_ALLOWED  # a drive may insist on its bit 30
         if ch.cob_id_writable:  # invalid first: CiA 301 forbids remapping a valid PDO
-            sdo.download(comm, 1, _u32(_COB_INVALID | (ch.cob_id & 0x7FF
-                                                       or (pdo.cob_id if pdo else 0))))
+            sdo.download(comm, 1, _u32(_COB_INVALID | keep | (ch.cob_id & 0x7FF
+                                                              or (pdo.cob_id if pdo else 0))))
         if pdo is None:
             continue
         if not pdo.fixed:
@@ -98,7 +100,7 @@ def _configure_pdos(sdo: SdoClient, pdos: tuple[Pdo, ...],
         if ch.transmission_type_writable:
             sdo.download(comm, 2, _u8(SYNC_EVERY_CYCLE))
         if ch.cob_id_writable:
-            sdo.download(comm, 1, _u32(pdo.cob_id))
+            sdo.download(comm, 1, _u32(keep | pdo.cob_id))
 
 
 def _read_u32(sdo: SdoClient, index: int, subindex: int) -> int | None:
@@ -208,9 +210,11 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
         sdo.download(cia402.HOMING_METHOD, 0, struct.pack("<b", drive.homing_method))
     if DriveMode.IP in drive.modes and dt is not None \
             and caps.writable(cia402.INTERPOLATION_PERIOD, 1):  # IP steps once per cycle
-        value, index = interpolation_period(dt)
+        fixed = None if caps.writable(cia402.INTERPOLATION_PERIOD, 2) else \
+            caps.value(cia402.INTERPOLATION_PERIOD, 2)
+        value, index = interpolation_period(dt, fixed)
         sdo.download(cia402.INTERPOLATION_PERIOD, 1, _u8(value))
-        if caps.writable(cia402.INTERPOLATION_PERIOD, 2):
+        if fixed is None:
             sdo.download(cia402.INTERPOLATION_PERIOD, 2, struct.pack("<b", index))
     sdo.download(cia402.MODES_OF_OPERATION, 0, struct.pack("<b", int(drive.modes[0])))
     statusword = struct.unpack("<H", sdo.upload(cia402.STATUSWORD, 0)[:2])[0]

@@ -16,7 +16,7 @@ from . import cia301, cia402
 from .capabilities import CapabilityError, DriveCapabilities, read_capabilities
 from .config import FEEDBACK, DriveConfig
 from .modes import DriveMode
-from .pdo_layout import ENTRY_OF_FEEDBACK, DriveLayout, check_against_od, layout_for
+from .pdo_layout import ENTRY_OF_FEEDBACK, DriveLayout, Pdo, check_against_od, layout_for
 
 
 @dataclass(frozen=True)
@@ -29,8 +29,12 @@ class DrivePlan:
     def report(self) -> list[str]:
         """check-config's lines for this drive."""
         d, lay = self.drive, self.layout
-        pdos = "; ".join(f"{'fixed ' if p.fixed else ''}RPDO{p.number} "
-                         f"[{', '.join(p.names)}]" for p in lay.rpdos)
+
+        def entries(p: Pdo) -> str:  # a fixed RPDO's constants with the value sent
+            return ", ".join(e.name if e.constant is None else f"{e.name} = {e.constant}"
+                             for e in p.entries)
+        pdos = "; ".join(f"{'fixed ' if p.fixed else ''}RPDO{p.number} [{entries(p)}]"
+                         for p in lay.rpdos)
         pdos += "; " + "; ".join(f"{'fixed ' if p.fixed else ''}TPDO{p.number} "
                                  f"[{', '.join(p.names)}]" for p in lay.tpdos)
         lines = [f"{d.name} (node {d.node_id}, {self.caps.source}):",

@@ -63,6 +63,7 @@ import collections
 import dataclasses
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -213,6 +214,8 @@ class CanopenHardware:
         self._homing: list[HomingJob | None] = [None] * n
         self._homing_requests: collections.deque[HomingJob] = collections.deque()
         self._homing_seen: list[HomingJob | None] = [None] * n  # the last job, for status
+        self._homing_lock = threading.Lock()
+        self._pp = [DriveMode.PP in d.modes for d in drives]  # the set-point handshake
         self._allowed_list = self._allowed_modes.tolist()
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
@@ -500,8 +503,11 @@ class CanopenHardware:
     def write(self, manager_state: ManagerState) -> None:
         """Command frames (or torque-off frames in FAILPROOF), then SYNC, then heartbeat."""
         self._manager_state = manager_state
-        if manager_state != ManagerState.OK:
-            for i, job in enumerate(self._homing):  # an e-stop ends homing
+        if manager_state != ManagerState.OK:  # an e-stop ends homing, queued ones too
+            while self._homing_requests:
+                self._homing_requests.popleft().fail(
+                    f"the manager left OK ({manager_state.name}) before homing started")
+            for i, job in enumerate(self._homing):
                 if job is not None:
                     job.fail(f"the manager left OK ({manager_state.name})")
                     self._homing[i] = None
@@ -544,6 +550,8 @@ class CanopenHardware:
                 for msg in self._start_frames(i, b):
                     send(msg)
             self.enable.reset(i)
+            if self._pp[i]:
+                self._setpoints.reset(i)
 
     def send_torque_off(self) -> None:
         """Torque-off frames to every mapped drive, then SYNC, from any thread.
@@ -610,6 +618,8 @@ class CanopenHardware:
                 for msg in self._start_frames(i, b):
                     send(msg)
                 enable.reset(i)
+                if self._pp[i]:
+                    self._setpoints.reset(i)
                 continue
             mode, st = modes[i], states[i]
             values: tuple[int, ...]
@@ -622,9 +632,10 @@ class CanopenHardware:
             if mode in _CYCLIC:
                 cw = enable.controlword(i, st, now)
                 carried = self._carrier[i][mode]
+                if self._pp[i] and (st != OP_ENABLED or carried != _PP):
+                    self._setpoints.reset(i)  # the next PP target is a new set-point
                 if st != OP_ENABLED:  # enabling (or dropped out): hold the actual position
                     values = (cw, carried, actual[i], 0, 0)
-                    self._setpoints.reset(i)
                 elif carried == _PP:
                     bits, target = self._setpoints.step(i, tpos[i], int(statuswords[i]))
                     values = (cw | bits, carried, target, tvel[i], ttrq[i])
@@ -636,7 +647,8 @@ class CanopenHardware:
                 cw = _CW_QUICK_STOP if mode == JointMode.QUICK_STOP else 0
                 values = (cw, self._default_mode[i], actual[i], 0, 0)
                 enable.reset(i)
-                self._setpoints.reset(i)
+                if self._pp[i]:
+                    self._setpoints.reset(i)
             constants = self._rpdo_constants[i]
             if constants:  # a fixed mapping's other objects: sent as the file gives them
                 values += constants
@@ -691,13 +703,16 @@ class CanopenHardware:
         elif self._manager is not None and self._manager_state != ManagerState.OK:
             why = ("the manager is not OK: homing runs while a controller holds the other "
                    "joints (clear the e-stop and switch to one first)")
-        elif any(j is not None and j.index == i and not j.done()
-                 for j in (*self._homing, *self._homing_requests)):
-            why = "it is already homing"
-        if why is not None:
-            raise HomingFailed(f"{drive}: cannot home: {why}")
-        future: Future[str] = Future()
-        self._homing_requests.append(HomingJob(i, drive, timeout or d.homing_timeout, future))
+        with self._homing_lock:  # between callers only: the cycle never takes it
+            seen = self._homing_seen[i]
+            if why is None and seen is not None and not seen.done():
+                why = "it is already homing"
+            if why is not None:
+                raise HomingFailed(f"{drive}: cannot home: {why}")
+            future: Future[str] = Future()
+            job = HomingJob(i, drive, timeout or d.homing_timeout, future)
+            self._homing_seen[i] = job  # status shows this request, not the last result
+            self._homing_requests.append(job)
         return future
 
     # --- the manager's limit_command -------------------------------------------------------------

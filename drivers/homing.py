@@ -4,9 +4,12 @@ Homing is a service, not a controller: ``CanopenHardware.home`` queues a request
 cycle runs it. For the drive being homed, the cycle sends mode 6 and the enable sequence
 (enable.py), then raises controlword bit 4 ("homing operation start") and keeps it up until
 the drive reports statusword bit 12 + bit 10 (homing attained, target reached) or bit 13
-(homing error), or the time is up. The drive's own homing method (0x6098, from the config
-at bring-up or as commissioned) and speeds move it. Every other drive stays with the active
-controller; the homed drive's command from it is ignored meanwhile.
+(homing error), or the time is up. A bit 12 already set when homing starts (left over
+from the previous mode, or from an earlier homing) counts only once the drive has shown it
+low: a drive still answering the start edge late is not taken as homed. The drive's own
+homing method (0x6098, from the config at bring-up or as commissioned) and speeds move it.
+Every other drive stays with the active controller; the homed drive's command from it is
+ignored meanwhile.
 
 Afterwards the drive's position reference has changed, so it stays torque-off until the
 next switch (like a drive that became ready after one: the controller never saw it). An
@@ -31,6 +34,7 @@ SETTLE_CYCLES = 3
 
 
 class Phase(enum.Enum):
+    REQUESTED = "requested"
     ENABLING = "enabling"
     HOMING = "homing"
 
@@ -44,9 +48,13 @@ class HomingJob:
         self.name = name
         self.timeout = timeout
         self.future = future
-        self.phase = Phase.ENABLING
+        self.phase = Phase.REQUESTED
         self.deadline: float | None = None
         self._cycles = 0
+        # statusword bit 12 before the start edge: set (left over from the previous mode or
+        # an earlier homing), a set bit 12 counts only after it has been seen low
+        self._stale_attained: bool | None = None
+        self._seen_in_progress = False
 
     def step(self, enabled: bool, statusword: int, now: float) -> int | None:
         """This cycle's controlword once the drive is enabled (None while the enable sequence
@@ -59,14 +67,20 @@ class HomingJob:
         if not enabled:
             if self.phase == Phase.HOMING:
                 self.fail("left operation enabled while homing")
+            self.phase = Phase.ENABLING
             return None
-        self.phase = Phase.HOMING
+        if self.phase != Phase.HOMING:  # the start edge goes out now
+            self.phase = Phase.HOMING
+            self._stale_attained = bool(statusword & SW_HOMING_ATTAINED)
         self._cycles += 1
+        if not statusword & SW_HOMING_ATTAINED:
+            self._seen_in_progress = True
         if self._cycles > SETTLE_CYCLES:
             if statusword & SW_HOMING_ERROR:
                 self.fail("the drive reports a homing error (statusword bit 13)")
                 return None
-            if statusword & SW_HOMING_ATTAINED and statusword & cia402.SW_TARGET_REACHED:
+            attained = statusword & SW_HOMING_ATTAINED and statusword & cia402.SW_TARGET_REACHED
+            if attained and (self._seen_in_progress or not self._stale_attained):
                 self.future.set_result(f"{self.name}: homed")
                 return None
         return CW_HOMING_START

@@ -91,13 +91,16 @@ class SetPointHandshake:
         self._latched[i] = None
 
 
-def interpolation_period(dt: float) -> tuple[int, int]:
+def interpolation_period(dt: float, fixed_index: int | None = None) -> tuple[int, int]:
     """0x60C2 for a loop period: (value 1..255, index -6..0), value x 10^index = dt, in
     milliseconds where it fits (the unit drives support most widely), else finer, else
-    coarser. ValueError when no such pair gives dt to within 0.1 %."""
-    for index in (-3, -4, -5, -6, -2, -1, 0):
+    coarser; ``fixed_index``: the drive's own, when it cannot be written. ValueError when no
+    such pair gives dt to within 0.1 %."""
+    indices = (-3, -4, -5, -6, -2, -1, 0) if fixed_index is None else (fixed_index,)
+    for index in indices:
         value = round(dt / 10.0 ** index)
         if 1 <= value <= 255 and abs(value * 10.0 ** index - dt) <= 1e-3 * dt:
             return value, index
     raise ValueError(f"a loop period of {dt} s cannot be an IP interpolation period (0x60C2: "
-                     "1..255 x 10^-6..10^0 s)")
+                     "1..255 x 10^index s" + (f", index fixed at {fixed_index} by the drive)"
+                                             if fixed_index is not None else ")"))

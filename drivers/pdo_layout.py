@@ -98,18 +98,22 @@ class Pdo:
 
 
 def first_fit(entries: Iterable[PdoEntry], max_bytes: int = PDO_BYTES,
-              max_objects: int = 8) -> list[list[PdoEntry]]:
-    """Pack entries in order into as few PDOs as first fit allows (order kept within a PDO),
-    at most ``max_objects`` entries per PDO."""
+              limits: Sequence[int] | None = None) -> list[list[PdoEntry]]:
+    """Pack entries in order into as few PDOs as first fit allows (order kept within a PDO);
+    ``limits``: the most objects each PDO slot takes, in slot order (None: 8 each, as many
+    slots as needed). Raises ValueError when the slots cannot take every entry."""
     pdos: list[list[PdoEntry]] = []
     used: list[int] = []
     for e in entries:
         for i, u in enumerate(used):
-            if u + e.size <= max_bytes and len(pdos[i]) < max_objects:
+            limit = 8 if limits is None else limits[i]
+            if u + e.size <= max_bytes and len(pdos[i]) < limit:
                 pdos[i].append(e)
                 used[i] += e.size
                 break
         else:
+            if limits is not None and len(pdos) >= len(limits):
+                raise ValueError("no PDO slot left")
             pdos.append([e])
             used.append(e.size)
     return pdos
@@ -122,12 +126,10 @@ def _pdo(number: int, cob_id: int, entries: Sequence[PdoEntry], fixed: bool = Fa
 
 @dataclass(frozen=True)
 class DriveLayout:
-    """Every PDO one drive exchanges per cycle. ``unused``: the drive's PDO channels that
-    bring-up switches off (invalid COB-ID), as (tx, number)."""
+    """Every PDO one drive exchanges per cycle (bring-up switches the drive's others off)."""
     node_id: int
     rpdos: tuple[Pdo, ...]
     tpdos: tuple[Pdo, ...]
-    unused: tuple[tuple[bool, int], ...] = ()
 
     @property
     def frames_per_cycle(self) -> int:
@@ -173,9 +175,9 @@ def layout_for(drive: DriveConfig, caps: DriveCapabilities | None = None) -> Dri
         rpdos = _remapped(rx_need, _generic(False), drive, "RPDO")
         tpdos = _remapped(tx_need, _generic(True), drive, "TPDO")
         return DriveLayout(drive.node_id, rpdos, tpdos)
-    rpdos, r_unused = _fit(rx_need, caps.rpdos, caps, drive, tx=False)
-    tpdos, t_unused = _fit(tx_need, caps.tpdos, caps, drive, tx=True)
-    return DriveLayout(drive.node_id, rpdos, tpdos, r_unused + t_unused)
+    rpdos = _fit(rx_need, caps.rpdos, caps, drive, tx=False)
+    tpdos = _fit(tx_need, caps.tpdos, caps, drive, tx=True)
+    return DriveLayout(drive.node_id, rpdos, tpdos)
 
 
 def _generic(tx: bool) -> list[tuple[int, int, int]]:
@@ -186,23 +188,35 @@ def _generic(tx: bool) -> list[tuple[int, int, int]]:
 
 def _remapped(need: list[PdoEntry], slots: list[tuple[int, int, int]], drive: DriveConfig,
               what: str, node_cob: bool = True) -> tuple[Pdo, ...]:
-    """``need`` packed into the remappable ``slots`` (number, COB-ID or base, max objects)."""
+    """``need`` packed into the remappable ``slots`` (number, COB-ID or base, max objects),
+    each slot taking at most its own number of objects."""
     if not need:
         return ()
-    limit = min((m for _, _, m in slots), default=0)
-    groups = first_fit(need, PDO_BYTES, max(limit, 1))
-    if len(groups) > len(slots):
-        raise ValueError(f"drive {drive.name!r}: {what} needs {len(groups)} PDOs "
-                         f"({', '.join(e.name for e in need)}), the drive has "
-                         f"{len(slots)} it lets us map")
+    slots = [slot for slot in slots if slot[2] > 0]
+    try:
+        groups = first_fit(need, PDO_BYTES, [m for _, _, m in slots])
+    except ValueError:
+        raise ValueError(f"drive {drive.name!r}: {what} needs more PDOs for "
+                         f"{', '.join(e.name for e in need)} than the "
+                         f"{len(slots)} it lets us map (at most "
+                         f"{', '.join(str(m) for _, _, m in slots) or 'no'} objects each)"
+                         ) from None
     return tuple(_pdo(number, cob + (drive.node_id if node_cob else 0), g)
                  for (number, cob, _), g in zip(slots, groups))
 
 
+#: Objects that move a joint or hold a brake: a fixed RPDO may send them only as 0.
+_NEVER_NONZERO = {cia402.TARGET_POSITION, cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE,
+                  cia402.VELOCITY_OFFSET, cia402.TORQUE_OFFSET, cia402.INTERPOLATION_DATA,
+                  0x60B0, 0x6042, 0x60FE}
+
+
 def _entry_of(caps: DriveCapabilities, index: int, subindex: int, bits: int, tx: bool,
-              drive: DriveConfig, where: str) -> PdoEntry:
+              drive: DriveConfig, where: str, need: list[PdoEntry]) -> PdoEntry:
+    """One entry of a fixed mapping: what the layout needs, else a TPDO entry read past or
+    an RPDO constant (the file's value, never a live target of a mode not configured)."""
     known = _KNOWN.get((index, subindex))
-    if known is not None and known.size * 8 == bits:
+    if known is not None and known.size * 8 == bits and known in need:
         return known
     var = caps.variable(index, subindex)
     if var is None or var.data_type is None or len(var) != bits:
@@ -212,28 +226,35 @@ def _entry_of(caps: DriveCapabilities, index: int, subindex: int, bits: int, tx:
     if tx:
         return PdoEntry(IGNORED, index, subindex, fmt)
     value = caps.value(index, subindex)
-    return PdoEntry(f"0x{index:04X}:{subindex}", index, subindex, fmt,
-                    constant=int(value) if isinstance(value, int) else 0)
+    constant = int(value) if isinstance(value, int) else 0
+    if constant and index in _NEVER_NONZERO:
+        raise ValueError(f"drive {drive.name!r}: {where} maps 0x{index:04X}:{subindex}, "
+                         f"which rocoma-can does not command here and would send as the "
+                         f"file's value {constant} every cycle (a target, offset or output): "
+                         "give it 0 in the file")
+    return PdoEntry(f"0x{index:04X}:{subindex}", index, subindex, fmt, constant=constant)
 
 
 def _fit(need: list[PdoEntry], channels: tuple[PdoChannel, ...], caps: DriveCapabilities,
-         drive: DriveConfig, tx: bool) -> tuple[tuple[Pdo, ...], tuple[tuple[bool, int], ...]]:
+         drive: DriveConfig, tx: bool) -> tuple[Pdo, ...]:
     """Fixed channels that carry something needed are used as they are; what they do not
     carry goes first-fit into the remappable ones; every other channel is switched off."""
     what = "TPDO" if tx else "RPDO"
+    bases = cia301.TPDO_BASE if tx else cia301.RPDO_BASE
     used: list[Pdo] = []
     carried: set[str] = set()
     for ch in channels:
         if ch.mapping_writable or not ch.mapping:
             continue
-        entries = [_entry_of(caps, i, s, b, tx, drive, ch.name) for i, s, b in _split(ch)]
+        entries = [_entry_of(caps, i, s, b, tx, drive, ch.name, need)
+                   for i, s, b in _split(ch)]
         if not any(e in need for e in entries):
             continue
-        _check_fixed(ch, drive)
-        used.append(_pdo(ch.number, ch.cob_id & 0x7FF, entries, fixed=True))
+        _check_usable(ch, drive)
+        used.append(_pdo(ch.number, _cob_id(ch, bases, drive), entries, fixed=True))
         carried.update(e.name for e in entries if e in need)
     rest = [e for e in need if e.name not in carried]
-    if not tx and MODE in rest and carried:
+    if not tx and MODE in rest and "controlword" in carried:
         # the controlword travels in a fixed RPDO without 0x6060: the mode is set once by
         # SDO at bring-up, so the drive cannot change mode in the cycle
         rest.remove(MODE)
@@ -241,24 +262,29 @@ def _fit(need: list[PdoEntry], channels: tuple[PdoChannel, ...], caps: DriveCapa
             raise ValueError(f"drive {drive.name!r}: its fixed RPDO mapping has no 0x6060 "
                              "(modes of operation), so the mode cannot change in the cycle: "
                              f"configure one mode, not {[m.name for m in drive.modes]}")
-    free = [ch for ch in channels if ch.mapping_writable]
+    free = [ch for ch in channels if ch.mapping_writable and ch.max_objects > 0]
     if rest and not free:
         names = ", ".join(f"{e.name} (0x{e.index:04X})" for e in rest)
         raise ValueError(f"drive {drive.name!r}: its {what} mappings are fixed and none "
                          f"carries {names}; fixed: "
                          + "; ".join(f"{ch.name} = {_describe(ch)}" for ch in channels))
-    bases = cia301.TPDO_BASE if tx else cia301.RPDO_BASE
-    remapped = _remapped(rest, [(ch.number, ch.cob_id & 0x7FF
-                                 or bases[ch.number - 1] + drive.node_id, ch.max_objects)
+    remapped = _remapped(rest, [(ch.number, _cob_id(ch, bases, drive), ch.max_objects)
                                 for ch in free], drive, what, node_cob=False)
+    for pdo in remapped:
+        _check_usable(next(ch for ch in free if ch.number == pdo.number), drive)
     pdos = sorted((*used, *remapped), key=lambda p: p.number)
     taken = {p.number for p in pdos}
-    idle = [ch for ch in channels if ch.number not in taken]
-    for ch in idle:
-        if not ch.cob_id & PDO_NOT_VALID and not ch.cob_id_writable:
+    for ch in channels:
+        if ch.number not in taken and not ch.cob_id & PDO_NOT_VALID \
+                and not ch.cob_id_writable:
             raise ValueError(f"drive {drive.name!r}: {ch.name} ({_describe(ch)}) is always "
                              "on and its COB-ID cannot be written to switch it off")
-    return tuple(pdos), tuple((tx, ch.number) for ch in idle)
+    return tuple(pdos)
+
+
+def _cob_id(ch: PdoChannel, bases: tuple[int, ...], drive: DriveConfig) -> int:
+    """The 11-bit identifier a channel uses: the file's, or the predefined one."""
+    return ch.cob_id & 0x7FF or bases[ch.number - 1] + drive.node_id
 
 
 def _split(ch: PdoChannel) -> list[tuple[int, int, int]]:
@@ -269,8 +295,12 @@ def _describe(ch: PdoChannel) -> str:
     return ", ".join(f"0x{i:04X}:{s}" for i, s, _ in _split(ch)) or "nothing"
 
 
-def _check_fixed(ch: PdoChannel, drive: DriveConfig) -> None:
-    """A fixed PDO is usable only if it goes every SYNC or its transmission type may be set."""
+def _check_usable(ch: PdoChannel, drive: DriveConfig) -> None:
+    """A channel is usable if it can be made valid and goes every SYNC (an RPDO may also be
+    event-driven): where the file fixes its COB-ID or transmission type, it must say so."""
+    if ch.cob_id & PDO_NOT_VALID and not ch.cob_id_writable:
+        raise ValueError(f"drive {drive.name!r}: {ch.name} is switched off (COB-ID bit 31) "
+                         "and its COB-ID cannot be written to switch it on")
     if not ch.transmission_type_writable and ch.transmission_type not in (None, 1) and (
             ch.tx or (ch.transmission_type or 0) <= 240):
         raise ValueError(f"drive {drive.name!r}: {ch.name} has the fixed transmission type "

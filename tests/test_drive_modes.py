@@ -181,3 +181,33 @@ def test_a_drive_config_of_only_ip_refuses_velocity_commands():
                                   modes=["ip"], accept_unsupervised=False))
     assert plan.drive.modes == (DriveMode.IP,)
     assert any("no 0x6007" in n for n in plan.notes)
+
+
+def test_pp_after_another_mode_starts_a_new_set_point_never_the_old_one(mode_rig, tmp_path):
+    """PP -> CST (the joint moved elsewhere) -> PP: the first set-point after coming back is
+    the new target, not the one latched before (the handshake restarts)."""
+    from fixtures.driver_rig import HoldPD
+    both = tmp_path / "pp_cst.eds"  # the generic drive, listing PP too
+    both.write_text((Path(__file__).parent.parent / "eds" / "cia402_drive.eds").read_text()
+                    .replace("DefaultValue=0x000003A0", "DefaultValue=0x000003A1"))
+    rig, drive, recorder = mode_rig(str(both), ("pp", "cst"))
+    per_rad = drive.increments_per_rad
+    _enable(rig, Step("out", offset=0.3))
+    assert rig.run_until(lambda: drive.statusword & cia402.SW_TARGET_REACHED
+                         and drive.position_rad > 0.25, 5.0), drive.status_line()
+    rig.mgr.add_controller(HoldPD("home", target=0.0))  # CST back to 0
+    assert rig.switch("home") == SwitchResult.SWITCHED
+    assert rig.run_until(lambda: abs(drive.position_rad) < 0.05, 5.0), drive.status_line()
+    rig.mgr.add_controller(Step("stay", offset=0.0))  # PP again, holding where it is
+    mark = recorder.mark()
+    assert rig.switch("stay") == SwitchResult.SWITCHED
+    rig.run(0.3)
+    rpdo = rig.hw.layouts[0].rpdos[0].cob_id
+    set_points = [struct.unpack_from("<Hbi", f.data) for f in recorder.frames(rpdo, since=mark)
+                  if struct.unpack_from("<Hb", f.data) == (
+                      struct.unpack_from("<H", f.data)[0], DriveMode.PP)
+                  and struct.unpack_from("<H", f.data)[0] & CW_NEW_SETPOINT]
+    assert set_points, "no set-point after coming back to PP"
+    first_target = set_points[0][2] / per_rad
+    assert abs(first_target) < 0.05, first_target  # not the 0.3 rad latched before
+    assert abs(drive.position_rad) < 0.05

@@ -123,3 +123,68 @@ def test_rocoma_can_home_over_the_manager_node(virtual_channel, sim_segment_fact
     assert outcome == {"refused": 1, "switch": 0, "home": 0}, (out, err)
     assert "cannot home: the manager is not OK" in err
     assert "joint1: homed" in out
+
+
+def test_a_queued_request_does_not_survive_an_estop(rig):
+    """Requested, then e-stopped before the cycle took it: it fails, and never starts."""
+    mark = rig.recorder.mark()
+    future = rig.hw.home("j1")
+    rig.mgr.emergency_stop("test")
+    _run_until_done(rig, future, 2.0)
+    with pytest.raises(HomingFailed, match="before homing started"):
+        future.result()
+    rig.run(10 * rig.dt)
+    frames = [struct.unpack_from("<Hb", f.data) for f in rig.recorder.frames(0x201, since=mark)]
+    assert all(mode != HOMING_MODE for _, mode in frames)
+
+
+def test_status_shows_a_new_request_not_the_last_result(rig):
+    first = rig.hw.home("j1")
+    _run_until_done(rig, first, 5.0)
+    assert rig.hw.drive_status()[0].homing == "homed"
+    rig.mgr.add_controller(Sine("again", JointMode.CSP, amplitude=0.1))
+    assert rig.switch("again") == SwitchResult.SWITCHED
+    assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget())
+    rig.hw.home("j1")
+    assert rig.hw.drive_status()[0].homing == "requested"
+
+
+@pytest.mark.parametrize("method, timeout, why", [
+    (99, 60.0, "homing error \\(statusword bit 13\\)"),  # the simulator knows 1..37
+    (35, 0.05, "not homed within 0.05 s"),              # it takes 0.2 s
+])
+def test_a_homing_error_or_timeout_ends_as_failed(method, timeout, why, sim_segment_factory,
+                                                  bus_factory):
+    sim_segment_factory([1])
+    r = Rig.for_setup(bus_factory(), [1], VIRTUAL, modes=("csp",),
+                      drive={"homing_method": method, "homing_timeout": timeout})
+    try:
+        assert r.run_until(lambda: not r.hw.starting, VIRTUAL.bring_up_budget(1))
+        r.mgr.add_controller(Sine("sine", JointMode.CSP, amplitude=0.1))
+        assert r.switch("sine") == SwitchResult.SWITCHED
+        future = r.hw.home("j1")
+        _run_until_done(r, future, 5.0)
+        with pytest.raises(HomingFailed, match=why):
+            future.result()
+    finally:
+        r.close()
+
+
+def test_a_bit_12_left_set_before_the_start_counts_only_after_it_was_low():
+    from concurrent.futures import Future
+
+    from rocoma_can.drivers.homing import SW_HOMING_ATTAINED, HomingJob
+    homed = SW_HOMING_ATTAINED | 0x0400  # bit 12 + target reached
+    job = HomingJob(0, "j", 10.0, Future())
+    assert job.step(True, homed, 0.0) is not None       # stale: set before the start edge
+    for t in range(1, 6):
+        assert job.step(True, homed, t * 0.01) is not None  # never seen low: not homed
+    job.step(True, 0x0400, 0.1)                          # homing in progress
+    assert job.step(True, homed, 0.11) is None and job.future.result() == "j: homed"
+    fresh = HomingJob(0, "j", 10.0, Future())            # low before the start: a set bit
+    fresh.step(True, 0x0400, 0.0)                        # after it is the drive's answer
+    t = 0.0
+    while not fresh.done() and t < 1.0:
+        t += 0.01
+        fresh.step(True, homed, t)
+    assert fresh.future.result() == "j: homed"

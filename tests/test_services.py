@@ -193,7 +193,7 @@ def test_a_plain_remote_node_from_the_eds_reads_what_the_node_serves(rig, bus_fa
             (0x2102, 0): 0xFE, (0x2103, 0): "", (0x2120, 0): 0, (0x2121, 0): "torque_off",
             (0x2122, 0): 0,
             (0x2123, 0): "pd,trajectory", (0x2124, 0): "", (0x2130, 0): ESTOP_COB,
-            (0x2131, 0): 0,
+            (0x2131, 0): 0, (0x2151, 0): "",
         }
         read, write_only = {}, []
         for obj in node.object_dictionary.values():
@@ -208,7 +208,8 @@ def test_a_plain_remote_node_from_the_eds_reads_what_the_node_serves(rig, bus_fa
                     assert refused.value.code == 0x06010001, hex(var.index)
                     continue
                 read[var.index, var.subindex] = sdo_var.raw
-        assert sorted(write_only) == [0x2100, 0x2101, 0x2110, 0x2111, 0x2112, 0x2113]
+        assert sorted(write_only) == [0x2100, 0x2101, 0x2110, 0x2111, 0x2112, 0x2113,
+                                      0x2150]
         assert {k: read[k] for k in expected} == expected
     finally:
         network.disconnect()

@@ -295,3 +295,95 @@ def test_a_controller_that_needs_missing_feedback_is_refused_at_load():
         entry["emergency"] = "damp"
     cfg["emergency_controllers"][0] = {"name": "damp", "plugin": "damp"}
     assert validate(cfg).plans["joint1"].drive.feedback == ("position", "velocity")
+
+
+# --- the layout's limits, from the review of real files ---------------------------------------
+def _variant(tmp_path, name: str, edit) -> str:
+    text = (Path(__file__).parent.parent / "eds" / "cia402_drive.eds").read_text()
+    path = tmp_path / name
+    path.write_text(edit(text))
+    return str(path)
+
+
+def test_each_mapping_object_takes_at_most_its_own_entries(tmp_path):
+    """RPDO1's mapping object has two entries: controlword + mode fill it, the target goes
+    to RPDO2 (first fit per slot, not the smallest slot's limit for all)."""
+    def two_entries(text: str) -> str:
+        for sub in range(3, 9):
+            text = text.replace(f"[1600sub{sub}]\n", f"[X1600sub{sub}]\n")
+        return text.replace("[1600]\nParameterName=RPDO1 mapping parameter\n"
+                            "ObjectType=0x9\nSubNumber=9",
+                            "[1600]\nParameterName=RPDO1 mapping parameter\n"
+                            "ObjectType=0x9\nSubNumber=3").replace(
+            "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\n"
+            "DataType=0x0005\nAccessType=rw\nDefaultValue=3",
+            "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\n"
+            "DataType=0x0005\nAccessType=rw\nDefaultValue=2")
+    path = _variant(tmp_path, "two.eds", two_entries)
+    caps = read_capabilities(path, 1)
+    assert caps.rpdos[0].max_objects == 2
+    plan = plan_drive(drive_with(path))
+    assert [p.names for p in plan.layout.rpdos] == [("controlword", "mode"),
+                                                    ("target_position",)]
+
+
+def drive_with(path: str, **kw) -> DriveConfig:
+    kw.setdefault("modes", ("csp",))
+    return DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=path, **kw)
+
+
+def test_a_fixed_rpdo_never_sends_a_target_it_is_not_told(tmp_path):
+    """A fixed RPDO1 = controlword + target position + target velocity on a CSP drive: the
+    velocity target is a constant (the file's 0), not a live value; a non-zero one is
+    refused."""
+    fixed = (EDS / "fixed_pdo.eds").read_text().replace(
+        "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\nDataType=0x0005"
+        "\nAccessType=const\nDefaultValue=2",
+        "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\nDataType=0x0005"
+        "\nAccessType=const\nDefaultValue=3")
+    assert "DefaultValue=3" in fixed
+    # a third entry, 0x6072 max torque (16 bit), left at its file value 3000: not a target
+    fixed = fixed.replace("[1600sub2]", "[1600sub3]\nParameterName=Mapped object 3\n"
+                          "ObjectType=0x7\nDataType=0x0007\nAccessType=const\n"
+                          "DefaultValue=0x60720010\nPDOMapping=0\n\n[1600sub2]")
+    fixed = fixed.replace("[1600]\nParameterName=RPDO1 mapping parameter\nObjectType=0x9\n"
+                          "SubNumber=3", "[1600]\nParameterName=RPDO1 mapping parameter\n"
+                          "ObjectType=0x9\nSubNumber=4")
+    path = tmp_path / "fixed3.eds"
+    path.write_text(fixed)
+    plan = plan_drive(drive_with(str(path)))
+    (rpdo,) = plan.layout.rpdos
+    assert [(e.name, e.constant) for e in rpdo.entries] == [
+        ("controlword", None), ("target_position", None), ("0x6072:0", 3000)]
+    assert "0x6072:0 = 3000" in "\n".join(plan.report())
+    refused = tmp_path / "fixed4.eds"  # the third entry a velocity target the file sets
+    refused.write_text(fixed.replace("DefaultValue=0x60720010", "DefaultValue=0x60FF0020")
+                       + "\n[60FF]\nParameterName=Target velocity\nObjectType=0x7\n"
+                       "DataType=0x0004\nAccessType=rw\nDefaultValue=100\nPDOMapping=1\n")
+    with pytest.raises(ValueError, match=r"maps 0x60FF:0, which rocoma-can does not command "
+                                         r"here and would send as the file's value 100"):
+        plan_drive(drive_with(str(refused)))
+
+
+def test_unused_channels_are_switched_off_and_0x1029_set_at_bring_up(tmp_path,
+                                                                    sim_segment_factory,
+                                                                    bus_factory):
+    """The generic drive's RPDO3/4 and TPDO3/4 are not needed for CSP: invalid after bring-up;
+    a 0x1029:1 of "no state change" becomes "pre-operational"."""
+    path = _variant(tmp_path, "no_change.eds", lambda text: text.replace(
+        "[1029sub1]\nParameterName=Communication error\nObjectType=0x7\n"
+        "DataType=0x0005\nAccessType=rw\nDefaultValue=0",
+        "[1029sub1]\nParameterName=Communication error\nObjectType=0x7\n"
+        "DataType=0x0005\nAccessType=rw\nDefaultValue=1"))
+    segment = sim_segment_factory([1], eds_path=path)
+    assert segment.drives[1].od_value(cia301.ERROR_BEHAVIOR, 1) == 1
+    r = Rig.for_setup(bus_factory(), [1], VIRTUAL, modes=("csp",), drive={"eds": path})
+    try:
+        assert r.run_until(lambda: not r.hw.starting, VIRTUAL.bring_up_budget(1))
+        sim = segment.drives[1]
+        assert sim.od_value(cia301.ERROR_BEHAVIOR, 1) == 0
+        for comm in (0x1402, 0x1403, 0x1802, 0x1803):
+            assert sim.od_value(comm, 1) & 0x8000_0000, hex(comm)
+        assert not sim.od_value(0x1400, 1) & 0x8000_0000
+    finally:
+        r.close()
