@@ -13,6 +13,7 @@ from collections.abc import Sequence
 COMMAND_MODULES: tuple[str, ...] = (
     "rocoma_can.runtime.demo",
     "rocoma_can.runtime.commands",
+    "rocoma_can.runtime.record_cli",
     "rocoma_can.runtime.scaffold",
     "rocoma_can.drivers.sim.cli",
 )

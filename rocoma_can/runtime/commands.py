@@ -12,10 +12,13 @@ from __future__ import annotations
 
 import argparse
 import faulthandler
+import importlib.util
 import json
+import os
 import signal
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..errors import NoAnswer, Refused, RocomaError
@@ -78,6 +81,17 @@ def _buses(config: RuntimeConfig) -> str:
                      f"{len(config.drives_on(b))} drives)" for b in config.buses)
 
 
+def default_flight_dir() -> Path:
+    """$XDG_STATE_HOME/rocoma-can/flight (~/.local/state/rocoma-can/flight)."""
+    state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(state) / "rocoma-can" / "flight"
+
+
+def recording_available() -> bool:
+    """The MCAP writer (the optional extra rocoma-can[record]) is installed."""
+    return importlib.util.find_spec("mcap") is not None
+
+
 def _run(args: argparse.Namespace) -> int:
     from ..errors import ConfigError
     from .config import load
@@ -90,8 +104,17 @@ def _run(args: argparse.Namespace) -> int:
         return USAGE
     if args.rate:
         config.rate = args.rate
+    flight = None if args.no_flight else args.flight_dir
+    if flight is not None and not recording_available():
+        _err("flight recorder off: it writes MCAP, pip install 'rocoma-can[record]'")
+        flight = None
+    if args.record and not recording_available():
+        _err("--record writes MCAP: pip install 'rocoma-can[record]'")
+        return USAGE
     try:
-        runtime = Runtime(config)
+        runtime = Runtime(config, record=args.record, flight=flight,
+                          flight_seconds=args.flight_seconds,
+                          announce=lambda text: print(f"rocoma-can: {text}", flush=True))
     except (OSError, ValueError) as exc:
         _err(str(exc))
         return USAGE
@@ -101,6 +124,11 @@ def _run(args: argparse.Namespace) -> int:
         print(f"rocoma-can: running {len(config.drives)} drives at {config.rate:g} Hz on "
               f"{_buses(config)}, manager node "
               f"{config.manager.node_id} (Ctrl-C / SIGTERM: torque-off, then exit)", flush=True)
+        if runtime.flight is not None:
+            print(f"rocoma-can: flight recorder: the last {args.flight_seconds:g} s before "
+                  f"every e-stop go to {runtime.flight.directory}", flush=True)
+        if runtime.recording is not None:
+            print(f"rocoma-can: recording every frame and cycle to {args.record}", flush=True)
         try:
             summary = runtime.run(duration=args.duration)
         except OSError as exc:
@@ -216,6 +244,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("config", help="YAML file (see README, Configuration)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many s")
     p.add_argument("--rate", type=float, default=None, help="override the loop rate, Hz")
+    p.add_argument("--record", default=None, metavar="DIR",
+                   help="write every frame (DIR/<bus>.log, candump) and every cycle "
+                        "(DIR/trace.mcap) as they happen")
+    p.add_argument("--flight-dir", default=str(default_flight_dir()), metavar="DIR",
+                   help="where the flight recorder writes (default %(default)s)")
+    p.add_argument("--flight-seconds", type=float, default=10.0, metavar="S",
+                   help="seconds the flight recorder keeps before an e-stop (10)")
+    p.add_argument("--no-flight", action="store_true", help="no flight recorder")
     p.set_defaults(func=_run)
 
     p = subparsers.add_parser("check-config", help="validate a YAML config, list every problem")

@@ -42,6 +42,9 @@ _SPIN = 0.0005  # seconds before the deadline where sleeping stops and spinning 
 #: 5 ms a loop that wakes for its 1 ms deadline can wait five periods for a busy simulator
 #: or reader thread, and the loop's own spin before each deadline starves them meanwhile.
 SWITCH_FRACTION = 0.1
+#: how the failproof stop of the loop's own ending is worded (the flight recorder does not
+#: take it for a fault)
+STOP_CAUSE = "loop stopping:"
 SWITCH_MIN, SWITCH_MAX = 5e-5, 5e-3
 
 
@@ -133,6 +136,13 @@ class CycleManager(Protocol):
     def failproof_stop(self, cause: str = ...) -> None: ...
 
 
+class CycleTrace(Protocol):
+    """What records every cycle's signals (trace.SignalTrace): called on the loop thread
+    after the cycle, it must only copy into memory allocated beforehand."""
+
+    def record(self, now: float, work: float, late: float, state: ManagerState) -> None: ...
+
+
 class ControlLoop:
     """Runs ``hardware`` + ``manager`` at ``rate`` Hz on the calling thread until stopped.
 
@@ -143,7 +153,7 @@ class ControlLoop:
     def __init__(self, hardware: CycleHardware, manager: CycleManager, rate: float, *,
                  priority: int | None = None, cpus: set[int] | None = None,
                  stop_cycles: int = 3, on_cycle: Callable[[float], None] | None = None,
-                 stats_size: int = 4096) -> None:
+                 stats_size: int = 4096, trace: CycleTrace | None = None) -> None:
         if not rate > 0:
             raise ValueError(f"rate must be > 0 Hz, got {rate!r}")
         self.hardware = hardware
@@ -153,6 +163,7 @@ class ControlLoop:
         self.cpus = cpus
         self.stop_cycles = max(1, stop_cycles)
         self.on_cycle = on_cycle
+        self.trace = trace
         self.stats = CycleStats(self.period, stats_size)
         self.stop_reason = ""
         self._stop = threading.Event()
@@ -195,7 +206,7 @@ class ControlLoop:
         gc_was_enabled = gc.isenabled()
         gc.disable()
         hw, mgr, stats, period = self.hardware, self.manager, self.stats, self.period
-        on_cycle = self.on_cycle
+        on_cycle, trace = self.on_cycle, self.trace
         clock = time.monotonic
         start = clock()
         end = start + duration if duration is not None else math.inf
@@ -218,6 +229,8 @@ class ControlLoop:
                     on_cycle(now)
                 done = clock()
                 stats.record(now, deadline, done - now)
+                if trace is not None:
+                    trace.record(now, done - now, now - deadline, state)
                 deadline += period
                 if done > deadline:  # overrun: start again from now, do not burst
                     deadline = done
@@ -244,7 +257,7 @@ class ControlLoop:
     def _torque_off(self) -> None:
         """Failproof stop, then cycles that send the torque-off frames (bounded count)."""
         try:
-            self.manager.failproof_stop(cause=f"loop stopping: {self.stop_reason or 'exit'}")
+            self.manager.failproof_stop(cause=f"{STOP_CAUSE} {self.stop_reason or 'exit'}")
         except Exception:
             log.exception("failproof_stop raised while stopping the loop")
         for _ in range(self.stop_cycles):

@@ -6,14 +6,18 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import can
+
 from ..controllers.torque_off import TorqueOff
 from ..drivers.bus import open_bus
 from ..drivers.hardware import CanopenHardware
 from ..manager import ControllerManager
 from ..plugins import add_to_manager
 from .config import RuntimeConfig
+from .flight import FlightRecorder, Recording, Taps
 from .loop import ControlLoop, TimingSummary
 from .node import ManagerNode
+from .trace import SignalTrace
 
 
 def manager_for(hardware: CanopenHardware, **kwargs: Any) -> ControllerManager:
@@ -48,8 +52,16 @@ class Runtime:
     are the hardware's, on every bus, in the cycle (the node owns the COB-ID, 0x2130)."""
 
     def __init__(self, config: RuntimeConfig, *,
-                 on_cycle: Callable[[float], None] | None = None) -> None:
+                 on_cycle: Callable[[float], None] | None = None,
+                 record: str | None = None, flight: str | None = None,
+                 flight_seconds: float = 10.0,
+                 announce: Callable[[str], None] | None = None) -> None:
+        """``record``: a directory for every frame and cycle (flight.Recording); ``flight``:
+        the flight recorder's directory (None: off), keeping ``flight_seconds``;
+        ``announce``: told each flight record's path (``rocoma-can run`` prints it)."""
         self.config = config
+        self.recording: Recording | None = None
+        self.flight: FlightRecorder | None = None
         m = config.manager
         self.hardware = CanopenHardware({b.label: b for b in config.buses}, config.drives,
                                         m.node_id, config.dt,
@@ -83,11 +95,44 @@ class Runtime:
                                     drive_status=hardware.status_report,
                                     estop_in_cycle=hardware.set_estop_cob_id)
             self._parts.insert(0, self.node.close)
+            trace = self._recorders(record, flight, flight_seconds, announce)
         except BaseException:
             self.close()
             raise
         self.loop = ControlLoop(self.hardware, self.manager, config.rate,
-                                priority=config.priority, cpus=config.cpus, on_cycle=on_cycle)
+                                priority=config.priority, cpus=config.cpus, on_cycle=on_cycle,
+                                trace=trace)
+
+    def _recorders(self, record: str | None, flight: str | None, seconds: float,
+                   announce: Callable[[str], None] | None) -> SignalTrace | None:
+        """The signal trace, the flight recorder and --record, with a passive handle of
+        every bus feeding their frame listeners (flight.py)."""
+        if record is None and flight is None:
+            return None
+        config = self.config
+        trace = SignalTrace(self.hardware.state, self.hardware.command, self.manager,
+                            capacity=max(2, int(config.rate * max(seconds, 2.0))))
+        names = [b.label for b in config.buses]
+        listeners: dict[str, list[can.Listener]] = {name: [] for name in names}
+        if flight is not None:
+            self.flight = FlightRecorder(trace, flight, seconds, names, announce)
+            self._parts.insert(0, self.flight.close)
+            self.manager.subscribe(self.flight.on_event)
+            for name, tap in self.flight.taps.items():
+                listeners[name].append(tap)
+        if record is not None:
+            self.recording = Recording(trace, record, names)
+            self._parts.insert(0, self.recording.close)
+            for name, frame_log in self.recording.logs.items():
+                listeners[name].append(frame_log)
+        passive = {}
+        for b in config.buses:
+            extra: dict[str, object] = {"fd": True} if b.fd else {}
+            passive[b.label] = open_bus(b.interface, b.channel, b.bitrate,
+                                        receive_own_messages=False, **extra)
+        taps = Taps(passive, listeners)
+        self._parts.insert(0, taps.close)  # the readers stop before what they feed
+        return trace
 
     def run(self, duration: float | None = None, signals: bool = True) -> TimingSummary:
         """Start the bus side, run the loop until stopped, torque-off; the caller closes."""

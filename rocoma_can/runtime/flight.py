@@ -1,0 +1,212 @@
+"""Recording for ``rocoma-can run``: the flight recorder (on by default) and ``--record``.
+
+After an e-stop the first question is what happened in the seconds before it. The flight
+recorder keeps the last ``seconds`` (10 by default) of the loop's signals (trace.py, a ring
+the cycle writes) and of every CAN frame on every bus (passive bus handles of its own, like
+``rocoma-can record``), and on every e-stop, and on a shutdown after one, dumps both to
+``flight-<time>-<cause>.mcap`` in its directory. The dump runs on the recorder's own thread:
+the loop only ever writes its ring row, and the manager's event thread only queues a request.
+
+``--record DIR`` (``Recording``) writes everything instead, as it happens: ``DIR/<bus>.log``
+per bus (candump, python-can's writer) and ``DIR/trace.mcap`` with every cycle.
+
+A directory that cannot be written, or a full disk, ends that recording with the reason
+logged (``errors``), never the loop.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import re
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+import can
+
+from ..drivers.bus import BusReader
+from ..events import EventKind, ManagerEvent
+from .can_log import FrameLog
+from .loop import STOP_CAUSE
+from .trace import Frame, McapWriter, SignalTrace
+
+log = logging.getLogger(__name__)
+
+#: frames kept per second and bus at most (a saturated 1 Mbit/s bus carries ~9,000)
+MAX_FRAMES_PER_SECOND = 10_000
+
+
+class FrameTap(can.Listener):
+    """Every frame of one bus into a bounded deque (on the bus reader's thread)."""
+
+    def __init__(self, bus: str, seconds: float) -> None:
+        self.bus = bus
+        self.frames: collections.deque[tuple[float, int, bytes, int]] = collections.deque(
+            maxlen=int(MAX_FRAMES_PER_SECOND * seconds))
+
+    def on_message_received(self, msg: can.Message) -> None:
+        flags = (msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2
+                 | msg.is_fd << 3)
+        self.frames.append((msg.timestamp, msg.arbitration_id, bytes(msg.data), flags))
+
+    def on_error(self, exc: Exception) -> None:  # counted by the reader
+        pass
+
+    def since(self, wall: float) -> list[Frame]:
+        return [Frame(t, self.bus, cob, data, flags)
+                for t, cob, data, flags in list(self.frames) if t >= wall]
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_]+", "-", text).strip("-")[:60] or "e-stop"
+
+
+class FlightRecorder:
+    """The last ``seconds`` of signals and frames, dumped on every e-stop (see module)."""
+
+    def __init__(self, trace: SignalTrace, directory: str | Path, seconds: float,
+                 buses: Sequence[str], announce: Callable[[str], None] | None = None) -> None:
+        self.trace = trace
+        self.directory = Path(directory)
+        self.seconds = seconds
+        self.dumps: list[Path] = []
+        self.errors: list[str] = []
+        self._announce = announce
+        #: per bus, the listener its passive reader feeds (Taps wires them)
+        self.taps = {name: FrameTap(name, seconds) for name in buses}
+        self._requests: collections.deque[str] = collections.deque()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._faulted = False
+        self._thread = threading.Thread(target=self._run, name="flight-recorder", daemon=True)
+        self._thread.start()
+
+    def on_event(self, event: ManagerEvent) -> None:
+        """A manager subscriber (its event thread): an e-stop queues a dump."""
+        if event.kind == EventKind.EMERGENCY_STOP and not event.cause.startswith(STOP_CAUSE):
+            self._faulted = True
+            self.request(event.cause or "e-stop")
+
+    def request(self, cause: str) -> None:
+        self._requests.append(cause)
+        self._wake.set()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.5)
+            self._wake.clear()
+            while self._requests:
+                self._dump(self._requests.popleft())
+
+    def _dump(self, cause: str) -> None:
+        now_wall, now = time.time(), time.monotonic()
+        offset = now_wall - now
+        first = self.trace.since_time(now - self.seconds)
+        _, rows = self.trace.rows(first)
+        frames = sorted((f for tap in self.taps.values()
+                         for f in tap.since(now_wall - self.seconds)), key=lambda f: f.time)
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now_wall))
+        path = self.directory / f"flight-{stamp}-{int(now_wall * 1000) % 1000:03d}-" \
+                                f"{_slug(cause)}.mcap"
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            with open(path, "wb") as stream:
+                writer = McapWriter(stream, self.trace.names)
+                writer.cycles(self.trace, rows, offset)
+                writer.frames(frames)
+                writer.finish()
+        except OSError as exc:  # unwritable directory, full disk: said, never raised
+            self.errors.append(f"flight record {path}: {exc}")
+            log.error("flight recorder: %s could not be written: %s", path, exc)
+            return
+        self.dumps.append(path)
+        log.warning("flight record (%s): %s", cause, path)
+        if self._announce is not None:
+            self._announce(f"flight record ({cause}): {path}")
+
+    def close(self, timeout: float = 10.0) -> None:
+        """A shutdown after an e-stop dumps once more (what led to the stop is then all in
+        one file); then the readers and the thread end."""
+        if self._faulted:
+            self.request("shutdown after an e-stop")
+        deadline = time.monotonic() + timeout
+        while self._requests and time.monotonic() < deadline:
+            self._wake.set()
+            time.sleep(0.05)
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(max(0.0, deadline - time.monotonic()))
+
+
+class Recording:
+    """``--record DIR``: every bus to ``DIR/<bus>.log``, every cycle to ``DIR/trace.mcap``
+    (written by a thread of its own every ``period`` s)."""
+
+    def __init__(self, trace: SignalTrace, directory: str | Path, buses: Sequence[str],
+                 period: float = 0.2) -> None:
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.trace = trace
+        self.errors: list[str] = []
+        #: per bus, the FrameLog its passive reader feeds (Taps wires them)
+        self.logs = {name: FrameLog(self.directory / f"{_slug(name)}.log").start()
+                     for name in buses}
+        self.path = self.directory / "trace.mcap"
+        self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = McapWriter(self._stream, trace.names)
+        self._offset = time.time() - time.monotonic()
+        self._next = 0
+        self._period = period
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="trace-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period):
+            self._write()
+        self._write()
+
+    def _write(self) -> None:
+        if self.errors:
+            return
+        start, rows = self.trace.rows(self._next)
+        if start > self._next:
+            self.errors.append(f"{self.path}: {start - self._next} cycles lost (the writer "
+                               "fell a ring behind)")
+        try:
+            self._writer.cycles(self.trace, rows, self._offset)
+        except OSError as exc:
+            self.errors.append(f"{self.path}: writing failed: {exc}")
+            log.error("%s", self.errors[-1])
+        self._next = start + len(rows)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(10.0)
+        try:
+            self._writer.finish()
+        except OSError as exc:
+            self.errors.append(f"{self.path}: closing failed: {exc}")
+        self._stream.close()
+        for frame_log in self.logs.values():
+            frame_log.stop()
+            if frame_log.error:
+                self.errors.append(frame_log.error)
+
+
+class Taps:
+    """One passive bus handle and reader per bus, feeding every listener given for it (the
+    flight recorder's tap, the --record log): a bus has one reader, BusReader's rule."""
+
+    def __init__(self, buses: Mapping[str, can.BusABC],
+                 listeners: Mapping[str, Sequence[can.Listener]]) -> None:
+        self._buses = dict(buses)
+        self._readers = [BusReader(bus, tuple(listeners.get(name, ())), name=f"tap {name}")
+                         for name, bus in self._buses.items()]
+
+    def close(self) -> None:
+        for reader in self._readers:
+            reader.stop()
+        for bus in self._buses.values():
+            bus.shutdown()

@@ -1,0 +1,113 @@
+"""``rocoma-can record`` (raw CAN to a candump/ASC/BLF file) and ``rocoma-can export``
+(an MCAP trace to CSV). Both work beside a running manager or on their own; imports are
+deferred so ``rocoma-can --help`` stays quick."""
+from __future__ import annotations
+
+import argparse
+import csv
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+OK, FAILED, USAGE = 0, 1, 2
+
+
+def _say(text: str) -> None:
+    print(f"rocoma-can: {text}", file=sys.stderr, flush=True)
+
+
+def _record(args: argparse.Namespace) -> int:
+    from ..drivers.bus import open_bus
+    from .can_log import BusRecording, RecordingError, check_path
+    try:
+        check_path(args.file)
+        bus = open_bus(args.interface, args.channel, receive_own_messages=False)
+    except (RecordingError, OSError) as exc:
+        _say(str(exc))
+        return USAGE
+    try:
+        recording = BusRecording(bus, args.file)
+    except RecordingError as exc:
+        bus.shutdown()
+        _say(str(exc))
+        return USAGE
+    stop = threading.Event()
+    flag = {"signalled": False}
+
+    def on_signal(signum: int, frame: object) -> None:  # no lock in a handler: a flag
+        flag["signalled"] = True
+    previous = ({sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+                if threading.current_thread() is threading.main_thread() else {})
+    print(f"recording {args.interface}:{args.channel} to {args.file} (Ctrl-C to stop)",
+          flush=True)
+    try:
+        waited = 0.0
+        while not flag["signalled"] and (args.duration is None or waited < args.duration):
+            stop.wait(0.1)
+            waited += 0.1
+            if recording.log.error:
+                break
+    finally:
+        recording.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    log = recording.log
+    print(f"{log.frames} frames written to {log.path}"
+          + (f", {log.dropped} dropped" if log.dropped else ""), flush=True)
+    if log.error:
+        _say(log.error)
+        return FAILED
+    return OK
+
+
+def _export(args: argparse.Namespace) -> int:
+    from .trace import JOINT_FIELDS, read_messages
+    source = Path(args.file)
+    out = Path(args.out) if args.out else source.with_suffix(".csv")
+    try:
+        with open(out, "w", newline="") as stream:
+            writer: Any = None
+            rows = 0
+            for topic, log_time, msg in read_messages(str(source)):
+                if topic != "/rocoma/cycle":
+                    continue
+                joints = len(msg["position"])
+                if writer is None:
+                    writer = csv.writer(stream)
+                    header = ["log_time_ns", "t", "period", "work", "late", "state",
+                              "controller"]
+                    header += [f"{f}[{j}]" for f in JOINT_FIELDS for j in range(joints)]
+                    writer.writerow(header)
+                writer.writerow([log_time, msg["t"], msg["period"], msg["work"], msg["late"],
+                                 msg["state"], msg["controller"]]
+                                + [v for f in JOINT_FIELDS for v in msg[f]])
+                rows += 1
+    except ImportError:
+        _say("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
+        return USAGE
+    except (OSError, ValueError, KeyError) as exc:  # no such file, not MCAP, not ours
+        _say(f"{source}: cannot export: {type(exc).__name__}: {exc}")
+        return USAGE
+    print(f"{rows} cycles written to {out}", flush=True)
+    return OK
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = subparsers.add_parser(
+        "record", help="record every frame of a bus to FILE (.log candump, .asc, .blf)",
+        description="A passive listener: works beside any running manager. Replay a .log "
+                    "with `canplayer` or `python -m can.player`.")
+    p.add_argument("file", help="FILE.log (candump -L), FILE.asc or FILE.blf")
+    p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
+    p.add_argument("--channel", default="can0", help="CAN channel (can0)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S seconds (default: Ctrl-C / SIGTERM)")
+    p.set_defaults(func=_record)
+    p = subparsers.add_parser("export", help="an MCAP trace (run --record, a flight record) "
+                                             "to CSV, one row per cycle")
+    p.add_argument("file", help="FILE.mcap")
+    p.add_argument("--csv", dest="out", nargs="?", const="", default="", metavar="OUT",
+                   help="the CSV file (default: FILE.csv)")
+    p.set_defaults(func=_export)

@@ -1,0 +1,203 @@
+"""The loop's signals, every cycle, in a ring allocated once; MCAP files written off the loop.
+
+``SignalTrace.record`` runs on the loop thread after each cycle: it copies the cycle's
+timing, the manager's state and active controller, and every joint's feedback and command
+into one preallocated row (a dozen numpy copies, no allocation). Everything else happens on
+other threads: ``McapWriter`` turns rows (and CAN frames) into MCAP messages, JSON-encoded
+with a JSON schema, so Foxglove Studio and PlotJuggler open the file as it is.
+
+Channels: ``/rocoma/cycle`` (one message per cycle: ``t``, ``period``, ``work``, ``late``,
+``state``, ``controller``, then per joint arrays ``position``, ``velocity``, ``torque``,
+``command_mode``, ``command_position``, ``command_velocity``, ``command_torque``,
+``statusword``, ``cia402_state``, ``error_code``) and ``/can/<bus>`` (one message per frame:
+``id``, ``data`` as hex, ``dlc``, ``extended``, ``remote``, ``error``, ``fd``).
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any, BinaryIO, Protocol
+
+import numpy as np
+
+from ..drivers.joints import JointCommand, JointState
+from ..events import ManagerState
+
+#: per-joint blocks of a row, in order: (name, where it comes from)
+JOINT_FIELDS = ("position", "velocity", "torque", "command_mode", "command_position",
+                "command_velocity", "command_torque", "statusword", "cia402_state",
+                "error_code")
+SCALARS = ("t", "period", "work", "late", "state", "controller")
+STATE_NAMES = {int(s): s.name for s in ManagerState}
+
+
+class ActiveController(Protocol):
+    @property
+    def active_controller_name(self) -> str: ...
+
+
+class SignalTrace:
+    """The last ``capacity`` cycles of signals (a ring). ``record`` is the loop's part."""
+
+    def __init__(self, state: JointState, command: JointCommand, manager: ActiveController,
+                 capacity: int) -> None:
+        if capacity < 2:
+            raise ValueError(f"a signal trace needs room for 2 cycles or more, got {capacity}")
+        self.names = state.names
+        self.capacity = capacity
+        self.count = 0               # cycles recorded so far (the ring's write position)
+        n = len(state.names)
+        self._rows = np.zeros((capacity, len(SCALARS) + n * len(JOINT_FIELDS)))
+        self._sources = (state.position, state.velocity, state.torque, command.mode,
+                         command.position, command.velocity, command.torque,
+                         state.statusword, state.cia402_state, state.error_code)
+        base = len(SCALARS)
+        self._slices = tuple(slice(base + k * n, base + (k + 1) * n)
+                             for k in range(len(JOINT_FIELDS)))
+        self._manager = manager
+        self.controllers: dict[str, int] = {}  # name -> the number rows carry
+        self._previous = float("nan")
+
+    def record(self, now: float, work: float, late: float, state: ManagerState) -> None:
+        """The loop thread, after each cycle: one row, no allocation."""
+        row = self._rows[self.count % self.capacity]
+        row[0] = now
+        row[1] = now - self._previous
+        row[2] = work
+        row[3] = late
+        row[4] = state
+        name = self._manager.active_controller_name
+        number = self.controllers.get(name)
+        if number is None:  # a controller seen for the first time: rare
+            number = self.controllers[name] = len(self.controllers)
+        row[5] = number
+        for where, source in zip(self._slices, self._sources):
+            row[where] = source
+        self._previous = now
+        self.count += 1
+
+    def rows(self, since: int) -> tuple[int, np.ndarray]:
+        """A copy of the rows recorded from cycle ``since`` on (any thread): (the first
+        cycle number in the copy, rows). Rows the ring overwrote meanwhile are left out."""
+        end = self.count
+        start = max(since, end - self.capacity + 1, 0)  # the row being written is not safe
+        if start >= end:
+            return end, self._rows[:0].copy()
+        k0, k1 = start % self.capacity, end % self.capacity
+        if k0 < k1:
+            out = self._rows[k0:k1].copy()
+        else:
+            out = np.concatenate((self._rows[k0:], self._rows[:k1]))
+        first_safe = self.count - self.capacity + 1  # what the loop overwrote while copying
+        if first_safe > start:
+            out = out[first_safe - start:]
+            start = first_safe
+        return start, out
+
+    def since_time(self, t: float) -> int:
+        """The first cycle number at or after monotonic time ``t`` still in the ring."""
+        start, rows = self.rows(self.count - self.capacity + 1)
+        later = np.nonzero(rows[:, 0] >= t)[0]
+        return start + int(later[0]) if len(later) else self.count
+
+    def message(self, row: np.ndarray) -> dict[str, Any]:
+        """One row as the /rocoma/cycle message."""
+        names = {v: k for k, v in self.controllers.items()}
+        msg: dict[str, Any] = {"t": float(row[0]), "period": float(row[1]),
+                               "work": float(row[2]), "late": float(row[3]),
+                               "state": STATE_NAMES.get(int(row[4]), str(int(row[4]))),
+                               "controller": names.get(int(row[5]), "")}
+        for field, where in zip(JOINT_FIELDS, self._slices):
+            values = row[where]
+            msg[field] = ([int(v) for v in values] if field in _INTEGER_FIELDS
+                          else [float(v) for v in values])
+        return msg
+
+
+_INTEGER_FIELDS = {"command_mode", "statusword", "cia402_state", "error_code"}
+
+
+def cycle_schema(joints: Sequence[str]) -> dict[str, Any]:
+    """The JSON schema of /rocoma/cycle (joint names in the description: arrays are in this
+    order)."""
+    number = {"type": "number"}
+    array = {"type": "array", "items": number, "description": "joints: " + ", ".join(joints)}
+    props: dict[str, Any] = {"t": number, "period": number, "work": number, "late": number,
+                             "state": {"type": "string"}, "controller": {"type": "string"}}
+    props.update({f: array for f in JOINT_FIELDS})
+    return {"type": "object", "title": "rocoma_can.Cycle", "properties": props}
+
+
+FRAME_SCHEMA = {"type": "object", "title": "rocoma_can.CanFrame", "properties": {
+    "id": {"type": "integer"}, "data": {"type": "string", "description": "hex"},
+    "dlc": {"type": "integer"}, "extended": {"type": "boolean"},
+    "remote": {"type": "boolean"}, "error": {"type": "boolean"}, "fd": {"type": "boolean"}}}
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A received CAN frame, compact (the flight recorder keeps tens of thousands)."""
+    time: float        # time.time() stamp of the frame
+    bus: str
+    cob_id: int
+    data: bytes
+    flags: int         # 1 extended, 2 remote, 4 error, 8 fd
+
+    def message(self) -> dict[str, Any]:
+        f = self.flags
+        return {"id": self.cob_id, "data": self.data.hex(), "dlc": len(self.data),
+                "extended": bool(f & 1), "remote": bool(f & 2), "error": bool(f & 4),
+                "fd": bool(f & 8)}
+
+
+class McapWriter:
+    """An MCAP file of /rocoma/cycle and /can/<bus> messages (the ``mcap`` package: the
+    optional extra ``rocoma-can[record]``). Not thread-safe: one writer thread uses it."""
+
+    def __init__(self, stream: BinaryIO, joints: Sequence[str]) -> None:
+        from mcap.writer import Writer  # optional: only where a file is written
+        self._writer = Writer(stream)
+        self._writer.start(profile="", library="rocoma-can")
+        cycle = self._writer.register_schema(name="rocoma_can.Cycle", encoding="jsonschema",
+                                             data=json.dumps(cycle_schema(joints)).encode())
+        self._cycle = self._writer.register_channel(topic="/rocoma/cycle",
+                                                    message_encoding="json", schema_id=cycle)
+        self._frame_schema = self._writer.register_schema(
+            name="rocoma_can.CanFrame", encoding="jsonschema",
+            data=json.dumps(FRAME_SCHEMA).encode())
+        self._buses: dict[str, int] = {}
+        self.messages = 0
+
+    def cycles(self, trace: SignalTrace, rows: np.ndarray, offset: float) -> None:
+        """Rows as messages; ``offset``: add to a row's monotonic time for wall-clock time."""
+        channel, add = self._cycle, self._writer.add_message
+        for row in rows:
+            ns = int((row[0] + offset) * 1e9)
+            add(channel_id=channel, log_time=ns, publish_time=ns,
+                data=json.dumps(trace.message(row), separators=(",", ":")).encode())
+            self.messages += 1
+
+    def frames(self, frames: Iterable[Frame]) -> None:
+        for frame in frames:
+            channel = self._buses.get(frame.bus)
+            if channel is None:
+                channel = self._buses[frame.bus] = self._writer.register_channel(
+                    topic=f"/can/{frame.bus}", message_encoding="json",
+                    schema_id=self._frame_schema)
+            ns = int(frame.time * 1e9)
+            self._writer.add_message(channel_id=channel, log_time=ns, publish_time=ns,
+                                     data=json.dumps(frame.message(),
+                                                     separators=(",", ":")).encode())
+            self.messages += 1
+
+    def finish(self) -> None:
+        self._writer.finish()  # type: ignore[no-untyped-call]  # mcap 1.6: unannotated
+
+
+def read_messages(path: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(topic, log time ns, decoded message) of every message in an MCAP file, in order."""
+    from mcap.reader import make_reader
+    with open(path, "rb") as stream:
+        for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
+            yield channel.topic, message.log_time, json.loads(message.data)

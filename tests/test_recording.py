@@ -1,0 +1,142 @@
+"""Recording (issue: see what happened): raw CAN files that python-can reads back, the
+flight recorder's dump on an e-stop, `run --record`'s MCAP trace with every cycle, export to
+CSV, and an unwritable place that is an error said clearly, never a stop of the loop."""
+from __future__ import annotations
+
+import csv
+import threading
+import time
+
+import can
+import pytest
+
+from rocoma_can.cli import main
+from rocoma_can.runtime import Runtime
+from rocoma_can.runtime.config import validate
+from rocoma_can.runtime.demo import demo_config
+from rocoma_can.runtime.trace import read_messages
+
+RATE = 100.0
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
+def test_record_writes_what_an_independent_listener_sees(suffix, tmp_path, bus_factory,
+                                                        virtual_channel):
+    path = tmp_path / f"bus{suffix}"
+    sender, listener = bus_factory(), bus_factory()
+    done: dict[str, int] = {}
+    recorder = threading.Thread(target=lambda: done.setdefault("rc", main([
+        "record", str(path), "--interface", "virtual", "--channel", virtual_channel,
+        "--duration", "1.5"])))
+    recorder.start()
+    time.sleep(0.5)  # the recorder's bus is open
+    sent = [can.Message(arbitration_id=0x180 + k % 8, data=bytes([k, k + 1]),
+                        is_extended_id=False) for k in range(40)]
+    for msg in sent:
+        sender.send(msg)
+    seen = [listener.recv(1.0) for _ in sent]
+    recorder.join(10.0)
+    assert done == {"rc": 0}
+    got = [m for m in can.LogReader(str(path))]
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == \
+        [(m.arbitration_id, bytes(m.data)) for m in seen]
+
+
+def test_record_refuses_an_unknown_format_or_missing_directory(tmp_path, capsys):
+    assert main(["record", str(tmp_path / "x.txt"), "--interface", "virtual",
+                 "--channel", "r", "--duration", "0.1"]) == 2
+    assert main(["record", str(tmp_path / "no" / "x.log"), "--interface", "virtual",
+                 "--channel", "r", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown recording format '.txt'" in err and "does not exist" in err
+
+
+@pytest.fixture
+def bench(virtual_channel, sim_segment_factory):
+    segment = sim_segment_factory(2)
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["manager"]["estop_must_be_cleared"] = False
+    return validate(cfg), segment
+
+
+@pytest.fixture
+def config(bench):
+    return bench[0]
+
+
+def _operate(rt: Runtime, segment_fault, then: float) -> threading.Thread:
+    """Switch to pd, run ``then`` s, fault drive 1, run a little, stop the loop."""
+    def operate() -> None:
+        deadline = time.monotonic() + 10.0
+        while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        rt.manager.switch_controller("pd", timeout=10.0)
+        time.sleep(then)
+        segment_fault()
+        time.sleep(0.5)
+        rt.loop.stop("test")
+    thread = threading.Thread(target=operate)
+    thread.start()
+    return thread
+
+
+def test_an_estop_dumps_the_last_seconds_of_signals_and_frames(bench, tmp_path):
+    config, segment = bench
+    announced: list[str] = []
+    with Runtime(config, flight=str(tmp_path / "flight"), flight_seconds=1.0,
+                 announce=announced.append) as rt:
+        worker = _operate(rt, segment.drives[1].trip_fault, then=1.5)
+        rt.run(duration=30.0, signals=False)
+        worker.join(15.0)
+        assert rt.flight is not None
+    dumps = sorted((tmp_path / "flight").iterdir())
+    assert len(dumps) == 2, dumps  # the e-stop, and the shutdown after it
+    first = dumps[0]
+    assert announced and str(first) in announced[0]
+    messages = list(read_messages(str(first)))
+    cycles = [(t, m) for topic, t, m in messages if topic == "/rocoma/cycle"]
+    frames = [(t, m) for topic, t, m in messages if topic.startswith("/can/")]
+    assert cycles and frames
+    span = (cycles[-1][0] - cycles[0][0]) / 1e9
+    assert span >= 0.9  # the last flight_seconds before the e-stop
+    assert cycles[-1][1]["state"] in ("EMERGENCY", "FAILPROOF")
+    assert cycles[0][1]["state"] == "OK"
+    assert len(cycles[0][1]["position"]) == 2
+    assert {m["id"] for _, m in frames} >= {0x181, 0x182, 0x201, 0x202, 0x080}
+
+
+def test_a_normal_stop_dumps_nothing(config, tmp_path):
+    with Runtime(config, flight=str(tmp_path / "flight"), flight_seconds=1.0) as rt:
+        rt.run(duration=0.5, signals=False)
+    assert not (tmp_path / "flight").exists() or not list((tmp_path / "flight").iterdir())
+
+
+def test_record_writes_every_cycle_and_every_frame_and_exports_csv(config, tmp_path, capsys):
+    out = tmp_path / "rec"
+    with Runtime(config, record=str(out)) as rt:
+        rt.run(duration=1.0, signals=False)
+        cycles = rt.loop.stats.cycles
+    assert rt.recording is not None and not rt.recording.errors
+    trace = [m for topic, _, m in read_messages(str(out / "trace.mcap"))
+             if topic == "/rocoma/cycle"]
+    assert len(trace) == cycles  # every cycle, the loop's own stop cycles aside
+    frames = list(can.LogReader(str(next(out.glob("*.log")))))  # the bus, by name
+    assert any(f.arbitration_id == 0x080 for f in frames)  # the loop's SYNCs
+    assert main(["export", str(out / "trace.mcap"), "--csv", str(tmp_path / "t.csv")]) == 0
+    with open(tmp_path / "t.csv") as stream:
+        rows = list(csv.DictReader(stream))
+    assert len(rows) == cycles and "position[1]" in rows[0]
+
+
+def test_an_unwritable_flight_directory_is_said_and_the_loop_runs_on(config, tmp_path):
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")
+    with Runtime(config, flight=str(blocked / "flight"), flight_seconds=1.0) as rt:
+        rt.manager.emergency_stop("test")
+        summary = rt.run(duration=1.0, signals=False)
+        assert rt.flight is not None
+        deadline = time.monotonic() + 5.0
+        while not rt.flight.errors and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert rt.flight.errors and rt.flight.errors[0].startswith("flight record ")
+    assert summary.cycles >= 0.5 * RATE  # the loop ran its second
