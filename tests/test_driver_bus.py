@@ -428,7 +428,8 @@ def test_unconfigured_mode_is_not_sent_even_without_limit_command(segment, make_
     assert rig.switch("hold") == SwitchResult.SWITCHED
     assert rig.run_until(lambda: rig.mgr.state == ManagerState.FAILPROOF,
                          rig.setup.detect_budget())
-    assert all("CST" in rig.hw.supervisor.latched[i].cause for i in range(len(segment.drives)))
+    causes = [str(rig.hw.supervisor.latched[i]) for i in range(len(segment.drives))]
+    assert all("CST" in cause for cause in causes), causes
     synced_mark(recorder, rig)
     sent_modes = {struct.unpack_from("<b", f.data, 2)[0]
                   for f in recorder.frames(set(RPDO1), since=mark)}
