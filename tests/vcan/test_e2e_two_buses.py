@@ -62,7 +62,7 @@ def test_a_failed_bus_gives_torque_off_on_both(processes, frame_recorder,  # noq
     assert cli("clear").returncode == 0
     switched = cli("switch", "pd")
     assert (switched.returncode, switched.stdout.strip()) == (0, "SWITCHED"), \
-        (switched, cli("status").stdout)
+        f"switch: {switched.stdout!r} {switched.stderr!r}\nstatus:\n{cli('status').stdout}"
     for rec in (front, rear):  # enable operation (controlword 0x000F) on both buses
         wait_for(lambda rec=rec: all(rec.count(0x200 + n, where=lambda f: f.data[:2]
                                                == b"\x0f\x00") for n in NODES),
