@@ -129,12 +129,13 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
         # The demo runs without real-time priority beside its simulated drives on whatever
         # the machine is doing: a controller call preempted past its budget (0.5 cycles by
         # default), or TPDOs late for 5 cycles, would be taken as a controller's or a
-        # drive's failure. Half a second for calls and TPDOs, drive heartbeats and the
-        # drives' consumer of the manager's, and a hang after one second, keep the
-        # walk-through about what it shows (its faults are injected, and reported at once).
-        "timing": {"advance": 0.5 * rate, "initialize_fast": 0.5 * rate, "hang": 1.0 * rate},
-        "supervision": {"tpdo_timeout_cycles": max(5, round(0.5 * rate)),
-                        "heartbeat_timeout_factor": 5.0, "consumer_factor": 5.0},
+        # drive's failure. A second and a half for calls and TPDOs, drive heartbeats and
+        # the drives' consumer of the manager's, and a hang after two seconds, keep the
+        # walk-through about what it shows on a busy machine (two CPU hogs stalled it past
+        # half a second), while its faults are injected and reported at once.
+        "timing": {"advance": 1.5 * rate, "initialize_fast": 1.5 * rate, "hang": 2.0 * rate},
+        "supervision": {"tpdo_timeout_cycles": max(5, round(1.5 * rate)),
+                        "heartbeat_timeout_factor": 15.0, "consumer_factor": 15.0},
         "drives": [{"name": name, "node_id": i % per_bus + first_node,
                     "increments_per_rev": 1048576, "rated_torque_nm": 1.0,
                     "modes": modes, "heartbeat_ms": 100,
@@ -294,7 +295,13 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
              f"state {STATE_NAMES[state()]}, cause {client.status()['estop_cause']!r}")
         time.sleep(hold / 2)
     except Exception as exc:  # an SDO failure is a failed step, and the demo ends
-        step("operator", False, f"{type(exc).__name__}: {exc}")
+        why = ""
+        try:  # a refused switch says why (0x2103); a fault, with its cause, in the status
+            why = f"; refusal: {client.read_text(0x2103)!r}; state {STATE_NAMES[state()]}, " \
+                  f"cause {client.status()['estop_cause']!r}"
+        except Exception:  # noqa: BLE001 - the report is best effort
+            pass
+        step("operator", False, f"{type(exc).__name__}: {exc}{why}")
     finally:
         for probe in probes:
             probe.armed = True
