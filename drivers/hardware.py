@@ -649,12 +649,17 @@ class CanopenHardware:
                 enable.reset(i)
                 if self._pp[i]:
                     self._setpoints.reset(i)
-            constants = self._rpdo_constants[i]
-            if constants:  # a fixed mapping's other objects: sent as the file gives them
-                values += constants
-            for msg, pack_into, where in self._rpdo_frames[i]:
-                pack_into(msg.data, 0, *[values[k] for k in where])
-                send(msg)
+            self._send_rpdos(i, values, send)
+
+    def _send_rpdos(self, i: int, values: tuple[int, ...],
+                    send: Callable[[can.Message], None]) -> None:
+        """Drive i's RPDOs packed from (controlword, mode, targets...) and sent."""
+        constants = self._rpdo_constants[i]
+        if constants:  # a fixed mapping's other objects: sent as the file gives them
+            values += constants
+        for msg, pack_into, where in self._rpdo_frames[i]:
+            pack_into(msg.data, 0, *[values[k] for k in where])
+            send(msg)
 
     def _home_step(self, i: int, b: DriveBringup, job: HomingJob, state: int,
                    now: float) -> bool:
@@ -670,12 +675,8 @@ class CanopenHardware:
         if job.done():
             self.enable.reset(i)
             return False
-        values = (homing_cw if homing_cw is not None else cw, HOMING_MODE,
-                  int(self._raw["position"][i]), 0, 0, *self._rpdo_constants[i])
-        send = self._send_of[i]
-        for msg, pack_into, where in self._rpdo_frames[i]:
-            pack_into(msg.data, 0, *[values[k] for k in where])
-            send(msg)
+        self._send_rpdos(i, (homing_cw if homing_cw is not None else cw, HOMING_MODE,
+                             int(self._raw["position"][i]), 0, 0), self._send_of[i])
         return True
 
     def home(self, drive: str, timeout: float | None = None) -> Future[str]:
