@@ -140,3 +140,10 @@ def test_an_unwritable_flight_directory_is_said_and_the_loop_runs_on(config, tmp
             time.sleep(0.05)
         assert rt.flight.errors and rt.flight.errors[0].startswith("flight record ")
     assert summary.cycles >= 0.5 * RATE  # the loop ran its second
+
+
+def test_export_of_a_file_that_is_not_a_trace_is_a_clear_error(tmp_path, capsys):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"junk")
+    assert main(["export", str(junk)]) == 2
+    assert "cannot export" in capsys.readouterr().err

@@ -87,7 +87,8 @@ def _export(args: argparse.Namespace) -> int:
     except ImportError:
         _say("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
         return USAGE
-    except (OSError, ValueError, KeyError) as exc:  # no such file, not MCAP, not ours
+    except Exception as exc:  # noqa: BLE001 - no such file, not MCAP (the reader fails in
+        # many ways on a foreign or truncated file: struct.error, McapError), not ours
         _say(f"{source}: cannot export: {type(exc).__name__}: {exc}")
         return USAGE
     print(f"{rows} cycles written to {out}", flush=True)
