@@ -14,11 +14,13 @@ stops the recording with the reason in ``error`` and never reaches a control loo
 from __future__ import annotations
 
 import collections
+import copy
 import logging
 import threading
 from pathlib import Path
 
 import can
+from can.util import channel2int
 
 from ..drivers.bus import BusReader
 
@@ -28,6 +30,9 @@ SUFFIXES = (".log", ".asc", ".blf")
 #: Frames held for the writer at most (~30 s of four saturated buses): a writer that cannot
 #: keep up loses the oldest and counts them, rather than growing without bound.
 MAX_QUEUED = 1_000_000
+#: ASC and BLF number channels from 1 (python-can: the digits a channel name ends in, + 1);
+#: BLF stores the number in 16 bits
+MAX_CHANNEL_NUMBER = 0xFFFE
 
 
 class RecordingError(OSError):
@@ -55,6 +60,8 @@ class FrameLog(can.Listener):
         self.dropped = 0         # lost because the writer fell MAX_QUEUED behind
         self.error: str | None = None
         self._queue: collections.deque[can.Message] = collections.deque()
+        self._numbered = self.path.suffix.lower() in (".asc", ".blf")
+        self._unnumberable: dict[object, bool] = {}  # channel -> its digits do not fit
         self._flush_period = flush_period
         self._stop = threading.Event()
         self._writer: can.io.generic.MessageWriter | None = None
@@ -90,7 +97,7 @@ class FrameLog(can.Listener):
             return
         try:
             while self._queue:
-                writer.on_message_received(self._queue.popleft())
+                writer.on_message_received(self._for_file(self._queue.popleft()))
                 self.frames += 1
             file = getattr(writer, "file", None)
             if file is not None:  # on disk now: a crash loses at most one flush period
@@ -98,6 +105,23 @@ class FrameLog(can.Listener):
         except (OSError, ValueError) as exc:  # a full disk: stop writing, say why
             self.error = f"{self.path}: writing failed after {self.frames} frames: {exc}"
             log.error("%s", self.error)
+
+    def _for_file(self, msg: can.Message) -> can.Message:
+        """In ASC and BLF, a channel whose name ends in digits too large for a channel
+        number (an in-process bus named by a random id) is written as the file's channel 1,
+        on a copy: the frame itself may be shared with other receivers."""
+        if not self._numbered:
+            return msg
+        bad = self._unnumberable.get(msg.channel)
+        if bad is None:
+            number = channel2int(msg.channel)
+            bad = self._unnumberable[msg.channel] = (number is not None and not
+                                                     0 <= number < MAX_CHANNEL_NUMBER)
+        if not bad:
+            return msg
+        renamed = copy.copy(msg)
+        renamed.channel = None
+        return renamed
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stop.set()
