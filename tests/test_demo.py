@@ -39,3 +39,27 @@ def test_demo_cli_rejects_bad_options(capsys):
     assert main(["demo", "--drives", "0"]) == 2
     assert main(["demo", "--drives", "6", "--buses", "4"]) == 2
     assert "--buses 1..drives/2" in capsys.readouterr().out
+
+
+def test_demo_records_its_run_and_plots_it(tmp_path):
+    """What `rocoma-can demo` does by default: the run recorded (every cycle, event and
+    frame), drawn, and both paths said."""
+    from rocoma_can.runtime.plot import load
+    lines: list[str] = []
+    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append, record=tmp_path)
+    assert report.ok, "\n".join(lines)
+    assert report.recording == tmp_path / "trace.mcap"
+    assert report.plot == tmp_path / "demo.png"
+    assert report.plot.read_bytes()[:4] == b"\x89PNG"
+    assert f"plot: {report.plot}" in lines and any(
+        line.startswith(f"recording: {report.recording}") for line in lines)
+    causes = [cause for _, cause in load(report.recording).estops]
+    assert any("CAN e-stop from 0x0A0" in c for c in causes), causes  # the walk-through's
+    assert len(list(tmp_path.glob("*.log"))) == 1  # the bus's frames, candump
+
+
+def test_demo_cli_says_when_it_cannot_record(tmp_path, capsys):
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")
+    assert main(["demo", "--drives", "2", "--record", str(blocked / "rec")]) == 2
+    assert "cannot create the directory" in capsys.readouterr().out

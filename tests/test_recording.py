@@ -8,6 +8,7 @@ import threading
 import time
 
 import can
+import numpy as np
 import pytest
 
 from rocoma_can.cli import main
@@ -40,6 +41,23 @@ def test_record_writes_what_an_independent_listener_sees(suffix, tmp_path, bus_f
     got = [m for m in can.LogReader(str(path))]
     assert [(m.arbitration_id, bytes(m.data)) for m in got] == \
         [(m.arbitration_id, bytes(m.data)) for m in seen]
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf"])
+def test_a_channel_named_with_many_digits_is_written_as_channel_1(suffix, tmp_path):
+    """python-can numbers a channel by the digits its name ends in: an in-process bus named
+    by a random id ("...-98765432") does not fit BLF's 16 bits; it is the file's channel 1,
+    and the received frame is not changed (other receivers share it)."""
+    from rocoma_can.runtime.can_log import FrameLog
+    frame_log = FrameLog(tmp_path / f"x{suffix}").start()
+    msg = can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False,
+                      channel="rocoma-98765432", timestamp=1.0)
+    frame_log.on_message_received(msg)
+    frame_log.stop()
+    assert frame_log.error is None and frame_log.frames == 1
+    assert msg.channel == "rocoma-98765432"
+    (got,) = list(can.LogReader(str(tmp_path / f"x{suffix}")))
+    assert (got.arbitration_id, bytes(got.data), got.channel) == (0x181, b"\x01\x02", 0)
 
 
 def test_record_refuses_an_unknown_format_or_missing_directory(tmp_path, capsys):
@@ -103,6 +121,10 @@ def test_an_estop_dumps_the_last_seconds_of_signals_and_frames(bench, tmp_path):
     assert cycles[0][1]["state"] == "OK"
     assert len(cycles[0][1]["position"]) == 2
     assert {m["id"] for _, m in frames} >= {0x181, 0x182, 0x201, 0x202, 0x080}
+    events = [m for topic, _, m in messages if topic == "/rocoma/event"]
+    stops = [m for m in events if m["kind"] == "emergency_stop"]
+    assert len(stops) == 1 and "(node 1)" in stops[0]["cause"], events
+    assert stops[0]["state"] in ("EMERGENCY", "FAILPROOF")
 
 
 def test_a_normal_stop_dumps_nothing(config, tmp_path):
@@ -120,6 +142,10 @@ def test_record_writes_every_cycle_and_every_frame_and_exports_csv(config, tmp_p
     trace = [m for topic, _, m in read_messages(str(out / "trace.mcap"))
              if topic == "/rocoma/cycle"]
     assert len(trace) == cycles  # every cycle, the loop's own stop cycles aside
+    events = [m for topic, _, m in read_messages(str(out / "trace.mcap"))
+              if topic == "/rocoma/event"]
+    assert [e["cause"] for e in events if e["kind"] == "emergency_stop"] \
+        == ["loop stopping: duration reached"], events
     frames = list(can.LogReader(str(next(out.glob("*.log")))))  # the bus, by name
     assert any(f.arbitration_id == 0x080 for f in frames)  # the loop's SYNCs
     assert main(["export", str(out / "trace.mcap"), "--csv", str(tmp_path / "t.csv")]) == 0
@@ -147,3 +173,44 @@ def test_export_of_a_file_that_is_not_a_trace_is_a_clear_error(tmp_path, capsys)
     junk.write_bytes(b"junk")
     assert main(["export", str(junk)]) == 2
     assert "cannot export" in capsys.readouterr().err
+
+
+def test_plot_draws_state_band_positions_torques_period_and_each_estop(bench, tmp_path,
+                                                                       capsys):
+    """The figure's axes, not its pixels: the five panels, a position and a target line per
+    joint, the controllers on the band, a line at the e-stop with its cause listed."""
+    from rocoma_can.runtime.plot import PANELS, figure, load
+    config, segment = bench
+    out = tmp_path / "rec"
+    with Runtime(config, record=str(out)) as rt:
+        worker = _operate(rt, segment.drives[1].trip_fault, then=1.0)
+        rt.run(duration=30.0, signals=False)
+        worker.join(15.0)
+    trace = load(out / "trace.mcap")
+    causes = [cause for _, cause in trace.estops]
+    assert len(causes) == 2 and "(node 1)" in causes[0] and causes[1] == "loop stopping: test"
+    fig = figure(trace)
+    titles = [ax.get_title(loc="left") for ax in fig.axes]
+    assert [next(t for t in titles if t.startswith(p)) for p in PANELS]  # each panel once
+    band, position, torque, period, jitter = fig.axes
+    assert len(position.get_lines()) == 2 * 2 + len(causes)  # measured + target per joint
+    assert len(torque.get_lines()) == 2 * 2 + len(causes)
+    estop_x = [line.get_xdata()[0] for line in band.get_lines()]
+    assert estop_x == pytest.approx([t for t, _ in trace.estops])
+    assert {"pd", "damp"} <= {text.get_text() for text in band.texts}
+    assert causes[0] in fig.get_supxlabel()
+    assert jitter.patches  # the histogram's bars
+    targets = position.get_lines()[1].get_ydata()
+    assert np.isfinite(targets).any()  # commanded in CSP while pd ran
+    assert main(["plot", str(out / "trace.mcap"), "--out", str(tmp_path / "p.png")]) == 0
+    assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert f"plot written to {tmp_path / 'p.png'}" in capsys.readouterr().out
+
+
+def test_plot_of_a_file_that_is_not_a_trace_is_a_clear_error(tmp_path, capsys):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"junk")
+    assert main(["plot", str(junk)]) == 2
+    assert main(["plot", str(tmp_path / "missing.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert "junk.mcap: not a rocoma-can trace" in err and "missing.mcap" in err

@@ -6,16 +6,20 @@ frames). The walk-through: bring-up, clear, switch to pd, switch to trajectory (
 by swap state), a drive fault -> emergency controller (damp), a second fault -> failproof
 torque-off, recovery of the drives, a switch back to pd, an e-stop by a raw CAN frame, and
 the SIGTERM-like stop of the loop, which ends in torque-off frames. Each step checks what it
-should; the exit code is 0 only when every step did.
+should; the exit code is 0 only when every step did. The command records the run (every
+frame, every cycle, every manager event) and plots it, and prints where both went.
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import os
 import threading
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import can
@@ -163,6 +167,8 @@ class Step:
 class Report:
     steps: list[Step] = field(default_factory=list)
     latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
+    recording: Path | None = None      # the run's trace.mcap (with a candump .log per bus)
+    plot: Path | None = None           # its PNG
 
     @property
     def ok(self) -> bool:
@@ -308,11 +314,20 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         rt.loop.stop("walk-through finished")
 
 
+def default_record_dir() -> Path:
+    """$XDG_STATE_HOME/rocoma-can/demo/<time> (~/.local/state/...): a new one per run."""
+    state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(state) / "rocoma-can" / "demo" / time.strftime("%Y%m%d-%H%M%S")
+
+
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              out: Callable[[str], None] = print, buses: int | None = None,
-             interface: str = DEFAULT_INTERFACE, eds: str | None = None) -> Report:
+             interface: str = DEFAULT_INTERFACE, eds: str | None = None,
+             record: str | Path | None = None) -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
-    uses the modes it supports, skipping (with the reason) the steps it cannot do."""
+    uses the modes it supports, skipping (with the reason) the steps it cannot do;
+    ``record``: a directory for the run's recording (``run --record``'s files) and its
+    plot ``demo.png``."""
     from ..drivers.bus import BusReader
     from ..drivers.sim.segment import SimulatedSegment
     from .config import validate
@@ -328,6 +343,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     config = validate(demo_config(channel, drives, rate, buses, interface, emulated),
                       source="demo")
     report = Report()
+    if record is not None and importlib.util.find_spec("mcap") is None:
+        out("rocoma-can demo: not recording: MCAP needs pip install 'rocoma-can[record]'")
+        record = None
     watch = _Watch()
     stop = threading.Event()
     hold = max(0.2, duration / 10)
@@ -347,7 +365,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         for s in segments:
             s.start()
         readers = [BusReader(b, (p,), name="demo-probe") for b, p in zip(probe_buses, probes)]
-        with Runtime(config, on_cycle=watch) as rt, ManagerClient(client_bus, MANAGER_ID) as client:
+        with Runtime(config, on_cycle=watch, record=None if record is None else str(record)) \
+                as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
             on = (f"{interface} bus {config.bus.channel}" if buses == 1
                   else f"{buses} {interface} buses {channel}-0..{buses - 1}")
@@ -378,6 +397,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             _summary(out, report, summary, rt)
         for s in segments:
             s.check()
+        if record is not None:
+            _plot(Path(record), report, out)
     finally:
         for r in readers:
             r.stop()
@@ -386,6 +407,22 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         for s in segments:
             s.stop()
     return report
+
+
+def _plot(directory: Path, report: Report, out: Callable[[str], None]) -> None:
+    """After the run (the recording closed): draw it, say where both are."""
+    from .plot import PlotError, plot
+    report.recording = directory / "trace.mcap"
+    logs = ", ".join(str(p) for p in sorted(directory.glob("*.log")))
+    out(f"recording: {report.recording} (frames: {logs})")
+    try:
+        report.plot = plot(report.recording, directory / "demo.png",
+                           title=f"rocoma-can demo: {len(report.steps)} steps, "
+                                 f"{'passed' if report.ok else 'FAILED'}")
+    except PlotError as exc:
+        out(f"plot: none ({exc})")
+        return
+    out(f"plot: {report.plot}")
 
 
 def _status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None]) -> None:
@@ -434,6 +471,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         "1 kHz) or python-can's virtual (a copy per frame and receiver)")
     p.add_argument("--duration", type=float, default=16.0,
                    help="approximate length of the walk-through, s (default 16)")
+    p.add_argument("--record", default=None, metavar="DIR",
+                   help="where the recording and its plot go (default: a new directory "
+                        "under ~/.local/state/rocoma-can/demo/)")
+    p.add_argument("--no-record", action="store_true", help="no recording, no plot")
     p.set_defaults(func=_main)
 
 
@@ -444,10 +485,17 @@ def _main(args: argparse.Namespace) -> int:
         print("demo: --drives 2..32, --rate 10..2000 Hz, --duration > 0, --buses 1.."
               "drives/2 (the walk-through faults two drives of the first bus)", flush=True)
         return 2
+    record = None if args.no_record else Path(args.record or default_record_dir())
+    if record is not None:
+        try:
+            record.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            print(f"demo: --record {record}: cannot create the directory: {exc}", flush=True)
+            return 2
     try:
         report = run_demo(args.drives, args.rate, args.duration,
                           out=lambda line: print(line, flush=True), buses=args.buses,
-                          interface=args.interface, eds=args.eds)
+                          interface=args.interface, eds=args.eds, record=record)
     except ValueError as exc:  # a file that is no EDS, or one the demo cannot drive
         print(f"demo: --eds: {exc}", flush=True)
         return 2

@@ -2,13 +2,15 @@
 
 After an e-stop the first question is what happened in the seconds before it. The flight
 recorder keeps the last ``seconds`` (10 by default) of the loop's signals (trace.py, a ring
-the cycle writes) and of every CAN frame on every bus (passive bus handles of its own, like
+the cycle writes), of the manager's events (each e-stop with its cause, state and
+controller changes) and of every CAN frame on every bus (passive bus handles of its own, like
 ``rocoma-can record``), and on every e-stop, and on a shutdown after one, dumps both to
 ``flight-<time>-<cause>.mcap`` in its directory. The dump runs on the recorder's own thread:
 the loop only ever writes its ring row, and the manager's event thread only queues a request.
 
 ``--record DIR`` (``Recording``) writes everything instead, as it happens: ``DIR/<bus>.log``
-per bus (candump, python-can's writer) and ``DIR/trace.mcap`` with every cycle.
+per bus (candump, python-can's writer) and ``DIR/trace.mcap`` with every cycle and every
+manager event.
 
 A directory that cannot be written, or a full disk, ends that recording with the reason
 logged (``errors``), never the loop.
@@ -35,6 +37,8 @@ log = logging.getLogger(__name__)
 
 #: frames kept per second and bus at most (a saturated 1 Mbit/s bus carries ~9,000)
 MAX_FRAMES_PER_SECOND = 10_000
+#: manager events kept at most (a switch is two, an e-stop two or three)
+MAX_EVENTS = 1000
 
 
 class FrameTap(can.Listener):
@@ -76,6 +80,7 @@ class FlightRecorder:
         #: per bus, the listener its passive reader feeds (Taps wires them)
         self.taps = {name: FrameTap(name, seconds) for name in buses}
         self._requests: collections.deque[str] = collections.deque()
+        self._events: collections.deque[ManagerEvent] = collections.deque(maxlen=MAX_EVENTS)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._faulted = False
@@ -83,7 +88,9 @@ class FlightRecorder:
         self._thread.start()
 
     def on_event(self, event: ManagerEvent) -> None:
-        """A manager subscriber (its event thread): an e-stop queues a dump."""
+        """A manager subscriber (its event thread): every event is kept, an e-stop queues a
+        dump."""
+        self._events.append(event)
         if event.kind == EventKind.EMERGENCY_STOP and not event.cause.startswith(STOP_CAUSE):
             self._faulted = True
             self.request(event.cause or "e-stop")
@@ -104,6 +111,7 @@ class FlightRecorder:
         offset = now_wall - now
         first = self.trace.since_time(now - self.seconds)
         _, rows = self.trace.rows(first)
+        events = [e for e in list(self._events) if e.time >= now - self.seconds]
         frames = sorted((f for tap in self.taps.values()
                          for f in tap.since(now_wall - self.seconds)), key=lambda f: f.time)
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now_wall))
@@ -114,6 +122,7 @@ class FlightRecorder:
             with open(path, "wb") as stream:
                 writer = McapWriter(stream, self.trace.names)
                 writer.cycles(self.trace, rows, offset)
+                writer.events(events, offset)
                 writer.frames(frames)
                 writer.finish()
         except OSError as exc:  # unwritable directory, full disk: said, never raised
@@ -140,8 +149,9 @@ class FlightRecorder:
 
 
 class Recording:
-    """``--record DIR``: every bus to ``DIR/<bus>.log``, every cycle to ``DIR/trace.mcap``
-    (written by a thread of its own every ``period`` s)."""
+    """``--record DIR``: every bus to ``DIR/<bus>.log``, every cycle and manager event to
+    ``DIR/trace.mcap`` (written by a thread of its own every ``period`` s; ``on_event`` is
+    the manager subscriber)."""
 
     def __init__(self, trace: SignalTrace, directory: str | Path, buses: Sequence[str],
                  period: float = 0.2) -> None:
@@ -157,10 +167,14 @@ class Recording:
         self._writer = McapWriter(self._stream, trace.names)
         self._offset = time.time() - time.monotonic()
         self._next = 0
+        self._events: collections.deque[ManagerEvent] = collections.deque()
         self._period = period
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="trace-writer", daemon=True)
         self._thread.start()
+
+    def on_event(self, event: ManagerEvent) -> None:
+        self._events.append(event)
 
     def _run(self) -> None:
         while not self._stop.wait(self._period):
@@ -174,8 +188,10 @@ class Recording:
         if start > self._next:
             self.errors.append(f"{self.path}: {start - self._next} cycles lost (the writer "
                                "fell a ring behind)")
+        events = [self._events.popleft() for _ in range(len(self._events))]
         try:
             self._writer.cycles(self.trace, rows, self._offset)
+            self._writer.events(events, self._offset)
         except OSError as exc:
             self.errors.append(f"{self.path}: writing failed: {exc}")
             log.error("%s", self.errors[-1])

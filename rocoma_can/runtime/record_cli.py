@@ -1,6 +1,6 @@
-"""``rocoma-can record`` (raw CAN to a candump/ASC/BLF file) and ``rocoma-can export``
-(an MCAP trace to CSV). Both work beside a running manager or on their own; imports are
-deferred so ``rocoma-can --help`` stays quick."""
+"""``rocoma-can record`` (raw CAN to a candump/ASC/BLF file), ``rocoma-can export`` (an
+MCAP trace to CSV) and ``rocoma-can plot`` (a trace to a PNG). They work beside a running
+manager or on their own; imports are deferred so ``rocoma-can --help`` stays quick."""
 from __future__ import annotations
 
 import argparse
@@ -95,6 +95,17 @@ def _export(args: argparse.Namespace) -> int:
     return OK
 
 
+def _plot(args: argparse.Namespace) -> int:
+    from .plot import PlotError, plot
+    try:
+        path = plot(args.file, args.out or None)
+    except PlotError as exc:
+        _say(str(exc))
+        return USAGE
+    print(f"plot written to {path}", flush=True)
+    return OK
+
+
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "record", help="record every frame of a bus to FILE (.log candump, .asc, .blf)",
@@ -112,3 +123,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--csv", dest="out", nargs="?", const="", default="", metavar="OUT",
                    help="the CSV file (default: FILE.csv)")
     p.set_defaults(func=_export)
+    p = subparsers.add_parser(
+        "plot", help="a trace (run --record, a flight record, the demo's) as one PNG",
+        description="Manager state band with controllers and e-stops, joint positions with "
+                    "targets, torques, cycle period and jitter histogram.")
+    p.add_argument("file", help="FILE.mcap")
+    p.add_argument("--out", default="", metavar="PNG", help="the PNG (default: FILE.png)")
+    p.set_defaults(func=_plot)

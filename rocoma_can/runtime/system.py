@@ -114,15 +114,19 @@ class Runtime:
                             capacity=max(2, int(config.rate * max(seconds, 2.0))))
         names = [b.label for b in config.buses]
         listeners: dict[str, list[can.Listener]] = {name: [] for name in names}
+        # closed after the manager's shutdown, which delivers its last events (the loop's
+        # stop) to them: what they write ends with how it ended
+        after_manager = self._parts.index(self.manager.shutdown) + 1
         if flight is not None:
             self.flight = FlightRecorder(trace, flight, seconds, names, announce)
-            self._parts.insert(0, self.flight.close)
+            self._parts.insert(after_manager, self.flight.close)
             self.manager.subscribe(self.flight.on_event)
             for name, tap in self.flight.taps.items():
                 listeners[name].append(tap)
         if record is not None:
             self.recording = Recording(trace, record, names)
-            self._parts.insert(0, self.recording.close)
+            self._parts.insert(after_manager, self.recording.close)
+            self.manager.subscribe(self.recording.on_event)
             for name, frame_log in self.recording.logs.items():
                 listeners[name].append(frame_log)
         passive = {}

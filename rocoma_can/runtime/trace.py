@@ -9,8 +9,10 @@ with a JSON schema, so Foxglove Studio and PlotJuggler open the file as it is.
 Channels: ``/rocoma/cycle`` (one message per cycle: ``t``, ``period``, ``work``, ``late``,
 ``state``, ``controller``, then per joint arrays ``position``, ``velocity``, ``torque``,
 ``command_mode``, ``command_position``, ``command_velocity``, ``command_torque``,
-``statusword``, ``cia402_state``, ``error_code``) and ``/can/<bus>`` (one message per frame:
-``id``, ``data`` as hex, ``dlc``, ``extended``, ``remote``, ``error``, ``fd``).
+``statusword``, ``cia402_state``, ``error_code``), ``/rocoma/event`` (one message per
+manager event: ``kind`` emergency_stop / state_changed / active_controller_changed,
+``state``, ``controller``, ``cause``) and ``/can/<bus>`` (one message per frame: ``id``,
+``data`` as hex, ``dlc``, ``extended``, ``remote``, ``error``, ``fd``).
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from typing import Any, BinaryIO, Protocol
 import numpy as np
 
 from ..drivers.joints import JointCommand, JointState
-from ..events import ManagerState
+from ..events import ManagerEvent, ManagerState
 
 #: per-joint blocks of a row, in order: (name, where it comes from)
 JOINT_FIELDS = ("position", "velocity", "torque", "command_mode", "command_position",
@@ -135,6 +137,18 @@ FRAME_SCHEMA = {"type": "object", "title": "rocoma_can.CanFrame", "properties": 
     "remote": {"type": "boolean"}, "error": {"type": "boolean"}, "fd": {"type": "boolean"}}}
 
 
+EVENT_SCHEMA = {"type": "object", "title": "rocoma_can.ManagerEvent", "properties": {
+    "kind": {"type": "string",
+             "description": "emergency_stop, state_changed or active_controller_changed"},
+    "state": {"type": "string"}, "controller": {"type": "string"},
+    "cause": {"type": "string", "description": "an e-stop's cause"}}}
+
+
+def event_message(event: ManagerEvent) -> dict[str, Any]:
+    return {"kind": event.kind.value, "state": event.state.name,
+            "controller": event.active_controller, "cause": event.cause}
+
+
 @dataclass(frozen=True)
 class Frame:
     """A received CAN frame, compact (the flight recorder keeps tens of thousands)."""
@@ -166,6 +180,12 @@ class McapWriter:
         self._frame_schema = self._writer.register_schema(
             name="rocoma_can.CanFrame", encoding="jsonschema",
             data=json.dumps(FRAME_SCHEMA).encode())
+        events = self._writer.register_schema(name="rocoma_can.ManagerEvent",
+                                              encoding="jsonschema",
+                                              data=json.dumps(EVENT_SCHEMA).encode())
+        self._events = self._writer.register_channel(topic="/rocoma/event",
+                                                     message_encoding="json",
+                                                     schema_id=events)
         self._buses: dict[str, int] = {}
         self.messages = 0
 
@@ -176,6 +196,15 @@ class McapWriter:
             ns = int((row[0] + offset) * 1e9)
             add(channel_id=channel, log_time=ns, publish_time=ns,
                 data=json.dumps(trace.message(row), separators=(",", ":")).encode())
+            self.messages += 1
+
+    def events(self, events: Iterable[ManagerEvent], offset: float) -> None:
+        """Manager events (their monotonic ``time`` + ``offset``: wall-clock time)."""
+        for event in events:
+            ns = int((event.time + offset) * 1e9)
+            self._writer.add_message(channel_id=self._events, log_time=ns, publish_time=ns,
+                                     data=json.dumps(event_message(event),
+                                                     separators=(",", ":")).encode())
             self.messages += 1
 
     def frames(self, frames: Iterable[Frame]) -> None:
