@@ -27,6 +27,7 @@ SHORT = {
     "estop_latency": [],
     "switch_missed_cycles": [],
     "cli_start": [],
+    "recording_cost": [],
 }
 
 

@@ -109,6 +109,17 @@ class DriveStatus:
     nmt_state: str = "UNKNOWN"          # from the drive's last heartbeat
     heartbeat_age: float | None = None  # s since that heartbeat arrived; None: none yet
     homing: str = ""                    # "", "enabling", "homing", "homed", "failed: ..."
+    #: the latest feedback the drive reports (rad, rad/s, Nm); None: not in its TPDOs
+    position: float | None = None
+    velocity: float | None = None
+    torque: float | None = None
+
+
+def _reported(value: float, mapped: bool) -> float | None:
+    """A feedback value for a status report: None when the drive does not report it (or it
+    is not a number: JSON has no NaN)."""
+    v = float(value)
+    return round(v, 5) if mapped and math.isfinite(v) else None
 
 
 class Manager(Protocol):
@@ -932,7 +943,11 @@ class CanopenHardware:
                 cia301.NmtState(nmt).name if nmt in cia301.NmtState._value2member_map_
                 else "UNKNOWN",
                 round(now - seen, 3) if math.isfinite(seen) else None,
-                job.describe() if (job := self._homing_seen[i]) is not None else ""))
+                job.describe() if (job := self._homing_seen[i]) is not None else "",
+                *(_reported(source[i], kind in (d.feedback or ()))
+                  for kind, source in (("position", self.state.position),
+                                       ("velocity", self.state.velocity),
+                                       ("torque", self.state.torque)))))
         return out
 
     def status_report(self) -> dict[str, Any]:

@@ -32,6 +32,9 @@ CASES = {
     "cycle_cost": lambda r: [row["drives"] for row in r] == [1, 6, 12, 24] and all(
         {"frames_per_cycle", "ours_us", "canopen_us", "speedup_median", "ns_per_frame",
          "core_share_at_30k_frames_s"} <= set(row) for row in r),
+    "recording_cost": lambda r: [row["joints"] for row in r] == [3, 6, 12, 24] and all(
+        {"loop_record_us", "tap_us_per_frame", "writer_us_per_cycle"} <= set(row)
+        for row in r),
     "cli_start": lambda r: all({"seconds", "modules", "numpy", "exit_code"} <= set(c)
                                for c in r.values())
     and not r["rocoma-can status --help"]["numpy"],

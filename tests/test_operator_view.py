@@ -125,3 +125,115 @@ def test_required_drives_run_degraded_without_the_others(virtual_channel, sim_se
         wait_for(lambda: all(d.state402 == State402.OPERATION_ENABLED
                              for d in segment.drives.values()), "joint1 and joint3 enabled")
         assert not rt.hardware.ready[1]
+
+
+def test_status_reports_cycle_statistics_bus_load_and_feedback(virtual_channel,
+                                                               sim_segment_factory, cli):
+    sim_segment_factory(3)
+    with running(virtual_channel) as rt:
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        code, out, _ = cli("status", "--json")
+        status = json.loads(out)
+        assert code == 0 and status["cycle"]["rate"] == RATE and status["cycle"]["cycles"] > 0
+        assert status["cycle"]["period_mean_ms"] > 0
+        (bus,) = status["buses"]
+        assert bus["channel"] == virtual_channel and bus["load"] is None  # in-process
+        assert all(isinstance(d[k], float) for d in status["drives"]
+                   for k in ("position", "velocity", "torque"))
+        code, out, _ = cli("status")
+        assert "cycle: " in out and " cycles at 100 Hz, overruns " in out
+        assert f"bus {bus['name']} ({virtual_channel}): planned load n/a" in out
+        assert "drive joint1 (node 1): READY" in out and ", position +" in out
+
+
+def test_status_watch_in_a_terminal_shows_the_state_change_of_an_estop(virtual_channel,
+                                                                       sim_segment_factory,
+                                                                       cli):
+    """The live view, drawn by rich on a pseudo-terminal, as in a person's shell: OK with
+    pd, then, after `rocoma-can estop`, the e-stop's cause and the state it led to."""
+    import os
+    import pty
+    import select
+
+    import can
+    from rich.console import Console
+
+    from rocoma_can.runtime.client import ManagerClient
+    from rocoma_can.runtime.live import watch
+    sim_segment_factory(3)
+    master, slave = pty.openpty()
+    screen = b""
+
+    def read_until(text: bytes, what: str) -> None:
+        nonlocal screen
+        deadline = time.monotonic() + WAIT
+        while text not in screen:
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}: {screen[-2000:]!r}")
+            if select.select([master], [], [], 0.1)[0]:
+                screen += os.read(master, 65536)
+
+    with running(virtual_channel) as rt, open(slave, "w", closefd=True) as terminal:
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        assert cli("clear")[0] == 0 and cli("switch", "pd")[:2] == (0, "SWITCHED\n")
+        bus = can.Bus(interface="virtual", channel=virtual_channel, ignore_config=True)
+        stop = threading.Event()
+        console = Console(file=terminal, force_terminal=True, width=160)
+        with ManagerClient(bus, MANAGER_ID, timeout=2.0) as client:
+            viewer = threading.Thread(target=watch, args=(client,),
+                                      kwargs={"interval": 0.2, "console": console,
+                                              "stop": stop})
+            viewer.start()
+            try:
+                read_until(b" OK ", "the view of state OK")
+                read_until(b"pd", "the active controller")
+                screen = b""
+                assert cli("estop")[0] == 0
+                read_until(b"SDO e-stop (0x2110)", "the e-stop's cause")
+                # the screen that shows the cause shows the state it led to: damp's smart
+                # stop (EMERGENCY), or torque-off once damp has brought the joints to rest
+                cause = screen.index(b"SDO e-stop (0x2110)")
+                shown = screen[screen.rindex(b"state", 0, cause):cause]
+                assert b" EMERGENCY " in shown or b" FAILPROOF " in shown, shown
+            finally:
+                stop.set()
+                viewer.join(10.0)
+                bus.shutdown()
+        assert not viewer.is_alive()
+    os.close(master)
+
+
+def test_status_watch_runs_for_its_duration_and_ends(virtual_channel, sim_segment_factory,
+                                                     cli):
+    sim_segment_factory(3)
+    with running(virtual_channel) as rt:
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        code, out, _ = cli("status", "--watch", "--duration", "1.0", "--interval", "0.2")
+        assert code == 0 and "FAILPROOF" in out and "drives" in out and "joint3" in out
+
+
+def test_status_view_draws_bring_up_progress_a_pulsing_homing_and_a_stale_manager():
+    """The view of a status report as the manager node serves it (0x2140's JSON), while
+    drives are being brought up and one is homing, and after the manager stopped answering."""
+    from rich.console import Console
+
+    from rocoma_can.runtime.live import view
+    drive = {"node_id": 1, "cia402_state": "SWITCH_ON_DISABLED", "enabled": False,
+             "fault": None, "nmt_state": "PRE_OPERATIONAL", "heartbeat_age": 0.05,
+             "homing": "", "position": 0.25, "velocity": None, "torque": None}
+    status = {"state": "FAILPROOF", "active": "torque_off", "latched": True,
+              "last_switch": "none", "switch_refused": "", "estop_cause": "",
+              "estop_cob_id": 0xA0, "startup_finished": False, "recovery": "running",
+              "bus_fault": None, "cycle": None, "buses": [],
+              "drives": [{**drive, "name": "a", "phase": "READY"},
+                         {**drive, "name": "b", "phase": "CONFIGURING", "node_id": 2},
+                         {**drive, "name": "c", "phase": "READY", "node_id": 3,
+                          "homing": "homing"}]}
+    console = Console(record=True, width=160, force_terminal=True)
+    console.print(view(status, node=100))
+    text = console.export_text()
+    assert "bring-up" in text and "2/3 ready" in text and "CONFIGURING" in text
+    assert "homing: homing" in text and "recovery" in text and "+0.250" in text
+    console.print(view(status, problem="no answer from manager node 100", answered=1.0,
+                       node=100))
+    assert "STALE: no answer from manager node 100" in console.export_text()

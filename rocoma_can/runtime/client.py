@@ -149,6 +149,8 @@ class ManagerClient:
             "startup_finished": drives.get("startup_finished"),
             "recovery": drives.get("recovery"),
             "bus_fault": drives.get("bus_fault"),
+            "cycle": drives.get("cycle"),
+            "buses": drives.get("buses", []),
             "drives": drives.get("drives", []),
         }
 

@@ -19,10 +19,11 @@ import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..errors import NoAnswer, Refused, RocomaError
 from .client import ManagerClient
+from .live import cycle_text
 from .objects import (
     ABORT_NOT_FOUND,
     CLEAR,
@@ -201,27 +202,51 @@ def _command(index: int, done: str) -> Callable[[argparse.Namespace], int]:
 
 
 def _status(args: argparse.Namespace) -> int:
+    if args.watch:
+        from .live import watch
+        return _client(args, lambda client: watch(client, interval=args.interval,
+                                                  duration=args.duration))
+
     def action(client: ManagerClient) -> int:
         status = client.status()
         if args.json:
             print(json.dumps(status, indent=2), flush=True)
             return OK
-        drives = status.pop("drives")
-        for key, value in status.items():
-            if key == "estop_cob_id":
-                value = f"{value:#05x}"
-            elif value in ("", None) and key in ("switch_refused", "estop_cause", "bus_fault"):
-                value = "none"
-            print(f"{key}: {value}", flush=True)
-        for d in drives:
-            age = d.get("heartbeat_age")
-            print(f"drive {d['name']} (node {d['node_id']}): {d['phase']}, {d['cia402_state']}"
-                  f"{', enabled' if d['enabled'] else ''}, NMT {d['nmt_state']}, heartbeat "
-                  f"{'never' if age is None else f'{age:.2f} s ago'}"
-                  f"{', fault: ' + d['fault'] if d['fault'] else ''}"
-                  f"{', homing: ' + d['homing'] if d.get('homing') else ''}", flush=True)
+        for line in status_lines(status):
+            print(line, flush=True)
         return OK
     return _client(args, action)
+
+
+def status_lines(status: dict[str, Any]) -> list[str]:
+    """``status`` as text, one fact per line (what scripts grep)."""
+    status = dict(status)
+    drives, buses, cycle = status.pop("drives"), status.pop("buses"), status.pop("cycle")
+    lines = []
+    for key, value in status.items():
+        if key == "estop_cob_id":
+            value = f"{value:#05x}"
+        elif value in ("", None) and key in ("switch_refused", "estop_cause", "bus_fault"):
+            value = "none"
+        lines.append(f"{key}: {value}")
+    if cycle:
+        lines.append(f"cycle: {cycle_text(cycle)}")
+    for b in buses:
+        load = "n/a (in-process)" if b.get("load") is None else f"{b['load']:.0%}"
+        lines.append(f"bus {b['name']} ({b['channel']}): planned load {load}, tx errors "
+                     f"{b['tx_errors']}, error frames {b['error_frames']}"
+                     f"{', fault: ' + b['fault'] if b.get('fault') else ''}")
+    for d in drives:
+        age = d.get("heartbeat_age")
+        lines.append(
+            f"drive {d['name']} (node {d['node_id']}): {d['phase']}, {d['cia402_state']}"
+            f"{', enabled' if d['enabled'] else ''}, NMT {d['nmt_state']}, heartbeat "
+            f"{'never' if age is None else f'{age:.2f} s ago'}"
+            + "".join(f", {k} {d[k]:+.4f}" for k in ("position", "velocity", "torque")
+                      if d.get(k) is not None)
+            + (f", fault: {d['fault']}" if d['fault'] else "")
+            + (f", homing: {d['homing']}" if d.get('homing') else ""))
+    return lines
 
 
 def _list(args: argparse.Namespace) -> int:
@@ -287,6 +312,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p = subparsers.add_parser("status", help="state, active controller, e-stop latch and cause, "
                                               "every drive's bring-up, CiA 402 state and fault")
     p.add_argument("--json", action="store_true", help="everything as one JSON document")
+    p.add_argument("--watch", action="store_true",
+                   help="a live view, refreshed until Ctrl-C (needs rocoma-can[live])")
+    p.add_argument("--interval", type=float, default=0.5, metavar="S",
+                   help="--watch: seconds between refreshes (0.5)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="--watch: stop after S seconds (default: Ctrl-C)")
     _bus_options(p)
     p.set_defaults(func=_status)
     p = subparsers.add_parser("list", help="the switchable controllers, numbered")

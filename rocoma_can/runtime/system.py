@@ -3,6 +3,7 @@ the manager with its controllers (built here: nothing in drivers/ builds a manag
 manager's CANopen node, and the loop."""
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -92,7 +93,7 @@ class Runtime:
                                     estop_cob_id=m.estop_cob_id, status_period=m.status_period,
                                     recover=hardware.recover, home=hardware.home,
                                     heartbeat_ms=m.heartbeat_ms,
-                                    drive_status=hardware.status_report,
+                                    drive_status=self.status_report,
                                     estop_in_cycle=hardware.set_estop_cob_id)
             self._parts.insert(0, self.node.close)
             trace = self._recorders(record, flight, flight_seconds, announce)
@@ -137,6 +138,25 @@ class Runtime:
         taps = Taps(passive, listeners)
         self._parts.insert(0, taps.close)  # the readers stop before what they feed
         return trace
+
+    def status_report(self) -> dict[str, Any]:
+        """What the manager node serves as 0x2140 (``rocoma-can status``): the hardware's
+        report (start-up, recovery, buses, drives), each bus's planned load at the running
+        rate, and the loop's cycle statistics (over its last 4096 cycles)."""
+        report = self.hardware.status_report()
+        rate = self.config.rate
+        for bus in report["buses"]:
+            planned = self.config.loads.get(bus["name"])
+            bus["load"] = (None if planned is None
+                           else round(planned.bits_per_cycle * rate / planned.bitrate, 4))
+        t = self.loop.stats.summary()
+        report["cycle"] = {"rate": rate, "cycles": t.cycles, "overruns": t.overruns,
+                           **{f"{k}_ms": round(v * 1e3, 3) if math.isfinite(v) else None
+                              for k, v in (("period_mean", t.period_mean),
+                                           ("period_max", t.period_max),
+                                           ("jitter_p99", t.jitter_p99),
+                                           ("work_max", t.work_max))}}
+        return report
 
     def run(self, duration: float | None = None, signals: bool = True) -> TimingSummary:
         """Start the bus side, run the loop until stopped, torque-off; the caller closes."""
