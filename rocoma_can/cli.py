@@ -14,6 +14,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "rocoma_can.runtime.demo",
     "rocoma_can.runtime.commands",
     "rocoma_can.runtime.record_cli",
+    "rocoma_can.runtime.fleet_client",
     "rocoma_can.runtime.scaffold",
     "rocoma_can.drivers.sim.cli",
 )

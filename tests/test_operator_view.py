@@ -11,13 +11,13 @@ from contextlib import contextmanager
 
 import pytest
 from fixtures.driver_rig import VIRTUAL
+from fixtures.running import runtime_running
+from fixtures.running import wait_for as wait_until
 
 from rocoma_can import ManagerState
 from rocoma_can.cli import main
 from rocoma_can.drivers import cia301
 from rocoma_can.drivers.cia402 import State402
-from rocoma_can.runtime import Runtime
-from rocoma_can.runtime.config import validate
 from rocoma_can.runtime.demo import MANAGER_ID, demo_config
 
 RATE = 100.0
@@ -28,11 +28,7 @@ WAIT = max(VIRTUAL.bring_up_budget(3), VIRTUAL.recovery_budget(), VIRTUAL.enable
 
 
 def wait_for(predicate, what: str, timeout: float = WAIT) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.01)
+    wait_until(predicate, what, timeout)
 
 
 @pytest.fixture
@@ -51,16 +47,8 @@ def cli(virtual_channel, capsys):
 def running(channel: str, **manager):
     cfg = demo_config(channel, drives=3, rate=RATE)
     cfg["manager"].update(manager)
-    rt = Runtime(validate(cfg))
-    thread = threading.Thread(target=rt.run, kwargs={"signals": False}, name="test-loop")
-    thread.start()
-    try:
+    with runtime_running(cfg, WAIT) as rt:
         yield rt
-    finally:
-        rt.loop.stop("test")
-        thread.join(WAIT)
-        rt.close()
-    assert not thread.is_alive()
 
 
 def test_clear_never_rearms_a_faulted_drive(virtual_channel, sim_segment_factory, cli):
@@ -180,7 +168,7 @@ def test_status_watch_in_a_terminal_shows_the_state_change_of_an_estop(virtual_c
         stop = threading.Event()
         console = Console(file=terminal, force_terminal=True, width=160)
         with ManagerClient(bus, MANAGER_ID, timeout=2.0) as client:
-            viewer = threading.Thread(target=watch, args=(client,),
+            viewer = threading.Thread(target=watch, args=(client.status, "manager node 100"),
                                       kwargs={"interval": 0.2, "console": console,
                                               "stop": stop})
             viewer.start()
@@ -230,10 +218,10 @@ def test_status_view_draws_bring_up_progress_a_pulsing_homing_and_a_stale_manage
                          {**drive, "name": "c", "phase": "READY", "node_id": 3,
                           "homing": "homing"}]}
     console = Console(record=True, width=160, force_terminal=True)
-    console.print(view(status, node=100))
+    console.print(view(status, label="manager node 100"))
     text = console.export_text()
     assert "bring-up" in text and "2/3 ready" in text and "CONFIGURING" in text
     assert "homing: homing" in text and "recovery" in text and "+0.250" in text
     console.print(view(status, problem="no answer from manager node 100", answered=1.0,
-                       node=100))
+                       label="manager node 100"))
     assert "STALE: no answer from manager node 100" in console.export_text()

@@ -152,6 +152,7 @@ class ManagerClient:
             "cycle": drives.get("cycle"),
             "buses": drives.get("buses", []),
             "drives": drives.get("drives", []),
+            "zenoh": drives.get("zenoh"),
         }
 
     def controllers(self) -> list[str]:

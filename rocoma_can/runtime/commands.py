@@ -22,7 +22,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import NoAnswer, Refused, RocomaError
+from . import fleet_client
 from .client import ManagerClient
+from .fleet import FleetConfig, FleetError
 from .live import cycle_text
 from .objects import (
     ABORT_NOT_FOUND,
@@ -105,6 +107,7 @@ def _run(args: argparse.Namespace) -> int:
         return USAGE
     if args.rate:
         config.rate = args.rate
+    config.fleet = fleet_from_args(args, config.fleet)
     flight = None if args.no_flight else args.flight_dir
     if flight is not None and not recording_available():
         _err("flight recorder off: it writes MCAP, pip install 'rocoma-can[record]'")
@@ -116,7 +119,7 @@ def _run(args: argparse.Namespace) -> int:
         runtime = Runtime(config, record=args.record, flight=flight,
                           flight_seconds=args.flight_seconds,
                           announce=lambda text: print(f"rocoma-can: {text}", flush=True))
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, FleetError) as exc:
         _err(str(exc))
         return USAGE
     if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
@@ -130,6 +133,15 @@ def _run(args: argparse.Namespace) -> int:
                   f"every e-stop go to {runtime.flight.directory}", flush=True)
         if runtime.recording is not None:
             print(f"rocoma-can: recording every frame and cycle to {args.record}", flush=True)
+        if runtime.fleet is not None:
+            f = runtime.fleet.config
+            print(f"rocoma-can: on Zenoh as {f.prefix} ({f.mode}"
+                  + "".join(f", {k} {', '.join(v)}" for k, v in (("listen", f.listen),
+                                                                 ("connect", f.connect)) if v)
+                  + f"; switch/clear/recover {'allowed' if f.allow_commands else 'refused'})",
+                  flush=True)
+        elif runtime.fleet_error:
+            _err(f"running without Zenoh: {runtime.fleet_error}")
         try:
             summary = runtime.run(duration=args.duration)
         except OSError as exc:
@@ -137,6 +149,30 @@ def _run(args: argparse.Namespace) -> int:
             return USAGE
         print(f"rocoma-can: stopped ({runtime.loop.stop_reason}); {summary.line()}", flush=True)
     return OK
+
+
+def fleet_from_args(args: argparse.Namespace, fleet: FleetConfig | None) -> FleetConfig | None:
+    """The config's zenoh: section with the command line's --zenoh* flags over it (any of
+    them turns Zenoh on)."""
+    given = (args.zenoh is not None or args.zenoh_mode or args.zenoh_connect
+             or args.zenoh_listen or args.zenoh_no_multicast or args.zenoh_allow_commands
+             or args.zenoh_deadman)
+    if not given:
+        return fleet
+    fleet = fleet or FleetConfig()
+    if args.zenoh:
+        fleet.prefix = args.zenoh.strip("/")
+    if args.zenoh_mode:
+        fleet.mode = args.zenoh_mode
+    fleet.connect += args.zenoh_connect
+    fleet.listen += args.zenoh_listen
+    if args.zenoh_no_multicast:
+        fleet.multicast = False
+    if args.zenoh_allow_commands:
+        fleet.allow_commands = True
+    if args.zenoh_deadman:
+        fleet.deadman = args.zenoh_deadman
+    return fleet
 
 
 # --- client commands --------------------------------------------------------------------------
@@ -164,6 +200,8 @@ def _client(args: argparse.Namespace, action: Callable[[ManagerClient], int]) ->
 def _switch(args: argparse.Namespace) -> int:
     """Prints the result (SWITCHED, RUNNING, NOT_FOUND, ERROR) on stdout in every case; a
     refusal's reason (e-stop latched, drives not ready) goes to stderr."""
+    if args.zenoh is not None:
+        return fleet_client.switch(args)
     def action(client: ManagerClient) -> int:
         try:
             result = client.switch(args.name, timeout=args.wait)
@@ -191,8 +229,12 @@ def _home(args: argparse.Namespace) -> int:
     return _client(args, action)
 
 
-def _command(index: int, done: str) -> Callable[[argparse.Namespace], int]:
+def _command(index: int, verb: str, done: str) -> Callable[[argparse.Namespace], int]:
+    through_zenoh = fleet_client.command(verb, done)
+
     def handler(args: argparse.Namespace) -> int:
+        if args.zenoh is not None:
+            return through_zenoh(args)
         def action(client: ManagerClient) -> int:
             client.write(index, 1)
             print(done, flush=True)
@@ -202,26 +244,29 @@ def _command(index: int, done: str) -> Callable[[argparse.Namespace], int]:
 
 
 def _status(args: argparse.Namespace) -> int:
-    if args.watch:
-        from .live import watch
-        return _client(args, lambda client: watch(client, interval=args.interval,
-                                                  duration=args.duration))
-
-    def action(client: ManagerClient) -> int:
-        status = client.status()
+    def show(read: Callable[[], dict[str, Any]], label: str) -> int:
+        if args.watch:
+            from .live import watch
+            return watch(read, label, interval=args.interval, duration=args.duration)
+        status = read()
         if args.json:
             print(json.dumps(status, indent=2), flush=True)
             return OK
         for line in status_lines(status):
             print(line, flush=True)
         return OK
-    return _client(args, action)
+    if args.zenoh is not None:
+        return fleet_client.with_client(
+            args, lambda client: show(client.status, f"Zenoh {client.prefix}"))
+    return _client(args, lambda client: show(client.status, f"manager node {args.node}"))
 
 
 def status_lines(status: dict[str, Any]) -> list[str]:
     """``status`` as text, one fact per line (what scripts grep)."""
     status = dict(status)
     drives, buses, cycle = status.pop("drives"), status.pop("buses"), status.pop("cycle")
+    fleet = status.pop("zenoh", None)
+    status.pop("controllers", None)  # `list` prints them
     lines = []
     for key, value in status.items():
         if key == "estop_cob_id":
@@ -231,6 +276,11 @@ def status_lines(status: dict[str, Any]) -> list[str]:
         lines.append(f"{key}: {value}")
     if cycle:
         lines.append(f"cycle: {cycle_text(cycle)}")
+    if fleet:
+        lines.append("zenoh: " + (f"unavailable: {fleet['error']}" if "error" in fleet else
+                                  f"{fleet['prefix']}, alive {fleet['alive']}, queries "
+                                  f"{fleet['queries']} ({fleet['refused']} refused), "
+                                  f"published {fleet['published']}, errors {fleet['errors']}"))
     for b in buses:
         load = "n/a (in-process)" if b.get("load") is None else f"{b['load']:.0%}"
         lines.append(f"bus {b['name']} ({b['channel']}): planned load {load}, tx errors "
@@ -250,6 +300,8 @@ def status_lines(status: dict[str, Any]) -> list[str]:
 
 
 def _list(args: argparse.Namespace) -> int:
+    if args.zenoh is not None:
+        return fleet_client.controllers(args)
     def action(client: ManagerClient) -> int:
         for i, name in enumerate(client.controllers(), 1):
             print(f"{i} {name}", flush=True)
@@ -257,11 +309,13 @@ def _list(args: argparse.Namespace) -> int:
     return _client(args, action)
 
 
-def _bus_options(p: argparse.ArgumentParser) -> None:
+def _bus_options(p: argparse.ArgumentParser, zenoh: bool = True) -> None:
     p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
     p.add_argument("--channel", default="can0", help="CAN channel (can0)")
     p.add_argument("--node", type=int, default=100, help="the manager's node id (100)")
     p.add_argument("--timeout", type=float, default=0.5, help="SDO answer timeout, s (0.5)")
+    if zenoh:
+        fleet_client.add_options(p)
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -277,6 +331,18 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--flight-seconds", type=float, default=10.0, metavar="S",
                    help="seconds the flight recorder keeps before an e-stop (10)")
     p.add_argument("--no-flight", action="store_true", help="no flight recorder")
+    g = p.add_argument_group("Zenoh (the config's zenoh: section; these override it)")
+    g.add_argument("--zenoh", nargs="?", const="", default=None, metavar="PREFIX",
+                   help="serve the manager on Zenoh (prefix default rocoma/<host>)")
+    g.add_argument("--zenoh-mode", choices=("peer", "client"), default=None)
+    g.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT")
+    g.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT")
+    g.add_argument("--zenoh-no-multicast", action="store_true",
+                   help="no multicast scouting")
+    g.add_argument("--zenoh-allow-commands", action="store_true",
+                   help="accept switch, clear and recover over Zenoh (e-stops always are)")
+    g.add_argument("--zenoh-deadman", default=None, metavar="KEY",
+                   help="e-stop when this liveliness token vanishes (once seen)")
     p.set_defaults(func=_run)
 
     p = subparsers.add_parser("check-config", help="validate a YAML config, list every problem")
@@ -299,7 +365,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
             ("recover", RECOVER, "fault-reset / restart faulted drives", "recovery started")):
         p = subparsers.add_parser(name, help=text)
         _bus_options(p)
-        p.set_defaults(func=_command(index, done))
+        p.set_defaults(func=_command(index, name, done))
     p = subparsers.add_parser(
         "home", help="home one drive (CiA 402 homing, its own method) while the active "
                      "controller holds the others; waits for the result")
@@ -307,7 +373,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--timeout-homing", type=float, default=90.0, metavar="S",
                    help="give up waiting after S seconds (90; the manager's own limit is "
                         "the drive's homing_timeout)")
-    _bus_options(p)
+    _bus_options(p, zenoh=False)
     p.set_defaults(func=_home)
     p = subparsers.add_parser("status", help="state, active controller, e-stop latch and cause, "
                                               "every drive's bring-up, CiA 402 state and fault")

@@ -19,6 +19,8 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
                   enable_timeout: 1.0}                      # start-up (Timeouts)
     timing: {advance: 0.5, initialize_fast: 0.5, overruns: 5, hang: 20}  # in cycles (dt):
                                    # the manager's wall-time supervision of controllers
+    zenoh: {prefix: rocoma/<host>, mode: peer, connect: [], listen: [], multicast: true,
+            allow_commands: false, deadman: null, required: true}  # optional (fleet.py)
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
     controllers: [ ... ]           # rocoma_can.plugins format
     emergency_controllers: [ ... ]
@@ -43,6 +45,8 @@ from ..drivers.drive_plan import DrivePlan, plan_drive
 from ..errors import ConfigError
 from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
+from .fleet import FleetConfig
+from .fleet import parse as parse_fleet
 
 if TYPE_CHECKING:  # loaded with the controllers, only when they are checked
     from ..plugins import LoadedController
@@ -51,7 +55,7 @@ DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives 
 #: interfaces between threads of one process: no wire, no bit rate, no load to check
 IN_PROCESS = frozenset({"virtual", "inproc"})
 _TOP_KEYS = {"bus", "buses", "rate", "manager", "realtime", "supervision", "timing", "drives",
-             "controllers", "emergency_controllers"}
+             "controllers", "emergency_controllers", "zenoh"}
 _BUS_KEYS = {"interface", "channel", "bitrate", "name", "fd", "data_bitrate"}
 _MANAGER_KEYS = {"node_id", "bus", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
                  "switch_clients", "status_period", "required_drives"}
@@ -107,6 +111,7 @@ class RuntimeConfig:
     source: str = "<memory>"
     loads: dict[str, BusLoad] = field(default_factory=dict)  # per bus, none on in-process buses
     plans: dict[str, DrivePlan] = field(default_factory=dict)  # per drive name
+    fleet: FleetConfig | None = None  # the zenoh: section (None: no Zenoh)
 
     @property
     def bus(self) -> BusConfig:
@@ -290,6 +295,10 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
             else:
                 manager.required_drives = list(required)
 
+    fleet = parse_fleet(data.get("zenoh"), problems)
+    if fleet is not None and fleet.config_file and base is not None:
+        fleet.config_file = str(base / fleet.config_file)  # relative to the YAML file
+
     controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
     if not data.get("controllers"):
         problems.append("controllers: at least one controller is needed")
@@ -321,7 +330,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         raise ConfigError([f"{source}: {p}" for p in problems])
     return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
-                         timing, source, loads, plans)
+                         timing, source, loads, plans, fleet)
 
 
 def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]) -> list[str]:

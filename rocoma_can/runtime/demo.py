@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
+from ..errors import RocomaError
 from .client import ManagerClient
 from .objects import STATE_NAMES
 
@@ -37,6 +38,7 @@ MANAGER_ID = 100
 #: receiver as python-can's virtual does (the demo has 3-4 receivers per bus)
 DEFAULT_INTERFACE = "inproc"
 ESTOP_COB_ID = 0x0A0
+ZENOH_PREFIX = "rocoma/demo"
 
 
 def default_buses(drives: int) -> int:
@@ -323,11 +325,12 @@ def default_record_dir() -> Path:
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              out: Callable[[str], None] = print, buses: int | None = None,
              interface: str = DEFAULT_INTERFACE, eds: str | None = None,
-             record: str | Path | None = None) -> Report:
+             record: str | Path | None = None, zenoh_listen: str | None = None) -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
-    plot ``demo.png``."""
+    plot ``demo.png``; ``zenoh_listen``: an endpoint the manager serves Zenoh on, under
+    the prefix ``rocoma/demo`` (another shell can watch and e-stop it)."""
     from ..drivers.bus import BusReader
     from ..drivers.sim.segment import SimulatedSegment
     from .config import validate
@@ -340,8 +343,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             out(f"  note: {note}")
     buses = default_buses(drives) if buses is None else buses
     channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
-    config = validate(demo_config(channel, drives, rate, buses, interface, emulated),
-                      source="demo")
+    raw = demo_config(channel, drives, rate, buses, interface, emulated)
+    if zenoh_listen is not None:
+        raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
+    config = validate(raw, source="demo")
     report = Report()
     if record is not None and importlib.util.find_spec("mcap") is None:
         out("rocoma-can demo: not recording: MCAP needs pip install 'rocoma-can[record]'")
@@ -372,6 +377,11 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                   else f"{buses} {interface} buses {channel}-0..{buses - 1}")
             out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
                 f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
+            if zenoh_listen is not None:
+                out(f"rocoma-can demo: on Zenoh as {ZENOH_PREFIX} at {zenoh_listen}; from "
+                    f"another shell: rocoma-can status --watch --zenoh {ZENOH_PREFIX} "
+                    f"--zenoh-connect {zenoh_listen} --zenoh-no-multicast (estop: the same "
+                    "with estop)")
             operator = threading.Thread(
                 target=_operator, name="demo-operator",
                 args=(rt, seg, client, watch, probes, report, hold, stop, out))
@@ -475,6 +485,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="where the recording and its plot go (default: a new directory "
                         "under ~/.local/state/rocoma-can/demo/)")
     p.add_argument("--no-record", action="store_true", help="no recording, no plot")
+    p.add_argument("--zenoh-listen", default=None, metavar="ENDPOINT",
+                   help="serve the demo's manager on Zenoh as rocoma/demo at ENDPOINT "
+                        "(e.g. tcp/127.0.0.1:7447): watch and e-stop it from another shell")
     p.set_defaults(func=_main)
 
 
@@ -495,8 +508,12 @@ def _main(args: argparse.Namespace) -> int:
     try:
         report = run_demo(args.drives, args.rate, args.duration,
                           out=lambda line: print(line, flush=True), buses=args.buses,
-                          interface=args.interface, eds=args.eds, record=record)
+                          interface=args.interface, eds=args.eds, record=record,
+                          zenoh_listen=args.zenoh_listen)
     except ValueError as exc:  # a file that is no EDS, or one the demo cannot drive
         print(f"demo: --eds: {exc}", flush=True)
+        return 2
+    except RocomaError as exc:  # Zenoh: not installed, the endpoint taken; a bad config
+        print(f"demo: {exc}", flush=True)
         return 2
     return 0 if report.ok else 1

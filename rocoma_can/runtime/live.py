@@ -1,9 +1,10 @@
 """``rocoma-can status --watch``: a live view of a running manager, from any machine on its
 bus, refreshed a few times a second (rich, the optional extra ``rocoma-can[live]``).
 
-It asks what ``status`` asks, over SDO (the manager node serves it; nothing in the control
-loop waits for it): the manager's state and active controller, the e-stop latch and cause,
-each bus's planned load and errors, the loop's cycle statistics, and per drive its bring-up
+It asks what ``status`` asks, over SDO (the manager node serves it), or with ``--zenoh``
+the manager's Zenoh status query (nothing in the control loop waits for either): the
+manager's state and active controller, the e-stop latch and cause, each bus's planned load
+and errors, the loop's cycle statistics, and per drive its bring-up
 phase, CiA 402 state, NMT state, heartbeat age, feedback, fault and homing. Bring-up shows
 as progress bars (the drives' phases towards READY); a recovery and a homing, which have no
 known length, pulse. A manager that stops answering stays on screen, marked as stale, and
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from ..errors import NoAnswer
@@ -20,7 +22,6 @@ from ..errors import NoAnswer
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
 
-    from .client import ManagerClient
 
 OK, USAGE = 0, 2
 #: bring-up phases in order (drivers/bringup.Phase); READY is the end of the bar
@@ -31,9 +32,12 @@ CIA402_STYLES = {"OPERATION_ENABLED": "green", "FAULT": "bold red",
                  "FAULT_REACTION_ACTIVE": "bold red", "QUICK_STOP_ACTIVE": "dark_orange"}
 
 
-def watch(client: ManagerClient, interval: float = 0.5, duration: float | None = None,
-          console: Console | None = None, stop: threading.Event | None = None) -> int:
-    """Refresh until Ctrl-C, ``duration`` s or ``stop``; exit code (2: rich missing)."""
+def watch(read: Callable[[], dict[str, Any]], label: str, interval: float = 0.5,
+          duration: float | None = None, console: Console | None = None,
+          stop: threading.Event | None = None) -> int:
+    """Show ``read()`` (a status document: ManagerClient.status over SDO, or the Zenoh
+    status query) until Ctrl-C, ``duration`` s or ``stop``; ``label`` names the manager.
+    Exit code (2: rich missing)."""
     try:
         from rich.console import Console
         from rich.live import Live
@@ -56,11 +60,11 @@ def watch(client: ManagerClient, interval: float = 0.5, duration: float | None =
                 started = time.monotonic()
                 problem = ""
                 try:
-                    status = client.status()
+                    status = read()
                     answered = time.time()
                 except NoAnswer as exc:
                     problem = str(exc)
-                live.update(view(status, problem, answered, client.node.id or 0), refresh=True)
+                live.update(view(status, problem, answered, label), refresh=True)
                 stop.wait(max(0.0, min(interval - (time.monotonic() - started),
                                        end - time.monotonic())))
     except KeyboardInterrupt:  # Ctrl-C is how a watch ends
@@ -69,7 +73,7 @@ def watch(client: ManagerClient, interval: float = 0.5, duration: float | None =
 
 
 def view(status: dict[str, Any] | None, problem: str = "", answered: float = 0.0,
-         node: int = 0) -> RenderableType:
+         label: str = "the manager") -> RenderableType:
     """One screen of ``status`` (``problem``: why the last question got no answer)."""
     from rich import box
     from rich.console import Group
@@ -82,7 +86,7 @@ def view(status: dict[str, Any] | None, problem: str = "", answered: float = 0.0
         since = time.strftime("%H:%M:%S", time.localtime(answered)) if answered else "never"
         parts.append(Text(f"STALE: {problem} (last answer {since})", style="bold red"))
     if status is None:
-        parts.append(Text(f"waiting for manager node {node} ..."))
+        parts.append(Text(f"waiting for {label} ..."))
         return Group(*parts)
 
     head = Table.grid(padding=(0, 2))
@@ -155,7 +159,7 @@ def view(status: dict[str, Any] | None, problem: str = "", answered: float = 0.0
                       d["nmt_state"], "never" if age is None else f"{age:.2f} s",
                       *(_value(d.get(k)) for k in ("position", "velocity", "torque")), note)
     parts.append(table)
-    parts.append(Text(f"manager node {node}, updated "
+    parts.append(Text(f"{label}, updated "
                       f"{time.strftime('%H:%M:%S', time.localtime(answered))}; Ctrl-C ends "
                       "the view (the manager runs on)", style="dim"))
     return Group(*parts)

@@ -3,6 +3,7 @@ the manager with its controllers (built here: nothing in drivers/ builds a manag
 manager's CANopen node, and the loop."""
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from typing import Any
@@ -15,10 +16,14 @@ from ..drivers.hardware import CanopenHardware
 from ..manager import ControllerManager
 from ..plugins import add_to_manager
 from .config import RuntimeConfig
+from .fleet import FleetBridge, FleetConfig, FleetError
 from .flight import FlightRecorder, Recording, Taps
 from .loop import ControlLoop, TimingSummary
 from .node import ManagerNode
+from .objects import RESULT_NAMES
 from .trace import SignalTrace
+
+log = logging.getLogger(__name__)
 
 
 def manager_for(hardware: CanopenHardware, **kwargs: Any) -> ControllerManager:
@@ -59,10 +64,15 @@ class Runtime:
                  announce: Callable[[str], None] | None = None) -> None:
         """``record``: a directory for every frame and cycle (flight.Recording); ``flight``:
         the flight recorder's directory (None: off), keeping ``flight_seconds``;
-        ``announce``: told each flight record's path (``rocoma-can run`` prints it)."""
+        ``announce``: told each flight record's path (``rocoma-can run`` prints it).
+        ``config.fleet`` serves the manager on Zenoh (fleet.py): FleetError when Zenoh
+        cannot be used and the section says ``required``; otherwise a warning, and the
+        reason in the status report."""
         self.config = config
         self.recording: Recording | None = None
         self.flight: FlightRecorder | None = None
+        self.fleet: FleetBridge | None = None
+        self.fleet_error = ""
         m = config.manager
         self.hardware = CanopenHardware({b.label: b for b in config.buses}, config.drives,
                                         m.node_id, config.dt,
@@ -96,6 +106,8 @@ class Runtime:
                                     drive_status=self.status_report,
                                     estop_in_cycle=hardware.set_estop_cob_id)
             self._parts.insert(0, self.node.close)
+            if config.fleet is not None:
+                self._bridge(config.fleet)
             trace = self._recorders(record, flight, flight_seconds, announce)
         except BaseException:
             self.close()
@@ -103,6 +115,19 @@ class Runtime:
         self.loop = ControlLoop(self.hardware, self.manager, config.rate,
                                 priority=config.priority, cpus=config.cpus, on_cycle=on_cycle,
                                 trace=trace)
+
+    def _bridge(self, fleet: FleetConfig) -> None:
+        try:
+            self.fleet = FleetBridge(fleet, self.manager, self.status,
+                                     recover=self.hardware.recover,
+                                     cycles=lambda: self.loop.stats.cycles)
+        except FleetError as exc:
+            if fleet.required:
+                raise
+            self.fleet_error = str(exc)
+            log.warning("running without Zenoh (zenoh.required: false): %s", exc)
+            return
+        self._parts.insert(0, self.fleet.close)
 
     def _recorders(self, record: str | None, flight: str | None, seconds: float,
                    announce: Callable[[str], None] | None) -> SignalTrace | None:
@@ -156,7 +181,24 @@ class Runtime:
                                            ("period_max", t.period_max),
                                            ("jitter_p99", t.jitter_p99),
                                            ("work_max", t.work_max))}}
+        if self.fleet is not None:
+            report["zenoh"] = self.fleet.info()
+        elif self.fleet_error:
+            report["zenoh"] = {"error": self.fleet_error}
         return report
+
+    def status(self) -> dict[str, Any]:
+        """What ``rocoma-can status --json`` prints, built here rather than read over SDO
+        (the Zenoh status query answers with it)."""
+        m, node = self.manager, self.node
+        report = self.status_report()
+        return {"state": m.state.name, "active": m.active_controller_name,
+                "latched": m.estop_latched,
+                "last_switch": RESULT_NAMES.get(node.last_result, "?"),
+                "switch_refused": m.last_refusal, "estop_cause": node.last_cause,
+                "estop_cob_id": node.estop_cob_id,
+                **{k: report.get(k) for k in ("startup_finished", "recovery", "bus_fault",
+                                              "cycle", "buses", "drives", "zenoh")}}
 
     def run(self, duration: float | None = None, signals: bool = True) -> TimingSummary:
         """Start the bus side, run the loop until stopped, torque-off; the caller closes."""
@@ -164,8 +206,12 @@ class Runtime:
         try:
             self.hardware.start()
             self.node.start()
+            if self.fleet is not None:
+                self.fleet.start()
             return self.loop.run(duration)
         finally:
+            if self.fleet is not None:
+                self.fleet.loop_stopped()
             if restore is not None:
                 restore()
 

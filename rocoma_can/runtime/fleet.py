@@ -1,0 +1,406 @@
+"""The manager's services and notifications on Zenoh: one manager per robot, coordinated
+over the network; the control loop never goes over it.
+
+Under a prefix (default ``rocoma/<hostname>``), payloads JSON:
+
+* queryables: ``<prefix>/status`` (what ``rocoma-can status --json`` prints, plus
+  ``controllers`` and ``zenoh``); ``<prefix>/switch`` (payload: a controller name) ->
+  ``{"result": "SWITCHED" | "RUNNING" | "NOT_FOUND" | "ERROR", "error"?}``;
+  ``<prefix>/estop``, ``/failproof``, ``/clear``, ``/recover`` -> ``{"ok", "state", "error"?}``;
+* publications: ``<prefix>/state`` on every state or active-controller change and every
+  e-stop (``{"kind", "state", "controller", "cause", "time"}``, in order); ``<prefix>/drives``
+  every ``drives_period`` s (the status report's drives);
+* a liveliness token ``<prefix>/alive`` while the loop runs: it vanishes when the loop stops,
+  when its cycles stop coming for ``alive_timeout`` s (a hung loop), and with the process.
+
+Safety: an e-stop and a failproof stop are accepted from anyone; switch, clear and recover
+only with ``allow_commands: true`` (Zenoh's own access control and TLS, in the Zenoh config
+file given as ``config_file``, decide who reaches this at all). An optional dead-man: with
+``deadman: KEY`` the manager e-stops when that liveliness token (an operator's console)
+disappears, once it has been seen. The hard stop path stays local: the failproof layer, the
+drives' heartbeat consumers, STO wiring.
+
+Threads: Zenoh's own threads answer queries (each answer is a few attribute reads or a
+non-blocking manager call; a switch is answered when its future completes, on the switcher
+thread) and call the dead-man; the bridge's thread publishes and watches the loop. None of
+it runs in the cycle, and Zenoh down or unreachable only shows in the counters (``zenoh``
+in the status report).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import socket
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from ..errors import RocomaError
+from ..events import ManagerEvent
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from ..manager import ControllerManager, SwitchResult
+
+log = logging.getLogger(__name__)
+
+SERVICES = ("status", "switch", "estop", "failproof", "clear", "recover")
+#: the services anyone may use; the others need ``allow_commands``
+STOPS = ("estop", "failproof")
+MODES = ("peer", "client")
+_KEYS = {"prefix", "mode", "connect", "listen", "multicast", "allow_commands", "deadman",
+         "required", "drives_period", "alive_timeout", "config_file"}
+
+
+class FleetError(RocomaError):
+    """Zenoh cannot be used as configured (not installed, an endpoint refused)."""
+
+
+def default_prefix() -> str:
+    return f"rocoma/{_key_chunk(socket.gethostname())}"
+
+
+def _key_chunk(text: str) -> str:
+    """A Zenoh key-expression chunk: no '/', '*', '$', '?', '#' and not empty."""
+    out = "".join(c if c.isalnum() or c in "-_." else "-" for c in text)
+    return out or "host"
+
+
+@dataclass
+class FleetConfig:
+    """The ``zenoh:`` config section (README "Fleet"); the CLI flags set the same."""
+    prefix: str = field(default_factory=default_prefix)
+    mode: str = "peer"
+    connect: list[str] = field(default_factory=list)
+    listen: list[str] = field(default_factory=list)
+    multicast: bool = True          # Zenoh's multicast scouting (its default)
+    allow_commands: bool = False    # switch, clear, recover over Zenoh
+    deadman: str | None = None      # a liveliness key: e-stop when it vanishes
+    required: bool = True           # Zenoh unavailable at start-up: error (else a warning)
+    drives_period: float = 1.0      # s between <prefix>/drives publications
+    alive_timeout: float = 1.0      # s without a cycle before <prefix>/alive is withdrawn
+    config_file: str | None = None  # a Zenoh JSON5 config (access control, TLS) beneath ours
+
+
+def parse(section: Any, problems: list[str], where: str = "zenoh") -> FleetConfig | None:
+    """The ``zenoh:`` section (None: absent) with every problem as "zenoh.KEY: ..."."""
+    if section is None:
+        return None
+    if not isinstance(section, Mapping):
+        problems.append(f"{where}: expected a mapping, got {type(section).__name__}")
+        return None
+    for key in sorted(set(section) - _KEYS):
+        problems.append(f"{where}.{key}: unknown key (known: {', '.join(sorted(_KEYS))})")
+    out = FleetConfig()
+    prefix = section.get("prefix", out.prefix)
+    if not isinstance(prefix, str) or not prefix.strip("/") or any(c in prefix for c in "*$?#"):
+        problems.append(f"{where}.prefix: expected a key expression without wildcards, "
+                        f"e.g. rocoma/robot1, got {prefix!r}")
+    else:
+        out.prefix = prefix.strip("/")
+    mode = section.get("mode", out.mode)
+    if mode not in MODES:
+        problems.append(f"{where}.mode: expected peer or client, got {mode!r}")
+    else:
+        out.mode = mode
+    for key in ("connect", "listen"):
+        value = section.get(key, [])
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list) or not all(isinstance(v, str) and "/" in v
+                                                  for v in value):
+            problems.append(f"{where}.{key}: expected Zenoh endpoints like "
+                            f"tcp/192.168.1.10:7447, got {value!r}")
+        else:
+            setattr(out, key, list(value))
+    for key in ("multicast", "allow_commands", "required"):
+        value = section.get(key, getattr(out, key))
+        if not isinstance(value, bool):
+            problems.append(f"{where}.{key}: expected true or false, got {value!r}")
+        else:
+            setattr(out, key, value)
+    deadman = section.get("deadman")
+    if deadman is not None and (not isinstance(deadman, str) or not deadman.strip("/")):
+        problems.append(f"{where}.deadman: expected a liveliness key, e.g. "
+                        f"rocoma/operators/console1, got {deadman!r}")
+    else:
+        out.deadman = deadman
+    for key, low, high in (("drives_period", 0.05, 60.0), ("alive_timeout", 0.05, 60.0)):
+        value = section.get(key, getattr(out, key))
+        if not isinstance(value, (int, float)) or isinstance(value, bool) \
+                or not low <= value <= high:
+            problems.append(f"{where}.{key}: expected seconds {low:g}..{high:g}, got {value!r}")
+        else:
+            setattr(out, key, float(value))
+    config_file = section.get("config_file")
+    if config_file is not None and not isinstance(config_file, str):
+        problems.append(f"{where}.config_file: expected a path, got {config_file!r}")
+    else:
+        out.config_file = config_file
+    return out
+
+
+def open_session(mode: str, connect: list[str], listen: list[str], multicast: bool,
+                 config_file: str | None = None) -> zenoh.Session:
+    """A Zenoh session; FleetError says what failed (not installed, an endpoint)."""
+    try:
+        import zenoh
+    except ImportError:
+        raise FleetError("Zenoh needs eclipse-zenoh: pip install 'rocoma-can[zenoh]'") \
+            from None
+    try:
+        conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+        conf.insert_json5("mode", json.dumps(mode))
+        if connect:
+            conf.insert_json5("connect/endpoints", json.dumps(connect))
+        if listen:
+            conf.insert_json5("listen/endpoints", json.dumps(listen))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+        return zenoh.open(conf)
+    except Exception as exc:  # zenoh.ZError and its config errors: said, never a traceback
+        where = ", ".join(f"{k} {v}" for k, v in (("connect", connect), ("listen", listen)) if v)
+        raise FleetError(f"Zenoh session ({mode}{', ' + where if where else ''}) could not "
+                         f"be opened: {str(exc).split(' at /')[0]}") from None
+
+
+class FleetBridge:
+    """Serves one manager on Zenoh (see the module). ``status``: what ``rocoma-can status
+    --json`` prints (any thread); ``recover``: starts a drive recovery; ``cycles``: the
+    loop's cycle count."""
+
+    def __init__(self, config: FleetConfig, manager: ControllerManager,
+                 status: Callable[[], dict[str, Any]],
+                 recover: Callable[[], Future[bool]] | None = None,
+                 cycles: Callable[[], int] = lambda: 0) -> None:
+        self.config = config
+        self.manager = manager
+        self._status = status
+        self._recover = recover
+        self._cycles = cycles
+        self.counters = {"queries": 0, "refused": 0, "published": 0, "errors": 0}
+        self.deadman_seen = False
+        self.session = open_session(config.mode, config.connect, config.listen,
+                                    config.multicast, config.config_file)
+        self._events: queue.SimpleQueue[ManagerEvent | None] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._running = False
+        self._token: Any = None
+        self._declared: list[Any] = []
+        self._unsubscribe: Callable[[], None] | None = None
+        self._thread = threading.Thread(target=self._run, name="zenoh-bridge", daemon=True)
+        try:
+            p = config.prefix
+            for service in SERVICES:
+                self._declared.append(self.session.declare_queryable(
+                    f"{p}/{service}", self._answerer(service)))
+            self._state = self.session.declare_publisher(f"{p}/state")
+            self._drives = self.session.declare_publisher(f"{p}/drives")
+            if config.deadman:
+                self._declared.append(self.session.liveliness().declare_subscriber(
+                    config.deadman, self._on_deadman, history=True))
+        except Exception:
+            close_session(self.session)
+            raise
+
+    # --- life cycle ---------------------------------------------------------------------------
+    def start(self) -> FleetBridge:
+        """Publish events and watch the loop (the token appears with the first cycles)."""
+        self._unsubscribe = self.manager.subscribe(self._events.put)
+        self._running = True
+        self._thread.start()
+        return self
+
+    def loop_stopped(self) -> None:
+        """The loop has ended: the token goes at once, not after ``alive_timeout``."""
+        self._running = False
+        self._events.put(None)
+
+    def close(self) -> None:
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+            self._unsubscribe = None
+        self._running = False
+        self._stop.set()
+        self._events.put(None)
+        if self._thread.is_alive():
+            self._thread.join(5.0)
+        self._withdraw()
+        for declared in self._declared:
+            try:
+                declared.undeclare()
+            except Exception:  # noqa: BLE001 - a session already gone
+                pass
+        close_session(self.session)
+
+    def info(self) -> dict[str, Any]:
+        """What the status report shows of the bridge."""
+        return {"prefix": self.config.prefix, "alive": self._token is not None,
+                "allow_commands": self.config.allow_commands, "deadman": self.config.deadman,
+                **self.counters}
+
+    # --- the bridge thread: publications and the liveliness token -----------------------------
+    def _run(self) -> None:
+        seen, progress = -1, time.monotonic()
+        next_drives = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                event = self._events.get(timeout=0.05)
+            except queue.Empty:
+                event = None
+            if event is not None:
+                self._put(self._state, _event_message(event))
+            now = time.monotonic()
+            cycles = self._cycles()
+            if cycles != seen:
+                seen, progress = cycles, now
+            if self._running and now - progress < self.config.alive_timeout and cycles > 0:
+                self._declare()
+            else:
+                self._withdraw()
+            if now >= next_drives:
+                next_drives = now + self.config.drives_period
+                try:
+                    drives = self._status().get("drives", [])
+                except Exception:  # noqa: BLE001 - a report that failed: counted
+                    self.counters["errors"] += 1
+                    continue
+                self._put(self._drives, {"drives": drives})
+
+    def _put(self, publisher: Any, message: dict[str, Any]) -> None:
+        try:
+            publisher.put(json.dumps(message))
+            self.counters["published"] += 1
+        except Exception as exc:  # noqa: BLE001 - Zenoh down: counted, the manager runs on
+            self.counters["errors"] += 1
+            if self.counters["errors"] in (1, 10, 100, 1000):
+                log.warning("zenoh: publication failed (%d so far): %s",
+                            self.counters["errors"], exc)
+
+    def _declare(self) -> None:
+        if self._token is None:
+            try:
+                self._token = self.session.liveliness().declare_token(
+                    f"{self.config.prefix}/alive")
+            except Exception:  # noqa: BLE001 - tried again next time round
+                self.counters["errors"] += 1
+
+    def _withdraw(self) -> None:
+        token, self._token = self._token, None
+        if token is not None:
+            try:
+                token.undeclare()
+            except Exception:  # noqa: BLE001 - a session already gone
+                pass
+
+    # --- queries (Zenoh's threads) ------------------------------------------------------------
+    def _answerer(self, service: str) -> Callable[[Any], None]:
+        def answer(query: Any) -> None:
+            self.counters["queries"] += 1
+            key = f"{self.config.prefix}/{service}"
+            try:
+                payload = query.payload.to_string() if query.payload is not None else ""
+                if service == "switch":
+                    self._switch(query, key, payload.strip())
+                    return
+                reply = self._serve(service)
+            except Exception as exc:  # noqa: BLE001 - a query must get an answer
+                self.counters["errors"] += 1
+                reply = {"ok": False, "state": self.manager.state.name,
+                         "error": f"{type(exc).__name__}: {exc}"}
+            if reply.get("ok") is False:
+                self.counters["refused"] += 1
+            _respond(query, key, reply)
+        return answer
+
+    def _serve(self, service: str) -> dict[str, Any]:
+        m = self.manager
+        if service == "status":
+            return self.status()
+        if service not in STOPS and not self.config.allow_commands:
+            return {"ok": False, "state": m.state.name, "error": _NOT_ALLOWED.format(service)}
+        if service == "estop":
+            m.emergency_stop(cause="Zenoh e-stop")
+        elif service == "failproof":
+            m.failproof_stop(cause="Zenoh failproof stop")
+        elif service == "clear":
+            if not m.clear_emergency_stop():
+                return {"ok": False, "state": m.state.name,
+                        "error": "the e-stop latch was not cleared (see the manager log)"}
+        elif service == "recover":
+            if self._recover is None:
+                return {"ok": False, "state": m.state.name,
+                        "error": "this manager has no drives to recover"}
+            self._recover()
+            return {"ok": True, "state": m.state.name, "recovery": "started"}
+        return {"ok": True, "state": m.state.name}
+
+    def _switch(self, query: Any, key: str, name: str) -> None:
+        m = self.manager
+
+        def reply(result: str, error: str = "") -> None:
+            if result == "ERROR" or result == "NOT_FOUND":
+                self.counters["refused"] += 1
+            _respond(query, key, {"result": result, **({"error": error} if error else {})})
+        if not self.config.allow_commands:
+            reply("ERROR", _NOT_ALLOWED.format("switch"))
+            return
+        if name not in m.available_controllers():
+            reply("NOT_FOUND", f"no controller {name!r} (controllers: "
+                               f"{', '.join(m.available_controllers())})")
+            return
+        blocked = m.switch_blocked()
+        if blocked is not None:
+            reply("ERROR", f"switch refused: {blocked}")
+            return
+
+        def done(future: Future[SwitchResult]) -> None:
+            try:
+                result = future.result()
+            except Exception as exc:  # noqa: BLE001 - answered, not raised in the switcher
+                reply("ERROR", f"{type(exc).__name__}: {exc}")
+                return
+            reply(result.name, m.last_refusal if result.name == "ERROR" else "")
+        m.request_switch(name).add_done_callback(done)
+
+    def status(self) -> dict[str, Any]:
+        """The status query's answer: ``rocoma-can status --json``'s document, with the
+        switchable controllers and the bridge's own counters."""
+        return {**self._status(), "controllers": self.manager.available_controllers(),
+                "zenoh": self.info()}
+
+    # --- the dead-man (Zenoh's thread) --------------------------------------------------------
+    def _on_deadman(self, sample: Any) -> None:
+        import zenoh
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.deadman_seen = True
+        elif self.deadman_seen:
+            self.deadman_seen = False
+            self.manager.emergency_stop(cause=f"Zenoh dead-man: {sample.key_expr} vanished")
+
+
+def _respond(query: Any, key: str, answer: dict[str, Any]) -> None:
+    """Reply, then finalize the query at once: the querier's default consolidation holds
+    replies back until then (Python would finalize it only when the object is collected)."""
+    try:
+        query.reply(key, json.dumps(answer))
+    finally:
+        query.drop()
+
+
+def close_session(session: zenoh.Session) -> None:
+    session.close()  # type: ignore[no-untyped-call]  # zenoh 1.x: unannotated
+
+
+_NOT_ALLOWED = ("{} over Zenoh is not allowed by this manager's config "
+                "(zenoh.allow_commands: false); e-stop and failproof are")
+
+
+def _event_message(event: ManagerEvent) -> dict[str, Any]:
+    """A trace's event message (trace.py) with its wall-clock time."""
+    from .trace import event_message  # numpy: not for the CLI verbs' quick start
+    return {**event_message(event), "time": time.time() - (time.monotonic() - event.time)}

@@ -1,0 +1,189 @@
+"""Talking to managers over Zenoh (fleet.py serves them): the CLI verbs' ``--zenoh`` path
+and ``rocoma-can fleet``. A query that nobody answers is retried until its timeout (a new
+peer session finds the others within a moment), then NoAnswer."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+from ..errors import NoAnswer, RocomaError
+from .fleet import FleetError, close_session, default_prefix, open_session
+
+OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
+#: one round of a query; repeated until the caller's timeout
+ROUND = 0.5
+
+
+class FleetClient:
+    """A Zenoh session that queries one manager's prefix (or lists them all)."""
+
+    def __init__(self, prefix: str = "", connect: list[str] | None = None,
+                 mode: str = "peer", multicast: bool = True, timeout: float = 3.0) -> None:
+        self.prefix = (prefix or default_prefix()).strip("/")
+        self.timeout = timeout
+        self.session = open_session(mode, connect or [], [], multicast)
+
+    def close(self) -> None:
+        close_session(self.session)
+
+    def __enter__(self) -> FleetClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def query(self, service: str, payload: str | None = None,
+              timeout: float | None = None) -> dict[str, Any]:
+        """The manager's answer to ``<prefix>/<service>`` (decoded JSON). A status query is
+        repeated until answered; any other is sent once, after a status query has shown
+        the manager reachable (a switch answers when it is done: not to be sent twice)."""
+        deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        if service == "status":
+            while True:
+                answer = self._get(service, None, min(ROUND, deadline - time.monotonic()))
+                if answer is not None:
+                    return answer
+                if time.monotonic() >= deadline:
+                    raise self._silent(service)
+        self.query("status", timeout=deadline - time.monotonic())
+        answer = self._get(service, payload, deadline - time.monotonic())
+        if answer is None:
+            raise self._silent(service)
+        return answer
+
+    def _get(self, service: str, payload: str | None, timeout: float) -> dict[str, Any] | None:
+        key = f"{self.prefix}/{service}"
+        for reply in self.session.get(key, payload=payload, timeout=max(0.05, timeout)):
+            if reply.ok is None:
+                error = reply.err.payload.to_string()
+                if error == "Timeout":  # Zenoh's own: no answer within the timeout
+                    return None
+                raise RocomaError(f"{key}: {error}")
+            answer: dict[str, Any] = json.loads(reply.ok.payload.to_string())
+            return answer
+        return None
+
+    def _silent(self, service: str) -> NoAnswer:
+        return NoAnswer(f"no answer on Zenoh key {self.prefix}/{service} (is the manager "
+                        "running with a zenoh: section, and reachable: --zenoh-connect?)")
+
+    def status(self) -> dict[str, Any]:
+        return self.query("status")
+
+    def alive(self, timeout: float | None = None) -> list[str]:
+        """The prefixes of every manager whose loop runs (their liveliness tokens)."""
+        deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        found: set[str] = set()
+        while time.monotonic() < deadline:
+            for reply in self.session.liveliness().get("**/alive", timeout=ROUND):
+                if reply.ok is not None:
+                    found.add(str(reply.ok.key_expr).removesuffix("/alive"))
+            if found:
+                break
+        return sorted(found)
+
+
+# --- the CLI ----------------------------------------------------------------------------------
+
+def add_options(p: argparse.ArgumentParser, prefix: bool = True) -> None:
+    """``--zenoh [PREFIX]`` (``prefix``) and how to reach Zenoh, for every bus verb."""
+    if prefix:
+        p.add_argument("--zenoh", nargs="?", const="", default=None, metavar="PREFIX",
+                       help="act through Zenoh instead of SDO (default prefix: "
+                            "rocoma/<host>)")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 "
+                        "(repeatable; default: multicast scouting)")
+    p.add_argument("--zenoh-no-multicast", action="store_true",
+                   help="no multicast scouting (connect only to --zenoh-connect)")
+
+
+def with_client(args: argparse.Namespace, action: Callable[[FleetClient], int]) -> int:
+    try:
+        client = FleetClient(args.zenoh or "", args.zenoh_connect,
+                             multicast=not args.zenoh_no_multicast,
+                             timeout=max(args.timeout, 3.0))
+    except FleetError as exc:
+        _err(str(exc))
+        return USAGE
+    try:
+        return action(client)
+    except NoAnswer as exc:
+        _err(str(exc))
+        return NO_ANSWER
+    except RocomaError as exc:
+        _err(str(exc))
+        return FAILED
+    finally:
+        client.close()
+
+
+def switch(args: argparse.Namespace) -> int:
+    def action(client: FleetClient) -> int:
+        answer = client.query("switch", args.name, timeout=args.wait)
+        result = answer.get("result", "ERROR")
+        print(result, flush=True)
+        if answer.get("error"):
+            _err(answer["error"])
+        return OK if result in ("SWITCHED", "RUNNING") else FAILED
+    return with_client(args, action)
+
+
+def command(verb: str, done: str) -> Callable[[argparse.Namespace], int]:
+    def handler(args: argparse.Namespace) -> int:
+        def action(client: FleetClient) -> int:
+            answer = client.query(verb)
+            if not answer.get("ok"):
+                _err(f"{verb} refused: {answer.get('error', 'no reason given')}")
+                return FAILED
+            print(done, flush=True)
+            return OK
+        return with_client(args, action)
+    return handler
+
+
+def controllers(args: argparse.Namespace) -> int:
+    def action(client: FleetClient) -> int:
+        for i, name in enumerate(client.status().get("controllers", []), 1):
+            print(f"{i} {name}", flush=True)
+        return OK
+    return with_client(args, action)
+
+
+def fleet(args: argparse.Namespace) -> int:
+    """Every manager alive on the network, with its state."""
+    def action(client: FleetClient) -> int:
+        prefixes = client.alive(timeout=args.wait)
+        if not prefixes:
+            print("no manager alive on Zenoh", flush=True)
+            return OK
+        for prefix in prefixes:
+            client.prefix = prefix
+            try:
+                s = client.status()
+            except NoAnswer:
+                print(f"{prefix}: alive, no status answer", flush=True)
+                continue
+            print(f"{prefix}: {s['state']}, {s['active']}"
+                  f"{', e-stop latched' if s.get('latched') else ''}"
+                  f"{', last e-stop: ' + s['estop_cause'] if s.get('estop_cause') else ''}"
+                  f", {len(s.get('drives', []))} drives", flush=True)
+        return OK
+    return with_client(args, action)
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = subparsers.add_parser("fleet", help="every manager alive on Zenoh, with its state")
+    p.add_argument("--wait", type=float, default=2.0, metavar="S",
+                   help="how long to look for managers (2)")
+    p.add_argument("--timeout", type=float, default=3.0, help="status answer timeout, s (3)")
+    add_options(p, prefix=False)
+    p.set_defaults(func=fleet, zenoh="")
+
+
+def _err(message: str) -> None:
+    print(f"rocoma-can: {message}", file=sys.stderr, flush=True)

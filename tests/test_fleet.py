@@ -1,0 +1,270 @@
+"""The manager on Zenoh (issue: beyond one machine): a real Runtime on python-can's virtual
+bus with simulated drives, served on a loopback endpoint (multicast scouting off), and a
+second Zenoh session, or the CLI, as the operator elsewhere. Also a demo process killed
+outright, whose liveliness token must vanish."""
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import zenoh
+from fixtures.driver_rig import VIRTUAL
+from fixtures.running import runtime_running
+from fixtures.running import wait_for as wait_until
+
+from rocoma_can import ManagerState
+from rocoma_can.cli import main
+from rocoma_can.errors import ConfigError
+from rocoma_can.runtime import Runtime
+from rocoma_can.runtime.config import validate
+from rocoma_can.runtime.demo import demo_config
+from rocoma_can.runtime.fleet import FleetError, open_session
+
+RATE = 100.0
+#: every wait: the bring-up budget of the bus setup the demo config shares with the driver
+#: tests (tests/fixtures/driver_rig.py), which covers a loaded machine
+WAIT = max(VIRTUAL.bring_up_budget(2), VIRTUAL.enable_budget())
+BIN = Path(sys.executable).parent / "rocoma-can"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for(predicate, what: str, timeout: float = WAIT) -> None:
+    wait_until(predicate, what, timeout)
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def prefix() -> str:
+    return f"rocoma/test-{uuid.uuid4().hex[:8]}"
+
+
+@contextmanager
+def manager(channel: str, endpoint: str, prefix: str, **zenoh_section):
+    cfg = demo_config(channel, drives=2, rate=RATE)
+    cfg["zenoh"] = {"prefix": prefix, "listen": [endpoint], "multicast": False,
+                    "alive_timeout": 0.5, "drives_period": 0.2, **zenoh_section}
+    with runtime_running(cfg, WAIT) as rt:
+        yield rt
+
+
+@pytest.fixture
+def operator(endpoint):
+    """A second Zenoh session, as on another machine."""
+    sessions = []
+
+    def connect():
+        s = open_session("peer", [endpoint], [], multicast=False)
+        sessions.append(s)
+        return s
+    yield connect
+    for s in sessions:
+        s.close()
+
+
+def kind(sample) -> str:
+    return "PUT" if sample.kind == zenoh.SampleKind.PUT else "DELETE"
+
+
+def ask(session, key: str, payload: str | None = None, timeout: float = WAIT) -> dict:
+    """One query, answered within ``timeout`` (a switch answers when it is done); asked
+    again only while no queryable is known yet (a session just connected)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for reply in session.get(key, payload=payload, timeout=deadline - time.monotonic()):
+            assert reply.ok is not None, reply.err.payload.to_string()
+            return json.loads(reply.ok.payload.to_string())
+        time.sleep(0.05)
+    raise AssertionError(f"no answer on {key}")
+
+
+def test_status_switch_estop_and_state_publications_in_order(
+        virtual_channel, sim_segment_factory, endpoint, prefix, operator, bus_factory):
+    segment = sim_segment_factory(2)
+    probe = bus_factory()
+    with manager(virtual_channel, endpoint, prefix, allow_commands=True) as rt:
+        z = operator()
+        states: list[dict] = []
+        z.declare_subscriber(f"{prefix}/state",
+                             lambda s: states.append(json.loads(s.payload.to_string())))
+        drives: list[dict] = []
+        z.declare_subscriber(f"{prefix}/drives",
+                             lambda s: drives.append(json.loads(s.payload.to_string())))
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        status = ask(z, f"{prefix}/status")
+        assert status["state"] == "FAILPROOF" and status["latched"] is True
+        assert [d["name"] for d in status["drives"]] == ["joint1", "joint2"]
+        assert status["controllers"] == ["pd", "trajectory"]
+        assert status["zenoh"]["prefix"] == prefix and status["cycle"]["cycles"] > 0
+
+        assert ask(z, f"{prefix}/clear") == {"ok": True, "state": "FAILPROOF"}
+        assert ask(z, f"{prefix}/switch", "pd") == {"result": "SWITCHED"}
+        assert rt.manager.state is ManagerState.OK and rt.manager.active_controller_name == "pd"
+        wait_for(lambda: rt.hardware.all_enabled, "the drives enabled")
+        assert ask(z, f"{prefix}/estop")["ok"] is True
+        wait_for(lambda: rt.manager.state is ManagerState.EMERGENCY, "the emergency layer")
+        probe_seen: set[int] = set()
+        while probe.recv(0) is not None:  # what came before (bring-up's torque-off too)
+            pass
+        assert ask(z, f"{prefix}/estop")["ok"] is True  # in EMERGENCY: failproof torque-off
+        deadline = time.monotonic() + WAIT
+        while probe_seen != {0x201, 0x202} and time.monotonic() < deadline:
+            msg = probe.recv(0.1)
+            if msg is not None and msg.arbitration_id in (0x201, 0x202) \
+                    and msg.data[0] == msg.data[1] == 0:
+                probe_seen.add(msg.arbitration_id)
+        assert probe_seen == {0x201, 0x202}  # controlword 0x0000 to both drives on the bus
+        wait_for(lambda: all(d.state402.name != "OPERATION_ENABLED"
+                             for d in segment.drives.values()), "the drives switched off")
+        def changes() -> list[str]:
+            return [s["state"] for s in states if s["kind"] == "state_changed"]
+        wait_for(lambda: len(changes()) >= 4, "the publications up to the failproof stop")
+        stops = [(s["state"], s["cause"]) for s in states if s["kind"] == "emergency_stop"]
+        assert stops == [("EMERGENCY", "Zenoh e-stop"), ("FAILPROOF", "Zenoh e-stop")]
+        assert changes() == ["FAILPROOF", "OK", "EMERGENCY", "FAILPROOF"], states  # clear first
+        assert states[0]["cause"] == "emergency stop cleared"
+        assert [s["time"] for s in states] == sorted(s["time"] for s in states)
+        wait_for(lambda: len(drives) >= 2, "two drives publications")
+        assert [d["name"] for d in drives[-1]["drives"]] == ["joint1", "joint2"]
+
+
+def test_a_refused_switch_says_why_and_an_estop_is_still_accepted(
+        virtual_channel, sim_segment_factory, endpoint, prefix, operator):
+    sim_segment_factory(2)
+    with manager(virtual_channel, endpoint, prefix) as rt:  # allow_commands: false
+        z = operator()
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        answer = ask(z, f"{prefix}/switch", "pd")
+        assert answer["result"] == "ERROR" and "zenoh.allow_commands: false" in answer["error"]
+        assert ask(z, f"{prefix}/clear")["ok"] is False
+        assert rt.manager.estop_latched and rt.manager.active_controller_name == "torque_off"
+        assert ask(z, f"{prefix}/estop")["ok"] is True
+        assert ask(z, f"{prefix}/status")["zenoh"]["refused"] == 2
+
+
+def test_the_cli_acts_through_zenoh(virtual_channel, sim_segment_factory, endpoint, prefix,
+                                    capsys):
+    sim_segment_factory(2)
+    opts = ["--zenoh", prefix, "--zenoh-connect", endpoint, "--zenoh-no-multicast"]
+    with manager(virtual_channel, endpoint, prefix, allow_commands=True) as rt:
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        assert main(["clear", *opts]) == 0
+        assert main(["switch", "nope", *opts]) == 1
+        assert main(["switch", "pd", *opts]) == 0
+        assert main(["list", *opts]) == 0
+        assert main(["status", "--json", *opts]) == 0
+        out = capsys.readouterr().out
+        assert out.startswith("clear requested\nNOT_FOUND\nSWITCHED\n1 pd\n2 trajectory\n")
+        assert json.loads(out[out.index("{"):])["active"] == "pd"
+        assert main(["fleet", "--zenoh-connect", endpoint, "--zenoh-no-multicast"]) == 0
+        assert f"{prefix}: OK, pd, 2 drives" in capsys.readouterr().out
+        assert main(["estop", *opts]) == 0
+        wait_for(lambda: rt.manager.state is not ManagerState.OK, "the e-stop")
+
+
+def test_the_alive_token_vanishes_when_the_loop_stops(virtual_channel, sim_segment_factory,
+                                                      endpoint, prefix, operator):
+    sim_segment_factory(2)
+    events: list[tuple[str, str]] = []
+    with manager(virtual_channel, endpoint, prefix) as rt:
+        z = operator()
+        z.liveliness().declare_subscriber(
+            f"{prefix}/alive", lambda s: events.append((str(s.key_expr), kind(s))),
+            history=True)
+        wait_for(lambda: ("rocoma" in str(events)), "the alive token")
+        assert events == [(f"{prefix}/alive", "PUT")]
+        rt.loop.stop("test")
+        wait_for(lambda: len(events) == 2, "the token withdrawn")
+        assert events[1] == (f"{prefix}/alive", "DELETE")
+
+
+def test_the_dead_man_estops_when_the_operators_token_vanishes(
+        virtual_channel, sim_segment_factory, endpoint, prefix, operator):
+    sim_segment_factory(2)
+    console = f"{prefix}/operators/console1"
+    with manager(virtual_channel, endpoint, prefix, deadman=console,
+                 allow_commands=True) as rt:
+        z = operator()
+        token = z.liveliness().declare_token(console)
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        wait_for(lambda: rt.fleet is not None and rt.fleet.deadman_seen, "the operator seen")
+        assert ask(z, f"{prefix}/clear")["ok"] and ask(z, f"{prefix}/switch", "pd") == {
+            "result": "SWITCHED"}
+        token.undeclare()
+        wait_for(lambda: rt.manager.state is not ManagerState.OK, "the dead-man's e-stop")
+        assert ask(z, f"{prefix}/status")["estop_cause"] == \
+            f"Zenoh dead-man: {console} vanished"
+
+
+def test_zenoh_unavailable_is_an_error_or_a_warning_as_configured(virtual_channel, prefix,
+                                                                 caplog):
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["zenoh"] = {"prefix": prefix, "mode": "client", "connect": [nobody],
+                    "multicast": False}
+    with pytest.raises(FleetError, match=f"could not be opened: Unable to connect.*{nobody}"):
+        Runtime(validate(cfg))
+    cfg["zenoh"]["required"] = False
+    with Runtime(validate(cfg)) as rt:
+        assert rt.fleet is None and "Unable to connect" in rt.fleet_error
+        summary = rt.run(duration=0.3, signals=False)
+        assert summary.cycles > 0  # the loop runs without Zenoh
+        assert rt.status()["zenoh"] == {"error": rt.fleet_error}
+    assert "running without Zenoh" in caplog.text
+
+
+def test_a_bad_zenoh_section_lists_every_problem(virtual_channel):
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["zenoh"] = {"prefix": "rocoma/*", "mode": "router", "listen": "7447",
+                    "allow_commands": "yes", "drives_period": 0, "colour": 1}
+    with pytest.raises(ConfigError) as err:
+        validate(cfg)
+    text = "\n".join(err.value.problems)
+    for key in ("zenoh.prefix", "zenoh.mode", "zenoh.listen", "zenoh.allow_commands",
+                "zenoh.drives_period", "zenoh.colour: unknown key"):
+        assert key in text, text
+
+
+def test_a_killed_demo_process_loses_its_alive_token(endpoint, operator):
+    """kill -9: no shutdown code runs; the token goes with the process's session."""
+    proc = subprocess.Popen([str(BIN), "demo", "--no-record", "--drives", "2", "--duration",
+                             "120", "--zenoh-listen", endpoint], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        host, port = endpoint.removeprefix("tcp/").split(":")
+        deadline = time.monotonic() + 60.0  # a process start on a loaded machine
+        while proc.poll() is None and time.monotonic() < deadline:
+            try:  # the demo listens once its Runtime is built
+                socket.create_connection((host, int(port)), timeout=1.0).close()
+                break
+            except OSError:
+                time.sleep(0.2)
+        z = operator()
+        events: list[str] = []
+        z.liveliness().declare_subscriber("rocoma/demo/alive",
+                                          lambda s: events.append(kind(s)), history=True)
+        wait_for(lambda: events or proc.poll() is not None, "the demo's alive token")
+        assert events and events[0] == "PUT", f"no token; demo rc {proc.poll()}"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        wait_for(lambda: "DELETE" in events, "the token gone with the process")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
