@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from contextlib import contextmanager
@@ -20,7 +21,7 @@ from fixtures.driver_rig import VIRTUAL
 from fixtures.running import runtime_running
 from fixtures.running import wait_for as wait_until
 
-from rocoma_can import ManagerState
+from rocoma_can import Controller, ManagerState
 from rocoma_can.cli import main
 from rocoma_can.errors import ConfigError
 from rocoma_can.runtime import Runtime
@@ -56,8 +57,9 @@ def prefix() -> str:
 
 
 @contextmanager
-def manager(channel: str, endpoint: str, prefix: str, **zenoh_section):
+def manager(channel: str, endpoint: str, prefix: str, controllers=(), **zenoh_section):
     cfg = demo_config(channel, drives=2, rate=RATE)
+    cfg["controllers"] += list(controllers)
     cfg["zenoh"] = {"prefix": prefix, "listen": [endpoint], "multicast": False,
                     "alive_timeout": 0.5, "drives_period": 0.2, **zenoh_section}
     with runtime_running(cfg, WAIT) as rt:
@@ -192,6 +194,49 @@ def test_the_alive_token_vanishes_when_the_loop_stops(virtual_channel, sim_segme
         rt.loop.stop("test")
         wait_for(lambda: len(events) == 2, "the token withdrawn")
         assert events[1] == (f"{prefix}/alive", "DELETE")
+
+
+class Stall(Controller):
+    """A controller whose advance blocks while ``STALL`` is set: a hung loop."""
+
+    def create(self, dt: float) -> bool:
+        return True
+
+    def initialize(self, dt: float) -> bool:
+        return True
+
+    def advance(self, dt: float) -> bool:
+        while STALL.is_set():
+            time.sleep(0.01)
+        return True
+
+
+STALL = threading.Event()
+
+
+def test_the_alive_token_goes_while_the_loop_hangs_and_comes_back(
+        virtual_channel, sim_segment_factory, endpoint, prefix, operator):
+    """A controller stuck in advance holds the loop: the token is withdrawn after
+    alive_timeout (the manager's hang watchdog, tested with the loop, sends torque-off
+    meanwhile), and returns when
+    the loop does."""
+    sim_segment_factory(2)
+    events: list[str] = []
+    extra = {"name": "stall", "plugin": f"{__name__}:Stall"}
+    with manager(virtual_channel, endpoint, prefix, allow_commands=True,
+                 controllers=[extra]) as rt:
+        z = operator()
+        z.liveliness().declare_subscriber(f"{prefix}/alive",
+                                          lambda s: events.append(kind(s)), history=True)
+        wait_for(lambda: rt.hardware.all_ready and events == ["PUT"], "the alive token")
+        assert ask(z, f"{prefix}/clear")["ok"]
+        assert ask(z, f"{prefix}/switch", "stall") == {"result": "SWITCHED"}
+        STALL.set()
+        try:
+            wait_for(lambda: events == ["PUT", "DELETE"], "the token withdrawn")
+        finally:
+            STALL.clear()
+        wait_for(lambda: events == ["PUT", "DELETE", "PUT"], "the token back")
 
 
 def test_the_dead_man_estops_when_the_operators_token_vanishes(
