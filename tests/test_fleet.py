@@ -218,8 +218,7 @@ def test_the_alive_token_goes_while_the_loop_hangs_and_comes_back(
         virtual_channel, sim_segment_factory, endpoint, prefix, operator):
     """A controller stuck in advance holds the loop: the token is withdrawn after
     alive_timeout (the manager's hang watchdog, tested with the loop, sends torque-off
-    meanwhile), and returns when
-    the loop does."""
+    meanwhile), and returns when the loop does."""
     sim_segment_factory(2)
     events: list[str] = []
     extra = {"name": "stall", "plugin": f"{__name__}:Stall"}
