@@ -8,8 +8,12 @@ import csv
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .can_log import FrameLog
 
 OK, FAILED, USAGE = 0, 1, 2
 
@@ -42,14 +46,17 @@ def _record(args: argparse.Namespace) -> int:
                 if threading.current_thread() is threading.main_thread() else {})
     print(f"recording {args.interface}:{args.channel} to {args.file} (Ctrl-C to stop)",
           flush=True)
+    progress = _progress(recording.log)
     try:
         waited = 0.0
         while not flag["signalled"] and (args.duration is None or waited < args.duration):
             stop.wait(0.1)
             waited += 0.1
+            progress(waited)
             if recording.log.error:
                 break
     finally:
+        progress(None)
         recording.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -60,6 +67,27 @@ def _record(args: argparse.Namespace) -> int:
         _say(log.error)
         return FAILED
     return OK
+
+
+def _progress(log: FrameLog) -> Callable[[float | None], None]:
+    """In a terminal with rich (``rocoma-can[live]``): a live line of frames written, time
+    and drops; elsewhere nothing (the final count is printed either way)."""
+    if not sys.stdout.isatty():
+        return lambda waited: None
+    try:
+        from rich.console import Console
+    except ImportError:
+        return lambda waited: None
+    status = Console().status("recording ...")
+    status.start()
+
+    def update(waited: float | None) -> None:
+        if waited is None:
+            status.stop()
+            return
+        status.update(f"recording: {log.frames} frames in {waited:.0f} s"
+                      + (f", {log.dropped} dropped" if log.dropped else ""))
+    return update
 
 
 def _export(args: argparse.Namespace) -> int:
