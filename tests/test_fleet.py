@@ -170,12 +170,15 @@ def test_the_cli_acts_through_zenoh(virtual_channel, sim_segment_factory, endpoi
         assert main(["switch", "nope", *opts]) == 1
         assert main(["switch", "pd", *opts]) == 0
         assert main(["list", *opts]) == 0
+        assert main(["switch", "2", *opts]) == 0  # by its number in the list
         assert main(["status", "--json", *opts]) == 0
         out = capsys.readouterr().out
-        assert out.startswith("clear requested\nNOT_FOUND\nSWITCHED\n1 pd\n2 trajectory\n")
-        assert json.loads(out[out.index("{"):])["active"] == "pd"
-        assert main(["fleet", "--zenoh-connect", endpoint, "--zenoh-no-multicast"]) == 0
-        assert f"{prefix}: OK, pd, 2 drives" in capsys.readouterr().out
+        assert out.startswith("clear requested\nNOT_FOUND\nSWITCHED\n1 pd\n2 trajectory\n"
+                              "SWITCHED\n")
+        assert json.loads(out[out.index("{"):])["active"] == "trajectory"
+        assert main(["fleet", "--zenoh-connect", endpoint, "--zenoh-no-multicast",
+                     "--wait", "1"]) == 0
+        assert f"{prefix}: OK, trajectory, 2 drives" in capsys.readouterr().out
         assert main(["estop", *opts]) == 0
         wait_for(lambda: rt.manager.state is not ManagerState.OK, "the e-stop")
 
@@ -276,13 +279,30 @@ def test_zenoh_unavailable_is_an_error_or_a_warning_as_configured(virtual_channe
 def test_a_bad_zenoh_section_lists_every_problem(virtual_channel):
     cfg = demo_config(virtual_channel, drives=2, rate=RATE)
     cfg["zenoh"] = {"prefix": "rocoma/*", "mode": "router", "listen": "7447",
-                    "allow_commands": "yes", "drives_period": 0, "colour": 1}
+                    "allow_commands": "yes", "drives_period": 0, "colour": 1,
+                    "deadman": "ops//console", "required": False}
     with pytest.raises(ConfigError) as err:
         validate(cfg)
     text = "\n".join(err.value.problems)
-    for key in ("zenoh.prefix", "zenoh.mode", "zenoh.listen", "zenoh.allow_commands",
-                "zenoh.drives_period", "zenoh.colour: unknown key"):
+    for key in ("zenoh.prefix: 'rocoma/*' is not a concrete key expression", "zenoh.mode",
+                "zenoh.listen", "zenoh.allow_commands", "zenoh.drives_period",
+                "zenoh.colour: unknown key", "zenoh.deadman: 'ops//console'"):
         assert key in text, text
+    cfg["zenoh"] = {"prefix": "rocoma/r1/", "deadman": "ops/console1", "required": False}
+    with pytest.raises(ConfigError) as err:
+        validate(cfg)
+    text = "\n".join(err.value.problems)
+    assert "zenoh.prefix: 'rocoma/r1/'" in text and "zenoh.deadman: needs zenoh.required" in text
+
+
+def test_run_refuses_a_wildcard_prefix_on_the_command_line(tmp_path, virtual_channel, capsys):
+    """A prefix with a wildcard would answer, and act on, other managers' queries."""
+    import yaml
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(demo_config(virtual_channel, drives=2, rate=RATE)))
+    assert main(["run", str(path), "--zenoh", "rocoma/*", "--duration", "0.1"]) == 2
+    assert "--zenoh.prefix: 'rocoma/*' is not a concrete key expression" in \
+        capsys.readouterr().err
 
 
 def test_a_killed_demo_process_loses_its_alive_token(endpoint, operator):

@@ -196,8 +196,10 @@ def test_status_watch_runs_for_its_duration_and_ends(virtual_channel, sim_segmen
     sim_segment_factory(3)
     with running(virtual_channel) as rt:
         wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
-        code, out, _ = cli("status", "--watch", "--duration", "1.0", "--interval", "0.2")
+        code, out, _ = cli("status", "--watch", "--duration", "1.5")
         assert code == 0 and "FAILPROOF" in out and "drives" in out and "joint3" in out
+        code, _, err = cli("status", "--watch", "--interval", "0.2")  # SDO load on the bus
+        assert code == 2 and "at least 1 s over SDO" in err
 
 
 def test_status_view_draws_bring_up_progress_a_pulsing_homing_and_a_stale_manager():

@@ -205,6 +205,8 @@ def test_plot_draws_state_band_positions_torques_period_and_each_estop(bench, tm
     assert main(["plot", str(out / "trace.mcap"), "--out", str(tmp_path / "p.png")]) == 0
     assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert f"plot written to {tmp_path / 'p.png'}" in capsys.readouterr().out
+    assert main(["plot", str(out / "trace.mcap"), "--out", str(tmp_path / "p.txt")]) == 2
+    assert "p.txt: cannot write the plot" in capsys.readouterr().err
 
 
 def test_plot_of_a_file_that_is_not_a_trace_is_a_clear_error(tmp_path, capsys):

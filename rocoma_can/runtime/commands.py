@@ -21,10 +21,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..errors import NoAnswer, Refused, RocomaError
+from ..errors import ConfigError, NoAnswer, Refused, RocomaError
 from . import fleet_client
 from .client import ManagerClient
 from .fleet import FleetConfig, FleetError
+from .fleet import parse as parse_fleet
 from .live import cycle_text
 from .objects import (
     ABORT_NOT_FOUND,
@@ -49,7 +50,6 @@ def _err(message: str) -> None:
 # --- run / check-config -----------------------------------------------------------------------
 
 def _check_config(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
     from .config import load
     try:
         config = load(args.config)
@@ -96,7 +96,6 @@ def recording_available() -> bool:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
     from .config import load
     from .system import Runtime
     try:
@@ -107,7 +106,12 @@ def _run(args: argparse.Namespace) -> int:
         return USAGE
     if args.rate:
         config.rate = args.rate
-    config.fleet = fleet_from_args(args, config.fleet)
+    try:
+        config.fleet = fleet_from_args(args, config.fleet)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            _err(problem)
+        return USAGE
     flight = None if args.no_flight else args.flight_dir
     if flight is not None and not recording_available():
         _err("flight recorder off: it writes MCAP, pip install 'rocoma-can[record]'")
@@ -153,26 +157,29 @@ def _run(args: argparse.Namespace) -> int:
 
 def fleet_from_args(args: argparse.Namespace, fleet: FleetConfig | None) -> FleetConfig | None:
     """The config's zenoh: section with the command line's --zenoh* flags over it (any of
-    them turns Zenoh on)."""
-    given = (args.zenoh is not None or args.zenoh_mode or args.zenoh_connect
-             or args.zenoh_listen or args.zenoh_no_multicast or args.zenoh_allow_commands
-             or args.zenoh_deadman)
-    if not given:
-        return fleet
-    fleet = fleet or FleetConfig()
+    them turns Zenoh on), checked as the section is: ConfigError lists what is wrong."""
+    flags: dict[str, Any] = {}
     if args.zenoh:
-        fleet.prefix = args.zenoh.strip("/")
+        flags["prefix"] = args.zenoh
     if args.zenoh_mode:
-        fleet.mode = args.zenoh_mode
-    fleet.connect += args.zenoh_connect
-    fleet.listen += args.zenoh_listen
+        flags["mode"] = args.zenoh_mode
+    if args.zenoh_connect:
+        flags["connect"] = args.zenoh_connect
+    if args.zenoh_listen:
+        flags["listen"] = args.zenoh_listen
     if args.zenoh_no_multicast:
-        fleet.multicast = False
+        flags["multicast"] = False
     if args.zenoh_allow_commands:
-        fleet.allow_commands = True
+        flags["allow_commands"] = True
     if args.zenoh_deadman:
-        fleet.deadman = args.zenoh_deadman
-    return fleet
+        flags["deadman"] = args.zenoh_deadman
+    if not flags and args.zenoh is None:
+        return fleet
+    problems: list[str] = []
+    merged = parse_fleet(flags, problems, where="--zenoh", base=fleet)
+    if problems:
+        raise ConfigError(problems)
+    return merged
 
 
 # --- client commands --------------------------------------------------------------------------
@@ -244,10 +251,19 @@ def _command(index: int, verb: str, done: str) -> Callable[[argparse.Namespace],
 
 
 def _status(args: argparse.Namespace) -> int:
+    zenoh = args.zenoh is not None
+    interval = args.interval if args.interval is not None else (0.5 if zenoh else 1.0)
+    low = 0.2 if zenoh else 1.0
+    if args.watch and interval < low:  # over SDO each refresh is ~100 frames per drive
+        why = ("over Zenoh" if zenoh else "over SDO (each refresh is a segmented upload on "
+               "the drives' bus, ~100 frames per drive)")
+        _err(f"status --watch --interval: at least {low:g} s {why}")
+        return USAGE
+
     def show(read: Callable[[], dict[str, Any]], label: str) -> int:
         if args.watch:
             from .live import watch
-            return watch(read, label, interval=args.interval, duration=args.duration)
+            return watch(read, label, interval=interval, duration=args.duration)
         status = read()
         if args.json:
             print(json.dumps(status, indent=2), flush=True)
@@ -255,7 +271,7 @@ def _status(args: argparse.Namespace) -> int:
         for line in status_lines(status):
             print(line, flush=True)
         return OK
-    if args.zenoh is not None:
+    if zenoh:
         return fleet_client.with_client(
             args, lambda client: show(client.status, f"Zenoh {client.prefix}"))
     return _client(args, lambda client: show(client.status, f"manager node {args.node}"))
@@ -380,8 +396,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--json", action="store_true", help="everything as one JSON document")
     p.add_argument("--watch", action="store_true",
                    help="a live view, refreshed until Ctrl-C (needs rocoma-can[live])")
-    p.add_argument("--interval", type=float, default=0.5, metavar="S",
-                   help="--watch: seconds between refreshes (0.5)")
+    p.add_argument("--interval", type=float, default=None, metavar="S",
+                   help="--watch: seconds between refreshes (1 over SDO, at least 1: each "
+                        "is a segmented upload on the drives' bus; 0.5 over Zenoh)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="--watch: stop after S seconds (default: Ctrl-C)")
     _bus_options(p)

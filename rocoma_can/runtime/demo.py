@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
-from ..errors import RocomaError
+from ..errors import ConfigError, RocomaError
 from .client import ManagerClient
 from .objects import STATE_NAMES
 
@@ -510,10 +510,13 @@ def _main(args: argparse.Namespace) -> int:
                           out=lambda line: print(line, flush=True), buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen)
+    except ConfigError as exc:  # --zenoh-listen that is no endpoint
+        print("demo: " + "; ".join(exc.problems), flush=True)
+        return 2
     except ValueError as exc:  # a file that is no EDS, or one the demo cannot drive
         print(f"demo: --eds: {exc}", flush=True)
         return 2
-    except RocomaError as exc:  # Zenoh: not installed, the endpoint taken; a bad config
+    except RocomaError as exc:  # Zenoh: not installed, the endpoint taken
         print(f"demo: {exc}", flush=True)
         return 2
     return 0 if report.ok else 1

@@ -71,14 +71,28 @@ def _key_chunk(text: str) -> str:
     return out or "host"
 
 
+def key_problem(key: Any) -> str | None:
+    """Why ``key`` is no concrete Zenoh key expression (None: it is one): chunks between
+    '/' not empty, no wildcard or special character ('*', '$', '?', '#'). A prefix with a
+    wildcard would serve, and act on, queries meant for other managers."""
+    if not isinstance(key, str) or not key:
+        return "expected a key expression such as rocoma/robot1"
+    if any(c in key for c in "*$?#") or any(not chunk for chunk in key.split("/")):
+        return (f"{key!r} is not a concrete key expression (no empty chunk, no leading or "
+                "trailing '/', none of * $ ? #)")
+    return None
+
+
 @dataclass
 class FleetConfig:
-    """The ``zenoh:`` config section (README "Fleet"); the CLI flags set the same."""
+    """The ``zenoh:`` config section (README "Fleet"); the CLI flags set the same. ``mode``
+    and ``multicast`` left None keep what ``config_file`` (or Zenoh's default: peer,
+    multicast scouting on) says."""
     prefix: str = field(default_factory=default_prefix)
-    mode: str = "peer"
+    mode: str | None = None
     connect: list[str] = field(default_factory=list)
     listen: list[str] = field(default_factory=list)
-    multicast: bool = True          # Zenoh's multicast scouting (its default)
+    multicast: bool | None = None   # Zenoh's multicast scouting
     allow_commands: bool = False    # switch, clear, recover over Zenoh
     deadman: str | None = None      # a liveliness key: e-stop when it vanishes
     required: bool = True           # Zenoh unavailable at start-up: error (else a warning)
@@ -87,8 +101,10 @@ class FleetConfig:
     config_file: str | None = None  # a Zenoh JSON5 config (access control, TLS) beneath ours
 
 
-def parse(section: Any, problems: list[str], where: str = "zenoh") -> FleetConfig | None:
-    """The ``zenoh:`` section (None: absent) with every problem as "zenoh.KEY: ..."."""
+def parse(section: Any, problems: list[str], where: str = "zenoh",
+          base: FleetConfig | None = None) -> FleetConfig | None:
+    """The ``zenoh:`` section (None: absent) over ``base`` (default: the defaults), every
+    problem as "zenoh.KEY: ..."; the CLI's flags come through here too."""
     if section is None:
         return None
     if not isinstance(section, Mapping):
@@ -96,18 +112,18 @@ def parse(section: Any, problems: list[str], where: str = "zenoh") -> FleetConfi
         return None
     for key in sorted(set(section) - _KEYS):
         problems.append(f"{where}.{key}: unknown key (known: {', '.join(sorted(_KEYS))})")
-    out = FleetConfig()
-    prefix = section.get("prefix", out.prefix)
-    if not isinstance(prefix, str) or not prefix.strip("/") or any(c in prefix for c in "*$?#"):
-        problems.append(f"{where}.prefix: expected a key expression without wildcards, "
-                        f"e.g. rocoma/robot1, got {prefix!r}")
-    else:
-        out.prefix = prefix.strip("/")
-    mode = section.get("mode", out.mode)
-    if mode not in MODES:
-        problems.append(f"{where}.mode: expected peer or client, got {mode!r}")
-    else:
-        out.mode = mode
+    out = base or FleetConfig()
+    if "prefix" in section:
+        why = key_problem(section["prefix"])
+        if why:
+            problems.append(f"{where}.prefix: {why}")
+        else:
+            out.prefix = section["prefix"]
+    if "mode" in section:
+        if section["mode"] not in MODES:
+            problems.append(f"{where}.mode: expected peer or client, got {section['mode']!r}")
+        else:
+            out.mode = section["mode"]
     for key in ("connect", "listen"):
         value = section.get(key, [])
         if isinstance(value, str):
@@ -117,19 +133,21 @@ def parse(section: Any, problems: list[str], where: str = "zenoh") -> FleetConfi
             problems.append(f"{where}.{key}: expected Zenoh endpoints like "
                             f"tcp/192.168.1.10:7447, got {value!r}")
         else:
-            setattr(out, key, list(value))
+            getattr(out, key).extend(value)
     for key in ("multicast", "allow_commands", "required"):
-        value = section.get(key, getattr(out, key))
-        if not isinstance(value, bool):
-            problems.append(f"{where}.{key}: expected true or false, got {value!r}")
+        if key in section:
+            if not isinstance(section[key], bool):
+                problems.append(f"{where}.{key}: expected true or false, got "
+                                f"{section[key]!r}")
+            else:
+                setattr(out, key, section[key])
+    if section.get("deadman") is not None:
+        why = key_problem(section["deadman"])
+        if why:
+            problems.append(f"{where}.deadman: {why} (a liveliness key, e.g. "
+                            "rocoma/operators/console1)")
         else:
-            setattr(out, key, value)
-    deadman = section.get("deadman")
-    if deadman is not None and (not isinstance(deadman, str) or not deadman.strip("/")):
-        problems.append(f"{where}.deadman: expected a liveliness key, e.g. "
-                        f"rocoma/operators/console1, got {deadman!r}")
-    else:
-        out.deadman = deadman
+            out.deadman = section["deadman"]
     for key, low, high in (("drives_period", 0.05, 60.0), ("alive_timeout", 0.05, 60.0)):
         value = section.get(key, getattr(out, key))
         if not isinstance(value, (int, float)) or isinstance(value, bool) \
@@ -140,14 +158,18 @@ def parse(section: Any, problems: list[str], where: str = "zenoh") -> FleetConfi
     config_file = section.get("config_file")
     if config_file is not None and not isinstance(config_file, str):
         problems.append(f"{where}.config_file: expected a path, got {config_file!r}")
-    else:
+    elif config_file is not None:
         out.config_file = config_file
+    if out.deadman and not out.required:
+        problems.append(f"{where}.deadman: needs {where}.required: true (a dead-man that "
+                        "may be missing without Zenoh, with only a warning, is none)")
     return out
 
 
-def open_session(mode: str, connect: list[str], listen: list[str], multicast: bool,
-                 config_file: str | None = None) -> zenoh.Session:
-    """A Zenoh session; FleetError says what failed (not installed, an endpoint)."""
+def open_session(mode: str | None, connect: list[str], listen: list[str],
+                 multicast: bool | None, config_file: str | None = None) -> zenoh.Session:
+    """A Zenoh session; FleetError says what failed (not installed, an endpoint). ``mode``
+    and ``multicast`` None: as the config file (or Zenoh's default) says."""
     try:
         import zenoh
     except ImportError:
@@ -155,17 +177,32 @@ def open_session(mode: str, connect: list[str], listen: list[str], multicast: bo
             from None
     try:
         conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
-        conf.insert_json5("mode", json.dumps(mode))
+        if mode is not None:
+            conf.insert_json5("mode", json.dumps(mode))
         if connect:
             conf.insert_json5("connect/endpoints", json.dumps(connect))
         if listen:
             conf.insert_json5("listen/endpoints", json.dumps(listen))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+        if multicast is not None:
+            conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
         return zenoh.open(conf)
     except Exception as exc:  # zenoh.ZError and its config errors: said, never a traceback
-        where = ", ".join(f"{k} {v}" for k, v in (("connect", connect), ("listen", listen)) if v)
-        raise FleetError(f"Zenoh session ({mode}{', ' + where if where else ''}) could not "
-                         f"be opened: {str(exc).split(' at /')[0]}") from None
+        raise FleetError(f"Zenoh session ({_where(mode, connect, listen, config_file)}) "
+                         f"could not be opened: {_said(exc)}") from None
+
+
+def _where(mode: str | None, connect: list[str], listen: list[str],
+           config_file: str | None) -> str:
+    parts = [mode or "mode as configured"]
+    parts += [f"{k} {', '.join(v)}" for k, v in (("connect", connect), ("listen", listen)) if v]
+    if config_file:
+        parts.append(f"config {config_file}")
+    return "; ".join(parts)
+
+
+def _said(exc: BaseException) -> str:
+    """Zenoh's message without the Rust source location it ends with."""
+    return str(exc).split(" at /")[0]
 
 
 class FleetBridge:
@@ -183,6 +220,7 @@ class FleetBridge:
         self._recover = recover
         self._cycles = cycles
         self.counters = {"queries": 0, "refused": 0, "published": 0, "errors": 0}
+        self._count_lock = threading.Lock()  # Zenoh answers on several threads
         self.deadman_seen = False
         self.session = open_session(config.mode, config.connect, config.listen,
                                     config.multicast, config.config_file)
@@ -203,9 +241,9 @@ class FleetBridge:
             if config.deadman:
                 self._declared.append(self.session.liveliness().declare_subscriber(
                     config.deadman, self._on_deadman, history=True))
-        except Exception:
+        except Exception as exc:  # zenoh.ZError: a key Zenoh refuses, a session gone
             close_session(self.session)
-            raise
+            raise FleetError(f"Zenoh: serving {config.prefix} failed: {_said(exc)}") from None
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self) -> FleetBridge:
@@ -235,7 +273,14 @@ class FleetBridge:
                 declared.undeclare()
             except Exception:  # noqa: BLE001 - a session already gone
                 pass
-        close_session(self.session)
+        try:
+            close_session(self.session)
+        except Exception as exc:  # noqa: BLE001 - the rest of the shutdown must go on
+            log.warning("zenoh: closing the session failed: %s", exc)
+
+    def _count(self, what: str) -> None:
+        with self._count_lock:
+            self.counters[what] += 1
 
     def info(self) -> dict[str, Any]:
         """What the status report shows of the bridge."""
@@ -267,16 +312,16 @@ class FleetBridge:
                 try:
                     drives = self._status().get("drives", [])
                 except Exception:  # noqa: BLE001 - a report that failed: counted
-                    self.counters["errors"] += 1
+                    self._count("errors")
                     continue
                 self._put(self._drives, {"drives": drives})
 
     def _put(self, publisher: Any, message: dict[str, Any]) -> None:
         try:
             publisher.put(json.dumps(message))
-            self.counters["published"] += 1
+            self._count("published")
         except Exception as exc:  # noqa: BLE001 - Zenoh down: counted, the manager runs on
-            self.counters["errors"] += 1
+            self._count("errors")
             if self.counters["errors"] in (1, 10, 100, 1000):
                 log.warning("zenoh: publication failed (%d so far): %s",
                             self.counters["errors"], exc)
@@ -287,7 +332,7 @@ class FleetBridge:
                 self._token = self.session.liveliness().declare_token(
                     f"{self.config.prefix}/alive")
             except Exception:  # noqa: BLE001 - tried again next time round
-                self.counters["errors"] += 1
+                self._count("errors")
 
     def _withdraw(self) -> None:
         token, self._token = self._token, None
@@ -300,7 +345,7 @@ class FleetBridge:
     # --- queries (Zenoh's threads) ------------------------------------------------------------
     def _answerer(self, service: str) -> Callable[[Any], None]:
         def answer(query: Any) -> None:
-            self.counters["queries"] += 1
+            self._count("queries")
             key = f"{self.config.prefix}/{service}"
             try:
                 payload = query.payload.to_string() if query.payload is not None else ""
@@ -309,11 +354,11 @@ class FleetBridge:
                     return
                 reply = self._serve(service)
             except Exception as exc:  # noqa: BLE001 - a query must get an answer
-                self.counters["errors"] += 1
+                self._count("errors")
                 reply = {"ok": False, "state": self.manager.state.name,
                          "error": f"{type(exc).__name__}: {exc}"}
             if reply.get("ok") is False:
-                self.counters["refused"] += 1
+                self._count("refused")
             _respond(query, key, reply)
         return answer
 
@@ -323,6 +368,8 @@ class FleetBridge:
             return self.status()
         if service not in STOPS and not self.config.allow_commands:
             return {"ok": False, "state": m.state.name, "error": _NOT_ALLOWED.format(service)}
+        if service not in STOPS and not self._running:
+            return {"ok": False, "state": m.state.name, "error": _NOT_RUNNING}
         if service == "estop":
             m.emergency_stop(cause="Zenoh e-stop")
         elif service == "failproof":
@@ -344,12 +391,18 @@ class FleetBridge:
 
         def reply(result: str, error: str = "") -> None:
             if result == "ERROR" or result == "NOT_FOUND":
-                self.counters["refused"] += 1
+                self._count("refused")
             _respond(query, key, {"result": result, **({"error": error} if error else {})})
         if not self.config.allow_commands:
             reply("ERROR", _NOT_ALLOWED.format("switch"))
             return
-        if name not in m.available_controllers():
+        if not self._running:
+            reply("ERROR", _NOT_RUNNING)
+            return
+        names = m.available_controllers()
+        if name.isdigit() and 1 <= int(name) <= len(names):  # a number from `list`
+            name = names[int(name) - 1]
+        if name not in names:
             reply("NOT_FOUND", f"no controller {name!r} (controllers: "
                                f"{', '.join(m.available_controllers())})")
             return
@@ -398,6 +451,9 @@ def close_session(session: zenoh.Session) -> None:
 
 _NOT_ALLOWED = ("{} over Zenoh is not allowed by this manager's config "
                 "(zenoh.allow_commands: false); e-stop and failproof are")
+
+
+_NOT_RUNNING = "the manager's loop is not running"
 
 
 def _event_message(event: ManagerEvent) -> dict[str, Any]:

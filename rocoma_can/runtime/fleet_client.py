@@ -11,7 +11,14 @@ from collections.abc import Callable
 from typing import Any
 
 from ..errors import NoAnswer, RocomaError
-from .fleet import FleetError, close_session, default_prefix, open_session
+from .fleet import (
+    STOPS,
+    FleetError,
+    close_session,
+    default_prefix,
+    key_problem,
+    open_session,
+)
 
 OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
 #: one round of a query; repeated until the caller's timeout
@@ -22,8 +29,13 @@ class FleetClient:
     """A Zenoh session that queries one manager's prefix (or lists them all)."""
 
     def __init__(self, prefix: str = "", connect: list[str] | None = None,
-                 mode: str = "peer", multicast: bool = True, timeout: float = 3.0) -> None:
-        self.prefix = (prefix or default_prefix()).strip("/")
+                 mode: str | None = None, multicast: bool | None = None,
+                 timeout: float = 3.0) -> None:
+        prefix = prefix or default_prefix()
+        why = key_problem(prefix)
+        if why:
+            raise FleetError(f"--zenoh: {why}")
+        self.prefix = prefix
         self.timeout = timeout
         self.session = open_session(mode, connect or [], [], multicast)
 
@@ -38,17 +50,24 @@ class FleetClient:
 
     def query(self, service: str, payload: str | None = None,
               timeout: float | None = None) -> dict[str, Any]:
-        """The manager's answer to ``<prefix>/<service>`` (decoded JSON). A status query is
-        repeated until answered; any other is sent once, after a status query has shown
-        the manager reachable (a switch answers when it is done: not to be sent twice)."""
+        """The manager's answer to ``<prefix>/<service>`` (decoded JSON), within ``timeout``.
+
+        A status query, an e-stop and a failproof stop are sent in rounds until answered
+        (asking twice does no harm; an e-stop never waits behind anything). Any other is
+        sent once, after a status query has shown the manager reachable: a switch answers
+        when it is done and must not be sent twice."""
         deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
-        if service == "status":
+        if service == "status" or service in STOPS:
             while True:
-                answer = self._get(service, None, min(ROUND, deadline - time.monotonic()))
+                started = time.monotonic()
+                answer = self._get(service, payload, min(ROUND, deadline - started))
                 if answer is not None:
                     return answer
                 if time.monotonic() >= deadline:
                     raise self._silent(service)
+                # nobody matched yet (a session just opened): no query storm meanwhile
+                time.sleep(max(0.0, min(ROUND - (time.monotonic() - started),
+                                        deadline - time.monotonic())))
         self.query("status", timeout=deadline - time.monotonic())
         answer = self._get(service, payload, deadline - time.monotonic())
         if answer is None:
@@ -63,7 +82,16 @@ class FleetClient:
                 if error == "Timeout":  # Zenoh's own: no answer within the timeout
                     return None
                 raise RocomaError(f"{key}: {error}")
-            answer: dict[str, Any] = json.loads(reply.ok.payload.to_string())
+            try:
+                answer = json.loads(reply.ok.payload.to_string())
+            except ValueError:
+                raise RocomaError(f"{key}: not a rocoma-can manager's answer: "
+                                  f"{reply.ok.payload.to_string()[:80]!r}") from None
+            if not isinstance(answer, dict):
+                raise RocomaError(f"{key}: not a rocoma-can manager's answer: {answer!r}")
+            if service == "status" and "state" not in answer:
+                raise RocomaError(f"{key}: the manager could not report: "
+                                  f"{answer.get('error', answer)}")
             return answer
         return None
 
@@ -78,12 +106,13 @@ class FleetClient:
         """The prefixes of every manager whose loop runs (their liveliness tokens)."""
         deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
         found: set[str] = set()
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline:  # all of the time: managers found later count
+            started = time.monotonic()
             for reply in self.session.liveliness().get("**/alive", timeout=ROUND):
                 if reply.ok is not None:
                     found.add(str(reply.ok.key_expr).removesuffix("/alive"))
-            if found:
-                break
+            time.sleep(max(0.0, min(ROUND - (time.monotonic() - started),
+                                    deadline - time.monotonic())))
         return sorted(found)
 
 
@@ -105,7 +134,7 @@ def add_options(p: argparse.ArgumentParser, prefix: bool = True) -> None:
 def with_client(args: argparse.Namespace, action: Callable[[FleetClient], int]) -> int:
     try:
         client = FleetClient(args.zenoh or "", args.zenoh_connect,
-                             multicast=not args.zenoh_no_multicast,
+                             multicast=False if args.zenoh_no_multicast else None,
                              timeout=max(args.timeout, 3.0))
     except FleetError as exc:
         _err(str(exc))

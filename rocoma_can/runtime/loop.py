@@ -92,7 +92,9 @@ class CycleStats:
         if n == 0:
             return TimingSummary(0, 0, math.nan, math.nan, math.nan, math.nan, math.nan)
         k = self.cycles % self._size
-        starts = np.concatenate((self._start[k:n], self._start[:k])) if n == self._size \
+        # Read from other threads (status reports) while the loop writes: with a full ring,
+        # slot k, the oldest, may be overwritten meanwhile; it is left out.
+        starts = np.concatenate((self._start[k + 1:n], self._start[:k])) if n == self._size \
             else self._start[:n]
         periods = np.diff(starts) if n > 1 else np.array([self.period])
         late = np.abs(self._late[:n])

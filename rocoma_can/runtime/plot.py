@@ -224,6 +224,6 @@ def plot(source: str | Path, out: str | Path | None = None, title: str = "") -> 
     fig = figure(trace, title=title or str(source))
     try:
         fig.savefig(target)
-    except OSError as exc:
+    except (OSError, ValueError) as exc:  # no such directory; a format matplotlib lacks
         raise PlotError(f"{target}: cannot write the plot: {exc}") from None
     return target

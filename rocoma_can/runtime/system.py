@@ -106,15 +106,15 @@ class Runtime:
                                     drive_status=self.status_report,
                                     estop_in_cycle=hardware.set_estop_cob_id)
             self._parts.insert(0, self.node.close)
-            if config.fleet is not None:
-                self._bridge(config.fleet)
             trace = self._recorders(record, flight, flight_seconds, announce)
+            self.loop = ControlLoop(self.hardware, self.manager, config.rate,
+                                    priority=config.priority, cpus=config.cpus,
+                                    on_cycle=on_cycle, trace=trace)
+            if config.fleet is not None:  # its queries read the loop's statistics
+                self._bridge(config.fleet)
         except BaseException:
             self.close()
             raise
-        self.loop = ControlLoop(self.hardware, self.manager, config.rate,
-                                priority=config.priority, cpus=config.cpus, on_cycle=on_cycle,
-                                trace=trace)
 
     def _bridge(self, fleet: FleetConfig) -> None:
         try:
@@ -219,7 +219,10 @@ class Runtime:
         """Node, manager threads, hardware (joins its bus reader), then the node's bus."""
         parts, self._parts = self._parts, []
         for close in parts:
-            close()
+            try:
+                close()
+            except Exception:  # one part's failure must not leave the others running
+                log.exception("closing %r failed", close)
 
     def __enter__(self) -> Runtime:
         return self
