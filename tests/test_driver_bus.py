@@ -225,7 +225,7 @@ def test_unconfigured_mode_is_rejected_not_sent(segment, make_rig, recorder):
     rig.switch("hold")
     rig.run(0.2)
     assert rig.mgr.state == ManagerState.FAILPROOF
-    time.sleep(0.1)
+    synced_mark(recorder, rig)  # the recorder has seen every frame the rig sent
     sent_modes = {struct.unpack_from("<b", f.data, 2)[0]
                   for f in recorder.frames(set(RPDO1), since=mark)}
     assert sent_modes == {int(JointMode.CSP)}
@@ -268,7 +268,10 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
     # and every following cycle keeps sending controlword 0 to every drive
     mark = synced_mark(recorder, rig)
     rig.run(0.1)
-    time.sleep(0.05)
+    # The recorder reads on a thread of its own: in the user-mode-linux guest a fixed 50 ms
+    # was not always enough for it to see these cycles' frames. A marker sent after them
+    # and seen by it bounds the wait by the configured stall budget instead.
+    synced_mark(recorder, rig)
     words = [struct.unpack_from("<H", f.data)[0] for f in recorder.frames(set(RPDO1), since=mark)]
     assert words and set(words) == {0}
 
