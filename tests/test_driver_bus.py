@@ -91,8 +91,17 @@ def bring_up(rig: Rig) -> None:
 def enable_with(rig: Rig, controller, emergency=None) -> None:
     rig.mgr.add_controller(controller, emergency=emergency)
     assert rig.switch(controller.name) == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget()), \
-        rig.hw.drive_status()
+    assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget()), _said(rig)
+
+
+def _said(rig: Rig) -> str:
+    """Every drive's whole status (pytest's repr cuts a DriveStatus short), the manager's
+    state and the bus's transmit errors: what a failed enable needs to be understood."""
+    return "\n".join([f"manager {rig.mgr.state.name}, tx errors {rig.hw.tx_errors}, "
+                       f"statuswords {[hex(int(w)) for w in rig.hw.state.statusword]}"]
+                      + [f"{d.name}: {d.phase} {d.cia402_state} enabled={d.enabled} "
+                         f"fault={d.fault!r} hb_age={d.heartbeat_age}"
+                         for d in rig.hw.drive_status()])
 
 
 def rpdo1_cycles(frames) -> list[dict[int, int]]:
