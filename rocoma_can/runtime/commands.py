@@ -236,6 +236,10 @@ def _home(args: argparse.Namespace) -> int:
     return _client(args, action)
 
 
+#: tries of an e-stop or failproof stop over SDO (see _command)
+STOP_ATTEMPTS = 3
+
+
 def _command(index: int, verb: str, done: str) -> Callable[[argparse.Namespace], int]:
     through_zenoh = fleet_client.command(verb, done)
 
@@ -243,7 +247,17 @@ def _command(index: int, verb: str, done: str) -> Callable[[argparse.Namespace],
         if args.zenoh is not None:
             return through_zenoh(args)
         def action(client: ManagerClient) -> int:
-            client.write(index, 1)
+            # The node has one SDO channel: a transfer of another client (a `status --watch`
+            # mid-upload) can make this one go unanswered or aborted. A stop is the same
+            # request twice, so it is tried again; the other commands once.
+            attempts = STOP_ATTEMPTS if index in (ESTOP, FAILPROOF_STOP) else 1
+            for attempt in range(1, attempts + 1):
+                try:
+                    client.write(index, 1)
+                    break
+                except (NoAnswer, Refused):
+                    if attempt == attempts:
+                        raise
             print(done, flush=True)
             return OK
         return _client(args, action)

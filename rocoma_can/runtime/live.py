@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from ..errors import NoAnswer
+from ..errors import RocomaError
 
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
@@ -62,8 +62,8 @@ def watch(read: Callable[[], dict[str, Any]], label: str, interval: float = 0.5,
                 try:
                     status = read()
                     answered = time.time()
-                except NoAnswer as exc:
-                    problem = str(exc)
+                except RocomaError as exc:  # no answer, or an answer spoilt by another
+                    problem = str(exc)       # client on the node's one SDO channel: again
                 live.update(view(status, problem, answered, label), refresh=True)
                 stop.wait(max(0.0, min(interval - (time.monotonic() - started),
                                        end - time.monotonic())))
