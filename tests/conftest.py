@@ -8,8 +8,11 @@ skip is turned into a failure: CI must never go green by not running them.
 """
 from __future__ import annotations
 
+import atexit
 import json
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -20,6 +23,12 @@ from fixtures.bus import in_ci, vcan_problem  # noqa: E402  (after the rewrite h
 pytest_plugins = ["fixtures.bus", "fixtures.sim", "fixtures.manager_probes"]
 
 VCAN_DIR = Path(__file__).parent / "vcan"
+
+# Nothing a test runs writes into the home directory: the flight recorder's and the demo's
+# default directories are under $XDG_STATE_HOME (processes the tests start inherit it).
+_STATE_HOME = tempfile.mkdtemp(prefix="rocoma-test-state-")
+os.environ["XDG_STATE_HOME"] = _STATE_HOME
+atexit.register(shutil.rmtree, _STATE_HOME, True)
 
 
 def _needs_vcan(item: pytest.Item) -> bool:

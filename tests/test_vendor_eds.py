@@ -12,6 +12,7 @@ frames on the drive's own PDO layout.
 """
 from __future__ import annotations
 
+import os
 import struct
 from pathlib import Path
 
@@ -235,6 +236,8 @@ def test_the_demo_says_why_it_cannot_use_a_file(tmp_path, capsys):
         "DefaultValue=0x00000180", "DefaultValue=0x00000100"))  # CSV only
     assert main(["demo", "--eds", str(velocity_only)]) == 2
     assert "no position mode the demo's controllers can use" in capsys.readouterr().out
+    demo_dirs = Path(os.environ["XDG_STATE_HOME"]) / "rocoma-can" / "demo"
+    assert not list(demo_dirs.iterdir())  # it did not run: no empty recording left behind
 
 
 @pytest.mark.parametrize("file", sorted(p.name for p in EDS.iterdir()))

@@ -510,13 +510,14 @@ def _main(args: argparse.Namespace) -> int:
                           out=lambda line: print(line, flush=True), buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen)
-    except ConfigError as exc:  # --zenoh-listen that is no endpoint
-        print("demo: " + "; ".join(exc.problems), flush=True)
-        return 2
-    except ValueError as exc:  # a file that is no EDS, or one the demo cannot drive
-        print(f"demo: --eds: {exc}", flush=True)
-        return 2
-    except RocomaError as exc:  # Zenoh: not installed, the endpoint taken
-        print(f"demo: {exc}", flush=True)
+    except (ValueError, RocomaError) as exc:
+        if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint
+            print("demo: " + "; ".join(exc.problems), flush=True)
+        elif isinstance(exc, ValueError):  # a file that is no EDS, or one it cannot drive
+            print(f"demo: --eds: {exc}", flush=True)
+        else:  # Zenoh: not installed, the endpoint taken
+            print(f"demo: {exc}", flush=True)
+        if record is not None and not any(record.iterdir()):
+            record.rmdir()  # it did not run: no empty recording directory left behind
         return 2
     return 0 if report.ok else 1
