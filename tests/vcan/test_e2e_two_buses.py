@@ -35,8 +35,13 @@ def _torque_off(rec, since: int) -> bool:
                for n in NODES)
 
 
-def _status() -> dict:
+def _status(polling: bool = False) -> dict:
+    """``status --json``; while ``polling`` (inside a bounded wait), an unanswered query
+    (exit 3: an SDO segment lost to a guest stall during the bus fault) is "not yet" and
+    asked again, any other failure still fails the test."""
     status = cli("status", "--json")
+    if polling and status.returncode == 3:
+        return {}
     assert status.returncode == 0, status
     report: dict = json.loads(status.stdout)
     return report
@@ -81,7 +86,7 @@ def test_a_failed_bus_gives_torque_off_on_both(processes, frame_recorder,  # noq
     # (the same tpdo_timeout_cycles), so FAILPROOF may come from them a cycle first: the bus
     # fault is what this test is about, so wait for the manager to report it (its budget,
     # then the guest's slowness) before the link comes back.
-    wait_for(lambda: "bus 'rear'" in (_status().get("bus_fault") or ""), budget,
+    wait_for(lambda: "bus 'rear'" in (_status(polling=True).get("bus_fault") or ""), budget,
              "the bus fault of 'rear' in status")
     # vcan1 back: its drives get torque-off frames too (they are latched by the bus fault)
     mark_rear = rear.mark()
