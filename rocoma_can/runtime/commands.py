@@ -84,10 +84,15 @@ def _buses(config: RuntimeConfig) -> str:
                      f"{len(config.drives_on(b))} drives)" for b in config.buses)
 
 
-def default_flight_dir() -> Path:
-    """$XDG_STATE_HOME/rocoma-can/flight (~/.local/state/rocoma-can/flight)."""
+def state_dir(*parts: str) -> Path:
+    """$XDG_STATE_HOME/rocoma-can/PARTS (~/.local/state/rocoma-can/...): where flight
+    records and the demo's recordings go by default."""
     state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
-    return Path(state) / "rocoma-can" / "flight"
+    return Path(state, "rocoma-can", *parts)
+
+
+def default_flight_dir() -> Path:
+    return state_dir("flight")
 
 
 def recording_available() -> bool:

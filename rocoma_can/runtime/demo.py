@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import os
 import threading
 import time
 import uuid
@@ -317,9 +316,9 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
 
 
 def default_record_dir() -> Path:
-    """$XDG_STATE_HOME/rocoma-can/demo/<time> (~/.local/state/...): a new one per run."""
-    state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
-    return Path(state) / "rocoma-can" / "demo" / time.strftime("%Y%m%d-%H%M%S")
+    """A new directory per run under the state directory's demo/ (commands.state_dir)."""
+    from .commands import state_dir
+    return state_dir("demo", time.strftime("%Y%m%d-%H%M%S"))
 
 
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
