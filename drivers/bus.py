@@ -40,15 +40,29 @@ def enlarge_receive_buffer(sock: socket.socket, size: int = RECEIVE_BUFFER_BYTES
             continue
 
 
+def enlarge_bus_buffer(bus: can.BusABC) -> can.BusABC:
+    """The large receive buffer for a bus with a socket (SocketCAN); others are left alone.
+
+    Every reader of ours can lag: the manager node's and the CLI's SDO readers, the
+    simulator, recorders. A frame that arrives at a full socket is dropped by the kernel,
+    and for SDO one lost segment is a transfer that is never answered."""
+    sock = getattr(bus, "socket", None)
+    if isinstance(sock, socket.socket):
+        enlarge_receive_buffer(sock)
+    return bus
+
+
 def open_bus(interface: str, channel: str, bitrate: int | None = None,
              **kwargs: Any) -> can.BusABC:
-    """A python-can bus that ignores ~/.canrc and CAN_* variables (the config says it all)."""
+    """A python-can bus that ignores ~/.canrc and CAN_* variables (the config says it all),
+    with the large receive buffer on SocketCAN."""
     if bitrate is not None:
         kwargs["bitrate"] = bitrate
     try:
-        return can.Bus(interface=interface, channel=channel, ignore_config=True, **kwargs)
+        bus = can.Bus(interface=interface, channel=channel, ignore_config=True, **kwargs)
     except (OSError, can.CanError) as e:
         raise OSError(f"cannot open CAN bus {interface}:{channel}: {e}") from e
+    return enlarge_bus_buffer(bus)
 
 
 class BusReader:
@@ -126,9 +140,7 @@ class CanopenBus:
     def __init__(self, bus: can.BusABC, own_bus: bool = False) -> None:
         self.bus = bus
         self.own_bus = own_bus
-        sock = getattr(bus, "socket", None)
-        if isinstance(sock, socket.socket):
-            enlarge_receive_buffer(sock)
+        enlarge_bus_buffer(bus)  # a lent bus too
         self.network = canopen.Network(bus)  # not connect(): BusReader replaces its Notifier
         self.reader = BusReader(bus, self.network.listeners)
         self.writer = FrameWriter(bus)  # the cycle's frames: never blocks, one system call

@@ -33,6 +33,7 @@ import can
 import numpy as np
 
 from .. import cia301 as c301
+from ..bus import enlarge_bus_buffer
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
@@ -117,7 +118,7 @@ class SimulatedSegment:
             raise ValueError(f"sync_period must be in (0, 1] s, got {sync_period}")
         if not 0 < max_dt <= 1:
             raise ValueError(f"max_dt must be in (0, 1] s, got {max_dt}")
-        self.bus = bus
+        self.bus = enlarge_bus_buffer(bus)  # the one receive thread may lag behind its socket
         self.node_ids = tuple(ids)
         self.sync_period = sync_period
         self.max_dt = max_dt

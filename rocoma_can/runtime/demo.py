@@ -330,7 +330,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     ``record``: a directory for the run's recording (``run --record``'s files) and its
     plot ``demo.png``; ``zenoh_listen``: an endpoint the manager serves Zenoh on, under
     the prefix ``rocoma/demo`` (another shell can watch and e-stop it)."""
-    from ..drivers.bus import BusReader
+    from ..drivers.bus import BusReader, open_bus
     from ..drivers.sim.segment import SimulatedSegment
     from .config import validate
     from .system import Runtime
@@ -358,11 +358,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                                       **(emulated.segment if emulated else {}))
                 for b in config.buses]
     seg = segments[0]  # the operator's faults go to drives on the first bus
-    client_bus = can.Bus(interface=interface, channel=config.node_bus.channel,
-                         receive_own_messages=False, ignore_config=True)
+    client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False)
     # one torque-off probe per bus, each on a bus handle and reader of its own
-    probe_buses = [can.Bus(interface=interface, channel=b.channel, receive_own_messages=False,
-                           ignore_config=True) for b in config.buses]
+    probe_buses = [open_bus(interface, b.channel, receive_own_messages=False)
+                   for b in config.buses]
     probes = [_TorqueOffProbe(s.node_ids) for s in segments]
     readers: list[BusReader] = []
     try:
