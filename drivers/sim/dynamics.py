@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
 #: How far (as a fraction of ``max_substep``) a step may exceed it and still be taken whole.
 SUBSTEP_SLACK = 0.25
 
