@@ -28,6 +28,7 @@ SHORT = {
     "switch_missed_cycles": [],
     "cli_start": [],
     "recording_cost": [],
+    "sim_cost": [],
 }
 
 

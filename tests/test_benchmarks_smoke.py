@@ -35,6 +35,8 @@ CASES = {
     "recording_cost": lambda r: [row["joints"] for row in r] == [3, 6, 12, 24] and all(
         {"loop_record_us", "tap_us_per_frame", "writer_us_per_cycle"} <= set(row)
         for row in r),
+    "sim_cost": lambda r: [row["drives"] for row in r] == [1, 3, 6, 12] and all(
+        {"per_sync_us", "per_drive_us", "bench_core_share"} <= set(row) for row in r),
     "cli_start": lambda r: all({"seconds", "modules", "numpy", "exit_code"} <= set(c)
                                for c in r.values())
     and not r["rocoma-can status --help"]["numpy"],
