@@ -148,9 +148,10 @@ class Rig:
         self.node.start()
         self._closers.append(self.node.close)
 
-    def loop(self, on_cycle: Callable[[float], None], cycles: int) -> ControlLoop:
+    def loop(self, on_cycle: Callable[[float], None], cycles: int,
+             spin: float | None = None) -> ControlLoop:
         return ControlLoop(self.hardware, self.manager, self.rate, on_cycle=on_cycle,
-                           stats_size=max(16, cycles))
+                           stats_size=max(16, cycles), spin=spin)
 
     def close(self) -> None:
         """Everything opened, in reverse order; a failing step does not skip the rest."""
@@ -219,8 +220,9 @@ class Script:
 
 
 def run_script(rig: Rig, script: Script, cycles: int,
-               start_log: StartLog | None = None) -> Any:
-    """Run the loop with ``script`` as on_cycle (and the cycle starts logged); the summary."""
+               start_log: StartLog | None = None, spin: float | None = None) -> Any:
+    """Run the loop with ``script`` as on_cycle (and the cycle starts logged); the summary.
+    ``spin``: the loop's busy-wait before each deadline (None: its default)."""
     if start_log is None:
         on_cycle = script
     else:
@@ -229,7 +231,7 @@ def run_script(rig: Rig, script: Script, cycles: int,
         def on_cycle(now: float) -> None:
             add(now)
             script(now)
-    loop = rig.loop(on_cycle, cycles)
+    loop = rig.loop(on_cycle, cycles, spin)
     script.loop = loop
     rig.start()
     return loop.run(script.timeout + 5.0)

@@ -39,6 +39,9 @@ def main() -> None:
                         help="simulator as a subprocess on socketcan vcan0 (tools/vcan-run)")
     parser.add_argument("--interface", choices=("inproc", "virtual"), default="inproc",
                         help="in-process bus of the default mode")
+    parser.add_argument("--spin-us", type=float, default=None,
+                        help="the loop's busy-wait before each deadline, µs (default: the "
+                             "loop's, 500 or half a period; 0 sleeps to the deadline)")
     parser.add_argument("--quick", action="store_true", help="--duration 2")
     args = parser.parse_args()
     if args.quick:
@@ -65,7 +68,9 @@ def main() -> None:
         cycles = int(args.rate * (args.duration + 20)) + 100
         log = StartLog(cycles)
         script = Script(rig, "pd", body, timeout=args.duration + 15.0)
-        summary = run_script(rig, script, cycles, log)
+        summary = run_script(rig, script, cycles, log,
+                             None if args.spin_us is None else args.spin_us * 1e-6)
+        spin_us = script.loop.spin * 1e6
         final_state = ManagerState(int(script.loop.last_state)).name
         enabled_at_end = int(rig.hardware.enabled.sum())
         tx_errors = rig.hardware.tx_errors
@@ -79,7 +84,8 @@ def main() -> None:
     j = stats(jitter_us)
     missed = missed_cycles(starts, dt)
     steady_s = float(starts[-1] - starts[0]) if len(starts) > 1 else 0.0
-    rows = [[mode, args.drives, args.buses, f"{args.rate:g}", f"{steady_s:.1f}", len(starts),
+    rows = [[mode, args.drives, args.buses, f"{args.rate:g}", f"{spin_us:.0f}", f"{steady_s:.1f}",
+             len(starts),
              missed, p["median"], p["p99"], p["max"], j["p99"], len(estops), final_state]]
     notes = [f"period and jitter (|period - {dt * 1e6:.0f} us|) over the steady run after "
              "bring-up and enable; missed = cycle slots with no cycle start (a gap of k "
@@ -88,13 +94,14 @@ def main() -> None:
     if script.timed_out:
         notes.append(f"TIMED OUT in phase {script.phase}: the numbers are partial.")
     report("loop_run", f"Control loop at {args.rate:g} Hz with {args.drives} simulated drives",
-           ["simulator", "drives", "buses", "Hz", "run s", "cycles", "missed", "period p50 us",
+           ["simulator", "drives", "buses", "Hz", "spin us", "run s", "cycles", "missed",
+            "period p50 us",
             "p99 us", "max us", "jitter p99 us", "e-stops", "end state"],
            rows, args=args, notes=notes,
            results={"mode": "separate-process" if args.separate_process else "in-process",
                     "simulator": mode, "interface": None if args.separate_process
                     else args.interface, "drives": args.drives, "buses": args.buses,
-                    "rate_hz": args.rate,
+                    "rate_hz": args.rate, "spin_us": spin_us,
                     "steady_seconds": steady_s, "cycles": len(starts),
                     "missed_cycles": missed, "period_us": p, "jitter_us": j,
                     "estops": len(estops), "estop_causes": estops[:10],

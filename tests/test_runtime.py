@@ -70,6 +70,23 @@ def test_the_gil_is_handed_over_often_while_the_loop_runs(runtime):
     assert sys.getswitchinterval() == before
 
 
+def test_the_loop_spins_what_the_config_says(virtual_channel, sim_segment_factory):
+    """realtime.spin_us reaches the loop; 0 sleeps to each deadline and runs cycles, never
+    more than the rate allows; unset: 500 µs, or half a period at a higher rate."""
+    sim_segment_factory(2)
+    cfg = demo_config(virtual_channel, drives=2, rate=100.0)
+    assert validate(cfg).spin is None
+    assert ControlLoop(None, None, 100.0).spin == 0.0005
+    assert ControlLoop(None, None, 4000.0).spin == 0.000125
+    with pytest.raises(ValueError, match="spin"):
+        ControlLoop(None, None, 100.0, spin=0.01)
+    cfg["realtime"] = {"spin_us": 0}
+    with Runtime(validate(cfg)) as rt:
+        assert rt.loop.spin == 0.0
+        summary = rt.run(duration=0.5, signals=False)
+    assert 0 < summary.cycles <= 0.5 * 100 + 2
+
+
 def test_cycle_stats_ring():
     stats = CycleStats(period=0.01, size=8)
     for k in range(20):

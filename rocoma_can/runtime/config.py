@@ -12,7 +12,8 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
       switch_clients: null         # must stay null: any SDO client may switch (README)
       status_period: 0.1           # s, state TPDO repeat period
       required_drives: null        # drives a switch needs ready (null = all; [] = none)
-    realtime: {priority: null, cpus: null}   # SCHED_FIFO priority, CPU list
+    realtime: {priority: null, cpus: null,   # SCHED_FIFO priority, CPU list
+               spin_us: null}   # busy-wait before each deadline; null: 500 or half a period
     supervision: {tpdo_timeout_cycles: 5, heartbeat_timeout_factor: 2.5,
                   consumer_factor: 2.0, sdo_timeout: 0.5,   # drivers.config.Supervision
                   boot_wait: 1.0, start_timeout: 2.0, reset_timeout: 1.0,
@@ -32,6 +33,7 @@ layouts the driver will use, plus SYNC, with worst-case bit stuffing) must fit t
 from __future__ import annotations
 
 import difflib
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,7 +61,7 @@ _TOP_KEYS = {"bus", "buses", "rate", "manager", "realtime", "supervision", "timi
 _BUS_KEYS = {"interface", "channel", "bitrate", "name", "fd", "data_bitrate"}
 _MANAGER_KEYS = {"node_id", "bus", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
                  "switch_clients", "status_period", "required_drives"}
-_REALTIME_KEYS = {"priority", "cpus"}
+_REALTIME_KEYS = {"priority", "cpus", "spin_us"}
 #: supervision margins: key -> (whole number?, minimum, maximum); drivers.config.Supervision
 #: has the defaults
 _SUPERVISION = {
@@ -112,6 +114,7 @@ class RuntimeConfig:
     loads: dict[str, BusLoad] = field(default_factory=dict)  # per bus, none on in-process buses
     plans: dict[str, DrivePlan] = field(default_factory=dict)  # per drive name
     fleet: FleetConfig | None = None  # the zenoh: section (None: no Zenoh)
+    spin: float | None = None  # s the loop spins before each deadline (None: loop.py's)
 
     @property
     def bus(self) -> BusConfig:
@@ -258,6 +261,13 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                              or not all(_is_int(c) and c >= 0 for c in cpus)):
         problems.append(f"realtime.cpus: expected null or a list of CPU numbers, got {cpus!r}")
         cpus = None
+    spin_us = rt.get("spin_us")
+    period_us = 1e6 / rate if rate is not None else math.inf
+    if spin_us is not None and (not isinstance(spin_us, (int, float))
+                                or isinstance(spin_us, bool) or not 0 <= spin_us < period_us):
+        problems.append(f"realtime.spin_us: expected null or µs, 0 <= spin_us < one period "
+                        f"({period_us:.0f} µs at the rate), got {spin_us!r}")
+        spin_us = None
 
     margins = _numbers(_section(data, "supervision", problems), _SUPERVISION,
                        "supervision", problems)
@@ -330,7 +340,8 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         raise ConfigError([f"{source}: {p}" for p in problems])
     return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
-                         timing, source, loads, plans, fleet)
+                         timing, source, loads, plans, fleet,
+                         None if spin_us is None else spin_us * 1e-6)
 
 
 def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]) -> list[str]:

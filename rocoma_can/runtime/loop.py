@@ -36,7 +36,13 @@ from ..events import ManagerState
 
 log = logging.getLogger(__name__)
 
-_SPIN = 0.0005  # seconds before the deadline where sleeping stops and spinning starts
+#: Seconds before each deadline where the loop stops sleeping and spins (config
+#: ``realtime.spin_us``; by default this or half a period, whichever is shorter): a sleep
+#: wakes late by up to a scheduler tick, a spin does not.
+#: While it spins the loop holds the GIL but for hand-overs, so threads of the same process
+#: (an in-process simulator, the bus readers) get about half of that time; 0 sleeps to the
+#: deadline, the better trade when the loop shares its interpreter with busy threads.
+DEFAULT_SPIN = 0.0005
 #: The GIL hand-over interval while the loop runs, as a fraction of the period (Python's
 #: default is 5 ms): a thread running Python code keeps the GIL for up to this long, so at
 #: 5 ms a loop that wakes for its 1 ms deadline can wait five periods for a busy simulator
@@ -155,9 +161,16 @@ class ControlLoop:
     def __init__(self, hardware: CycleHardware, manager: CycleManager, rate: float, *,
                  priority: int | None = None, cpus: set[int] | None = None,
                  stop_cycles: int = 3, on_cycle: Callable[[float], None] | None = None,
-                 stats_size: int = 4096, trace: CycleTrace | None = None) -> None:
+                 stats_size: int = 4096, trace: CycleTrace | None = None,
+                 spin: float | None = None) -> None:
         if not rate > 0:
             raise ValueError(f"rate must be > 0 Hz, got {rate!r}")
+        if spin is None:
+            spin = min(DEFAULT_SPIN, 0.5 / rate)
+        if not 0 <= spin < 1.0 / rate:
+            raise ValueError(f"spin must be 0 <= spin < one period ({1e6 / rate:.0f} µs), "
+                             f"got {spin!r} s")
+        self.spin = spin
         self.hardware = hardware
         self.manager = manager
         self.period = 1.0 / rate
@@ -250,7 +263,7 @@ class ControlLoop:
 
     def _wait_until(self, deadline: float) -> None:
         clock = time.monotonic
-        remaining = deadline - clock() - _SPIN
+        remaining = deadline - clock() - self.spin
         if remaining > 0:
             self._stop.wait(remaining)
         while clock() < deadline and not self._stop.is_set() and self._signalled is None:

@@ -109,7 +109,7 @@ class Runtime:
             trace = self._recorders(record, flight, flight_seconds, announce)
             self.loop = ControlLoop(self.hardware, self.manager, config.rate,
                                     priority=config.priority, cpus=config.cpus,
-                                    on_cycle=on_cycle, trace=trace)
+                                    on_cycle=on_cycle, trace=trace, spin=config.spin)
             if config.fleet is not None:  # its queries read the loop's statistics
                 self._bridge(config.fleet)
         except BaseException:
