@@ -43,13 +43,12 @@ def run_once(args: list[str]) -> tuple[float, int, bool, int]:
 
 def served_manager(interface: str, channel: str):
     """A manager with its CANopen node (id 100) on ``channel``, for a real status call."""
-    import can
-
     from rocoma_can import ControllerManager
     from rocoma_can.controllers.torque_off import TorqueOff
+    from rocoma_can.drivers.bus import open_bus
     from rocoma_can.runtime.node import ManagerNode
     manager = ControllerManager(TorqueOff(), 0.01)
-    bus = can.Bus(interface=interface, channel=channel, ignore_config=True)
+    bus = open_bus(interface, channel)  # as rocoma-can run opens the node's bus
     node = ManagerNode(manager, 100, bus).start()
 
     def close() -> None:

@@ -30,14 +30,20 @@ RECEIVE_BUFFER_BYTES = 4 << 20
 
 
 def enlarge_receive_buffer(sock: socket.socket, size: int = RECEIVE_BUFFER_BYTES) -> None:
-    """Best effort: SO_RCVBUFFORCE (root / CAP_NET_ADMIN) or SO_RCVBUF up to rmem_max."""
+    """Best effort: SO_RCVBUFFORCE (root / CAP_NET_ADMIN) or SO_RCVBUF, which the kernel caps
+    at net.core.rmem_max (~200 KiB by default: raise it for a process without the
+    capability)."""
     force = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux's value; Python may not name it
     for option in (force, socket.SO_RCVBUF):
         try:
             sock.setsockopt(socket.SOL_SOCKET, option, size)
-            return
+            break
         except OSError:
             continue
+    got = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)  # Linux reports twice the set
+    if got < size:
+        log.debug("CAN receive buffer %d bytes, not %d: raise net.core.rmem_max or run with "
+                  "CAP_NET_ADMIN", got, size)
 
 
 def enlarge_bus_buffer(bus: can.BusABC) -> can.BusABC:
