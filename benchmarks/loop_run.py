@@ -29,6 +29,13 @@ from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
 
 
+def _spin_us(text: str) -> float:
+    value = float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected µs >= 0, got {text}")
+    return value
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--drives", type=int, default=12)
@@ -39,11 +46,14 @@ def main() -> None:
                         help="simulator as a subprocess on socketcan vcan0 (tools/vcan-run)")
     parser.add_argument("--interface", choices=("inproc", "virtual"), default="inproc",
                         help="in-process bus of the default mode")
-    parser.add_argument("--spin-us", type=float, default=None,
+    parser.add_argument("--spin-us", type=_spin_us, default=None,
                         help="the loop's busy-wait before each deadline, µs (default: the "
                              "loop's, 500 or half a period; 0 sleeps to the deadline)")
     parser.add_argument("--quick", action="store_true", help="--duration 2")
     args = parser.parse_args()
+    if args.spin_us is not None and not args.spin_us * 1e-6 < 1.0 / args.rate:
+        parser.error(f"--spin-us {args.spin_us:g} is not shorter than one period "
+                     f"({1e6 / args.rate:.1f} µs at --rate {args.rate:g})")
     if args.quick:
         args.duration = 2.0
     logging.basicConfig(level=logging.ERROR)

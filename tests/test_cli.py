@@ -34,6 +34,19 @@ def test_run_with_bad_config_is_usage_error(tmp_path, capsys):
     assert "cannot read" in capsys.readouterr().err
 
 
+def test_run_rate_override_is_checked_against_spin(tmp_path, capsys):
+    """``run --rate`` changes the period after the file was checked: a spin_us that fit the
+    file's rate but not the new one is a usage error naming both, before any bus opens."""
+    cfg = good()
+    cfg["bus"] = {"interface": "virtual", "channel": "never-opened"}
+    cfg["realtime"] = {"spin_us": 1000}  # fits 100 Hz (10 ms), not 2 kHz (500 µs)
+    path = tmp_path / "spin.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["run", str(path), "--rate", "2000"]) == 2
+    err = capsys.readouterr().err
+    assert "realtime.spin_us: 1000 µs is not shorter than one period at --rate 2000" in err
+
+
 def test_client_without_manager_is_no_answer(virtual_channel, capsys):
     assert main(["status", "--interface", "virtual", "--channel", virtual_channel,
                  "--timeout", "0.2"]) == 3

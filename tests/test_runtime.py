@@ -80,6 +80,8 @@ def test_the_loop_spins_what_the_config_says(virtual_channel, sim_segment_factor
     assert ControlLoop(None, None, 4000.0).spin == 0.000125
     with pytest.raises(ValueError, match="spin"):
         ControlLoop(None, None, 100.0, spin=0.01)
+    cfg["realtime"] = {"spin_us": 200}
+    assert validate(cfg).spin == pytest.approx(200e-6)
     cfg["realtime"] = {"spin_us": 0}
     with Runtime(validate(cfg)) as rt:
         assert rt.loop.spin == 0.0

@@ -111,6 +111,10 @@ def _run(args: argparse.Namespace) -> int:
         return USAGE
     if args.rate:
         config.rate = args.rate
+        if config.spin is not None and not config.spin < 1.0 / args.rate:
+            _err(f"{config.source}: realtime.spin_us: {config.spin * 1e6:g} µs is not shorter "
+                 f"than one period at --rate {args.rate:g} ({1e6 / args.rate:.1f} µs)")
+            return USAGE
     try:
         config.fleet = fleet_from_args(args, config.fleet)
     except ConfigError as exc:

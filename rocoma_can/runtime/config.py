@@ -262,11 +262,12 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         problems.append(f"realtime.cpus: expected null or a list of CPU numbers, got {cpus!r}")
         cpus = None
     spin_us = rt.get("spin_us")
-    period_us = 1e6 / rate if rate is not None else math.inf
-    if spin_us is not None and (not isinstance(spin_us, (int, float))
-                                or isinstance(spin_us, bool) or not 0 <= spin_us < period_us):
-        problems.append(f"realtime.spin_us: expected null or µs, 0 <= spin_us < one period "
-                        f"({period_us:.0f} µs at the rate), got {spin_us!r}")
+    if spin_us is not None and (  # the loop's own check, in seconds: no rounding between
+            not isinstance(spin_us, (int, float)) or isinstance(spin_us, bool)
+            or not 0 <= spin_us * 1e-6 < (1.0 / rate if rate is not None else math.inf)):
+        period = f" ({1e6 / rate:.1f} µs at the rate)" if rate is not None else ""
+        problems.append(f"realtime.spin_us: expected null or µs, 0 <= spin_us < one "
+                        f"period{period}, got {spin_us!r}")
         spin_us = None
 
     margins = _numbers(_section(data, "supervision", problems), _SUPERVISION,
@@ -341,7 +342,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
                          timing, source, loads, plans, fleet,
-                         None if spin_us is None else spin_us * 1e-6)
+                         spin=None if spin_us is None else spin_us * 1e-6)
 
 
 def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]) -> list[str]:

@@ -168,8 +168,8 @@ class ControlLoop:
         if spin is None:
             spin = min(DEFAULT_SPIN, 0.5 / rate)
         if not 0 <= spin < 1.0 / rate:
-            raise ValueError(f"spin must be 0 <= spin < one period ({1e6 / rate:.0f} µs), "
-                             f"got {spin!r} s")
+            raise ValueError(f"spin must be 0 <= spin < one period ({1e6 / rate:.1f} µs), "
+                             f"got {spin * 1e6:g} µs")
         self.spin = spin
         self.hardware = hardware
         self.manager = manager
