@@ -49,10 +49,9 @@ def segment(can_setup, virtual_channel, sim_segment_factory):
     # Each SYNC moves the joints by exactly one cycle (sync_period = dt), as the controller's
     # reference moves: a loop stalled by a loaded machine then delays both alike instead of
     # showing up as a tracking error (the drive side of the lag is tested in test_sim_*).
-    seg = sim_segment_factory(can_setup.nodes, channel=can_setup.channel(virtual_channel),
-                              interface=can_setup.interface, params=can_setup.joints,
-                              sync_period=can_setup.dt)
-    return seg  # SocketCAN: the segment has the large receive buffer (a stalled VM)
+    return sim_segment_factory(can_setup.nodes, channel=can_setup.channel(virtual_channel),
+                               interface=can_setup.interface, params=can_setup.joints,
+                               sync_period=can_setup.dt)
 
 
 @pytest.fixture
@@ -192,13 +191,14 @@ def test_drive_that_does_not_answer_is_reported(segment, make_rig):
 
 
 # --- control ---------------------------------------------------------------------------------
-def _following_error(segment, mode: JointMode) -> list[float]:
-    """Each drive's own following error, rad or rad/s: its target (0x607A / 0x60FF) minus
-    its actual value, read under the segment lock, so both belong to the same SYNC step."""
+def _drive_side(segment, mode: JointMode) -> list[tuple[float, float, float]]:
+    """Each drive's target (0x607A / 0x60FF) and actual value in rad or rad/s, and its true
+    joint position, read under the segment lock: all three belong to the same SYNC step."""
     target, actual = ((cia402.TARGET_POSITION, "position_increments") if mode == JointMode.CSP
                       else (cia402.TARGET_VELOCITY, "velocity_increments"))
     with segment.lock:
-        return [(d.od_value(target) - getattr(d, actual)) / d.increments_per_rad
+        return [(d.od_value(target) / d.increments_per_rad,
+                 getattr(d, actual) / d.increments_per_rad, d.position_rad)
                 for d in segment.drives.values()]
 
 
@@ -208,8 +208,9 @@ def test_pd_holds_in_cst_then_tracks_a_sine_in_csp_and_csv(segment, make_rig, ca
     In the vcan guest a stall of the simulator's thread (hundreds of ms, seen: rms 0.24 rad)
     delays the TPDOs it answers with, so there the test asserts what stays deterministic:
     each drive follows the targets it received in the commanded mode (the simulator steps
-    exactly one cycle per SYNC) and the joints swing through the sine's range. Both
-    variants check the drive side."""
+    exactly one cycle per SYNC) and the joints really swing through the sine's range (their
+    true position, so a scaling error between manager and drive shows). Both variants check
+    the drive side."""
     rig = make_rig()
     bring_up(rig)
     kp, kd, tolerance, settle = can_setup.pd
@@ -221,25 +222,28 @@ def test_pd_holds_in_cst_then_tracks_a_sine_in_csp_and_csv(segment, make_rig, ca
         sine = Sine(f"sine_{mode.name.lower()}", mode)
         rig.mgr.add_controller(sine)
         assert rig.switch(sine.name) == SwitchResult.SWITCHED
-        errors, following, seen = [], [], []
+        errors, drive_side = [], []
         for _ in range(int(2.0 / rig.dt)):
             rig.cycle()
             if sine.t > 0.3:  # after the drive's loops settled on the moving reference
                 errors.append(rig.hw.state.position - (sine.start + sine.reference()))
-                following.append(_following_error(segment, mode))
-                seen.append(rig.hw.state.position.copy())
+                drive_side.append(_drive_side(segment, mode))
         assert rig.mgr.state == ManagerState.OK, list(rig.hw.fault_events)
         assert rig.hw.all_enabled, rig.hw.drive_status()
         modes = rig.hw.state.statusword  # still enabled with the new mode
         assert all(d.mode_display == mode for d in segment.drives.values()), modes
+        target, actual, true_position = np.moveaxis(np.array(drive_side), 2, 0)
         peak = sine.a * 2 * np.pi * sine.f  # rad/s
-        # the drive's own loops lag a moving target (error ~ speed / loop gain): a fifth of
-        # the sine's amplitude (CSP) or peak speed (CSV) is far inside; a wrong mode, a
-        # wrong scaling or lost targets are of the order of the whole
-        bound = 0.2 * (sine.a if mode == JointMode.CSP else peak)
-        worst = float(np.abs(following).max())
-        assert worst < bound, (mode, "following error", worst)
-        swing = np.ptp(np.array(seen), axis=0)  # the 1.7 s window spans most of a period
+        # The drive's own loops lag a moving target (error ~ speed / loop gain): a fifth of
+        # the sine's amplitude (CSP) or peak speed (CSV) is far inside; a wrong mode or lost
+        # targets are of the order of the whole. CSV targets come from the manager's
+        # feedback (the sine's position loop), so a stalled TPDO stream makes them jump;
+        # the drive cannot follow a jump within a step: the largest one is allowed on top.
+        jump = float(np.abs(np.diff(target, axis=0)).max()) if mode == JointMode.CSV else 0.0
+        bound = 0.2 * (sine.a if mode == JointMode.CSP else peak) + jump
+        worst = float(np.abs(target - actual).max())
+        assert worst < bound, (mode, "following error", worst, "jump", jump)
+        swing = np.ptp(true_position, axis=0)  # the 1.7 s window spans most of a period
         assert (swing > sine.a).all(), (mode, "swing", swing)
         if can_setup.interface == "virtual":
             rms = float(np.sqrt(np.mean(np.square(errors))))
