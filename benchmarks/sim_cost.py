@@ -2,11 +2,13 @@
 
     .venv/bin/python benchmarks/sim_cost.py [--drives 1,3,6,12] [--repeat 3000] [--quick]
 
-One simulated segment (``drivers/sim/segment.py``) on an in-process bus, its drives started
-and enabled in CSP by frames, as a master would: NMT start, controlwords 6, 7, 15 in RPDO1.
-Then, ``--repeat`` times: every drive's RPDO1 (controlword, mode, torque) and RPDO2
-(target position and velocity), and a SYNC; the segment applies them, steps the joints
-once and answers with two TPDOs per drive. Measured: the CPU time of the segment's receive
+One simulated segment (``drivers/sim/segment.py``) on an in-process bus with the drive's
+default PDOs (the EDS's: RPDOs event-driven, applied on arrival; rocoma-can's bring-up makes
+them synchronous, applied at the next SYNC, which costs the same), its drives started and
+enabled in CSP by frames: NMT start, controlwords 6, 7, 15 in RPDO1. Then, ``--repeat``
+times: every drive's RPDO1 (controlword, mode, torque) and RPDO2 (target position and
+velocity), and a SYNC; the segment applies them, steps the joints once (a fixed 1 ms step)
+and answers with two TPDOs per drive. Measured: the CPU time of the segment's receive
 thread (its thread CPU clock, so another process on the machine does not count), per SYNC
 and per drive. That thread shares the interpreter with the control loop when the simulator
 runs in-process (``rocoma-can demo``, ``benchmarks/loop_run.py``), so the last column says
@@ -50,11 +52,17 @@ def _wait_syncs(segment: SimulatedSegment, count: int, timeout: float = 5.0) -> 
         if time.monotonic() > deadline:
             raise RuntimeError(f"the segment handled {segment.sync_count} of {count} SYNCs "
                                f"within {timeout} s")
-        time.sleep(0)
+        time.sleep(POLL)
+
+
+#: how often the sender looks whether the segment is done: often enough to keep SYNCs coming,
+#: rarely enough not to take the GIL from the thread being measured
+POLL = 50e-6
+BATCH = 50  # SYNCs per sample
 
 
 def measure(drives: int, repeat: int) -> list[float]:
-    """CPU µs of the segment's receive thread per SYNC, in batches of 100 SYNCs."""
+    """CPU µs of the segment's receive thread per SYNC, one sample per ``BATCH`` SYNCs."""
     channel = f"sim-cost-{uuid.uuid4().hex[:8]}"
     nodes = list(range(1, drives + 1))
     segment = SimulatedSegment.open(channel, "inproc", nodes, sync_period=0.001).start()
@@ -81,8 +89,8 @@ def measure(drives: int, repeat: int) -> list[float]:
         sync = can.Message(arbitration_id=cia301.SYNC, data=b"", is_extended_id=False)
         clock = _rx_thread_clock()
         samples = []
-        batch = 100
-        for b in range(max(1, repeat // batch)):
+        batch = BATCH
+        for b in range(max(1, round(repeat / batch))):
             t0 = time.clock_gettime(clock)
             for k in range(batch):
                 target = 1000 * (b * batch + k)  # increments: a slow ramp
@@ -123,7 +131,7 @@ def main() -> None:
            ["drives", "median us", "p99 us", "per drive us",
             f"{BENCH_DRIVES} drives at 1 kHz (segments x drives: core)"],
            rows, args=args, results=results,
-           notes=["CPU time of the segment's receive thread per SYNC (batches of 100 "
+           notes=[f"CPU time of the segment's receive thread per SYNC (batches of {BATCH} "
                   "SYNCs): every drive's two RPDOs, the SYNC, one dynamics step, two TPDOs "
                   "per drive sent on the in-process bus. CSP, drives enabled."])
 

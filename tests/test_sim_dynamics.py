@@ -127,3 +127,17 @@ def test_dynamics_vectorised_over_joints_and_stick_friction():
     np.testing.assert_array_equal(dyn.velocity, [0.0, 0.0])  # friction stops it, no jitter
     with pytest.raises(ValueError, match="inertia"):
         JointParams(inertia=0.0)
+
+
+def test_a_sync_a_hair_over_the_substep_is_one_substep():
+    """A 1 kHz SYNC measured at 1.0004 ms is integrated in one sub-step (two doubled the
+    simulator's cost on every other SYNC); well past the slack it is two: the velocity loop
+    then acts twice, which one step of the same length does not match."""
+    def run(dt: float, max_substep: float) -> float:
+        dyn = JointDynamics([JointParams(coulomb=0.0)], max_substep=max_substep)
+        dyn.mode[:] = LoopMode.VELOCITY
+        dyn.target_velocity[:] = 1.0
+        dyn.step(dt)
+        return float(dyn.position[0])
+    assert run(0.0010004, 0.001) == pytest.approx(run(0.0010004, 1.0), rel=1e-12)
+    assert run(0.0013, 0.001) != pytest.approx(run(0.0013, 1.0), rel=1e-6)
