@@ -70,7 +70,7 @@ class Timeouts:
     boot_wait: float = 1.0   # wait this long for boot-up/heartbeat, then probe by SDO anyway
     start: float = 2.0       # NMT start -> first TPDO
     reset: float = 1.0       # fault reset -> statusword without fault
-    enable: float = 1.0      # commanded cyclic mode -> operation enabled (enable.py)
+    enable: float = 1.0      # each enable step, seen to operation enabled (enable.py)
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -2,6 +2,13 @@
 it can see: a drive that does not reach operation enabled in time (STO input low?), and one
 that drops out of operation enabled while commanded.
 
+"In time" is per step: each of shutdown, switch on and enable operation gets the whole
+``timeout`` from the moment the drive was seen reaching the state before it. A drive that
+never leaves a state is found after ``timeout``, as before; a drive that answers every step,
+each a round trip of the bus, is not declared stuck because the round trips added up (a
+host or guest that delays every frame by a second made a 6 s deadline for the whole
+sequence fail with the drive still stepping). Going back a step does not restart the clock.
+
 Why from the cyclic RPDO and not by SDO or canopen's BaseNode402: one step per cycle
 (shutdown, switch on, enable operation) never blocks the cycle, and while enabling the
 targets hold the actual position, so enabling cannot make a joint jump. Called only for a
@@ -33,18 +40,24 @@ _ENABLE_STEP = {
 }
 ENABLE_STEP = tuple(_ENABLE_STEP.get(State402(s), int(cia402.Controlword.DISABLE_VOLTAGE))
                     for s in range(-1, 8))
+# How far along the sequence each state is, by State402 value + 1 (-1: not on the way).
+_PROGRESS = {State402.SWITCH_ON_DISABLED: 0, State402.READY_TO_SWITCH_ON: 1,
+             State402.SWITCHED_ON: 2}
+PROGRESS = tuple(_PROGRESS.get(State402(s), -1) for s in range(-1, 8))
 
 Fault = Callable[[int, str, float], None]  # (drive index, cause, now): Supervisor.fault
 
 
 class EnableSequence:
-    """Per drive: cycles in operation enabled, and since when enabling is wanted."""
+    """Per drive: cycles in operation enabled, since when the drive has been waited for at
+    its furthest step, and which step that is."""
 
     def __init__(self, drives: int, timeout: float, fault: Fault) -> None:
         self.timeout = timeout
         self._fault = fault
         self._enabled_cycles = [0] * drives
         self._want_since = np.full(drives, math.nan)
+        self._furthest = [-1] * drives
 
     def controlword(self, i: int, state: int, now: float) -> int:
         """This cycle's controlword for drive i, commanded a cyclic mode and in ``state``:
@@ -60,10 +73,12 @@ class EnableSequence:
             return 0
         self._enabled_cycles[i] = 0
         since = self._want_since[i]
-        if since != since:  # NaN: just started wanting
+        progress = PROGRESS[state + 1]
+        if since != since or progress > self._furthest[i]:  # NaN: just started wanting
             self._want_since[i] = now
+            self._furthest[i] = max(progress, self._furthest[i])
         elif now - since > self.timeout:
-            self._fault(i, f"not enabled within {self.timeout} s (stuck in "
+            self._fault(i, f"not enabled: no enable step within {self.timeout} s (stuck in "
                            f"{State402(state).name}; STO input low?)", now)
         return ENABLE_STEP[state + 1]
 
@@ -71,3 +86,4 @@ class EnableSequence:
         """Drive i is not being enabled this cycle (torque-off, quick stop, not ready)."""
         self._enabled_cycles[i] = 0
         self._want_since[i] = math.nan
+        self._furthest[i] = -1

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from rocoma_can import eds
 from rocoma_can.drivers import cia402
 from rocoma_can.drivers.config import DriveConfig, check_drives
-from rocoma_can.drivers.enable import ENABLE_STEP
+from rocoma_can.drivers.enable import ENABLE_STEP, EnableSequence
 from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.joints import JointCommand, JointMode
 from rocoma_can.drivers.pdo_layout import (
@@ -207,6 +207,36 @@ def test_enable_steps():
     for s in (S.UNKNOWN, S.NOT_READY_TO_SWITCH_ON, S.FAULT, S.FAULT_REACTION_ACTIVE,
               S.QUICK_STOP_ACTIVE):
         assert step(s) == 0x00
+
+
+def test_each_enable_step_gets_the_whole_timeout_and_a_stuck_drive_is_found():
+    """A drive that answers every step late (each under the timeout, all of them together
+    over it) is not stuck; one that stays in a state for longer than the timeout is, and
+    going back a step does not buy it more time."""
+    S = cia402.State402
+    faults: list[tuple[int, str, float]] = []
+    seq = EnableSequence(2, timeout=1.0, fault=lambda i, cause, now: faults.append((i, cause, now)))
+    t = 0.0
+    for state in (S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, S.SWITCHED_ON):
+        for _ in range(9):  # 0.9 s in each state, 0.1 s per cycle
+            assert seq.controlword(0, int(state), t) == ENABLE_STEP[int(state) + 1]
+            t += 0.1
+    assert seq.controlword(0, int(S.OPERATION_ENABLED), t) == 0x0F
+    assert faults == []  # 2.7 s in all, never 1 s without a step
+
+    seq.controlword(1, int(S.SWITCH_ON_DISABLED), 0.0)
+    seq.controlword(1, int(S.READY_TO_SWITCH_ON), 0.5)   # progress: clock restarts
+    seq.controlword(1, int(S.SWITCH_ON_DISABLED), 0.9)   # back a step: no new time
+    seq.controlword(1, int(S.READY_TO_SWITCH_ON), 1.4)   # not further than before
+    assert faults == []
+    seq.controlword(1, int(S.READY_TO_SWITCH_ON), 1.6)
+    assert [(i, now) for i, _, now in faults] == [(1, 1.6)]
+    assert "stuck in READY_TO_SWITCH_ON" in faults[0][1]
+    seq.reset(1)  # not being enabled: a later attempt starts afresh
+    faults.clear()
+    seq.controlword(1, int(S.READY_TO_SWITCH_ON), 5.0)
+    seq.controlword(1, int(S.READY_TO_SWITCH_ON), 5.9)
+    assert faults == []
 
 
 def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
