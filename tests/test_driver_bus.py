@@ -488,16 +488,19 @@ class HangingHold(HoldPD):
         return super().advance(dt)
 
 
-def test_hung_advance_gets_torque_off_frames_while_update_is_stuck(segment, make_rig,
-                                                                   recorder):
+def test_hung_advance_gets_torque_off_frames_while_update_is_stuck(
+        segment, make_rig, can_setup, virtual_channel, frame_recorder):
     """Issue 8: the watchdog sends the failproof frames itself while the update thread is
     stuck; when the advance returns it has failed, and the manager is FAILPROOF: the drives
     are off already, there is nothing for the emergency controller to stop (one documented
-    end state, instead of EMERGENCY and then FAILPROOF on the drives' "drop-outs")."""
+    end state, instead of EMERGENCY and then FAILPROOF on the drives' "drop-outs").
+    The recorder starts after enabling: only the frames after the mark matter, and in the
+    guest its thread and socket slowed bring-up and enabling for nothing."""
     rig = make_rig()
     bring_up(rig)
     ctrl = HangingHold()
     enable_with(rig, ctrl, emergency=Brake())
+    recorder = frame_recorder(can_setup.channel(virtual_channel), can_setup.interface)
     mark = synced_mark(recorder, rig)
     ctrl.hang.set()
     result: list[ManagerState] = []
