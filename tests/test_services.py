@@ -7,6 +7,7 @@ import time
 
 import can
 import pytest
+from can.interfaces.virtual import VirtualBus
 from fixtures.joint_plant import JointPlant
 
 from rocoma_can import ControllerManager, add_to_manager
@@ -165,6 +166,41 @@ def test_clear_sends_emcy_reset(rig, frame_recorder):
     rig.client.write(0x2112, 1)
     frame = rec.wait_for(lambda f: f.cob_id == 0x80 + NODE, timeout=2.0)
     assert frame.data == bytes(8)
+
+
+class LosesOneAnswer(VirtualBus):
+    """python-can's virtual bus that loses the ``drop_at``-th answer of the manager node (a
+    receiver that overflowed, a host that stalled): the frame never reaches the client."""
+
+    def __init__(self, channel: str, drop_at: int) -> None:
+        super().__init__(channel=channel, receive_own_messages=False)
+        self.drop_at, self.answers, self.dropped = drop_at, 0, 0
+
+    def _recv_internal(self, timeout):
+        msg, filtered = super()._recv_internal(timeout)
+        if msg is not None and msg.arbitration_id == 0x580 + NODE:
+            self.answers += 1
+            if self.answers == self.drop_at:
+                self.dropped += 1
+                return None, filtered
+        return msg, filtered
+
+
+def test_a_status_answer_lost_mid_upload_is_asked_again(bus_factory, virtual_channel):
+    """One segment of the node's 0x2140 answer is lost: the read starts the transfer again
+    (client.READ_ATTEMPTS; canopen's client aborts the broken one first) and the status is
+    whole. Before, `rocoma-can status` failed with "no answer" (exit 3) on one lost frame."""
+    rig = Rig(bus_factory, must_clear=False)
+    lossy = LosesOneAnswer(virtual_channel, drop_at=3)  # 1: initiate, 2..: segments
+    try:
+        with ManagerClient(lossy, NODE, timeout=0.2) as client:
+            status = client.status()
+        assert lossy.dropped == 1 and lossy.answers > 3
+        assert status["state"] == rig.manager.state.name
+        assert status["startup_finished"] is True and status["drives"] == []
+    finally:
+        lossy.shutdown()
+        rig.close()
 
 
 def test_no_answer_from_a_wrong_node(bus_factory):

@@ -37,6 +37,12 @@ __all__ = ["ManagerClient", "NoAnswer", "Refused"]
 
 #: What an object of the manager node holds: integers and visible strings (its EDS).
 SdoValue = int | float | str | bytes
+#: Tries of a read that got no answer. A read is the same request again, and one lost frame
+#: (a segment of the ~100-frame status upload, on a busy bus or a stalled host) must not
+#: fail an operator's `status`; writes are tried once (a switch sent twice is two switches),
+#: except the stops (commands.STOP_ATTEMPTS). A node that is not there costs this many
+#: timeouts.
+READ_ATTEMPTS = 3
 
 
 class ManagerClient:
@@ -61,13 +67,19 @@ class ManagerClient:
         self.close()
 
     def read(self, index: int) -> SdoValue:
-        try:
-            value: SdoValue = self.node.sdo[index].raw
-            return value
-        except SdoAbortedError as exc:
-            raise Refused(exc.code, f"read 0x{index:04X}", _meaning(exc.code)) from None
-        except SdoCommunicationError as exc:
-            raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
+        """The object's value; a transfer left unanswered is started again (READ_ATTEMPTS:
+        canopen's client aborts it first, so the node starts afresh too)."""
+        unanswered: SdoCommunicationError | None = None
+        for _ in range(READ_ATTEMPTS):
+            try:
+                value: SdoValue = self.node.sdo[index].raw
+                return value
+            except SdoAbortedError as exc:
+                raise Refused(exc.code, f"read 0x{index:04X}", _meaning(exc.code)) from None
+            except SdoCommunicationError as exc:
+                unanswered = exc
+        raise NoAnswer(f"no answer from manager node {self.node.id}: {unanswered} "
+                       f"({READ_ATTEMPTS} tries)")
 
     def read_int(self, index: int) -> int:
         """An integer object (the node's EDS says which): anything else is a wrong EDS."""
