@@ -40,8 +40,9 @@ log = logging.getLogger(__name__)
 #: ``realtime.spin_us``; by default this or half a period, whichever is shorter): a sleep
 #: wakes late by up to a scheduler tick, a spin does not.
 #: While it spins the loop holds the GIL but for hand-overs, so threads of the same process
-#: (an in-process simulator, the bus readers) get about half of that time; 0 sleeps to the
-#: deadline, the better trade when the loop shares its interpreter with busy threads.
+#: (an in-process simulator, the bus readers) get about half of that time. 0 sleeps to the
+#: deadline and burns no CPU waiting; on the 12-drive in-process bench it did not help the
+#: loop keep up (benchmarks/README.md), so the default stays.
 DEFAULT_SPIN = 0.0005
 #: The GIL hand-over interval while the loop runs, as a fraction of the period (Python's
 #: default is 5 ms): a thread running Python code keeps the GIL for up to this long, so at
