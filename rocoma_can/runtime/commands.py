@@ -102,6 +102,7 @@ def recording_available() -> bool:
 
 def _run(args: argparse.Namespace) -> int:
     from .config import load
+    from .loop import spin_fits
     from .system import Runtime
     try:
         config = load(args.config)
@@ -111,7 +112,7 @@ def _run(args: argparse.Namespace) -> int:
         return USAGE
     if args.rate:
         config.rate = args.rate
-        if config.spin is not None and not config.spin < 1.0 / args.rate:
+        if config.spin is not None and not spin_fits(config.spin, args.rate):
             _err(f"{config.source}: realtime.spin_us: {config.spin * 1e6:g} µs is not shorter "
                  f"than one period at --rate {args.rate:g} ({1e6 / args.rate:.1f} µs)")
             return USAGE

@@ -33,7 +33,6 @@ layouts the driver will use, plus SYNC, with worst-case bit stuffing) must fit t
 from __future__ import annotations
 
 import difflib
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,6 +48,7 @@ from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
 from .fleet import FleetConfig
 from .fleet import parse as parse_fleet
+from .loop import spin_fits
 
 if TYPE_CHECKING:  # loaded with the controllers, only when they are checked
     from ..plugins import LoadedController
@@ -264,7 +264,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     spin_us = rt.get("spin_us")
     if spin_us is not None and (  # the loop's own check, in seconds: no rounding between
             not isinstance(spin_us, (int, float)) or isinstance(spin_us, bool)
-            or not 0 <= spin_us * 1e-6 < (1.0 / rate if rate is not None else math.inf)):
+            or not (spin_us >= 0 if rate is None else spin_fits(spin_us * 1e-6, rate))):
         period = f" ({1e6 / rate:.1f} µs at the rate)" if rate is not None else ""
         problems.append(f"realtime.spin_us: expected null or µs, 0 <= spin_us < one "
                         f"period{period}, got {spin_us!r}")

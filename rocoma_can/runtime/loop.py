@@ -44,6 +44,11 @@ log = logging.getLogger(__name__)
 #: deadline and burns no CPU waiting; on the 12-drive in-process bench it did not help the
 #: loop keep up (benchmarks/README.md), so the default stays.
 DEFAULT_SPIN = 0.0005
+
+
+def spin_fits(spin: float, rate: float) -> bool:
+    """The one rule for a spin (s) at a loop rate (Hz): 0 <= spin < one period."""
+    return 0 <= spin < 1.0 / rate
 #: The GIL hand-over interval while the loop runs, as a fraction of the period (Python's
 #: default is 5 ms): a thread running Python code keeps the GIL for up to this long, so at
 #: 5 ms a loop that wakes for its 1 ms deadline can wait five periods for a busy simulator
@@ -168,7 +173,7 @@ class ControlLoop:
             raise ValueError(f"rate must be > 0 Hz, got {rate!r}")
         if spin is None:
             spin = min(DEFAULT_SPIN, 0.5 / rate)
-        if not 0 <= spin < 1.0 / rate:
+        if not spin_fits(spin, rate):
             raise ValueError(f"spin must be 0 <= spin < one period ({1e6 / rate:.1f} µs), "
                              f"got {spin * 1e6:g} µs")
         self.spin = spin
