@@ -187,11 +187,12 @@ class LosesOneAnswer(VirtualBus):
 
 
 def test_a_status_answer_lost_mid_upload_is_asked_again(bus_factory, virtual_channel):
-    """One segment of the node's 0x2140 answer is lost: the read starts the transfer again
-    (client.READ_ATTEMPTS; canopen's client aborts the broken one first) and the status is
-    whole. Before, `rocoma-can status` failed with "no answer" (exit 3) on one lost frame."""
+    """One segment of the node's 0x2140 answer is lost: the client's block ack asks for the
+    rest from the gap (or, should that fail too, the read starts again: client.READ_ATTEMPTS)
+    and the status is whole. Before, `rocoma-can status` failed with "no answer" (exit 3) on
+    one lost frame."""
     rig = Rig(bus_factory, must_clear=False)
-    lossy = LosesOneAnswer(virtual_channel, drop_at=3)  # 1: initiate, 2..: segments
+    lossy = LosesOneAnswer(virtual_channel, drop_at=3)  # 1: initiate, 2..: the block's segments
     try:
         with ManagerClient(lossy, NODE, timeout=0.2) as client:
             status = client.status()

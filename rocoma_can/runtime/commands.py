@@ -278,9 +278,9 @@ def _status(args: argparse.Namespace) -> int:
     zenoh = args.zenoh is not None
     interval = args.interval if args.interval is not None else (0.5 if zenoh else 1.0)
     low = 0.2 if zenoh else 1.0
-    if args.watch and interval < low:  # over SDO each refresh is ~100 frames per drive
-        why = ("over Zenoh" if zenoh else "over SDO (each refresh is a segmented upload on "
-               "the drives' bus, ~100 frames per drive)")
+    if args.watch and interval < low:  # over SDO each refresh is ~60 frames per drive
+        why = ("over Zenoh" if zenoh else "over SDO (each refresh is a block upload on "
+               "the drives' bus, ~60 frames per drive)")
         _err(f"status --watch --interval: at least {low:g} s {why}")
         return USAGE
 
@@ -422,7 +422,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="a live view, refreshed until Ctrl-C (needs rocoma-can[live])")
     p.add_argument("--interval", type=float, default=None, metavar="S",
                    help="--watch: seconds between refreshes (1 over SDO, at least 1: each "
-                        "is a segmented upload on the drives' bus; 0.5 over Zenoh)")
+                        "is a block upload on the drives' bus; 0.5 over Zenoh)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="--watch: stop after S seconds (default: Ctrl-C)")
     _bus_options(p)
