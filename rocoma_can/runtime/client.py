@@ -9,12 +9,12 @@ from typing import Any
 import can
 import canopen
 from canopen.objectdictionary import DOMAIN, VISIBLE_STRING
-from canopen.sdo.client import BlockUploadStream
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from .. import eds as shipped_eds
 from ..drivers.bus import BusReader
 from ..errors import NoAnswer, Refused, RocomaError
+from . import sdo_block
 from .objects import (
     ABORT_TEXT,
     ACTIVE_NAME,
@@ -26,6 +26,7 @@ from .objects import (
     HOME_DRIVE,
     HOMING_REFUSAL,
     PENDING,
+    PROTOCOL_ABORTS,
     RESULT_NAMES,
     STATE,
     STATE_NAMES,
@@ -47,14 +48,6 @@ SdoValue = int | float | str | bytes
 READ_ATTEMPTS = 3
 
 
-class _BlockUpload(BlockUploadStream):
-    """canopen's block upload, in blocks of 32 segments (canopen asks 127): a block is one
-    burst from the node, and 32 frames fit the transmit queue a real CAN interface is
-    usually given (README: txqueuelen), so a burst is rarely cut short and resumed."""
-
-    blksize = 32
-
-
 class ManagerClient:
     """Talks to a running manager node over SDO (one thread at a time: SdoClient has no lock)."""
 
@@ -66,6 +59,7 @@ class ManagerClient:
         self.node = self.network.add_node(canopen.RemoteNode(node_id, od))
         self.node.sdo.RESPONSE_TIMEOUT = timeout
         self.node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry for ever in canopen 2.4)
+        self._blocks = True  # until the node answers a block upload with a normal one
 
     def close(self) -> None:
         self.reader.stop()
@@ -77,26 +71,29 @@ class ManagerClient:
         self.close()
 
     def read(self, index: int) -> SdoValue:
-        """The object's value; a transfer left unanswered is started again (READ_ATTEMPTS:
-        canopen's client aborts it first, so the node starts afresh too)."""
-        unanswered: SdoCommunicationError | None = None
+        """The object's value; a transfer left unanswered or broken (a protocol abort) is
+        started again (READ_ATTEMPTS: the broken one is aborted first, so the node starts
+        afresh too). Text objects come in a block upload (sdo_block), when the node has it."""
+        unanswered: Exception | None = None
         variable = self.node.sdo[index]
         for _ in range(READ_ATTEMPTS):
             try:
-                if variable.od.data_type not in (VISIBLE_STRING, DOMAIN):
-                    value: SdoValue = variable.raw  # expedited: one frame each way
-                    return value
-                # the text objects (0x2140's JSON: 1-2 KB) in a block upload: a few round
-                # trips instead of one per 7 bytes (sdo_server.StrictSdoServer says why)
-                with _BlockUpload(  # type: ignore[no-untyped-call]  # canopen 2.4
-                        self.node.sdo, index, 0) as stream:
-                    data: bytes = stream.read()  # type: ignore[no-untyped-call]
-                text: SdoValue = variable.od.decode_raw(data)
-                return text
+                if self._blocks and variable.od.data_type in (VISIBLE_STRING, DOMAIN):
+                    data = sdo_block.upload(self.node.sdo, index)
+                    if data is not None:
+                        text: SdoValue = variable.od.decode_raw(data)
+                        return text
+                    self._blocks = False  # a node without block upload: segmented from now
+                value: SdoValue = variable.raw
+                return value
             except SdoAbortedError as exc:
-                raise Refused(exc.code, f"read 0x{index:04X}", _meaning(exc.code)) from None
+                if exc.code not in PROTOCOL_ABORTS:
+                    raise Refused(exc.code, f"read 0x{index:04X}", _meaning(exc.code)) from None
+                unanswered = exc
             except SdoCommunicationError as exc:
                 unanswered = exc
+            except can.CanError as exc:
+                raise NoAnswer(f"cannot ask manager node {self.node.id}: {exc}") from None
         raise NoAnswer(f"no answer from manager node {self.node.id}: {unanswered} "
                        f"({READ_ATTEMPTS} tries)")
 
@@ -123,6 +120,8 @@ class ManagerClient:
             raise Refused(exc.code, f"write 0x{index:04X}", _meaning(exc.code)) from None
         except SdoCommunicationError as exc:
             raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
+        except can.CanError as exc:
+            raise NoAnswer(f"cannot ask manager node {self.node.id}: {exc}") from None
 
     def home(self, drive: str, timeout: float = 60.0, poll: float = 0.1) -> str:
         """Home one drive and wait (bounded) until its 0x2140 entry says how it ended:

@@ -278,9 +278,9 @@ def _status(args: argparse.Namespace) -> int:
     zenoh = args.zenoh is not None
     interval = args.interval if args.interval is not None else (0.5 if zenoh else 1.0)
     low = 0.2 if zenoh else 1.0
-    if args.watch and interval < low:  # over SDO each refresh is ~60 frames per drive
+    if args.watch and interval < low:  # over SDO each refresh is ~70 frames per drive
         why = ("over Zenoh" if zenoh else "over SDO (each refresh is a block upload on "
-               "the drives' bus, ~60 frames per drive)")
+               "the drives' bus, ~70 frames per drive)")
         _err(f"status --watch --interval: at least {low:g} s {why}")
         return USAGE
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 from canopen.sdo.constants import (
     ABORT_APPLICATION_DEVICE_STATE,
     ABORT_APPLICATION_LOCAL_CONTROL,
+    ABORT_CRC_ERROR,
     ABORT_INVALID_BLOCK_SIZE,
     ABORT_INVALID_COMMAND_SPECIFIER,
     ABORT_INVALID_SEQUENCE_NUMBER,
     ABORT_INVALID_VALUE,
+    ABORT_TIMED_OUT,
 )
 
 SWITCH_NAME, SWITCH_INDEX, SWITCH_RESULT, SWITCH_REFUSAL = 0x2100, 0x2101, 0x2102, 0x2103
@@ -19,11 +21,21 @@ STATE, ACTIVE_NAME, ACTIVE_INDEX, CONTROLLER_LIST, ESTOP_CAUSE = (
     0x2120, 0x2121, 0x2122, 0x2123, 0x2124)
 ESTOP_COB_ID, ESTOP_LATCHED = 0x2130, 0x2131
 PENDING, NO_SWITCH_YET = 0xFF, 0xFE
+#: Segments per SDO block the node sends in one burst and the client asks for: 8 frames are
+#: ~1 ms of a 1 Mbit/s bus, which the control loop's frames may queue behind (the node shares
+#: the drives' interface and its first-in-first-out transmit queue).
+MAX_BLOCK_SIZE = 8
+SEGMENT = 7  # bytes of data in one SDO segment (the frame's first byte is the command)
 # SDO abort codes the node answers with (CiA 301; canopen's names)
 ABORT_NOT_FOUND = ABORT_INVALID_VALUE  # 0x06090030 value range exceeded: no such controller
 ABORT_COMMAND_SPECIFIER = ABORT_INVALID_COMMAND_SPECIFIER  # 0x05040001
 ABORT_BLOCK_SIZE = ABORT_INVALID_BLOCK_SIZE  # 0x05040002 a block upload's blksize not 1..127
 ABORT_SEQUENCE_NUMBER = ABORT_INVALID_SEQUENCE_NUMBER  # 0x05040003 acked more than was sent
+ABORT_CRC = ABORT_CRC_ERROR  # 0x05040004 a block upload's data does not match its CRC
+ABORT_NO_ANSWER = ABORT_TIMED_OUT  # 0x05040000 SDO protocol timed out
+#: 0x0504xxxx: the SDO protocol itself failed (timeout, command, block size, sequence, CRC);
+#: the transfer is broken, not refused, and may be started again
+PROTOCOL_ABORTS = range(ABORT_NO_ANSWER, ABORT_NO_ANSWER + 0x10000)
 ABORT_REFUSED = ABORT_APPLICATION_DEVICE_STATE  # 0x08000022 not in the present device state
 ABORT_NO_RECOVERY = ABORT_APPLICATION_LOCAL_CONTROL  # 0x08000021 no drives to recover
 

@@ -22,6 +22,7 @@ from rocoma_can.runtime.objects import (
     ABORT_SEQUENCE_NUMBER,
     CONTROLLER_LIST,
     DRIVE_STATUS,
+    MAX_BLOCK_SIZE,
 )
 
 INITIATE, END, ACK, START = 0xA0, 0xA1, 0xA2, 0xA3  # client command specifiers (ccs 5)
@@ -113,15 +114,16 @@ def test_status_in_blocks_resumes_from_the_acked_segment_and_ends_with_the_crc(s
 def test_an_empty_text_is_one_empty_segment(service):
     """0x2124 (the e-stop cause) is empty until an e-stop: a value of no bytes, not an abort."""
     bus = service.raw
-    answer = sdo_exchange(bus, _initiate(0x2124, blksize=127, crc=False))
+    answer = sdo_exchange(bus, _initiate(0x2124, blksize=MAX_BLOCK_SIZE, crc=False))
     assert answer[0] == 0xC2 and struct.unpack_from("<I", answer, 4)[0] == 0
-    assert _segments(bus, bytes([START]) + bytes(7), 127) == [bytes([0x81]) + bytes(7)]
-    end = sdo_exchange(bus, bytes([ACK, 1, 127]) + bytes(5))
+    assert _segments(bus, bytes([START]) + bytes(7), MAX_BLOCK_SIZE) \
+        == [bytes([0x81]) + bytes(7)]
+    end = sdo_exchange(bus, bytes([ACK, 1, MAX_BLOCK_SIZE]) + bytes(5))
     assert end[0] == 0xC1 | 7 << 2  # all 7 bytes of the one segment unused, no CRC
 
 
 def test_a_short_object_under_the_switch_threshold_is_a_normal_upload(service):
-    answer = sdo_exchange(service.raw, _initiate(CONTROLLER_LIST, blksize=16, pst=64))
+    answer = sdo_exchange(service.raw, _initiate(CONTROLLER_LIST, blksize=MAX_BLOCK_SIZE, pst=64))
     assert answer[0] == 0x41  # initiate upload response, segmented, size indicated
     assert struct.unpack_from("<I", answer, 4)[0] == len("pd,trajectory")
 
@@ -131,9 +133,10 @@ def test_a_short_object_under_the_switch_threshold_is_a_normal_upload(service):
     (bytes([START]) + bytes(7), ABORT_COMMAND_SPECIFIER),          # nothing initiated
     (bytes([END]) + bytes(7), ABORT_COMMAND_SPECIFIER),
     (_initiate(DRIVE_STATUS, blksize=0), ABORT_BLOCK_SIZE),
-    (_initiate(DRIVE_STATUS, blksize=128), ABORT_BLOCK_SIZE),
+    (_initiate(DRIVE_STATUS, blksize=MAX_BLOCK_SIZE + 1), ABORT_BLOCK_SIZE),
+    (_initiate(DRIVE_STATUS, blksize=127), ABORT_BLOCK_SIZE),
 ], ids=["ack-without-upload", "start-without-initiate", "end-without-upload", "blksize-0",
-        "blksize-128"])
+        "blksize-over-the-burst-limit", "blksize-127"])
 def test_a_block_command_out_of_place_is_an_abort(service, request_, code):
     assert _abort_code(sdo_exchange(service.raw, request_)) == code
 
@@ -155,11 +158,16 @@ def test_acks_beyond_what_was_sent_or_a_second_start_abort_the_upload(service):
 
 def test_the_client_reads_text_in_a_few_round_trips(service, frame_recorder, virtual_channel):
     """What `rocoma-can status` does: its requests for 0x2140 are counted (one per block and
-    three to open and close), not one per 7 bytes."""
+    three to open and close), not one per 7 bytes; no burst is longer than a block."""
     _twelve_drives(service)
     rec = frame_recorder(virtual_channel)
     with ManagerClient(service.raw, service.node.node_id, timeout=1.0) as client:
         size = len(client.read_text(DRIVE_STATUS))
     requests = rec.count(SDO_RX)
-    assert size > 32 * 7  # more than one block of the client's (32 segments)
-    assert requests <= 3 + -(-size // (32 * 7)), (requests, size)
+    assert size > 10 * MAX_BLOCK_SIZE * 7  # many blocks
+    assert requests <= 3 + -(-size // (MAX_BLOCK_SIZE * 7)), (requests, size)
+    burst = longest = 0
+    for cob_id in rec.cob_ids():
+        burst = burst + 1 if cob_id == SDO_RX - 0x80 else 0
+        longest = max(longest, burst)
+    assert longest == MAX_BLOCK_SIZE
