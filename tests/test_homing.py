@@ -105,6 +105,7 @@ def test_rocoma_can_home_over_the_manager_node(virtual_channel, sim_segment_fact
     cfg = demo_config(virtual_channel, drives=2, rate=100.0)
     cfg["manager"]["estop_must_be_cleared"] = False
     outcome: dict[str, int] = {}
+    seen: dict[str, object] = {}
     bus = ["--interface", "virtual", "--channel", virtual_channel, "--timeout", "2"]
     with Runtime(validate(cfg)) as rt:
         def operate() -> None:
@@ -114,13 +115,14 @@ def test_rocoma_can_home_over_the_manager_node(virtual_channel, sim_segment_fact
             outcome["refused"] = main(["home", "joint1", *bus])  # FAILPROOF: refused
             outcome["switch"] = int(rt.manager.switch_controller("pd", timeout=10.0))
             outcome["home"] = main(["home", "joint1", "--timeout-homing", "10", *bus])
+            seen.update(rt.status())  # why, should the home have been refused
             rt.loop.stop("test")
         t = threading.Thread(target=operate)
         t.start()
         rt.run(duration=40.0, signals=False)
         t.join(15.0)
     out, err = capsys.readouterr()
-    assert outcome == {"refused": 1, "switch": 0, "home": 0}, (out, err)
+    assert outcome == {"refused": 1, "switch": 0, "home": 0}, (out, err, seen)
     assert "cannot home: the manager is not OK" in err
     assert "joint1: homed" in out
 
