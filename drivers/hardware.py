@@ -127,6 +127,8 @@ class Manager(Protocol):
     ControllerManager): nothing in drivers/ builds or imports one."""
     switch_count: int
 
+    @property
+    def state(self) -> ManagerState: ...
     def update(self) -> ManagerState: ...
     def post_cycle(self) -> None: ...
     def emergency_stop(self, cause: str = ...) -> None: ...
@@ -712,7 +714,9 @@ class CanopenHardware:
             why = "it is not READY (start-up or recovery not finished)"
         elif self.supervisor.latched[i] is not None:
             why = f"it is faulted ({self.supervisor.latched[i]}); recover it first"
-        elif self._manager is not None and self._manager_state != ManagerState.OK:
+        elif self._manager is not None and self._manager.state != ManagerState.OK:
+            # the manager's own state: a switch that just committed is OK before the next
+            # write tells this layer (should it e-stop meanwhile, write() fails the job)
             why = ("the manager is not OK: homing runs while a controller holds the other "
                    "joints (clear the e-stop and switch to one first)")
         with self._homing_lock:  # between callers only: the cycle never takes it
