@@ -45,10 +45,6 @@ log = logging.getLogger(__name__)
 #: loop keep up (benchmarks/README.md), so the default stays.
 DEFAULT_SPIN = 0.0005
 
-
-def spin_fits(spin: float, rate: float) -> bool:
-    """The one rule for a spin (s) at a loop rate (Hz): 0 <= spin < one period."""
-    return 0 <= spin < 1.0 / rate
 #: The GIL hand-over interval while the loop runs, as a fraction of the period (Python's
 #: default is 5 ms): a thread running Python code keeps the GIL for up to this long, so at
 #: 5 ms a loop that wakes for its 1 ms deadline can wait five periods for a busy simulator
@@ -58,6 +54,11 @@ SWITCH_FRACTION = 0.1
 #: take it for a fault)
 STOP_CAUSE = "loop stopping:"
 SWITCH_MIN, SWITCH_MAX = 5e-5, 5e-3
+
+
+def spin_fits(spin: float, rate: float) -> bool:
+    """The one rule for a spin (s) at a loop rate (Hz): 0 <= spin < one period."""
+    return 0 <= spin < 1.0 / rate
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ SEGMENT = 7  # bytes of data in one SDO segment (the frame's first byte is the c
 # SDO abort codes the node answers with (CiA 301; canopen's names)
 ABORT_NOT_FOUND = ABORT_INVALID_VALUE  # 0x06090030 value range exceeded: no such controller
 ABORT_COMMAND_SPECIFIER = ABORT_INVALID_COMMAND_SPECIFIER  # 0x05040001
-ABORT_BLOCK_SIZE = ABORT_INVALID_BLOCK_SIZE  # 0x05040002 a block upload's blksize not 1..127
+ABORT_BLOCK_SIZE = ABORT_INVALID_BLOCK_SIZE  # 0x05040002 blksize above MAX_BLOCK_SIZE
 ABORT_SEQUENCE_NUMBER = ABORT_INVALID_SEQUENCE_NUMBER  # 0x05040003 acked more than was sent
 ABORT_CRC = ABORT_CRC_ERROR  # 0x05040004 a block upload's data does not match its CRC
 ABORT_NO_ANSWER = ABORT_TIMED_OUT  # 0x05040000 SDO protocol timed out
