@@ -209,5 +209,9 @@ def test_pp_after_another_mode_starts_a_new_set_point_never_the_old_one(mode_rig
                   and struct.unpack_from("<H", f.data)[0] & CW_NEW_SETPOINT]
     assert set_points, "no set-point after coming back to PP"
     first_target = set_points[0][2] / per_rad
-    assert abs(first_target) < 0.05, first_target  # not the 0.3 rad latched before
-    assert abs(drive.position_rad) < 0.05
+    # Where the joint was when PP came back: near 0, but the CST hold may still be settling
+    # (a loaded CI run saw 0.0504 rad against the 0.05 rad used to end the homing). Half way
+    # between 0 and the 0.3 rad latched before tells the new set-point from the old one.
+    assert abs(first_target) < 0.15, first_target
+    # and PP holds the joint at that new set-point
+    assert abs(drive.position_rad - first_target) < 0.05, (first_target, drive.status_line())
