@@ -11,8 +11,10 @@ busy loop.
 from __future__ import annotations
 
 import logging
+import math
 import socket
 import threading
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -86,6 +88,11 @@ class BusReader:
         self.listener_errors = 0
         self.bus_errors = 0
         self.exception: BaseException | None = None  # the last bus error, as Notifier has it
+        # Every frame that arrived (monotonic) before this has been handed to the listeners.
+        # A reader the scheduler starved (a frozen process, a loaded machine) lags behind its
+        # socket; a deadline judged on the cycle's clock alone would call heartbeats lost
+        # that arrived in time and wait unread (CanopenHardware judges against this).
+        self.received_until = -math.inf
         self._listeners = tuple(listeners)
         self._poll, self._retry = poll, retry
         self._stopping = threading.Event()
@@ -110,15 +117,19 @@ class BusReader:
 
     def _run(self) -> None:
         reader = FrameReader(self.bus)
+        limit = 256  # frames per read (FrameReader's default)
         while not self._stopping.is_set():
+            before = time.monotonic()
             try:
-                batch = reader.read(self._poll)
+                batch = reader.read(self._poll, limit)
             except can.CanError as exc:
                 if self._stopping.is_set():
                     return
                 self.bus_errors += 1
                 self.exception = exc
                 self._report(exc, None)
+                # a failed interface delivers nothing: deadlines may pass, as they should
+                self.received_until = before
                 self._stopping.wait(self._retry)
                 continue
             for msg in batch:
@@ -128,6 +139,8 @@ class BusReader:
                     except Exception as exc:  # noqa: BLE001 - one listener must not end reading
                         self.listener_errors += 1
                         self._report(exc, listener)
+            if len(batch) < limit:  # read until empty: all that arrived before is handed over
+                self.received_until = before
 
     def _report(self, exc: Exception, only: can.Listener | None) -> None:
         if self.listener_errors + self.bus_errors in (1, 10, 100, 1000, 10000):

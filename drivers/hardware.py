@@ -248,6 +248,10 @@ class CanopenHardware:
         self._switches_seen = -1
         self._hb_state = [-1] * n
         self._hb_time = np.full(n, -math.inf)
+        # per drive: its bus's reader had handed over every frame that arrived before this
+        # when the cycle began draining (heartbeat deadlines are judged against it, below)
+        self._heard_until = np.full(n, -math.inf)
+        self._drives_of_port = [np.array(port.drives, dtype=np.intp) for port in self.ports]
 
         # --- receive tables per bus: COB-ID -> what to do with the frame -------------------
         self._tpdo_of: list[dict[int, _TpdoEntry]] = [{} for _ in self.ports]
@@ -389,6 +393,13 @@ class CanopenHardware:
         for k, port in enumerate(self.ports):
             rx = port.rx
             tpdo_of, heartbeat_of, emcy_of = self._tpdo_of[k], port.heartbeat_of, port.emcy_of
+            # Before draining: every frame that arrived before ``until`` is in ``rx`` now.
+            # A reader starved past a deadline (a frozen process) has heartbeats in time
+            # still unread; the deadline waits for them (a dead reader judges on ``now``).
+            reader = port.canopen.reader if port.canopen is not None else None
+            until = now if reader is None or not reader.alive else min(now,
+                                                                        reader.received_until)
+            self._heard_until[self._drives_of_port[k]] = until
             while rx:
                 msg = rx.popleft()
                 cob = msg.arbitration_id
@@ -432,7 +443,8 @@ class CanopenHardware:
         np.equal(got, self._expected, out=self._complete)
         self._decode(now)
         self._step_bringup(now)
-        sup.tick(now, self._complete, self.state.cia402_state, self.state.error_code)
+        sup.tick(now, self._complete, self.state.cia402_state, self.state.error_code,
+                 self._heard_until)
         self._step_recovery(now)
         self._deliver(sup.take_pending())
         self.cycles += 1

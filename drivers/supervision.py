@@ -147,8 +147,14 @@ class Supervisor:
             self.fault(i, emcy_text(code), now, code)
 
     def tick(self, now: float, tpdos_complete: np.ndarray, states: np.ndarray,
-             error_codes: np.ndarray) -> None:
+             error_codes: np.ndarray, heard_until: np.ndarray | None = None) -> None:
         """Once per cycle after draining: deadlines, missing TPDOs, statusword fault bit.
+
+        ``heard_until`` (per drive, default ``now``): every frame of the drive's bus that
+        arrived before it has been drained. A heartbeat deadline counts as passed only
+        before that: a reader thread the scheduler starved has heartbeats that came in
+        time still unread, and calling them lost would stop the robot for nothing (the
+        simulated drives' consumers keep the same rule).
 
         Drives already latched are not checked again (one event per drive). The common case,
         nothing wrong, costs a few whole-array reductions; the per-drive loops run only when
@@ -160,7 +166,8 @@ class Supervisor:
         np.add(missing, 1, out=missing)
         np.copyto(missing, 0, where=tpdos_complete)
         if self.heartbeat_deadline.min() < now:
-            for i in np.flatnonzero(watch & (self.heartbeat_deadline < now)):
+            heard = now if heard_until is None else heard_until
+            for i in np.flatnonzero(watch & (self.heartbeat_deadline < heard)):
                 self.fault(int(i), "heartbeat lost (none for "
                                    f"{self.heartbeat_timeout[i]:.3f} s)", now)
                 self.heartbeat_deadline[i] = math.inf  # one event per loss

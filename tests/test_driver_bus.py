@@ -311,6 +311,58 @@ def test_fault_emergency_second_fault_failproof_torque_off_in_the_same_cycle(
     assert words and set(words) == {0}
 
 
+class _StallingListener(can.Listener):
+    """Once armed, holds the bus's reader thread on its next frame until released: a
+    reader the scheduler starved (a frozen process), with frames waiting in the socket."""
+
+    def __init__(self, bound: float) -> None:
+        self.armed = threading.Event()
+        self.holding = threading.Event()
+        self.release = threading.Event()
+        self._bound = bound
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self.armed.is_set() and not self.release.is_set():
+            self.holding.set()
+            self.release.wait(self._bound)
+
+
+def test_heartbeats_waiting_behind_a_starved_reader_are_not_called_lost(
+        virtual_channel, sim_segment_factory, bus_factory):
+    """The cycle judges a heartbeat deadline only against what the bus's reader has
+    handed over (BusReader.received_until): a reader stalled past a deadline, with the
+    drives' heartbeats waiting in the bus, is not a heartbeat loss. A drive that really
+    goes silent still is one once the reader has caught up."""
+    setup = VIRTUAL
+    segment = sim_segment_factory(setup.nodes[:2], channel=virtual_channel,
+                                  sync_period=setup.dt)
+    # TPDO supervision out of the way (the stalled reader delivers no TPDOs either)
+    rig = Rig.for_setup(bus_factory(virtual_channel), setup.nodes[:2], setup,
+                        tpdo_timeout_cycles=1_000_000)
+    timeout = float(rig.hw.supervisor.heartbeat_timeout.max())
+    stall = _StallingListener(bound=2 * timeout + setup.stall)
+    try:
+        bring_up(rig)
+        enable_with(rig, HoldPD(), emergency=Brake())
+        rig.hw.ports[0].canopen.add_listener(stall)
+        stall.armed.set()
+        assert stall.holding.wait(setup.detect_budget()), "the reader never got a frame"
+        rig.run(2 * timeout)  # past every heartbeat deadline while the reader is held
+        assert rig.mgr.state == ManagerState.OK, _said(rig)
+        stall.release.set()
+        rig.run(timeout / 2)  # the reader catches up: the waiting heartbeats were in time
+        assert rig.mgr.state == ManagerState.OK, _said(rig)
+        silent = setup.nodes[1]
+        segment.drives[silent].set_silent(True)
+        assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                             setup.detect_budget()), _said(rig)
+        latched = rig.hw.supervisor.latched[1]
+        assert latched.node_id == silent and "heartbeat lost" in latched.cause
+    finally:
+        stall.release.set()
+        rig.close()
+
+
 def test_heartbeat_loss_of_one_drive_is_an_estop(segment, make_rig):
     # TPDO supervision out of the way (a silent drive sends no TPDOs either), so the
     # heartbeat deadline is what trips

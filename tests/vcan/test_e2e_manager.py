@@ -103,9 +103,12 @@ def test_manager_sim_and_cli_as_three_processes(processes, frame_recorder, bus_f
     status = cli("status", "--json")
     assert status.returncode == 0, status
     report = json.loads(status.stdout)
-    assert (report["state"], report["active"], report["startup_finished"]) == ("OK", "pd", True)
+    # the whole report on a failure: which drive latched what, and the e-stop's cause
+    said = json.dumps(report, indent=1)[:6000]
+    assert (report["state"], report["active"], report["startup_finished"]) \
+        == ("OK", "pd", True), said
     assert [(d["node_id"], d["phase"], d["enabled"], d["fault"]) for d in report["drives"]] \
-        == [(n, "READY", True, None) for n in DRIVES]
+        == [(n, "READY", True, None) for n in DRIVES], said
 
     # e-stop by a raw CAN frame from python-can
     mark = rec.mark()
