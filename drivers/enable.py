@@ -8,6 +8,10 @@ never leaves a state is found after ``timeout``, as before; a drive that answers
 each a round trip of the bus, is not declared stuck because the round trips added up (a
 host or guest that delays every frame by a second made a 6 s deadline for the whole
 sequence fail with the drive still stepping). Going back a step does not restart the clock.
+A step must also have been commanded for ``min_cycles`` cycles (the hardware passes its
+TPDO timeout, the cycles the drive's feedback may take): a process frozen for longer than
+``timeout`` sent the drive nothing meanwhile, and on the first cycle after it the step's
+wall time is up although the drive was never asked.
 
 Why from the cyclic RPDO and not by SDO or canopen's BaseNode402: one step per cycle
 (shutdown, switch on, enable operation) never blocks the cycle, and while enabling the
@@ -52,11 +56,13 @@ class EnableSequence:
     """Per drive: cycles in operation enabled, since when the drive has been waited for at
     its furthest step, and which step that is."""
 
-    def __init__(self, drives: int, timeout: float, fault: Fault) -> None:
+    def __init__(self, drives: int, timeout: float, fault: Fault, min_cycles: int = 0) -> None:
         self.timeout = timeout
+        self.min_cycles = min_cycles
         self._fault = fault
         self._enabled_cycles = [0] * drives
         self._want_since = np.full(drives, math.nan)
+        self._want_cycles = [0] * drives  # cycles the furthest step has been commanded
         self._furthest = [-1] * drives
 
     def controlword(self, i: int, state: int, now: float) -> int:
@@ -76,10 +82,12 @@ class EnableSequence:
         progress = PROGRESS[state + 1]
         if since != since or progress > self._furthest[i]:  # NaN: just started wanting
             self._want_since[i] = now
+            self._want_cycles[i] = 0
             self._furthest[i] = max(progress, self._furthest[i])
-        elif now - since > self.timeout:
+        elif now - since > self.timeout and self._want_cycles[i] >= self.min_cycles:
             self._fault(i, f"not enabled: no enable step within {self.timeout} s (stuck in "
                            f"{State402(state).name}; STO input low?)", now)
+        self._want_cycles[i] += 1
         return ENABLE_STEP[state + 1]
 
     def reset(self, i: int) -> None:

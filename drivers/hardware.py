@@ -240,7 +240,8 @@ class CanopenHardware:
         self._expected = np.array([(1 << len(lay.tpdos)) - 1 for lay in self.layouts],
                                   dtype=np.int64)
         self._complete = np.zeros(n, dtype=bool)
-        self.enable = EnableSequence(n, supervision.timeouts.enable, self.supervisor.fault)
+        self.enable = EnableSequence(n, supervision.timeouts.enable, self.supervisor.fault,
+                                     min_cycles=supervision.tpdo_timeout_cycles)
         # The drives the active controller may command: those ready when its switch was
         # committed. A drive ready only later (recovered, late start) stays torque-off
         # until the next switch: that controller never saw it (its pose, its limits).

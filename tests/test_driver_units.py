@@ -239,6 +239,21 @@ def test_each_enable_step_gets_the_whole_timeout_and_a_stuck_drive_is_found():
     assert faults == []
 
 
+def test_a_frozen_process_is_not_a_stuck_drive():
+    """Wall time alone is not enough: after a freeze longer than the timeout (nothing was
+    sent meanwhile) the step must still have been commanded for ``min_cycles`` cycles."""
+    S = cia402.State402
+    faults: list[tuple[int, str, float]] = []
+    seq = EnableSequence(1, timeout=1.0, fault=lambda i, cause, now: faults.append((i, cause, now)),
+                         min_cycles=5)
+    seq.controlword(0, int(S.SWITCH_ON_DISABLED), 0.0)
+    for k in range(4):  # the first cycles after a 30 s freeze: the drive was never asked
+        seq.controlword(0, int(S.SWITCH_ON_DISABLED), 30.0 + 0.1 * k)
+    assert faults == []
+    seq.controlword(0, int(S.SWITCH_ON_DISABLED), 30.5)  # asked for 5 cycles, still stuck
+    assert [(i, now) for i, _, now in faults] == [(0, 30.5)]
+
+
 def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
     import threading
 
