@@ -21,7 +21,7 @@ from typing import Any
 import can
 import canopen
 
-from .frame_io import FrameReader, FrameWriter
+from .frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
 
 log = logging.getLogger(__name__)
 
@@ -141,6 +141,9 @@ class BusReader:
                         self._report(exc, listener)
             if len(batch) < limit:  # read until empty: all that arrived before is handed over
                 self.received_until = before
+            else:  # a full batch (a backlog): frames come in order, so up to the last one's
+                self.received_until = to_monotonic(clock_offset(), batch[-1].timestamp,
+                                                   time.monotonic())
 
     def _report(self, exc: Exception, only: can.Listener | None) -> None:
         if self.listener_errors + self.bus_errors in (1, 10, 100, 1000, 10000):

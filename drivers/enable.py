@@ -8,10 +8,11 @@ never leaves a state is found after ``timeout``, as before; a drive that answers
 each a round trip of the bus, is not declared stuck because the round trips added up (a
 host or guest that delays every frame by a second made a 6 s deadline for the whole
 sequence fail with the drive still stepping). Going back a step does not restart the clock.
-A step must also have been commanded for ``min_cycles`` cycles (the hardware passes its
-TPDO timeout, the cycles the drive's feedback may take): a process frozen for longer than
-``timeout`` sent the drive nothing meanwhile, and on the first cycle after it the step's
-wall time is up although the drive was never asked.
+The time that counts is time the drive was being asked: each cycle adds its period, but
+at most ``timeout / min_cycles`` (the hardware passes its TPDO timeout as ``min_cycles``,
+the cycles the drive's feedback may take). A process frozen for seconds sent the drive
+nothing meanwhile; on wall time alone, the first cycle after it would find the step's time
+up although the drive was never asked. While the loop runs, nothing changes.
 
 Why from the cyclic RPDO and not by SDO or canopen's BaseNode402: one step per cycle
 (shutdown, switch on, enable operation) never blocks the cycle, and while enabling the
@@ -58,11 +59,13 @@ class EnableSequence:
 
     def __init__(self, drives: int, timeout: float, fault: Fault, min_cycles: int = 0) -> None:
         self.timeout = timeout
-        self.min_cycles = min_cycles
+        # the most one cycle may add to a step's time (a freeze adds no more than this)
+        self.cap = timeout / min_cycles if min_cycles > 0 else math.inf
         self._fault = fault
         self._enabled_cycles = [0] * drives
-        self._want_since = np.full(drives, math.nan)
-        self._want_cycles = [0] * drives  # cycles the furthest step has been commanded
+        self._want_since = np.full(drives, math.nan)  # when the furthest step was first asked
+        self._asked = [0.0] * drives  # how long it has been asked since, cycles capped
+        self._last = [0.0] * drives  # when it was last asked
         self._furthest = [-1] * drives
 
     def controlword(self, i: int, state: int, now: float) -> int:
@@ -82,13 +85,19 @@ class EnableSequence:
         progress = PROGRESS[state + 1]
         if since != since or progress > self._furthest[i]:  # NaN: just started wanting
             self._want_since[i] = now
-            self._want_cycles[i] = 0
+            self._asked[i] = 0.0
+            self._last[i] = now
             self._furthest[i] = max(progress, self._furthest[i])
-        elif now - since > self.timeout and self._want_cycles[i] >= self.min_cycles:
+        elif self._ask(i, now) > self.timeout:
             self._fault(i, f"not enabled: no enable step within {self.timeout} s (stuck in "
                            f"{State402(state).name}; STO input low?)", now)
-        self._want_cycles[i] += 1
         return ENABLE_STEP[state + 1]
+
+    def _ask(self, i: int, now: float) -> float:
+        """Add this cycle (at most ``cap``) to drive i's step time; the total."""
+        self._asked[i] += min(max(now - self._last[i], 0.0), self.cap)
+        self._last[i] = now
+        return self._asked[i]
 
     def reset(self, i: int) -> None:
         """Drive i is not being enabled this cycle (torque-off, quick stop, not ready)."""

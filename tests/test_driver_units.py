@@ -240,18 +240,22 @@ def test_each_enable_step_gets_the_whole_timeout_and_a_stuck_drive_is_found():
 
 
 def test_a_frozen_process_is_not_a_stuck_drive():
-    """Wall time alone is not enough: after a freeze longer than the timeout (nothing was
-    sent meanwhile) the step must still have been commanded for ``min_cycles`` cycles."""
+    """A step's time is time the drive was asked: a freeze (nothing sent) adds at most
+    ``timeout / min_cycles``, wherever in the step it falls; while cycles run, wall time."""
     S = cia402.State402
     faults: list[tuple[int, str, float]] = []
     seq = EnableSequence(1, timeout=1.0, fault=lambda i, cause, now: faults.append((i, cause, now)),
-                         min_cycles=5)
-    seq.controlword(0, int(S.SWITCH_ON_DISABLED), 0.0)
-    for k in range(4):  # the first cycles after a 30 s freeze: the drive was never asked
-        seq.controlword(0, int(S.SWITCH_ON_DISABLED), 30.0 + 0.1 * k)
-    assert faults == []
-    seq.controlword(0, int(S.SWITCH_ON_DISABLED), 30.5)  # asked for 5 cycles, still stuck
-    assert [(i, now) for i, _, now in faults] == [(0, 30.5)]
+                         min_cycles=5)  # a freeze adds at most 0.2 s
+    for k in range(6):  # 0.5 s asked, 0.1 s per cycle
+        seq.controlword(0, int(S.SWITCH_ON_DISABLED), k / 10)
+    seq.controlword(0, int(S.SWITCH_ON_DISABLED), 30.0)  # a 29.5 s freeze: + 0.2
+    t = 30.0
+    while not faults:
+        t = round(t + 0.1, 6)
+        seq.controlword(0, int(S.SWITCH_ON_DISABLED), t)
+        assert t < 31.0, "a stuck drive must still be found"
+    assert faults[0][2] in (30.3, 30.4)  # 0.5 + 0.2 + 0.3 (or 0.4: float sums) > 1.0
+    assert "stuck in SWITCH_ON_DISABLED" in faults[0][1]
 
 
 def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
