@@ -21,7 +21,7 @@ from typing import Any
 import can
 import canopen
 
-from .frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
+from .frame_io import READ_LIMIT, FrameReader, FrameWriter, clock_offset, to_monotonic
 
 log = logging.getLogger(__name__)
 
@@ -117,11 +117,10 @@ class BusReader:
 
     def _run(self) -> None:
         reader = FrameReader(self.bus)
-        limit = 256  # frames per read (FrameReader's default)
         while not self._stopping.is_set():
             before = time.monotonic()
             try:
-                batch = reader.read(self._poll, limit)
+                batch = reader.read(self._poll)
             except can.CanError as exc:
                 if self._stopping.is_set():
                     return
@@ -139,7 +138,7 @@ class BusReader:
                     except Exception as exc:  # noqa: BLE001 - one listener must not end reading
                         self.listener_errors += 1
                         self._report(exc, listener)
-            if len(batch) < limit:  # read until empty: all that arrived before is handed over
+            if len(batch) < READ_LIMIT:  # read until empty: all that arrived before is handed over
                 self.received_until = before
             else:  # a full batch (a backlog): frames come in order, so up to the last one's
                 self.received_until = to_monotonic(clock_offset(), batch[-1].timestamp,

@@ -25,8 +25,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-import numpy as np
-
 from . import cia402
 from .cia402 import State402
 
@@ -63,9 +61,8 @@ class EnableSequence:
         self.cap = timeout / min_cycles if min_cycles > 0 else math.inf
         self._fault = fault
         self._enabled_cycles = [0] * drives
-        self._want_since = np.full(drives, math.nan)  # when the furthest step was first asked
-        self._asked = [0.0] * drives  # how long it has been asked since, cycles capped
-        self._last = [0.0] * drives  # when it was last asked
+        self._asked = [0.0] * drives  # how long the furthest step has been asked, capped
+        self._last = [math.nan] * drives  # when it was last asked (NaN: not waiting)
         self._furthest = [-1] * drives
 
     def controlword(self, i: int, state: int, now: float) -> int:
@@ -74,17 +71,16 @@ class EnableSequence:
         enable step, or 0 after a drop-out (reported through ``fault``)."""
         if state == OP_ENABLED:
             self._enabled_cycles[i] += 1
-            self._want_since[i] = math.nan
+            self._last[i] = math.nan
             return CW_ENABLE
         if self._enabled_cycles[i] >= DROP_AFTER_CYCLES:
             self._enabled_cycles[i] = 0
             self._fault(i, f"dropped out of operation enabled (now {State402(state).name})", now)
             return 0
         self._enabled_cycles[i] = 0
-        since = self._want_since[i]
+        last = self._last[i]
         progress = PROGRESS[state + 1]
-        if since != since or progress > self._furthest[i]:  # NaN: just started wanting
-            self._want_since[i] = now
+        if last != last or progress > self._furthest[i]:  # NaN: just started wanting
             self._asked[i] = 0.0
             self._last[i] = now
             self._furthest[i] = max(progress, self._furthest[i])
@@ -102,5 +98,5 @@ class EnableSequence:
     def reset(self, i: int) -> None:
         """Drive i is not being enabled this cycle (torque-off, quick stop, not ready)."""
         self._enabled_cycles[i] = 0
-        self._want_since[i] = math.nan
+        self._last[i] = math.nan
         self._furthest[i] = -1

@@ -64,6 +64,10 @@ def _message(frame: bytes, ancillary: list[tuple[int, int, bytes]]) -> can.Messa
                        data=data[:dlc], check=False)
 
 
+#: Frames one read takes at most: a full batch means more may be waiting.
+READ_LIMIT = 256
+
+
 class FrameReader:
     """Batches of received frames from one bus; the reader must be the bus's only reader."""
 
@@ -74,7 +78,7 @@ class FrameReader:
         self._batch: Callable[[float, int], list[can.Message]] | None = (
             batch if callable(batch) else None)
 
-    def read(self, timeout: float, limit: int = 256) -> list[can.Message]:
+    def read(self, timeout: float, limit: int = READ_LIMIT) -> list[can.Message]:
         """The frames waiting now (at most ``limit``), after waiting up to ``timeout`` s for
         the first; [] when none came. An empty return after a batch shorter than ``limit``
         means the receive queue was empty at some instant during the call.
