@@ -23,6 +23,7 @@ import numpy as np
 from rocoma_can.drivers.bus import open_bus
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
+from rocoma_can.drivers.sim.group import SegmentGroup
 from rocoma_can.drivers.sim.segment import SimulatedSegment
 from rocoma_can.interfaces import Controller, EmergencyController
 from rocoma_can.runtime import ControlLoop
@@ -90,7 +91,19 @@ class Rig:
         self.node_ids = sorted({d.node_id for d in self.configs})
         self._closers: list[Callable[[], Any]] = []
         try:
-            self.segments = [self._start_simulator(ch) for ch in self.channels]
+            if separate_process:
+                self.segments: list[SimulatedSegment | None] = [
+                    self._start_simulator(ch) for ch in self.channels]
+            else:  # one receive thread for every segment (drivers/sim/group.py)
+                self.segments = []
+                for ch in self.channels:
+                    segment = SimulatedSegment.open(ch, self.interface, self.node_ids)
+                    self._closers.append(segment.stop)  # idempotent
+                    self.segments.append(segment)
+                group = SegmentGroup(self.segments)
+                self._closers.append(group.check)  # closers run in reverse: after stop
+                self._closers.append(group.stop)
+                group.start()
             self.segment = self.segments[0]
             self.buses = [open_bus(self.interface, ch, receive_own_messages=False)
                           for ch in self.channels]
@@ -115,12 +128,7 @@ class Rig:
             self.close()
             raise
 
-    def _start_simulator(self, channel: str) -> SimulatedSegment | None:
-        if not self.separate_process:
-            segment = SimulatedSegment.open(channel, self.interface, self.node_ids).start()
-            self._closers.append(segment.check)
-            self._closers.append(segment.stop)
-            return segment
+    def _start_simulator(self, channel: str) -> None:
         nodes = f"{self.node_ids[0]}-{self.node_ids[-1]}"
         proc = subprocess.Popen([sys.executable, "-m", "rocoma_can", "sim", "--interface",
                                  "socketcan", "--channel", channel, "--nodes", nodes])

@@ -80,7 +80,7 @@ def time_ours(n: int, repeat: int, channel: str) -> tuple[list[float], list[floa
         hw._send_of = [leave_out] * len(drives)
         for port in hw.ports:
             port.send = leave_out
-        receiver = hw.ports[0].canopen.reader._listeners[-1]
+        receiver = hw.ports[0].canopen.listeners[-1]  # the port's receiver, attached last
         frames = tpdo_frames(drives)
         command(hw.command)
         samples_in: list[float] = []

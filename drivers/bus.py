@@ -21,7 +21,7 @@ from typing import Any
 import can
 import canopen
 
-from .frame_io import READ_LIMIT, FrameReader, FrameWriter, clock_offset, to_monotonic
+from .frame_io import READ_LIMIT, BusSelector, FrameReader, FrameWriter, clock_offset, to_monotonic
 
 log = logging.getLogger(__name__)
 
@@ -80,27 +80,44 @@ class BusReader:
     ``on_error`` called (when it has one) and the others still get the frame; errors are
     counted in ``listener_errors``. A bus that fails (interface down) is reported to every
     listener's ``on_error`` and read again every ``retry`` seconds.
+
+    ``more``: further buses, each with its listeners, read by the same thread (all SocketCAN
+    or all in-process: frame_io.BusSelector; ValueError otherwise). Every thread that waits
+    on a bus costs a wake-up and a GIL hand-over per burst of frames, which the control
+    loop of the same process waits behind; one thread for four buses pays it once. A bus
+    that fails is reported to its own listeners only, and the others are still served.
     """
 
     def __init__(self, bus: can.BusABC, listeners: Sequence[can.Listener] = (), *,
+                 more: Sequence[tuple[can.BusABC, Sequence[can.Listener]]] = (),
                  poll: float = 0.1, retry: float = 0.05, name: str = "can-reader") -> None:
         self.bus = bus
+        self.buses = (bus, *(b for b, _ in more))
         self.listener_errors = 0
         self.bus_errors = 0
         self.exception: BaseException | None = None  # the last bus error, as Notifier has it
-        # Every frame that arrived (monotonic) before this has been handed to the listeners.
-        # A reader the scheduler starved (a frozen process, a loaded machine) lags behind its
-        # socket; a deadline judged on the cycle's clock alone would call heartbeats lost
-        # that arrived in time and wait unread (CanopenHardware judges against this).
-        self.received_until = -math.inf
-        self._listeners = tuple(listeners)
+        self._errors_of = [0] * len(self.buses)  # per bus: the log says when each starts
+        self._until = [-math.inf] * len(self.buses)  # per bus: see received_until
+        self._listeners = [tuple(listeners), *(tuple(ls) for _, ls in more)]
         self._poll, self._retry = poll, retry
+        self._selector = BusSelector(self.buses, retry) if more else None
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
-    def add_listener(self, listener: can.Listener) -> None:
-        self._listeners = (*self._listeners, listener)
+    def add_listener(self, listener: can.Listener, bus: can.BusABC | None = None) -> None:
+        """Also feed ``listener`` (the frames of ``bus``, default the first bus)."""
+        index = 0 if bus is None else self.buses.index(bus)
+        self._listeners[index] = (*self._listeners[index], listener)
+
+    def received_until(self, bus: can.BusABC | None = None) -> float:
+        """Every frame of ``bus`` (default: the first) that arrived (monotonic) before this
+        has been handed to the listeners. A reader the scheduler starved (a frozen process,
+        a loaded machine) lags behind its socket; a deadline judged on the cycle's clock
+        alone would call heartbeats lost that arrived in time and wait unread
+        (CanopenHardware judges against this). A failed interface delivers nothing: its
+        bus's time moves on with each failed read, so deadlines pass."""
+        return self._until[0 if bus is None else self.buses.index(bus)]
 
     @property
     def alive(self) -> bool:
@@ -108,14 +125,21 @@ class BusReader:
         return self._thread.is_alive()
 
     def stop(self, timeout: float = 2.0) -> None:
+        """Stop and join the thread; idempotent (a shared reader is stopped by each of its
+        buses' owners: the first call waits, the others find it stopped)."""
         self._stopping.set()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout)
             if self._thread.is_alive():
-                log.error("CAN reader on %s did not stop within %.1f s",
-                          self.bus.channel_info, timeout)
+                log.error("CAN reader of %s did not stop within %.1f s",
+                          ", ".join(b.channel_info for b in self.buses), timeout)
+        if self._selector is not None:
+            self._selector.close()
 
     def _run(self) -> None:
+        if self._selector is not None:
+            self._run_several(self._selector)
+            return
         reader = FrameReader(self.bus)
         while not self._stopping.is_set():
             before = time.monotonic()
@@ -124,53 +148,121 @@ class BusReader:
             except can.CanError as exc:
                 if self._stopping.is_set():
                     return
-                self.bus_errors += 1
-                self.exception = exc
-                self._report(exc, None)
-                # a failed interface delivers nothing: deadlines may pass, as they should
-                self.received_until = before
+                self._bus_failed(exc, 0, before)
                 self._stopping.wait(self._retry)
                 continue
-            for msg in batch:
-                for listener in self._listeners:
-                    try:
-                        listener.on_message_received(msg)
-                    except Exception as exc:  # noqa: BLE001 - one listener must not end reading
-                        self.listener_errors += 1
-                        self._report(exc, listener)
-            if len(batch) < READ_LIMIT:  # read until empty: all that arrived before is handed over
-                self.received_until = before
-            else:  # a full batch (a backlog): frames come in order, so up to the last one's
-                self.received_until = to_monotonic(clock_offset(), batch[-1].timestamp,
-                                                   time.monotonic())
+            self._hand_over(batch, 0, before)
 
-    def _report(self, exc: Exception, only: can.Listener | None) -> None:
-        if self.listener_errors + self.bus_errors in (1, 10, 100, 1000, 10000):
-            log.warning("CAN reader on %s: %r (%d listener errors, %d bus errors so far)",
-                        self.bus.channel_info, exc, self.listener_errors, self.bus_errors)
-        for listener in (only,) if only is not None else self._listeners:
+    def _run_several(self, selector: BusSelector) -> None:
+        readers = [FrameReader(bus) for bus in self.buses]
+        until = self._until
+        while not self._stopping.is_set():
+            since = time.monotonic()
+            ready = selector.wait(self._poll)
+            for i, reader in enumerate(readers):
+                if i not in ready:
+                    if not selector.failing(i):
+                        until[i] = since  # nothing was waiting when the wait ended
+                    continue
+                before = time.monotonic()
+                try:
+                    batch = reader.read(0.0)
+                except can.CanError as exc:
+                    if self._stopping.is_set():
+                        return
+                    self._bus_failed(exc, i, before)
+                    selector.failed(i)  # read again after ``retry``, the others meanwhile
+                    continue
+                self._hand_over(batch, i, before)
+
+    def _hand_over(self, batch: list[can.Message], index: int, before: float) -> None:
+        """``batch`` read from bus ``index`` by a read that began at ``before``."""
+        listeners = self._listeners[index]
+        for msg in batch:
+            for listener in listeners:
+                try:
+                    listener.on_message_received(msg)
+                except Exception as exc:  # noqa: BLE001 - one listener must not end reading
+                    self.listener_errors += 1
+                    self._report(exc, (listener,), index)
+        if len(batch) < READ_LIMIT:  # read until empty: all that arrived before is handed over
+            self._until[index] = before
+        else:  # a full batch (a backlog): frames come in order, so up to the last one's
+            self._until[index] = to_monotonic(clock_offset(), batch[-1].timestamp,
+                                              time.monotonic())
+
+    def _bus_failed(self, exc: can.CanError, index: int, before: float) -> None:
+        self.bus_errors += 1
+        self.exception = exc
+        self._until[index] = before  # a failed interface delivers nothing: deadlines pass
+        self._report(exc, self._listeners[index], index)
+
+    def _report(self, exc: Exception, listeners: Sequence[can.Listener], index: int) -> None:
+        self._errors_of[index] += 1
+        if self._errors_of[index] in (1, 10, 100, 1000, 10000):
+            log.warning("CAN reader on %s: %r (%d errors on this bus so far)",
+                        self.buses[index].channel_info, exc, self._errors_of[index])
+        for listener in listeners:
             try:
                 listener.on_error(exc)
             except Exception:  # noqa: BLE001 - counted above; nothing more to do
                 pass
 
 
-class CanopenBus:
-    """A bus (opened here or lent by the caller), a canopen Network and the bus's reader."""
+def readers_for(buses: Sequence[tuple[can.BusABC, Sequence[can.Listener]]], *,
+                name: str = "can-reader") -> list[BusReader]:
+    """Readers for several buses, each with its listeners: one thread for all of them
+    (named ``name``) when one thread can wait on them together (all SocketCAN or all
+    in-process), else one thread per bus (``name`` and the bus's channel). On a shared
+    reader a slow listener delays every bus's frames, and ``bus_errors``/``exception``
+    count all its buses: listeners must be quick (the hardware's only append to a deque)."""
+    if len(buses) > 1 and BusSelector.supports([bus for bus, _ in buses]):
+        (first, listeners), *more = buses
+        return [BusReader(first, listeners, more=more, name=name)]
+    readers: list[BusReader] = []
+    try:
+        for bus, listeners in buses:
+            readers.append(BusReader(bus, listeners, name=f"{name} {bus.channel_info}"))
+    except BaseException:
+        for reader in readers:
+            reader.stop()
+        raise
+    return readers
 
-    def __init__(self, bus: can.BusABC, own_bus: bool = False) -> None:
+
+class CanopenBus:
+    """A bus (opened here or lent by the caller), a canopen Network and the bus's reader.
+
+    ``read=False``: no reader yet; ``start_reading`` gives several buses one reader thread
+    (every listener is attached before the first frame is read)."""
+
+    def __init__(self, bus: can.BusABC, own_bus: bool = False, *, read: bool = True) -> None:
         self.bus = bus
         self.own_bus = own_bus
         enlarge_bus_buffer(bus)  # a lent bus too
         self.network = canopen.Network(bus)  # not connect(): BusReader replaces its Notifier
-        self.reader = BusReader(bus, self.network.listeners)
+        self.listeners: list[can.Listener] = list(self.network.listeners)
+        self.reader: BusReader | None = BusReader(bus, self.listeners) if read else None
         self.writer = FrameWriter(bus)  # the cycle's frames: never blocks, one system call
 
     def add_listener(self, listener: can.Listener) -> None:
-        self.reader.add_listener(listener)
+        self.listeners.append(listener)
+        if self.reader is not None:
+            self.reader.add_listener(listener, self.bus)
 
     def close(self) -> None:
-        """Stop the reader (joins its thread); shut the bus only if it was opened here."""
-        self.reader.stop()
+        """Stop the reader (joins its thread, shared or not); shut the bus only if it was
+        opened here."""
+        if self.reader is not None:
+            self.reader.stop()
         if self.own_bus:
             self.bus.shutdown()
+
+
+def start_reading(buses: Sequence[CanopenBus], *, name: str = "can-reader") -> None:
+    """Start reading buses opened with ``read=False`` (readers_for: one thread if it can)."""
+    waiting = [cb for cb in buses if cb.reader is None]
+    for reader in readers_for([(cb.bus, tuple(cb.listeners)) for cb in waiting], name=name):
+        for cb in waiting:
+            if cb.bus in reader.buses:
+                cb.reader = reader

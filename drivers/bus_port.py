@@ -102,16 +102,17 @@ class BusPort:
         return arg.channel if isinstance(arg, BusConfig) else str(arg.channel_info)
 
     def open(self, cob_ids: set[int]) -> CanopenBus:
-        """Open the bus (unless lent) and attach the receiver for ``cob_ids``."""
+        """Open the bus (unless lent) and attach the receiver for ``cob_ids``; nothing is
+        read until ``bus.start_reading`` (one reader thread for all the hardware's buses)."""
         arg = self._arg
         if isinstance(arg, BusConfig):
             extra: dict[str, object] = {"fd": True} if arg.fd else {}
             if arg.data_bitrate is not None:
                 extra["data_bitrate"] = arg.data_bitrate
             cb = CanopenBus(open_bus(arg.interface, arg.channel, arg.bitrate, **extra),
-                            own_bus=True)
+                            own_bus=True, read=False)
         else:
-            cb = CanopenBus(arg)
+            cb = CanopenBus(arg, read=False)
         self.canopen = cb
         self._writer = cb.writer
         self._receiver = _Receiver(cob_ids, self.rx, self.rx_errors)

@@ -14,7 +14,8 @@ The safety path, top to bottom (each step names where it lives):
    (``_command_frames`` below). A whole bus can fail too: a bus-off error frame or the bus
    refusing frames in ``tpdo_timeout_cycles`` cycles in a row (``BusPort.bus_off`` and
    ``BusPort.end_of_write``, bus_port.py) is a fault of every drive on it (``_bus_failed``).
-   Frames arrive on each bus's reader thread (bus.py), which only appends them to a deque;
+   Frames arrive on the buses' reader thread (bus.py: one for all buses where the
+   interface allows, else one per bus), which only appends them to each bus's deque;
    ``read`` drains every bus on the cycle thread, so no lock is shared with a slow thread.
    An e-stop frame (``estop_cob_id``, any bus) is drained the same way (``_on_estop_frames``)
    and reaches the manager before this cycle's update.
@@ -77,6 +78,7 @@ from ..errors import HomingFailed
 from ..events import ManagerState
 from . import cia301, cia402
 from .bringup import DriveBringup, Phase
+from .bus import start_reading
 from .bus_port import BusPort
 from .cia402 import State402
 from .config import BusConfig, DriveConfig, Supervision, check_drives, estop_conflict
@@ -321,6 +323,8 @@ class CanopenHardware:
             for k, port in enumerate(self.ports):
                 port.open(set(self._tpdo_of[k]) | set(port.heartbeat_of) | set(port.emcy_of))
                 port.set_estop_cob_id(self._estop_cob_id)
+            # one reader thread for every bus where the interface allows (bus.readers_for)
+            start_reading([port.canopen for port in self.ports if port.canopen is not None])
         except BaseException:
             for port in self.ports:
                 port.close()
@@ -397,9 +401,10 @@ class CanopenHardware:
             # Before draining: every frame that arrived before ``until`` is in ``rx`` now.
             # A reader starved past a deadline (a frozen process) has heartbeats in time
             # still unread; the deadline waits for them (a dead reader judges on ``now``).
-            reader = port.canopen.reader if port.canopen is not None else None
-            until = now if reader is None or not reader.alive else min(now,
-                                                                        reader.received_until)
+            cb = port.canopen
+            reader = cb.reader if cb is not None else None
+            until = now if cb is None or reader is None or not reader.alive else min(
+                now, reader.received_until(cb.bus))
             self._heard_until[self._drives_of_port[k]] = until
             while rx:
                 msg = rx.popleft()

@@ -54,6 +54,7 @@ class InProcessBus(BusABC):
         self._rx: collections.deque[Message] = collections.deque(maxlen=rx_queue_size)
         self._arrived = threading.Event()
         self._waiting = False
+        self._wakeups: tuple[threading.Event, ...] = ()
         self._open = True
         self._peers: list[InProcessBus] = []
         with _channels_lock:
@@ -81,6 +82,9 @@ class InProcessBus(BusABC):
         rx.append(msg)
         if self._waiting:  # the reader set this before its last look at the queue
             self._arrived.set()
+        for wakeup in self._wakeups:
+            if not wakeup.is_set():
+                wakeup.set()
 
     # ------------------------------------------------------------------ receiving
     def _wait(self, timeout: float | None) -> bool:
@@ -127,6 +131,20 @@ class InProcessBus(BusABC):
                 batch.append(msg)
         return batch
 
+    @property
+    def pending(self) -> bool:
+        """A frame is queued, or the bus is shut down (a read says so at once)."""
+        return bool(self._rx) or not self._open
+
+    def add_wakeup(self, event: threading.Event) -> None:
+        """Set ``event`` whenever a frame is queued here: one thread can wait for frames on
+        several buses (frame_io.BusSelector) and then read each with a zero timeout. The
+        bus's one reader adds and removes its wake-up (no lock: one writer)."""
+        self._wakeups = (*self._wakeups, event)
+
+    def remove_wakeup(self, event: threading.Event) -> None:
+        self._wakeups = tuple(e for e in self._wakeups if e is not event)
+
     # ------------------------------------------------------------------ life cycle
     def shutdown(self) -> None:
         super().shutdown()
@@ -136,6 +154,8 @@ class InProcessBus(BusABC):
         with _channels_lock:
             self._join([p for p in self._peers if p is not self])
         self._arrived.set()  # a reader waiting in recv sees the bus closed
+        for wakeup in self._wakeups:  # and one waiting on several buses reads this one
+            wakeup.set()
 
     def _join(self, peers: list[InProcessBus]) -> None:
         """Give every endpoint of the channel the new list of endpoints (lock held). Lists

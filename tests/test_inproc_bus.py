@@ -12,8 +12,9 @@ import uuid
 
 import can
 import pytest
+from fixtures.driver_rig import VIRTUAL
 
-from rocoma_can.drivers.frame_io import FrameReader, FrameWriter
+from rocoma_can.drivers.frame_io import BusSelector, FrameReader, FrameWriter
 from rocoma_can.drivers.inproc import InProcessBus
 
 
@@ -147,6 +148,59 @@ def test_shutdown_fails_sends_wakes_a_reader_and_leaves_the_others_working(chann
         assert c.recv(1.0).arbitration_id == 0x080
     finally:
         for bus in (a, b, c):
+            bus.shutdown()
+
+
+def test_one_thread_waits_on_several_buses_and_reads_the_one_with_frames(channel):
+    """frame_io.BusSelector: what a simulated segment group and a BusReader of several
+    buses wait with."""
+    budget = VIRTUAL.stall  # a thread handing a frame to another on a loaded machine
+    retry = budget  # no stall between two calls of this test outlasts it
+    tx = [_open(f"{channel}-{k}") for k in range(3)]
+    rx = [_open(f"{channel}-{k}") for k in range(3)]
+    selector = BusSelector(rx, retry=retry)
+    try:
+        assert selector.wait(0.01) == []
+        woke: list[list[int]] = []
+        waiter = threading.Thread(target=lambda: woke.append(selector.wait(budget)))
+        waiter.start()
+        tx[1].send(_frame(0x181, b"\x01"))
+        waiter.join(budget)
+        assert woke == [[1]]  # the bus with a frame waiting, not the others
+        assert [m.arbitration_id for m in FrameReader(rx[1]).read(0.0)] == [0x181]
+        assert selector.wait(0.01) == []  # handled: nothing new
+        for n in range(5):  # more than one read takes: the rest is still found
+            tx[0].send(_frame(0x200 + n))
+        assert selector.wait(0.0) == [0]
+        assert len(FrameReader(rx[0]).read(0.0, limit=3)) == 3
+        assert selector.wait(0.0) == [0]
+        assert len(FrameReader(rx[0]).read(0.0)) == 2
+        rx[2].shutdown()  # a bus going away wakes the waiter: its read reports it
+        assert selector.wait(budget) == [2]
+        with pytest.raises(can.CanOperationError, match="shut down"):
+            FrameReader(rx[2]).read(0.0)
+        selector.failed(2)  # left out for ``retry``, then offered once more
+        assert selector.failing(2) and selector.wait(0.0) == []
+        assert selector.wait(retry + budget) == [2] and not selector.failing(2)
+        selector.close()
+        tx[0].send(_frame(0x182))
+        # still found by looking, without a wake-up (and the shut bus, until failed again)
+        assert selector.wait(0.01) == [0, 2]
+    finally:
+        for bus in (*tx, *rx):
+            bus.shutdown()
+
+
+def test_buses_one_thread_cannot_wait_on_together_are_refused(channel):
+    buses = [can.Bus(interface="virtual", channel=channel, ignore_config=True),
+             _open(channel)]
+    try:
+        assert not BusSelector.supports(buses)
+        assert not BusSelector.supports([])
+        with pytest.raises(ValueError, match="all of them are SocketCAN or all in-process"):
+            BusSelector(buses, retry=0.05)
+    finally:
+        for bus in buses:
             bus.shutdown()
 
 

@@ -2,9 +2,9 @@
 one JointState over all joints; a failed bus is a failproof stop with torque-off frames on
 every other bus; the e-stop frame works on any bus, in the cycle that reads it; CAN FD.
 
-Two python-can virtual buses ("left", "right"), each with its own simulated segment of two
-drives with node ids 1 and 2 (node ids repeat across buses, as on a real robot with one bus
-per limb), and a frame recorder per bus.
+Two buses ("left", "right"; python-can virtual, and in-process ones), each with its own
+simulated segment of two drives with node ids 1 and 2 (node ids repeat across buses, as on
+a real robot with one bus per limb), and a frame recorder per bus.
 """
 from __future__ import annotations
 
@@ -24,19 +24,27 @@ SIDES = ("left", "right")
 ESTOP = 0x0A0
 
 
-@pytest.fixture
-def two_buses(virtual_channel, sim_segment_factory, bus_factory):
-    """Segments, recorders and a started rig on two buses; ``fd``: CAN FD buses."""
+@pytest.fixture(params=["virtual", "inproc"])
+def two_buses(request, virtual_channel, sim_segment_factory, bus_factory):
+    """Segments, recorders and a started rig on two buses; ``fd``: CAN FD buses. On
+    python-can's virtual buses the hardware reads each bus on a thread of its own; on
+    in-process buses one thread reads both (bus.readers_for)."""
+    interface = request.param
     made: list = []
 
     def make(fd: bool = False, **kw):
         protocol = {"protocol": can.CanProtocol.CAN_FD} if fd else {}
         channels = {side: f"{virtual_channel}-{side}" for side in SIDES}
-        segments = {side: sim_segment_factory(NODES, channel=ch, sync_period=VIRTUAL.dt, fd=fd)
+        segments = {side: sim_segment_factory(NODES, channel=ch, interface=interface,
+                                              sync_period=VIRTUAL.dt, fd=fd)
                     for side, ch in channels.items()}
-        recorders = {side: record(ch) for side, ch in channels.items()}
-        rig = Rig.for_setup({side: bus_factory(ch, **protocol) for side, ch in channels.items()},
+        recorders = {side: record(ch, interface, **protocol) for side, ch in channels.items()}
+        rig = Rig.for_setup({side: bus_factory(ch, interface, **protocol)
+                             for side, ch in channels.items()},
                             {side: NODES for side in SIDES}, VIRTUAL, estop_cob_id=ESTOP, **kw)
+        readers = {id(port.canopen.reader) for port in rig.hw.ports}
+        assert len(readers) == (1 if interface == "inproc" else 2)
+        rig.interface = interface
         made.append((rig, recorders))
         budget = VIRTUAL.bring_up_budget(len(NODES))
         assert rig.run_until(lambda: not rig.hw.starting, budget), rig.hw.drive_status()
@@ -102,7 +110,7 @@ def test_a_failed_bus_is_a_failproof_stop_with_torque_off_on_every_bus(two_buses
     rig, segments, recorders = two_buses()
     _hold(rig)
     mark = recorders["left"].mark()
-    bus_factory(rig.channels["right"]).send(can.Message(
+    bus_factory(rig.channels["right"], rig.interface).send(can.Message(
         arbitration_id=0x40, is_error_frame=True, is_extended_id=False, data=bytes(8)))
     assert rig.run_until(lambda: rig.mgr.state is ManagerState.FAILPROOF,
                          VIRTUAL.detect_budget())
@@ -136,7 +144,7 @@ def test_an_estop_frame_on_any_bus_acts_in_the_cycle_that_reads_it(two_buses, bu
     events = []
     rig.mgr.subscribe(events.append)
     port = rig.hw.ports[SIDES.index(side)]
-    bus_factory(rig.channels[side]).send(
+    bus_factory(rig.channels[side], rig.interface).send(
         can.Message(arbitration_id=ESTOP, data=b"", is_extended_id=False))
     deadline = time.monotonic() + VIRTUAL.stall
     while not any(m.arbitration_id == ESTOP for m in list(port.rx)):
@@ -157,7 +165,7 @@ def test_the_estop_cob_id_can_be_changed_and_switched_off(two_buses, bus_factory
     rig, _, _ = two_buses()
     _hold(rig)
     rig.hw.set_estop_cob_id(0)
-    sender = bus_factory(rig.channels["left"])
+    sender = bus_factory(rig.channels["left"], rig.interface)
     sender.send(can.Message(arbitration_id=ESTOP, data=b"\x01", is_extended_id=False))
     rig.run(20 * rig.dt)
     assert rig.mgr.state is ManagerState.OK and rig.hw.estop_frames == 0

@@ -175,8 +175,11 @@ class SimulatedSegment:
             raise
 
     # ------------------------------------------------------------------ life cycle
-    def start(self) -> SimulatedSegment:
-        """Power on every drive (boot-up frames), then start receiving and the timers."""
+    def start(self, receive: bool = True) -> SimulatedSegment:
+        """Power on every drive (boot-up frames), then start receiving and the timers.
+
+        ``receive=False``: no receive thread of its own; a SegmentGroup (group.py) reads
+        this segment's bus together with others' on one thread and calls ``pump``."""
         if self._started:
             raise RuntimeError("simulated segment already started")
         self._started = True
@@ -184,7 +187,8 @@ class SimulatedSegment:
             for drive in self.drives.values():
                 drive.power_on()
             self._last_step = self.clock()
-        self._rx_thread.start()
+        if receive:
+            self._rx_thread.start()
         self._timers.start()
         if self.free_run_period:
             self.schedule(self.clock() + self.free_run_period, self._free_run)
@@ -257,29 +261,47 @@ class SimulatedSegment:
     def _receive_loop(self) -> None:
         reader = FrameReader(self.bus)
         while not self._stopped.is_set():
-            before = self.clock()
-            try:
-                batch = reader.read(RX_IDLE, RX_BATCH)
-            except Exception as exc:  # noqa: BLE001 - a closed or broken bus
-                if self._stopped.is_set():
-                    return
-                self._record(exc)
+            if not self.pump(reader, RX_IDLE):
                 self._stopped.wait(RX_IDLE)
-                batch = []  # a failed interface delivers nothing: consumers may time out
-            now = self.clock()
-            offset = clock_offset()
-            with self.lock:
-                arrived = now
-                for msg in batch:
-                    if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-                        continue
-                    arrived = to_monotonic(offset, msg.timestamp, now)
-                    try:
-                        self._dispatch(msg.arbitration_id, bytes(msg.data), arrived)
-                    except Exception as exc:  # noqa: BLE001 - keep the segment receiving
-                        self._record(exc)
-                # read until empty: everything that arrived before the read began is handled
-                self.received_until = before if len(batch) < RX_BATCH else arrived
+
+    def pump(self, reader: FrameReader, timeout: float) -> bool:
+        """Handle the frames waiting on the bus (after up to ``timeout`` s for the first).
+        False when the bus failed (recorded in ``errors``): read it again a little later."""
+        before = self.clock()
+        ok = True
+        try:
+            batch = reader.read(timeout, RX_BATCH)
+        except Exception as exc:  # noqa: BLE001 - a closed or broken bus
+            if not self._stopped.is_set():  # stopping closes the bus: not a failure
+                self._record(exc)
+            batch = []  # a failed interface delivers nothing: consumers may time out
+            ok = False
+        now = self.clock()
+        offset = clock_offset()
+        with self.lock:
+            arrived = now
+            for msg in batch:
+                if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+                    continue
+                arrived = to_monotonic(offset, msg.timestamp, now)
+                try:
+                    self._dispatch(msg.arbitration_id, bytes(msg.data), arrived)
+                except Exception as exc:  # noqa: BLE001 - keep the segment receiving
+                    self._record(exc)
+            # read until empty: everything that arrived before the read began is handled
+            self.received_until = before if len(batch) < RX_BATCH else arrived
+        return ok
+
+    def nothing_arrived(self, since: float) -> None:
+        """The bus had no frame waiting when a wait that began at ``since`` ended (a
+        SegmentGroup's selector said so): everything that arrived before it is handled.
+        Called by the group's thread only, the one writer of ``received_until`` then, so
+        without the lock (the timers only read it). As with ``pump``, a frame is judged by
+        its arrival stamp: an in-process bus stamps a frame just before delivering it, so a
+        sender stalled between the two can deliver one stamped a little before ``since``;
+        the consumer times' margins cover such a stall, as they cover a slow reader."""
+        if since > self.received_until:
+            self.received_until = since
 
     def _dispatch(self, cob_id: int, data: bytes, arrived: float) -> None:
         if cob_id == c301.NMT:

@@ -330,7 +330,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     ``record``: a directory for the run's recording (``run --record``'s files) and its
     plot ``demo.png``; ``zenoh_listen``: an endpoint the manager serves Zenoh on, under
     the prefix ``rocoma/demo`` (another shell can watch and e-stop it)."""
-    from ..drivers.bus import BusReader, open_bus
+    from ..drivers.bus import BusReader, open_bus, readers_for
+    from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
     from .config import validate
     from .system import Runtime
@@ -357,6 +358,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                                       [d.node_id for d in config.drives_on(b)],
                                       **(emulated.segment if emulated else {}))
                 for b in config.buses]
+    simulator = SegmentGroup(segments)  # one receive thread for every bus where possible
     seg = segments[0]  # the operator's faults go to drives on the first bus
     client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False)
     # one torque-off probe per bus, each on a bus handle and reader of its own
@@ -365,9 +367,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     probes = [_TorqueOffProbe(s.node_ids) for s in segments]
     readers: list[BusReader] = []
     try:
-        for s in segments:
-            s.start()
-        readers = [BusReader(b, (p,), name="demo-probe") for b, p in zip(probe_buses, probes)]
+        simulator.start()
+        readers = readers_for([(b, (p,)) for b, p in zip(probe_buses, probes)],
+                              name="demo-probes")
         with Runtime(config, on_cycle=watch, record=None if record is None else str(record)) \
                 as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
@@ -403,8 +405,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             report.steps.append(step)
             out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
             _summary(out, report, summary, rt)
-        for s in segments:
-            s.check()
+        simulator.check()
         if record is not None:
             _plot(Path(record), report, out)
     finally:
@@ -412,8 +413,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             r.stop()
         for b in (client_bus, *probe_buses):
             b.shutdown()
-        for s in segments:
-            s.stop()
+        simulator.stop()
     return report
 
 

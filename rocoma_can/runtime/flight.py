@@ -27,7 +27,7 @@ from pathlib import Path
 
 import can
 
-from ..drivers.bus import BusReader
+from ..drivers.bus import readers_for
 from ..events import EventKind, ManagerEvent
 from .can_log import FrameLog
 from .loop import STOP_CAUSE
@@ -213,13 +213,14 @@ class Recording:
 
 class Taps:
     """One passive bus handle and reader per bus, feeding every listener given for it (the
-    flight recorder's tap, the --record log): a bus has one reader, BusReader's rule."""
+    flight recorder's tap, the --record log): a bus has one reader (one thread for all buses
+    where the interface allows, bus.readers_for)."""
 
     def __init__(self, buses: Mapping[str, can.BusABC],
                  listeners: Mapping[str, Sequence[can.Listener]]) -> None:
         self._buses = dict(buses)
-        self._readers = [BusReader(bus, tuple(listeners.get(name, ())), name=f"tap {name}")
-                         for name, bus in self._buses.items()]
+        self._readers = readers_for([(bus, tuple(listeners.get(name, ())))
+                                     for name, bus in self._buses.items()], name="taps")
 
     def close(self) -> None:
         for reader in self._readers:

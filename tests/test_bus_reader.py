@@ -1,0 +1,179 @@
+"""BusReader (drivers/bus.py): the one reader of a bus, or of several buses on one thread.
+
+What must hold with several buses on one thread: each frame reaches the listeners of its
+own bus, in order; a bus that fails is reported to its own listeners only, read again at
+the ``retry`` pace (not in a busy loop), and the other buses are still served; a listener
+that raises does not end reading. ``readers_for`` shares a thread only where one thread
+can wait on all the buses (in-process or SocketCAN), and the hardware's buses get their
+listeners attached before the first frame is read.
+"""
+from __future__ import annotations
+
+import inspect
+import threading
+import time
+import uuid
+
+import can
+import pytest
+from fixtures.driver_rig import VIRTUAL
+
+from rocoma_can.drivers.bus import BusReader, CanopenBus, readers_for, start_reading
+
+POLL = inspect.signature(BusReader).parameters["poll"].default
+#: a frame handed from one thread to another on a loaded machine, plus one idle poll
+WAIT = VIRTUAL.stall + POLL
+RETRY = 0.02
+BATCH = 256  # frames one read takes (frame_io.FrameReader.read's default limit)
+
+
+class Seen(can.Listener):
+    def __init__(self, fail_on: int | None = None) -> None:
+        self.frames: list[int] = []
+        self.errors: list[Exception] = []
+        self._fail_on = fail_on
+        self.got = threading.Event()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.arbitration_id == self._fail_on:
+            raise RuntimeError("listener bug")
+        self.frames.append(msg.arbitration_id)
+        self.got.set()
+
+    def on_error(self, exc: Exception) -> None:
+        self.errors.append(exc)
+
+
+def _wait(predicate, what: str) -> None:
+    deadline = time.monotonic() + WAIT
+    while not predicate():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.001)
+
+
+def _threads(name: str) -> int:
+    return sum(t.name == name for t in threading.enumerate())
+
+
+@pytest.fixture
+def inproc_buses():
+    """``make(n, interface="inproc")`` -> (senders, receivers) on n fresh channels."""
+    opened: list[can.BusABC] = []
+
+    def make(n: int, interface: str = "inproc"):
+        base = f"reader-{uuid.uuid4().hex[:8]}"
+        pairs = [tuple(can.Bus(interface=interface, channel=f"{base}-{k}", ignore_config=True)
+                       for _ in range(2)) for k in range(n)]
+        opened.extend(b for pair in pairs for b in pair)
+        return [p[0] for p in pairs], [p[1] for p in pairs]
+
+    yield make
+    for bus in opened:
+        bus.shutdown()
+
+
+def _frame(cob_id: int) -> can.Message:
+    return can.Message(arbitration_id=cob_id, is_extended_id=False)
+
+
+def test_one_thread_hands_each_bus_its_own_frames_in_order(inproc_buses):
+    senders, receivers = inproc_buses(3)
+    seen = [Seen() for _ in receivers]
+    before = _threads("three buses")
+    reader = BusReader(receivers[0], (seen[0],),
+                       more=[(b, (s,)) for b, s in zip(receivers[1:], seen[1:])],
+                       name="three buses")
+    try:
+        assert _threads("three buses") - before == 1
+        for n in range(20):
+            senders[n % 3].send(_frame(0x100 + n))
+        _wait(lambda: sum(len(s.frames) for s in seen) == 20, "20 frames")
+        for k, s in enumerate(seen):
+            assert s.frames == [0x100 + n for n in range(k, 20, 3)]
+    finally:
+        reader.stop()
+    assert not reader.alive
+
+
+def test_a_failed_bus_is_reported_to_its_own_listeners_and_the_others_are_served(
+        inproc_buses):
+    senders, receivers = inproc_buses(2)
+    seen = [Seen(), Seen()]
+    reader = BusReader(receivers[0], (seen[0],), more=[(receivers[1], (seen[1],))],
+                       retry=RETRY)
+    try:
+        receivers[0].shutdown()
+        _wait(lambda: seen[0].errors, "the failure reported")
+        assert isinstance(seen[0].errors[0], can.CanOperationError)
+        before, start, sent = len(seen[0].errors), time.monotonic(), 0
+        while time.monotonic() - start < 10 * RETRY:  # a flood on the other bus meanwhile
+            senders[1].send(_frame(0x181))
+            sent += 1
+            time.sleep(0.001)
+        _wait(lambda: len(seen[1].frames) == sent, "the other bus's frames")
+        _wait(lambda: len(seen[0].errors) > before, "the failed bus read again")
+        elapsed = time.monotonic() - start
+        # read again every RETRY, not once per frame on the other bus
+        assert len(seen[0].errors) - before <= elapsed / RETRY + 2, (sent, elapsed)
+        assert seen[1].errors == [] and reader.alive
+    finally:
+        reader.stop()
+
+
+def test_a_burst_longer_than_one_read_is_handed_over_without_more_traffic(inproc_buses):
+    senders, receivers = inproc_buses(2)
+    seen = [Seen(), Seen()]
+    count = 3 * BATCH + 5
+    for n in range(count):  # queued before the reader exists
+        senders[0].send(_frame(0x100 + n % 0x80))
+    reader = BusReader(receivers[0], (seen[0],), more=[(receivers[1], (seen[1],))])
+    try:
+        _wait(lambda: len(seen[0].frames) == count, f"{count} frames")
+    finally:
+        reader.stop()
+
+
+def test_a_listener_that_raises_is_told_and_reading_goes_on(inproc_buses):
+    senders, receivers = inproc_buses(2)
+    bad, good = Seen(fail_on=0x181), Seen()
+    reader = BusReader(receivers[0], (bad, good), more=[(receivers[1], ())])
+    try:
+        senders[0].send(_frame(0x181))
+        senders[0].send(_frame(0x182))
+        _wait(lambda: good.frames == [0x181, 0x182], "both frames to the good listener")
+        assert bad.frames == [0x182] and len(bad.errors) == 1
+        assert reader.listener_errors == 1 and reader.alive
+    finally:
+        reader.stop()
+
+
+def test_readers_for_shares_a_thread_only_where_it_can(inproc_buses):
+    _, inproc = inproc_buses(3)
+    _, virtual = inproc_buses(2, "virtual")
+    for buses, expected in ((inproc, 1), (virtual, 2), (inproc[:1], 1)):
+        readers = readers_for([(bus, ()) for bus in buses])
+        try:
+            assert len(readers) == expected
+            assert [b for r in readers for b in r.buses] == list(buses)
+        finally:
+            for r in readers:
+                r.stop()
+    with pytest.raises(ValueError, match="SocketCAN or all in-process"):
+        BusReader(virtual[0], (), more=[(virtual[1], ())])
+
+
+def test_the_hardware_buses_read_nothing_until_every_listener_is_attached(inproc_buses):
+    senders, receivers = inproc_buses(2)
+    buses = [CanopenBus(bus, read=False) for bus in receivers]
+    seen = [Seen(), Seen()]
+    try:
+        senders[0].send(_frame(0x701))  # queued before anyone reads
+        for cb, s in zip(buses, seen):
+            cb.add_listener(s)
+        start_reading(buses)
+        assert buses[0].reader is buses[1].reader is not None
+        senders[1].send(_frame(0x702))
+        _wait(lambda: seen[0].frames == [0x701] and seen[1].frames == [0x702], "both frames")
+    finally:
+        for cb in buses:
+            cb.close()

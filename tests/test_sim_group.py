@@ -1,0 +1,197 @@
+"""One receive thread for several simulated segments (drivers/sim/group.py).
+
+What must hold: the manager's hardware brings up and runs drives on every bus of the group
+exactly as with a thread per segment; a heartbeat consumer on a bus with nothing else on
+it still times out (the group vouches for idle buses, or a lost master would never be
+seen); a bus that fails is recorded in its own segment and the others are still served;
+buses one thread cannot wait on together (python-can's virtual) fall back to a thread per
+segment. The waiting itself (frame_io.BusSelector) is tested in test_inproc_bus.py.
+"""
+from __future__ import annotations
+
+import struct
+import threading
+import time
+import uuid
+
+import can
+import pytest
+from fixtures.bus import VCAN_CHANNELS, require_vcan
+from fixtures.driver_rig import VCAN, VIRTUAL, Brake, Can, HoldPD, Rig
+
+from rocoma_can import ManagerState, SwitchResult
+from rocoma_can.drivers import cia301
+from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.sim.group import SegmentGroup
+from rocoma_can.drivers.sim.segment import RX_BATCH, RX_IDLE, SimulatedSegment
+
+NODES = (1, 2)
+COMMUNICATION_ERROR = 0x10  # error register 0x1001 bit 4
+
+
+def _receive_threads() -> list[str]:
+    return sorted(t.name for t in threading.enumerate()
+                  if t.name in ("sim-group-rx", "sim-segment-rx"))
+
+
+@pytest.fixture
+def group_on():
+    """``group_on(interface, setup)``: a started group of two segments of NODES each."""
+
+    def make(interface: str, setup: Can = VIRTUAL) -> tuple[SegmentGroup, list[str]]:
+        if interface == "socketcan":
+            require_vcan()
+            channels = list(VCAN_CHANNELS)
+        else:
+            base = f"group-{uuid.uuid4().hex[:8]}"
+            channels = [f"{base}-{k}" for k in range(2)]
+        segments: list[SimulatedSegment] = []
+        opened.append(segments)
+        for ch in channels:
+            segments.append(SimulatedSegment.open(ch, interface, NODES, sync_period=setup.dt,
+                                                  params=setup.joints))
+        group = SegmentGroup(segments)
+        made.append(group)
+        return group.start(), channels
+
+    opened: list[list[SimulatedSegment]] = []
+    made: list[SegmentGroup] = []
+    yield make
+    for group in made:
+        group.stop()
+    for segments in opened:  # a group that was never made: its segments (stop is idempotent)
+        for segment in segments:
+            segment.stop()
+
+
+@pytest.mark.parametrize("interface,setup,shared", [
+    ("inproc", VIRTUAL, True), ("virtual", VIRTUAL, False),
+    pytest.param("socketcan", VCAN, True, marks=pytest.mark.vcan)])
+def test_the_hardware_brings_up_and_runs_drives_on_every_bus_of_a_group(
+        group_on, interface, setup, shared):
+    before = _receive_threads()
+    group, channels = group_on(interface, setup)
+    assert group.shared_thread is shared
+    started = _receive_threads()
+    for name in before:
+        started.remove(name)
+    assert started == (["sim-group-rx"] if shared else ["sim-segment-rx"] * 2)
+    buses = {f"bus{k}": can.Bus(interface=interface, channel=ch, ignore_config=True)
+             for k, ch in enumerate(channels)}
+    rig = Rig.for_setup(buses, {name: NODES for name in buses}, setup)
+    try:
+        assert rig.run_until(lambda: not rig.hw.starting,
+                             setup.bring_up_budget(2 * len(NODES))), rig.hw.drive_status()
+        assert rig.hw.all_ready, rig.hw.drive_status()
+        rig.mgr.add_controller(HoldPD(), emergency=Brake())
+        assert rig.switch("hold") == SwitchResult.SWITCHED
+        assert rig.run_until(lambda: rig.hw.all_enabled, setup.enable_budget()), \
+            rig.hw.drive_status()
+        rig.run(20 * rig.dt)
+        assert rig.mgr.state is ManagerState.OK, rig.hw.drive_status()
+        for segment in group.segments:
+            assert all(d.state402 is State402.OPERATION_ENABLED
+                       for d in segment.drives.values())
+            assert segment.sync_count >= 20
+    finally:
+        rig.close()
+        for bus in buses.values():
+            bus.shutdown()
+    group.check()
+
+
+def _wait(predicate, what: str) -> None:
+    deadline = time.monotonic() + VIRTUAL.detect_budget()
+    while not predicate():
+        assert time.monotonic() < deadline, what
+        time.sleep(RX_IDLE)
+
+
+def _send(bus: can.BusABC, cob_id: int, data: bytes) -> None:
+    bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+
+
+def _sdo_write(bus: can.BusABC, node: int, index: int, sub: int, data: bytes) -> None:
+    """An expedited download of 1-4 bytes, answered (0x60) within the detection budget."""
+    command = 0x23 | (4 - len(data)) << 2
+    _send(bus, cia301.SDO_RX + node,
+          struct.pack("<BHB", command, index, sub) + data.ljust(4, b"\0"))
+    deadline = time.monotonic() + VIRTUAL.detect_budget()
+    while time.monotonic() < deadline:
+        msg = bus.recv(0.05)
+        if msg is not None and msg.arbitration_id == cia301.SDO_TX + node:
+            assert msg.data[0] == 0x60, f"SDO write 0x{index:04X} aborted: {bytes(msg.data)}"
+            return
+    raise AssertionError(f"no SDO answer from node {node} on {bus.channel_info}")
+
+
+def test_a_lost_master_heartbeat_is_seen_on_a_bus_that_is_otherwise_silent(group_on):
+    """The consumer judges a loss only once every frame that arrived before its deadline
+    was handled; on a silent bus only the group's idle wake-ups can say so."""
+    group, channels = group_on("inproc")
+    drive = group.segments[1].drives[1]
+    master = can.Bus(interface="inproc", channel=channels[1], ignore_config=True)
+    try:
+        consumer_ms = 2 * VIRTUAL.heartbeat_ms
+        _sdo_write(master, 1, 0x1016, 1, struct.pack("<I", 100 << 16 | consumer_ms))
+        _send(master, cia301.HEARTBEAT + 100, bytes([cia301.NmtState.OPERATIONAL]))
+        lost_by = time.monotonic() + consumer_ms / 1000 + VIRTUAL.detect_budget()
+        while not drive.error_register & COMMUNICATION_ERROR and time.monotonic() < lost_by:
+            time.sleep(RX_IDLE)
+        assert drive.error_register & COMMUNICATION_ERROR, drive.status_line()
+        # the drive on the other bus never saw the master: nothing to lose
+        assert not group.segments[0].drives[1].error_register & COMMUNICATION_ERROR
+    finally:
+        master.shutdown()
+    group.check()
+
+
+def test_a_failed_bus_is_recorded_in_its_segment_and_the_others_are_still_served(group_on):
+    group, channels = group_on("inproc")
+    failed, served = group.segments
+    failed.bus.shutdown()  # its interface goes away under the running group
+    master = can.Bus(interface="inproc", channel=channels[1], ignore_config=True)
+    try:
+        _wait(lambda: failed.errors, "the failure recorded")
+        assert isinstance(failed.errors[0], can.CanOperationError)
+        before, start, sent = len(failed.errors), time.monotonic(), 0
+        while time.monotonic() - start < 10 * RX_IDLE:  # a flood on the served bus
+            _send(master, cia301.NMT, bytes([cia301.NmtCommand.STOP, 99]))  # no such node
+            sent += 1
+            time.sleep(0.001)
+        _sdo_write(master, 2, 0x6060, 0, bytes([8]))  # and it still answers
+        assert served.drives[2].od_value(0x6060) == 8
+        _wait(lambda: served.nmt_count == sent, "the flood handled")
+        _wait(lambda: len(failed.errors) > before, "the failed bus read again")
+        elapsed = time.monotonic() - start
+        # read again every RX_IDLE, not once per frame on the other bus
+        assert len(failed.errors) - before <= elapsed / RX_IDLE + 2, (sent, elapsed)
+    finally:
+        master.shutdown()
+    group.stop()
+    assert not served.errors
+    failed.errors.clear()  # expected: the test took its interface away
+    group.check()
+
+
+def test_a_burst_longer_than_one_read_is_handled_without_more_traffic():
+    """RX_BATCH frames per read: the rest of a burst must not wait for the next frame."""
+    channel = f"group-{uuid.uuid4().hex[:8]}"
+    segment = SimulatedSegment.open(channel, "inproc", NODES, sync_period=VIRTUAL.dt)
+    sender = can.Bus(interface="inproc", channel=channel, ignore_config=True)
+    group = SegmentGroup([segment])
+    count = 3 * RX_BATCH + 5
+    try:
+        for _ in range(count):  # NMT to a node that is not there: counted, nothing else
+            _send(sender, cia301.NMT, bytes([cia301.NmtCommand.STOP, 99]))
+        group.start()
+        _wait(lambda: segment.nmt_count == count, f"{count} NMT frames handled")
+    finally:
+        group.stop()
+        sender.shutdown()
+    group.check()
+
+
+def test_an_empty_group_is_refused():
+    with pytest.raises(ValueError, match="at least one segment"):
+        SegmentGroup([])
