@@ -53,8 +53,20 @@ def wait_for(predicate, timeout: float, what: str) -> None:
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def output(p: subprocess.Popen) -> str:
+    """What a process started by ``processes`` has written so far (stdout and stderr)."""
+    return LOGS[p].read_text(errors="replace")
+
+
+#: each started process's log file: a file, not a pipe, so a process never blocks on a full
+#: pipe nobody reads, and its log survives for the failure report
+LOGS: dict[subprocess.Popen, Path] = {}
+
+
 @pytest.fixture
 def processes(tmp_path):
+    """Starts ``rocoma-can`` commands; stops them at the end (SIGTERM, then kill) and prints
+    the tail of each one's log, which pytest shows when the test failed."""
     procs: list[subprocess.Popen] = []
 
     def start(*args: str) -> subprocess.Popen:
@@ -63,8 +75,11 @@ def processes(tmp_path):
             # system calls per frame, which the single-CPU guest pays ~0.5 ms each for (the
             # fast suite tests the flight recorder)
             args = (*args, "--no-flight")
-        p = subprocess.Popen([str(BIN), *args], stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, text=True)
+        log = tmp_path / f"{len(procs)}-{args[0]}.log"
+        with log.open("w") as out:
+            p = subprocess.Popen([str(BIN), *args], stdout=out, stderr=subprocess.STDOUT,
+                                 text=True)
+        LOGS[p] = log
         procs.append(p)
         return p
     yield start
@@ -77,6 +92,10 @@ def processes(tmp_path):
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait(5)
+    for p in procs:
+        print(f"--- {' '.join(map(str, p.args[1:]))} (exit {p.returncode}), "
+              f"last lines of its log:\n{output(p)[-6000:]}")
+        del LOGS[p]
 
 
 def test_manager_sim_and_cli_as_three_processes(processes, frame_recorder, bus_factory):
@@ -137,9 +156,9 @@ def test_manager_sim_and_cli_as_three_processes(processes, frame_recorder, bus_f
         time.sleep(5)
         manager.kill()
         raise AssertionError("rocoma-can run did not exit within 30 s of SIGTERM:\n"
-                             + manager.communicate(timeout=30)[0][-6000:]) from None
+                             + output(manager)[-6000:]) from None
     assert manager.returncode == 0
-    out = manager.stdout.read()
+    out = output(manager)
     assert "stopped (signal SIGTERM)" in out, out
     time.sleep(0.5)
     frames = rec.frames(since=mark)
