@@ -7,20 +7,30 @@ tolerances leave room for a loaded machine.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import yaml
-from fixtures.driver_rig import Rig
+from fixtures.driver_rig import DEFAULT_JOINT, VIRTUAL, Can, Rig, pd_settle, position_settle
 
 from rocoma_can import ManagerState, SwitchResult, TimingSupervision
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.cia402 import QUICK_STOP_DECELERATION, State402
 from rocoma_can.drivers.joints import JointMode
 from rocoma_can.plugins import add_to_manager
 
 NODES = tuple(range(1, 7))
 DT = 0.005
-START_TIMEOUT = 15.0
-SETTLE = 5.0  # bound on waits for a motion to settle (seconds of wall time)
+# 2 cores shared with other test runs: the simulator's and the loop's threads can stall for a
+# few hundred ms, which the default supervision (TPDOs 5 cycles, heartbeats 250 ms) rightly
+# calls lost drives or a dead master. These tests are about the controllers (the driver's
+# own tests keep the defaults), so supervision gets ~1 s; the waits are this setup's budgets.
+SETUP = Can("virtual", NODES, DT, (4.0, 0.3, 0.01, 0.0), heartbeat_ms=100,
+            drive_heartbeat_ms=100, tpdo_timeout_cycles=200, timeouts=VIRTUAL.timeouts,
+            heartbeat_timeout_factor=10.0, consumer_factor=10.0)
+# the PD's settling (kd 0.3) and the drive's own loops', whichever is slower
+SETTLE_TIME = max(pd_settle(0.3), position_settle())
+SETTLE = SETUP.motion_budget(SETTLE_TIME)
 
 # Gains for the simulated joints (0.01 kg m², 1 Nm rated torque): ω = 20 rad/s, ζ = 0.75.
 CONFIG = yaml.safe_load("""
@@ -54,27 +64,25 @@ controllers:
                                                  amplitude: 0.3, frequency: 0.5}}
     emergency: damp
 """)
+MOVE_DURATION = next(c["params"]["duration"] for c in CONFIG["controllers"] if c["name"] == "move")
 
 
 @pytest.fixture
 def rig(virtual_channel, sim_segment_factory, bus_factory):
     segment = sim_segment_factory(NODES, channel=virtual_channel)
-    # 2 cores shared with other test runs: the simulator's and the loop's threads can stall
-    # for a few hundred ms, which the default supervision (TPDOs 5 cycles, heartbeats
-    # 250 ms) rightly calls lost drives or a dead master. These tests are about the
-    # controllers (the driver's own tests keep the defaults), so supervision gets ~1 s,
-    # the manager's wall-time supervision too (a preempted initialize_fast over its 2.5 ms
-    # budget sent an e-stop straight to FAILPROOF once in CI).
+    # the manager's wall-time supervision ~1 s too (a preempted initialize_fast over its
+    # 2.5 ms budget sent an e-stop straight to FAILPROOF once in CI)
     second = 1.0 / DT
-    r = Rig(bus_factory(virtual_channel), NODES, DT, tpdo_timeout_cycles=200,
-            heartbeat_timeout_factor=10.0, consumer_factor=10.0,
-            timing=TimingSupervision(advance=second, initialize_fast=second, hang=second))
+    r = Rig.for_setup(bus_factory(virtual_channel), NODES, SETUP,
+                      timing=TimingSupervision(advance=second, initialize_fast=second,
+                                               hang=second))
     r.segment = segment
     r.events = []  # every manager event, so a failing assertion can show the causes
     r.mgr.subscribe(r.events.append)
     try:
         add_to_manager(r.mgr, CONFIG)
-        assert r.run_until(lambda: not r.hw.starting, START_TIMEOUT), r.hw.drive_status()
+        assert r.run_until(lambda: not r.hw.starting, SETUP.bring_up_budget(len(NODES))), \
+            r.hw.drive_status()
         assert r.hw.all_ready, r.hw.drive_status()
         yield r
     finally:
@@ -86,7 +94,8 @@ def rig(virtual_channel, sim_segment_factory, bus_factory):
 
 def switch_and_enable(rig: Rig, name: str) -> None:
     assert rig.switch(name) == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: rig.hw.all_enabled, 5.0), rig.hw.drive_status()
+    assert rig.run_until(lambda: rig.hw.all_enabled, SETUP.enable_budget()), \
+        rig.hw.drive_status()
 
 
 def near(values, expected, tolerance: float) -> bool:
@@ -113,7 +122,7 @@ def test_pd_reaches_its_target_then_a_min_jerk_move_takes_over_from_its_referenc
     np.testing.assert_array_equal(move.start, pd.reference)  # not the measured pose
     end = [-0.2, -0.1, 0.0, 0.1, 0.2, 0.3]
     assert rig.run_until(lambda: move.finished and near(rig.hw.state.position, end, 0.01),
-                         SETTLE), rig.hw.state.position
+                         SETUP.motion_budget(MOVE_DURATION + SETTLE_TIME)), rig.hw.state.position
     assert rig.mgr.state == ManagerState.OK
     assert drive_states(rig) == {State402.OPERATION_ENABLED}
     assert all(d.mode_display == JointMode.CSP for d in rig.segment.drives.values())
@@ -134,8 +143,10 @@ def test_tuple_drives_cst_legs_and_csp_arm_in_the_same_cycle(rig):
 
 def wave_at_speed(rig: Rig, name: str) -> None:
     switch_and_enable(rig, name)
-    assert rig.run_until(lambda: np.abs(rig.hw.state.velocity).min() > 1.0, 5.0), \
-        rig.hw.state.velocity
+    # the wave blends in over 0.5 s, then every joint passes its peak speed (a 2 pi f =
+    # pi rad/s) within half a period
+    assert rig.run_until(lambda: np.abs(rig.hw.state.velocity).min() > 1.0,
+                         SETUP.motion_budget(0.5 + 0.5)), rig.hw.state.velocity
 
 
 def test_estop_at_speed_damps_the_joints_then_switches_torque_off(rig):
@@ -145,9 +156,15 @@ def test_estop_at_speed_damps_the_joints_then_switches_torque_off(rig):
     damp = controller(rig, "damp")
     assert not damp.torque_is_off
     assert set(rig.hw.command.mode) == {JointMode.CST}
-    assert rig.run_until(lambda: damp.torque_is_off, 5.0), rig.hw.state.velocity
+    # damping 0.1 + viscous friction: the speed decays at (0.1 + viscous) / inertia per
+    # second from at most pi rad/s to 0.05 rad/s, which it then keeps for 0.1 s
+    decay = (0.1 + DEFAULT_JOINT.viscous) / DEFAULT_JOINT.inertia
+    assert rig.run_until(lambda: damp.torque_is_off,
+                         SETUP.motion_budget(math.log(math.pi / 0.05) / decay + 0.1)), \
+        rig.hw.state.velocity
     assert np.abs(rig.hw.state.velocity).max() < 0.1
-    assert rig.run_until(lambda: drive_states(rig) == {State402.SWITCH_ON_DISABLED}, 2.0)
+    assert rig.run_until(lambda: drive_states(rig) == {State402.SWITCH_ON_DISABLED},
+                         SETUP.cycles_budget(10))
     assert rig.mgr.state == ManagerState.EMERGENCY  # a commanded torque-off is no fault
 
 
@@ -156,8 +173,10 @@ def test_estop_at_speed_with_quick_stop_uses_the_drives_ramp(rig):
     rig.mgr.emergency_stop("test")
     assert rig.cycle() == ManagerState.EMERGENCY
     assert set(rig.hw.command.mode) == {JointMode.QUICK_STOP}
+    drive = rig.segment.drives[NODES[0]]  # the quick-stop ramp: 0x6085 from pi rad/s
+    decel = drive.od_value(QUICK_STOP_DECELERATION) / drive.increments_per_rad
     assert rig.run_until(lambda: np.abs([d.velocity_rad_s for d in rig.segment.drives.values()])
-                         .max() < 1e-3, 5.0)
+                         .max() < 1e-3, SETUP.motion_budget(math.pi / decel + SETTLE_TIME))
     assert drive_states(rig) <= {State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED}
     assert rig.mgr.state == ManagerState.EMERGENCY
 

@@ -7,7 +7,15 @@ import struct
 from pathlib import Path
 
 import pytest
-from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Rig, Sine
+from fixtures.driver_rig import (
+    INCREMENTS_PER_REV,
+    RATED_TORQUE_NM,
+    VIRTUAL,
+    Rig,
+    Sine,
+    pd_settle,
+    position_settle,
+)
 
 from rocoma_can import Controller, ManagerState, SwitchResult
 from rocoma_can.drivers import cia402
@@ -25,6 +33,12 @@ from rocoma_can.drivers.modes import (
 
 EDS = Path(__file__).parent / "fixtures" / "eds"
 ARM = str(EDS / "arm_ip_pp_vl.eds")
+
+
+def pp_step_time(drive, distance: float) -> float:
+    """PP moves at most at 0x6081 (profile velocity), then the position loop settles."""
+    speed = drive.od_value(cia402.PROFILE_VELOCITY) / drive.increments_per_rad
+    return abs(distance) / speed + position_settle()
 
 
 # --- units -------------------------------------------------------------------------------------
@@ -133,14 +147,16 @@ def test_ip_carries_csp_commands_to_the_interpolation_record(mode_rig):
     (rpdo,) = rig.hw.layouts[0].rpdos
     assert [(e.index, e.subindex) for e in rpdo.entries] == [
         (cia402.CONTROLWORD, 0), (cia402.MODES_OF_OPERATION, 0), (cia402.INTERPOLATION_DATA, 1)]
-    _enable(rig, Sine("sine", JointMode.CSP, amplitude=0.2, frequency=1.0))
+    sine = Sine("sine", JointMode.CSP, amplitude=0.2, frequency=1.0)
+    _enable(rig, sine)
     mark = recorder.mark()
     rig.run(0.5)
     assert drive.mode_display == DriveMode.IP and drive.statusword & SW_SETPOINT_ACK
     frames = recorder.wait_for_count(10, VIRTUAL.stall, rpdo.cob_id, since=mark)
     controlword, mode = struct.unpack_from("<Hb", frames[-1].data)
     assert controlword == 0x1F and mode == DriveMode.IP  # enable operation + interpolation
-    assert rig.run_until(lambda: abs(drive.position_rad) > 0.1, 2.0)  # it follows the sine
+    # it follows the sine: half the amplitude within its first period
+    assert rig.run_until(lambda: abs(drive.position_rad) > 0.1, VIRTUAL.motion_budget(1 / sine.f))
     rig.mgr.emergency_stop("test")
     rig.run(5 * rig.dt)
     assert rig.states[-1] == ManagerState.FAILPROOF
@@ -154,7 +170,8 @@ def test_pp_reaches_a_step_through_the_set_point_handshake(mode_rig):
     mark = recorder.mark()
     start = drive.position_rad
     assert rig.run_until(lambda: abs(drive.position_rad - start - 0.3) < 0.01
-                         and drive.statusword & cia402.SW_TARGET_REACHED, 5.0), \
+                         and drive.statusword & cia402.SW_TARGET_REACHED,
+                         VIRTUAL.motion_budget(0.1 + pp_step_time(drive, 0.3))), \
         drive.status_line()
     rpdo = rig.hw.layouts[0].rpdos[0].cob_id
     words = [struct.unpack_from("<H", f.data)[0] for f in recorder.frames(rpdo, since=mark)]
@@ -194,10 +211,14 @@ def test_pp_after_another_mode_starts_a_new_set_point_never_the_old_one(mode_rig
     per_rad = drive.increments_per_rad
     _enable(rig, Step("out", offset=0.3))
     assert rig.run_until(lambda: drive.statusword & cia402.SW_TARGET_REACHED
-                         and drive.position_rad > 0.25, 5.0), drive.status_line()
-    rig.mgr.add_controller(HoldPD("home", target=0.0))  # CST back to 0
+                         and drive.position_rad > 0.25,
+                         VIRTUAL.motion_budget(0.1 + pp_step_time(drive, 0.3))), \
+        drive.status_line()
+    home = HoldPD("home", target=0.0)  # CST back to 0
+    rig.mgr.add_controller(home)
     assert rig.switch("home") == SwitchResult.SWITCHED
-    assert rig.run_until(lambda: abs(drive.position_rad) < 0.05, 5.0), drive.status_line()
+    assert rig.run_until(lambda: abs(drive.position_rad) < 0.05,
+                         VIRTUAL.motion_budget(pd_settle(home.kd))), drive.status_line()
     rig.mgr.add_controller(Step("stay", offset=0.0))  # PP again, holding where it is
     mark = recorder.mark()
     assert rig.switch("stay") == SwitchResult.SWITCHED

@@ -16,12 +16,17 @@ from rocoma_can.cli import main
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.homing import CW_HOMING_START, HOMING_MODE
 from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.sim.state_machine import HOMING_TIME
 from rocoma_can.errors import HomingFailed
 from rocoma_can.runtime import Runtime
 from rocoma_can.runtime.config import validate
 from rocoma_can.runtime.demo import demo_config
 
 EDS = Path(__file__).parent / "fixtures" / "eds"
+# a homing: the drive enabled in mode 6, then the simulated drive's homing time
+HOMING = VIRTUAL.enable_budget() + VIRTUAL.motion_budget(HOMING_TIME)
+# a homing that ends without running (an e-stop, a refusal): a few cycles
+ENDED = VIRTUAL.cycles_budget(10)
 
 
 @pytest.fixture
@@ -49,7 +54,7 @@ def test_homing_one_drive_while_the_other_keeps_tracking(rig):
     assert j1.position_rad != 0.0
     mark = rig.recorder.mark()
     future = rig.hw.home("j1")
-    _run_until_done(rig, future, 5.0)
+    _run_until_done(rig, future, HOMING)
     assert future.result() == "j1: homed"
     assert abs(j1.position_increments) < 5000  # its reported position is the home offset
     # the homed drive got mode 6 and "homing operation start"; the other its CSP targets
@@ -69,7 +74,7 @@ def test_an_estop_during_homing_ends_it_as_failed(rig):
     future = rig.hw.home("j1")
     rig.run(3 * rig.dt)
     rig.mgr.emergency_stop("test")
-    _run_until_done(rig, future, 2.0)
+    _run_until_done(rig, future, ENDED)
     with pytest.raises(HomingFailed, match="j1: the manager left OK"):
         future.result()
     assert rig.hw.drive_status()[0].homing.startswith("failed")
@@ -132,7 +137,7 @@ def test_a_queued_request_does_not_survive_an_estop(rig):
     mark = rig.recorder.mark()
     future = rig.hw.home("j1")
     rig.mgr.emergency_stop("test")
-    _run_until_done(rig, future, 2.0)
+    _run_until_done(rig, future, ENDED)
     with pytest.raises(HomingFailed, match="before homing started"):
         future.result()
     rig.run(10 * rig.dt)
@@ -142,7 +147,7 @@ def test_a_queued_request_does_not_survive_an_estop(rig):
 
 def test_status_shows_a_new_request_not_the_last_result(rig):
     first = rig.hw.home("j1")
-    _run_until_done(rig, first, 5.0)
+    _run_until_done(rig, first, HOMING)
     assert rig.hw.drive_status()[0].homing == "homed"
     rig.mgr.add_controller(Sine("again", JointMode.CSP, amplitude=0.1))
     assert rig.switch("again") == SwitchResult.SWITCHED
@@ -165,7 +170,7 @@ def test_a_homing_error_or_timeout_ends_as_failed(method, timeout, why, sim_segm
         r.mgr.add_controller(Sine("sine", JointMode.CSP, amplitude=0.1))
         assert r.switch("sine") == SwitchResult.SWITCHED
         future = r.hw.home("j1")
-        _run_until_done(r, future, 5.0)
+        _run_until_done(r, future, HOMING)
         with pytest.raises(HomingFailed, match=why):
             future.result()
     finally:
@@ -201,7 +206,7 @@ def test_a_home_right_after_a_switch_is_taken(rig):
     assert rig.mgr.clear_emergency_stop() or not rig.mgr.estop_latched
     rig.mgr.add_controller(Sine("again", JointMode.CSP, amplitude=0.1))
     switched = rig.mgr.request_switch("again")
-    assert switched.result(timeout=5.0) == SwitchResult.SWITCHED  # no cycle ran meanwhile
+    assert switched.result(timeout=VIRTUAL.stall) == SwitchResult.SWITCHED  # no cycle ran
     future = rig.hw.home("j1")
-    _run_until_done(rig, future, 5.0)
+    _run_until_done(rig, future, HOMING)
     assert future.result() == "j1: homed"

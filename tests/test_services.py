@@ -10,6 +10,7 @@ import can
 import pytest
 from can.interfaces.virtual import VirtualBus
 from fixtures.joint_plant import JointPlant
+from fixtures.sim import STALL, within
 
 from rocoma_can import ControllerManager, add_to_manager
 from rocoma_can.controllers.torque_off import TorqueOff
@@ -20,6 +21,7 @@ from rocoma_can.runtime.objects import ABORT_NOT_FOUND, ABORT_REFUSED
 
 NODE = 100
 ESTOP_COB = 0x0A0
+STATUS_PERIOD = 0.05  # the node's state frame repeats this often
 CONTROLLERS = {
     "controllers": [
         {"name": "pd", "plugin": "pd", "emergency": "damp", "params": {"mode": "CSP"}},
@@ -40,7 +42,7 @@ class Rig:
         add_to_manager(self.manager, CONTROLLERS)
         self.recovered = 0
         self.node = ManagerNode(self.manager, NODE, bus_factory(), estop_cob_id=ESTOP_COB,
-                                status_period=0.05, recover=self._recover).start()
+                                status_period=STATUS_PERIOD, recover=self._recover).start()
         self.client = ManagerClient(bus_factory(), NODE, timeout=1.0)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="test-cycle")
@@ -54,7 +56,7 @@ class Rig:
             self.manager.update()
             self.plant.step()
 
-    def wait_state(self, state: int, timeout: float = 2.0) -> bool:
+    def wait_state(self, state: int, timeout: float = STALL) -> bool:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if int(self.manager.state) == state:
@@ -62,7 +64,7 @@ class Rig:
             time.sleep(0.005)
         return False
 
-    def wait_cause(self, text: str, timeout: float = 2.0) -> str:
+    def wait_cause(self, text: str, timeout: float = STALL) -> str:
         """0x2124 is set from the manager's event thread, just after the state changes."""
         deadline = time.monotonic() + timeout
         while True:
@@ -137,17 +139,18 @@ def test_estop_frame_from_any_node_and_broadcasts(rig, frame_recorder):
     rec = frame_recorder()
     assert rig.client.switch("pd") == 0
     tpdo = 0x180 + NODE
-    rec.wait_for(lambda f: f.cob_id == tpdo and f.data == bytes([2, 1]), timeout=2.0)
+    rec.wait_for(lambda f: f.cob_id == tpdo and f.data == bytes([2, 1]), timeout=STALL)
     mark = rec.mark()
     raw = rig.client.bus  # any bus handle on the segment: a third node sending one frame
     raw.send(can.Message(arbitration_id=ESTOP_COB, data=b"", is_extended_id=False))
     assert rig.wait_state(1)
     assert rig.wait_cause("CAN e-stop") == f"CAN e-stop from 0x{ESTOP_COB:03X}"
-    emcy = rec.wait_for(lambda f: f.cob_id == 0x80 + NODE, timeout=2.0, since=mark)
+    emcy = rec.wait_for(lambda f: f.cob_id == 0x80 + NODE, timeout=STALL, since=mark)
     assert emcy.data[:4] == bytes([0x00, 0x90, 0x01, 1])
-    rec.wait_for(lambda f: f.cob_id == tpdo and f.data == bytes([1, 0]), timeout=2.0, since=mark)
+    rec.wait_for(lambda f: f.cob_id == tpdo and f.data == bytes([1, 0]), timeout=STALL, since=mark)
     # periodic repeats of the state frame
-    rec.wait_for_count(3, 2.0, tpdo, since=mark, where=lambda f: f.data == bytes([1, 0]))
+    rec.wait_for_count(3, within(3 * STATUS_PERIOD), tpdo, since=mark,
+                       where=lambda f: f.data == bytes([1, 0]))
 
 
 def test_estop_cob_id_can_be_moved_by_sdo(rig):
@@ -165,7 +168,7 @@ def test_estop_cob_id_can_be_moved_by_sdo(rig):
 def test_clear_sends_emcy_reset(rig, frame_recorder):
     rec = frame_recorder()
     rig.client.write(0x2112, 1)
-    frame = rec.wait_for(lambda f: f.cob_id == 0x80 + NODE, timeout=2.0)
+    frame = rec.wait_for(lambda f: f.cob_id == 0x80 + NODE, timeout=STALL)
     assert frame.data == bytes(8)
 
 
