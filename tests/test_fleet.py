@@ -116,6 +116,10 @@ def test_status_switch_estop_and_state_publications_in_order(
         assert status["zenoh"]["prefix"] == prefix and status["cycle"]["cycles"] > 0
 
         assert ask(z, f"{prefix}/clear") == {"ok": True, "state": "FAILPROOF"}
+        hostile = ask(z, f"{prefix}/switch", "x" * 100_000)  # echoed back shortened
+        assert hostile["result"] == "NOT_FOUND", hostile["result"]
+        assert "(100000 characters)" in hostile["error"] and len(hostile["error"]) < 200, \
+            hostile["error"][:300]
         assert ask(z, f"{prefix}/switch", "pd") == {"result": "SWITCHED"}
         assert rt.manager.state is ManagerState.OK and rt.manager.active_controller_name == "pd"
         wait_for(lambda: rt.hardware.all_enabled, "the drives enabled")

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import ConfigError, NoAnswer, Refused, RocomaError
 from . import fleet_client
 from .client import ManagerClient
+from .exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from .fleet import FleetConfig, FleetError
 from .fleet import parse as parse_fleet
 from .live import cycle_text
@@ -40,7 +41,6 @@ from .objects import (
 if TYPE_CHECKING:  # the client verbs do not import the config (a fast start)
     from .config import RuntimeConfig
 
-OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
 
 
 def _err(message: str) -> None:

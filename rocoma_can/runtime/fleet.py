@@ -403,8 +403,8 @@ class FleetBridge:
         if name.isdigit() and 1 <= int(name) <= len(names):  # a number from `list`
             name = names[int(name) - 1]
         if name not in names:
-            reply("NOT_FOUND", f"no controller {name!r} (controllers: "
-                               f"{', '.join(m.available_controllers())})")
+            reply("NOT_FOUND", f"no controller {_shown(name)} (controllers: "
+                               f"{', '.join(names)})")
             return
         blocked = m.switch_blocked()
         if blocked is not None:
@@ -434,6 +434,17 @@ class FleetBridge:
         elif self.deadman_seen:
             self.deadman_seen = False
             self.manager.emergency_stop(cause=f"Zenoh dead-man: {sample.key_expr} vanished")
+
+
+#: a query's name is echoed back at most this long: a payload of any size may come in
+SHOWN_NAME = 64
+
+
+def _shown(name: str) -> str:
+    """``name`` quoted for an answer, cut to SHOWN_NAME characters with its length."""
+    if len(name) <= SHOWN_NAME:
+        return repr(name)
+    return f"{name[:SHOWN_NAME]!r}... ({len(name)} characters)"
 
 
 def _respond(query: Any, key: str, answer: dict[str, Any]) -> None:

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from ..errors import NoAnswer, RocomaError
+from .exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from .fleet import (
     STOPS,
     FleetError,
@@ -20,7 +21,6 @@ from .fleet import (
     open_session,
 )
 
-OK, FAILED, USAGE, NO_ANSWER = 0, 1, 2, 3
 #: one round of a query; repeated until the caller's timeout
 ROUND = 0.5
 

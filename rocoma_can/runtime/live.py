@@ -18,12 +18,12 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
+from .exit_codes import OK, USAGE
 
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
 
 
-OK, USAGE = 0, 2
 #: bring-up phases in order (drivers/bringup.Phase); READY is the end of the bar
 PHASES = ("WAIT_BOOT", "CONFIGURING", "STARTING", "RESETTING", "PROBING", "READY")
 STATE_STYLES = {"OK": "bold white on green", "EMERGENCY": "bold black on dark_orange",

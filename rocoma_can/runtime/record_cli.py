@@ -12,10 +12,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .exit_codes import FAILED, OK, USAGE
+
 if TYPE_CHECKING:
     from .can_log import FrameLog
 
-OK, FAILED, USAGE = 0, 1, 2
 
 
 def _say(text: str) -> None:

@@ -1,0 +1,8 @@
+"""The exit codes of every ``rocoma-can`` command: one set, since scripts and the fleet
+client's ``--zenoh`` path must mean the same thing by each (README: "Exit codes")."""
+from __future__ import annotations
+
+OK = 0         # done (a switch: SWITCHED or RUNNING)
+FAILED = 1     # the manager refused, or the operation failed
+USAGE = 2      # bad arguments or configuration (argparse exits with 2 too)
+NO_ANSWER = 3  # nobody answered within the timeout
