@@ -146,15 +146,15 @@ def test_a_lost_master_heartbeat_is_seen_on_a_bus_that_is_otherwise_silent(group
     group.check()
 
 
-def test_a_failed_bus_is_recorded_in_its_segment_and_the_others_are_still_served(group_on):
+def test_a_failed_bus_is_counted_in_its_segment_and_the_others_are_still_served(group_on):
     group, channels = group_on("inproc")
     failed, served = group.segments
     failed.bus.shutdown()  # its interface goes away under the running group
     master = can.Bus(interface="inproc", channel=channels[1], ignore_config=True)
     try:
-        _wait(lambda: failed.errors, "the failure recorded")
-        assert isinstance(failed.errors[0], can.CanOperationError)
-        before, start, sent = len(failed.errors), time.monotonic(), 0
+        _wait(lambda: failed.bus_errors, "the failure counted")
+        assert isinstance(failed.bus_error, can.CanOperationError)
+        before, start, sent = failed.bus_errors, time.monotonic(), 0
         while time.monotonic() - start < 10 * RX_IDLE:  # a flood on the served bus
             _send(master, cia301.NMT, bytes([cia301.NmtCommand.STOP, 99]))  # no such node
             sent += 1
@@ -162,16 +162,15 @@ def test_a_failed_bus_is_recorded_in_its_segment_and_the_others_are_still_served
         _sdo_write(master, 2, 0x6060, 0, bytes([8]))  # and it still answers
         assert served.drives[2].od_value(0x6060) == 8
         _wait(lambda: served.nmt_count == sent, "the flood handled")
-        _wait(lambda: len(failed.errors) > before, "the failed bus read again")
+        _wait(lambda: failed.bus_errors > before, "the failed bus read again")
         elapsed = time.monotonic() - start
         # read again every RX_IDLE, not once per frame on the other bus
-        assert len(failed.errors) - before <= elapsed / RX_IDLE + 2, (sent, elapsed)
+        assert failed.bus_errors - before <= elapsed / RX_IDLE + 2, (sent, elapsed)
     finally:
         master.shutdown()
     group.stop()
-    assert not served.errors
-    failed.errors.clear()  # expected: the test took its interface away
-    group.check()
+    assert served.bus_errors == 0
+    group.check()  # a bus that failed is not a failure of the simulation
 
 
 def test_a_burst_longer_than_one_read_is_handled_without_more_traffic():

@@ -192,4 +192,9 @@ def run(args: argparse.Namespace) -> int:
     if segment.errors:
         print(f"rocoma-can sim: the simulation failed: {segment.errors[0]!r}", file=sys.stderr)
         return 1
+    if segment.bus_errors:  # the drives were cut off meanwhile: say so, and why
+        print(f"rocoma-can sim: reading {args.interface} {args.channel} failed "
+              f"{segment.bus_errors} time(s) (interface down or gone?); the latest: "
+              f"{segment.bus_error}", file=sys.stderr)
+        return 1
     return 0

@@ -13,7 +13,7 @@ is still seen).
 
 Buses one thread cannot wait on together (python-can's ``virtual`` hands frames over a
 queue per bus) get a receive thread per segment, as a lone segment has. A bus whose
-interface fails is recorded in its own segment's ``errors`` and read again every
+interface fails is counted in its own segment's ``bus_errors`` and read again every
 ``RX_IDLE`` seconds (BusSelector.failed) while the others are served.
 """
 from __future__ import annotations

@@ -125,8 +125,12 @@ class SimulatedSegment:
         self.free_run_period = free_run_period if sync_period is None else None
         self.lock = threading.RLock()
         self.rng = np.random.default_rng(seed)
-        self.errors: list[BaseException] = []
+        self.errors: list[BaseException] = []  # the simulation's own failures (check())
         self.send_errors = 0
+        # reads of the bus that failed (its interface went down or away): the bus's fault,
+        # not the simulation's; read again every RX_IDLE
+        self.bus_errors = 0
+        self.bus_error: BaseException | None = None  # the latest
         self.sync_count = 0  # SYNC and NMT frames handled: tests wait on these
         self.nmt_count = 0
         self._own_bus = own_bus
@@ -273,7 +277,7 @@ class SimulatedSegment:
             batch = reader.read(timeout, RX_BATCH)
         except Exception as exc:  # noqa: BLE001 - a closed or broken bus
             if not self._stopped.is_set():  # stopping closes the bus: not a failure
-                self._record(exc)
+                self._bus_failed(exc)
             batch = []  # a failed interface delivers nothing: consumers may time out
             ok = False
         now = self.clock()
@@ -360,6 +364,13 @@ class SimulatedSegment:
                 fn(*args)
         except Exception as exc:  # noqa: BLE001 - keep the timers running
             self._record(exc)
+
+    def _bus_failed(self, exc: BaseException) -> None:
+        self.bus_errors += 1
+        self.bus_error = exc
+        if self.bus_errors in (1, 10, 100, 1000, 10000):
+            log.warning("simulated segment: reading the bus failed (%d so far), reading "
+                        "again every %.0f ms: %s", self.bus_errors, RX_IDLE * 1000, exc)
 
     def _record(self, exc: BaseException) -> None:
         if len(self.errors) < 100:
