@@ -47,6 +47,8 @@ ENABLE_STEP = tuple(_ENABLE_STEP.get(State402(s), int(cia402.Controlword.DISABLE
 _PROGRESS = {State402.SWITCH_ON_DISABLED: 0, State402.READY_TO_SWITCH_ON: 1,
              State402.SWITCHED_ON: 2}
 PROGRESS = tuple(_PROGRESS.get(State402(s), -1) for s in range(-1, 8))
+#: the steps from switch on disabled to operation enabled, each with the whole timeout
+ENABLE_STEPS = len(_PROGRESS)
 
 Fault = Callable[[int, str, float], None]  # (drive index, cause, now): Supervisor.fault
 

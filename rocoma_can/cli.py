@@ -9,6 +9,8 @@ import logging
 import sys
 from collections.abc import Sequence
 
+from .exit_codes import INTERRUPTED, OK, USAGE
+
 # Modules that contribute sub-commands, in help order.
 COMMAND_MODULES: tuple[str, ...] = (
     "rocoma_can.runtime.demo",
@@ -39,11 +41,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
+        return USAGE
     try:
-        return int(args.func(args) or 0)
+        return int(args.func(args) or OK)
     except KeyboardInterrupt:
-        return 130
+        return INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -12,26 +12,16 @@ import math
 import numpy as np
 import pytest
 import yaml
-from fixtures.driver_rig import DEFAULT_JOINT, VIRTUAL, Can, Rig, pd_settle, position_settle
+from fixtures.driver_rig import VIRTUAL, Can, Rig, pd_settle, position_settle
 
 from rocoma_can import ManagerState, SwitchResult, TimingSupervision
 from rocoma_can.drivers.cia402 import QUICK_STOP_DECELERATION, State402
 from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.sim.dynamics import JointParams
 from rocoma_can.plugins import add_to_manager
 
 NODES = tuple(range(1, 7))
 DT = 0.005
-# 2 cores shared with other test runs: the simulator's and the loop's threads can stall for a
-# few hundred ms, which the default supervision (TPDOs 5 cycles, heartbeats 250 ms) rightly
-# calls lost drives or a dead master. These tests are about the controllers (the driver's
-# own tests keep the defaults), so supervision gets ~1 s; the waits are this setup's budgets.
-SETUP = Can("virtual", NODES, DT, (4.0, 0.3, 0.01, 0.0), heartbeat_ms=100,
-            drive_heartbeat_ms=100, tpdo_timeout_cycles=200, timeouts=VIRTUAL.timeouts,
-            heartbeat_timeout_factor=10.0, consumer_factor=10.0)
-# the PD's settling (kd 0.3) and the drive's own loops', whichever is slower
-SETTLE_TIME = max(pd_settle(0.3), position_settle())
-SETTLE = SETUP.motion_budget(SETTLE_TIME)
-
 # Gains for the simulated joints (0.01 kg m², 1 Nm rated torque): ω = 20 rad/s, ζ = 0.75.
 CONFIG = yaml.safe_load("""
 emergency_controllers:
@@ -64,7 +54,29 @@ controllers:
                                                  amplitude: 0.3, frequency: 0.5}}
     emergency: damp
 """)
-MOVE_DURATION = next(c["params"]["duration"] for c in CONFIG["controllers"] if c["name"] == "move")
+
+
+def _params(name: str) -> dict:
+    return next(c["params"] for section in ("controllers", "emergency_controllers")
+                for c in CONFIG[section] if c["name"] == name)
+
+
+PD, MOVE, WAVE, DAMP = _params("pd"), _params("move"), _params("wave"), _params("damp")
+JOINT = JointParams()  # the simulator's joints
+# Motion times the waits are budgets of (SETUP.motion_budget): the PD ramps its reference to
+# the target at its velocity limit, then settles; the drive's own position loop settles a
+# CSP hold or a trajectory's end; the tuple's legs are the same PD
+SETTLE_TIME = max(PD["target"] / PD["velocity_limit"] + pd_settle(PD["kp"], PD["kd"], JOINT),
+                  position_settle(JOINT))
+# 2 cores shared with other test runs: the simulator's and the loop's threads can stall for a
+# few hundred ms, which the default supervision (TPDOs 5 cycles, heartbeats 250 ms) rightly
+# calls lost drives or a dead master. These tests are about the controllers (the driver's
+# own tests keep the defaults), so supervision gets ~1 s; the waits are this setup's budgets.
+SETUP = Can("virtual", NODES, DT, (PD["kp"], PD["kd"], 0.01, SETTLE_TIME), heartbeat_ms=100,
+            drive_heartbeat_ms=100, tpdo_timeout_cycles=200, timeouts=VIRTUAL.timeouts,
+            joints=JOINT, heartbeat_timeout_factor=10.0, consumer_factor=10.0)
+SETTLE = SETUP.motion_budget(SETTLE_TIME)
+WAVE_SPEED = WAVE["amplitude"] * 2 * math.pi * WAVE["frequency"]  # its peak, rad/s
 
 
 @pytest.fixture
@@ -122,7 +134,7 @@ def test_pd_reaches_its_target_then_a_min_jerk_move_takes_over_from_its_referenc
     np.testing.assert_array_equal(move.start, pd.reference)  # not the measured pose
     end = [-0.2, -0.1, 0.0, 0.1, 0.2, 0.3]
     assert rig.run_until(lambda: move.finished and near(rig.hw.state.position, end, 0.01),
-                         SETUP.motion_budget(MOVE_DURATION + SETTLE_TIME)), rig.hw.state.position
+                         SETUP.motion_budget(MOVE["duration"] + SETTLE_TIME)), rig.hw.state.position
     assert rig.mgr.state == ManagerState.OK
     assert drive_states(rig) == {State402.OPERATION_ENABLED}
     assert all(d.mode_display == JointMode.CSP for d in rig.segment.drives.values())
@@ -143,10 +155,11 @@ def test_tuple_drives_cst_legs_and_csp_arm_in_the_same_cycle(rig):
 
 def wave_at_speed(rig: Rig, name: str) -> None:
     switch_and_enable(rig, name)
-    # the wave blends in over 0.5 s, then every joint passes its peak speed (a 2 pi f =
-    # pi rad/s) within half a period
+    # the wave blends in, then every joint passes its peak speed within half a period
+    assert WAVE_SPEED > 1.0
     assert rig.run_until(lambda: np.abs(rig.hw.state.velocity).min() > 1.0,
-                         SETUP.motion_budget(0.5 + 0.5)), rig.hw.state.velocity
+                         SETUP.motion_budget(WAVE["blend_time"] + 0.5 / WAVE["frequency"])), \
+        rig.hw.state.velocity
 
 
 def test_estop_at_speed_damps_the_joints_then_switches_torque_off(rig):
@@ -156,11 +169,11 @@ def test_estop_at_speed_damps_the_joints_then_switches_torque_off(rig):
     damp = controller(rig, "damp")
     assert not damp.torque_is_off
     assert set(rig.hw.command.mode) == {JointMode.CST}
-    # damping 0.1 + viscous friction: the speed decays at (0.1 + viscous) / inertia per
-    # second from at most pi rad/s to 0.05 rad/s, which it then keeps for 0.1 s
-    decay = (0.1 + DEFAULT_JOINT.viscous) / DEFAULT_JOINT.inertia
-    assert rig.run_until(lambda: damp.torque_is_off,
-                         SETUP.motion_budget(math.log(math.pi / 0.05) / decay + 0.1)), \
+    # damping + viscous friction: the speed decays at (damping + b) / J per second from at
+    # most the wave's peak to the still velocity, which it then keeps for the still time
+    decay = (DAMP["damping"] + JOINT.viscous) / JOINT.inertia
+    damped = math.log(WAVE_SPEED / DAMP["still_velocity"]) / decay + DAMP["still_time"]
+    assert rig.run_until(lambda: damp.torque_is_off, SETUP.motion_budget(damped)), \
         rig.hw.state.velocity
     assert np.abs(rig.hw.state.velocity).max() < 0.1
     assert rig.run_until(lambda: drive_states(rig) == {State402.SWITCH_ON_DISABLED},
@@ -173,10 +186,11 @@ def test_estop_at_speed_with_quick_stop_uses_the_drives_ramp(rig):
     rig.mgr.emergency_stop("test")
     assert rig.cycle() == ManagerState.EMERGENCY
     assert set(rig.hw.command.mode) == {JointMode.QUICK_STOP}
-    drive = rig.segment.drives[NODES[0]]  # the quick-stop ramp: 0x6085 from pi rad/s
+    drive = rig.segment.drives[NODES[0]]  # the quick-stop ramp (0x6085) from the peak
     decel = drive.od_value(QUICK_STOP_DECELERATION) / drive.increments_per_rad
+    ramp = WAVE_SPEED / decel + position_settle(JOINT)  # then the velocity loop's tail
     assert rig.run_until(lambda: np.abs([d.velocity_rad_s for d in rig.segment.drives.values()])
-                         .max() < 1e-3, SETUP.motion_budget(math.pi / decel + SETTLE_TIME))
+                         .max() < 1e-3, SETUP.motion_budget(ramp))
     assert drive_states(rig) <= {State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED}
     assert rig.mgr.state == ManagerState.EMERGENCY
 

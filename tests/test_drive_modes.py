@@ -36,9 +36,10 @@ ARM = str(EDS / "arm_ip_pp_vl.eds")
 
 
 def pp_step_time(drive, distance: float) -> float:
-    """PP moves at most at 0x6081 (profile velocity), then the position loop settles."""
+    """PP moves at most at 0x6081 (profile velocity), then the drive's position loop
+    settles (into PP's target window, 100 increments)."""
     speed = drive.od_value(cia402.PROFILE_VELOCITY) / drive.increments_per_rad
-    return abs(distance) / speed + position_settle()
+    return abs(distance) / speed + position_settle(VIRTUAL.joint)
 
 
 # --- units -------------------------------------------------------------------------------------
@@ -166,12 +167,13 @@ def test_ip_carries_csp_commands_to_the_interpolation_record(mode_rig):
 
 def test_pp_reaches_a_step_through_the_set_point_handshake(mode_rig):
     rig, drive, recorder = mode_rig(ARM, ("pp",))
-    _enable(rig, Step("step", offset=0.3))
+    step = Step("step", offset=0.3)
+    _enable(rig, step)
     mark = recorder.mark()
     start = drive.position_rad
     assert rig.run_until(lambda: abs(drive.position_rad - start - 0.3) < 0.01
                          and drive.statusword & cia402.SW_TARGET_REACHED,
-                         VIRTUAL.motion_budget(0.1 + pp_step_time(drive, 0.3))), \
+                         VIRTUAL.motion_budget(step.after + pp_step_time(drive, 0.3))), \
         drive.status_line()
     rpdo = rig.hw.layouts[0].rpdos[0].cob_id
     words = [struct.unpack_from("<H", f.data)[0] for f in recorder.frames(rpdo, since=mark)]
@@ -209,16 +211,18 @@ def test_pp_after_another_mode_starts_a_new_set_point_never_the_old_one(mode_rig
                     .replace("DefaultValue=0x000003A0", "DefaultValue=0x000003A1"))
     rig, drive, recorder = mode_rig(str(both), ("pp", "cst"))
     per_rad = drive.increments_per_rad
-    _enable(rig, Step("out", offset=0.3))
+    out = Step("out", offset=0.3)
+    _enable(rig, out)
     assert rig.run_until(lambda: drive.statusword & cia402.SW_TARGET_REACHED
                          and drive.position_rad > 0.25,
-                         VIRTUAL.motion_budget(0.1 + pp_step_time(drive, 0.3))), \
+                         VIRTUAL.motion_budget(out.after + pp_step_time(drive, 0.3))), \
         drive.status_line()
     home = HoldPD("home", target=0.0)  # CST back to 0
     rig.mgr.add_controller(home)
     assert rig.switch("home") == SwitchResult.SWITCHED
+    settle = pd_settle(home.kp, home.kd, VIRTUAL.joint)
     assert rig.run_until(lambda: abs(drive.position_rad) < 0.05,
-                         VIRTUAL.motion_budget(pd_settle(home.kd))), drive.status_line()
+                         VIRTUAL.motion_budget(settle)), drive.status_line()
     rig.mgr.add_controller(Step("stay", offset=0.0))  # PP again, holding where it is
     mark = recorder.mark()
     assert rig.switch("stay") == SwitchResult.SWITCHED

@@ -120,6 +120,8 @@ def test_status_switch_estop_and_state_publications_in_order(
         assert hostile["result"] == "NOT_FOUND", hostile["result"]
         assert "(100000 characters)" in hostile["error"] and len(hostile["error"]) < 200, \
             hostile["error"][:300]
+        for number in ("9" * 5000, "\u00b2", "0"):  # no controller number: NOT_FOUND too
+            assert ask(z, f"{prefix}/switch", number)["result"] == "NOT_FOUND", number[:20]
         assert ask(z, f"{prefix}/switch", "pd") == {"result": "SWITCHED"}
         assert rt.manager.state is ManagerState.OK and rt.manager.active_controller_name == "pd"
         wait_for(lambda: rt.hardware.all_enabled, "the drives enabled")

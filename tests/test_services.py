@@ -9,8 +9,8 @@ from collections.abc import Callable
 import can
 import pytest
 from can.interfaces.virtual import VirtualBus
+from fixtures.budgets import STALL, within
 from fixtures.joint_plant import JointPlant
-from fixtures.sim import STALL, within
 
 from rocoma_can import ControllerManager, add_to_manager
 from rocoma_can.controllers.torque_off import TorqueOff

@@ -4,7 +4,6 @@ from __future__ import annotations
 import struct
 
 import pytest
-from fixtures.sim import STALL
 
 from rocoma_can.drivers import cia301 as c301
 from rocoma_can.drivers import cia402 as c
@@ -27,7 +26,7 @@ def _step(bench, cw, expected, syncs=1):
     assert bool(statusword & c.SW_QUICK_STOP) == (expected != S.QUICK_STOP_ACTIVE)
     if syncs:  # the TPDO a SYNC produced carries it (TPDOs are not ordered with SDO answers)
         rec.wait_for(lambda f: f.cob_id == 0x181
-                     and struct.unpack_from("<H", f.data)[0] == statusword, STALL, since=mark)
+                     and struct.unpack_from("<H", f.data)[0] == statusword, bench.stall, since=mark)
 
 
 def test_walk_through_every_transition(sim_bench, sim_interface):

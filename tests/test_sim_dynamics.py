@@ -6,7 +6,6 @@ import struct
 
 import numpy as np
 import pytest
-from fixtures.sim import STALL
 
 from rocoma_can.drivers.cia402 import Mode, State402
 from rocoma_can.drivers.sim.dynamics import JointDynamics, JointParams, LoopMode
@@ -28,10 +27,10 @@ def test_cst_accelerates_like_the_joint_model(sim_bench, sim_interface):
     expected = (0.5 - p.coulomb) / p.viscous * (1 - math.exp(-p.viscous * t / p.inertia))
     assert drive.velocity_rad_s == pytest.approx(expected, rel=0.01)
     assert drive.torque_nm == pytest.approx(0.5)
-    statusword, mode, torque = struct.unpack("<HbH", rec.wait_for_count(50, STALL, 0x181,
+    statusword, mode, torque = struct.unpack("<HbH", rec.wait_for_count(50, bench.stall, 0x181,
                                                                         since=mark)[-1].data)
     assert (mode, torque) == (Mode.CST, 500)
-    position, velocity = struct.unpack("<ii", rec.wait_for_count(50, STALL, 0x281,
+    position, velocity = struct.unpack("<ii", rec.wait_for_count(50, bench.stall, 0x281,
                                                                  since=mark)[-1].data)
     assert position == round(drive.position_rad * REV / (2 * math.pi))
     assert velocity == round(drive.velocity_rad_s * REV / (2 * math.pi))
@@ -103,7 +102,7 @@ def test_disable_voltage_gives_zero_torque_and_the_joint_coasts(sim_bench, sim_i
     mark = bench.barrier()  # TPDOs of the powered SYNCs may still be on their way
     bench.sync(100)
     assert drive.torque_nm == 0.0
-    tpdo = rec.wait_for_count(100, STALL, 0x181, since=mark)
+    tpdo = rec.wait_for_count(100, bench.stall, 0x181, since=mark)
     assert all(struct.unpack("<HbH", f.data)[2] == 0 for f in tpdo)
     # coasting against friction only: J dv/dt = -b v - c
     p = JointParams()

@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from fixtures.sim import STALL, within
+from fixtures.budgets import STALL, within
 
 from rocoma_can import cli
 from rocoma_can.drivers import cia301 as c301
@@ -30,7 +30,8 @@ def test_trip_fault_emcy_error_objects_and_reset(sim_bench, sim_interface):
     mark = rec.mark()
     drive.trip_fault(c301.EMCY_OVERCURRENT)
     bench.sync(2)
-    assert _emcy(rec.wait_for_count(1, STALL, 0x81, since=mark)[0]) == (c301.EMCY_OVERCURRENT, 0x03)
+    (emcy,) = rec.wait_for_count(1, bench.stall, 0x81, since=mark)
+    assert _emcy(emcy) == (c301.EMCY_OVERCURRENT, 0x03)
     assert drive.state402 == State402.FAULT
     assert node.sdo[0x603F].raw == c301.EMCY_OVERCURRENT
     assert node.sdo[0x1001].raw == 0x03  # generic + current
@@ -38,7 +39,7 @@ def test_trip_fault_emcy_error_objects_and_reset(sim_bench, sim_interface):
     node.sdo[0x6040].raw = 0x00
     mark = rec.mark()
     node.sdo[0x6040].raw = 0x80
-    assert _emcy(rec.wait_for_count(1, STALL, 0x81, since=mark)[0]) == (0x0000, 0x00)
+    assert _emcy(rec.wait_for_count(1, bench.stall, 0x81, since=mark)[0]) == (0x0000, 0x00)
     assert drive.state402 == State402.SWITCH_ON_DISABLED
     assert (node.sdo[0x603F].raw, node.sdo[0x1001].raw) == (0, 0)
     node.sdo[0x1003][0].raw = 0  # clears the history
@@ -70,11 +71,11 @@ def test_silent_drive_sends_nothing_the_others_go_on(sim_bench, sim_interface):
     mark = bench.barrier(2)  # node 1 frames sent before silence may still be on their way
     bench.sync(5)
     bench.drive(1).trip_fault()
-    rec.wait_for_count(5, STALL, 0x182, since=mark)
-    rec.wait_for_count(3, within(3 * period), 0x702, since=mark)  # > 2 periods have passed
+    rec.wait_for_count(5, bench.stall, 0x182, since=mark)
+    rec.wait_for_count(3, bench.within(3 * period), 0x702, since=mark)  # > 2 periods have passed
     assert [f for f in rec.frames(since=mark) if f.cob_id & 0x7F == 1] == []
     bench.drive(1).set_silent(False)
-    rec.wait_for_count(1, within(period), 0x701, since=rec.mark())
+    rec.wait_for_count(1, bench.within(period), 0x701, since=rec.mark())
 
 
 def test_drive_that_stops_answering_sync(sim_bench):
@@ -84,10 +85,10 @@ def test_drive_that_stops_answering_sync(sim_bench):
     bench.drive(2).set_sync_response(False)
     mark = rec.mark()
     bench.sync(4)
-    rec.wait_for_count(4, STALL, 0x181, since=mark)
+    rec.wait_for_count(4, bench.stall, 0x181, since=mark)
     bench.nmt(NmtCommand.START)  # a frame after the SYNCs: everything before has been seen
     bench.sync(1)
-    rec.wait_for_count(5, STALL, 0x181, since=mark)
+    rec.wait_for_count(5, bench.stall, 0x181, since=mark)
     assert rec.count((0x182, 0x282), since=mark) == 0
     assert bench.drive(2).nmt_state == NmtState.OPERATIONAL
 
@@ -100,8 +101,8 @@ def test_late_tpdo(sim_bench, sim_interface):
     bench.drive(1).set_tpdo_delay(delay)
     mark = rec.mark()
     bench.send(0x080)
-    sync = rec.wait_for(lambda f: f.cob_id == 0x080, STALL, since=mark)
-    tpdo = rec.wait_for(lambda f: f.cob_id == 0x181, within(delay), since=mark)
+    sync = rec.wait_for(lambda f: f.cob_id == 0x080, bench.stall, since=mark)
+    tpdo = rec.wait_for(lambda f: f.cob_id == 0x181, bench.within(delay), since=mark)
     # bus timestamps (taken when sent): the recorder's own arrival times may lag either
     assert tpdo.message.timestamp - sync.message.timestamp >= delay
     # SYNC first, then its TPDO (the drive's heartbeat may come in between)
@@ -112,11 +113,11 @@ def test_babble_is_bounded(sim_bench):
     bench = sim_bench(1)
     rec = bench.recorder
     bench.drive(1).babble(count=300, cob_id=0x001, data=b"\xff" * 8, burst=50)
-    frames = rec.wait_for_count(300, within(300 / 50 * 0.001), 0x001)  # 50 per ms
+    frames = rec.wait_for_count(300, bench.within(300 / 50 * 0.001), 0x001)  # 50 per ms
     assert all(f.data == b"\xff" * 8 for f in frames)
     bench.nmt(NmtCommand.START)
     bench.sync(3)  # the segment still works while/after babbling
-    rec.wait_for_count(3, STALL, 0x181)
+    rec.wait_for_count(3, bench.stall, 0x181)
     assert rec.count(0x001) == 300
     with pytest.raises(ValueError):
         bench.drive(1).babble(count=10 ** 6)
@@ -128,7 +129,7 @@ def test_sto_low_drops_out_of_operation_enabled(sim_bench, sim_interface):
     bench.spin(1, syncs=100)
     mark = rec.mark()
     drive.set_sto(True)
-    code, register = _emcy(rec.wait_for_count(1, STALL, 0x81, since=mark)[0])
+    code, register = _emcy(rec.wait_for_count(1, bench.stall, 0x81, since=mark)[0])
     assert (code, register & 0x01) == (c301.EMCY_STO, 0x01)
     assert drive.state402 == State402.SWITCH_ON_DISABLED
     bench.sync(5)
@@ -137,7 +138,7 @@ def test_sto_low_drops_out_of_operation_enabled(sim_bench, sim_interface):
     assert drive.state402 == State402.SWITCH_ON_DISABLED
     mark = rec.mark()
     drive.set_sto(False)
-    assert _emcy(rec.wait_for_count(1, STALL, 0x81, since=mark)[0]) == (0x0000, 0x00)
+    assert _emcy(rec.wait_for_count(1, bench.stall, 0x81, since=mark)[0]) == (0x0000, 0x00)
     node.sdo[0x6040].raw = 0x06
     assert drive.state402 == State402.READY_TO_SWITCH_ON
 
@@ -147,13 +148,13 @@ def test_position_sensor_noise(sim_bench):
     rec = bench.recorder
     bench.nmt(NmtCommand.START)
     bench.sync(20)
-    clean = [struct.unpack("<ii", f.data)[0] for f in rec.wait_for_count(20, STALL, 0x281)]
+    clean = [struct.unpack("<ii", f.data)[0] for f in rec.wait_for_count(20, bench.stall, 0x281)]
     assert set(clean) == {0}
     bench.drive(1).set_position_noise(100.0)
     mark = rec.mark()
     bench.sync(200)
     noisy = [struct.unpack("<ii", f.data)[0]
-             for f in rec.wait_for_count(200, STALL, 0x281, since=mark)]
+             for f in rec.wait_for_count(200, bench.stall, 0x281, since=mark)]
     assert 70 < np.std(noisy) < 130
     assert bench.drive(1).position_rad == 0.0  # the joint itself did not move
 

@@ -4,8 +4,6 @@ from __future__ import annotations
 import struct
 import time
 
-from fixtures.sim import STALL, within
-
 from rocoma_can.drivers import cia301 as c301
 from rocoma_can.drivers.cia301 import NmtCommand, NmtState
 from rocoma_can.drivers.cia402 import AbortConnectionOption, Mode, State402
@@ -26,7 +24,7 @@ def test_boot_up_then_heartbeats_in_pre_operational(sim_bench, sim_interface):
     bench = sim_bench([3, 5], sim_interface)
     rec = bench.recorder
     for node in (3, 5):
-        frames = rec.wait_for_count(2, within(heartbeat_period(bench, node)), 0x700 + node)
+        frames = rec.wait_for_count(2, bench.within(heartbeat_period(bench, node)), 0x700 + node)
         assert [f.data for f in frames] == [b"\x00", b"\x7f"]
         assert bench.drive(node).nmt_state == NmtState.PRE_OPERATIONAL
 
@@ -39,12 +37,12 @@ def test_nmt_transitions_addressed_and_broadcast(sim_bench, sim_interface):
                                                           NmtState.OPERATIONAL]
     mark = rec.mark()
     rec.wait_for(lambda f: f.cob_id == 0x702 and f.data == b"\x05",
-                 within(heartbeat_period(bench, 2)), since=mark)
+                 bench.within(heartbeat_period(bench, 2)), since=mark)
     bench.nmt(NmtCommand.STOP, 0)
     assert [bench.drive(n).nmt_state for n in (1, 2)] == [NmtState.STOPPED] * 2
     mark = rec.mark()
     rec.wait_for(lambda f: f.cob_id == 0x701 and f.data == b"\x04",
-                 within(heartbeat_period(bench, 1)), since=mark)
+                 bench.within(heartbeat_period(bench, 1)), since=mark)
     bench.nmt(NmtCommand.PRE_OPERATIONAL, 0)
     bench.nmt(NmtCommand.START, 0)
     assert [bench.drive(n).nmt_state for n in (1, 2)] == [NmtState.OPERATIONAL] * 2
@@ -58,7 +56,7 @@ def test_reset_node_and_reset_communication_boot_again(sim_bench):
     bench.nmt(NmtCommand.START)
     mark = rec.mark()
     bench.nmt(NmtCommand.RESET_COMMUNICATION, 1)
-    assert rec.wait_for_count(1, STALL, 0x701, since=mark)[0].data == b"\x00"  # boot-up
+    assert rec.wait_for_count(1, bench.stall, 0x701, since=mark)[0].data == b"\x00"  # boot-up
     assert drive.nmt_state == NmtState.PRE_OPERATIONAL
     assert node.sdo[0x1017].raw == 100  # communication objects back to defaults
     assert node.sdo[0x6072].raw == 1234  # application objects kept
@@ -66,7 +64,7 @@ def test_reset_node_and_reset_communication_boot_again(sim_bench):
     assert drive.state402 == State402.READY_TO_SWITCH_ON
     mark = rec.mark()
     bench.nmt(NmtCommand.RESET_NODE, 0)
-    assert rec.wait_for_count(1, STALL, 0x701, since=mark)[0].data == b"\x00"
+    assert rec.wait_for_count(1, bench.stall, 0x701, since=mark)[0].data == b"\x00"
     assert node.sdo[0x6072].raw == 3000  # everything back to defaults
     assert drive.state402 == State402.SWITCH_ON_DISABLED
 
@@ -77,7 +75,7 @@ def test_heartbeat_period_within_20_percent(sim_bench, sim_interface):
     period = 0.040
     node.sdo[0x1017].raw = round(period * 1000)
     mark = rec.mark()
-    frames = rec.wait_for_count(11, within(11 * period), 0x701, since=mark)
+    frames = rec.wait_for_count(11, bench.within(11 * period), 0x701, since=mark)
     # the producer runs on absolute deadlines: the mean over 10 periods is robust to jitter
     mean = (frames[-1].time - frames[1].time) / 9
     assert 0.8 * period <= mean <= 1.2 * period, mean
@@ -85,7 +83,7 @@ def test_heartbeat_period_within_20_percent(sim_bench, sim_interface):
     mark = bench.barrier()
     bench.nmt(NmtCommand.START)  # the recorder has seen everything sent before this
     bench.sync(1)
-    rec.wait_for_count(1, STALL, 0x181, since=mark)
+    rec.wait_for_count(1, bench.stall, 0x181, since=mark)
     assert rec.count(0x701, since=mark) == 0
 
 
@@ -114,23 +112,23 @@ def test_master_heartbeat_loss_disables_voltage(sim_bench, sim_interface):
     assert drive.state402 == State402.OPERATION_ENABLED
     mark = rec.mark()
     _beat(bench, 10, period)
-    beats = rec.wait_for_count(10, STALL, 0x77F, since=mark)  # sent already
+    beats = rec.wait_for_count(10, bench.stall, 0x77F, since=mark)  # sent already
     last = beats[-1].time
     gaps = [round(b.time - a.time, 3) for a, b in zip(beats, beats[1:])]
     # no false trip while the master is alive
     assert rec.count(0x81, since=mark) == 0, f"gaps between beats (s): {gaps}"
-    emcy = rec.wait_for(lambda f: f.cob_id == 0x81, within(consumer), since=mark)
+    emcy = rec.wait_for(lambda f: f.cob_id == 0x81, bench.within(consumer), since=mark)
     code, register, vendor = struct.unpack("<HB5s", emcy.data)
     assert (code, register & 0x11, vendor) == (c301.EMCY_HEARTBEAT, 0x11, bytes(5))
     # consumer time + one master period, with one more consumer time of slack for a loaded
     # 2-core machine
     assert consumer <= emcy.time - last <= 2 * consumer + period
-    bench.wait(lambda: drive.state402 == State402.SWITCH_ON_DISABLED, STALL, "0x6007 reaction")
+    bench.wait(lambda: drive.state402 == State402.SWITCH_ON_DISABLED, what="0x6007 reaction")
     assert drive.nmt_state == NmtState.PRE_OPERATIONAL  # 0x1029:1 = 0
     # the master is back: the communication error clears with EMCY 0x0000
     mark = rec.mark()
     _beat(bench, 1, 0)
-    emcy = rec.wait_for(lambda f: f.cob_id == 0x81, STALL, since=mark)
+    emcy = rec.wait_for(lambda f: f.cob_id == 0x81, bench.stall, since=mark)
     assert emcy.data == bytes(8)
 
 
@@ -142,9 +140,9 @@ def test_master_heartbeat_loss_with_option_fault(sim_bench):
     _consume_master(bench, round(consumer * 1000), AbortConnectionOption.FAULT)
     mark = rec.mark()
     _beat(bench, 2, 0.02)
-    rec.wait_for(lambda f: f.cob_id == 0x81, within(consumer), since=mark)
+    rec.wait_for(lambda f: f.cob_id == 0x81, bench.within(consumer), since=mark)
     bench.sync(2)  # fault reaction ramps down on SYNC, then FAULT
-    bench.wait(lambda: drive.state402 == State402.FAULT, STALL, "FAULT")
+    bench.wait(lambda: drive.state402 == State402.FAULT, what="FAULT")
     assert rec.count(0x81, since=mark) == 1
     assert drive.error_code == c301.EMCY_HEARTBEAT
     assert drive.nmt_state == NmtState.OPERATIONAL
@@ -159,7 +157,7 @@ def test_master_heartbeat_loss_with_option_quick_stop(sim_bench):
     bench.sync(50)
     assert drive.velocity_rad_s > 1.0
     _beat(bench, 1, 0)
-    bench.wait(lambda: drive.state402 == State402.QUICK_STOP_ACTIVE, within(consumer),
+    bench.wait(lambda: drive.state402 == State402.QUICK_STOP_ACTIVE, bench.within(consumer),
                "quick stop")
     bench.sync(400)  # ramp with 0x6085 on each SYNC, then switch on disabled (0x605A = 2)
     assert drive.state402 == State402.SWITCH_ON_DISABLED
@@ -191,5 +189,5 @@ def test_heartbeats_handled_late_are_judged_by_their_arrival(sim_bench):
     assert rec.count(0x81, since=mark) == 0, rec.frames(0x81, since=mark)
     assert drive.state402 == State402.OPERATION_ENABLED
     # the consumer is live: heartbeats stop, the loss is seen
-    rec.wait_for(lambda f: f.cob_id == 0x81, within(consumer), since=mark)
-    bench.wait(lambda: drive.state402 == State402.SWITCH_ON_DISABLED, STALL, "0x6007 reaction")
+    rec.wait_for(lambda f: f.cob_id == 0x81, bench.within(consumer), since=mark)
+    bench.wait(lambda: drive.state402 == State402.SWITCH_ON_DISABLED, what="0x6007 reaction")

@@ -5,7 +5,6 @@ import struct
 
 import pytest
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
-from fixtures.sim import STALL
 
 from rocoma_can.drivers import cia301 as c301
 from rocoma_can.drivers import cia402 as c
@@ -76,14 +75,14 @@ def test_pdo_remapping_by_sdo_changes_the_tpdo_layout(sim_bench, sim_interface):
     node, rec = bench.node(1), bench.recorder
     bench.nmt(NmtCommand.START)
     bench.sync(1)
-    default = rec.wait_for_count(1, STALL, 0x181)[0]
+    default = rec.wait_for_count(1, bench.stall, 0x181)[0]
     assert len(default.data) == 5  # statusword, mode display, torque actual
     _remap_tpdo1(node, 0x6064, 0x6041)
     assert node.sdo[0x1A00][0].raw == 2
     assert node.sdo[0x1A00][1].raw == 0x60640020
     mark = rec.mark()
     bench.sync(1)
-    frame = rec.wait_for_count(1, STALL, 0x181, since=mark)[0]
+    frame = rec.wait_for_count(1, bench.stall, 0x181, since=mark)[0]
     position, statusword = struct.unpack("<iH", frame.data)
     assert statusword == bench.drive().statusword
     assert position == bench.drive().position_increments
@@ -162,7 +161,7 @@ def test_short_rpdo_gives_emcy_8210(sim_bench):
     bench = sim_bench(1)
     bench.nmt(NmtCommand.START)
     bench.send(0x201, b"\x06\x00")  # mapping is 5 bytes
-    frame = bench.recorder.wait_for(lambda f: f.cob_id == 0x81, STALL)
+    frame = bench.recorder.wait_for(lambda f: f.cob_id == 0x81, bench.stall)
     assert struct.unpack("<HB5s", frame.data)[0] == c301.EMCY_PDO_LENGTH
     assert bench.drive().state402 == State402.SWITCH_ON_DISABLED
 
@@ -173,14 +172,14 @@ def test_transmission_type_n_sends_every_nth_sync(sim_bench):
     node.sdo[0x1801][2].raw = 3
     bench.nmt(NmtCommand.START)
     bench.sync(9)
-    rec.wait_for_count(9, STALL, 0x181)
-    rec.wait_for_count(3, STALL, 0x281)
+    rec.wait_for_count(9, bench.stall, 0x181)
+    rec.wait_for_count(3, bench.stall, 0x281)
     bench.nmt(NmtCommand.PRE_OPERATIONAL)
     mark = rec.mark()
     bench.sync(3)
     bench.nmt(NmtCommand.START)  # a frame after the SYNCs: the recorder has seen them
     bench.sync(1)
-    rec.wait_for_count(1, STALL, 0x181, since=mark)
+    rec.wait_for_count(1, bench.stall, 0x181, since=mark)
     assert rec.count((0x181, 0x281), since=mark) == 1  # none while PRE-OPERATIONAL
 
 
@@ -196,7 +195,7 @@ def test_event_driven_tpdo_on_state_change(sim_bench):
     bench.nmt(NmtCommand.START)
     for cw in (0x06, 0x07, 0x0F):
         node.sdo[0x6040].raw = cw
-    frames = rec.wait_for_count(4, STALL, 0x381)
+    frames = rec.wait_for_count(4, bench.stall, 0x381)
     states = [c.state_from_statusword(struct.unpack("<H", f.data)[0]) for f in frames]
     assert states == [State402.SWITCH_ON_DISABLED, State402.READY_TO_SWITCH_ON,
                       State402.SWITCHED_ON, State402.OPERATION_ENABLED]

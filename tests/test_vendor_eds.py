@@ -20,7 +20,6 @@ import canopen
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Rig, Sine
-from fixtures.sim import STALL
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import cia301, cia402
@@ -158,7 +157,7 @@ def test_a_simulated_drive_without_0x6007_does_not_switch_itself_off(sim_bench):
         drive_.cia402.set_state(State402.OPERATION_ENABLED)
         drive_._heartbeat_lost()
     assert drive_.state402 == State402.OPERATION_ENABLED  # the joint keeps its command
-    (emcy,) = bench.recorder.wait_for_count(1, STALL, cia301.EMCY + 1)
+    (emcy,) = bench.recorder.wait_for_count(1, bench.stall, cia301.EMCY + 1)
     assert struct.unpack_from("<H", emcy.data)[0] == cia301.EMCY_HEARTBEAT
 
 

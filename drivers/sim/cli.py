@@ -16,6 +16,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from ...exit_codes import FAILED, OK, USAGE
+
 if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
     from .drive import SimulatedDrive
     from .segment import SimulatedSegment
@@ -127,13 +129,13 @@ def run(args: argparse.Namespace) -> int:
         if inj.node not in args.nodes:
             print(f"rocoma-can sim: --{inj.flag}: node {inj.node} is not in --nodes",
                   file=sys.stderr)
-            return 2
+            return USAGE
     from ..capabilities import CapabilityError, read_capabilities
     try:
         caps = read_capabilities(args.eds, args.nodes[0])
     except CapabilityError as exc:
         print(f"rocoma-can sim: --eds: {exc}", file=sys.stderr)
-        return 2
+        return USAGE
     try:
         segment = SimulatedSegment.open(args.channel, args.interface, args.nodes,
                                         eds_path=args.eds, sync_period=args.sync_period,
@@ -142,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, ValueError, ImportError) as exc:
         print(f"rocoma-can sim: cannot open {args.interface} channel {args.channel}: {exc}",
               file=sys.stderr)
-        return 1
+        return FAILED
     if args.eds:  # what the drives are, as a master would find out
         print(f"sim: the drives emulate {caps.source}", flush=True)
         for line in caps.report():
@@ -191,10 +193,10 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
     if segment.errors:
         print(f"rocoma-can sim: the simulation failed: {segment.errors[0]!r}", file=sys.stderr)
-        return 1
+        return FAILED
     if segment.bus_errors:  # the drives were cut off meanwhile: say so, and why
         print(f"rocoma-can sim: reading {args.interface} {args.channel} failed "
               f"{segment.bus_errors} time(s) (interface down or gone?); the latest: "
               f"{segment.bus_error}", file=sys.stderr)
-        return 1
-    return 0
+        return FAILED
+    return OK

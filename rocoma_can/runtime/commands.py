@@ -22,9 +22,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigError, NoAnswer, Refused, RocomaError
+from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from . import fleet_client
 from .client import ManagerClient
-from .exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from .fleet import FleetConfig, FleetError
 from .fleet import parse as parse_fleet
 from .live import cycle_text
@@ -40,7 +40,6 @@ from .objects import (
 
 if TYPE_CHECKING:  # the client verbs do not import the config (a fast start)
     from .config import RuntimeConfig
-
 
 
 def _err(message: str) -> None:

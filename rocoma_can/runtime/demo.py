@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from ..errors import ConfigError, RocomaError
+from ..exit_codes import FAILED, OK, USAGE
 from .client import ManagerClient
 from .objects import STATE_NAMES
 
@@ -495,14 +496,14 @@ def _main(args: argparse.Namespace) -> int:
             or not 1 <= buses <= args.drives // 2:
         print("demo: --drives 2..32, --rate 10..2000 Hz, --duration > 0, --buses 1.."
               "drives/2 (the walk-through faults two drives of the first bus)", flush=True)
-        return 2
+        return USAGE
     record = None if args.no_record else Path(args.record or default_record_dir())
     if record is not None:
         try:
             record.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             print(f"demo: --record {record}: cannot create the directory: {exc}", flush=True)
-            return 2
+            return USAGE
     try:
         report = run_demo(args.drives, args.rate, args.duration,
                           out=lambda line: print(line, flush=True), buses=args.buses,
@@ -517,5 +518,5 @@ def _main(args: argparse.Namespace) -> int:
             print(f"demo: {exc}", flush=True)
         if record is not None and not any(record.iterdir()):
             record.rmdir()  # it did not run: no empty recording directory left behind
-        return 2
-    return 0 if report.ok else 1
+        return USAGE
+    return OK if report.ok else FAILED

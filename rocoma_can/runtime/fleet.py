@@ -400,7 +400,9 @@ class FleetBridge:
             reply("ERROR", _NOT_RUNNING)
             return
         names = m.available_controllers()
-        if name.isdigit() and 1 <= int(name) <= len(names):  # a number from `list`
+        # a number from `list` (ASCII digits, short: int() of "²" or 5000 digits raises)
+        if name.isascii() and name.isdigit() and len(name) <= 6 \
+                and 1 <= int(name) <= len(names):
             name = names[int(name) - 1]
         if name not in names:
             reply("NOT_FOUND", f"no controller {_shown(name)} (controllers: "

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from ..errors import NoAnswer, RocomaError
-from .exit_codes import FAILED, NO_ANSWER, OK, USAGE
+from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from .fleet import (
     STOPS,
     FleetError,

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
-from .exit_codes import OK, USAGE
+from ..exit_codes import OK, USAGE
 
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType

@@ -12,11 +12,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .exit_codes import FAILED, OK, USAGE
+from ..exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:
     from .can_log import FrameLog
-
 
 
 def _say(text: str) -> None:

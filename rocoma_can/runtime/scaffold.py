@@ -9,6 +9,8 @@ import argparse
 import keyword
 from pathlib import Path
 
+from ..exit_codes import OK, USAGE
+
 PYPROJECT = '''[build-system]
 requires = ["setuptools>=68", "wheel"]
 build-backend = "setuptools.build_meta"
@@ -171,6 +173,6 @@ def _main(args: argparse.Namespace) -> int:
         root = create_package(args.name, Path(args.dir))
     except (ValueError, OSError) as exc:
         print(f"rocoma-can: {exc}", flush=True)
-        return 2
+        return USAGE
     print(f"created {root}: pip install -e {root} && pytest {root}", flush=True)
-    return 0
+    return OK

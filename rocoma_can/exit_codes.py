@@ -1,8 +1,10 @@
-"""The exit codes of every ``rocoma-can`` command: one set, since scripts and the fleet
-client's ``--zenoh`` path must mean the same thing by each (README: "Exit codes")."""
+"""The exit codes of every ``rocoma-can`` command (and ``rocoma-can-sim``): one set, since
+scripts and the fleet client's ``--zenoh`` path must mean the same thing by each (README:
+"Exit codes")."""
 from __future__ import annotations
 
 OK = 0         # done (a switch: SWITCHED or RUNNING)
 FAILED = 1     # the manager refused, or the operation failed
 USAGE = 2      # bad arguments or configuration (argparse exits with 2 too)
 NO_ANSWER = 3  # nobody answered within the timeout
+INTERRUPTED = 130  # Ctrl-C (128 + SIGINT, as a shell reports it)
