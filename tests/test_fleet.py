@@ -17,8 +17,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from fixtures.driver_rig import VIRTUAL
-from fixtures.running import runtime_running
+from fixtures.running import DEMO_WAIT, runtime_running
 from fixtures.running import wait_for as wait_until
 
 from rocoma_can import Controller, ManagerState
@@ -30,9 +29,6 @@ from rocoma_can.runtime.demo import demo_config
 from rocoma_can.runtime.fleet import FleetError, open_session
 
 RATE = 100.0
-#: every wait: the bring-up budget of the bus setup the demo config shares with the driver
-#: tests (tests/fixtures/driver_rig.py), which covers a loaded machine
-WAIT = max(VIRTUAL.bring_up_budget(2), VIRTUAL.enable_budget())
 BIN = Path(sys.executable).parent / "rocoma-can"
 
 
@@ -42,7 +38,7 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def wait_for(predicate, what: str, timeout: float = WAIT) -> None:
+def wait_for(predicate, what: str, timeout: float = DEMO_WAIT) -> None:
     wait_until(predicate, what, timeout)
 
 
@@ -62,7 +58,7 @@ def manager(channel: str, endpoint: str, prefix: str, controllers=(), **zenoh_se
     cfg["controllers"] += list(controllers)
     cfg["zenoh"] = {"prefix": prefix, "listen": [endpoint], "multicast": False,
                     "alive_timeout": 0.5, "drives_period": 0.2, **zenoh_section}
-    with runtime_running(cfg, WAIT) as rt:
+    with runtime_running(cfg, DEMO_WAIT) as rt:
         yield rt
 
 
@@ -84,7 +80,7 @@ def kind(sample) -> str:
     return "PUT" if sample.kind == zenoh.SampleKind.PUT else "DELETE"
 
 
-def ask(session, key: str, payload: str | None = None, timeout: float = WAIT) -> dict:
+def ask(session, key: str, payload: str | None = None, timeout: float = DEMO_WAIT) -> dict:
     """One query, answered within ``timeout`` (a switch answers when it is done); asked
     again only while no queryable is known yet (a session just connected)."""
     deadline = time.monotonic() + timeout
@@ -131,7 +127,7 @@ def test_status_switch_estop_and_state_publications_in_order(
         while probe.recv(0) is not None:  # what came before (bring-up's torque-off too)
             pass
         assert ask(z, f"{prefix}/estop")["ok"] is True  # in EMERGENCY: failproof torque-off
-        deadline = time.monotonic() + WAIT
+        deadline = time.monotonic() + DEMO_WAIT
         while probe_seen != {0x201, 0x202} and time.monotonic() < deadline:
             msg = probe.recv(0.1)
             if msg is not None and msg.arbitration_id in (0x201, 0x202) \

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from fixtures.driver_rig import VIRTUAL, Rig, Sine
+from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can import SwitchResult
 from rocoma_can.cli import main
@@ -114,18 +115,18 @@ def test_rocoma_can_home_over_the_manager_node(virtual_channel, sim_segment_fact
     bus = ["--interface", "virtual", "--channel", virtual_channel, "--timeout", "2"]
     with Runtime(validate(cfg)) as rt:
         def operate() -> None:
-            deadline = time.monotonic() + 10.0
+            deadline = time.monotonic() + DEMO_WAIT
             while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
                 time.sleep(0.01)
             outcome["refused"] = main(["home", "joint1", *bus])  # FAILPROOF: refused
-            outcome["switch"] = int(rt.manager.switch_controller("pd", timeout=10.0))
+            outcome["switch"] = int(rt.manager.switch_controller("pd", timeout=DEMO_WAIT))
             outcome["home"] = main(["home", "joint1", "--timeout-homing", "10", *bus])
             seen.update(rt.status())  # why, should the home have been refused
             rt.loop.stop("test")
         t = threading.Thread(target=operate)
         t.start()
-        rt.run(duration=40.0, signals=False)
-        t.join(15.0)
+        rt.run(duration=DEMO_RUN, signals=False)
+        t.join(DEMO_WAIT)
     out, err = capsys.readouterr()
     assert outcome == {"refused": 1, "switch": 0, "home": 0}, (out, err, seen)
     assert "cannot home: the manager is not OK" in err

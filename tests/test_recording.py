@@ -10,6 +10,7 @@ import time
 import can
 import numpy as np
 import pytest
+from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can.cli import main
 from rocoma_can.runtime import Runtime
@@ -85,10 +86,10 @@ def config(bench):
 def _operate(rt: Runtime, segment_fault, then: float) -> threading.Thread:
     """Switch to pd, run ``then`` s, fault drive 1, run a little, stop the loop."""
     def operate() -> None:
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + DEMO_WAIT
         while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
             time.sleep(0.01)
-        rt.manager.switch_controller("pd", timeout=10.0)
+        rt.manager.switch_controller("pd", timeout=DEMO_WAIT)
         time.sleep(then)
         segment_fault()
         time.sleep(0.5)
@@ -104,8 +105,8 @@ def test_an_estop_dumps_the_last_seconds_of_signals_and_frames(bench, tmp_path):
     with Runtime(config, flight=str(tmp_path / "flight"), flight_seconds=1.0,
                  announce=announced.append) as rt:
         worker = _operate(rt, segment.drives[1].trip_fault, then=1.5)
-        rt.run(duration=30.0, signals=False)
-        worker.join(15.0)
+        rt.run(duration=DEMO_RUN, signals=False)
+        worker.join(DEMO_WAIT)
         assert rt.flight is not None
     dumps = sorted((tmp_path / "flight").iterdir())
     assert len(dumps) == 2, dumps  # the e-stop, and the shutdown after it
@@ -184,8 +185,8 @@ def test_plot_draws_state_band_positions_torques_period_and_each_estop(bench, tm
     out = tmp_path / "rec"
     with Runtime(config, record=str(out)) as rt:
         worker = _operate(rt, segment.drives[1].trip_fault, then=1.0)
-        rt.run(duration=30.0, signals=False)
-        worker.join(15.0)
+        rt.run(duration=DEMO_RUN, signals=False)
+        worker.join(DEMO_WAIT)
     trace = load(out / "trace.mcap")
     causes = [cause for _, cause in trace.estops]
     assert len(causes) == 2 and "(node 1)" in causes[0] and causes[1] == "loop stopping: test"

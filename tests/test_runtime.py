@@ -9,6 +9,7 @@ import time
 
 import can
 import pytest
+from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
@@ -30,19 +31,19 @@ def test_stop_from_another_thread_ends_in_torque_off(runtime, frame_recorder):
     result = {}
 
     def operate():
-        deadline = time.monotonic() + 10.0  # a switch needs every drive brought up
+        deadline = time.monotonic() + DEMO_WAIT  # a switch needs every drive brought up
         while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
             time.sleep(0.01)
-        if rt.manager.switch_controller("pd", timeout=10.0) == 0:
+        if rt.manager.switch_controller("pd", timeout=DEMO_WAIT) == 0:
             rec.wait_for(lambda f: f.cob_id == 0x201 and f.data[:2] == b"\x0f\x00",
-                         timeout=10.0)  # enable operation: the pd commands
+                         timeout=DEMO_WAIT)  # enable operation: the pd commands
             result["mark"] = rec.mark()
         rt.loop.stop("test")
 
     t = threading.Thread(target=operate)
     t.start()
-    summary = rt.run(duration=30.0, signals=False)
-    t.join(10.0)
+    summary = rt.run(duration=DEMO_RUN, signals=False)
+    t.join(DEMO_WAIT)
     assert "mark" in result and rt.loop.stop_reason == "test"
     assert int(rt.loop.last_state) == 0
     after = rec.frames(since=result["mark"])
@@ -165,14 +166,14 @@ def test_a_runtime_on_two_buses_takes_the_estop_frame_from_either(
     result = {}
     with Runtime(validate(cfg)) as rt:
         def operate():
-            deadline = time.monotonic() + 10.0  # a switch needs every drive brought up
+            deadline = time.monotonic() + DEMO_WAIT  # a switch needs every drive brought up
             while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
                 time.sleep(0.01)
-            result["switch"] = rt.manager.switch_controller("pd", timeout=10.0)
+            result["switch"] = rt.manager.switch_controller("pd", timeout=DEMO_WAIT)
             rec_b.wait_for(lambda f: f.cob_id == 0x202 and f.data[:2] == b"\x0f\x00",
-                           timeout=10.0)  # the second bus's drive 2 is enabled
+                           timeout=DEMO_WAIT)  # the second bus's drive 2 is enabled
             estop_bus.send(can.Message(arbitration_id=0x0A0, data=b"", is_extended_id=False))
-            deadline = time.monotonic() + 10.0
+            deadline = time.monotonic() + DEMO_WAIT
             while rt.manager.state is ManagerState.OK and time.monotonic() < deadline:
                 time.sleep(0.01)
             result["state"] = rt.manager.state
@@ -180,8 +181,8 @@ def test_a_runtime_on_two_buses_takes_the_estop_frame_from_either(
 
         t = threading.Thread(target=operate)
         t.start()
-        rt.run(duration=30.0, signals=False)
-        t.join(10.0)
+        rt.run(duration=DEMO_RUN, signals=False)
+        t.join(DEMO_WAIT)
         assert result["switch"] == SwitchResult.SWITCHED
         assert result["state"] is ManagerState.EMERGENCY
         assert rt.hardware.estop_frames == 1 and rt.node.estop_frames == []
