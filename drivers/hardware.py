@@ -646,6 +646,8 @@ class CanopenHardware:
                     armed[i] = False
             if (b.phase != Phase.READY or sup.latched[i] is not None
                     or (armed is not None and not armed[i])):
+                if armed is not None:  # off until the next switch: a drive that comes back
+                    armed[i] = False   # (a recovery) never takes up a command it dropped
                 for msg in self._start_frames(i, b):
                     send(msg)
                 enable.reset(i)

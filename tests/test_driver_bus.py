@@ -413,6 +413,35 @@ def test_recovery_after_a_fault_returns_to_ok(segment, make_rig):
     assert segment.drives[faulty].state402 == State402.OPERATION_ENABLED
 
 
+def test_a_drive_recovered_under_the_emergency_layer_stays_off_until_the_next_switch(
+        segment, make_rig):
+    """A recovery asked while the emergency controller still commands the others brings the
+    faulted drive back READY, but not under command: it had been torque-off since its
+    fault, and the emergency controller's command (a pose or speed from before it sagged)
+    must not be taken up by a drive nobody switched to. The next switch arms it."""
+    rig = make_rig()
+    bring_up(rig)
+    enable_with(rig, HoldPD(), emergency=Brake())
+    faulty = tuple(segment.drives)[-1]
+    segment.drives[faulty].trip_fault(cia301.EMCY_FOLLOWING_ERROR)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget())
+    future = rig.hw.recover()
+    assert rig.run_until(future.done, rig.setup.recovery_budget())
+    assert future.result() is True, rig.hw.drive_status()
+    rig.run(rig.setup.enable_budget())  # time enough to have been enabled
+    assert rig.mgr.state == ManagerState.EMERGENCY
+    others = [n for n in segment.drives if n != faulty]
+    assert all(segment.drives[n].state402 == State402.OPERATION_ENABLED for n in others)
+    assert segment.drives[faulty].state402 != State402.OPERATION_ENABLED, \
+        segment.drives[faulty].status_line()
+    assert segment.drives[faulty].controlword == 0  # torque-off frames, still
+    rig.mgr.add_controller(HoldPD("again"))
+    assert rig.switch("again") == SwitchResult.SWITCHED
+    assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget()), \
+        rig.hw.drive_status()
+
+
 def test_a_stopped_loop_goes_silent_and_drives_switch_off_by_themselves(segment, make_rig):
     """The hung-loop half of the safety model (the killed process is in tests/vcan)."""
     rig = make_rig()
