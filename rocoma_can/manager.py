@@ -172,6 +172,14 @@ class ControllerManager:
         self._on_hang = on_hang
         self.hang_calls = 0       # how often on_hang ran while update() was stuck
         self._update_started = 0.0  # monotonic start of the update() in progress, else 0
+        # The longest update() waits for the cycle lock (the hang limit): the switcher holds
+        # it around user code (an aborted switch runs the emergency controller's
+        # initialize_fast), and a callback that never returns must not stop the cycle.
+        hang = timing.hang if timing is not None and timing.hang > 0 else \
+            TimingSupervision.hang
+        self._lock_wait = hang * self.dt
+        self.lock_timeouts = 0  # update() calls that could not take the cycle lock
+        self._locked_out = False  # the last update() could not (its failproof stop queued)
 
         self._events = EventDispatcher(name)
         # Wake-ups of other threads (events, log records, stop hand-overs) that an update()
@@ -287,7 +295,10 @@ class ControllerManager:
         until post_cycle. A thread woken earlier would take the GIL at the next point that
         releases it (a numpy call, a socket send) and run its work (the failed controller's
         stop, subscribers, logging) before this cycle's command is out."""
-        with self._cycle_lock:
+        if not self._cycle_lock.acquire(timeout=self._lock_wait):
+            return self._lock_timed_out()
+        try:
+            self._locked_out = False
             if self._held:  # a caller that stopped calling post_cycle
                 self._wake()
             self._update_started = time.monotonic()
@@ -301,6 +312,21 @@ class ControllerManager:
                 self._update_started = 0.0
                 if self._held and not self._deferring:
                     self._wake()
+        finally:
+            self._cycle_lock.release()
+
+    def _lock_timed_out(self) -> ManagerState:
+        """update() waited the hang limit for the cycle lock: the switcher holds it in a user
+        callback that does not return. Without the lock nothing of the manager's state may
+        be touched, so this cycle is the failproof layer's (the caller writes torque-off
+        frames for FAILPROOF) and a failproof stop is queued, once, for the update() that
+        gets the lock: the manager never comes back with the controller that was running."""
+        self.lock_timeouts += 1
+        if not self._locked_out:
+            self._locked_out = True
+            self._request(True, f"update() waited {self._lock_wait * 1e3:.0f} ms for the "
+                                "cycle lock (a switch stuck in a callback): torque-off")
+        return ManagerState.FAILPROOF
 
     def post_cycle(self) -> None:
         """After the cycle's write: wake the threads the last update() has work for (the
@@ -356,20 +382,27 @@ class ControllerManager:
                 pair = self._active
                 assert pair is not None  # OK and EMERGENCY always have an active pair
                 adapter = pair.controller
-                if adapter.advance(dt):
-                    break
+                advanced = adapter.advance(dt)
                 if self.hang_calls != hangs:
-                    # The watchdog already switched the drives off while this advance hung:
-                    # nothing is left for an emergency controller to stop smartly.
-                    self._estop(True, f"{adapter.failure}; on_hang commanded torque-off")
+                    # The watchdog already switched the drives off while this advance hung
+                    # (even one that returned True within a budget of its own): nothing is
+                    # left for an emergency controller to stop smartly, nor to go on with.
+                    failure = adapter.failure if not advanced else \
+                        f"{adapter.name}: advance hung past the hang limit"
+                    self._estop(True, f"{failure}; on_hang commanded torque-off")
+                elif advanced:
+                    break
                 else:
                     self._estop(False, adapter.failure)
             elif state is ManagerState.EMERGENCY:
                 pair = self._active
                 assert pair is not None and pair.emergency is not None
-                if pair.emergency.advance(dt):
+                advanced = pair.emergency.advance(dt)
+                if advanced and self.hang_calls == hangs:
                     break
-                self._estop(True, pair.emergency.failure)
+                self._estop(True, pair.emergency.failure if not advanced else
+                            f"{pair.emergency.name}: advance hung past the hang limit; "
+                            "on_hang commanded torque-off")
             else:
                 self._failproof.advance(dt)
                 break
@@ -460,8 +493,10 @@ class ControllerManager:
     def _request(self, to_failproof: bool, cause: str) -> None:
         if self._must_clear:
             self._latched = True
-        self._estop_serial = next(self._estop_counter)  # a switch under way will not commit
+        # queued before the serial changes: a switch that sees the new serial finds the
+        # request to apply (the other order let it stop a controller still running)
         self._requests.append((to_failproof, cause))
+        self._estop_serial = next(self._estop_counter)  # a switch under way will not commit
 
     def clear_emergency_stop(self) -> bool:
         """Unlatch (with estop_must_be_cleared): switching is allowed again."""
@@ -572,7 +607,8 @@ class ControllerManager:
             # asked again at the commit: a drive may have faulted while the new controller
             # initialized (the switch then fails like any other, with an e-stop)
             blocked = self._guard_reason() if self._estop_serial == serial else None
-            committed = self._estop_serial == serial and not self._closed and blocked is None
+            committed = (self._estop_serial == serial and not self._requests
+                         and not self._closed and blocked is None)
             if committed:
                 previous = self._state
                 new.running = True

@@ -5,7 +5,14 @@ import gc
 import threading
 import time
 
-from fixtures.manager_probes import CommandLog, EmergencyProbe, FailproofProbe, Journal, Probe
+from fixtures.manager_probes import (
+    WAIT,
+    CommandLog,
+    EmergencyProbe,
+    FailproofProbe,
+    Journal,
+    Probe,
+)
 
 from rocoma_can import ControllerManager, EventKind, ManagerState, SwitchResult, TimingSupervision
 
@@ -94,6 +101,56 @@ def test_hung_advance_torques_off_through_the_watchdog_then_falls_through():
         assert mgr.update() is FAILPROOF
         time.sleep(30 * DT)
         assert len(hang_calls_before_return) == calls  # quiet once update() returns
+
+
+def test_a_hung_advance_within_a_budget_of_its_own_still_goes_failproof():
+    """A controller may allow itself more than the hang limit (``advance_budget``): the
+    watchdog has torqued the drives off all the same, so an advance that then returns True
+    must not leave the manager OK (the next write would command the drives again)."""
+    journal = Journal(update_thread=threading.get_ident())
+    release = threading.Event()
+    hangs = []
+
+    def on_hang():
+        hangs.append(time.monotonic())
+        release.set()
+
+    with manager(journal, on_hang=on_hang) as mgr:
+        a = Probe("a", journal)
+        a.advance_budget = 100 * DT  # above the hang limit (20 x DT)
+        mgr.add_controller(a, emergency=EmergencyProbe("e", journal))
+        mgr.switch_controller("a")
+        assert mgr.update() is OK
+        a.gates["advance"] = release  # returns True once on_hang ran
+        assert mgr.update() is FAILPROOF
+        assert hangs and journal.of("e", "initialize_fast") == []
+
+
+def test_update_does_not_wait_for_a_switch_stuck_in_a_callback():
+    """An aborted switch e-stops on the switcher thread with the cycle lock held, and runs
+    the emergency controller's initialize_fast there: one that never returns must not stop
+    the cycle. update() gives up on the lock after the hang limit and returns FAILPROOF (the
+    caller writes torque-off frames), and the failproof stop it queued is applied once the
+    lock is free: the manager does not come back in the layer the stuck switch chose."""
+    journal = Journal(update_thread=threading.get_ident())
+    gate = threading.Event()
+    with manager(journal) as mgr:
+        e = EmergencyProbe("e", journal, gates={"initialize_fast": gate})
+        mgr.add_controller(Probe("a", journal), emergency=e)
+        mgr.add_controller(Probe("b", journal, fail={"initialize"}))  # its swap fails
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        assert mgr.update() is OK
+        switch = mgr.request_switch("b")
+        journal.wait_for("e", "initialize_fast")  # the switcher is stuck in it, lock held
+        assert mgr.update() is FAILPROOF
+        assert not gate.is_set() and not switch.done()  # returned while still stuck
+        assert mgr.lock_timeouts == 1
+        assert mgr.update() is FAILPROOF
+        assert mgr.lock_timeouts == 2
+        gate.set()
+        assert switch.result(WAIT) == SwitchResult.ERROR
+        assert mgr.update() is FAILPROOF  # the queued failproof stop, not EMERGENCY
+        assert mgr.state is FAILPROOF
 
 
 def test_no_false_trips_in_a_10_s_run_of_a_normal_controller():
