@@ -88,7 +88,7 @@ from .frame_io import clock_offset, to_monotonic
 from .homing import HOMING_MODE, HomingJob
 from .joints import JointCommand, JointMode, JointState
 from .modes import CW_ENABLE_INTERPOLATION, KIND, DriveMode, SetPointHandshake, carrier
-from .pdo_layout import IGNORED, DriveLayout
+from .pdo_layout import IGNORED, DriveLayout, cob_id_clashes
 from .scaling import Scaling
 from .supervision import FaultEvent, Supervisor
 from .switch_off import SdoSwitchOff
@@ -176,6 +176,10 @@ class CanopenHardware:
         # each drive measured against its EDS/DCF: modes, feedback, PDOs, manager loss
         self.plans = [plan_drive(d) for d in drives]
         drives = [p.drive for p in self.plans]
+        clashes = cob_id_clashes([(p.drive, p.layout) for p in self.plans], manager_node_id,
+                                 estop_cob_id, next(iter(buses)))
+        if clashes:
+            raise ValueError("; ".join(clashes))
         for p in self.plans:
             for note in p.notes:
                 log.warning("drive %r: %s", p.drive.name, note)
@@ -883,7 +887,14 @@ class CanopenHardware:
         """Why ``cob_id`` cannot be the e-stop frame's on these buses, or None: a reserved
         id, or one a drive or the manager's own node uses (an e-stop taken for a drive's
         frame, or a drive's frame taken for an e-stop, would both be wrong)."""
-        return estop_conflict(cob_id, self.drives_config, self.manager_node_id)
+        why = estop_conflict(cob_id, self.drives_config, self.manager_node_id)
+        if why is not None:
+            return why
+        for plan in self.plans:
+            for pdo in (*plan.layout.rpdos, *plan.layout.tpdos):
+                if pdo.cob_id == cob_id:  # an absolute COB-ID from the drive's EDS/DCF
+                    return f"a PDO of drive {plan.drive.name!r}"
+        return None
 
     def set_estop_cob_id(self, cob_id: int) -> None:
         """The e-stop frame's COB-ID on every bus (0 = off), from any thread: the manager

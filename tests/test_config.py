@@ -286,6 +286,61 @@ def test_the_estop_cob_id_must_be_free_on_every_bus():
     assert any("the EMCY of node 100, the manager's own" in p for p in info.value.problems)
 
 
+def _absolute_cob_ids(tmp_path: Path, tpdo1: int = 0x181, rpdo1: int = 0x201) -> str:
+    """The generic drive's EDS with absolute PDO COB-IDs (as a DCF made for node 1 has)."""
+    text = (Path(__file__).parents[1] / "eds" / "cia402_drive.eds").read_text()
+    text = text.replace("DefaultValue=$NODEID+0x180", f"DefaultValue=0x{tpdo1:X}", 1)
+    text = text.replace("DefaultValue=$NODEID+0x200", f"DefaultValue=0x{rpdo1:X}", 1)
+    path = tmp_path / "node1.dcf.eds"
+    path.write_text(text)
+    return str(path)
+
+
+def test_pdo_cob_ids_from_a_file_must_not_clash_on_a_bus(tmp_path):
+    """One file with absolute COB-IDs for two drives: drive 1 would take drive 2's RPDOs
+    (its enable and targets) and its TPDOs would be decoded as drive 2's feedback."""
+    cfg = good()
+    for d in cfg["drives"]:
+        d["eds"] = _absolute_cob_ids(tmp_path)
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    said = " | ".join(info.value.problems)
+    assert "TPDO1 of drive 'j2': COB-ID 0x181 (from its EDS/DCF) is also TPDO1 of drive " \
+           "'j1' on the same bus" in said, said
+    assert "RPDO1 of drive 'j2': COB-ID 0x201" in said, said
+    # the library refuses it too, before it opens anything
+    drives = [DriveConfig(f"j{i}", i, 4096, 1.0, eds=_absolute_cob_ids(tmp_path))
+              for i in (1, 2)]
+    with pytest.raises(ValueError, match="also TPDO1 of drive 'j1'"):
+        CanopenHardware(None, drives, 100, 0.01)  # type: ignore[arg-type]
+
+
+def test_a_bare_base_cob_id_in_a_file_is_the_predefined_one(tmp_path):
+    """0x180 for TPDO1 ("node 0") in a vendor's EDS means 0x180 + node id, as the drive
+    uses it after power-on: two drives on one file do not clash."""
+    cfg = good()
+    for d in cfg["drives"]:
+        d["eds"] = _absolute_cob_ids(tmp_path, tpdo1=0x180, rpdo1=0x200)
+    config = validate(cfg)
+    assert [config.plans[f"j{n}"].layout.tpdos[0].cob_id for n in (1, 2)] == [0x181, 0x182]
+    assert [config.plans[f"j{n}"].layout.rpdos[0].cob_id for n in (1, 2)] == [0x201, 0x202]
+
+
+@pytest.mark.parametrize("tpdo1, clash", [
+    (0x080, "reserved for NMT, SYNC, SDO or heartbeat frames"),
+    (0x0A0, "also the e-stop frame (manager.estop_cob_id)"),
+    (0x082, "also the EMCY of drive 'j2'"),
+    (0x1E4, "also the manager's state frame (TPDO1)"),
+])
+def test_a_pdo_cob_id_from_a_file_must_not_be_taken_or_reserved(tmp_path, tpdo1, clash):
+    cfg = good()
+    cfg["drives"][0]["eds"] = _absolute_cob_ids(tmp_path, tpdo1=tpdo1)
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert any(f"TPDO1 of drive 'j1': COB-ID 0x{tpdo1:03X}" in p and clash in p
+               for p in info.value.problems), info.value.problems
+
+
 def test_one_wire_is_one_bus():
     cfg = four_buses()
     cfg["buses"][3]["channel"] = "can0"

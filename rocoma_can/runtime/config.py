@@ -43,6 +43,7 @@ import yaml
 from ..drivers.cia301 import reserved_cob_id
 from ..drivers.config import BusConfig, DriveConfig, Supervision, Timeouts, estop_conflict
 from ..drivers.drive_plan import DrivePlan, plan_drive
+from ..drivers.pdo_layout import cob_id_clashes
 from ..errors import ConfigError
 from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
@@ -285,6 +286,9 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     if why is not None:
         problems.append(f"manager.estop_cob_id: 0x{cob:03X} is {why}: an e-stop frame must "
                         "have an identifier no node uses")
+    problems.extend(f"drives: {clash}" for clash in cob_id_clashes(
+        [(d, plans[d.name].layout) for d in drives if d.name in plans], manager.node_id,
+        cob if isinstance(cob, int) else 0, buses[0].label if buses else ""))
     node_bus = m.get("bus", "")
     if not isinstance(node_bus, str) or (node_bus and node_bus not in
                                          [b.label for b in buses]):
