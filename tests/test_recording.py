@@ -172,8 +172,23 @@ def test_an_unwritable_flight_directory_is_said_and_the_loop_runs_on(config, tmp
 def test_export_of_a_file_that_is_not_a_trace_is_a_clear_error(tmp_path, capsys):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"junk")
+    earlier = tmp_path / "junk.csv"
+    earlier.write_text("an earlier export\n")
     assert main(["export", str(junk)]) == 2
     assert "cannot export" in capsys.readouterr().err
+    # nothing lost: the earlier CSV stands, no partial file is left behind
+    assert earlier.read_text() == "an earlier export\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.csv", "junk.mcap"]
+
+
+@pytest.mark.parametrize("args", [["data.csv"], ["t.mcap", "--csv", "t.mcap"]])
+def test_export_never_overwrites_its_own_input(tmp_path, capsys, args, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    source = tmp_path / args[0]
+    source.write_bytes(b"the only copy")
+    assert main(["export", *args]) == 2
+    assert "would overwrite the trace it is read from" in capsys.readouterr().err
+    assert source.read_bytes() == b"the only copy"
 
 
 def test_plot_draws_state_band_positions_torques_period_and_each_estop(bench, tmp_path,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import signal
 import sys
 import threading
@@ -94,8 +95,13 @@ def _export(args: argparse.Namespace) -> int:
     from .trace import JOINT_FIELDS, read_messages
     source = Path(args.file)
     out = Path(args.out) if args.out else source.with_suffix(".csv")
+    if out.resolve() == source.resolve():
+        _say(f"{out}: the CSV would overwrite the trace it is read from; give --csv FILE")
+        return USAGE
+    # written beside, then renamed: a failed export leaves an earlier CSV as it was
+    part = out.with_name(out.name + ".part")
     try:
-        with open(out, "w", newline="") as stream:
+        with open(part, "w", newline="") as stream:
             writer: Any = None
             rows = 0
             for topic, log_time, msg in read_messages(str(source)):
@@ -112,11 +118,14 @@ def _export(args: argparse.Namespace) -> int:
                                  msg["state"], msg["controller"]]
                                 + [v for f in JOINT_FIELDS for v in msg[f]])
                 rows += 1
+        os.replace(part, out)
     except ImportError:
+        part.unlink(missing_ok=True)
         _say("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
         return USAGE
     except Exception as exc:  # noqa: BLE001 - no such file, not MCAP (the reader fails in
         # many ways on a foreign or truncated file: struct.error, McapError), not ours
+        part.unlink(missing_ok=True)
         _say(f"{source}: cannot export: {type(exc).__name__}: {exc}")
         return USAGE
     print(f"{rows} cycles written to {out}", flush=True)
