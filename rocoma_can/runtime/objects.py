@@ -10,6 +10,7 @@ from canopen.sdo.constants import (
     ABORT_INVALID_COMMAND_SPECIFIER,
     ABORT_INVALID_SEQUENCE_NUMBER,
     ABORT_INVALID_VALUE,
+    ABORT_LENGTH_TOO_HIGH,
     ABORT_TIMED_OUT,
 )
 
@@ -26,6 +27,10 @@ PENDING, NO_SWITCH_YET = 0xFF, 0xFE
 #: the drives' interface and its first-in-first-out transmit queue).
 MAX_BLOCK_SIZE = 8
 SEGMENT = 7  # bytes of data in one SDO segment (the frame's first byte is the command)
+#: The longest value the node takes by SDO download (a controller or joint name): a longer
+#: one is aborted 0x06070012 as it comes, never buffered (a sender could stream segments
+#: for ever) nor echoed back in a refusal.
+MAX_DOWNLOAD = 256
 # SDO abort codes the node answers with (CiA 301; canopen's names)
 ABORT_NOT_FOUND = ABORT_INVALID_VALUE  # 0x06090030 value range exceeded: no such controller
 ABORT_COMMAND_SPECIFIER = ABORT_INVALID_COMMAND_SPECIFIER  # 0x05040001
@@ -38,6 +43,7 @@ ABORT_NO_ANSWER = ABORT_TIMED_OUT  # 0x05040000 SDO protocol timed out
 PROTOCOL_ABORTS = range(ABORT_NO_ANSWER, ABORT_NO_ANSWER + 0x10000)
 ABORT_REFUSED = ABORT_APPLICATION_DEVICE_STATE  # 0x08000022 not in the present device state
 ABORT_NO_RECOVERY = ABORT_APPLICATION_LOCAL_CONTROL  # 0x08000021 no drives to recover
+ABORT_TOO_LONG = ABORT_LENGTH_TOO_HIGH  # 0x06070012 longer than MAX_DOWNLOAD
 
 RESULT_NAMES = {0: "SWITCHED", 1: "RUNNING", 2: "NOT_FOUND", 3: "ERROR", PENDING: "PENDING",
                 NO_SWITCH_YET: "none"}

@@ -33,7 +33,9 @@ from .objects import (
     ABORT_BLOCK_SIZE,
     ABORT_COMMAND_SPECIFIER,
     ABORT_SEQUENCE_NUMBER,
+    ABORT_TOO_LONG,
     MAX_BLOCK_SIZE,
+    MAX_DOWNLOAD,
     SEGMENT,
 )
 
@@ -131,6 +133,9 @@ class StrictSdoServer(SdoServer):
             size = len(var) // 8 if var is not None and var.data_type in NUMBER_TYPES else 0
             if 1 <= size <= 4:
                 request = bytes([command | SIZE_SPECIFIED | (4 - size) << 2]) + bytes(request[1:])
+        if not command & EXPEDITED and command & SIZE_SPECIFIED \
+                and struct.unpack_from("<L", request, 4)[0] > MAX_DOWNLOAD:
+            raise SdoAbortedError(ABORT_TOO_LONG)  # announced too long: not even started
         super().init_download(request)
         if not command & EXPEDITED:
             self._open = REQUEST_SEGMENT_DOWNLOAD
@@ -138,6 +143,9 @@ class StrictSdoServer(SdoServer):
     def segmented_download(self, command: int, request: bytes) -> None:
         if self._open != REQUEST_SEGMENT_DOWNLOAD:
             raise SdoAbortedError(ABORT_COMMAND_SPECIFIER)
+        if len(self._buffer or b"") + SEGMENT - (command >> 1 & 0x7) > MAX_DOWNLOAD:
+            self._open, self._buffer = None, None  # over: a later segment starts nothing
+            raise SdoAbortedError(ABORT_TOO_LONG)
         if command & NO_MORE_DATA:
             self._open = None  # completed or refused: either way it is over
         super().segmented_download(command, request)

@@ -35,7 +35,12 @@ from rocoma_can import ControllerManager, ManagerState, SwitchResult
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.errors import Refused
 from rocoma_can.runtime.config import ConfigError, load, validate
-from rocoma_can.runtime.objects import ABORT_NOT_FOUND, ABORT_REFUSED
+from rocoma_can.runtime.objects import (
+    ABORT_NOT_FOUND,
+    ABORT_REFUSED,
+    ABORT_TOO_LONG,
+    MAX_DOWNLOAD,
+)
 
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 OK, FAILPROOF = ManagerState.OK, ManagerState.FAILPROOF
@@ -172,6 +177,27 @@ def test_aborted_segmented_write_never_takes_effect(service):
     assert answer[0] == 0x80  # refused: no download is open
     time.sleep(0.2)
     assert service.manager.active_controller_name == "torque_off"
+
+
+def test_an_sdo_download_longer_than_any_name_is_aborted_as_it_comes(service):
+    """A sender streaming segments for ever (or announcing 100 kB) is aborted 0x06070012 at
+    MAX_DOWNLOAD bytes, never buffered on and never echoed back; the node serves on."""
+    announce = bytes([0x21, 0x00, 0x21, 0x00]) + struct.pack("<I", 100_000)
+    answer = sdo_exchange(service.raw, announce)
+    assert answer[0] == 0x80 and struct.unpack_from("<I", answer, 4)[0] == ABORT_TOO_LONG
+    answer = sdo_exchange(service.raw, bytes([0x20, 0x00, 0x21, 0x00, 0, 0, 0, 0]))  # no size
+    assert answer[0] == 0x60
+    toggle, sent = 0, 0
+    while True:
+        answer = sdo_exchange(service.raw, bytes([toggle << 4]) + b"x" * 7)
+        if answer[0] == 0x80:
+            break
+        assert answer[0] == 0x20 | toggle << 4, answer.hex()
+        toggle, sent = toggle ^ 1, sent + 7
+    assert struct.unpack_from("<I", answer, 4)[0] == ABORT_TOO_LONG
+    assert sent <= MAX_DOWNLOAD < sent + 7  # aborted at the limit, not later
+    assert service.manager.active_controller_name == "torque_off"
+    assert service.client.switch("pd") == 0  # the node serves on
 
 
 def test_remote_frame_on_the_estop_cob_id_estops(service):
