@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import yaml
 from test_config import good
 from test_services import NODE, Rig
@@ -44,13 +45,35 @@ def test_run_rate_override_is_checked_against_spin(tmp_path, capsys):
     path.write_text(yaml.safe_dump(cfg))
     assert main(["run", str(path), "--rate", "2000"]) == 2
     err = capsys.readouterr().err
-    assert "realtime.spin_us: 1000 µs is not shorter than one period at --rate 2000" in err
+    assert "realtime.spin_us:" in err and "(500.0 µs at the rate), got 1000 (with --rate)" \
+        in err, err
+    for bad in ("nan", "inf", "0", "-5", "20000"):  # checked as the file's rate is
+        assert main(["run", str(path), "--rate", bad]) == 2, bad
+        err = capsys.readouterr().err
+        assert "rate: expected a loop rate in Hz, 0 < rate <= 10000" in err, (bad, err)
 
 
 def test_client_without_manager_is_no_answer(virtual_channel, capsys):
     assert main(["status", "--interface", "virtual", "--channel", virtual_channel,
                  "--timeout", "0.2"]) == 3
     assert "no answer from manager node 100" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args", [
+    ["status", "--timeout", "nan"], ["status", "--timeout", "-1"], ["status", "--timeout", "inf"],
+    ["status", "--node", "300"], ["switch", "pd", "--wait", "nan"],
+    ["status", "--watch", "--interval", "nan"], ["run", "x.yaml", "--duration", "nan"],
+    ["run", "x.yaml", "--flight-seconds", "inf"], ["run", "x.yaml", "--flight-seconds", "1e9"],
+    ["home", "j1", "--timeout-homing", "0"],
+])
+def test_numbers_out_of_range_are_usage_errors(args, capsys):
+    """argparse's usage error (exit 2) naming the option: not a traceback, not a wait of
+    nan seconds (a busy loop) or a run without end."""
+    with pytest.raises(SystemExit) as exited:
+        main(args)
+    assert exited.value.code == 2
+    option = next(a for a in args if a.startswith("--") and a not in ("--watch",))
+    assert f"argument {option}" in capsys.readouterr().err
 
 
 def test_client_commands_against_a_manager(bus_factory, virtual_channel, capsys):
@@ -65,6 +88,9 @@ def test_client_commands_against_a_manager(bus_factory, virtual_channel, capsys)
         assert capsys.readouterr().out.strip().splitlines()[-1] == "SWITCHED"
         assert main(["switch", "nope", *opts]) == 1
         assert capsys.readouterr().out.strip() == "NOT_FOUND"  # on stdout, as documented
+        for odd in ("é", "300", "\u00b2", "0"):  # UTF-8 names, numbers no U8 index holds
+            assert main(["switch", odd, *opts]) == 1, odd
+            assert capsys.readouterr().out.strip() == "NOT_FOUND", odd
         assert main(["list", *opts]) == 0
         assert capsys.readouterr().out.splitlines() == ["1 pd", "2 trajectory"]
         assert main(["estop", *opts]) == 0

@@ -128,6 +128,31 @@ def test_an_estop_dumps_the_last_seconds_of_signals_and_frames(bench, tmp_path):
     assert stops[0]["state"] in ("EMERGENCY", "FAILPROOF")
 
 
+def test_an_estop_storm_is_a_few_flight_records_not_one_per_estop(config, tmp_path):
+    """A held e-stop button repeats its frame, and each is an e-stop event (in FAILPROOF
+    too): one file each would fill the disk and compete with the loop for the CPU. The
+    first is written at once, the rest within half a window go into one more file, and
+    the shutdown writes the last."""
+    storm = 50
+    with Runtime(config, flight=str(tmp_path / "flight"), flight_seconds=1.0) as rt:
+        def operate() -> None:
+            deadline = time.monotonic() + DEMO_WAIT
+            while rt.loop.stats.cycles < 10 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            for _ in range(storm):
+                rt.manager.emergency_stop("storm")
+                time.sleep(0.005)
+            time.sleep(0.2)
+            rt.loop.stop("test")
+        worker = threading.Thread(target=operate)
+        worker.start()
+        rt.run(duration=DEMO_RUN, signals=False)
+        worker.join(DEMO_WAIT)
+    dumps = sorted((tmp_path / "flight").iterdir())
+    assert 2 <= len(dumps) <= 3, dumps  # first, (the rest together,) shutdown
+    assert any("more" in d.name for d in dumps), dumps  # the storm, merged
+
+
 def test_a_normal_stop_dumps_nothing(config, tmp_path):
     with Runtime(config, flight=str(tmp_path / "flight"), flight_seconds=1.0) as rt:
         rt.run(duration=0.5, signals=False)

@@ -162,9 +162,23 @@ def test_position_sensor_noise(sim_bench):
 def test_parse_node_ids():
     assert parse_node_ids("1-4,7") == [1, 2, 3, 4, 7]
     assert parse_node_ids("3") == [3]
-    for bad in ("0", "1-200", "a", ""):
+    for bad in ("0", "1-200", "a", "", "1-999999999", "5-3"):
         with pytest.raises(Exception, match="node ids"):
             parse_node_ids(bad)
+
+
+@pytest.mark.parametrize("args", [
+    ["--duration", "nan"], ["--duration", "-1"], ["--status-interval", "inf"],
+    ["--sync-period", "0"], ["--rated-torque-nm", "nan"], ["--fault", "1@nan"],
+    ["--fault", "1@-2"], ["--nodes", "1-999999999"],
+])
+def test_sim_numbers_out_of_range_are_usage_errors(args, virtual_channel, capsys):
+    """A non-finite or out-of-range number is argparse's usage error (exit 2) naming the
+    option, before any bus opens: not a traceback, nor a timer thread spinning on nan."""
+    with pytest.raises(SystemExit) as exited:
+        cli.main(["sim", "--interface", "virtual", "--channel", virtual_channel, *args])
+    assert exited.value.code == 2
+    assert f"argument {args[0]}" in capsys.readouterr().err
 
 
 def test_cli_runs_a_segment_with_faults_and_status(frame_recorder, virtual_channel, capsys):

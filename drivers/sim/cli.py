@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from ...cli_args import LONGEST, positive, seconds, seconds_or_zero
 from ...exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
@@ -29,11 +30,12 @@ def parse_node_ids(text: str) -> list[int]:
     try:
         for part in text.split(","):
             lo, _, hi = part.strip().partition("-")
-            ids.extend(range(int(lo), int(hi or lo) + 1))
+            first, last = int(lo), int(hi or lo)
+            if not 1 <= first <= last <= 127:  # checked before a range is built
+                raise argparse.ArgumentTypeError(f"node ids must be 1..127, got {text!r}")
+            ids.extend(range(first, last + 1))
     except ValueError:
         raise argparse.ArgumentTypeError(f"node ids like 1-12 or 1,3,5-7, got {text!r}") from None
-    if not ids or not all(1 <= n <= 127 for n in ids):
-        raise argparse.ArgumentTypeError(f"node ids must be 1..127, got {text!r}")
     return sorted(set(ids))
 
 
@@ -55,8 +57,11 @@ def _injection(flag: str, nargs: tuple[int, int]) -> Callable[[str], Injection]:
         except ValueError:
             raise argparse.ArgumentTypeError(f"--{flag}: expected NODE[:ARG][@SECONDS], "
                                              f"got {text!r}") from None
-        if not nargs[0] <= len(args) <= nargs[1] or inj.after < 0:
+        if not nargs[0] <= len(args) <= nargs[1]:
             raise argparse.ArgumentTypeError(f"--{flag} {text!r}: wrong number of arguments")
+        if not 0 <= inj.after <= LONGEST:  # nan would make the timer thread spin
+            raise argparse.ArgumentTypeError(
+                f"--{flag} {text!r}: @SECONDS must be 0..{LONGEST:.0f}")
         return inj
     return parse
 
@@ -100,16 +105,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--increments-per-rev", type=int, default=1 << 20, metavar="N",
                    help="encoder increments per motor turn where the file has no 0x608F "
                         "(default 1048576)")
-    p.add_argument("--rated-torque-nm", type=float, default=1.0, metavar="NM",
+    p.add_argument("--rated-torque-nm", type=positive, default=1.0, metavar="NM",
                    help="rated torque where the file has no 0x6076 (default 1.0)")
     p.add_argument("--fd", action="store_true",
                    help="a CAN FD bus: the drives answer in FD frames with bit rate switching "
                         "(on vcan: ip link set vcan0 mtu 72)")
-    p.add_argument("--sync-period", type=float, default=None, metavar="S",
+    p.add_argument("--sync-period", type=seconds, default=None, metavar="S",
                    help="integrate each SYNC over this fixed period instead of measured time")
-    p.add_argument("--status-interval", type=float, default=0.0, metavar="S",
+    p.add_argument("--status-interval", type=seconds_or_zero, default=0.0, metavar="S",
                    help="print a status line per drive every S seconds (also on SIGUSR1)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=seconds, default=None, metavar="S",
                    help="stop after S seconds (default: run until Ctrl-C / SIGTERM)")
     for flag, (nargs, text, _) in INJECTIONS.items():
         p.add_argument(f"--{flag}", type=_injection(flag, nargs), action="append", default=[],

@@ -114,8 +114,13 @@ class ManagerClient:
         return value
 
     def write(self, index: int, value: SdoValue) -> None:
+        """A string goes as its UTF-8 bytes (the node takes UTF-8 names; canopen's own
+        encoding of a VISIBLE_STRING is ASCII and raised on "é")."""
         try:
-            self.node.sdo[index].raw = value
+            if isinstance(value, str):
+                self.node.sdo.download(index, 0, value.encode("utf-8"))
+            else:
+                self.node.sdo[index].raw = value
         except SdoAbortedError as exc:
             raise Refused(exc.code, f"write 0x{index:04X}", _meaning(exc.code)) from None
         except SdoCommunicationError as exc:
@@ -151,7 +156,8 @@ class ManagerClient:
 
     def switch(self, name: str, timeout: float = 10.0) -> int:
         """Request a switch and poll 0x2102 until it is no longer PENDING (bounded)."""
-        if name.isdigit():
+        # a number from `list` (0x2101 is U8); anything else, "²" or "300" too, is a name
+        if name.isascii() and name.isdigit() and 1 <= int(name) <= 255:
             self.write(SWITCH_INDEX, int(name))
         else:
             self.write(SWITCH_NAME, name)

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..cli_args import flight_seconds, node_id, seconds
 from ..errors import ConfigError, NoAnswer, Refused, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from . import fleet_client
@@ -101,20 +102,13 @@ def recording_available() -> bool:
 
 def _run(args: argparse.Namespace) -> int:
     from .config import load
-    from .loop import spin_fits
     from .system import Runtime
     try:
-        config = load(args.config)
+        config = load(args.config, rate=args.rate)
     except ConfigError as exc:
         for problem in exc.problems:
-            _err(problem)
+            _err(problem + (" (with --rate)" if args.rate is not None else ""))
         return USAGE
-    if args.rate:
-        config.rate = args.rate
-        if config.spin is not None and not spin_fits(config.spin, args.rate):
-            _err(f"{config.source}: realtime.spin_us: {config.spin * 1e6:g} µs is not shorter "
-                 f"than one period at --rate {args.rate:g} ({1e6 / args.rate:.1f} µs)")
-            return USAGE
     try:
         config.fleet = fleet_from_args(args, config.fleet)
     except ConfigError as exc:
@@ -351,8 +345,8 @@ def _list(args: argparse.Namespace) -> int:
 def _bus_options(p: argparse.ArgumentParser, zenoh: bool = True) -> None:
     p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
     p.add_argument("--channel", default="can0", help="CAN channel (can0)")
-    p.add_argument("--node", type=int, default=100, help="the manager's node id (100)")
-    p.add_argument("--timeout", type=float, default=0.5, help="SDO answer timeout, s (0.5)")
+    p.add_argument("--node", type=node_id, default=100, help="the manager's node id (100)")
+    p.add_argument("--timeout", type=seconds, default=0.5, help="SDO answer timeout, s (0.5)")
     if zenoh:
         fleet_client.add_options(p)
 
@@ -360,14 +354,14 @@ def _bus_options(p: argparse.ArgumentParser, zenoh: bool = True) -> None:
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("run", help="run the manager from a YAML config")
     p.add_argument("config", help="YAML file (see README, Configuration)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many s")
+    p.add_argument("--duration", type=seconds, default=None, help="stop after this many s")
     p.add_argument("--rate", type=float, default=None, help="override the loop rate, Hz")
     p.add_argument("--record", default=None, metavar="DIR",
                    help="write every frame (DIR/<bus>.log, candump) and every cycle "
                         "(DIR/trace.mcap) as they happen")
     p.add_argument("--flight-dir", default=str(default_flight_dir()), metavar="DIR",
                    help="where the flight recorder writes (default %(default)s)")
-    p.add_argument("--flight-seconds", type=float, default=10.0, metavar="S",
+    p.add_argument("--flight-seconds", type=flight_seconds, default=10.0, metavar="S",
                    help="seconds the flight recorder keeps before an e-stop (10)")
     p.add_argument("--no-flight", action="store_true", help="no flight recorder")
     g = p.add_argument_group("Zenoh (the config's zenoh: section; these override it)")
@@ -393,7 +387,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
     p = subparsers.add_parser("switch", help="switch the running manager's controller")
     p.add_argument("name", help="controller name, or its number from `list`")
-    p.add_argument("--wait", type=float, default=10.0, help="wait for the result, s (10)")
+    p.add_argument("--wait", type=seconds, default=10.0, help="wait for the result, s (10)")
     _bus_options(p)
     p.set_defaults(func=_switch)
     for name, index, text, done in (
@@ -409,7 +403,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "home", help="home one drive (CiA 402 homing, its own method) while the active "
                      "controller holds the others; waits for the result")
     p.add_argument("drive", help="the drive's name in the config")
-    p.add_argument("--timeout-homing", type=float, default=90.0, metavar="S",
+    p.add_argument("--timeout-homing", type=seconds, default=90.0, metavar="S",
                    help="give up waiting after S seconds (90; the manager's own limit is "
                         "the drive's homing_timeout)")
     _bus_options(p, zenoh=False)
@@ -419,10 +413,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--json", action="store_true", help="everything as one JSON document")
     p.add_argument("--watch", action="store_true",
                    help="a live view, refreshed until Ctrl-C (needs rocoma-can[live])")
-    p.add_argument("--interval", type=float, default=None, metavar="S",
+    p.add_argument("--interval", type=seconds, default=None, metavar="S",
                    help="--watch: seconds between refreshes (1 over SDO, at least 1: each "
                         "is a block upload on the drives' bus; 0.5 over Zenoh)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=seconds, default=None, metavar="S",
                    help="--watch: stop after S seconds (default: Ctrl-C)")
     _bus_options(p)
     p.set_defaults(func=_status)

@@ -143,8 +143,14 @@ MAX_CONFIG_BYTES = 1 << 20
 MAX_CONFIG_NODES = 100_000  # YAML nodes after expanding aliases ("billion laughs": 10^9)
 
 
-def load(path: str | Path) -> RuntimeConfig:
-    """Read and validate a YAML file; ConfigError lists every problem."""
+#: CPU numbers realtime.cpus may name (the kernel's affinity mask takes no more)
+MAX_CPUS = 4096
+
+
+def load(path: str | Path, rate: float | None = None) -> RuntimeConfig:
+    """Read and validate a YAML file; ConfigError lists every problem. ``rate``: instead of
+    the file's (``run --rate``), checked with everything that depends on it (the bus load,
+    the spin, the cycles of each supervision)."""
     p = Path(path)
     try:
         with p.open("rb") as f:
@@ -164,6 +170,8 @@ def load(path: str | Path) -> RuntimeConfig:
         raise ConfigError([f"{path}: not valid YAML: {exc}"]) from None
     except RecursionError:
         raise ConfigError([f"{path}: nested too deeply; not a config file"]) from None
+    if rate is not None and isinstance(data, Mapping):
+        data = {**data, "rate": rate}
     return validate(data, source=str(p), base=p.parent)
 
 
@@ -259,8 +267,9 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         priority = None
     cpus = rt.get("cpus")
     if cpus is not None and (not isinstance(cpus, list) or not cpus
-                             or not all(_is_int(c) and c >= 0 for c in cpus)):
-        problems.append(f"realtime.cpus: expected null or a list of CPU numbers, got {cpus!r}")
+                             or not all(_is_int(c) and 0 <= c < MAX_CPUS for c in cpus)):
+        problems.append(f"realtime.cpus: expected null or a list of CPU numbers "
+                        f"0..{MAX_CPUS - 1}, got {cpus!r}")
         cpus = None
     spin_us = rt.get("spin_us")
     if spin_us is not None and (  # the loop's own check, in seconds: no rounding between

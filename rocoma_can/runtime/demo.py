@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
+from ..cli_args import positive, seconds
 from ..errors import ConfigError, RocomaError
 from ..exit_codes import FAILED, OK, USAGE
 from .client import ManagerClient
@@ -457,8 +458,8 @@ def _summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out(f"  {'frames per cycle':28s} {rt.hardware.frames_per_cycle} "
         f"(PDOs of {len(rt.hardware.drives_config)} drives + SYNC)")
     out(f"  {'tx errors':28s} {rt.hardware.tx_errors}")
-    for what, seconds, cycles in report.latencies:
-        out(f"  {'latency ' + what:28s} {seconds * 1e3:.1f} ms (~{cycles} cycles)")
+    for what, took, cycles in report.latencies:
+        out(f"  {'latency ' + what:28s} {took * 1e3:.1f} ms (~{cycles} cycles)")
     out("demo " + ("passed" if report.ok else "FAILED: " + ", ".join(
         s.name for s in report.steps if not s.ok)))
 
@@ -471,14 +472,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--buses", type=int, default=None,
                    help="in-process CAN buses the drives are spread over (default: one up to "
                         "6 drives, else one per 3 drives)")
-    p.add_argument("--rate", type=float, default=200.0, help="loop rate, Hz (default 200)")
+    p.add_argument("--rate", type=positive, default=200.0, help="loop rate, Hz (default 200)")
     p.add_argument("--eds", default=None, metavar="FILE",
                    help="the simulated drives emulate this EDS/DCF: the demo uses the modes "
                         "it supports and says which steps it skips and why")
     p.add_argument("--interface", choices=("inproc", "virtual"), default=DEFAULT_INTERFACE,
                    help="in-process bus: inproc (default; one copy per frame, fit for "
                         "1 kHz) or python-can's virtual (a copy per frame and receiver)")
-    p.add_argument("--duration", type=float, default=16.0,
+    p.add_argument("--duration", type=seconds, default=16.0,
                    help="approximate length of the walk-through, s (default 16)")
     p.add_argument("--record", default=None, metavar="DIR",
                    help="where the recording and its plot go (default: a new directory "

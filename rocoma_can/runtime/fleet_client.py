@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from ..cli_args import seconds
 from ..errors import NoAnswer, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from .fleet import (
@@ -207,9 +208,9 @@ def fleet(args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("fleet", help="every manager alive on Zenoh, with its state")
-    p.add_argument("--wait", type=float, default=2.0, metavar="S",
+    p.add_argument("--wait", type=seconds, default=2.0, metavar="S",
                    help="how long to look for managers (2)")
-    p.add_argument("--timeout", type=float, default=3.0, help="status answer timeout, s (3)")
+    p.add_argument("--timeout", type=seconds, default=3.0, help="status answer timeout, s (3)")
     add_options(p, prefix=False)
     p.set_defaults(func=fleet, zenoh="")
 

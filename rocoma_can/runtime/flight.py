@@ -5,7 +5,9 @@ recorder keeps the last ``seconds`` (10 by default) of the loop's signals (trace
 the cycle writes), of the manager's events (each e-stop with its cause, state and
 controller changes) and of every CAN frame on every bus (passive bus handles of its own, like
 ``rocoma-can record``), and on every e-stop, and on a shutdown after one, dumps both to
-``flight-<time>-<cause>.mcap`` in its directory. The dump runs on the recorder's own thread:
+``flight-<time>-<cause>.mcap`` in its directory (e-stops within half a window of the last
+dump go into one more file together, so a held e-stop button writes a few files, not one
+per frame). The dump runs on the recorder's own thread:
 the loop only ever writes its ring row, and the manager's event thread only queues a request.
 
 ``--record DIR`` (``Recording``) writes everything instead, as it happens: ``DIR/<bus>.log``
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import re
 import threading
 import time
@@ -79,10 +82,12 @@ class FlightRecorder:
         self._announce = announce
         #: per bus, the listener its passive reader feeds (Taps wires them)
         self.taps = {name: FrameTap(name, seconds) for name in buses}
-        self._requests: collections.deque[str] = collections.deque()
+        self._requests: collections.deque[str] = collections.deque(maxlen=MAX_EVENTS)
         self._events: collections.deque[ManagerEvent] = collections.deque(maxlen=MAX_EVENTS)
         self._wake = threading.Event()
+        self._flush = threading.Event()  # closing: write what is queued now
         self._stop = threading.Event()
+        self._last_dump = -math.inf
         self._faulted = False
         self._thread = threading.Thread(target=self._run, name="flight-recorder", daemon=True)
         self._thread.start()
@@ -103,8 +108,19 @@ class FlightRecorder:
         while not self._stop.is_set():
             self._wake.wait(0.5)
             self._wake.clear()
+            if not self._requests:
+                continue
+            # A storm of e-stops (a button held down repeats its frame; each is a request
+            # while FAILPROOF too) is one record, not one file per frame: requests within
+            # half a window of the last record wait for it to pass and go out together
+            # (the next file still overlaps the last). Closing writes at once.
+            self._flush.wait(self._last_dump + self.seconds / 2 - time.monotonic())
+            causes = []
             while self._requests:
-                self._dump(self._requests.popleft())
+                causes.append(self._requests.popleft())
+            more = f" (+{len(causes) - 1} more)" if len(causes) > 1 else ""
+            self._dump(causes[0] + more)
+            self._last_dump = time.monotonic()
 
     def _dump(self, cause: str) -> None:
         now_wall, now = time.time(), time.monotonic()
@@ -139,6 +155,7 @@ class FlightRecorder:
         one file); then the readers and the thread end."""
         if self._faulted:
             self.request("shutdown after an e-stop")
+        self._flush.set()
         deadline = time.monotonic() + timeout
         while self._requests and time.monotonic() < deadline:
             self._wake.set()

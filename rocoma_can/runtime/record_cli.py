@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..cli_args import seconds
 from ..exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:
@@ -151,7 +152,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("file", help="FILE.log (candump -L), FILE.asc or FILE.blf")
     p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
     p.add_argument("--channel", default="can0", help="CAN channel (can0)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=seconds, default=None, metavar="S",
                    help="stop after S seconds (default: Ctrl-C / SIGTERM)")
     p.set_defaults(func=_record)
     p = subparsers.add_parser("export", help="an MCAP trace (run --record, a flight record) "

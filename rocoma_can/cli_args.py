@@ -1,0 +1,70 @@
+"""argparse types for the numbers the commands take. A value that is not a finite number in
+its range is a usage error naming the option (argparse prints it and exits 2), never a
+traceback, a busy loop (``Event.wait(nan)`` returns at once) or a run without end
+(``--duration nan``)."""
+from __future__ import annotations
+
+import argparse
+import math
+
+#: the longest duration or timeout a command line may ask for (a year)
+LONGEST = 365 * 24 * 3600.0
+#: the longest flight-recorder window (10 min: 600,000 cycles at 1 kHz)
+MAX_FLIGHT_SECONDS = 600.0
+
+
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def seconds(text: str) -> float:
+    """A duration or timeout: 0 < s <= a year."""
+    value = _finite(text)
+    if not 0 < value <= LONGEST:
+        raise argparse.ArgumentTypeError(f"expected seconds > 0 (at most {LONGEST:.0f}), "
+                                         f"got {text!r}")
+    return value
+
+
+def flight_seconds(text: str) -> float:
+    """The flight recorder's window: its ring holds rate x seconds cycles in memory, so a
+    window of hours would take gigabytes before the first e-stop."""
+    value = _finite(text)
+    if not 0 < value <= MAX_FLIGHT_SECONDS:
+        raise argparse.ArgumentTypeError(f"expected seconds, 0 < s <= {MAX_FLIGHT_SECONDS:.0f}, "
+                                         f"got {text!r}")
+    return value
+
+
+def seconds_or_zero(text: str) -> float:
+    """A delay or an interval where 0 means "none": 0 <= s <= a year."""
+    value = _finite(text)
+    if not 0 <= value <= LONGEST:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0 (at most {LONGEST:.0f}), "
+                                         f"got {text!r}")
+    return value
+
+
+def positive(text: str) -> float:
+    """A physical quantity that must be > 0 (a rate, a torque)."""
+    value = _finite(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def node_id(text: str) -> int:
+    """A CANopen node id, 1..127."""
+    try:
+        value = int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a node id 1..127, got {text!r}") from None
+    if not 1 <= value <= 127:
+        raise argparse.ArgumentTypeError(f"expected a node id 1..127, got {text!r}")
+    return value
