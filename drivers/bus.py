@@ -230,6 +230,24 @@ def readers_for(buses: Sequence[tuple[can.BusABC, Sequence[can.Listener]]], *,
     return readers
 
 
+class CanopenFrames(can.Listener):
+    """What a canopen Network's services (SDO clients and servers, NMT) are given: 11-bit
+    data frames only, and an NMT command only as its two bytes (CiA 301). canopen's own
+    listener passes 29-bit frames on as if they were 11-bit ones (an extended 0x664 would
+    be served as an SDO request, an extended 0x581 taken as an SDO answer) and logs an error
+    for every short NMT frame."""
+
+    def __init__(self, network: canopen.Network) -> None:
+        self.network = network
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+            return
+        if msg.arbitration_id == 0 and msg.dlc != 2:
+            return
+        self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+
+
 class CanopenBus:
     """A bus (opened here or lent by the caller), a canopen Network and the bus's reader.
 
@@ -241,7 +259,7 @@ class CanopenBus:
         self.own_bus = own_bus
         enlarge_bus_buffer(bus)  # a lent bus too
         self.network = canopen.Network(bus)  # not connect(): BusReader replaces its Notifier
-        self.listeners: list[can.Listener] = list(self.network.listeners)
+        self.listeners: list[can.Listener] = [CanopenFrames(self.network)]
         self.reader: BusReader | None = BusReader(bus, self.listeners) if read else None
         self.writer = FrameWriter(bus)  # the cycle's frames: never blocks, one system call
 

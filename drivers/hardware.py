@@ -340,8 +340,14 @@ class CanopenHardware:
             thread_name_prefix="canopen-config")
         for plan, port in zip(self.plans, self._port_of):
             assert port.canopen is not None  # opened above
-            node = port.canopen.network.add_node(plan.drive.node_id,
-                                                 plan.caps.object_dictionary)
+            network = port.canopen.network
+            node = network.add_node(plan.drive.node_id, plan.caps.object_dictionary)
+            # The cycle decodes heartbeats and EMCYs itself (read): canopen's consumers of
+            # them would only keep an EMCY log that grows for the whole run and log an
+            # error per short frame a faulty drive sends.
+            network.unsubscribe(cia301.HEARTBEAT + plan.drive.node_id, node.nmt.on_heartbeat)
+            network.unsubscribe(cia301.EMCY + plan.drive.node_id, node.emcy.on_emcy)
+            network.unsubscribe(cia301.NMT, node.nmt.on_command)
             # No retransmission by default (CiA 301 clients abort on timeout): a late answer
             # to the first copy would be taken as the answer to the next request. configure()
             # repeats a whole failed attempt instead, after stale answers have drained.

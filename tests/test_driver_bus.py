@@ -442,6 +442,30 @@ def test_a_drive_recovered_under_the_emergency_layer_stays_off_until_the_next_sw
         rig.hw.drive_status()
 
 
+def test_canopen_keeps_no_emcy_log_and_takes_no_extended_frames(segment, make_rig, can_setup,
+                                                                 virtual_channel, bus_factory):
+    """The cycle decodes heartbeats and EMCYs itself; canopen's consumers of them kept an EMCY
+    log that grew for the whole run (a drive repeating a warning) and its listener passed
+    29-bit frames on as 11-bit ones. Now a storm of EMCYs leaves no log, an extended frame
+    on a drive's SDO answer id is no answer, and the cycle still sees every EMCY."""
+    rig = make_rig()
+    bring_up(rig)
+    node_id = can_setup.nodes[0]
+    raw = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
+    for _ in range(100):  # a vendor's code, repeated
+        raw.send(can.Message(arbitration_id=cia301.EMCY + node_id, is_extended_id=False,
+                             data=bytes([0x01, 0xFF, 0x80, 0, 0, 0, 0, 0])))
+    raw.send(can.Message(arbitration_id=0x580 + node_id, is_extended_id=True,
+                         data=bytes([0x43, 0x00, 0x10, 0x00, 1, 2, 3, 4])))
+    # the cycle's own decoding sees them
+    assert rig.run_until(lambda: rig.hw.state.error_code[0] == 0xFF01,
+                         rig.setup.cycles_budget(10))
+    rig.run(10 * rig.dt)  # and the frames after them
+    node = rig.hw.ports[0].canopen.network[node_id]
+    assert node.emcy.log == [] and node.emcy.active == []
+    assert not node.sdo.responses.qsize(), "an extended frame was taken as an SDO answer"
+
+
 def test_a_stopped_loop_goes_silent_and_drives_switch_off_by_themselves(segment, make_rig):
     """The hung-loop half of the safety model (the killed process is in tests/vcan)."""
     rig = make_rig()

@@ -53,7 +53,7 @@ from canopen.sdo.constants import ABORT_GENERAL_ERROR
 from canopen.sdo.exceptions import SdoAbortedError
 
 from .. import eds as shipped_eds
-from ..drivers.bus import BusReader
+from ..drivers.bus import BusReader, CanopenFrames
 from ..drivers.cia301 import (
     EMCY,
     PRODUCER_HEARTBEAT_TIME,
@@ -92,23 +92,6 @@ from .objects import (
 from .sdo_server import StrictSdoServer
 
 log = logging.getLogger(__name__)
-
-class _ServiceFrames(can.Listener):
-    """What canopen's node services (NMT slave, SDO server) are given: 11-bit data frames
-    only, and an NMT command only as its two bytes (CiA 301). canopen's own listener passes
-    29-bit frames on as if they were 11-bit ones (an extended 0x664 would be served as an
-    SDO request) and logs an error for every short NMT frame."""
-
-    def __init__(self, network: canopen.Network) -> None:
-        self.network = network
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
-            return
-        if msg.arbitration_id == 0 and msg.dlc != 2:
-            return
-        self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
-
 
 def _visible(text: str) -> str:
     """A VISIBLE_STRING is ASCII (CiA 301; canopen encodes it so and fails on anything else,
@@ -187,7 +170,7 @@ class ManagerNode(can.Listener):
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self) -> ManagerNode:
-        self._reader = BusReader(self.bus, (_ServiceFrames(self._network), self),
+        self._reader = BusReader(self.bus, (CanopenFrames(self._network), self),
                                  name="manager-node-rx")
         self._network.add_node(self._node)
         self.set_estop_cob_id(self._initial_cob)
