@@ -222,7 +222,11 @@ def _entry_of(caps: DriveCapabilities, index: int, subindex: int, bits: int, tx:
     if var is None or var.data_type is None or len(var) != bits:
         raise ValueError(f"drive {drive.name!r}: {where} maps 0x{index:04X}:{subindex} "
                          f"({bits} bits), which its file does not describe as such")
-    fmt = var.STRUCT_TYPES[var.data_type].format.lstrip("<")
+    struct_type = var.STRUCT_TYPES.get(var.data_type)
+    if struct_type is None:  # a string or a domain: no fixed-size number to pack
+        raise ValueError(f"drive {drive.name!r}: {where} maps 0x{index:04X}:{subindex}, "
+                         "which its file gives a type a PDO cannot carry as a number")
+    fmt = struct_type.format.lstrip("<")
     if tx:
         return PdoEntry(IGNORED, index, subindex, fmt)
     value = caps.value(index, subindex)

@@ -341,6 +341,18 @@ def test_a_pdo_cob_id_from_a_file_must_not_be_taken_or_reserved(tmp_path, tpdo1,
                for p in info.value.problems), info.value.problems
 
 
+def test_a_consumer_time_the_drives_cannot_hold_is_a_config_problem():
+    """check-config said yes and run refused: heartbeat_ms x consumer_factor is written to
+    each drive's 0x1016 as 16-bit milliseconds."""
+    cfg = good()
+    cfg["manager"]["heartbeat_ms"] = 1000
+    cfg["supervision"] = {"consumer_factor": 90.0}
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert any("supervision.consumer_factor: 90 x manager.heartbeat_ms 1000 = 90000 ms" in p
+               for p in info.value.problems), info.value.problems
+
+
 def test_one_wire_is_one_bus():
     cfg = four_buses()
     cfg["buses"][3]["channel"] = "can0"

@@ -170,7 +170,7 @@ def test_parse_node_ids():
 @pytest.mark.parametrize("args", [
     ["--duration", "nan"], ["--duration", "-1"], ["--status-interval", "inf"],
     ["--sync-period", "0"], ["--rated-torque-nm", "nan"], ["--fault", "1@nan"],
-    ["--fault", "1@-2"], ["--nodes", "1-999999999"],
+    ["--fault", "1@-2"], ["--nodes", "1-999999999"], ["--increments-per-rev", "0"],
 ])
 def test_sim_numbers_out_of_range_are_usage_errors(args, virtual_channel, capsys):
     """A non-finite or out-of-range number is argparse's usage error (exit 2) naming the

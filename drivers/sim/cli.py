@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from ...cli_args import LONGEST, positive, seconds, seconds_or_zero
+from ...cli_args import LONGEST, count, positive, seconds, seconds_or_zero
 from ...exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
@@ -102,7 +102,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--eds", default=None, metavar="FILE",
                    help="EDS or DCF the drives emulate: exactly its objects, access types and "
                         "0x6502 modes (default: the shipped generic drive)")
-    p.add_argument("--increments-per-rev", type=int, default=1 << 20, metavar="N",
+    p.add_argument("--increments-per-rev", type=count, default=1 << 20, metavar="N",
                    help="encoder increments per motor turn where the file has no 0x608F "
                         "(default 1048576)")
     p.add_argument("--rated-torque-nm", type=positive, default=1.0, metavar="NM",

@@ -284,6 +284,11 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                        "supervision", problems)
     timeouts = {name: margins.pop(key) for key, name in TIMEOUT_KEYS.items() if key in margins}
     supervision = Supervision(**margins, timeouts=Timeouts(**timeouts))  # ranges checked above
+    consumer_ms = round(manager.heartbeat_ms * supervision.consumer_factor)
+    if consumer_ms > 0xFFFF:  # 0x1016's 16-bit time: the hardware would refuse it at run
+        problems.append(f"supervision.consumer_factor: {supervision.consumer_factor:g} x "
+                        f"manager.heartbeat_ms {manager.heartbeat_ms} = {consumer_ms} ms, more "
+                        "than the drives' heartbeat consumer (0x1016) can hold (65535 ms)")
     timing = TimingSupervision(**_numbers(_section(data, "timing", problems), _TIMING,
                                           "timing", problems))
 

@@ -38,6 +38,7 @@ virtual-bus instance) so its reader thread and SDO traffic never share a thread 
 """
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import threading
@@ -145,7 +146,9 @@ class ManagerNode(can.Listener):
         self.last_result = NO_SWITCH_YET
         self.last_cause = ""
         self.drive_status = drive_status  # -> the 0x2140 report (JSON), None: no drives
-        self.estop_frames: list[float] = []  # monotonic receive times of e-stop frames
+        # monotonic receive times of the latest e-stop frames (a sender may repeat its frame
+        # for as long as a button is held)
+        self.estop_frames: collections.deque[float] = collections.deque(maxlen=1000)
         self.frames_sent = 0
         self._estop_cob_id = 0
         self._network = canopen.Network(bus)
