@@ -53,6 +53,23 @@ def test_a_fixed_mapping_is_used_as_it_is():
     assert "RPDO1 fixed (<= 2 objects)" in report
 
 
+def test_a_fixed_mapping_of_a_string_is_a_clear_error(tmp_path):
+    """A fixed TPDO that maps a VISIBLE_STRING (0x1008, device name) raised KeyError from
+    the struct table through check-config; it names the object now."""
+    text = (EDS / "fixed_pdo.eds").read_text()
+    text = text.replace("[MandatoryObjects]\nSupportedObjects=3\n1=0x1000\n2=0x1001\n3=0x1018",
+                        "[MandatoryObjects]\nSupportedObjects=4\n1=0x1000\n2=0x1001\n"
+                        "3=0x1018\n4=0x1008")
+    text += ("\n[1008]\nParameterName=Manufacturer device name\nObjectType=0x7\n"
+             "DataType=0x0009\nAccessType=const\nDefaultValue=A\nPDOMapping=1\n")
+    text = text.replace("DefaultValue=0x60640020", "DefaultValue=0x10080008", 1)
+    strings = tmp_path / "string_in_pdo.eds"
+    strings.write_text(text)
+    with pytest.raises(ValueError, match="maps 0x1008:0, which its file gives a type a PDO "
+                                         "cannot carry as a number"):
+        plan_drive(drive(str(strings)))
+
+
 def test_a_fixed_mapping_says_what_it_cannot_carry(tmp_path):
     with pytest.raises(ValueError, match="CSV is not supported: its 0x6502 = 0x81 lists PP, CSP"):
         plan_drive(drive("fixed_pdo.eds", modes=("csv",)))
