@@ -141,6 +141,8 @@ class Manager(Protocol):
 Bus = can.BusABC | BusConfig
 #: A TPDO's receive entry: drive index, its bit in the cycle's mask, size, unpack, targets
 log = logging.getLogger(__name__)
+#: how long start() waits for the configuration workers' threads to run
+WORKER_START = 5.0
 
 _TpdoEntry = tuple[int, int, int, Callable[..., tuple[int, ...]], tuple[np.ndarray, ...]]
 
@@ -335,9 +337,19 @@ class CanopenHardware:
             raise
         self._switch_off = SdoSwitchOff()
         self._switch_off.start()
-        self._executor = ThreadPoolExecutor(
-            max_workers=min(self.config_workers, len(self.drives_config)),
-            thread_name_prefix="canopen-config")
+        workers = min(self.config_workers, len(self.drives_config))
+        self._executor = ThreadPoolExecutor(max_workers=workers,
+                                            thread_name_prefix="canopen-config")
+        # Every worker started here: the executor starts one on a submit that finds none
+        # idle, and bring-up submits from the cycle (read), which must not start a thread.
+        # Each waits at the barrier, so each submit finds none idle and starts one.
+        started = threading.Barrier(workers + 1)
+        for _ in range(workers):
+            self._executor.submit(started.wait, WORKER_START)
+        try:
+            started.wait(WORKER_START)
+        except threading.BrokenBarrierError:  # a machine that slow starts the rest later
+            log.warning("configuration workers not all started within %.0f s", WORKER_START)
         for plan, port in zip(self.plans, self._port_of):
             assert port.canopen is not None  # opened above
             network = port.canopen.network

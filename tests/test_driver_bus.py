@@ -442,6 +442,16 @@ def test_a_drive_recovered_under_the_emergency_layer_stays_off_until_the_next_sw
         rig.hw.drive_status()
 
 
+def test_the_configuration_workers_are_started_before_the_first_cycle(make_rig):
+    """Bring-up submits SDO work from the cycle; a ThreadPoolExecutor starts a thread on a
+    submit that finds none idle, which the cycle must never do: start() starts them all."""
+    before = {t.ident for t in threading.enumerate()}
+    rig = make_rig()
+    workers = [t for t in threading.enumerate()
+               if t.name.startswith("canopen-config") and t.ident not in before]
+    assert len(workers) == min(rig.hw.config_workers, len(rig.hw.drives_config))
+
+
 def test_canopen_keeps_no_emcy_log_and_takes_no_extended_frames(segment, make_rig, can_setup,
                                                                  virtual_channel, bus_factory):
     """The cycle decodes heartbeats and EMCYs itself; canopen's consumers of them kept an EMCY
