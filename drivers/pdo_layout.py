@@ -287,13 +287,15 @@ def _fit(need: list[PdoEntry], channels: tuple[PdoChannel, ...], caps: DriveCapa
 
 
 def _cob_id(ch: PdoChannel, bases: tuple[int, ...], drive: DriveConfig) -> int:
-    """The 11-bit identifier a channel uses: the file's, or the predefined one. A file that
-    gives the bare base (0x180 for TPDO1: "node 0", which does not exist) means the
-    predefined id: some vendors' EDS files write it without ``$NODEID``, and their drives
-    use base + node id after power-on."""
+    """The 11-bit identifier a channel uses: the file's, or the predefined one. A bare base
+    (0x180 for TPDO1: "node 0", which does not exist) in a channel whose COB-ID bring-up
+    writes means the predefined id: some vendors' EDS files give it without ``$NODEID``.
+    A COB-ID the drive does not let us write is taken as the file says."""
     base = bases[ch.number - 1]
     cob = ch.cob_id & 0x7FF
-    return base + drive.node_id if cob in (0, base) else cob
+    if cob == 0 or (cob == base and ch.cob_id_writable):
+        return base + drive.node_id
+    return cob
 
 
 def _split(ch: PdoChannel) -> list[tuple[int, int, int]]:
@@ -339,20 +341,21 @@ def check_against_od(layout: DriveLayout, od: canopen.ObjectDictionary, drive: s
 
 
 def cob_id_clashes(drives: Sequence[tuple[DriveConfig, DriveLayout]], manager_node_id: int,
-                   estop_cob_id: int = 0, first_bus: str = "") -> list[str]:
+                   estop_cob_id: int = 0, first_bus: str = "",
+                   manager_bus: str | None = None) -> list[str]:
     """Every COB-ID that two frames on one bus would share, or that a reserved range holds.
 
     The predefined connection set (0x180 + node id, ...) cannot clash between nodes with
     distinct ids, but an EDS/DCF may give a PDO an absolute COB-ID: one file for two
     drives, or a DCF for another node id, and drive 1 would take drive 2's targets and
     report its feedback. Checked per bus against the drives' EMCY and PDOs, the manager
-    node's EMCY and state frame, the e-stop frame and the NMT/SYNC/SDO/heartbeat ranges."""
+    node's EMCY and state frame (on ``manager_bus``; None: on every bus), the e-stop frame
+    and the NMT/SYNC/SDO/heartbeat ranges."""
     problems: list[str] = []
     used: dict[str, dict[int, str]] = {}
-    manager = {cia301.EMCY + manager_node_id: "the manager's EMCY",
-               cia301.TPDO_BASE[0] + manager_node_id: "the manager's state frame (TPDO1)"}
-    if estop_cob_id:
-        manager[estop_cob_id] = "the e-stop frame (manager.estop_cob_id)"
+    node = {cia301.EMCY + manager_node_id: "the manager's EMCY",
+            cia301.TPDO_BASE[0] + manager_node_id: "the manager's state frame (TPDO1)"}
+    every = {estop_cob_id: "the e-stop frame (manager.estop_cob_id)"} if estop_cob_id else {}
     nodes: set[tuple[str, int]] = set()
     distinct = []  # a node id used twice on a bus is its own error (check_drives), not this
     for drive, layout in drives:
@@ -360,7 +363,9 @@ def cob_id_clashes(drives: Sequence[tuple[DriveConfig, DriveLayout]], manager_no
             nodes.add((drive.bus or first_bus, drive.node_id))
             distinct.append((drive, layout))
     for drive, _ in distinct:
-        ids = used.setdefault(drive.bus or first_bus, dict(manager))
+        bus = drive.bus or first_bus
+        ids = used.setdefault(bus, {**node, **every} if manager_bus in (None, bus)
+                              else dict(every))
         ids.setdefault(cia301.EMCY + drive.node_id, f"the EMCY of drive {drive.name!r}")
     for drive, layout in distinct:
         ids = used[drive.bus or first_bus]

@@ -23,6 +23,12 @@ def _finite(text: str) -> float:
     return value
 
 
+def _int(text: str) -> int:
+    """Decimal ("010" is 10, as int() reads it), or 0x/0o/0b prefixed."""
+    prefixed = text.strip().lower().lstrip("+-").startswith(("0x", "0o", "0b"))
+    return int(text, 0) if prefixed else int(text)
+
+
 def seconds(text: str) -> float:
     """A duration or timeout: 0 < s <= a year."""
     value = _finite(text)
@@ -62,7 +68,7 @@ def positive(text: str) -> float:
 def count(text: str) -> int:
     """A whole number >= 1 (increments per revolution, drives)."""
     try:
-        value = int(text, 0)
+        value = _int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
     if value < 1:
@@ -73,7 +79,7 @@ def count(text: str) -> int:
 def node_id(text: str) -> int:
     """A CANopen node id, 1..127."""
     try:
-        value = int(text, 0)
+        value = _int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a node id 1..127, got {text!r}") from None
     if not 1 <= value <= 127:

@@ -56,6 +56,10 @@ class SwitchResult(enum.IntEnum):
     ERROR = 3      # refused (busy, latched e-stop, shutting down) or failed / interrupted
 
 
+#: The least update() waits for the cycle lock with timing supervision (see __init__)
+LOCK_WAIT_MIN = 0.05
+
+
 @dataclass
 class ManagerTimeouts:
     """Upper bounds, in seconds, for every wait the manager does."""
@@ -175,9 +179,14 @@ class ControllerManager:
         # The longest update() waits for the cycle lock (the hang limit): the switcher holds
         # it around user code (an aborted switch runs the emergency controller's
         # initialize_fast), and a callback that never returns must not stop the cycle.
-        hang = timing.hang if timing is not None and timing.hang > 0 else \
-            TimingSupervision.hang
-        self._lock_wait = hang * self.dt
+        # Without timing supervision (simulated time, tests) nothing is judged on the wall
+        # clock: the switch timeout bounds the wait. With it, the hang limit, at least
+        # LOCK_WAIT_MIN: the switcher is no real-time thread, and a routine commit preempted
+        # for a few ms must not stop the robot.
+        if timing is not None and timing.hang > 0:
+            self._lock_wait = max(timing.hang * self.dt, LOCK_WAIT_MIN)
+        else:
+            self._lock_wait = self.timeouts.switch
         self.lock_timeouts = 0  # update() calls that could not take the cycle lock
         self._locked_out = False  # the last update() could not (its failproof stop queued)
 
@@ -372,10 +381,10 @@ class ControllerManager:
 
     def _update(self) -> ManagerState:
         self.cycle_count += 1
+        hangs = self.hang_calls  # before the requests: a stall in one is a hang too
         if self._requests:
             self._apply_requests()
         dt = self.dt
-        hangs = self.hang_calls
         while True:  # a failure falls through to the next layer within this call
             state = self._state
             if state is ManagerState.OK:
@@ -714,19 +723,29 @@ class ControllerManager:
         if self._closed:
             return True
         self._closed = True
-        with self._cycle_lock:  # no update() holds anything back meanwhile
-            self._wake()
         limit = self.timeouts.shutdown
         ok = True
+        if self._cycle_lock.acquire(timeout=limit):  # no update() holds anything back
+            try:
+                self._wake()
+            finally:
+                self._cycle_lock.release()
         if self._switch_busy.acquire(timeout=limit):
             self._switch_busy.release()
         else:
             log.error("shutdown: a switch did not finish within %.1f s", limit)
             ok = False
-        with self._cycle_lock:
-            if self._state is not ManagerState.FAILPROOF:
-                self._estop(True, "shutdown")
-            self._failproof.advance(self.dt)
+        if self._cycle_lock.acquire(timeout=limit):
+            try:
+                if self._state is not ManagerState.FAILPROOF:
+                    self._estop(True, "shutdown")
+                self._failproof.advance(self.dt)
+            finally:
+                self._cycle_lock.release()
+        else:  # a switch stuck in a callback holds it: update() returns FAILPROOF anyway
+            log.error("shutdown: the cycle lock was not free within %.1f s (a switch stuck "
+                      "in a controller callback)", limit)
+            ok = False
         deadline = time.monotonic() + limit
         pending = [a for a in self.adapters().values()
                    if isinstance(a, ControllerAdapter) and a.being_stopped]

@@ -76,6 +76,12 @@ def test_numbers_out_of_range_are_usage_errors(args, capsys):
     assert f"argument {option}" in capsys.readouterr().err
 
 
+def test_numbers_as_a_shell_writes_them():
+    from rocoma_can.cli_args import node_id, seconds_or_zero
+    assert [node_id("010"), node_id("0x0A"), node_id("10")] == [10, 10, 10]
+    assert seconds_or_zero("0") == 0.0  # switch --wait 0: ask, do not wait (PENDING)
+
+
 def test_client_commands_against_a_manager(bus_factory, virtual_channel, capsys):
     rig = Rig(bus_factory, must_clear=True)
     opts = ["--interface", "virtual", "--channel", virtual_channel, "--node", str(NODE)]

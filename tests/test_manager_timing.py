@@ -15,6 +15,7 @@ from fixtures.manager_probes import (
 )
 
 from rocoma_can import ControllerManager, EventKind, ManagerState, SwitchResult, TimingSupervision
+from rocoma_can.manager import ManagerTimeouts
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
 DT = 0.01  # budgets: advance 5 ms, initialize_fast 5 ms, hang 200 ms
@@ -151,6 +152,25 @@ def test_update_does_not_wait_for_a_switch_stuck_in_a_callback():
         assert switch.result(WAIT) == SwitchResult.ERROR
         assert mgr.update() is FAILPROOF  # the queued failproof stop, not EMERGENCY
         assert mgr.state is FAILPROOF
+
+
+def test_shutdown_gives_up_on_a_switch_stuck_in_a_callback():
+    """The stuck switch of the test above holds the cycle lock: shutdown waits for it as for
+    anything else, at most timeouts.shutdown, says so (False) and goes on."""
+    journal = Journal(update_thread=threading.get_ident())
+    gate = threading.Event()
+    mgr = manager(journal, timeouts=ManagerTimeouts(shutdown=0.3))
+    try:
+        e = EmergencyProbe("e", journal, gates={"initialize_fast": gate})
+        mgr.add_controller(Probe("a", journal), emergency=e)
+        mgr.add_controller(Probe("b", journal, fail={"initialize"}))
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        mgr.request_switch("b")
+        journal.wait_for("e", "initialize_fast")
+        assert mgr.shutdown() is False  # returned, bounded, with the switch still stuck
+        assert not gate.is_set()
+    finally:
+        gate.set()
 
 
 def test_no_false_trips_in_a_10_s_run_of_a_normal_controller():

@@ -2,6 +2,7 @@
 canopen client, the e-stop COB-ID, and the state / EMCY frames seen by a third listener."""
 from __future__ import annotations
 
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -367,3 +368,69 @@ def test_a_name_that_is_not_ascii_is_escaped_not_an_abort(rig):
     rig.node.last_cause = "drive 'jé' (node 2): EMCY 0x2310"
     assert rig.client.read(0x2124) == "drive 'j\\xe9' (node 2): EMCY 0x2310"
     assert rig.client.status()["estop_cause"].startswith("drive 'j\\xe9'")
+
+
+def test_a_write_takes_only_its_own_answer_from_a_busy_channel(bus_factory):
+    """The node's one SDO channel, busy with another client's block upload: before this
+    write's answer come a segment of that upload and an abort the node sends the other
+    client. canopen took the first as the answer (an e-stop reported failed, though
+    applied); ManagerClient skips both and takes its own, and an abort naming this object
+    is still a refusal."""
+    node_side = bus_factory()
+    answered: list[bytes] = []
+
+    def node() -> None:  # a node that answers after two frames of another transfer
+        for _ in range(2):
+            request = node_side.recv(STALL)
+            if request is None or request.arbitration_id != 0x600 + NODE:
+                return
+            answered.append(bytes(request.data))
+            strays = (b"\x01" + b'{"drive',  # a block segment, another's abort
+                      b"\x80\x40\x21\x00" + struct.pack("<I", 0x05040001))
+            for stray in strays:
+                node_side.send(can.Message(arbitration_id=0x580 + NODE, data=stray,
+                                           is_extended_id=False))
+            index = bytes(request.data[1:4])
+            answer = b"\x60" + index + bytes(4) if index != b"\x12\x21\x00" else \
+                b"\x80" + index + struct.pack("<I", 0x08000022)
+            node_side.send(can.Message(arbitration_id=0x580 + NODE, data=answer,
+                                       is_extended_id=False))
+
+    server = threading.Thread(target=node)
+    server.start()
+    with ManagerClient(bus_factory(), NODE, timeout=STALL) as client:
+        client.write(0x2110, 1)  # the e-stop: its own answer, after the strays
+        with pytest.raises(Refused) as refused:
+            client.write(0x2112, 1)  # refused: the abort names this object
+        assert refused.value.code == 0x08000022
+    server.join(STALL)
+    assert [a[:4] for a in answered] == [b"\x2f\x10\x21\x00", b"\x2f\x12\x21\x00"]
+
+
+def test_writes_succeed_while_another_client_polls_the_status(rig, bus_factory):
+    """An operator's `status --watch` and an `estop` in another terminal share the node's
+    one SDO channel: every write is answered (no write taken for failed, none sent twice)."""
+    stop = threading.Event()
+    reads: list[int] = []
+
+    def watch() -> None:
+        with ManagerClient(bus_factory(), NODE, timeout=STALL) as viewer:
+            while not stop.is_set():
+                try:
+                    viewer.status()
+                    reads.append(1)
+                except (NoAnswer, Refused):
+                    pass
+
+    viewer = threading.Thread(target=watch)
+    viewer.start()
+    try:
+        deadline = time.monotonic() + within(1.0)
+        while not reads and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for _ in range(30):
+            rig.client.write(0x2112, 1)  # clear: answered every time, never refused
+    finally:
+        stop.set()
+        viewer.join(within(STALL))
+    assert reads

@@ -14,7 +14,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from .. import eds as shipped_eds
 from ..drivers.bus import BusReader
 from ..errors import NoAnswer, Refused, RocomaError
-from . import sdo_block
+from . import sdo_block, sdo_write
 from .objects import (
     ABORT_TEXT,
     ACTIVE_NAME,
@@ -119,8 +119,9 @@ class ManagerClient:
         try:
             if isinstance(value, str):
                 self.node.sdo.download(index, 0, value.encode("utf-8"))
-            else:
-                self.node.sdo[index].raw = value
+            else:  # numbers: taking only this write's answer (sdo_write says why)
+                sdo_write.download(self.node.sdo, index, 0,
+                                   bytes(self.node.sdo[index].od.encode_raw(value)))
         except SdoAbortedError as exc:
             raise Refused(exc.code, f"write 0x{index:04X}", _meaning(exc.code)) from None
         except SdoCommunicationError as exc:

@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..cli_args import flight_seconds, node_id, seconds
+from ..cli_args import flight_seconds, node_id, seconds, seconds_or_zero
 from ..errors import ConfigError, NoAnswer, Refused, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from . import fleet_client
@@ -250,9 +250,9 @@ def _command(index: int, verb: str, done: str) -> Callable[[argparse.Namespace],
         if args.zenoh is not None:
             return through_zenoh(args)
         def action(client: ManagerClient) -> int:
-            # The node has one SDO channel: a transfer of another client (a `status --watch`
-            # mid-upload) can make this one go unanswered or aborted. A stop is the same
-            # request twice, so it is tried again; the other commands once.
+            # The node has one SDO channel: a write takes only its own answer (sdo_write),
+            # but one lost on a busy bus goes unanswered. A stop is the same request
+            # twice, so it is tried again; the other commands once.
             attempts = STOP_ATTEMPTS if index in (ESTOP, FAILPROOF_STOP) else 1
             for attempt in range(1, attempts + 1):
                 try:
@@ -387,7 +387,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
     p = subparsers.add_parser("switch", help="switch the running manager's controller")
     p.add_argument("name", help="controller name, or its number from `list`")
-    p.add_argument("--wait", type=seconds, default=10.0, help="wait for the result, s (10)")
+    p.add_argument("--wait", type=seconds_or_zero, default=10.0, help="wait for the result, s (10)")
     _bus_options(p)
     p.set_defaults(func=_switch)
     for name, index, text, done in (

@@ -300,9 +300,11 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     if why is not None:
         problems.append(f"manager.estop_cob_id: 0x{cob:03X} is {why}: an e-stop frame must "
                         "have an identifier no node uses")
+    first = buses[0].label if buses else ""
+    node_on = m.get("bus") if isinstance(m.get("bus"), str) and m.get("bus") else first
     problems.extend(f"drives: {clash}" for clash in cob_id_clashes(
         [(d, plans[d.name].layout) for d in drives if d.name in plans], manager.node_id,
-        cob if isinstance(cob, int) else 0, buses[0].label if buses else ""))
+        cob if isinstance(cob, int) else 0, first, node_on))
     node_bus = m.get("bus", "")
     if not isinstance(node_bus, str) or (node_bus and node_bus not in
                                          [b.label for b in buses]):

@@ -82,7 +82,8 @@ class FlightRecorder:
         self._announce = announce
         #: per bus, the listener its passive reader feeds (Taps wires them)
         self.taps = {name: FrameTap(name, seconds) for name in buses}
-        self._requests: collections.deque[str] = collections.deque(maxlen=MAX_EVENTS)
+        self._requests: collections.deque[str] = collections.deque()
+        self._dropped = 0  # requests past MAX_EVENTS queued, merged by count only
         self._events: collections.deque[ManagerEvent] = collections.deque(maxlen=MAX_EVENTS)
         self._wake = threading.Event()
         self._flush = threading.Event()  # closing: write what is queued now
@@ -101,7 +102,10 @@ class FlightRecorder:
             self.request(event.cause or "e-stop")
 
     def request(self, cause: str) -> None:
-        self._requests.append(cause)
+        if len(self._requests) < MAX_EVENTS:  # a storm past that is counted, not kept
+            self._requests.append(cause)
+        else:
+            self._dropped += 1
         self._wake.set()
 
     def _run(self) -> None:
@@ -118,7 +122,8 @@ class FlightRecorder:
             causes = []
             while self._requests:
                 causes.append(self._requests.popleft())
-            more = f" (+{len(causes) - 1} more)" if len(causes) > 1 else ""
+            extra, self._dropped = len(causes) - 1 + self._dropped, 0
+            more = f" (+{extra} more)" if extra else ""
             self._dump(causes[0] + more)
             self._last_dump = time.monotonic()
 

@@ -98,6 +98,11 @@ class StrictSdoServer(SdoServer):
             ccs == REQUEST_BLOCK_UPLOAD and data[0] & 0x3 != INITIATE_BLOCK_TRANSFER)
         if not continues:  # the others name the object in bytes 1-3
             _, self._index, self._subindex = SDO_STRUCT.unpack_from(data)
+        elif self._open is None and self._block is None:
+            # a segment or block ack of no open transfer (another client's request ended
+            # it): its abort names no object, not the one written last, which would read
+            # as a refusal to the client that wrote it
+            self._index, self._subindex = 0, 0
         super().on_request(can_id, data, timestamp)
 
     def init_upload(self, request: bytes) -> None:
