@@ -170,7 +170,11 @@ def test_shutdown_gives_up_on_a_switch_stuck_in_a_callback():
         assert mgr.shutdown() is False  # returned, bounded, with the switch still stuck
         assert not gate.is_set()
     finally:
-        gate.set()
+        gate.set()  # the switch ends; its thread then takes shutdown's last job and ends
+        for thread in threading.enumerate():
+            if thread.name.startswith("rocoma/"):
+                thread.join(WAIT)
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("rocoma/")]
 
 
 def test_no_false_trips_in_a_10_s_run_of_a_normal_controller():
