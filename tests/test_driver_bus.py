@@ -445,10 +445,10 @@ def test_a_drive_recovered_under_the_emergency_layer_stays_off_until_the_next_sw
 def test_the_configuration_workers_are_started_before_the_first_cycle(make_rig):
     """Bring-up submits SDO work from the cycle; a ThreadPoolExecutor starts a thread on a
     submit that finds none idle, which the cycle must never do: start() starts them all."""
-    before = {t.ident for t in threading.enumerate()}
+    before = set(threading.enumerate())  # threads, not idents: an ident is reused
     rig = make_rig()
     workers = [t for t in threading.enumerate()
-               if t.name.startswith("canopen-config") and t.ident not in before]
+               if t.name.startswith("canopen-config") and t not in before]
     assert len(workers) == min(rig.hw.config_workers, len(rig.hw.drives_config))
 
 
