@@ -65,23 +65,22 @@ def positive(text: str) -> float:
     return value
 
 
-def count(text: str) -> int:
-    """A whole number >= 1 (increments per revolution, drives)."""
+def _whole(text: str, lo: int, hi: int | None, expected: str) -> int:
+    """A whole number in lo..hi (hi None: no upper bound); ``expected`` names the range."""
     try:
         value = _int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+        value = None
+    if value is None or value < lo or (hi is not None and value > hi):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
+
+
+def count(text: str) -> int:
+    """A whole number >= 1 (increments per revolution, drives)."""
+    return _whole(text, 1, None, "a whole number >= 1")
 
 
 def node_id(text: str) -> int:
     """A CANopen node id, 1..127."""
-    try:
-        value = _int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a node id 1..127, got {text!r}") from None
-    if not 1 <= value <= 127:
-        raise argparse.ArgumentTypeError(f"expected a node id 1..127, got {text!r}")
-    return value
+    return _whole(text, 1, 127, "a node id 1..127")
