@@ -207,3 +207,27 @@ def test_buses_one_thread_cannot_wait_on_together_are_refused(channel):
 def test_bad_queue_size_is_refused(channel):
     with pytest.raises(ValueError, match="rx_queue_size"):
         InProcessBus(channel, rx_queue_size=0)
+
+
+def test_a_copy_carries_every_field_python_can_has(channel):
+    """The copy is made field by field, without Message.__init__ (it costs ~4x as much): a
+    field a newer python-can adds would otherwise be missing from every received frame."""
+    tx, rx = _open(channel), _open(channel, fd=True)
+    try:
+        sent = can.Message(arbitration_id=0x1ABCDE, data=bytes(range(12)), is_extended_id=True,
+                           is_fd=True, bitrate_switch=True, error_state_indicator=True)
+        tx.send(sent)
+        got = rx.recv(1.0)
+        fields = [f for f in can.Message.__slots__ if f != "__weakref__"]
+        assert {"timestamp", "channel", "is_rx"} < set(fields)
+        for field in fields:
+            assert hasattr(got, field), field
+        for field in set(fields) - {"timestamp", "channel", "is_rx"}:
+            assert getattr(got, field) == getattr(sent, field), field
+        assert got.is_rx and got.channel == channel and got.timestamp > 0
+        assert got.equals(sent, timestamp_delta=None, check_channel=False,
+                          check_direction=False)
+        assert got.data is not sent.data
+    finally:
+        tx.shutdown()
+        rx.shutdown()
