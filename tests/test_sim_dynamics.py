@@ -141,3 +141,42 @@ def test_a_sync_a_hair_over_the_substep_is_one_substep():
         return float(dyn.position[0])
     assert run(0.0010004, 0.001) == pytest.approx(run(0.0010004, 1.0), rel=1e-12)
     assert run(0.0013, 0.001) != pytest.approx(run(0.0013, 1.0), rel=1e-6)
+
+
+def _state(parts: list[JointDynamics]) -> np.ndarray:
+    return np.concatenate([np.concatenate((p.position, p.velocity, p.torque, p._integral))
+                           for p in parts])
+
+
+@pytest.mark.parametrize("lengths", [(0.001,), (0.0, 0.001), (0.0, 0.0023)],
+                         ids=["all-stepped", "some-left", "some-left-substeps"])
+def test_joined_dynamics_step_exactly_as_their_parts_alone(lengths):
+    """A segment group steps four segments' joints in one call (JointDynamics.joined); a
+    segment whose SYNC did not come gets length 0. Every joint must end where its part,
+    stepped alone by the same lengths, puts it: random modes, targets and torque limits
+    for 300 steps, bit for bit."""
+    rng = np.random.default_rng(7)
+
+    def parts() -> list[JointDynamics]:
+        return [JointDynamics([JointParams(initial_position=0.1 * k, coulomb=0.02 * k)] * 3)
+                for k in range(4)]
+    alone, joined_parts = parts(), parts()
+    whole = JointDynamics.joined(joined_parts)
+    assert whole.n == 12
+    assert all(np.shares_memory(p.position, whole.position) for p in joined_parts)
+    for _ in range(300):
+        mode = rng.integers(int(LoopMode.OFF), int(LoopMode.POSITION) + 1, 12)
+        target, limit = rng.normal(size=12), rng.uniform(0.01, 2.0, 12)
+        velocity = rng.normal(size=12)
+        step = rng.choice(lengths, 4)
+        for k in range(4):
+            joints = slice(3 * k, 3 * k + 3)
+            for part in (alone[k], joined_parts[k]):
+                part.mode[:] = mode[joints]
+                part.target_position[:] = target[joints]
+                part.target_velocity[:] = velocity[joints]
+                part.torque_limit[:] = limit[joints]
+            alone[k].step(float(step[k]))
+        whole.step(np.repeat(step, 3))
+    np.testing.assert_array_equal(_state(joined_parts), _state(alone))
+    assert np.abs(_state(alone)).max() > 0.1  # the joints moved: the test compares motion

@@ -194,3 +194,70 @@ def test_a_burst_longer_than_one_read_is_handled_without_more_traffic():
 def test_an_empty_group_is_refused():
     with pytest.raises(ValueError, match="at least one segment"):
         SegmentGroup([])
+
+
+RPDO1 = struct.Struct("<HBh")  # the simulated drive's default: controlword, mode, torque
+RPDO2 = struct.Struct("<ii")  # target position, target velocity (increments)
+CSP = 8
+
+
+def test_a_group_steps_its_segments_joints_together_exactly_as_alone():
+    """The group joins its segments' dynamics and steps every segment whose SYNC came in
+    one call. The drives must not tell: two segments in a group and the same two alone,
+    fed the same frames (CSP moves, fixed SYNC period), end bit for bit in the same
+    place; and the group took one step per SYNC round, not one per segment. (Each round's
+    frames are queued while the test holds the group's locks, so the group sees both
+    buses' SYNCs in one pass whatever the machine's load.)"""
+    base = f"joined-{uuid.uuid4().hex[:8]}"
+    lone_channels = [f"{base}-lone-{k}" for k in range(2)]
+    group_channels = [f"{base}-group-{k}" for k in range(2)]
+    lone = [SimulatedSegment.open(ch, "inproc", NODES, sync_period=0.001, seed=k)
+            for k, ch in enumerate(lone_channels)]
+    grouped = [SimulatedSegment.open(ch, "inproc", NODES, sync_period=0.001, seed=k)
+               for k, ch in enumerate(group_channels)]
+    group = SegmentGroup(grouped)
+    masters = [can.Bus(interface="inproc", channel=ch, ignore_config=True)
+               for ch in lone_channels + group_channels]
+    segments = lone + grouped
+    try:
+        for segment in lone:
+            segment.start()
+        group.start()
+        assert all(s.deferred_dt is None for s in lone)
+        syncs = 0
+
+        def cycle(controlword: int, target: int) -> None:
+            nonlocal syncs
+            # the group's locks held: it handles both buses' frames in one pass after them
+            with grouped[0].lock, grouped[1].lock:
+                for bus in masters:
+                    for n in NODES:
+                        _send(bus, 0x200 + n, RPDO1.pack(controlword, CSP, 0))
+                        _send(bus, 0x300 + n, RPDO2.pack(target * n, 0))
+                for bus in masters:
+                    _send(bus, cia301.SYNC, b"")
+            syncs += 1
+            _wait(lambda: all(s.sync_count >= syncs for s in segments),
+                  f"every segment handles SYNC {syncs}")
+
+        for bus in masters:
+            _send(bus, cia301.NMT, bytes((cia301.NmtCommand.START, 0)))
+        for controlword in (0x06, 0x07, 0x0F):  # shutdown, switch on, enable operation
+            cycle(controlword, 0)
+        assert all(d.state402 is State402.OPERATION_ENABLED
+                   for s in segments for d in s.drives.values())
+        for k in range(200):
+            cycle(0x0F, 300 * k)  # a ramp: the position loops work every step
+        moved = [s.drives[n].position_rad for s in lone for n in NODES]
+        assert min(abs(q) for q in moved) > 0.05
+        assert [s.drives[n].position_rad for s in grouped for n in NODES] == moved
+        assert [s.drives[n].torque_nm for s in grouped for n in NODES] == \
+            [s.drives[n].torque_nm for s in lone for n in NODES]
+        assert group.joined_steps == syncs  # both buses' SYNCs: one step each time
+    finally:
+        for bus in masters:
+            bus.shutdown()
+        group.stop()
+        for segment in lone:
+            segment.stop()
+    group.check()

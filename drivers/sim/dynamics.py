@@ -90,12 +90,48 @@ class JointDynamics:
         self._free = np.zeros(n, dtype=bool)
         self._stick = np.zeros(n, dtype=bool)
         self._mask = np.zeros(n, dtype=bool)
+        self._dt = np.zeros(n)            # this step's length per joint (0: not stepped)
+        self._h = np.zeros(n)             # and its sub-step's
+        self._half_h = np.zeros(n)
+        self._stepped = np.zeros(n, dtype=bool)
 
-    def step(self, dt: float) -> None:
-        if dt <= 0:
+    @classmethod
+    def joined(cls, parts: list[JointDynamics]) -> JointDynamics:
+        """One set of arrays for the joints of several parts (in order), stepped in one call;
+        every array of each part becomes a view of its slice, so the part still steps its
+        own joints alone and its drives read and write them as before. A step of ~35 ufunc
+        calls costs about the same for 3 joints as for 12: four 3-joint segments stepped
+        together cost a quarter. The caller keeps a part's steps and the whole's apart
+        (the simulator: one lock)."""
+        if not parts or len({p.max_substep for p in parts}) != 1:
+            raise ValueError("joined dynamics need parts with one max_substep")
+        whole = cls.__new__(cls)
+        whole.n = sum(p.n for p in parts)
+        whole.max_substep = parts[0].max_substep
+        for name, value in vars(parts[0]).items():
+            if isinstance(value, np.ndarray):
+                setattr(whole, name, np.concatenate([getattr(p, name) for p in parts]))
+        first = 0
+        for part in parts:
+            for name, value in vars(whole).items():
+                if isinstance(value, np.ndarray):
+                    setattr(part, name, value[first:first + part.n])
+            first += part.n
+        return whole
+
+    def step(self, dt: float | np.ndarray) -> None:
+        """Advance ``dt`` seconds: one length for every joint, or one per joint (0: that
+        joint is left as it is, as a joined segment whose SYNC did not come)."""
+        lengths = self._dt
+        np.copyto(lengths, dt)
+        longest = float(lengths.max())
+        if longest <= 0:
             return
-        steps = max(1, math.ceil(dt / self.max_substep - SUBSTEP_SLACK))
-        h = dt / steps
+        steps = max(1, math.ceil(longest / self.max_substep - SUBSTEP_SLACK))
+        np.maximum(lengths, 0.0, out=lengths)
+        np.multiply(lengths, 1.0 / steps, out=self._h)
+        np.multiply(self._h, 0.5, out=self._half_h)
+        np.greater(lengths, 0.0, out=self._stepped)
         # what the modes select, once per step (the drives set mode and limits before it)
         mode = self.mode
         np.not_equal(mode, LoopMode.POSITION, out=self._not_position)
@@ -103,13 +139,15 @@ class JointDynamics:
         np.logical_not(self._looped, out=self._not_looped)
         np.equal(mode, LoopMode.OFF, out=self._off)
         np.negative(self.torque_limit, out=self._neg_limit)
-        np.copyto(self._integral, 0.0, where=self._not_looped)
+        np.logical_and(self._not_looped, self._stepped, out=self._mask)
+        np.copyto(self._integral, 0.0, where=self._mask)
         for _ in range(steps):
-            self._substep(h)
+            self._substep()
 
-    def _substep(self, h: float) -> None:
+    def _substep(self) -> None:
         q, v, tau, vcmd, err, tmp = (self.position, self.velocity, self._tau, self._vcmd,
                                      self._err, self._tmp)
+        h = self._h
         limit, neg_limit = self.torque_limit, self._neg_limit
         # velocity command: CSP position loop + feed-forward, or the CSV target
         np.subtract(self.target_position, q, out=vcmd)
@@ -134,9 +172,9 @@ class JointDynamics:
         np.logical_not(self._free, out=self._mask)
         np.copyto(tmp, 0.0, where=self._mask)
         self._integral += tmp
-        np.minimum(self._integral, limit, out=self._integral)
-        np.maximum(self._integral, neg_limit, out=self._integral)
-        np.copyto(self.torque, tau)
+        np.minimum(self._integral, limit, out=self._integral, where=self._stepped)
+        np.maximum(self._integral, neg_limit, out=self._integral, where=self._stepped)
+        np.copyto(self.torque, tau, where=self._stepped)
         # rigid joint with viscous friction and Coulomb friction that sticks at rest
         acc, vnew = self._acc, self._vnew
         np.multiply(self.viscous, v, out=acc)
@@ -157,6 +195,6 @@ class JointDynamics:
         stick |= mask
         np.copyto(vnew, 0.0, where=stick)
         np.add(v, vnew, out=tmp)
-        tmp *= 0.5 * h
+        tmp *= self._half_h
         q += tmp
         np.copyto(v, vnew)

@@ -11,6 +11,19 @@ timers, its dynamics and its arrival-time rules (``received_until``: a bus the s
 found empty is vouched for with ``nothing_arrived``, so a lost heartbeat on a silent bus
 is still seen).
 
+The segments' joints are stepped together too: the group joins their dynamics into one set
+of arrays (``JointDynamics.joined``: each segment's arrays become views of its slice) and,
+after handing over a wake-up's frames, steps every segment whose SYNC came in one call. A
+step is ~35 numpy calls whose cost hardly depends on the joint count, so four 3-joint
+segments at 1 kHz cost a quarter of what they did (~30 µs a cycle instead of ~110 µs, the
+largest part of the simulator's CPU). A segment whose SYNC is left to the group takes its
+step alone the moment another frame of its bus needs the drives after it (a second SYNC,
+an SDO request) - so every drive still sees its frames in order, with its step between. The
+group holds every segment's lock from the first frame it hands over to the last answer, so
+no timer of a segment runs between a SYNC and its step. Equal SYNC periods (the loop sends
+one SYNC per bus per cycle) give exactly the steps of segments stepped alone; periods that
+need different sub-step counts are integrated in the larger count (shorter sub-steps).
+
 Buses one thread cannot wait on together (python-can's ``virtual`` hands frames over a
 queue per bus) get a receive thread per segment, as a lone segment has. A bus whose
 interface fails is counted in its own segment's ``bus_errors`` and read again every
@@ -21,7 +34,10 @@ from __future__ import annotations
 import threading
 from collections.abc import Iterable
 
+import numpy as np
+
 from ..frame_io import BusSelector, FrameReader
+from .dynamics import JointDynamics
 from .segment import RX_IDLE, SimulatedSegment
 
 
@@ -35,6 +51,10 @@ class SegmentGroup:
         # one receive thread serves every segment (False: one thread each)
         self.shared_thread = BusSelector.supports([s.bus for s in self.segments])
         self._selector: BusSelector | None = None  # made by start: it hooks into the buses
+        self._dynamics: JointDynamics | None = None  # the joined joints (start), if shared
+        self._dt = np.zeros(0)  # a joined step's length per joint
+        self._slices: list[slice] = []
+        self.joined_steps = 0  # dynamics steps taken for two segments or more at once
         self._stopped = threading.Event()
         self._thread = threading.Thread(target=self._receive_loop, name="sim-group-rx",
                                         daemon=True)
@@ -47,6 +67,8 @@ class SegmentGroup:
         try:
             if self.shared_thread:
                 self._selector = BusSelector([s.bus for s in self.segments], retry=RX_IDLE)
+                if len(self.segments) > 1:
+                    self._join_dynamics()
             for segment in self.segments:
                 segment.start(receive=not self.shared_thread)
             if self._selector is not None:
@@ -77,23 +99,62 @@ class SegmentGroup:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def _join_dynamics(self) -> None:
+        """One set of arrays for every segment's joints (before the segments start)."""
+        self._dynamics = JointDynamics.joined([s.dynamics for s in self.segments])
+        self._dt = np.zeros(self._dynamics.n)
+        first = 0
+        for segment in self.segments:
+            self._slices.append(slice(first, first + segment.dynamics.n))
+            first += segment.dynamics.n
+            segment.defer_steps()
+
     def _receive_loop(self) -> None:
         selector = self._selector
         assert selector is not None  # started only with a selector
         segments = self.segments
+        locks = [s.lock for s in segments]
         readers = [FrameReader(s.bus) for s in segments]
         clock = SimulatedSegment.clock
         try:
             while not self._stopped.is_set():
                 since = clock()
                 ready = selector.wait(RX_IDLE)
-                for i, segment in enumerate(segments):
-                    if i in ready:
-                        if not segment.pump(readers[i], 0.0):
-                            selector.failed(i)
-                    elif not selector.failing(i):
-                        segment.nothing_arrived(since)
+                for lock in locks:  # in order; every other holder takes one lock only
+                    lock.acquire()
+                try:
+                    if len(ready) < len(segments):  # and what came while taking the locks
+                        ready = sorted({*ready, *selector.wait(0.0)})
+                    for i, segment in enumerate(segments):
+                        if i in ready:
+                            if not segment.pump(readers[i], 0.0):
+                                selector.failed(i)
+                        elif not selector.failing(i):
+                            segment.nothing_arrived(since)
+                    self._step_deferred()
+                finally:
+                    for lock in reversed(locks):
+                        lock.release()
         except Exception as exc:  # noqa: BLE001 - a bug here: every segment's check says so
             for segment in segments:
                 segment.errors.append(exc)
             raise
+
+    def _step_deferred(self) -> None:
+        """Step the joints of every segment whose SYNC came, in one call; each then samples
+        and answers its SYNC (every segment's lock held)."""
+        dynamics, dt = self._dynamics, self._dt
+        if dynamics is None:
+            return
+        pending = [s for s in self.segments if s.deferred_dt is not None]
+        if len(pending) < 2:
+            for segment in pending:
+                segment.finish_deferred()  # alone: its own step costs the same
+            return
+        for segment, joints in zip(self.segments, self._slices):
+            step = segment.deferred_dt
+            dt[joints] = 0.0 if step is None else step
+        dynamics.step(dt)
+        self.joined_steps += 1
+        for segment in pending:
+            segment.finish_joined()

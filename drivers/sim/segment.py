@@ -158,6 +158,12 @@ class SimulatedSegment:
         self._rpdo_routes: dict[int, Route] = {}
         self._rpdo_of_drive: dict[int, dict[int, Route]] = {}
         self._last_step: float | None = None
+        # A SegmentGroup that steps its segments' joints together (group.py) leaves a SYNC's
+        # dynamics step to itself: ``deferred_dt`` is the step this segment's drives are
+        # prepared for, until the group steps every such segment at once (``finish_joined``)
+        # or a frame to this segment needs it taken now (``finish_deferred``).
+        self._defer_steps = False
+        self.deferred_dt: float | None = None
         # Every frame that arrived (monotonic) before this has been handled: see the docstring.
         self.received_until = -math.inf
         self._writer = FrameWriter(bus, fd=fd)  # an FD bus: the drives answer in FD frames
@@ -321,6 +327,8 @@ class SimulatedSegment:
             self.received_until = since
 
     def _dispatch(self, cob_id: int, data: bytes, arrived: float) -> None:
+        if self.deferred_dt is not None:  # this frame comes after the SYNC: step first
+            self.finish_deferred()
         if cob_id == c301.NMT:
             if len(data) >= 2:
                 for node, drive in self.drives.items():
@@ -344,22 +352,52 @@ class SimulatedSegment:
                 drive.on_heartbeat(cob_id - c301.HEARTBEAT, arrived)
 
     def _on_sync(self, arrived: float) -> None:
-        self._step(on_sync=True, now=arrived)
-        self.sync_count += 1
+        dt = self._prepare(on_sync=True, now=arrived)
+        if self._defer_steps:
+            self.deferred_dt = dt
+            return
+        self.dynamics.step(dt)
+        self._finish(on_sync=True)
+
+    def defer_steps(self) -> None:
+        """From now on a SYNC's dynamics step waits for this segment's group (before start)."""
+        self._defer_steps = True
+
+    def finish_deferred(self) -> None:
+        """Take the deferred step alone, then sample and answer the SYNC (lock held)."""
+        dt, self.deferred_dt = self.deferred_dt, None
+        if dt is not None:
+            self.dynamics.step(dt)
+            self._finish(on_sync=True)
+
+    def finish_joined(self) -> None:
+        """The group stepped this segment's joints with the others': sample and answer."""
+        if self.deferred_dt is not None:
+            self.deferred_dt = None
+            self._finish(on_sync=True)
 
     def _step(self, on_sync: bool, now: float) -> None:
+        self.dynamics.step(self._prepare(on_sync, now))
+        self._finish(on_sync)
+
+    def _prepare(self, on_sync: bool, now: float) -> float:
+        """The step's length; the drives apply their RPDOs and command their joints."""
         last = self._last_step if self._last_step is not None else now
         if on_sync and self.sync_period is not None:
             dt = self.sync_period
         else:  # a SYNC that arrived before a free-running step was handled: no step back
             dt = min(max(now - last, 0.0), self.max_dt)
         self._last_step = max(now, last)
-        drives = self.drives.values()
-        for drive in drives:
+        for drive in self.drives.values():
             drive.prepare_step(dt, on_sync)
-        self.dynamics.step(dt)
-        for drive in drives:
+        return dt
+
+    def _finish(self, on_sync: bool) -> None:
+        """After the step: the drives sample and send their TPDOs."""
+        for drive in self.drives.values():
             drive.finish_step(on_sync)
+        if on_sync:
+            self.sync_count += 1
 
     def _free_run(self) -> None:
         period = self.free_run_period
