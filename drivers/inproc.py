@@ -87,6 +87,8 @@ class InProcessBus(BusABC):
                 peer._deliver(copy)
 
     def _deliver(self, msg: Message) -> None:
+        if self._filters is not None and not self._matches_filters(msg):
+            return  # as a kernel filter: a frame the reader does not want never wakes it
         rx = self._rx
         if len(rx) == rx.maxlen:
             self.rx_dropped += 1

@@ -57,6 +57,7 @@ from .. import eds as shipped_eds
 from ..drivers.bus import BusReader, CanopenFrames
 from ..drivers.cia301 import (
     EMCY,
+    NMT,
     PRODUCER_HEARTBEAT_TIME,
     TPDO_BASE,
     TPDO_COMM,
@@ -123,7 +124,13 @@ def _integer(od: ODVariable, data: bytes) -> int:
 
 
 class ManagerNode(can.Listener):
-    """Serves a ControllerManager on a CAN bus (lent, not shut down here)."""
+    """Serves a ControllerManager on a CAN bus (lent, not shut down here).
+
+    Lend it a bus handle of its own: the node sets the handle's receive filters to what it
+    serves (its SDO requests, NMT commands, and the e-stop COB-ID when the frames are its
+    own to take), so the control loop's PDO traffic on that bus, a dozen frames or more a
+    cycle, never wakes its reader (on SocketCAN the kernel drops them; on the in-process
+    bus the sender does). ``close`` lifts the filters."""
 
     def __init__(self, manager: ControllerManager, node_id: int, bus: can.BusABC, *,
                  estop_cob_id: int = 0, status_period: float = 0.1,
@@ -183,6 +190,8 @@ class ManagerNode(can.Listener):
         return self
 
     def close(self) -> None:
+        if self._started:
+            self.bus.set_filters(None)
         if self._unsubscribe is not None:
             self._unsubscribe()
             self._unsubscribe = None
@@ -223,6 +232,16 @@ class ManagerNode(can.Listener):
                             self.node_id, cob_id, exc)
                 raise SdoAbortedError(ABORT_NOT_FOUND) from None
         self._estop_cob_id = cob_id
+        self._filter()
+
+    def _filter(self) -> None:
+        """Receive only what the node serves (see the class docstring); 11-bit frames, data
+        or remote (a remote frame on the e-stop COB-ID is an e-stop too)."""
+        ids = [self._node.sdo.rx_cobid, NMT]
+        if self._estop_cob_id and self._estop_in_cycle is None:
+            ids.append(self._estop_cob_id)
+        self.bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False}
+                              for i in ids])
 
     def on_message_received(self, msg: can.Message) -> None:
         """On the bus reader's thread: any 11-bit frame on the e-stop COB-ID, data or remote
