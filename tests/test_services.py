@@ -441,25 +441,37 @@ def test_the_node_receives_only_what_it_serves(bus_factory, in_cycle):
     """The node's bus handle is filtered to its SDO requests, NMT and (when the node takes
     them) e-stop frames: the loop's PDO traffic on that bus never reaches its reader (on
     the in-process bus not even its queue; on SocketCAN the kernel drops it). Moving the
-    e-stop COB-ID by SDO moves the filter; ``close`` lifts it."""
+    e-stop COB-ID by SDO moves the filter, for data and remote frames; ``close`` lifts it."""
     plant = JointPlant(3, dt=0.005)
     manager = ControllerManager(TorqueOff(), 0.005, plant.state, plant.command, timing=None)
     handed: list[int] = []
     node_bus = bus_factory(interface="inproc")
     node = ManagerNode(manager, NODE, node_bus, estop_cob_id=ESTOP_COB,
-                       estop_in_cycle=handed.append if in_cycle else None).start()
+                       estop_in_cycle=handed.append if in_cycle else None)
+    seen: list[int] = []  # every frame the node's reader hands the node
+    served = node.on_message_received
+    node.on_message_received = lambda msg: (seen.append(msg.arbitration_id), served(msg))
+    node.start()
     try:
         traffic = bus_factory(interface="inproc")
+
+        def send(cob_id: int, **kwargs: object) -> None:
+            traffic.send(can.Message(arbitration_id=cob_id, **kwargs))
+
         for cob_id in (0x080, 0x181, 0x201, 0x281, 0x301, 0x701, 0x581, 0x600 + NODE + 1):
             for _ in range(20):
-                traffic.send(can.Message(arbitration_id=cob_id, data=bytes(8),
-                                         is_extended_id=False))
-        traffic.send(can.Message(arbitration_id=0x600 + NODE, data=bytes(8),
-                                 is_extended_id=True))  # a 29-bit frame is another id
-        assert not node_bus.pending  # nothing queued: the reader was never woken for it
+                send(cob_id, data=bytes(8), is_extended_id=False)
+        send(0x600 + NODE, data=bytes(8), is_extended_id=True)  # 29 bits: another id
         with ManagerClient(bus_factory(interface="inproc"), NODE, timeout=STALL) as client:
-            assert client.status()["state"] == "FAILPROOF"  # SDO requests do arrive
+            # answered after the node's reader handled every frame sent before it
+            assert client.status()["state"] == "FAILPROOF"
             client.write(0x2130, 0x0B5)
+            send(0x0B5, is_extended_id=False, is_remote_frame=True)
+            send(0x0B5, data=b"\x01", is_extended_id=False)
+            assert client.status()["state"] == "FAILPROOF"
+        assert set(seen) == {0x600 + NODE} | ({0x0B5} if not in_cycle else set())
+        if not in_cycle:
+            assert seen.count(0x0B5) == 2 and len(node.estop_frames) == 2
         wanted = [0x600 + NODE, 0x000] + ([] if in_cycle else [0x0B5])
         assert [f["can_id"] for f in node_bus.filters] == wanted
         assert all(f["can_mask"] == 0x7FF and f["extended"] is False for f in node_bus.filters)

@@ -237,8 +237,10 @@ def test_a_group_steps_its_segments_joints_together_exactly_as_alone():
                 for bus in masters:
                     _send(bus, cia301.SYNC, b"")
             syncs += 1
-            _wait(lambda: all(s.sync_count >= syncs for s in segments),
-                  f"every segment handles SYNC {syncs}")
+            deadline = time.monotonic() + VIRTUAL.detect_budget()
+            while not all(s.sync_count >= syncs for s in segments):
+                assert time.monotonic() < deadline, f"every segment handles SYNC {syncs}"
+                time.sleep(0.001)
 
         for bus in masters:
             _send(bus, cia301.NMT, bytes((cia301.NmtCommand.START, 0)))
@@ -261,3 +263,30 @@ def test_a_group_steps_its_segments_joints_together_exactly_as_alone():
         for segment in lone:
             segment.stop()
     group.check()
+
+
+def test_a_drive_that_raises_in_a_joined_step_fails_its_segment_only(group_on):
+    """A bug in one drive's answer to a joined step is its segment's failure (check()
+    says so); the one thread every bus of the group is read on goes on serving them."""
+    group, channels = group_on("inproc")
+    broken = group.segments[0].drives[NODES[0]]
+
+    def finish_step(on_sync: bool) -> None:
+        raise RuntimeError("a bug in the drive's answer")
+    broken.finish_step = finish_step  # type: ignore[method-assign]
+    masters = [can.Bus(interface="inproc", channel=ch, ignore_config=True) for ch in channels]
+    try:
+        for k in range(1, 4):
+            with group.segments[0].lock, group.segments[1].lock:  # one pass: a joined step
+                for bus in masters:
+                    _send(bus, cia301.SYNC, b"")
+            _wait(lambda k=k: group.segments[1].sync_count >= k, f"bus 1 answers SYNC {k}")
+        assert group.joined_steps == 3
+        assert all(s.deferred_dt is None for s in group.segments)
+        assert len(group.segments[0].errors) == 3
+        with pytest.raises(RuntimeError, match="simulated segment failed"):
+            group.check()
+        assert group.segments[1].errors == []
+    finally:
+        for bus in masters:
+            bus.shutdown()

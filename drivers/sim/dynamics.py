@@ -129,7 +129,7 @@ class JointDynamics:
             return
         steps = max(1, math.ceil(longest / self.max_substep - SUBSTEP_SLACK))
         np.maximum(lengths, 0.0, out=lengths)
-        np.multiply(lengths, 1.0 / steps, out=self._h)
+        np.divide(lengths, steps, out=self._h)
         np.multiply(self._h, 0.5, out=self._half_h)
         np.greater(lengths, 0.0, out=self._stepped)
         # what the modes select, once per step (the drives set mode and limits before it)

@@ -19,8 +19,10 @@ segments at 1 kHz cost a quarter of what they did (~30 µs a cycle instead of ~1
 largest part of the simulator's CPU). A segment whose SYNC is left to the group takes its
 step alone the moment another frame of its bus needs the drives after it (a second SYNC,
 an SDO request) - so every drive still sees its frames in order, with its step between. The
-group holds every segment's lock from the first frame it hands over to the last answer, so
-no timer of a segment runs between a SYNC and its step. Equal SYNC periods (the loop sends
+group holds the lock of every segment it reads from the first frame it hands over to the
+last answer, so no timer of such a segment runs between a SYNC and its step (the others'
+timers run on). A drive that raises while answering is its own segment's failure
+(``check``); the thread goes on reading every bus. Equal SYNC periods (the loop sends
 one SYNC per bus per cycle) give exactly the steps of segments stepped alone; periods that
 need different sub-step counts are integrated in the larger count (shorter sub-steps).
 
@@ -32,7 +34,7 @@ interface fails is counted in its own segment's ``bus_errors`` and read again ev
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -120,11 +122,19 @@ class SegmentGroup:
             while not self._stopped.is_set():
                 since = clock()
                 ready = selector.wait(RX_IDLE)
-                for lock in locks:  # in order; every other holder takes one lock only
+                # The locks of the segments to read, in order, held from the first frame to
+                # the joined step (no timer of theirs runs between a SYNC and its step);
+                # a bus whose frames came meanwhile joins the pass if its lock is free. No
+                # other holder takes two locks, so nobody waits in a cycle.
+                held = [locks[i] for i in ready]
+                for lock in held:
                     lock.acquire()
                 try:
-                    if len(ready) < len(segments):  # and what came while taking the locks
-                        ready = sorted({*ready, *selector.wait(0.0)})
+                    if len(ready) < len(segments):
+                        for i in selector.wait(0.0):
+                            if i not in ready and locks[i].acquire(blocking=False):
+                                held.append(locks[i])
+                                ready.append(i)
                     for i, segment in enumerate(segments):
                         if i in ready:
                             if not segment.pump(readers[i], 0.0):
@@ -133,7 +143,7 @@ class SegmentGroup:
                             segment.nothing_arrived(since)
                     self._step_deferred()
                 finally:
-                    for lock in reversed(locks):
+                    for lock in reversed(held):
                         lock.release()
         except Exception as exc:  # noqa: BLE001 - a bug here: every segment's check says so
             for segment in segments:
@@ -149,12 +159,28 @@ class SegmentGroup:
         pending = [s for s in self.segments if s.deferred_dt is not None]
         if len(pending) < 2:
             for segment in pending:
-                segment.finish_deferred()  # alone: its own step costs the same
+                self._finish(segment, segment.finish_deferred)  # alone: the same cost
             return
         for segment, joints in zip(self.segments, self._slices):
             step = segment.deferred_dt
             dt[joints] = 0.0 if step is None else step
-        dynamics.step(dt)
+        try:
+            dynamics.step(dt)
+        except Exception as exc:  # noqa: BLE001 - a bug: every stepped segment says so
+            for segment in pending:
+                segment.deferred_dt = None
+                segment.record(exc)
+            return
         self.joined_steps += 1
         for segment in pending:
-            segment.finish_joined()
+            self._finish(segment, segment.finish_joined)
+
+    @staticmethod
+    def _finish(segment: SimulatedSegment, finish: Callable[[], None]) -> None:
+        """One segment's answer; a drive that raises is that segment's failure (check()),
+        never the end of the thread every other bus is read on."""
+        try:
+            finish()
+        except Exception as exc:  # noqa: BLE001 - recorded, receiving goes on
+            segment.deferred_dt = None
+            segment.record(exc)

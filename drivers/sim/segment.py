@@ -291,7 +291,7 @@ class SimulatedSegment:
             batch = []  # a failed interface delivers nothing: consumers may time out
             ok = False
         except Exception as exc:  # noqa: BLE001 - a bug: check() says so, receiving goes on
-            self._record(exc)
+            self.record(exc)
             batch = []
             ok = False
         else:
@@ -310,7 +310,7 @@ class SimulatedSegment:
                 try:
                     self._dispatch(msg.arbitration_id, bytes(msg.data), arrived)
                 except Exception as exc:  # noqa: BLE001 - keep the segment receiving
-                    self._record(exc)
+                    self.record(exc)
             # read until empty: everything that arrived before the read began is handled
             self.received_until = before if len(batch) < RX_BATCH else arrived
         return ok
@@ -328,7 +328,10 @@ class SimulatedSegment:
 
     def _dispatch(self, cob_id: int, data: bytes, arrived: float) -> None:
         if self.deferred_dt is not None:  # this frame comes after the SYNC: step first
-            self.finish_deferred()
+            try:
+                self.finish_deferred()
+            except Exception as exc:  # noqa: BLE001 - the frame is still this one's to handle
+                self.record(exc)
         if cob_id == c301.NMT:
             if len(data) >= 2:
                 for node, drive in self.drives.items():
@@ -414,7 +417,7 @@ class SimulatedSegment:
             with self.lock:
                 fn(*args)
         except Exception as exc:  # noqa: BLE001 - keep the timers running
-            self._record(exc)
+            self.record(exc)
 
     def _bus_failed(self, exc: BaseException) -> None:
         self.bus_errors += 1
@@ -425,7 +428,8 @@ class SimulatedSegment:
             log.warning("simulated segment: reading the bus failed (%d so far), reading "
                         "again every %.0f ms: %s", self.bus_errors, RX_IDLE * 1000, exc)
 
-    def _record(self, exc: BaseException) -> None:
+    def record(self, exc: BaseException) -> None:
+        """A failure of the simulation itself: kept (the first 100) for check(), logged."""
         if len(self.errors) < 100:
             self.errors.append(exc)
         log.error("simulated segment: %r", exc, exc_info=exc)

@@ -190,8 +190,6 @@ class ManagerNode(can.Listener):
         return self
 
     def close(self) -> None:
-        if self._started:
-            self.bus.set_filters(None)
         if self._unsubscribe is not None:
             self._unsubscribe()
             self._unsubscribe = None
@@ -202,6 +200,12 @@ class ManagerNode(can.Listener):
         if self._reader is not None:
             self._reader.stop()
             self._reader = None
+        if self._started:
+            try:
+                self.bus.set_filters(None)  # the lent handle as it came
+            except can.CanError as exc:  # an interface that cannot: nothing is left running
+                log.warning("manager node %d: receive filters not lifted: %s", self.node_id,
+                            exc)
 
     def __enter__(self) -> ManagerNode:
         return self.start()
