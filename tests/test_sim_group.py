@@ -290,3 +290,39 @@ def test_a_drive_that_raises_in_a_joined_step_fails_its_segment_only(group_on):
     finally:
         for bus in masters:
             bus.shutdown()
+
+
+def test_no_joined_step_while_a_segment_outside_the_pass_may_be_stepping_alone():
+    """The joined step writes every joint's arrays, those of a segment that got no SYNC
+    too. Such a segment can be stepping its own joints on its timer at that moment (it
+    free-runs when its bus is silent), under its own lock only: the group must then step
+    the segments of its pass alone, not join them over the other's half-done step. The
+    test holds the third segment's lock as its timer would; two buses' SYNCs come in one
+    pass. Held: they are answered, each stepped alone; released: one joined step."""
+    base = f"outside-{uuid.uuid4().hex[:8]}"
+    channels = [f"{base}-{k}" for k in range(3)]
+    segments = [SimulatedSegment.open(ch, "inproc", NODES, sync_period=0.001)
+                for ch in channels]
+    group = SegmentGroup(segments)
+    masters = [can.Bus(interface="inproc", channel=ch, ignore_config=True)
+               for ch in channels[:2]]
+
+    def one_pass_of_syncs(k: int) -> None:
+        with segments[0].lock, segments[1].lock:  # both SYNCs wait for one pass
+            for bus in masters:
+                _send(bus, cia301.SYNC, b"")
+        _wait(lambda: all(s.sync_count >= k for s in segments[:2]),
+              f"both buses answer SYNC {k}")
+
+    try:
+        group.start()
+        with segments[2].lock:  # the silent bus's segment, busy as on its own timer
+            one_pass_of_syncs(1)
+            assert group.joined_steps == 0  # stepped alone
+        one_pass_of_syncs(2)
+        assert group.joined_steps == 1
+    finally:
+        for bus in masters:
+            bus.shutdown()
+        group.stop()
+    group.check()

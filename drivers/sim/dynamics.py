@@ -102,7 +102,7 @@ class JointDynamics:
         own joints alone and its drives read and write them as before. A step of ~35 ufunc
         calls costs about the same for 3 joints as for 12: four 3-joint segments stepped
         together cost a quarter. The caller keeps a part's steps and the whole's apart
-        (the simulator: one lock)."""
+        (the simulator: the whole steps only with every part's lock held)."""
         if not parts or len({p.max_substep for p in parts}) != 1:
             raise ValueError("joined dynamics need parts with one max_substep")
         whole = cls.__new__(cls)

@@ -21,10 +21,13 @@ step alone the moment another frame of its bus needs the drives after it (a seco
 an SDO request) - so every drive still sees its frames in order, with its step between. The
 group holds the lock of every segment it reads from the first frame it hands over to the
 last answer, so no timer of such a segment runs between a SYNC and its step (the others'
-timers run on). A drive that raises while answering is its own segment's failure
-(``check``); the thread goes on reading every bus. Equal SYNC periods (the loop sends
-one SYNC per bus per cycle) give exactly the steps of segments stepped alone; periods that
-need different sub-step counts are integrated in the larger count (shorter sub-steps).
+timers run on). The joined step writes every segment's arrays, so it also takes the other
+segments' locks if they are free at once; if one is busy (its timer stepping its joints
+alone) the pass's segments step alone instead. A drive that raises while answering is its
+own segment's failure (``check``); the thread goes on reading every bus. Equal SYNC periods
+(the loop sends one SYNC per bus per cycle) give exactly the steps of segments stepped
+alone; periods that need different sub-step counts are integrated in the larger count
+(shorter sub-steps).
 
 Buses one thread cannot wait on together (python-can's ``virtual`` hands frames over a
 queue per bus) get a receive thread per segment, as a lone segment has. A bus whose
@@ -141,7 +144,7 @@ class SegmentGroup:
                                 selector.failed(i)
                         elif not selector.failing(i):
                             segment.nothing_arrived(since)
-                    self._step_deferred()
+                    self._step_deferred(held)
                 finally:
                     for lock in reversed(held):
                         lock.release()
@@ -150,17 +153,47 @@ class SegmentGroup:
                 segment.errors.append(exc)
             raise
 
-    def _step_deferred(self) -> None:
+    def _step_deferred(self, held: list[threading.RLock]) -> None:
         """Step the joints of every segment whose SYNC came, in one call; each then samples
-        and answers its SYNC (every segment's lock held)."""
-        dynamics, dt = self._dynamics, self._dt
-        if dynamics is None:
+        and answers its SYNC (the locks of the segments read in this pass ``held``).
+
+        The joined step writes every joint's arrays, a segment given no step included, so
+        it needs every segment's lock: a segment outside this pass may be stepping its own
+        joints on its timer (free-running, no SYNC for a while) in the same arrays. A lock
+        that is not free at once is not waited for: the pending segments step alone."""
+        if self._dynamics is None:
             return
         pending = [s for s in self.segments if s.deferred_dt is not None]
-        if len(pending) < 2:
-            for segment in pending:
-                self._finish(segment, segment.finish_deferred)  # alone: the same cost
-            return
+        if len(pending) >= 2:
+            others = self._take_other_locks(held)
+            if others is not None:
+                try:
+                    self._step_joined(pending)
+                finally:
+                    for lock in reversed(others):
+                        lock.release()
+                return
+        for segment in pending:
+            self._finish(segment, segment.finish_deferred)  # alone: the same cost
+
+    def _take_other_locks(self, held: list[threading.RLock]) -> list[threading.RLock] | None:
+        """The locks of the segments not ``held``, taken if every one is free now; None
+        (none taken) if one is not."""
+        taken: list[threading.RLock] = []
+        for segment in self.segments:
+            if segment.lock in held:
+                continue
+            if not segment.lock.acquire(blocking=False):
+                for lock in reversed(taken):
+                    lock.release()
+                return None
+            taken.append(segment.lock)
+        return taken
+
+    def _step_joined(self, pending: list[SimulatedSegment]) -> None:
+        """One dynamics step for every joint (every segment's lock held), then answers."""
+        dynamics, dt = self._dynamics, self._dt
+        assert dynamics is not None  # only with joined dynamics
         for segment, joints in zip(self.segments, self._slices):
             step = segment.deferred_dt
             dt[joints] = 0.0 if step is None else step
