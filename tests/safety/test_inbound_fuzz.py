@@ -124,6 +124,7 @@ def _restore(served: Served) -> None:
     which is the last line of defence working, not the property under test here."""
     rig, node, hw = served.rig, served.node, served.rig.hw
     node.set_estop_cob_id(ESTOP_COB)
+    _caught_up(served)
     for _ in range(3):
         rig.mgr.clear_emergency_stop()
         if hw.bus_fault or not hw.all_ready:
@@ -138,6 +139,26 @@ def _restore(served: Served) -> None:
                          SAFETY.enable_budget()):
             return
     raise AssertionError(f"could not get back to holding: {hw.drive_status()}")
+
+
+def _caught_up(served: Served) -> None:
+    """Cycle until the simulated drives have handled every frame sent so far (the last
+    sequence's torque-off frames among them) and the hardware has read their answers.
+
+    Under load the simulator's thread can lag the loop by more cycles than a drop-out is
+    judged on (``DROP_AFTER_CYCLES``): a switch back to holding taken on their statuswords
+    from before the torque-off was then followed by a "dropped out of operation enabled"
+    for nothing (a CI run with a CPU hog per core)."""
+    rig, segment, port = served.rig, served.segment, served.rig.hw.ports[0].canopen
+    assert port is not None and port.reader is not None  # a served rig reads its bus
+    reader, bus = port.reader, port.bus
+    sent = time.monotonic()
+    assert rig.run_until(lambda: segment.received_until >= sent, SAFETY.cycles_budget(2)), \
+        "the simulated drives do not catch up"
+    answered = time.monotonic()
+    assert rig.run_until(lambda: reader.received_until(bus) >= answered,
+                         SAFETY.cycles_budget(2)), "the hardware's reader does not catch up"
+    rig.cycle()  # drains what the reader handed over
 
 
 def _probe(served: Served, fuzz_bus: can.BusABC) -> None:
