@@ -73,10 +73,8 @@ SETTLE_TIME = max(PD["target"] / PD["velocity_limit"] + pd_settle(PD["kp"], PD["
 # host's stall as in every setup (fixtures/driver_rig.py), with 100 ms heartbeats; the waits
 # are this setup's budgets.
 SETUP = Can("virtual", NODES, DT, (PD["kp"], PD["kd"], 0.01, SETTLE_TIME), heartbeat_ms=100,
-            drive_heartbeat_ms=100, tpdo_timeout_cycles=math.ceil(outlasting(STALL, DT)),
-            timeouts=VIRTUAL.timeouts, joints=JOINT,
-            heartbeat_timeout_factor=outlasting(STALL, 0.1),
-            consumer_factor=outlasting(STALL, 0.1))
+            drive_heartbeat_ms=100, timeouts=VIRTUAL.timeouts, joints=JOINT,
+            **outlasting(STALL, DT, heartbeat_ms=100, drive_heartbeat_ms=100))
 SETTLE = SETUP.motion_budget(SETTLE_TIME)
 WAVE_SPEED = WAVE["amplitude"] * 2 * math.pi * WAVE["frequency"]  # its peak, rad/s
 
