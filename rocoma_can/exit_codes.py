@@ -1,4 +1,4 @@
-"""The exit codes of every ``rocoma-can`` command (and ``rocoma-can-sim``): one set, since
+"""The exit codes of every ``rocoma-can`` command (``rocoma-can sim`` too): one set, since
 scripts and the fleet client's ``--zenoh`` path must mean the same thing by each (README:
 "Exit codes")."""
 from __future__ import annotations

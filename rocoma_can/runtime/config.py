@@ -20,8 +20,9 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
                   enable_timeout: 1.0}                      # start-up (Timeouts)
     timing: {advance: 0.5, initialize_fast: 0.5, overruns: 5, hang: 20}  # in cycles (dt):
                                    # the manager's wall-time supervision of controllers
-    zenoh: {prefix: rocoma/<host>, mode: peer, connect: [], listen: [], multicast: true,
-            allow_commands: false, deadman: null, required: true}  # optional (fleet.py)
+    zenoh: {prefix: rocoma/<host>, mode: null, connect: [], listen: [], multicast: null,
+            allow_commands: false, deadman: null, required: true}  # optional (fleet.py);
+                                   # null mode/multicast: Zenoh's own (peer, scouting on)
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
     controllers: [ ... ]           # rocoma_can.plugins format
     emergency_controllers: [ ... ]
