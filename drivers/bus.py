@@ -235,17 +235,25 @@ class CanopenFrames(can.Listener):
     data frames only, and an NMT command only as its two bytes (CiA 301). canopen's own
     listener passes 29-bit frames on as if they were 11-bit ones (an extended 0x664 would
     be served as an SDO request, an extended 0x581 taken as an SDO answer) and logs an error
-    for every short NMT frame."""
+    for every short NMT frame.
+
+    Only COB-IDs a service subscribed to are passed on: the cycle's TPDOs, most of a bus's
+    traffic, have no subscriber here (the hardware decodes them itself), and
+    ``Network.notify`` would still feed each to canopen's node scanner, which nothing in
+    rocoma-can uses (``Network.scanner`` stays empty)."""
 
     def __init__(self, network: canopen.Network) -> None:
         self.network = network
+        self._subscribers = network.subscribers  # canopen fills this dict in place
 
     def on_message_received(self, msg: can.Message) -> None:
-        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+        cob_id = msg.arbitration_id
+        if cob_id not in self._subscribers or msg.is_extended_id or msg.is_remote_frame \
+                or msg.is_error_frame:
             return
-        if msg.arbitration_id == 0 and msg.dlc != 2:
+        if cob_id == 0 and msg.dlc != 2:
             return
-        self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        self.network.notify(cob_id, msg.data, msg.timestamp)
 
 
 class CanopenBus:

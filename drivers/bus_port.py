@@ -13,6 +13,7 @@ and the transmit health that makes a bus that refuses frames cycle after cycle a
 from __future__ import annotations
 
 import collections
+from collections.abc import Callable
 
 import can
 
@@ -63,6 +64,10 @@ def _frame(cob_id: int, size: int, fd: bool) -> can.Message:
                        is_fd=fd, bitrate_switch=fd)
 
 
+def _no_hold() -> None:
+    """A bus that wakes its readers at each frame anyway (SocketCAN: the kernel does)."""
+
+
 class BusPort:
     """One bus: lent (a python-can bus) or opened here (a BusConfig) by ``open``."""
 
@@ -92,6 +97,10 @@ class BusPort:
         self.clean_cycles = 0      # writes in a row without one (a recovery needs a run)
         self.error_frames = 0
         self.latched: str | None = None  # the bus fault's cause until recovery
+        # a cycle's frames wake this bus's readers once, after the write (inproc.py's
+        # hold_wakeups; a no-op on interfaces without it)
+        self.hold_wakeups: Callable[[], None] = _no_hold
+        self.release_wakeups: Callable[[], None] = _no_hold
 
     def frame(self, cob_id: int, size: int) -> can.Message:
         return _frame(cob_id, size, self.fd)
@@ -115,6 +124,8 @@ class BusPort:
             cb = CanopenBus(arg, read=False)
         self.canopen = cb
         self._writer = cb.writer
+        self.hold_wakeups = getattr(cb.bus, "hold_wakeups", _no_hold)
+        self.release_wakeups = getattr(cb.bus, "release_wakeups", _no_hold)
         self._receiver = _Receiver(cob_ids, self.rx, self.rx_errors)
         cb.add_listener(self._receiver)
         return cb
@@ -128,6 +139,7 @@ class BusPort:
             self.canopen.close()
             self.canopen = None
             self._writer = None
+            self.hold_wakeups = self.release_wakeups = _no_hold
 
     def send(self, msg: can.Message) -> None:
         """Never raises, never blocks: a refused frame is counted (``end_of_write``)."""

@@ -554,7 +554,21 @@ class CanopenHardware:
                     self.hook_errors += 1
 
     def write(self, manager_state: ManagerState) -> None:
-        """Command frames (or torque-off frames in FAILPROOF), then SYNC, then heartbeat."""
+        """Command frames (or torque-off frames in FAILPROOF), then SYNC, then heartbeat.
+        The readers of every bus are woken once, after all of it (BusPort.hold_wakeups):
+        an in-process simulator then sees each bus's cycle whole and steps every segment's
+        joints together, instead of waking at the first frame and taking the GIL from
+        this write."""
+        ports = self.ports
+        for port in ports:
+            port.hold_wakeups()
+        try:
+            self._write(manager_state)
+        finally:
+            for port in ports:
+                port.release_wakeups()
+
+    def _write(self, manager_state: ManagerState) -> None:
         self._manager_state = manager_state
         if manager_state != ManagerState.OK:  # an e-stop ends homing, queued ones too
             while self._homing_requests:

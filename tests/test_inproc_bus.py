@@ -112,6 +112,72 @@ def test_frame_reader_takes_a_batch_and_keeps_filters(channel):
         rx.shutdown()
 
 
+def test_exact_cob_id_filters_take_only_their_standard_frames(channel):
+    """A CANopen master's filters (one COB-ID each, mask 0x7FF, standard) are checked as
+    a set: the same frames pass as python-can's own check would let through, an extended
+    frame with the same number does not, and other filters still work as python-can's."""
+    tx, rx = _open(channel), _open(channel)
+    try:
+        rx.set_filters([{"can_id": c, "can_mask": 0x7FF, "extended": False}
+                        for c in (0x181, 0x281, 0x701)])
+        for cob_id in (0x181, 0x201, 0x281, 0x182, 0x701):
+            tx.send(_frame(cob_id))
+        tx.send(can.Message(arbitration_id=0x181, data=b"", is_extended_id=True))
+        assert [m.arbitration_id for m in FrameReader(rx).read(1.0, limit=10)] == \
+            [0x181, 0x281, 0x701]
+        rx.set_filters([{"can_id": 0x180, "can_mask": 0x780}])  # not one COB-ID: as python-can
+        for cob_id in (0x181, 0x201, 0x182):
+            tx.send(_frame(cob_id))
+        assert [m.arbitration_id for m in FrameReader(rx).read(1.0, limit=10)] == [0x181, 0x182]
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
+class _CountingEvent(threading.Event):
+    def __init__(self) -> None:
+        super().__init__()
+        self.sets = 0
+
+    def set(self) -> None:
+        self.sets += 1
+        super().set()
+
+
+def test_held_wakeups_queue_a_burst_and_wake_its_reader_once_at_the_release(channel):
+    """hold_wakeups: the frames of a burst are queued (in order, at once) but their reader
+    is woken at the release, once; a frame another thread sends meanwhile wakes it at
+    once; holds nest; a release without a hold is a bug and says so."""
+    tx, rx = _open(channel), _open(channel)
+    woken = _CountingEvent()
+    try:
+        rx.add_wakeup(woken)
+        tx.hold_wakeups()
+        tx.hold_wakeups()
+        for cob_id in (0x201, 0x301, 0x080):
+            tx.send(_frame(cob_id))
+        assert rx.pending and woken.sets == 0
+        tx.release_wakeups()
+        assert woken.sets == 0  # still held once
+        other = threading.Thread(target=lambda: tx.send(_frame(0x701, b"\x05")))
+        other.start()
+        other.join(10.0)
+        assert woken.sets == 1  # another thread's frame: at once
+        woken.clear()
+        tx.release_wakeups()
+        assert woken.sets == 2
+        assert [m.arbitration_id for m in FrameReader(rx).read(0.0, limit=10)] == \
+            [0x201, 0x301, 0x080, 0x701]
+        with pytest.raises(RuntimeError, match="without hold_wakeups"):
+            tx.release_wakeups()
+        woken.clear()  # as a selector does before it waits again
+        tx.send(_frame(0x202))  # not held: at once
+        assert woken.sets == 3
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
 def test_an_fd_bus_says_so_and_fd_frames_keep_their_flags(channel):
     tx, rx = _open(channel, fd=True), _open(channel, fd=True)
     try:

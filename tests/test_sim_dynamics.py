@@ -3,12 +3,18 @@ from __future__ import annotations
 
 import math
 import struct
+import time
+import uuid
 
+import can
 import numpy as np
 import pytest
+from fixtures.driver_rig import VIRTUAL
 
 from rocoma_can.drivers.cia402 import Mode, State402
+from rocoma_can.drivers.frame_io import FrameReader
 from rocoma_can.drivers.sim.dynamics import JointDynamics, JointParams, LoopMode
+from rocoma_can.drivers.sim.segment import RX_IDLE, SimulatedSegment
 
 REV = 2 ** 20  # increments per revolution (0x608F default)
 PERIOD = 0.002  # the sim_bench default sync_period
@@ -180,3 +186,36 @@ def test_joined_dynamics_step_exactly_as_their_parts_alone(lengths):
         whole.step(np.repeat(step, 3))
     np.testing.assert_array_equal(_state(joined_parts), _state(alone))
     assert np.abs(_state(alone)).max() > 0.1  # the joints moved: the test compares motion
+
+
+def test_a_segment_free_runs_only_over_a_silence_its_reader_has_seen():
+    """Between SYNCs the segment keeps its joints running (``free_run_period``), so a
+    joint coasts on after its master is gone; but only over time its reader has seen pass
+    without frames. A reader that lags has SYNCs queued, and a free-running step (up to
+    ``max_dt`` in sub-steps, under the segment's lock) would only make it lag more. Here
+    nobody reads the bus at first: the coasting joint stays where it is while the drive's
+    heartbeats (same timer thread, 100 ms) show 200 ms of timers passing; one read of the
+    silent bus, and the joint coasts."""
+    channel = f"free-run-{uuid.uuid4().hex[:8]}"
+    master = can.Bus(interface="inproc", channel=channel, ignore_config=True)
+    segment = SimulatedSegment.open(channel, "inproc", (1,), free_run_period=0.01)
+    try:
+        segment.start(receive=False)  # its reader: this test, which does not read yet
+        with segment.lock:
+            segment.dynamics.velocity[0] = 5.0  # rad/s; switch on disabled: no torque
+        heartbeats = 0
+        deadline = time.monotonic() + VIRTUAL.detect_budget()
+        while heartbeats < 3:  # boot-up, then two heartbeats 100 ms apart
+            assert time.monotonic() < deadline, "the drive's heartbeats"
+            msg = master.recv(RX_IDLE)
+            heartbeats += msg is not None and msg.arbitration_id == 0x701
+        assert segment.drives[1].position_rad == 0.0
+        segment.pump(FrameReader(segment.bus), 0.0)  # the bus read: silent
+        deadline = time.monotonic() + VIRTUAL.detect_budget()
+        while segment.drives[1].position_rad == 0.0:
+            assert time.monotonic() < deadline, "the joint coasts once the silence is seen"
+            time.sleep(RX_IDLE)
+        segment.check()
+    finally:
+        segment.stop()
+        master.shutdown()

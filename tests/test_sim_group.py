@@ -271,7 +271,7 @@ def test_a_drive_that_raises_in_a_joined_step_fails_its_segment_only(group_on):
     group, channels = group_on("inproc")
     broken = group.segments[0].drives[NODES[0]]
 
-    def finish_step(on_sync: bool) -> None:
+    def finish_step(on_sync: bool, *joint_values: list[float]) -> None:
         raise RuntimeError("a bug in the drive's answer")
     broken.finish_step = finish_step  # type: ignore[method-assign]
     masters = [can.Bus(interface="inproc", channel=ch, ignore_config=True) for ch in channels]
@@ -325,4 +325,112 @@ def test_no_joined_step_while_a_segment_outside_the_pass_may_be_stepping_alone()
         for bus in masters:
             bus.shutdown()
         group.stop()
+    group.check()
+
+
+def _two_groups_of(count: int, base: str) -> tuple[list[SimulatedSegment], SegmentGroup,
+                                                  list[can.BusABC], list[can.BusABC]]:
+    """``count`` lone segments and ``count`` grouped (their pass run by the test), each
+    with a master bus; the drives started and enabled in CSP on every bus."""
+    lone = [SimulatedSegment.open(f"{base}-lone-{k}", "inproc", NODES, sync_period=0.001,
+                                  seed=k) for k in range(count)]
+    grouped = [SimulatedSegment.open(f"{base}-group-{k}", "inproc", NODES, sync_period=0.001,
+                                     seed=k) for k in range(count)]
+    group = SegmentGroup(grouped)
+    lone_masters = [can.Bus(interface="inproc", channel=f"{base}-lone-{k}", ignore_config=True)
+                    for k in range(count)]
+    masters = [can.Bus(interface="inproc", channel=f"{base}-group-{k}", ignore_config=True)
+               for k in range(count)]
+    for segment in lone:
+        segment.start()
+    group.start(thread=False)
+    for bus in lone_masters + masters:
+        _send(bus, cia301.NMT, bytes((cia301.NmtCommand.START, 0)))
+    for k, controlword in enumerate((0x06, 0x07, 0x0F), 1):
+        for bus in lone_masters + masters:
+            _cycle_frames(bus, controlword, 0)
+        group.pass_once(0.0)
+        _wait(lambda k=k: all(s.sync_count >= k for s in lone), f"lone segments: SYNC {k}")
+    assert all(d.state402 is State402.OPERATION_ENABLED
+               for s in lone + grouped for d in s.drives.values())
+    return lone, group, lone_masters, masters
+
+
+def _cycle_frames(bus: can.BusABC, controlword: int, target: int) -> None:
+    for n in NODES:
+        _send(bus, 0x200 + n, RPDO1.pack(controlword, CSP, 0))
+        _send(bus, 0x300 + n, RPDO2.pack(target * n, 0))
+    _send(bus, cia301.SYNC, b"")
+    _send(bus, cia301.HEARTBEAT + 127, bytes([cia301.NmtState.OPERATIONAL]))
+
+
+def _close(lone: list[SimulatedSegment], group: SegmentGroup, buses: list[can.BusABC]) -> None:
+    for bus in buses:
+        bus.shutdown()
+    group.stop()
+    for segment in lone:
+        segment.stop()
+
+
+def test_a_group_that_lags_catches_up_with_one_joined_step_per_cycle():
+    """A group that fell behind (a stalled thread, a loaded machine) finds several cycles
+    of every bus queued. It must take them one cycle at a time, each with one joined step,
+    and answer every SYNC in order, exactly as lone segments fed the same frames; not let
+    each segment step alone at its next SYNC (four times the cost, which kept a lagging
+    1 kHz bench lagging). A master's heartbeat right after each SYNC does not break the
+    join. Here 30 cycles are queued on four buses before the passes."""
+    lone, group, lone_masters, masters = _two_groups_of(4, f"lag-{uuid.uuid4().hex[:8]}")
+    try:
+        steps_before = group.joined_steps
+        cycles = 30
+        for k in range(cycles):
+            for bus in lone_masters + masters:
+                _cycle_frames(bus, 0x0F, 400 * k)
+            _wait(lambda k=k: all(s.sync_count >= 4 + k for s in lone),
+                  f"lone segments: SYNC {4 + k}")
+        passes = 0
+        while any(s.sync_count < 3 + cycles for s in group.segments):
+            assert passes < cycles, [s.sync_count for s in group.segments]
+            group.pass_once(0.0)  # as the receive thread's loop: passes of bounded reads
+            passes += 1
+        assert [s.sync_count for s in group.segments] == [3 + cycles] * 4
+        assert group.joined_steps - steps_before == cycles
+        moved = [s.drives[n].position_rad for s in lone for n in NODES]
+        assert min(abs(q) for q in moved) > 0.001  # the joints moved: the test compares motion
+        assert [s.drives[n].position_rad for s in group.segments for n in NODES] == moved
+        assert [s.drives[n].torque_nm for s in group.segments for n in NODES] == \
+            [s.drives[n].torque_nm for s in lone for n in NODES]
+    finally:
+        _close(lone, group, lone_masters + masters)
+    group.check()
+
+
+def test_a_sync_waits_for_the_other_buses_syncs_then_steps_without_them():
+    """A cycle's SYNCs reach the group's buses one after another (another process sends
+    them, the sender loses the GIL mid-burst). A SYNC that came alone is not answered in
+    that pass: the group waits up to JOIN_WAIT for the others', then one joined step
+    answers all. A SYNC whose companions never come is answered after JOIN_WAIT: a pass
+    then waits no longer than that, however long its timeout."""
+    lone, group, lone_masters, masters = _two_groups_of(2, f"wait-{uuid.uuid4().hex[:8]}")
+    try:
+        first, second = group.segments
+        steps = group.joined_steps
+        _cycle_frames(masters[0], 0x0F, 100)
+        group.pass_once(0.0)
+        assert (first.sync_count, second.sync_count) == (3, 3)  # waiting: not answered yet
+        _cycle_frames(masters[1], 0x0F, 100)
+        group.pass_once(0.0)
+        assert (first.sync_count, second.sync_count) == (4, 4)
+        assert group.joined_steps == steps + 1  # one step for both
+        _cycle_frames(masters[0], 0x0F, 200)  # the other bus's master is gone
+        group.pass_once(0.0)
+        assert first.sync_count == 4
+        for _ in range(3):  # a pass waits no longer than JOIN_WAIT (a wake-up may end it
+            group.pass_once(10 * RX_IDLE)  # sooner: frames already handled)
+            if first.sync_count == 5:
+                break
+        assert (first.sync_count, second.sync_count) == (5, 4)
+        assert group.joined_steps == steps + 1  # alone
+    finally:
+        _close(lone, group, lone_masters + masters)
     group.check()

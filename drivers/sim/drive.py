@@ -52,15 +52,9 @@ from .state_machine import Scaling, StateMachine402
 __all__ = ["SimulatedDrive", "load_object_dictionary"]
 
 
-def _wrap(value: float, bits: int) -> int:
-    """Integer actual values overflow like a drive's counters do."""
-    half = 1 << (bits - 1)
-    return (round(value) + half) % (1 << bits) - half
-
-
-def _clamp(value: float, bits: int) -> int:
-    half = 1 << (bits - 1)
-    return max(-half, min(half - 1, round(value)))
+# 0x6064 (INTEGER32) wraps like a drive's position counter; 0x606C (INTEGER32) and 0x6077
+# (INTEGER16) saturate
+_HALF32, _SPAN32, _HALF16 = 1 << 31, 1 << 32, 1 << 15
 
 
 class SimulatedDrive:
@@ -251,7 +245,8 @@ class SimulatedDrive:
         self.emcy.register = 1 if self.sto_low else 0
         self._scaling.update(self._values)
         self.cia402.power_on()
-        self._sample()
+        j, dyn = self.joint, self._dyn
+        self._sample(float(dyn.position[j]), float(dyn.velocity[j]), float(dyn.torque[j]))
         self._reset_communication()
 
     def _reset_communication(self) -> None:
@@ -332,24 +327,30 @@ class SimulatedDrive:
             self.pdos.apply_synchronous()
         self.cia402.command_joint(dt)
 
-    def finish_step(self, on_sync: bool) -> None:
-        """After the dynamics step: end ramps, sample actual values, send TPDOs."""
+    def finish_step(self, on_sync: bool, position: list[float], velocity: list[float],
+                    torque: list[float]) -> None:
+        """After the dynamics step: end ramps, sample actual values, send TPDOs. The joint
+        values come as the segment's lists of Python floats (one ``tolist`` per array and
+        step instead of a numpy scalar per drive and value: this runs at 1 kHz)."""
         self.cia402.end_ramp()
-        self._sample()
+        j = self.joint
+        self._sample(position[j], velocity[j], torque[j])
         if self._answers_sync(on_sync):
             self.pdos.send_synchronous()
         self.pdos.emit_event_tpdos()
 
-    def _sample(self) -> None:
-        # Python floats: numpy scalar arithmetic and round() cost several times more (1 kHz)
-        j, values, scale, dyn = self.joint, self._values, self._scaling, self._dyn
+    def _sample(self, position: float, velocity: float, torque: float) -> None:
+        """Actual values from the joint's (rad, rad/s, Nm): integer counters wrap like a
+        drive's do, velocity and torque saturate at their object's range."""
+        values, scale = self._values, self._scaling
         per_rad = scale.increments_per_rad
-        q = float(dyn.position[j]) * per_rad + self.cia402.position_offset
+        q = position * per_rad + self.cia402.position_offset
         if self._faults.position_noise:
             q += float(self._seg.rng.normal(0.0, self._faults.position_noise))
-        values[POSITION] = _wrap(q, 32)
-        values[VELOCITY] = _clamp(float(dyn.velocity[j]) * per_rad, 32)
-        values[TORQUE] = _clamp(float(dyn.torque[j]) / scale.nm_per_permille, 16)
+        values[POSITION] = (round(q) + _HALF32) % _SPAN32 - _HALF32
+        values[VELOCITY] = max(-_HALF32, min(_HALF32 - 1, round(velocity * per_rad)))
+        values[TORQUE] = max(-_HALF16, min(_HALF16 - 1,
+                                           round(torque / scale.nm_per_permille)))
 
     def _tx(self, cob_id: int, data: bytes) -> None:
         if not self._faults.silent:

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..frame_io import BusSelector, FrameReader
 from .dynamics import JointDynamics
-from .segment import RX_IDLE, SimulatedSegment
+from .segment import JOIN_WAIT, RX_IDLE, SimulatedSegment
 
 
 class SegmentGroup:
@@ -60,12 +60,19 @@ class SegmentGroup:
         self._dt = np.zeros(0)  # a joined step's length per joint
         self._slices: list[slice] = []
         self.joined_steps = 0  # dynamics steps taken for two segments or more at once
+        self._join_by: float | None = None  # a SYNC waits for the others' until then
+        self._locks: list[threading.RLock] = []  # the segments' (start)
+        self._readers: list[FrameReader] = []
+        # the buses' hold_wakeups and release_wakeups (inproc.py), where they have them
+        self._holds: list[tuple[Callable[[], None], Callable[[], None]]] = []
         self._stopped = threading.Event()
         self._thread = threading.Thread(target=self._receive_loop, name="sim-group-rx",
                                         daemon=True)
         self._started = False
 
-    def start(self) -> SegmentGroup:
+    def start(self, thread: bool = True) -> SegmentGroup:
+        """Start every segment, and the one receive thread unless ``thread`` is False
+        (then the caller runs ``pass_once``)."""
         if self._started:
             raise RuntimeError("segment group already started")
         self._started = True
@@ -77,7 +84,13 @@ class SegmentGroup:
             for segment in self.segments:
                 segment.start(receive=not self.shared_thread)
             if self._selector is not None:
-                self._thread.start()
+                self._locks = [s.lock for s in self.segments]
+                self._readers = [FrameReader(s.bus) for s in self.segments]
+                holds = [(getattr(s.bus, "hold_wakeups", None),
+                          getattr(s.bus, "release_wakeups", None)) for s in self.segments]
+                self._holds = [(h, r) for h, r in holds if h is not None and r is not None]
+                if thread:
+                    self._thread.start()
         except BaseException:
             self.stop()
             raise
@@ -115,47 +128,74 @@ class SegmentGroup:
             segment.defer_steps()
 
     def _receive_loop(self) -> None:
-        selector = self._selector
-        assert selector is not None  # started only with a selector
-        segments = self.segments
-        locks = [s.lock for s in segments]
-        readers = [FrameReader(s.bus) for s in segments]
-        clock = SimulatedSegment.clock
         try:
             while not self._stopped.is_set():
-                since = clock()
-                ready = selector.wait(RX_IDLE)
-                # The locks of the segments to read, in order, held from the first frame to
-                # the joined step (no timer of theirs runs between a SYNC and its step);
-                # a bus whose frames came meanwhile joins the pass if its lock is free. No
-                # other holder takes two locks, so nobody waits in a cycle.
-                held = [locks[i] for i in ready]
-                for lock in held:
-                    lock.acquire()
-                try:
-                    if len(ready) < len(segments):
-                        for i in selector.wait(0.0):
-                            if i not in ready and locks[i].acquire(blocking=False):
-                                held.append(locks[i])
-                                ready.append(i)
-                    for i, segment in enumerate(segments):
-                        if i in ready:
-                            if not segment.pump(readers[i], 0.0):
-                                selector.failed(i)
-                        elif not selector.failing(i):
-                            segment.nothing_arrived(since)
-                    self._step_deferred(held)
-                finally:
-                    for lock in reversed(held):
-                        lock.release()
+                self.pass_once(RX_IDLE)
         except Exception as exc:  # noqa: BLE001 - a bug here: every segment's check says so
-            for segment in segments:
+            for segment in self.segments:
                 segment.errors.append(exc)
             raise
 
-    def _step_deferred(self, held: list[threading.RLock]) -> None:
+    def pass_once(self, timeout: float) -> None:
+        """One pass of the receive thread: wait up to ``timeout`` s (less while a SYNC waits
+        for the others') for frames on any bus, hand them to their segments, step the
+        joints of those whose SYNC came. Public for benchmarks that measure a pass on
+        their own thread (``start(thread=False)``)."""
+        selector = self._selector
+        assert selector is not None  # started only with a selector
+        segments, locks, readers = self.segments, self._locks, self._readers
+        clock = SimulatedSegment.clock
+        since = clock()
+        if self._join_by is not None:
+            timeout = min(timeout, max(self._join_by - since, 0.0))
+        ready = selector.wait(timeout)
+        for i, segment in enumerate(segments):  # frames kept after a SYNC (pump)
+            if segment.backlog and segment.deferred_dt is None and i not in ready:
+                ready.append(i)
+        ready.sort()
+        # The locks of the segments to read, in order, held from the first frame to the
+        # joined step (no timer of theirs runs between a SYNC and its step); a bus whose
+        # frames came meanwhile joins the pass if its lock is free. No other holder takes
+        # two locks, so nobody waits in a cycle.
+        held = [locks[i] for i in ready]
+        for lock in held:
+            lock.acquire()
+        for hold, _ in self._holds:  # the answers wake their readers once, after the pass
+            hold()
+        try:
+            if len(ready) < len(segments):
+                for i in selector.wait(0.0):
+                    if i not in ready and locks[i].acquire(blocking=False):
+                        held.append(locks[i])
+                        ready.append(i)
+            for i, segment in enumerate(segments):
+                if i in ready:
+                    if not segment.pump(readers[i], 0.0):
+                        selector.failed(i)
+                elif not selector.failing(i):
+                    segment.nothing_arrived(since)
+            self._step_deferred(held, clock())
+            # behind by more than a cycle: the next cycle of every bus read, one joined
+            # step again, until the backlogs are gone or the SYNCs part
+            while self._join_by is None and any(segments[i].backlog for i in ready):
+                for i in ready:
+                    if not segments[i].pump(readers[i], 0.0):
+                        selector.failed(i)
+                self._step_deferred(held, clock())
+        finally:
+            for _, release in self._holds:
+                release()
+            for lock in reversed(held):
+                lock.release()
+
+    def _step_deferred(self, held: list[threading.RLock], now: float) -> None:
         """Step the joints of every segment whose SYNC came, in one call; each then samples
         and answers its SYNC (the locks of the segments read in this pass ``held``).
+
+        A SYNC that came without the others' (their bus's frames not here yet: another
+        process sending, a sender that lost the GIL mid-burst) waits up to JOIN_WAIT for
+        them, so the cycle still costs one step; the segment's lock is free meanwhile, and
+        anything else for it (a frame, a timer) takes its step first, as ever.
 
         The joined step writes every joint's arrays, a segment given no step included, so
         it needs every segment's lock: a segment outside this pass may be stepping its own
@@ -164,17 +204,28 @@ class SegmentGroup:
         if self._dynamics is None:
             return
         pending = [s for s in self.segments if s.deferred_dt is not None]
+        if not pending:
+            self._join_by = None
+            return
+        if len(pending) < len(self.segments):
+            if self._join_by is None:
+                self._join_by = now + JOIN_WAIT
+            if now < self._join_by:
+                return  # the others' SYNCs may be on their way
+        self._join_by = None
         if len(pending) >= 2:
             others = self._take_other_locks(held)
             if others is not None:
                 try:
-                    self._step_joined(pending)
+                    self._step_joined(
+                        [s for s in self.segments if s.deferred_dt is not None])
                 finally:
                     for lock in reversed(others):
                         lock.release()
                 return
         for segment in pending:
-            self._finish(segment, segment.finish_deferred)  # alone: the same cost
+            with segment.lock:  # one read in an earlier pass is not held now
+                self._finish(segment, segment.finish_deferred)  # alone: the same cost
 
     def _take_other_locks(self, held: list[threading.RLock]) -> list[threading.RLock] | None:
         """The locks of the segments not ``held``, taken if every one is free now; None

@@ -37,6 +37,8 @@ class Pdo:
     layout: struct.Struct
     values_of: Callable[[dict[Key, Any]], tuple[Any, ...]]
     frame: can.Message             # TPDO: pre-encoded, filled in place before each send
+    controlword_at: int | None = None  # RPDO: where the controlword and the mode of
+    mode_at: int | None = None         # operation are in ``keys``, if mapped
     counter: int = 0
     last: bytes | None = None      # event-driven TPDO: what was sent last
     pending: bytes | None = None   # synchronous RPDO: received, applied at the next SYNC
@@ -61,6 +63,7 @@ class PdoService:
         self._tpdos: list[Pdo] = []
         self._rpdos: list[Pdo] = []
         self._event_tpdos: list[Pdo] = []
+        self._sync_tpdos: list[Pdo] = []  # valid, transmission type 0-240
 
     def build(self) -> None:
         """Compile every PDO from the OD and tell the segment which RPDOs to route here."""
@@ -70,6 +73,7 @@ class PdoService:
         self._tpdos = [self._compile(0x1800 + n, 0x1A00 + n, n) for n in range(4)
                        if present((0x1800 + n, 1)) and present((0x1A00 + n, 0))]
         self._event_tpdos = [p for p in self._tpdos if p.valid and p.trans_type >= 254]
+        self._sync_tpdos = [p for p in self._tpdos if p.valid and p.trans_type <= 240]
         self._seg.set_rpdo_routes(self._node_id, {
             p.cob_id: partial(self.on_rpdo, p) for p in self._rpdos if p.valid})
 
@@ -97,7 +101,9 @@ class PdoService:
                             is_extended_id=False, is_fd=fd, bitrate_switch=fd)
         return Pdo(number=number, cob_id=raw & 0x7FF, valid=not raw & PDO_NOT_VALID,
                    trans_type=self._values.get((comm, 2), 255), keys=tuple(keys),
-                   layout=layout, values_of=values_of, frame=frame)
+                   layout=layout, values_of=values_of, frame=frame,
+                   controlword_at=keys.index(CONTROLWORD) if CONTROLWORD in keys else None,
+                   mode_at=keys.index(MODE) if MODE in keys else None)
 
     # ------------------------------------------------------------------ RPDOs
     def on_rpdo(self, pdo: Pdo, data: bytes) -> None:
@@ -120,23 +126,29 @@ class PdoService:
                 self._apply(pdo, data)
 
     def _apply(self, pdo: Pdo, data: bytes) -> None:
-        for key, value in zip(pdo.keys, pdo.layout.unpack_from(data)):
-            if key == MODE and not self._objects.mode_supported(value):
-                continue  # a real drive ignores an unsupported mode from a PDO
-            self._values[key] = value
-            if key == CONTROLWORD:
-                self._on_controlword(value)
-            elif key == MODE:
-                self._values[MODE_DISPLAY] = value
+        """The PDO's objects take their values at once (one dict update: this runs for every
+        drive on every SYNC), then what the controlword and the mode make happen."""
+        new = pdo.layout.unpack_from(data)
+        values = self._values
+        mode_at = pdo.mode_at
+        if mode_at is not None and new[mode_at] != values[MODE] \
+                and not self._objects.mode_supported(new[mode_at]):
+            # a real drive ignores an unsupported mode from a PDO; the other objects apply
+            values.update((k, v) for k, v in zip(pdo.keys, new) if k != MODE)
+            mode_at = None
+        else:
+            values.update(zip(pdo.keys, new))
+        if mode_at is not None:
+            values[MODE_DISPLAY] = new[mode_at]
+        if pdo.controlword_at is not None:
+            self._on_controlword(new[pdo.controlword_at])
 
     # ------------------------------------------------------------------ TPDOs
     def send_synchronous(self) -> None:
         """On SYNC: the synchronous TPDOs that are due, packed into their pre-encoded
         frames (no frame is built per SYNC)."""
         values = self._values
-        for pdo in self._tpdos:
-            if not pdo.valid or pdo.trans_type > 240:
-                continue
+        for pdo in self._sync_tpdos:
             if pdo.trans_type == 0:  # acyclic synchronous: on SYNC, when changed
                 if pdo.layout.pack(*pdo.values_of(values)) != pdo.last:
                     self._send_tpdo(pdo)

@@ -49,6 +49,11 @@ log = logging.getLogger(__name__)
 RX_IDLE = 0.02
 #: Frames handled under one lock hold: bounded so timers still run during a flood.
 RX_BATCH = 64
+#: Longest a segment's SYNC waits for the other segments' of its group before its joints
+#: step alone (group.py). One cycle's SYNCs on every bus come within one write of the
+#: master (~0.1 ms in process); the wait delays the answers to the first ones by as much
+#: at most. A timer event of a segment whose step waits comes after the step.
+JOIN_WAIT = 0.0002
 
 
 def _default_eds() -> str:
@@ -164,8 +169,10 @@ class SimulatedSegment:
         # or a frame to this segment needs it taken now (``finish_deferred``).
         self._defer_steps = False
         self.deferred_dt: float | None = None
+        self._deferred_at = -math.inf  # when (monotonic) the step was deferred
         # Every frame that arrived (monotonic) before this has been handled: see the docstring.
         self.received_until = -math.inf
+        self._backlog: list[can.Message] = []  # see pump
         self._writer = FrameWriter(bus, fd=fd)  # an FD bus: the drives answer in FD frames
         self._timers = _Timers(self._run_timer)
         self._stopped = threading.Event()
@@ -280,30 +287,41 @@ class SimulatedSegment:
     def pump(self, reader: FrameReader, timeout: float) -> bool:
         """Handle the frames waiting on the bus (after up to ``timeout`` s for the first).
         False when the bus failed (counted in ``bus_errors``) or the read raised anything
-        else (recorded in ``errors``): read it again a little later."""
+        else (recorded in ``errors``): read it again a little later.
+
+        A segment whose SYNC steps are left to its group stops after a SYNC it defers and
+        keeps the frames after it (``backlog``) for the next pump: a group that lags a few
+        cycles then catches up one cycle of every bus at a time, each with one joined step,
+        instead of every segment stepping alone at its next SYNC, which costs four times
+        as much and keeps it lagging."""
         before = self.clock()
         ok = True
-        try:
-            batch = reader.read(timeout, RX_BATCH)
-        except can.CanError as exc:  # the interface: down, gone, closed
-            if not self._stopped.is_set():  # stopping closes the bus: not a failure
-                self._bus_failed(exc)
-            batch = []  # a failed interface delivers nothing: consumers may time out
-            ok = False
-        except Exception as exc:  # noqa: BLE001 - a bug: check() says so, receiving goes on
-            self.record(exc)
-            batch = []
-            ok = False
+        batch, self._backlog = self._backlog, []
+        if batch:
+            complete = False  # read earlier: the bus may hold more
         else:
-            if self.bus_errors and self._bus_down:
-                self._bus_down = False
-                log.warning("simulated segment: the bus reads again (after %d failed reads)",
-                            self.bus_errors)
+            try:
+                batch = reader.read(timeout, RX_BATCH)
+            except can.CanError as exc:  # the interface: down, gone, closed
+                if not self._stopped.is_set():  # stopping closes the bus: not a failure
+                    self._bus_failed(exc)
+                batch = []  # a failed interface delivers nothing: consumers may time out
+                ok = False
+            except Exception as exc:  # noqa: BLE001 - a bug: check() says so, receiving goes on
+                self.record(exc)
+                batch = []
+                ok = False
+            else:
+                if self.bus_errors and self._bus_down:
+                    self._bus_down = False
+                    log.warning("simulated segment: the bus reads again (after %d failed "
+                                "reads)", self.bus_errors)
+            complete = len(batch) < RX_BATCH
         now = self.clock()
         offset = clock_offset()
         with self.lock:
             arrived = now
-            for msg in batch:
+            for k, msg in enumerate(batch):
                 if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
                     continue
                 arrived = to_monotonic(offset, msg.timestamp, now)
@@ -311,9 +329,18 @@ class SimulatedSegment:
                     self._dispatch(msg.arbitration_id, bytes(msg.data), arrived)
                 except Exception as exc:  # noqa: BLE001 - keep the segment receiving
                     self.record(exc)
+                if self.deferred_dt is not None and k + 1 < len(batch):
+                    self._backlog = batch[k + 1:]  # after the group's step
+                    complete = False
+                    break
             # read until empty: everything that arrived before the read began is handled
-            self.received_until = before if len(batch) < RX_BATCH else arrived
+            self.received_until = before if complete else arrived
         return ok
+
+    @property
+    def backlog(self) -> bool:
+        """Frames read but not handled yet: they come after a SYNC whose step is deferred."""
+        return bool(self._backlog)
 
     def nothing_arrived(self, since: float) -> None:
         """The bus had no frame waiting when a wait that began at ``since`` ended (a
@@ -327,11 +354,11 @@ class SimulatedSegment:
             self.received_until = since
 
     def _dispatch(self, cob_id: int, data: bytes, arrived: float) -> None:
-        if self.deferred_dt is not None:  # this frame comes after the SYNC: step first
-            try:
-                self.finish_deferred()
-            except Exception as exc:  # noqa: BLE001 - the frame is still this one's to handle
-                self.record(exc)
+        if self.deferred_dt is not None and not (
+                c301.HEARTBEAT < cob_id <= c301.HEARTBEAT + 0x7F):
+            # this frame comes after the SYNC: step first (a heartbeat needs no step: a
+            # master sends its heartbeat right after its SYNC, and only its arrival counts)
+            self._finish_deferred_or_record()
         if cob_id == c301.NMT:
             if len(data) >= 2:
                 for node, drive in self.drives.items():
@@ -358,6 +385,7 @@ class SimulatedSegment:
         dt = self._prepare(on_sync=True, now=arrived)
         if self._defer_steps:
             self.deferred_dt = dt
+            self._deferred_at = self.clock()
             return
         self.dynamics.step(dt)
         self._finish(on_sync=True)
@@ -397,8 +425,11 @@ class SimulatedSegment:
 
     def _finish(self, on_sync: bool) -> None:
         """After the step: the drives sample and send their TPDOs."""
+        dyn = self.dynamics
+        position, velocity, torque = (dyn.position.tolist(), dyn.velocity.tolist(),
+                                      dyn.torque.tolist())
         for drive in self.drives.values():
-            drive.finish_step(on_sync)
+            drive.finish_step(on_sync, position, velocity, torque)
         if on_sync:
             self.sync_count += 1
 
@@ -406,7 +437,11 @@ class SimulatedSegment:
         period = self.free_run_period
         assert period is not None  # scheduled only when free running is on
         now = self.clock()
-        if self._last_step is None or now - self._last_step >= period:
+        # Free-run only over a silence the reader has seen: a receive thread that lags has
+        # SYNCs queued, and a long step here (up to max_dt in sub-steps, under the lock)
+        # would only make it lag more.
+        if (self._last_step is None or now - self._last_step >= period) \
+                and self.received_until >= now - period:
             self._step(on_sync=False, now=now)
         self.schedule(now + period, self._free_run)
 
@@ -415,8 +450,24 @@ class SimulatedSegment:
             return
         try:
             with self.lock:
+                if self.deferred_dt is not None:  # a SYNC's step waits for the group's
+                    if self.clock() - self._deferred_at < RX_IDLE:
+                        # it comes within JOIN_WAIT: this event after it, not a step alone
+                        # (~4x the cost of a joined one) taken now for it
+                        self.schedule(self.clock() + JOIN_WAIT, fn, *args)
+                        return
+                    self._finish_deferred_or_record()  # the group's thread is stuck
                 fn(*args)
         except Exception as exc:  # noqa: BLE001 - keep the timers running
+            self.record(exc)
+
+    def _finish_deferred_or_record(self) -> None:
+        """The deferred step, taken now because an event for the drives comes after it; a
+        failure is recorded, and the event is still handled."""
+        try:
+            self.finish_deferred()
+        except Exception as exc:  # noqa: BLE001 - the event is still this one's to handle
+            self.deferred_dt = None
             self.record(exc)
 
     def _bus_failed(self, exc: BaseException) -> None:
