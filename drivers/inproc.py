@@ -16,6 +16,11 @@ oldest frames, as a SocketCAN socket does when its buffer is full, and counts th
 ``rx_dropped``; a send never blocks. Received frames are shared between receivers: treat
 them as read-only (python-can's own listeners do).
 
+Two things a bench of several in-process buses needs: ``hold_wakeups`` (a burst's readers
+are woken once, after it: the control loop's write and the simulator's answers each wake
+the other side once per cycle, not at their first frame) and a CANopen master's filters
+(one COB-ID each) checked as one set lookup per frame.
+
 Registered with python-can as the interface ``inproc``
 (``can.Bus(interface="inproc", channel="bench")``), so a config's bus section can name it.
 """

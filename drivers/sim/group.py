@@ -14,16 +14,27 @@ is still seen).
 The segments' joints are stepped together too: the group joins their dynamics into one set
 of arrays (``JointDynamics.joined``: each segment's arrays become views of its slice) and,
 after handing over a wake-up's frames, steps every segment whose SYNC came in one call. A
-step is ~35 numpy calls whose cost hardly depends on the joint count, so four 3-joint
-segments at 1 kHz cost a quarter of what they did (~30 µs a cycle instead of ~110 µs, the
-largest part of the simulator's CPU). A segment whose SYNC is left to the group takes its
-step alone the moment another frame of its bus needs the drives after it (a second SYNC,
-an SDO request) - so every drive still sees its frames in order, with its step between. The
-group holds the lock of every segment it reads from the first frame it hands over to the
+step is ~50 numpy calls whose cost hardly depends on the joint count, so four 3-joint
+segments cost a quarter of what four steps would (the largest single part of the
+simulator's CPU). A segment whose SYNC is left to the group takes its step alone the moment
+another frame of its bus needs the drives after it (an SDO request, an NMT command; a
+master's heartbeat does not) - so every drive still sees its frames in order, with its step
+between. Three rules keep the steps joined when it matters most, under load:
+
+- A segment stops reading after a SYNC it defers and keeps the rest (``pump``'s backlog):
+  a group that lags finds several cycles queued and catches up one cycle of every bus per
+  joined step, instead of each segment stepping alone at its next SYNC (four times the
+  cost, which kept a lagging bench lagging).
+- A SYNC that came without the other buses' waits up to ``JOIN_WAIT`` for them.
+- A timer event of a segment whose step waits comes after the step (rescheduled).
+
+The group holds the lock of every segment it reads from the first frame it hands over to the
 last answer, so no timer of such a segment runs between a SYNC and its step (the others'
-timers run on). The joined step writes every segment's arrays, so it also takes the other
-segments' locks if they are free at once; if one is busy (its timer stepping its joints
-alone) the pass's segments step alone instead. A drive that raises while answering is its
+timers run on); and it holds its buses' wake-ups for the pass (inproc.py's
+``hold_wakeups``), so the master's reader wakes once for all the answers. The joined step
+writes every segment's arrays, so it also takes the other segments' locks if they are free
+at once; if one is busy (its timer stepping its joints alone) the pass's segments step
+alone instead. A drive that raises while answering is its
 own segment's failure (``check``); the thread goes on reading every bus. Equal SYNC periods
 (the loop sends one SYNC per bus per cycle) give exactly the steps of segments stepped
 alone; periods that need different sub-step counts are integrated in the larger count

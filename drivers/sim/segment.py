@@ -11,7 +11,10 @@ simulation's: counted in ``bus_errors`` and read again every ``RX_IDLE``.
 Time: the joints are integrated on each SYNC over the time since the previous SYNC
 (monotonic, clipped to ``max_dt``), or over a fixed ``sync_period`` when one is given, which
 makes runs deterministic. Without a fixed period the drives keep running between SYNCs too
-(``free_run_period``), so a ramp or a coasting joint continues after the master has died.
+(``free_run_period``), so a ramp or a coasting joint continues after the master has died;
+but only over a silence the reader has seen (``received_until``): a reader that lags has
+SYNCs queued, and a long step on the timer (up to ``max_dt``, under the lock) would only
+make it lag more.
 
 Arrival times: a real drive's CAN controller takes each frame as it arrives; this segment is
 one Python thread that may lag behind its socket (a loaded machine, a slow virtual machine).

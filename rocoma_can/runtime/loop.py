@@ -6,10 +6,11 @@ cycle's frames are out).
 Timing: sleep until shortly before the deadline, then spin to it (``time.sleep`` alone
 overshoots by the scheduler's slack). While the loop runs, Python's GIL hand-over interval
 is a tenth of the period (at most its 5 ms default; restored afterwards), so a thread
-running Python code cannot hold the loop off for several periods, and the spin yields to the
-bus readers and an in-process simulator. The garbage collector is frozen after start-up and
-disabled; a generation-0 collection runs between cycles only when the cycle left slack, so
-a collection never lands inside a cycle. Statistics go to a preallocated numpy ring.
+running Python code cannot hold the loop off for several periods, and the spin releases the
+GIL at each turn to the bus readers and an in-process simulator. The garbage collector is
+frozen after start-up and disabled; a generation-0 collection runs between cycles only when
+the cycle left slack, so a collection never lands inside a cycle. Statistics go to a
+preallocated numpy ring.
 
 Stopping (``stop()``, SIGINT, SIGTERM, or ``duration``) always ends with torque-off: the
 manager is failproof-stopped and ``stop_cycles`` more cycles run, which send the hardware's
@@ -39,16 +40,19 @@ log = logging.getLogger(__name__)
 #: Seconds before each deadline where the loop stops sleeping and spins (config
 #: ``realtime.spin_us``; by default this or half a period, whichever is shorter): a sleep
 #: wakes late by up to a scheduler tick, a spin does not.
-#: While it spins the loop holds the GIL but for hand-overs, so threads of the same process
-#: (an in-process simulator, the bus readers) get about half of that time. 0 sleeps to the
-#: deadline and burns no CPU waiting; on the 12-drive in-process bench it did not help the
-#: loop keep up (benchmarks/README.md), so the default stays.
+#: Each turn of the spin is a ``time.sleep(0)``: it releases the GIL, so a thread of the same
+#: process that waits for it (an in-process simulator, the bus readers) runs on through the
+#: spin; a spin in Python alone would hold the GIL but for forced hand-overs, every switch
+#: interval, and give such a thread about half of that time. That half decided the
+#: 12-drive, 4-bus in-process bench at 500 Hz: the simulator answered late, and TPDO
+#: supervision tripped (benchmarks/README.md). Taking the GIL back at the deadline waits at
+#: most one switch interval, as a forced hand-over did. 0 sleeps to the deadline.
 DEFAULT_SPIN = 0.0005
 
 #: The GIL hand-over interval while the loop runs, as a fraction of the period (Python's
 #: default is 5 ms): a thread running Python code keeps the GIL for up to this long, so at
 #: 5 ms a loop that wakes for its 1 ms deadline can wait five periods for a busy simulator
-#: or reader thread, and the loop's own spin before each deadline starves them meanwhile.
+#: or reader thread.
 SWITCH_FRACTION = 0.1
 #: how the failproof stop of the loop's own ending is worded (the flight recorder does not
 #: take it for a fault)
@@ -273,8 +277,9 @@ class ControlLoop:
         remaining = deadline - clock() - self.spin
         if remaining > 0:
             self._stop.wait(remaining)
+        sleep = time.sleep
         while clock() < deadline and not self._stop.is_set() and self._signalled is None:
-            pass
+            sleep(0)  # hands the GIL to a thread that waits for it (see DEFAULT_SPIN)
 
     def _torque_off(self) -> None:
         """Failproof stop, then cycles that send the torque-off frames (bounded count)."""
