@@ -52,6 +52,7 @@ from .state_machine import Scaling, StateMachine402
 __all__ = ["SimulatedDrive", "load_object_dictionary"]
 
 
+_OPERATIONAL = NmtState.OPERATIONAL  # a module global: an enum member costs ~100 ns a look-up
 # 0x6064 (INTEGER32) wraps like a drive's position counter; 0x606C (INTEGER32) and 0x6077
 # (INTEGER16) saturate
 _HALF32, _SPAN32, _HALF16 = 1 << 31, 1 << 32, 1 << 15
@@ -319,7 +320,7 @@ class SimulatedDrive:
 
     # ------------------------------------------------------------------ SYNC cycle
     def _answers_sync(self, on_sync: bool) -> bool:
-        return on_sync and self._faults.answer_sync and self.nmt.state == NmtState.OPERATIONAL
+        return on_sync and self._faults.answer_sync and self.nmt.state == _OPERATIONAL
 
     def prepare_step(self, dt: float, on_sync: bool) -> None:
         """Apply synchronous RPDOs and write this joint's command into the dynamics."""

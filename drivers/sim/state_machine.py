@@ -38,6 +38,24 @@ SW_HOMING_ERROR = 1 << 13
 HOMING_TIME = 0.2  # s a simulated homing takes
 
 
+# What command_joint reads each SYNC, as plain ints and keys: an enum member or a key tuple
+# built per access costs ~100 ns, and this runs for every drive at 1 kHz.
+_MAX_TORQUE = (c.MAX_TORQUE, 0)
+_INTERPOLATION_TARGET = (c.INTERPOLATION_DATA, 1)
+_TARGET_POSITION = (c.TARGET_POSITION, 0)
+_TARGET_VELOCITY = (c.TARGET_VELOCITY, 0)
+_TARGET_TORQUE = (c.TARGET_TORQUE, 0)
+_VELOCITY_OFFSET = (c.VELOCITY_OFFSET, 0)
+_TORQUE_OFFSET = (c.TORQUE_OFFSET, 0)
+_LOOP_OFF, _LOOP_TORQUE, _LOOP_VELOCITY, _LOOP_POSITION = (
+    int(LoopMode.OFF), int(LoopMode.TORQUE), int(LoopMode.VELOCITY), int(LoopMode.POSITION))
+_IP, _PP, _HOMING, _PV, _CSP, _CSV, _CST = (
+    int(c.Mode.INTERPOLATED_POSITION), int(c.Mode.PROFILE_POSITION), int(c.Mode.HOMING),
+    int(c.Mode.PROFILE_VELOCITY), int(c.Mode.CSP), int(c.Mode.CSV), int(c.Mode.CST))
+_ENABLED = State402.OPERATION_ENABLED
+_CW_HALT = c.CW_HALT
+
+
 class Scaling:
     """Joint units from the factor group: 0x608F encoder resolution, 0x6091 gear ratio,
     0x6076 rated torque (torque objects are motor torque; an ideal gearbox multiplies it
@@ -253,17 +271,17 @@ class StateMachine402:
         """Write this joint's loop command for the next dynamics step."""
         dyn, j, values = self._dyn, self._j, self._values
         nm_per_permille = self._scale.nm_per_permille
-        dyn.torque_limit[j] = values[(c.MAX_TORQUE, 0)] * nm_per_permille
+        dyn.torque_limit[j] = values[_MAX_TORQUE] * nm_per_permille
         dyn.target_velocity[j] = 0.0
         dyn.torque_feedforward[j] = 0.0
         state = self.state
         if state not in POWERED or self.sto_low:
-            dyn.mode[j] = LoopMode.OFF
+            dyn.mode[j] = _LOOP_OFF
             return
-        halt = bool(values[CONTROLWORD] & c.CW_HALT)
-        if state == State402.OPERATION_ENABLED and halt and not self._ramping:
+        halt = bool(values[CONTROLWORD] & _CW_HALT)
+        if state == _ENABLED and halt and not self._ramping:
             self._start_ramp(self._quick_stop_decel(), then=None)
-        elif state == State402.OPERATION_ENABLED and not halt and self._ramping \
+        elif state == _ENABLED and not halt and self._ramping \
                 and self._ramp_then is None:
             self._ramping = False  # halt released
         if self._ramping:
@@ -272,45 +290,45 @@ class StateMachine402:
             self._ramp_velocity = math.copysign(max(abs(v) - step, 0.0), v)
             if self._ramp_velocity == 0.0:
                 self._ramp_zero_time += dt
-            dyn.mode[j] = LoopMode.VELOCITY
+            dyn.mode[j] = _LOOP_VELOCITY
             dyn.target_velocity[j] = self._ramp_velocity
             return
-        if state != State402.OPERATION_ENABLED:  # quick stop active after its ramp: hold
-            dyn.mode[j] = LoopMode.VELOCITY
+        if state != _ENABLED:  # quick stop active after its ramp: hold
+            dyn.mode[j] = _LOOP_VELOCITY
             return
         scale = self._scale.increments_per_rad
         mode = values[MODE_DISPLAY]
         bits = 0
-        if mode == c.Mode.INTERPOLATED_POSITION:
+        if mode == _IP:
             if values[CONTROLWORD] & CW_BIT4:  # interpolation enabled: follow 0x60C1:1
-                dyn.mode[j] = LoopMode.POSITION
-                dyn.target_position[j] = values[(c.INTERPOLATION_DATA, 1)] / scale
+                dyn.mode[j] = _LOOP_POSITION
+                dyn.target_position[j] = values[_INTERPOLATION_TARGET] / scale
                 bits = SW_BIT12
             else:  # interpolation inactive: hold still
-                dyn.mode[j] = LoopMode.VELOCITY
-        elif mode == c.Mode.PROFILE_POSITION:
+                dyn.mode[j] = _LOOP_VELOCITY
+        elif mode == _PP:
             bits = self._profile_position(values, scale)
-        elif mode == c.Mode.HOMING:
+        elif mode == _HOMING:
             bits = self._homing(values, scale, dt)
-        elif mode == c.Mode.PROFILE_VELOCITY:
-            dyn.mode[j] = LoopMode.VELOCITY
-            dyn.target_velocity[j] = values[(c.TARGET_VELOCITY, 0)] / scale
-        elif mode == c.Mode.CSP:
-            dyn.mode[j] = LoopMode.POSITION
-            dyn.target_position[j] = values[(c.TARGET_POSITION, 0)] / scale
-            dyn.target_velocity[j] = values[(c.VELOCITY_OFFSET, 0)] / scale
-            dyn.torque_feedforward[j] = values[(c.TORQUE_OFFSET, 0)] * nm_per_permille
-        elif mode == c.Mode.CSV:
-            dyn.mode[j] = LoopMode.VELOCITY
-            dyn.target_velocity[j] = (values[(c.TARGET_VELOCITY, 0)]
-                                      + values[(c.VELOCITY_OFFSET, 0)]) / scale
-            dyn.torque_feedforward[j] = values[(c.TORQUE_OFFSET, 0)] * nm_per_permille
-        elif mode == c.Mode.CST:
-            dyn.mode[j] = LoopMode.TORQUE
-            dyn.torque_feedforward[j] = ((values[(c.TARGET_TORQUE, 0)]
-                                          + values[(c.TORQUE_OFFSET, 0)]) * nm_per_permille)
+        elif mode == _PV:
+            dyn.mode[j] = _LOOP_VELOCITY
+            dyn.target_velocity[j] = values[_TARGET_VELOCITY] / scale
+        elif mode == _CSP:
+            dyn.mode[j] = _LOOP_POSITION
+            dyn.target_position[j] = values[_TARGET_POSITION] / scale
+            dyn.target_velocity[j] = values[_VELOCITY_OFFSET] / scale
+            dyn.torque_feedforward[j] = values[_TORQUE_OFFSET] * nm_per_permille
+        elif mode == _CSV:
+            dyn.mode[j] = _LOOP_VELOCITY
+            dyn.target_velocity[j] = (values[_TARGET_VELOCITY]
+                                      + values[_VELOCITY_OFFSET]) / scale
+            dyn.torque_feedforward[j] = values[_TORQUE_OFFSET] * nm_per_permille
+        elif mode == _CST:
+            dyn.mode[j] = _LOOP_TORQUE
+            dyn.torque_feedforward[j] = ((values[_TARGET_TORQUE]
+                                          + values[_TORQUE_OFFSET]) * nm_per_permille)
         else:
-            dyn.mode[j] = LoopMode.OFF  # no mode this drive runs selected: no torque
+            dyn.mode[j] = _LOOP_OFF  # no mode this drive runs selected: no torque
         if bits != self._mode_bits:
             self._mode_bits = bits
             self.set_state(self.state)
