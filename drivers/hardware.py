@@ -559,14 +559,14 @@ class CanopenHardware:
         an in-process simulator then sees each bus's cycle whole and steps every segment's
         joints together, instead of waking at the first frame and taking the GIL from
         this write."""
-        ports = self.ports
-        for port in ports:
-            port.hold_wakeups()
+        holds = [(port.hold_wakeups, port.release_wakeups) for port in self.ports]
+        for hold, _ in holds:  # pairs taken now: a port closed meanwhile is released too
+            hold()
         try:
             self._write(manager_state)
         finally:
-            for port in ports:
-                port.release_wakeups()
+            for _, release in holds:
+                release()
 
     def _write(self, manager_state: ManagerState) -> None:
         self._manager_state = manager_state

@@ -130,14 +130,22 @@ class InProcessBus(BusABC):
             self._wake()
         return True
 
+    def set_filters(self, filters: can.typechecking.CanFilters | None = None) -> None:
+        """As python-can's, but the set lookup (``_apply_filters``) is made first: python-can
+        stores the new filters before applying them, and a frame another thread sends in
+        between would be judged by the old set (an e-stop COB-ID changed at run time)."""
+        self._apply_filters(filters)
+        super().set_filters(filters)
+
     def _apply_filters(self, filters: can.typechecking.CanFilters | None) -> None:
         """Filters that each take one 11-bit identifier (mask 0x7FF, extended False: what a
         CANopen master sets, one per COB-ID it reads) are checked as one set lookup per
         frame; python-can's own check loops over the filters (~3 µs a frame for a dozen)."""
-        self._exact = None
+        exact = None
         if filters and all(f.get("extended") is False and f["can_mask"] == 0x7FF
                            for f in filters):
-            self._exact = frozenset(f["can_id"] & 0x7FF for f in filters)
+            exact = frozenset(f["can_id"] & 0x7FF for f in filters)
+        self._exact = exact
 
     def _wanted(self, msg: Message) -> bool:
         exact = self._exact

@@ -434,3 +434,34 @@ def test_a_sync_waits_for_the_other_buses_syncs_then_steps_without_them():
     finally:
         _close(lone, group, lone_masters + masters)
     group.check()
+
+
+def test_frames_kept_after_a_waiting_sync_are_not_vouched_for_and_come_before_a_fault():
+    """A SYNC that waits for the other buses' keeps the frames after it unhandled (the
+    segment's backlog). While they wait, the group must not vouch for the bus as silent
+    (``received_until`` past them would let a heartbeat consumer judge a heartbeat that
+    came in time as lost); and a fault injected through a drive's API meanwhile comes
+    after that SYNC's step and answer, not between its RPDOs and its step."""
+    lone, group, lone_masters, masters = _two_groups_of(2, f"kept-{uuid.uuid4().hex[:8]}")
+    try:
+        first = group.segments[0]
+        _cycle_frames(masters[0], 0x0F, 100)  # RPDOs, SYNC, then a master heartbeat
+        sent = time.monotonic()
+        group.pass_once(0.0)
+        assert first.deferred_dt is not None and first.backlog  # waiting; heartbeat kept
+        group.pass_once(0.0)  # nothing new on either bus (the wait may end here)
+        assert first.backlog and first.received_until < sent
+        for _ in range(10):  # the wait ends (JOIN_WAIT), the SYNC is answered, then the
+            group.pass_once(RX_IDLE)  # kept heartbeat is handled at once
+            if not first.backlog:
+                break
+        assert not first.backlog and first.sync_count == 4
+        _cycle_frames(masters[0], 0x0F, 200)
+        group.pass_once(0.0)
+        assert first.deferred_dt is not None and first.sync_count == 4
+        first.drives[NODES[0]].set_sto(True)
+        assert first.deferred_dt is None and first.sync_count == 5  # the SYNC first
+        assert first.drives[NODES[0]].sto_low
+    finally:
+        _close(lone, group, lone_masters + masters)
+    group.check()

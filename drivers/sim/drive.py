@@ -18,7 +18,8 @@ the segment lock held, and sends what it transmits (port.Segment).
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+import contextlib
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import can
@@ -179,11 +180,20 @@ class SimulatedDrive:
                 f"err=0x{self.error_code:04X}{flags}")
 
     # ------------------------------------------------------------------ fault injection
+    @contextlib.contextmanager
+    def _injecting(self) -> Iterator[None]:
+        """The segment's lock for a change from outside (a test, the sim CLI), after the
+        step of a SYNC whose RPDOs the drive already applied (one that waits for the
+        group's joined step): the change comes after that SYNC, whole."""
+        with self._seg.lock:
+            self._seg.finish_pending_step()
+            yield
+
     def trip_fault(self, code: int = c301.EMCY_GENERIC) -> None:
         """An internal fault: EMCY with ``code``, fault reaction, then FAULT."""
         if not 0 < code <= 0xFFFF:
             raise ValueError(f"EMCY error code must be 0x0001..0xFFFF, got 0x{code:X}")
-        with self._seg.lock:
+        with self._injecting():
             self.cia402.fault(code)
             self.pdos.emit_event_tpdos()
 
@@ -192,32 +202,32 @@ class SimulatedDrive:
         (0 = healthy again): a bit error in firmware. The default flips the fault bit, which
         makes switch on disabled, ready to switch on and switched on read as no CiA 402
         state, and operation enabled as fault reaction active."""
-        with self._seg.lock:
+        with self._injecting():
             self._values[STATUSWORD] ^= self._faults.statusword_xor ^ xor
             self._faults.statusword_xor = xor
 
     def set_silent(self, silent: bool = True) -> None:
         """Transmit nothing at all (heartbeat, TPDO, EMCY, SDO), like a dead TX line.
         The drive keeps receiving and keeps following its targets."""
-        with self._seg.lock:
+        with self._injecting():
             self._faults.silent = bool(silent)
 
     def set_sync_response(self, answer: bool) -> None:
         """False: ignore SYNC (no synchronous TPDOs, synchronous RPDOs not applied)."""
-        with self._seg.lock:
+        with self._injecting():
             self._faults.answer_sync = bool(answer)
 
     def set_tpdo_delay(self, seconds: float) -> None:
         """Send every TPDO this late (0 = at once)."""
         if not 0 <= seconds <= 10:
             raise ValueError(f"TPDO delay must be 0..10 s, got {seconds}")
-        with self._seg.lock:
+        with self._injecting():
             self._faults.tpdo_delay = float(seconds)
 
     def set_sto(self, low: bool) -> None:
         """STO input low: the power stage is off and the drive holds in switch on disabled
         (EMCY EMCY_STO, warning bit); back high: EMCY 0x0000, the drive may be enabled."""
-        with self._seg.lock:
+        with self._injecting():
             self.cia402.set_sto(bool(low))
             self.pdos.emit_event_tpdos()
 
@@ -225,7 +235,7 @@ class SimulatedDrive:
         """Gaussian noise (standard deviation, increments) on the reported 0x6064."""
         if std_increments < 0:
             raise ValueError(f"noise must be >= 0, got {std_increments}")
-        with self._seg.lock:
+        with self._injecting():
             self._faults.position_noise = float(std_increments)
 
     def babble(self, count: int = 1000, cob_id: int = 0x001, data: bytes = bytes(8),
@@ -235,7 +245,7 @@ class SimulatedDrive:
         if not 1 <= count <= 100_000 or not 0 <= cob_id <= 0x7FF or len(data) > 8 or burst < 1:
             raise ValueError(f"babble: count 1..100000, cob_id 0..0x7FF, data <= 8 bytes, "
                              f"burst >= 1; got {count}, 0x{cob_id:X}, {len(data)}, {burst}")
-        with self._seg.lock:
+        with self._injecting():
             self._babble.start(count, cob_id, data, burst)
 
     # ------------------------------------------------------------------ power-up and NMT

@@ -24,9 +24,12 @@ between. Three rules keep the steps joined when it matters most, under load:
 - A segment stops reading after a SYNC it defers and keeps the rest (``pump``'s backlog):
   a group that lags finds several cycles queued and catches up one cycle of every bus per
   joined step, instead of each segment stepping alone at its next SYNC (four times the
-  cost, which kept a lagging bench lagging).
+  cost, which kept a lagging bench lagging); at most ``CATCH_UP_ROUNDS`` per pass. A bus
+  with frames kept is not vouched for as silent (``nothing_arrived``) until they are
+  handled.
 - A SYNC that came without the other buses' waits up to ``JOIN_WAIT`` for them.
-- A timer event of a segment whose step waits comes after the step (rescheduled).
+- A timer event of a segment whose step waits comes after the step (rescheduled); a change
+  through a drive's API takes the step first.
 
 The group holds the lock of every segment it reads from the first frame it hands over to the
 last answer, so no timer of such a segment runs between a SYNC and its step (the others'
@@ -55,6 +58,11 @@ import numpy as np
 from ..frame_io import BusSelector, FrameReader
 from .dynamics import JointDynamics
 from .segment import JOIN_WAIT, RX_IDLE, SimulatedSegment
+
+#: Cycles of every bus one pass catches up at most: a pass holds its segments' locks and
+#: their buses' wake-ups, so a long catch-up is cut into passes between which the timers
+#: run (heartbeats) and the master's reader is woken for the answers so far.
+CATCH_UP_ROUNDS = 8
 
 
 class SegmentGroup:
@@ -157,7 +165,9 @@ class SegmentGroup:
         segments, locks, readers = self.segments, self._locks, self._readers
         clock = SimulatedSegment.clock
         since = clock()
-        if self._join_by is not None:
+        if any(s.backlog and s.deferred_dt is None for s in segments):
+            timeout = 0.0  # frames kept from an earlier pass are waiting: no wait
+        elif self._join_by is not None:
             timeout = min(timeout, max(self._join_by - since, 0.0))
         ready = selector.wait(timeout)
         for i, segment in enumerate(segments):  # frames kept after a SYNC (pump)
@@ -183,12 +193,16 @@ class SegmentGroup:
                 if i in ready:
                     if not segment.pump(readers[i], 0.0):
                         selector.failed(i)
-                elif not selector.failing(i):
-                    segment.nothing_arrived(since)
+                elif not selector.failing(i) and not segment.backlog:
+                    segment.nothing_arrived(since)  # (a backlog: not everything handled)
             self._step_deferred(held, clock())
             # behind by more than a cycle: the next cycle of every bus read, one joined
-            # step again, until the backlogs are gone or the SYNCs part
-            while self._join_by is None and any(segments[i].backlog for i in ready):
+            # step again, until the backlogs are gone, the SYNCs part, or CATCH_UP_ROUNDS
+            # (then the next pass, at once, after the locks and wake-ups were given back)
+            rounds = 1
+            while rounds < CATCH_UP_ROUNDS and self._join_by is None \
+                    and any(segments[i].backlog for i in ready):
+                rounds += 1
                 for i in ready:
                     if not segments[i].pump(readers[i], 0.0):
                         selector.failed(i)

@@ -47,6 +47,10 @@ class Segment(Protocol):
         otherwise when to look again (a timeout must not fire on a queued frame)."""
         ...
 
+    def finish_pending_step(self) -> None:
+        """Take a SYNC's deferred dynamics step now, if one waits (lock held)."""
+        ...
+
     def set_rpdo_routes(self, node_id: int, routes: dict[int, Route]) -> None:
         """Replace the RPDO COB-IDs this node receives, each with its handler."""
         ...

@@ -440,11 +440,12 @@ class SimulatedSegment:
         period = self.free_run_period
         assert period is not None  # scheduled only when free running is on
         now = self.clock()
-        # Free-run only over a silence the reader has seen: a receive thread that lags has
+        # Free-run only over a silence the reader has seen (give or take the two RX_IDLE
+        # an idle reader's received_until may be old): a receive thread that lags has
         # SYNCs queued, and a long step here (up to max_dt in sub-steps, under the lock)
         # would only make it lag more.
         if (self._last_step is None or now - self._last_step >= period) \
-                and self.received_until >= now - period:
+                and self.received_until >= now - period - 2 * RX_IDLE:
             self._step(on_sync=False, now=now)
         self.schedule(now + period, self._free_run)
 
@@ -463,6 +464,12 @@ class SimulatedSegment:
                 fn(*args)
         except Exception as exc:  # noqa: BLE001 - keep the timers running
             self.record(exc)
+
+    def finish_pending_step(self) -> None:
+        """Take a SYNC's step now if it waits for the group (lock held): a fault injected
+        through the drive's API comes after the SYNC whose RPDOs the drive applied."""
+        if self.deferred_dt is not None:
+            self._finish_deferred_or_record()
 
     def _finish_deferred_or_record(self) -> None:
         """The deferred step, taken now because an event for the drives comes after it; a

@@ -18,7 +18,20 @@ from ..cia402 import State402
 from .dynamics import JointDynamics, LoopMode
 from .faults import EmcyProducer, InjectedFaults
 from .nmt import NmtSlave
-from .objects import CONTROLWORD, ERROR_CODE, MODE_DISPLAY, STATUSWORD, Key
+from .objects import (
+    CONTROLWORD,
+    ERROR_CODE,
+    INTERPOLATION_TARGET,
+    MAX_TORQUE,
+    MODE_DISPLAY,
+    STATUSWORD,
+    TARGET_POSITION,
+    TARGET_TORQUE,
+    TARGET_VELOCITY,
+    TORQUE_OFFSET,
+    VELOCITY_OFFSET,
+    Key,
+)
 
 # States in which the power stage is on (the loops may produce torque).
 POWERED = (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE,
@@ -38,15 +51,8 @@ SW_HOMING_ERROR = 1 << 13
 HOMING_TIME = 0.2  # s a simulated homing takes
 
 
-# What command_joint reads each SYNC, as plain ints and keys: an enum member or a key tuple
-# built per access costs ~100 ns, and this runs for every drive at 1 kHz.
-_MAX_TORQUE = (c.MAX_TORQUE, 0)
-_INTERPOLATION_TARGET = (c.INTERPOLATION_DATA, 1)
-_TARGET_POSITION = (c.TARGET_POSITION, 0)
-_TARGET_VELOCITY = (c.TARGET_VELOCITY, 0)
-_TARGET_TORQUE = (c.TARGET_TORQUE, 0)
-_VELOCITY_OFFSET = (c.VELOCITY_OFFSET, 0)
-_TORQUE_OFFSET = (c.TORQUE_OFFSET, 0)
+# What command_joint reads each SYNC, as plain ints and pre-built keys (objects.py): an enum
+# member or a key tuple built per access costs ~100 ns, and this runs for every drive at 1 kHz.
 _LOOP_OFF, _LOOP_TORQUE, _LOOP_VELOCITY, _LOOP_POSITION = (
     int(LoopMode.OFF), int(LoopMode.TORQUE), int(LoopMode.VELOCITY), int(LoopMode.POSITION))
 _IP, _PP, _HOMING, _PV, _CSP, _CSV, _CST = (
@@ -271,7 +277,7 @@ class StateMachine402:
         """Write this joint's loop command for the next dynamics step."""
         dyn, j, values = self._dyn, self._j, self._values
         nm_per_permille = self._scale.nm_per_permille
-        dyn.torque_limit[j] = values[_MAX_TORQUE] * nm_per_permille
+        dyn.torque_limit[j] = values[MAX_TORQUE] * nm_per_permille
         dyn.target_velocity[j] = 0.0
         dyn.torque_feedforward[j] = 0.0
         state = self.state
@@ -302,7 +308,7 @@ class StateMachine402:
         if mode == _IP:
             if values[CONTROLWORD] & CW_BIT4:  # interpolation enabled: follow 0x60C1:1
                 dyn.mode[j] = _LOOP_POSITION
-                dyn.target_position[j] = values[_INTERPOLATION_TARGET] / scale
+                dyn.target_position[j] = values[INTERPOLATION_TARGET] / scale
                 bits = SW_BIT12
             else:  # interpolation inactive: hold still
                 dyn.mode[j] = _LOOP_VELOCITY
@@ -312,21 +318,21 @@ class StateMachine402:
             bits = self._homing(values, scale, dt)
         elif mode == _PV:
             dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = values[_TARGET_VELOCITY] / scale
+            dyn.target_velocity[j] = values[TARGET_VELOCITY] / scale
         elif mode == _CSP:
             dyn.mode[j] = _LOOP_POSITION
-            dyn.target_position[j] = values[_TARGET_POSITION] / scale
-            dyn.target_velocity[j] = values[_VELOCITY_OFFSET] / scale
-            dyn.torque_feedforward[j] = values[_TORQUE_OFFSET] * nm_per_permille
+            dyn.target_position[j] = values[TARGET_POSITION] / scale
+            dyn.target_velocity[j] = values[VELOCITY_OFFSET] / scale
+            dyn.torque_feedforward[j] = values[TORQUE_OFFSET] * nm_per_permille
         elif mode == _CSV:
             dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = (values[_TARGET_VELOCITY]
-                                      + values[_VELOCITY_OFFSET]) / scale
-            dyn.torque_feedforward[j] = values[_TORQUE_OFFSET] * nm_per_permille
+            dyn.target_velocity[j] = (values[TARGET_VELOCITY]
+                                      + values[VELOCITY_OFFSET]) / scale
+            dyn.torque_feedforward[j] = values[TORQUE_OFFSET] * nm_per_permille
         elif mode == _CST:
             dyn.mode[j] = _LOOP_TORQUE
-            dyn.torque_feedforward[j] = ((values[_TARGET_TORQUE]
-                                          + values[_TORQUE_OFFSET]) * nm_per_permille)
+            dyn.torque_feedforward[j] = ((values[TARGET_TORQUE]
+                                          + values[TORQUE_OFFSET]) * nm_per_permille)
         else:
             dyn.mode[j] = _LOOP_OFF  # no mode this drive runs selected: no torque
         if bits != self._mode_bits:
