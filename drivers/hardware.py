@@ -290,6 +290,8 @@ class CanopenHardware:
         self._manager_state = ManagerState.FAILPROOF  # as of the last write
 
         self._started = False
+        # (hold_wakeups, release_wakeups) of every bus, taken by start (write wraps in them)
+        self._wake_holds: list[tuple[Callable[[], None], Callable[[], None]]] = []
         self._bringup: list[DriveBringup] = []
         self._executor: ThreadPoolExecutor | None = None
         self._switch_off = SdoSwitchOff()  # started with the bus (start)
@@ -331,6 +333,10 @@ class CanopenHardware:
                 port.set_estop_cob_id(self._estop_cob_id)
             # one reader thread for every bus where the interface allows (bus.readers_for)
             start_reading([port.canopen for port in self.ports if port.canopen is not None])
+            # the open buses' wake-up holds for write, as pairs: a port closed while a
+            # write runs is still released by the bus it held
+            self._wake_holds = [(port.hold_wakeups, port.release_wakeups)
+                                for port in self.ports]
         except BaseException:
             for port in self.ports:
                 port.close()
@@ -559,8 +565,8 @@ class CanopenHardware:
         an in-process simulator then sees each bus's cycle whole and steps every segment's
         joints together, instead of waking at the first frame and taking the GIL from
         this write."""
-        holds = [(port.hold_wakeups, port.release_wakeups) for port in self.ports]
-        for hold, _ in holds:  # pairs taken now: a port closed meanwhile is released too
+        holds = self._wake_holds
+        for hold, _ in holds:
             hold()
         try:
             self._write(manager_state)
