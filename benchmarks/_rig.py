@@ -3,8 +3,10 @@ a manager, the manager's CANopen node and the project's own ControlLoop (rocoma_
 
 Wired the way ``rocoma_can.runtime.Runtime`` wires it, but with controllers given in code,
 so a benchmark can add ones that fail or initialize slowly on purpose. The simulator runs
-in this process on a thread over an in-process bus (default ``inproc``, drivers/inproc.py;
-``interface="virtual"`` for python-can's, which copies every frame once per receiver), or as
+in this process over an in-process bus (default ``inproc``, drivers/inproc.py), stepped on
+the loop's thread after each write (SegmentGroup.lockstep_pass, as ``rocoma-can demo`` runs
+it; ``sim_thread=True``: on a receive thread of its own; ``interface="virtual"``, python-can's
+bus, which copies every frame once per receiver, always has a thread per bus), or as
 a separate ``rocoma-can sim`` process over SocketCAN vcan0 (``separate_process=True``; needs
 vcan, i.e. run the benchmark under tools/vcan-run).
 """
@@ -74,7 +76,7 @@ class Rig:
 
     def __init__(self, drives: int, rate: float, *, separate_process: bool = False,
                  channel: str | None = None, buses: int = 1,
-                 interface: str = "inproc") -> None:
+                 interface: str = "inproc", sim_thread: bool = False) -> None:
         self.rate = rate
         self.dt = 1.0 / rate
         self.separate_process = separate_process
@@ -90,6 +92,7 @@ class Rig:
         self.configs = drive_configs(drives, buses)
         self.node_ids = sorted({d.node_id for d in self.configs})
         self._closers: list[Callable[[], Any]] = []
+        self.group: SegmentGroup | None = None  # the in-process simulator
         try:
             if separate_process:
                 self.segments: list[SimulatedSegment | None] = [
@@ -103,7 +106,9 @@ class Rig:
                 group = SegmentGroup(self.segments)
                 self._closers.append(group.check)  # closers run in reverse: after stop
                 self._closers.append(group.stop)
-                group.start()
+                # stepped on the loop's thread after each write, unless asked otherwise
+                group.start(lockstep=not sim_thread)
+                self.group = group
             self.segment = self.segments[0]
             self.buses = [open_bus(self.interface, ch, receive_own_messages=False)
                           for ch in self.channels]
@@ -158,6 +163,8 @@ class Rig:
 
     def loop(self, on_cycle: Callable[[float], None], cycles: int,
              spin: float | None = None) -> ControlLoop:
+        if self.group is not None and self.group.lockstep:
+            on_cycle = self.group.stepped_before(on_cycle)  # answers before the loop sleeps
         return ControlLoop(self.hardware, self.manager, self.rate, on_cycle=on_cycle,
                            stats_size=max(16, cycles), spin=spin)
 

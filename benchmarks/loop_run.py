@@ -6,9 +6,11 @@
 
 The loop is rocoma_can.runtime.ControlLoop (read -> manager.update -> write, sleep then spin
 to an absolute deadline); the drives are brought up, a JointPD (CSP) holds them, then the
-loop runs for --duration seconds. Default: the simulator is a thread in this process on
-an in-process bus, ``--interface inproc`` (default) or ``virtual`` (python-can's, which
-copies every frame once per receiver); it shares the GIL and the 2 cores with the loop. With
+loop runs for --duration seconds. Default: the simulator runs in this process on an
+in-process bus (``--interface inproc``), stepped on the loop's thread right after each write
+(lockstep, as ``rocoma-can demo`` runs it); ``--sim-thread`` gives it a receive thread of
+its own, which shares the GIL and the 2 cores with the loop; ``--interface virtual``
+(python-can's bus, which copies every frame once per receiver) always has a thread. With
 --separate-process the simulator is a ``rocoma-can sim`` subprocess on SocketCAN vcan0,
 which this machine only has inside user-mode-linux (tools/vcan-run), where every syscall
 is slow: use a rate the VM can sustain there. The JSON records which mode ran. ``--buses N``
@@ -49,6 +51,9 @@ def main() -> None:
     parser.add_argument("--spin-us", type=_spin_us, default=None,
                         help="the loop's busy-wait before each deadline, µs (default: the "
                              "loop's, 500 or half a period; 0 sleeps to the deadline)")
+    parser.add_argument("--sim-thread", action="store_true",
+                        help="in-process simulator on a thread of its own instead of stepped "
+                             "on the loop's thread after each write (lockstep)")
     parser.add_argument("--quick", action="store_true", help="--duration 2")
     args = parser.parse_args()
     if args.spin_us is not None and not args.spin_us * 1e-6 < 1.0 / args.rate:
@@ -57,14 +62,15 @@ def main() -> None:
     if args.quick:
         args.duration = 2.0
     logging.basicConfig(level=logging.ERROR)
+    lockstep = not (args.separate_process or args.sim_thread or args.interface == "virtual")
     mode = ("separate process, socketcan" if args.separate_process
-            else f"in-process thread, {args.interface} bus")
+            else f"in-process {'lockstep' if lockstep else 'thread'}, {args.interface} bus")
     if args.buses > 1:
         mode += f" x{args.buses}"
 
     estops: list[str] = []
     with Rig(args.drives, args.rate, separate_process=args.separate_process,
-             buses=args.buses, interface=args.interface) as rig:
+             buses=args.buses, interface=args.interface, sim_thread=args.sim_thread) as rig:
         rig.add(JointPD("pd", mode="CSP"), emergency=Hold("hold", mode="CSP"))
         rig.manager.subscribe(lambda e: estops.append(e.cause) if e.kind.name ==
                               "EMERGENCY_STOP" else None)

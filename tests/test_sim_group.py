@@ -328,10 +328,12 @@ def test_no_joined_step_while_a_segment_outside_the_pass_may_be_stepping_alone()
     group.check()
 
 
-def _two_groups_of(count: int, base: str) -> tuple[list[SimulatedSegment], SegmentGroup,
-                                                  list[can.BusABC], list[can.BusABC]]:
-    """``count`` lone segments and ``count`` grouped (their pass run by the test), each
-    with a master bus; the drives started and enabled in CSP on every bus."""
+def _two_groups_of(count: int, base: str, lockstep: bool = False
+                   ) -> tuple[list[SimulatedSegment], SegmentGroup, list[can.BusABC],
+                              list[can.BusABC]]:
+    """``count`` lone segments and ``count`` grouped (their pass run by the test; with
+    ``lockstep``, lockstep_pass, the group's thread standing by), each with a master bus;
+    the drives started and enabled in CSP on every bus."""
     lone = [SimulatedSegment.open(f"{base}-lone-{k}", "inproc", NODES, sync_period=0.001,
                                   seed=k) for k in range(count)]
     grouped = [SimulatedSegment.open(f"{base}-group-{k}", "inproc", NODES, sync_period=0.001,
@@ -343,14 +345,18 @@ def _two_groups_of(count: int, base: str) -> tuple[list[SimulatedSegment], Segme
                for k in range(count)]
     for segment in lone:
         segment.start()
-    group.start(thread=False)
+    group.start(thread=lockstep, lockstep=lockstep)
     for bus in lone_masters + masters:
         _send(bus, cia301.NMT, bytes((cia301.NmtCommand.START, 0)))
     for k, controlword in enumerate((0x06, 0x07, 0x0F), 1):
         for bus in lone_masters + masters:
             _cycle_frames(bus, controlword, 0)
-        group.pass_once(0.0)
-        _wait(lambda k=k: all(s.sync_count >= k for s in lone), f"lone segments: SYNC {k}")
+        if lockstep:  # (the thread answers if it was in a pass: it stands by after)
+            group.lockstep_pass()
+        else:
+            group.pass_once(0.0)
+        _wait(lambda k=k: all(s.sync_count >= k for s in lone + grouped),
+              f"all segments: SYNC {k}")
     assert all(d.state402 is State402.OPERATION_ENABLED
                for s in lone + grouped for d in s.drives.values())
     return lone, group, lone_masters, masters
@@ -463,5 +469,117 @@ def test_frames_kept_after_a_waiting_sync_are_not_vouched_for_and_come_before_a_
         assert first.deferred_dt is None and first.sync_count == 5  # the SYNC first
         assert first.drives[NODES[0]].sto_low
     finally:
+        _close(lone, group, lone_masters + masters)
+    group.check()
+
+
+def _answers(bus: can.BusABC) -> set[int]:
+    """The COB-IDs of the frames waiting on ``bus`` (read without waiting)."""
+    got = set()
+    while (msg := bus.recv(0.0)) is not None:
+        got.add(msg.arbitration_id)
+    return got
+
+
+TPDOS = {base + n for base in (0x180, 0x280) for n in NODES}  # the drives' default TPDOs
+
+
+def test_a_lockstep_group_answers_each_cycle_on_the_callers_thread():
+    """In lockstep the control loop's thread steps the simulator right after its write:
+    a segment's SYNC that ``lockstep_pass`` handled has been answered with every drive's
+    TPDOs before the call returned (no thread hand-over), and the joints move exactly as
+    lone segments fed the same frames. Left for later, and so not counted here: a segment
+    whose lock a timer held (its heartbeat), and a cycle the group's thread took (it reads
+    the buses itself once a caller stalled for LOCKSTEP_GRACE: the call returns False)."""
+    lone, group, lone_masters, masters = _two_groups_of(
+        4, f"lockstep-{uuid.uuid4().hex[:8]}", lockstep=True)
+    try:
+        for bus in masters:
+            _answers(bus)  # the bring-up's
+        cycles, answered, passes = 60, 0, group.lockstep_passes
+        steps = group.joined_steps
+        for k in range(cycles):
+            for bus in lone_masters + masters:
+                _cycle_frames(bus, 0x0F, 400 * k)
+            syncs = [s.sync_count for s in group.segments]
+            if group.lockstep_pass():
+                for segment, bus, before in zip(group.segments, masters, syncs):
+                    if segment.sync_count > before:  # answered within the call
+                        assert TPDOS <= _answers(bus)  # (+ heartbeats)
+                        answered += 1
+            _wait(lambda k=k: all(s.sync_count >= 4 + k for s in group.segments),
+                  f"SYNC {4 + k} answered")
+            for bus in masters:
+                _answers(bus)
+        assert answered >= 0.75 * 4 * cycles, answered
+        assert group.lockstep_passes - passes >= 0.75 * cycles
+        assert group.joined_steps - steps >= 0.75 * cycles
+        _wait(lambda: all(s.sync_count >= 3 + cycles for s in lone), "lone segments")
+        moved = [s.drives[n].position_rad for s in lone for n in NODES]
+        assert min(abs(q) for q in moved) > 0.001
+        assert [s.drives[n].position_rad for s in group.segments for n in NODES] == moved
+    finally:
+        _close(lone, group, lone_masters + masters)
+    group.check()
+
+
+def test_a_lockstep_group_is_read_by_its_thread_once_the_loop_stops_stepping_it():
+    """A loop that stops calling ``lockstep_pass`` (it ended, or stalls) must not leave
+    the drives deaf: within LOCKSTEP_GRACE the group's thread reads the buses again, so
+    SYNCs and SDOs are answered and a lost master heartbeat is judged."""
+    lone, group, lone_masters, masters = _two_groups_of(
+        2, f"standby-{uuid.uuid4().hex[:8]}", lockstep=True)
+    try:
+        for k in range(5):
+            for bus in masters:
+                _cycle_frames(bus, 0x0F, 100 * k)
+            group.lockstep_pass()
+            _wait(lambda k=k: all(s.sync_count >= 4 + k for s in group.segments),
+                  f"SYNC {4 + k}")
+        syncs = [s.sync_count for s in group.segments]
+        for bus in masters:  # no lockstep_pass from here on
+            _cycle_frames(bus, 0x0F, 600)
+        _wait(lambda: [s.sync_count for s in group.segments] == [n + 1 for n in syncs],
+              "the group's thread answers the SYNCs")
+    finally:
+        _close(lone, group, lone_masters + masters)
+    group.check()
+
+
+def test_a_lockstep_pass_never_waits_for_a_segment_a_timer_holds():
+    """The control loop's thread must never block on a lock a slower thread holds: a
+    segment whose lock is taken (its timer thread handling a heartbeat) is left for the
+    next pass, its bus is not vouched for as silent, and the other buses are answered."""
+    lone, group, lone_masters, masters = _two_groups_of(
+        2, f"busy-{uuid.uuid4().hex[:8]}", lockstep=True)
+    taken, release = threading.Event(), threading.Event()
+
+    def timer() -> None:  # as a timer event of the first segment, holding its lock
+        with group.segments[0].lock:
+            taken.set()
+            release.wait(5.0)
+
+    holder = threading.Thread(target=timer)
+    try:
+        group.lockstep_pass()
+        first, second = group.segments
+        before = (first.sync_count, second.sync_count)
+        holder.start()
+        assert taken.wait(5.0)
+        for bus in masters:
+            _cycle_frames(bus, 0x0F, 100)
+        sent = time.monotonic()
+        passed = threading.Thread(target=group.lockstep_pass)
+        passed.start()
+        passed.join(5.0)  # it would hang on the lock for as long as the holder keeps it
+        assert not passed.is_alive()
+        assert (first.sync_count, second.sync_count) == (before[0], before[1] + 1)
+        assert first.received_until < sent  # its frames were not read
+        release.set()
+        holder.join(5.0)
+        assert group.lockstep_pass()
+        assert (first.sync_count, second.sync_count) == (before[0] + 1, before[1] + 1)
+    finally:
+        release.set()
         _close(lone, group, lone_masters + masters)
     group.check()
