@@ -17,6 +17,8 @@ The safety path, top to bottom (each step names where it lives):
    Frames arrive on the buses' reader thread (bus.py: one for all buses where the
    interface allows, else one per bus), which only appends them to each bus's deque;
    ``read`` drains every bus on the cycle thread, so no lock is shared with a slow thread.
+   ``read`` first reads the buses itself where the reader thread is not reading
+   (BusReader.drain_now, a lock only tried): a starved reader thread delays nothing.
    An e-stop frame (``estop_cob_id``, any bus) is drained the same way (``_on_estop_frames``)
    and reaches the manager before this cycle's update.
 2. The faulted drive gets torque-off frames from the same cycle on (``_command_frames``:
@@ -292,6 +294,8 @@ class CanopenHardware:
         self._started = False
         # (hold_wakeups, release_wakeups) of every bus, taken by start (write wraps in them)
         self._wake_holds: list[tuple[Callable[[], None], Callable[[], None]]] = []
+        # the bus readers' drain_now (start): read hands over what waits on the buses first
+        self._drains: list[Callable[[], bool]] = []
         self._bringup: list[DriveBringup] = []
         self._executor: ThreadPoolExecutor | None = None
         self._switch_off = SdoSwitchOff()  # started with the bus (start)
@@ -337,6 +341,9 @@ class CanopenHardware:
             # write runs is still released by the bus it held
             self._wake_holds = [(port.hold_wakeups, port.release_wakeups)
                                 for port in self.ports]
+            readers = {id(port.canopen.reader): port.canopen.reader for port in self.ports
+                       if port.canopen is not None and port.canopen.reader is not None}
+            self._drains = [reader.drain_now for reader in readers.values()]
         except BaseException:
             for port in self.ports:
                 port.close()
@@ -415,7 +422,11 @@ class CanopenHardware:
 
     # --- the cycle ------------------------------------------------------------------------------
     def read(self, now: float) -> None:
-        """Drain frames into JointState, step bring-up and recovery, raise fault events."""
+        """Drain frames into JointState, step bring-up and recovery, raise fault events.
+        First the buses are read on this thread (BusReader.drain_now): the cycle sees what
+        arrived before it, however late the scheduler runs the reader thread."""
+        for drain in self._drains:
+            drain()
         self._now = now
         sup = self.supervisor
         got = self._got

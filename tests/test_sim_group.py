@@ -546,15 +546,15 @@ def test_a_lockstep_group_is_read_by_its_thread_once_the_loop_stops_stepping_it(
     group.check()
 
 
-def test_a_lockstep_pass_never_waits_for_a_segment_a_timer_holds():
+def test_a_lockstep_pass_never_waits_for_a_segment_another_thread_holds():
     """The control loop's thread must never block on a lock a slower thread holds: a
-    segment whose lock is taken (its timer thread handling a heartbeat) is left for the
+    segment whose lock is taken (a fault injected through a drive's API) is left for the
     next pass, its bus is not vouched for as silent, and the other buses are answered."""
     lone, group, lone_masters, masters = _two_groups_of(
         2, f"busy-{uuid.uuid4().hex[:8]}", lockstep=True)
     taken, release = threading.Event(), threading.Event()
 
-    def timer() -> None:  # as a timer event of the first segment, holding its lock
+    def timer() -> None:  # as a drive API call on the first segment, holding its lock
         with group.segments[0].lock:
             taken.set()
             release.wait(5.0)
@@ -581,5 +581,44 @@ def test_a_lockstep_pass_never_waits_for_a_segment_a_timer_holds():
         assert (first.sync_count, second.sync_count) == (before[0] + 1, before[1] + 1)
     finally:
         release.set()
+        _close(lone, group, lone_masters + masters)
+    group.check()
+
+
+def test_a_lockstep_group_runs_the_drives_timers_and_hands_them_back_when_left():
+    """In lockstep the drives' timer events (here the heartbeat producer) run in the pass,
+    their threads standing by; a loop that stops stepping the group leaves them to the
+    timer threads again, and the heartbeats go on at their period."""
+    lone, group, lone_masters, masters = _two_groups_of(
+        2, f"timers-{uuid.uuid4().hex[:8]}", lockstep=True)
+    period_ms = 10
+    try:
+        group.lockstep_pass()
+        first_bus = masters[0]
+        threading.Thread(  # the SDO answer comes from a pass: run them meanwhile
+            target=lambda: [group.lockstep_pass() or time.sleep(0.001) for _ in range(300)],
+            daemon=True).start()
+        _sdo_write(first_bus, NODES[0], cia301.PRODUCER_HEARTBEAT_TIME, 0,
+                   struct.pack("<H", period_ms))
+        time.sleep(0.3)  # the passes end
+        passes = group.lockstep_passes
+
+        def beats(seconds: float, step: bool) -> int:
+            count, end = 0, time.monotonic() + seconds
+            while time.monotonic() < end:
+                if step:
+                    group.lockstep_pass()
+                while (msg := first_bus.recv(0.0)) is not None:
+                    count += msg.arbitration_id == cia301.HEARTBEAT + NODES[0]
+                time.sleep(0.001)
+            return count
+
+        stepped = beats(0.2, step=True)
+        assert group.lockstep_passes > passes
+        left = beats(0.2, step=False)
+        expected = 0.2 / (period_ms / 1000)
+        assert stepped >= expected / 2, stepped
+        assert left >= expected / 2, left
+    finally:
         _close(lone, group, lone_masters + masters)
     group.check()

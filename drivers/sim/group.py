@@ -192,10 +192,15 @@ class SegmentGroup:
         lockstep the drives answer each SYNC before the loop sleeps, as drives on a bus do
         well within a cycle; the loop's measured work includes the simulator's.
 
-        Never waits: a segment whose lock a timer holds (a heartbeat) is read in the next
-        pass, and a SYNC does not wait for other buses' (the write sent them all). A loop
-        that stops calling (stopped, or stalled for LOCKSTEP_GRACE) hands the buses back to
-        the receive thread, so heartbeats are still judged and SDOs still answered."""
+        The segments' timer events (heartbeats, consumer deadlines) run here too, after
+        the frames, and their timer threads stand by: a timer thread the scheduler starves
+        while it holds a segment's lock would keep that segment from this pass.
+
+        Never waits: a segment whose lock another thread holds (a fault injected through a
+        drive's API) is read in the next pass, and a SYNC does not wait for other buses'
+        (the write sent them all). A loop that stops calling (stopped, or stalled for
+        LOCKSTEP_GRACE) hands the buses back to the receive thread and the timers to
+        theirs, so heartbeats are still sent and judged and SDOs still answered."""
         if not self.lockstep:
             return False
         self._lockstep_at = SimulatedSegment.clock()
@@ -203,6 +208,9 @@ class SegmentGroup:
             return False
         try:
             self.pass_once(0.0, wait_locks=False, join_wait=0.0)
+            now = SimulatedSegment.clock()
+            for segment in self.segments:  # their timer threads stand by meanwhile
+                segment.run_due_timers(now)
         except Exception as exc:  # noqa: BLE001 - a simulator bug must not stop the loop
             self._record(exc)
             return False

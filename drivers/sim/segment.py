@@ -65,7 +65,9 @@ def _default_eds() -> str:
 
 
 class _Timers:
-    """Monotonic one-shot timers on one thread (a heap, no thread per timer)."""
+    """Monotonic one-shot timers on one thread (a heap, no thread per timer), or on the
+    thread of a lockstep pass (``run_due``): the timer thread then stands by until no pass
+    has run them for RX_IDLE."""
 
     def __init__(self, run: Callable[[Callable[..., Any], tuple[Any, ...]], None]) -> None:
         self._run = run
@@ -73,6 +75,7 @@ class _Timers:
         self._seq = itertools.count()
         self._cond = threading.Condition()
         self._stopped = False
+        self._driven_at = -math.inf  # the latest run_due
         self._thread = threading.Thread(target=self._loop, name="sim-timers", daemon=True)
 
     def start(self) -> None:
@@ -88,13 +91,28 @@ class _Timers:
     def call_at(self, when: float, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
         with self._cond:
             heapq.heappush(self._heap, (when, next(self._seq), fn, args))
-            self._cond.notify()
+            if time.monotonic() - self._driven_at >= RX_IDLE:  # (standing by: no wake-up)
+                self._cond.notify()
+
+    def run_due(self, now: float) -> None:
+        """Run the events due by ``now`` on the caller's thread, in order."""
+        self._driven_at = now
+        heap = self._heap
+        while heap and heap[0][0] <= now:  # (a look without the lock: popped under it)
+            with self._cond:
+                if not heap or heap[0][0] > now:
+                    return
+                _, _, fn, args = heapq.heappop(heap)
+            self._run(fn, args)
 
     def _loop(self) -> None:
         while True:
             with self._cond:
                 while not self._stopped:
                     now = time.monotonic()
+                    if now - self._driven_at < RX_IDLE:  # a lockstep pass runs them
+                        self._cond.wait(RX_IDLE)
+                        continue
                     if self._heap and self._heap[0][0] <= now:
                         break
                     wait = self._heap[0][0] - now if self._heap else 0.5
@@ -464,6 +482,16 @@ class SimulatedSegment:
                 fn(*args)
         except Exception as exc:  # noqa: BLE001 - keep the timers running
             self.record(exc)
+
+    def run_due_timers(self, now: float) -> None:
+        """A lockstep pass (group.py) runs the timer events due by ``now`` on its thread,
+        unless the lock is taken (then at a later pass); the timer thread stands by."""
+        if not self.lock.acquire(blocking=False):
+            return
+        try:
+            self._timers.run_due(now)
+        finally:
+            self.lock.release()
 
     def finish_pending_step(self) -> None:
         """Take a SYNC's step now if it waits for the group (lock held): a fault injected

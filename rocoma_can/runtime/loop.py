@@ -40,9 +40,11 @@ log = logging.getLogger(__name__)
 #: Seconds before each deadline where the loop stops sleeping and spins (config
 #: ``realtime.spin_us``; by default this or half a period, whichever is shorter): a sleep
 #: wakes late by up to a scheduler tick, a spin does not.
-#: Each turn of the spin is a ``time.sleep(0)``: it releases the GIL, so a thread of the same
-#: process that waits for it (an in-process simulator, the bus readers) runs on through the
-#: spin; a spin in Python alone would hold the GIL but for forced hand-overs, every switch
+#: Each turn of the spin is an ``os.sched_yield()``: it releases the GIL, so a thread of the
+#: same process that waits for it (an in-process simulator, the bus readers) runs on
+#: through the spin, and it gives the CPU to a thread that waits for one (a ``sleep(0)``
+#: returns at once and left a bus reader runnable on the spinning core for milliseconds);
+#: a spin in Python alone would hold the GIL but for forced hand-overs, every switch
 #: interval, and give such a thread about half of that time. That half decided the
 #: 12-drive, 4-bus in-process bench at 500 Hz: the simulator answered late, and TPDO
 #: supervision tripped (benchmarks/README.md). Taking the GIL back at the deadline waits at
@@ -277,9 +279,9 @@ class ControlLoop:
         remaining = deadline - clock() - self.spin
         if remaining > 0:
             self._stop.wait(remaining)
-        sleep = time.sleep
+        yield_cpu = os.sched_yield
         while clock() < deadline and not self._stop.is_set() and self._signalled is None:
-            sleep(0)  # hands the GIL to a thread that waits for it (see DEFAULT_SPIN)
+            yield_cpu()  # hands the GIL and the CPU to a thread that waits (DEFAULT_SPIN)
 
     def _torque_off(self) -> None:
         """Failproof stop, then cycles that send the torque-off frames (bounded count)."""
