@@ -208,6 +208,8 @@ class BusReader:
                 continue
             ready = selector.wait(self._poll)
             with self._handing:
+                if time.monotonic() - self._drained_at < DRAIN_STANDBY:
+                    continue  # a drain came during the wait: the loop reads these
                 for i, reader in enumerate(readers):
                     if i not in ready:
                         if not selector.failing(i):

@@ -5,7 +5,8 @@ own bus, in order; a bus that fails is reported to its own listeners only, read 
 the ``retry`` pace (not in a busy loop), and the other buses are still served; a listener
 that raises does not end reading. ``readers_for`` shares a thread only where one thread
 can wait on all the buses (in-process or SocketCAN), and the hardware's buses get their
-listeners attached before the first frame is read.
+listeners attached before the first frame is read. ``drain_now`` (the control loop's read)
+hands over what waits on the caller's thread, and the thread stands by while drains come.
 """
 from __future__ import annotations
 
@@ -18,7 +19,13 @@ import can
 import pytest
 from fixtures.driver_rig import VIRTUAL
 
-from rocoma_can.drivers.bus import BusReader, CanopenBus, readers_for, start_reading
+from rocoma_can.drivers.bus import (
+    DRAIN_STANDBY,
+    BusReader,
+    CanopenBus,
+    readers_for,
+    start_reading,
+)
 
 POLL = inspect.signature(BusReader).parameters["poll"].default
 #: a frame handed from one thread to another on a loaded machine, plus one idle poll
@@ -177,3 +184,60 @@ def test_the_hardware_buses_read_nothing_until_every_listener_is_attached(inproc
     finally:
         for cb in buses:
             cb.close()
+
+
+class Threads(can.Listener):
+    """Which thread handed over each frame."""
+
+    def __init__(self) -> None:
+        self.by: list[tuple[int, str]] = []
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.by.append((msg.arbitration_id, threading.current_thread().name))
+
+
+@pytest.mark.parametrize("buses", [1, 2])
+def test_drain_now_hands_over_on_the_callers_thread_and_the_thread_stands_by(
+        inproc_buses, buses):
+    """The control loop reads its buses itself at the start of each cycle: what waits is
+    handed over, in order, on its thread, before drain_now returns; while drains come the
+    reader thread stands by (frames wait for the next drain, none is handed over twice);
+    once they stop, the thread reads again within DRAIN_STANDBY."""
+    senders, receivers = inproc_buses(buses)
+    seen = [Threads() for _ in receivers]
+    reader = BusReader(receivers[0], (seen[0],),
+                       more=[(b, (s,)) for b, s in zip(receivers[1:], seen[1:])],
+                       name="drained")
+    try:
+        assert reader.drain_now()
+        for n in range(10):
+            for k, sender in enumerate(senders):
+                sender.send(_frame(0x100 * (k + 1) + n))
+            sent = time.monotonic()
+            if reader.drain_now():  # (the thread's meanwhile only after a long stall here)
+                assert all(s.by[-1][0] == 0x100 * (k + 1) + n for k, s in enumerate(seen))
+                assert reader.received_until(receivers[-1]) >= sent
+            time.sleep(DRAIN_STANDBY / 10)
+        for k, s in enumerate(seen):
+            assert [cob for cob, _ in s.by] == [0x100 * (k + 1) + n for n in range(10)]
+            assert sum(name == "MainThread" for _, name in s.by) >= 5
+        for sender in senders:  # no more drains: the thread reads them
+            sender.send(_frame(0x7FF))
+        _wait(lambda: all(s.by and s.by[-1] == (0x7FF, "drained") for s in seen),
+              "the thread reads again")
+    finally:
+        reader.stop()
+
+
+def test_drain_now_leaves_an_interface_it_cannot_read_apart_to_the_thread(inproc_buses):
+    """python-can's virtual bus has nothing to wait on apart from its read: drain_now
+    reads nothing (False) and the thread goes on handing frames over."""
+    senders, receivers = inproc_buses(1, "virtual")
+    seen = Threads()
+    reader = BusReader(receivers[0], (seen,), name="virtual reader")
+    try:
+        assert not reader.drain_now()
+        senders[0].send(_frame(0x123))
+        _wait(lambda: seen.by == [(0x123, "virtual reader")], "the thread hands it over")
+    finally:
+        reader.stop()
