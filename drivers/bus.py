@@ -10,6 +10,7 @@ busy loop.
 """
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import socket
@@ -104,6 +105,14 @@ class BusReader:
         self._errors_of = [0] * len(self.buses)  # per bus: the log says when each starts
         self._until = [-math.inf] * len(self.buses)  # per bus: see received_until
         self._listeners = [tuple(listeners), *(tuple(ls) for _, ls in more)]
+        # per bus, the listeners drain_now may call on its caller's thread (``lock_free``)
+        self._lock_free = [tuple(ls) for ls in self._listeners]
+        self._locking = [tuple(ls) for ls in self._listeners]  # the others
+        for index in range(len(self.buses)):
+            self._split(index)
+        # frames drain_now read for the locking listeners: this thread hands them over
+        self._deferred: collections.deque[tuple[int, can.Message]] = collections.deque()
+        self._deferred_ready = threading.Event()
         self._poll, self._retry = poll, retry
         # One bus is waited on as several are where the interface allows it (SocketCAN,
         # in-process), so the wait is apart from the read and drain_now can read too.
@@ -122,10 +131,18 @@ class BusReader:
         """Also feed ``listener`` (the frames of ``bus``, default the first bus)."""
         index = 0 if bus is None else self.buses.index(bus)
         self._listeners[index] = (*self._listeners[index], listener)
+        self._split(index)
+
+    def _split(self, index: int) -> None:
+        listeners = self._listeners[index]
+        self._lock_free[index] = tuple(ls for ls in listeners if getattr(ls, "lock_free", False))
+        self._locking[index] = tuple(ls for ls in listeners
+                                     if not getattr(ls, "lock_free", False))
 
     def received_until(self, bus: can.BusABC | None = None) -> float:
         """Every frame of ``bus`` (default: the first) that arrived (monotonic) before this
-        has been handed to the listeners. A reader the scheduler starved (a frozen process,
+        has been handed to the listeners (by drain_now: to the ``lock_free`` ones; the
+        others' are queued). A reader the scheduler starved (a frozen process,
         a loaded machine) lags behind its socket; a deadline judged on the cycle's clock
         alone would call heartbeats lost that arrived in time and wait unread
         (CanopenHardware judges against this). A failed interface delivers nothing: its
@@ -159,15 +176,22 @@ class BusReader:
         interface cannot be read apart from its wait (python-can's ``virtual``). A bus that
         fails here is left to the thread to report.
 
-        While drains come (within DRAIN_STANDBY) the thread stands by: it no longer wakes
-        for every burst to take the GIL from the loop, and cannot be starved while holding
-        the buses. The other listeners (SDO answers for the configuration workers) then get
-        their frames at the loop's next read, within a cycle; when the loop stops calling,
+        Only listeners that take no lock (``lock_free = True``: the hardware's, a deque
+        append) are called here: the caller is the control loop, which must never wait for
+        a lock another thread holds. The frames for the others (canopen's SDO client, NMT
+        and EMCY consumers, which notify Conditions) are queued for this reader's thread,
+        in order, and it is woken for them.
+
+        While drains come (within DRAIN_STANDBY) the thread stands by, handing over only
+        those queued frames: it no longer wakes for every burst to take the GIL from the
+        loop, and cannot be starved while holding the buses. When the loop stops calling,
         the thread reads again within DRAIN_STANDBY."""
         selector = self._selector
         if selector is None or not self._handing.acquire(blocking=False):
             return False
         self._drained_at = time.monotonic()
+        deferred, lock_free, locking = self._deferred, self._lock_free, self._locking
+        queued = False
         try:
             for i, reader in enumerate(self._readers):
                 if selector.failing(i):
@@ -177,10 +201,24 @@ class BusReader:
                     batch = reader.read(0.0)
                 except can.CanError:
                     continue  # the thread's read fails too, and reports it
-                self._hand_over(batch, i, before)
+                self._hand_over(batch, i, before, lock_free[i])
+                if locking[i]:
+                    deferred.extend((i, msg) for msg in batch)
+                    queued = queued or bool(batch)
         finally:
             self._handing.release()
+        if queued:
+            self._deferred_ready.set()
         return True
+
+    def _hand_over_deferred(self) -> None:
+        """The frames drain_now queued, to the listeners it could not call (this thread;
+        no ``_handing``: only this thread takes from the queue, in order)."""
+        self._deferred_ready.clear()
+        deferred, locking = self._deferred, self._locking
+        while deferred:
+            index, msg = deferred.popleft()
+            self._deliver(msg, locking[index], index)
 
     def _run(self) -> None:
         if self._selector is not None:
@@ -204,8 +242,10 @@ class BusReader:
         while not self._stopping.is_set():
             since = time.monotonic()
             if since - self._drained_at < DRAIN_STANDBY:  # the loop reads: stand by
-                self._stopping.wait(DRAIN_STANDBY)
+                self._deferred_ready.wait(DRAIN_STANDBY)
+                self._hand_over_deferred()
                 continue
+            self._hand_over_deferred()  # (before anything read later)
             ready = selector.wait(self._poll)
             with self._handing:
                 if time.monotonic() - self._drained_at < DRAIN_STANDBY:
@@ -226,22 +266,29 @@ class BusReader:
                         continue
                     self._hand_over(batch, i, before)
 
-    def _hand_over(self, batch: list[can.Message], index: int, before: float) -> None:
-        """``batch`` read from bus ``index`` by a read that began at ``before``."""
-        listeners = self._listeners[index]
+    def _hand_over(self, batch: list[can.Message], index: int, before: float,
+                   listeners: Sequence[can.Listener] | None = None) -> None:
+        """``batch`` read from bus ``index`` by a read that began at ``before``, to
+        ``listeners`` (default: all of the bus's)."""
+        if listeners is None:
+            listeners = self._listeners[index]
         for msg in batch:
-            for listener in listeners:
-                try:
-                    listener.on_message_received(msg)
-                except Exception as exc:  # noqa: BLE001 - one listener must not end reading
-                    self.listener_errors += 1
-                    self._report(exc, (listener,), index)
+            self._deliver(msg, listeners, index)
         if len(batch) < READ_LIMIT:  # read until empty: all that arrived before is handed over
             until = before
         else:  # a full batch (a backlog): frames come in order, so up to the last one's
             until = to_monotonic(clock_offset(), batch[-1].timestamp, time.monotonic())
         if until > self._until[index]:  # (a drain_now may have read past the thread's wait)
             self._until[index] = until
+
+    def _deliver(self, msg: can.Message, listeners: Sequence[can.Listener],
+                 index: int) -> None:
+        for listener in listeners:
+            try:
+                listener.on_message_received(msg)
+            except Exception as exc:  # noqa: BLE001 - one listener must not end reading
+                self.listener_errors += 1
+                self._report(exc, (listener,), index)
 
     def _bus_failed(self, exc: can.CanError, index: int, before: float) -> None:
         self.bus_errors += 1

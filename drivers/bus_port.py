@@ -29,13 +29,18 @@ CAN_ERR_BUSOFF = 0x40
 
 
 class _Receiver(can.Listener):
-    """Runs on the bus reader thread: filter by COB-ID, append. Nothing else.
+    """Runs on the bus reader thread, or the loop's (drain_now): filter by COB-ID, append.
+    Nothing else.
 
     Frames keep their arrival stamp (kernel or python-can, wall clock); the cycle converts
     it to the monotonic clock once per cycle, so a reader that lags does not make frames
     late. Only 11-bit data frames are CANopen (0x181 as a 29-bit id is another frame); the
     e-stop COB-ID is taken in any form an 11-bit frame has, data or remote (RTR).
     """
+
+    #: takes no lock (deque appends): the control loop's own read may call it
+    #: (BusReader.drain_now)
+    lock_free = True
 
     def __init__(self, cob_ids: set[int], sink: collections.deque[can.Message],
                  errors: collections.deque[can.Message]) -> None:

@@ -196,17 +196,25 @@ class Threads(can.Listener):
         self.by.append((msg.arbitration_id, threading.current_thread().name))
 
 
+class LockFreeThreads(Threads):
+    lock_free = True  # as the hardware's receiver: drain_now may call it
+
+
 @pytest.mark.parametrize("buses", [1, 2])
 def test_drain_now_hands_over_on_the_callers_thread_and_the_thread_stands_by(
         inproc_buses, buses):
     """The control loop reads its buses itself at the start of each cycle: what waits is
-    handed over, in order, on its thread, before drain_now returns; while drains come the
-    reader thread stands by (frames wait for the next drain, none is handed over twice);
-    once they stop, the thread reads again within DRAIN_STANDBY."""
+    handed, in order, to the listeners that take no lock, on its thread, before drain_now
+    returns; the other listeners (canopen's, which notify Conditions: the loop must not
+    wait for a lock) get the same frames, in order, on the reader's thread. While drains
+    come the reader thread reads nothing itself (no frame is handed over twice); once they
+    stop, it reads again within DRAIN_STANDBY."""
     senders, receivers = inproc_buses(buses)
-    seen = [Threads() for _ in receivers]
-    reader = BusReader(receivers[0], (seen[0],),
-                       more=[(b, (s,)) for b, s in zip(receivers[1:], seen[1:])],
+    quick = [LockFreeThreads() for _ in receivers]
+    other = [Threads() for _ in receivers]
+    reader = BusReader(receivers[0], (quick[0], other[0]),
+                       more=[(b, (q, o)) for b, q, o in zip(receivers[1:], quick[1:],
+                                                              other[1:])],
                        name="drained")
     try:
         assert reader.drain_now()
@@ -215,15 +223,19 @@ def test_drain_now_hands_over_on_the_callers_thread_and_the_thread_stands_by(
                 sender.send(_frame(0x100 * (k + 1) + n))
             sent = time.monotonic()
             if reader.drain_now():  # (the thread's meanwhile only after a long stall here)
-                assert all(s.by[-1][0] == 0x100 * (k + 1) + n for k, s in enumerate(seen))
+                assert all(q.by[-1][0] == 0x100 * (k + 1) + n for k, q in enumerate(quick))
                 assert reader.received_until(receivers[-1]) >= sent
             time.sleep(DRAIN_STANDBY / 10)
-        for k, s in enumerate(seen):
-            assert [cob for cob, _ in s.by] == [0x100 * (k + 1) + n for n in range(10)]
-            assert sum(name == "MainThread" for _, name in s.by) >= 5
+        sent_ids = [[0x100 * (k + 1) + n for n in range(10)] for k in range(buses)]
+        _wait(lambda: [[cob for cob, _ in o.by] for o in other] == sent_ids,
+              "the locking listeners get every frame, in order")
+        for q, o in zip(quick, other):
+            assert [cob for cob, _ in q.by] == [cob for cob, _ in o.by]
+            assert sum(name == "MainThread" for _, name in q.by) >= 5
+            assert all(name == "drained" for _, name in o.by)
         for sender in senders:  # no more drains: the thread reads them
             sender.send(_frame(0x7FF))
-        _wait(lambda: all(s.by and s.by[-1] == (0x7FF, "drained") for s in seen),
+        _wait(lambda: all(q.by and q.by[-1] == (0x7FF, "drained") for q in quick),
               "the thread reads again")
     finally:
         reader.stop()

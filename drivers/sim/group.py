@@ -55,9 +55,8 @@ supervision where lockstep holds (benchmarks/README.md).
 
 Buses one thread cannot wait on together (python-can's ``virtual`` hands frames over a
 queue per bus) get a receive thread per segment, as a lone segment has (no lockstep). A
-bus whose
-interface fails is counted in its own segment's ``bus_errors`` and read again every
-``RX_IDLE`` seconds (BusSelector.failed) while the others are served.
+bus whose interface fails is counted in its own segment's ``bus_errors`` and read again
+every ``RX_IDLE`` seconds (BusSelector.failed) while the others are served.
 """
 from __future__ import annotations
 
@@ -211,8 +210,9 @@ class SegmentGroup:
             now = SimulatedSegment.clock()
             for segment in self.segments:  # their timer threads stand by meanwhile
                 segment.run_due_timers(now)
-        except Exception as exc:  # noqa: BLE001 - a simulator bug must not stop the loop
-            self._record(exc)
+        except Exception as exc:  # noqa: BLE001 - a simulator bug must not stop the loop:
+            self._record(exc)  # check() says so, and the receive thread takes over
+            self.lockstep = False
             return False
         finally:
             self._pass_lock.release()
@@ -260,7 +260,7 @@ class SegmentGroup:
         # frames came meanwhile joins the pass if its lock is free. No other holder takes
         # two locks, so nobody waits in a cycle.
         held = []
-        busy = set()  # ready, but a timer holds the segment (wait_locks False): next pass
+        busy = set()  # ready, but another thread holds its lock (wait_locks False): later
         for i in list(ready):
             if wait_locks:
                 locks[i].acquire()
