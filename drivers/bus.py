@@ -111,7 +111,8 @@ class BusReader:
         for index in range(len(self.buses)):
             self._split(index)
         # frames drain_now read for the locking listeners: this thread hands them over
-        self._deferred: collections.deque[tuple[int, can.Message]] = collections.deque()
+        self._deferred: collections.deque[tuple[int, can.Listener, can.Message]] = \
+            collections.deque()
         self._deferred_ready = threading.Event()
         self._poll, self._retry = poll, retry
         # One bus is waited on as several are where the interface allows it (SocketCAN,
@@ -178,47 +179,58 @@ class BusReader:
 
         Only listeners that take no lock (``lock_free = True``: the hardware's, a deque
         append) are called here: the caller is the control loop, which must never wait for
-        a lock another thread holds. The frames for the others (canopen's SDO client, NMT
-        and EMCY consumers, which notify Conditions) are queued for this reader's thread,
-        in order, and it is woken for them.
+        a lock another thread holds. The frames the others want (canopen's SDO client, NMT
+        and EMCY consumers, which notify Conditions; a listener's ``wants(msg)`` says, or
+        every frame) are queued for this reader's thread, in order, and it is woken for
+        them: during the cycle's steady traffic, none.
 
-        While drains come (within DRAIN_STANDBY) the thread stands by, handing over only
-        those queued frames: it no longer wakes for every burst to take the GIL from the
-        loop, and cannot be starved while holding the buses. When the loop stops calling,
-        the thread reads again within DRAIN_STANDBY."""
+        While drains come (within DRAIN_STANDBY) and every bus reads, the thread stands by,
+        handing over only those queued frames: it no longer wakes for every burst to take
+        the GIL from the loop, and cannot be starved while holding the buses. A bus that
+        fails or waits for its retry ends the stand-by: the thread reads, reports the
+        failure (its listeners' ``on_error``, ``bus_errors``, deadlines pass) and retries,
+        as without drains. When the loop stops calling, the thread reads again within
+        DRAIN_STANDBY."""
         selector = self._selector
-        if selector is None or not self._handing.acquire(blocking=False):
+        if selector is None or self._stopping.is_set() \
+                or not self._handing.acquire(blocking=False):
             return False
-        self._drained_at = time.monotonic()
         deferred, lock_free, locking = self._deferred, self._lock_free, self._locking
-        queued = False
+        queued = trouble = False
         try:
             for i, reader in enumerate(self._readers):
                 if selector.failing(i):
+                    trouble = True
                     continue
                 before = time.monotonic()
                 try:
                     batch = reader.read(0.0)
                 except can.CanError:
-                    continue  # the thread's read fails too, and reports it
+                    trouble = True  # the thread reads it again and reports
+                    continue
                 self._hand_over(batch, i, before, lock_free[i])
-                if locking[i]:
-                    deferred.extend((i, msg) for msg in batch)
-                    queued = queued or bool(batch)
+                for listener in locking[i]:
+                    wants = getattr(listener, "wants", None)
+                    for msg in batch:
+                        if wants is None or wants(msg):
+                            deferred.append((i, listener, msg))
+                            queued = True
         finally:
             self._handing.release()
-        if queued:
+        if not trouble:
+            self._drained_at = time.monotonic()
+        if queued or trouble:
             self._deferred_ready.set()
         return True
 
     def _hand_over_deferred(self) -> None:
-        """The frames drain_now queued, to the listeners it could not call (this thread;
-        no ``_handing``: only this thread takes from the queue, in order)."""
+        """The frames drain_now queued, to the listeners it could not call, in order (this
+        thread, ``_handing`` held: nothing it reads itself overtakes them)."""
         self._deferred_ready.clear()
-        deferred, locking = self._deferred, self._locking
+        deferred = self._deferred
         while deferred:
-            index, msg = deferred.popleft()
-            self._deliver(msg, locking[index], index)
+            index, listener, msg = deferred.popleft()
+            self._deliver(msg, (listener,), index)
 
     def _run(self) -> None:
         if self._selector is not None:
@@ -243,11 +255,12 @@ class BusReader:
             since = time.monotonic()
             if since - self._drained_at < DRAIN_STANDBY:  # the loop reads: stand by
                 self._deferred_ready.wait(DRAIN_STANDBY)
-                self._hand_over_deferred()
+                with self._handing:
+                    self._hand_over_deferred()
                 continue
-            self._hand_over_deferred()  # (before anything read later)
             ready = selector.wait(self._poll)
             with self._handing:
+                self._hand_over_deferred()  # what drains queued: before anything newer
                 if time.monotonic() - self._drained_at < DRAIN_STANDBY:
                     continue  # a drain came during the wait: the loop reads these
                 for i, reader in enumerate(readers):
@@ -345,14 +358,17 @@ class CanopenFrames(can.Listener):
         self.network = network
         self._subscribers = network.subscribers  # canopen fills this dict in place
 
-    def on_message_received(self, msg: can.Message) -> None:
+    def wants(self, msg: can.Message) -> bool:
+        """Whether a service takes ``msg`` (no lock: BusReader.drain_now asks on the
+        control loop's thread, and queues for the reader thread only what is wanted)."""
         cob_id = msg.arbitration_id
-        if cob_id not in self._subscribers or msg.is_extended_id or msg.is_remote_frame \
-                or msg.is_error_frame:
-            return
-        if cob_id == 0 and msg.dlc != 2:
-            return
-        self.network.notify(cob_id, msg.data, msg.timestamp)
+        return cob_id in self._subscribers and not (
+            msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame
+            or (cob_id == 0 and msg.dlc != 2))
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self.wants(msg):
+            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
 
 class CanopenBus:

@@ -217,7 +217,7 @@ def test_drain_now_hands_over_on_the_callers_thread_and_the_thread_stands_by(
                                                               other[1:])],
                        name="drained")
     try:
-        assert reader.drain_now()
+        _wait(reader.drain_now, "a drain (not while the thread hands over)")
         for n in range(10):
             for k, sender in enumerate(senders):
                 sender.send(_frame(0x100 * (k + 1) + n))
@@ -251,5 +251,59 @@ def test_drain_now_leaves_an_interface_it_cannot_read_apart_to_the_thread(inproc
         assert not reader.drain_now()
         senders[0].send(_frame(0x123))
         _wait(lambda: seen.by == [(0x123, "virtual reader")], "the thread hands it over")
+    finally:
+        reader.stop()
+
+
+def test_drained_frames_reach_the_other_listeners_in_order_at_any_drain_pace(inproc_buses):
+    """A loop slower than DRAIN_STANDBY drains between the thread's own reads: frames the
+    drain queued for the listeners that take locks come to them before any frame the
+    thread reads later (canopen's SDO client must see its answers in order)."""
+    senders, receivers = inproc_buses(1)
+    quick, other = LockFreeThreads(), Threads()
+    reader = BusReader(receivers[0], (quick, other), name="slow loop")
+    try:
+        for n in range(40):
+            senders[0].send(_frame(0x100 + n))
+            if n % 3 == 0:
+                reader.drain_now()
+                time.sleep(1.5 * DRAIN_STANDBY)  # the thread reads again meanwhile
+            else:
+                time.sleep(0.001)
+        _wait(lambda: len(other.by) == 40, "every frame to the other listener")
+        assert [cob for cob, _ in other.by] == [0x100 + n for n in range(40)]
+        assert [cob for cob, _ in quick.by] == [0x100 + n for n in range(40)]
+    finally:
+        reader.stop()
+
+
+def test_a_bus_that_fails_while_the_loop_drains_is_reported_and_the_others_served(
+        inproc_buses):
+    """Draining must not hide a failed bus: the thread stops standing by, reads it, tells
+    its listeners (on_error, bus_errors) and moves its received_until on, so the
+    hardware's heartbeat deadlines on it still pass; the other bus is still drained."""
+    senders, receivers = inproc_buses(2)
+    seen = [Seen(), LockFreeThreads()]
+    seen[0].lock_free = True  # type: ignore[attr-defined]  # drained on this thread
+    reader = BusReader(receivers[0], (seen[0],), more=[(receivers[1], (seen[1],))],
+                       retry=RETRY, name="one fails")
+    try:
+        _wait(reader.drain_now, "a first drain")
+        receivers[0].shutdown()  # its interface is gone: reads raise
+        failed_at = time.monotonic()
+        end = failed_at + WAIT
+        n = 0
+        while time.monotonic() < end and not (seen[0].errors and reader.bus_errors and
+                                               reader.received_until(receivers[0])
+                                               > failed_at):
+            senders[1].send(_frame(0x200 + n % 100))
+            n += 1
+            reader.drain_now()
+            time.sleep(0.001)
+        assert seen[0].errors and reader.bus_errors > 0
+        assert reader.received_until(receivers[0]) > failed_at
+        before = len(seen[1].by)
+        senders[1].send(_frame(0x7FF))
+        _wait(lambda: reader.drain_now() and len(seen[1].by) > before, "bus 1 served")
     finally:
         reader.stop()

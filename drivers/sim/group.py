@@ -173,8 +173,10 @@ class SegmentGroup:
                         SimulatedSegment.clock() - self._lockstep_at < LOCKSTEP_GRACE:
                     self._stopped.wait(LOCKSTEP_GRACE)  # the loop steps us: stand by
                     continue
-                with self._pass_lock:
-                    self.pass_once(RX_IDLE)
+                with self._pass_lock:  # (a lockstep group's pass never waits for a lock)
+                    whole = self.pass_once(RX_IDLE, wait_locks=not self.lockstep)
+                if not whole:  # a segment's lock was taken: its frames wait a little
+                    self._stopped.wait(JOIN_WAIT)
         except Exception as exc:  # noqa: BLE001 - a bug here: every segment's check says so
             self._record(exc)
             raise
@@ -234,13 +236,13 @@ class SegmentGroup:
             segment.errors.append(exc)
 
     def pass_once(self, timeout: float, *, wait_locks: bool = True,
-                  join_wait: float = JOIN_WAIT) -> None:
+                  join_wait: float = JOIN_WAIT) -> bool:
         """One pass of the receive thread: wait up to ``timeout`` s (less while a SYNC waits
         for the others') for frames on any bus, hand them to their segments, step the
         joints of those whose SYNC came. Public for tests and benchmarks that run passes on
         their own thread (``start(thread=False)``). ``wait_locks`` False: a segment whose
-        lock is taken is left for the next pass; ``join_wait``: how long a SYNC waits for
-        the other buses' (JOIN_WAIT)."""
+        lock is taken is left for the next pass (then False); ``join_wait``: how long a
+        SYNC waits for the other buses' (JOIN_WAIT)."""
         selector = self._selector
         assert selector is not None  # started only with a selector
         segments, locks, readers = self.segments, self._locks, self._readers
@@ -283,7 +285,7 @@ class SegmentGroup:
                         selector.failed(i)
                 elif i not in busy and not selector.failing(i) and not segment.backlog:
                     segment.nothing_arrived(since)  # (a backlog: not everything handled)
-            self._step_deferred(held, clock(), join_wait)
+            self._step_deferred(held, clock(), join_wait, wait_locks)
             # behind by more than a cycle: the next cycle of every bus read, one joined
             # step again, until the backlogs are gone, the SYNCs part, or CATCH_UP_ROUNDS
             # (then the next pass, at once, after the locks and wake-ups were given back)
@@ -294,15 +296,16 @@ class SegmentGroup:
                 for i in ready:
                     if not segments[i].pump(readers[i], 0.0):
                         selector.failed(i)
-                self._step_deferred(held, clock(), join_wait)
+                self._step_deferred(held, clock(), join_wait, wait_locks)
         finally:
             for _, release in self._holds:
                 release()
             for lock in reversed(held):
                 lock.release()
+        return not busy
 
     def _step_deferred(self, held: list[threading.RLock], now: float,
-                       join_wait: float) -> None:
+                       join_wait: float, wait_locks: bool = True) -> None:
         """Step the joints of every segment whose SYNC came, in one call; each then samples
         and answers its SYNC (the locks of the segments read in this pass ``held``).
 
@@ -337,9 +340,16 @@ class SegmentGroup:
                     for lock in reversed(others):
                         lock.release()
                 return
-        for segment in pending:
-            with segment.lock:  # one read in an earlier pass is not held now
-                self._finish(segment, segment.finish_deferred)  # alone: the same cost
+        for segment in pending:  # alone: the same cost
+            lock = segment.lock  # one read in an earlier pass is not held now
+            if segment.lock in held or wait_locks:
+                with lock:
+                    self._finish(segment, segment.finish_deferred)
+            elif lock.acquire(blocking=False):  # (taken: its next frame or timer steps it)
+                try:
+                    self._finish(segment, segment.finish_deferred)
+                finally:
+                    lock.release()
 
     def _take_other_locks(self, held: list[threading.RLock]) -> list[threading.RLock] | None:
         """The locks of the segments not ``held``, taken if every one is free now; None

@@ -96,6 +96,10 @@ class _Timers:
 
     def run_due(self, now: float) -> None:
         """Run the events due by ``now`` on the caller's thread, in order."""
+        if now - self._driven_at >= RX_IDLE:  # the thread may be in a long wait: from
+            with self._cond:  # now on it stands by in RX_IDLE turns, and resumes in time
+                self._driven_at = now
+                self._cond.notify()
         self._driven_at = now
         heap = self._heap
         while heap and heap[0][0] <= now:  # (a look without the lock: popped under it)
