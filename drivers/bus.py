@@ -16,7 +16,7 @@ import math
 import socket
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import can
@@ -107,7 +107,9 @@ class BusReader:
         self._listeners = [tuple(listeners), *(tuple(ls) for _, ls in more)]
         # per bus, the listeners drain_now may call on its caller's thread (``lock_free``)
         self._lock_free = [tuple(ls) for ls in self._listeners]
-        self._locking = [tuple(ls) for ls in self._listeners]  # the others
+        # the others, each with its ``wants(msg)`` if it has one (looked up once, here)
+        self._locking: list[tuple[tuple[can.Listener, Callable[[can.Message], bool] | None],
+                                  ...]] = [() for _ in self._listeners]
         for index in range(len(self.buses)):
             self._split(index)
         # frames drain_now read for the locking listeners: this thread hands them over
@@ -137,7 +139,7 @@ class BusReader:
     def _split(self, index: int) -> None:
         listeners = self._listeners[index]
         self._lock_free[index] = tuple(ls for ls in listeners if getattr(ls, "lock_free", False))
-        self._locking[index] = tuple(ls for ls in listeners
+        self._locking[index] = tuple((ls, getattr(ls, "wants", None)) for ls in listeners
                                      if not getattr(ls, "lock_free", False))
 
     def received_until(self, bus: can.BusABC | None = None) -> float:
@@ -209,8 +211,7 @@ class BusReader:
                     trouble = True  # the thread reads it again and reports
                     continue
                 self._hand_over(batch, i, before, lock_free[i])
-                for listener in locking[i]:
-                    wants = getattr(listener, "wants", None)
+                for listener, wants in locking[i]:
                     for msg in batch:
                         if wants is None or wants(msg):
                             deferred.append((i, listener, msg))
