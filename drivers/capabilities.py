@@ -2,15 +2,16 @@
 bring-up and the simulator all use.
 
 Vendor files differ from the generic drive rocoma-can ships: 0x6502 lists only some modes,
-0x6007, 0x608F, 0x6077 may be missing, some PDO mappings are fixed (read-only mapping
-objects), COB-IDs are written ``$NODEID+0x180``, and a DCF carries the commissioned values
-(``ParameterValue``) over the file's defaults. canopen's importer parses the file; this
-module turns it into facts with the names the rest of the driver asks about, so that a
-missing object is a sentence in check-config, not a KeyError at bring-up.
+or is listed without a value, or is missing; 0x6007, 0x608F, 0x6077 may be missing; some
+PDO mappings are fixed (read-only mapping objects); COB-IDs are written ``$NODEID+0x180``;
+a DCF carries the commissioned values (``ParameterValue``) over the file's defaults.
+device_file.py reads the file; this module turns it into facts with the names the rest of
+the driver asks about, so that a missing object is a sentence in check-config, not a
+KeyError at bring-up. An object the file lists without a value is unknown, never 0: the
+drive is asked at start-up (bring-up reads 0x1000, 0x6502 and the factor group first).
 """
 from __future__ import annotations
 
-import configparser
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,6 +21,7 @@ from canopen import objectdictionary
 from rocoma_can import eds as shipped_eds
 
 from . import cia301, cia402
+from .device_file import DeviceFileError, read_device_file
 
 Key = tuple[int, int]
 
@@ -77,8 +79,15 @@ class DriveCapabilities:
     supported_modes: int | None    # 0x6502, None when the file has no such object
     rpdos: tuple[PdoChannel, ...]
     tpdos: tuple[PdoChannel, ...]
-    device_type: int | None = None           # 0x1000
+    device_type: int | None = None           # 0x1000 (None: not in the file, or no value)
     commissioned_node_id: int | None = None  # a DCF's [DeviceComissioning] NodeID
+    #: objects the file lists without a value: the drive's own value is read at start-up
+    unknown: frozenset[Key] = frozenset()
+    #: 0x6502 has a value in the file; else ``supported_modes`` comes from the target
+    #: objects the file has (``modes_from_targets``) and the drive is asked at start-up
+    modes_stated: bool = True
+    #: what reading the file had to assume (encoding, duplicate keys, re-derived COB-IDs)
+    file_notes: tuple[str, ...] = ()
 
     # ------------------------------------------------------------------ objects
     def variable(self, index: int, subindex: int = 0) -> objectdictionary.ODVariable | None:
@@ -104,10 +113,44 @@ class DriveCapabilities:
             return None
         return var.value if var.value is not None else var.default
 
+    def carries(self, index: int, subindex: int = 0) -> bool:
+        """An RPDO can bring this object to the drive every cycle: a fixed RPDO maps it, or
+        the file marks it PDO-mappable and some RPDO can be remapped."""
+        if any(not ch.mapping_writable and ch.maps(index, subindex) for ch in self.rpdos):
+            return True
+        var = self.variable(index, subindex)
+        return var is not None and bool(var.pdo_mappable) \
+            and any(ch.mapping_writable and ch.max_objects > 0 for ch in self.rpdos)
+
+    def why_not_carried(self, index: int, subindex: int = 0) -> str:
+        """Why ``carries`` is False, as check-config says it."""
+        var = self.variable(index, subindex)
+        if var is None:
+            return f"its file has no 0x{index:04X}:{subindex}"
+        if not var.pdo_mappable:
+            return (f"its file does not let a PDO carry 0x{index:04X}:{subindex} "
+                    "(PDOMapping=0)")
+        fixed = "; ".join(f"{ch.name} = " + (", ".join(
+            f"0x{e >> 16:04X}:{(e >> 8) & 0xFF}" for e in ch.mapping) or "nothing")
+            for ch in self.rpdos)
+        return (f"its RPDO mappings are fixed and none carries 0x{index:04X}:{subindex}; "
+                f"fixed: {fixed or 'no RPDOs'}")
+
     # ------------------------------------------------------------------ modes
     def supports(self, mode: int) -> bool:
-        """The mode is listed in 0x6502; a file without 0x6502 is taken at its word (True)."""
+        """The mode is listed in 0x6502 (or, where the file gives 0x6502 no value, implied
+        by its target objects); a file with neither is taken at its word (True)."""
         return self.supported_modes is None or bool(self.supported_modes & mode_bit(mode))
+
+    def target_of(self, mode: int) -> tuple[int, int] | None:
+        """The object a mode's cyclic target goes to (None: a mode without one, homing)."""
+        return TARGET_OF_MODE.get(mode)
+
+    def usable(self, mode: int) -> bool:
+        """Supported, and its target can travel in an RPDO (a mode whose target cannot is
+        no use to a cyclic master)."""
+        target = self.target_of(mode)
+        return self.supports(mode) and (target is None or self.carries(*target))
 
     @property
     def mode_names(self) -> list[str]:
@@ -115,6 +158,12 @@ class DriveCapabilities:
             return []
         return [name for mode, name in MODE_NAMES.items()
                 if self.supported_modes & mode_bit(mode)]
+
+    def read_from_drive(self) -> list[str]:
+        """The objects rocoma-can depends on that the file leaves without a value: read from
+        the drive at start-up, before anything depends on them."""
+        return [f"0x{index:04X} ({name})" for index, name in _ASKED
+                if any(k[0] == index for k in self.unknown)]
 
     # ------------------------------------------------------------------ supervision
     @property
@@ -162,7 +211,20 @@ class DriveCapabilities:
         """Lines for check-config: what the file offers and what is missing."""
         modes = ", ".join(self.mode_names) if self.supported_modes is not None \
             else "no 0x6502 (not stated)"
-        lines = [f"modes: {modes}"]
+        if not self.modes_stated and self.supported_modes is not None:
+            modes += " (from its target objects; 0x6502 read from the drive)"
+        lines = [f"file: {note}" for note in self.file_notes]
+        lines.append(f"modes: {modes}")
+        unusable = [f"{MODE_NAMES[m]} (0x{t[0]:04X} not PDO-mappable)"
+                    for m, t in TARGET_OF_MODE.items()
+                    if self.supports(m) and self.supported_modes is not None
+                    and not self.usable(m)]
+        if unusable:
+            lines.append("modes ruled out: " + ", ".join(unusable))
+        asked = self.read_from_drive()
+        if asked:
+            lines.append("read from the drive at start-up (no value in the file): "
+                         + ", ".join(asked))
         for what, channels in (("RPDOs", self.rpdos), ("TPDOs", self.tpdos)):
             parts = []
             for ch in channels:
@@ -190,6 +252,35 @@ OPTIONAL_OBJECTS = (
     (cia402.SUPPORTED_DRIVE_MODES, "supported modes"),
 )
 _SUB1 = {cia402.POSITION_ENCODER_RESOLUTION, cia402.GEAR_RATIO}
+#: Objects bring-up reads from the drive when the file gives them no value.
+_ASKED = (
+    (cia301.DEVICE_TYPE, "device type"),
+    (cia402.SUPPORTED_DRIVE_MODES, "supported modes"),
+    (cia402.POSITION_ENCODER_RESOLUTION, "encoder resolution"),
+    (cia402.GEAR_RATIO, "gear ratio"),
+    (cia402.RATED_TORQUE, "rated torque"),
+)
+#: Where each mode's cyclic target goes (0x6502 bit order: PP 1 ... CST 10).
+TARGET_OF_MODE: dict[int, tuple[int, int]] = {
+    1: (cia402.TARGET_POSITION, 0), 3: (cia402.TARGET_VELOCITY, 0),
+    7: (cia402.INTERPOLATION_DATA, 1), 8: (cia402.TARGET_POSITION, 0),
+    9: (cia402.TARGET_VELOCITY, 0), 10: (cia402.TARGET_TORQUE, 0)}
+#: The modes a file's target objects imply where it states no 0x6502 value.
+_MODES_OF_TARGET = (
+    (cia402.TARGET_POSITION, 0, (1, 8)), (cia402.TARGET_VELOCITY, 0, (3, 9)),
+    (cia402.TARGET_TORQUE, 0, (4, 10)), (cia402.INTERPOLATION_DATA, 1, (7,)),
+    (cia402.HOMING_METHOD, 0, (6,)))
+
+
+def modes_from_targets(od: canopen.ObjectDictionary) -> int:
+    """0x6502 as the file's target objects imply it: 0x607A -> CSP and PP, 0x60FF -> CSV
+    and PV, 0x6071 -> CST and TQ, 0x60C1 -> IP, 0x6098 -> homing."""
+    bits = 0
+    for index, subindex, modes in _MODES_OF_TARGET:
+        if od.get_variable(index, subindex) is not None:
+            for mode in modes:
+                bits |= mode_bit(mode)
+    return bits
 
 
 def _channels(od: canopen.ObjectDictionary, tx: bool, node_id: int) -> tuple[PdoChannel, ...]:
@@ -234,28 +325,26 @@ def read_capabilities(path: str | None, node_id: int) -> DriveCapabilities:
     traceback)."""
     source = path or str(shipped_eds.path(shipped_eds.CIA402_DRIVE))
     try:
-        od = canopen.import_od(source, node_id)
-    except Exception as exc:  # configparser, UnicodeDecodeError, ...: not an EDS
+        device = read_device_file(source).for_node(node_id)
+        od = device.object_dictionary(node_id)
+    except DeviceFileError as exc:
+        raise CapabilityError(str(exc)) from None
+    except Exception as exc:  # canopen's importer on what the reader let through
         raise CapabilityError(f"{source} is not a readable EDS/DCF file "
                               f"({type(exc).__name__}: {str(exc)[:200]})") from None
     modes = od.get(cia402.SUPPORTED_DRIVE_MODES)
     supported = _value(modes) if isinstance(modes, objectdictionary.ODVariable) else None
-    device = od.get(cia301.DEVICE_TYPE)
+    stated = isinstance(supported, int)
+    if not stated:
+        supported = modes_from_targets(od) or None
+    device_type = od.get(cia301.DEVICE_TYPE)
     return DriveCapabilities(
         source=source, node_id=node_id, object_dictionary=od,
-        supported_modes=supported if isinstance(supported, int) else None,
+        supported_modes=supported,
         rpdos=_channels(od, False, node_id), tpdos=_channels(od, True, node_id),
-        device_type=_value(device) if isinstance(device, objectdictionary.ODVariable) else None,
-        commissioned_node_id=_commissioned_node_id(source))
-
-
-def _commissioned_node_id(source: str) -> int | None:
-    """The node id a DCF was commissioned for ([DeviceComissioning] NodeID), or None."""
-    parser = configparser.ConfigParser(interpolation=None, strict=False)
-    try:
-        parser.read(source, encoding="utf-8")
-        value = parser.get("DeviceComissioning", "NodeID", fallback=None)
-        return int(value, 0) if value else None
-    except (configparser.Error, ValueError, UnicodeDecodeError):
-        return None
+        device_type=_value(device_type) if isinstance(device_type, objectdictionary.ODVariable)
+        else None,
+        commissioned_node_id=device.commissioned_node_id,
+        unknown=frozenset(device.unknown), modes_stated=stated,
+        file_notes=tuple(device.notes))
 

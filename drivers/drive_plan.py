@@ -13,7 +13,13 @@ import dataclasses
 from dataclasses import dataclass
 
 from . import cia301, cia402
-from .capabilities import CapabilityError, DriveCapabilities, read_capabilities
+from .capabilities import (
+    MODE_NAMES,
+    TARGET_OF_MODE,
+    CapabilityError,
+    DriveCapabilities,
+    read_capabilities,
+)
 from .config import FEEDBACK, DriveConfig
 from .modes import DriveMode
 from .pdo_layout import ENTRY_OF_FEEDBACK, DriveLayout, Pdo, check_against_od, layout_for
@@ -54,21 +60,25 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
     except CapabilityError as exc:
         raise ValueError(f"{where}: {exc}") from None
     problems: list[str] = []
-    notes: list[str] = []
+    notes: list[str] = list(caps.file_notes)
     commissioned = caps.commissioned_node_id
     if commissioned is not None and commissioned != drive.node_id:
-        problems.append(f"node_id {drive.node_id}, but {caps.source} is the DCF of node "
-                        f"{commissioned}")
+        notes.append(f"a DCF commissioned for node {commissioned}, used for node "
+                     f"{drive.node_id}: its values are taken, its node's COB-IDs are not")
     if caps.device_type is not None and caps.device_type & 0xFFFF != 402:
         problems.append(f"{caps.source} is not a CiA 402 drive's (0x1000 = "
                         f"0x{caps.device_type:08X})")
     if not caps.writable(cia301.PRODUCER_HEARTBEAT_TIME):
         problems.append(f"{caps.source} has no writable heartbeat producer (0x1017): "
                         "rocoma-can supervises every drive by its heartbeat")
-    for mode in drive.modes:
-        if not caps.supports(int(mode)):
-            problems.append(f"mode {mode.name} is not supported: its 0x6502 = "
-                            f"0x{caps.supported_modes:X} lists {', '.join(caps.mode_names)}")
+    problems += _mode_problems(drive, caps)
+    if len(drive.modes) > 1 and not caps.carries(cia402.MODES_OF_OPERATION):
+        problems.append(f"0x6060 (modes of operation) is not PDO-mappable in {caps.source}, "
+                        "so the mode is set once by SDO at start-up and cannot change in the "
+                        f"cycle: configure one mode, not {[m.name for m in drive.modes]}")
+    elif not caps.carries(cia402.MODES_OF_OPERATION):
+        notes.append(f"0x6060 is not PDO-mappable: mode {drive.modes[0].name} is set by SDO "
+                     "at start-up, before enabling")
     if DriveMode.IP in drive.modes and not caps.writable(cia402.INTERPOLATION_PERIOD, 1):
         notes.append("IP without a writable 0x60C2: the drive interpolates over its own "
                      "period, which must equal the loop's")
@@ -109,8 +119,59 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
                      "switches its power stage off is its vendor's choice")
     if problems:
         raise ValueError(f"{where}: " + "; ".join(problems))
-    resolved = dataclasses.replace(drive, feedback=feedback)
-    layout = layout_for(resolved, caps)
+    resolved, layout = _fit_feedback(drive, feedback, caps, notes)
     check_against_od(layout, caps.object_dictionary, drive.name)
     return DrivePlan(resolved, caps, layout, tuple(notes))
+
+
+def _mode_problems(drive: DriveConfig, caps: DriveCapabilities) -> list[str]:
+    """Each configured mode must be one the drive has (0x6502, or its target objects where
+    the file gives 0x6502 no value) and whose target an RPDO can carry."""
+    problems = []
+    usable = [MODE_NAMES[m] for m in TARGET_OF_MODE if caps.usable(m)]
+    for mode in drive.modes:
+        if not caps.supports(int(mode)):
+            source = (f"its 0x6502 = 0x{caps.supported_modes:X}" if caps.modes_stated
+                      else "its target objects (0x6502 has no value in the file)")
+            problems.append(f"mode {mode.name} is not supported: {source} lists "
+                            f"{', '.join(caps.mode_names) or 'none'}")
+        elif not caps.usable(int(mode)):
+            index, sub = TARGET_OF_MODE[int(mode)]
+            problems.append(f"mode {mode.name} needs its target 0x{index:04X}:{sub} in an "
+                            f"RPDO, but {caps.why_not_carried(index, sub)}; modes it can "
+                            f"run: {', '.join(usable) or 'none'}")
+    return problems
+
+
+def _fit_feedback(drive: DriveConfig, feedback: tuple[str, ...], caps: DriveCapabilities,
+                  notes: list[str]) -> tuple[DriveConfig, DriveLayout]:
+    """The layout for the drive's feedback; where the config leaves feedback to the file and
+    its TPDOs cannot carry all of it, the least needed goes first (torque, then velocity:
+    the shipped controllers need position and velocity), said in a note. A controller that
+    needs what was left out is refused when the controllers are loaded."""
+    options = [feedback] if drive.feedback is not None else \
+        [feedback[:k] for k in range(len(feedback), 0, -1)]
+    for k, option in enumerate(options):
+        resolved = dataclasses.replace(drive, feedback=option)
+        try:
+            layout = layout_for(resolved, caps)
+        except ValueError:
+            if k == len(options) - 1 or not _tpdo_short(resolved, caps):
+                raise
+            continue
+        if option != feedback:
+            notes.append(f"its TPDOs carry statusword and {', '.join(option)} only: "
+                         f"{', '.join(f for f in feedback if f not in option)} feedback left "
+                         "out (JointState stays 0 there)")
+        return resolved, layout
+    raise AssertionError("unreachable: options is never empty")
+
+
+def _tpdo_short(drive: DriveConfig, caps: DriveCapabilities) -> bool:
+    """The layout fails on the TPDO side alone (the RPDOs fit)."""
+    try:
+        layout_for(dataclasses.replace(drive, feedback=()), caps)
+    except ValueError:
+        return False
+    return True
 

@@ -258,9 +258,11 @@ def _fit(need: list[PdoEntry], channels: tuple[PdoChannel, ...], caps: DriveCapa
         used.append(_pdo(ch.number, _cob_id(ch, bases, drive), entries, fixed=True))
         carried.update(e.name for e in entries if e in need)
     rest = [e for e in need if e.name not in carried]
-    if not tx and MODE in rest and "controlword" in carried:
-        # the controlword travels in a fixed RPDO without 0x6060: the mode is set once by
-        # SDO at bring-up, so the drive cannot change mode in the cycle
+    if not tx and MODE in rest and ("controlword" in carried
+                                    or not caps.carries(cia402.MODES_OF_OPERATION)):
+        # the controlword travels in a fixed RPDO without 0x6060, or the file does not let
+        # a PDO carry 0x6060: the mode is set once by SDO at bring-up (before enabling), so
+        # the drive cannot change mode in the cycle
         rest.remove(MODE)
         if len(drive.modes) > 1:
             raise ValueError(f"drive {drive.name!r}: its fixed RPDO mapping has no 0x6060 "

@@ -78,9 +78,9 @@ def test_a_fixed_mapping_says_what_it_cannot_carry(tmp_path):
         "DefaultValue=0x00000081", "DefaultValue=0x00000181"))
     config = DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(csv_too),
                          modes=("csv",))
-    with pytest.raises(ValueError, match=r"RPDO mappings are fixed and none carries "
-                                         r"target_velocity \(0x60FF\); fixed: RPDO1 = "
-                                         r"0x6040:0, 0x607A:0"):
+    with pytest.raises(ValueError, match=r"mode CSV needs its target 0x60FF:0 in an RPDO, "
+                                         r"but its file has no 0x60FF:0; modes it can run: "
+                                         r"PP, CSP"):
         plan_drive(config)
     with pytest.raises(ValueError, match="no 0x6060 .* configure one mode"):
         plan_drive(DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(csv_too),
@@ -120,9 +120,13 @@ def test_a_dcf_gives_its_commissioned_values_and_its_node():
     assert caps.value(cia402.POSITION_ENCODER_RESOLUTION, 1) == 0x40000
     assert caps.rpdos[0].cob_id == 0x205 and caps.tpdos[0].cob_id == 0x185  # $NODEID
     assert caps.mode_names == ["CSP", "CSV", "CST"]
-    with pytest.raises(ValueError, match="node_id 3, but .*commissioned.dcf is the DCF of "
-                                         "node 5"):
-        plan_drive(drive("commissioned.dcf", node_id=3))
+    # the same DCF for another node: its values, that node's COB-IDs, said in a note
+    other = plan_drive(drive("commissioned.dcf", node_id=3))
+    assert "a DCF commissioned for node 5, used for node 3: its values are taken, its " \
+        "node's COB-IDs are not" in other.notes
+    assert other.caps.value(cia301.PRODUCER_HEARTBEAT_TIME) == 50
+    assert {p.cob_id for p in other.layout.rpdos} == {0x203}
+    assert {p.cob_id for p in other.layout.tpdos} <= {0x183, 0x283}
 
 
 def test_missing_feedback_objects_turn_that_feedback_off_and_say_so():
@@ -242,8 +246,9 @@ def test_the_demo_walks_through_on_each_file(file):
     assert report.ok, "\n".join(lines)
     assert lines[0].startswith(f"rocoma-can demo: the drives emulate {EDS / file}")
     assert report.steps[-1].name == "loop stop -> torque-off frames"
-    if file == "commissioned.dcf":  # one node's file: one drive, the second fault skipped
-        assert any("skipped: one drive" in s.detail for s in report.steps)
+    if file == "commissioned.dcf":  # one node's file: from that node on, COB-IDs re-derived
+        assert "  note: a DCF of node 5: the drives from node 5 on, each with its COB-IDs " \
+            "re-derived" in lines
 
 
 def test_the_demo_says_why_it_cannot_use_a_file(tmp_path, capsys):

@@ -14,7 +14,6 @@ import struct
 from collections.abc import Callable, Mapping
 from typing import Any
 
-import canopen
 from canopen import objectdictionary
 from canopen.objectdictionary import datatypes
 from canopen.sdo.constants import (
@@ -34,6 +33,7 @@ from canopen.sdo.server import SdoServer
 
 from .. import cia301 as c301
 from .. import cia402 as c
+from ..capabilities import modes_from_targets
 
 Key = tuple[int, int]
 PDO_NOT_VALID = 0x80000000
@@ -81,16 +81,24 @@ class ObjectDictionaryServer:
         self.object_dictionary = od  # the name canopen's SdoServer reads
         self._node_id = node_id
         self._on_write = on_write
-        # What the drive does for objects its file lacks (never visible on the bus: SDO
-        # and PDO mapping look the object up in the file first), then the file's values
-        # (a DCF's ParameterValue over DefaultValue; an empty default is 0).
+        # What the drive does for objects its file lacks or lists without a value (never
+        # visible on the bus for a missing one: SDO and PDO mapping look the object up in
+        # the file first), then the file's values (a DCF's ParameterValue over
+        # DefaultValue). An object with no value and no plausible stand-in reads 0.
         self.defaults: dict[Key, Any] = dict(fallbacks or {})
+        #: objects the file lists without a value, answered with a stand-in (``assumed``)
+        self.assumed: dict[Key, Any] = {}
         for obj in od.values():
             members = [obj] if isinstance(obj, objectdictionary.ODVariable) else obj.values()
             for var in members:
+                key = (var.index, var.subindex)
                 value = var.value if var.value is not None else var.default
-                self.defaults[(var.index, var.subindex)] = (
-                    value if value is not None else _empty(var.data_type))
+                if value is not None:
+                    self.defaults[key] = value
+                elif key in self.defaults:
+                    self.assumed[key] = self.defaults[key]
+                else:
+                    self.defaults[key] = _empty(var.data_type)
         self.values: dict[Key, Any] = dict(self.defaults)
         self._sdo = SdoServer(c301.SDO_RX + node_id, c301.SDO_TX + node_id, self)
         self._sdo.network = _SdoLink(send)  # type: ignore[assignment]  # send_message only
@@ -210,14 +218,23 @@ def _empty(data_type: int | None) -> Any:
 IMPLEMENTED_MODES = sum(1 << (m - 1) for m in (
     c.Mode.PROFILE_POSITION, c.Mode.PROFILE_VELOCITY, c.Mode.HOMING, c.Mode.INTERPOLATED_POSITION,
     c.Mode.CSP, c.Mode.CSV, c.Mode.CST))
+#: 0x1000 of a drive (CiA 402 profile; servo drive additional information)
+CIA402_DEVICE_TYPE = 0x0002_0192
 
 
-def fallback_values(increments_per_rev: int, rated_torque_nm: float) -> dict[Key, Any]:
-    """How a simulated drive behaves where its file has no object: scaling as given (the
-    config's numbers), no reaction to a lost connection without 0x6007 (no CiA 402 reaction
-    at all: the honest emulation of a drive that cannot be told one), the generic option
-    codes, no torque limit without 0x6072, no offsets, the implemented modes."""
+def fallback_values(increments_per_rev: int, rated_torque_nm: float,
+                    od: objectdictionary.ObjectDictionary | None = None) -> dict[Key, Any]:
+    """How a simulated drive behaves where its file has no object, or lists one without a
+    value: scaling as given (the config's numbers, factors 1:1), no reaction to a lost
+    connection without 0x6007 (no CiA 402 reaction at all: the honest emulation of a drive
+    that cannot be told one), the generic option codes, no torque limit without 0x6072, no
+    offsets; a CiA 402 servo's 0x1000, and the modes its target objects imply (``od``, of
+    those this simulator implements)."""
+    modes = IMPLEMENTED_MODES
+    if od is not None:
+        modes &= modes_from_targets(od) or IMPLEMENTED_MODES
     return {
+        (c301.DEVICE_TYPE, 0): CIA402_DEVICE_TYPE,
         (c.POSITION_ENCODER_RESOLUTION, 1): increments_per_rev,
         (c.POSITION_ENCODER_RESOLUTION, 2): 1,
         (c.GEAR_RATIO, 1): 1, (c.GEAR_RATIO, 2): 1,
@@ -232,16 +249,17 @@ def fallback_values(increments_per_rev: int, rated_torque_nm: float) -> dict[Key
         (c.INTERPOLATION_DATA, 1): 0,
         (c.HOMING_METHOD, 0): 35, (c.HOME_OFFSET, 0): 0,  # 35: on the current position
         (c.PROFILE_VELOCITY, 0): increments_per_rev,  # one motor turn per second
-        (c.SUPPORTED_DRIVE_MODES, 0): IMPLEMENTED_MODES,
+        (c.SUPPORTED_DRIVE_MODES, 0): modes,
         (c.ERROR_CODE, 0): 0, (c301.ERROR_BEHAVIOR, 1): 1,
         (c301.PRODUCER_HEARTBEAT_TIME, 0): 0,
     }
 
 
 def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.ObjectDictionary:
-    """Import an EDS for one node ($NODEID resolved), with a clear error for a bad path."""
+    """The drive's object dictionary from its EDS/DCF for one node, read as the master reads
+    it (device_file.py: the same repairs, the same one-line refusal)."""
+    from ..device_file import DeviceFileError, read_device_file
     try:
-        return canopen.import_od(str(eds_path), node_id)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"simulated drive {node_id}: EDS file {eds_path} not found") \
-            from None
+        return read_device_file(str(eds_path)).for_node(node_id).object_dictionary(node_id)
+    except DeviceFileError as exc:
+        raise ValueError(f"simulated drive {node_id}: {exc}") from None

@@ -179,10 +179,18 @@ class SimulatedSegment:
                              f"{rated_torque_nm!r}")
         eds = str(eds_path) if eds_path else _default_eds()
         # what the drives assume where the file has no object (scaling: these numbers)
-        fallbacks = fallback_values(increments_per_rev, rated_torque_nm)
+        dictionaries = {n: load_object_dictionary(eds, n) for n in ids}
+        fallbacks = fallback_values(increments_per_rev, rated_torque_nm,
+                                    next(iter(dictionaries.values()), None))
         self.drives: dict[int, SimulatedDrive] = {
-            n: SimulatedDrive(self, n, j, load_object_dictionary(eds, n), fallbacks)
+            n: SimulatedDrive(self, n, j, dictionaries[n], fallbacks)
             for j, n in enumerate(ids)}
+        assumed = next(iter(self.drives.values())).objects.assumed if self.drives else {}
+        if assumed:
+            log.info("simulated drives of %s: where the file gives no value they answer %s",
+                     eds, ", ".join(f"0x{i:04X}:{s} = {v if v < 10 else hex(v)}"
+                                    for (i, s), v in sorted(assumed.items())
+                                    if isinstance(v, int) and not 0x2000 <= i < 0x6000))
         self._fixed_routes: dict[int, Route] = {
             c301.SDO_RX + n: d.on_sdo for n, d in self.drives.items()}
         self._rpdo_routes: dict[int, Route] = {}

@@ -72,10 +72,12 @@ class Scaling:
         self.nm_per_permille = 1.0
 
     def update(self, v: dict[Key, Any]) -> None:
-        increments = v[(c.POSITION_ENCODER_RESOLUTION, 1)] / v[(c.POSITION_ENCODER_RESOLUTION, 2)]
-        ratio = v[(c.GEAR_RATIO, 1)] / v[(c.GEAR_RATIO, 2)]
+        # a factor of 0 (a file's stated default; SDO writes of 0 are refused) counts as 1
+        increments = (v[(c.POSITION_ENCODER_RESOLUTION, 1)] or 1) \
+            / (v[(c.POSITION_ENCODER_RESOLUTION, 2)] or 1)
+        ratio = (v[(c.GEAR_RATIO, 1)] or 1) / (v[(c.GEAR_RATIO, 2)] or 1)
         self.increments_per_rad = increments * ratio / (2.0 * math.pi)
-        self.nm_per_permille = v[(c.RATED_TORQUE, 0)] / 1e6 * ratio
+        self.nm_per_permille = (v[(c.RATED_TORQUE, 0)] or 1000) / 1e6 * ratio
 
 
 class StateMachine402:

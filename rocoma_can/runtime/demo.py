@@ -55,8 +55,7 @@ class Emulated:
     modes: list[str]
     emergency: dict[str, Any]
     drive: dict[str, Any]              # DriveConfig fields: eds, scaling, ...
-    first_node: int = 1
-    drives: int | None = None          # a DCF is one node's: one drive
+    first_node: int = 1                # a DCF's commissioned node id
     notes: list[str] = field(default_factory=list)
     segment: dict[str, Any] = field(default_factory=dict)  # SimulatedSegment keywords
 
@@ -88,7 +87,9 @@ def emulate(path: str, drives: int) -> Emulated:
                      f"(position targets, carried in {position.upper()}), not damp")
     increments, revs = (caps.value(POSITION_ENCODER_RESOLUTION, 1),
                         caps.value(POSITION_ENCODER_RESOLUTION, 2))
-    per_rev = int(increments // revs) if increments and revs else 1 << 20
+    # without 0x608F a file's ramps (0x6084/0x6085) are in units the demo cannot know: a
+    # 12-bit encoder keeps a quick stop of 10,000 increments/s² a stop within seconds
+    per_rev = int(increments // revs) if increments and revs else 1 << 12
     motor, shaft = caps.value(GEAR_RATIO, 1), caps.value(GEAR_RATIO, 2)
     rated = caps.value(RATED_TORQUE) or 1000
     drive = {"eds": path, "increments_per_rev": per_rev, "rated_torque_nm": rated / 1000.0,
@@ -101,8 +102,9 @@ def emulate(path: str, drives: int) -> Emulated:
                       segment={"eds_path": path, "increments_per_rev": per_rev,
                                "rated_torque_nm": rated / 1000.0})
     if caps.commissioned_node_id is not None:
-        fitted.first_node, fitted.drives = caps.commissioned_node_id, 1
-        notes.append(f"a DCF of node {caps.commissioned_node_id}: one drive")
+        fitted.first_node = caps.commissioned_node_id
+        notes.append(f"a DCF of node {caps.commissioned_node_id}: the drives from node "
+                     f"{caps.commissioned_node_id} on, each with its COB-IDs re-derived")
     return fitted
 
 
@@ -294,7 +296,8 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         client.write(0x2113, 1)  # recover drives; on success the e-stop latch is cleared
         ok = _wait(lambda: hw.all_ready and not mgr.estop_latched, 8.0, stop)
         step("recovery (SDO 0x2113)", ok, f"drives ready: {hw.all_ready}, "
-                                          f"latched: {mgr.estop_latched}")
+                                          f"latched: {mgr.estop_latched}"
+             + ("" if ok else f"; {hw.not_ready() or 'not ready'}"))
         result = client.switch("pd")
         step("final switch to pd", result == 0 and state() == 2
              and _wait(lambda: hw.all_enabled, 3.0, stop), f"result {result}")
@@ -344,7 +347,6 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     from .system import Runtime
     emulated = emulate(eds, drives) if eds else None
     if emulated is not None:
-        drives = emulated.drives or drives
         out(f"rocoma-can demo: the drives emulate {eds}: modes {', '.join(emulated.modes)}")
         for note in emulated.notes:
             out(f"  note: {note}")

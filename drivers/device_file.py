@@ -1,0 +1,288 @@
+"""Reading a vendor's EDS or DCF the way the vendors' own tools do: tolerant, and saying so.
+
+Device description files in the field are written by hand, by old tools and by scanners.
+canopen's importer reads strict INI text; it fails on a comment in an old DOS code page or
+a key given twice, and it reads what it can of the rest in ways that hide a problem: a
+two's-complement hex default of a signed object (``0xFFFF`` for INTEGER16) becomes a value
+it cannot encode, an empty ``DefaultValue=`` and a missing one both become None, a DCF
+exported for node 1 carries ``0x201`` where its EDS said ``$NODEID+0x200``. This module
+reads the text once, repairs what has one reading, and hands canopen a normalised copy:
+
+- bytes that are not UTF-8 are read as Latin-1 (noted once);
+- any line ending; a key given twice in a section: the last one wins (noted); a section
+  given twice: merged;
+- ``DeviceCommissioning`` (as some tools spell it) is CiA 306's ``DeviceComissioning``;
+  ``$NodeID`` in any case is ``$NODEID``; keys and ``1600SUB1``-style names in any case;
+- numbers in decimal (leading zeros too), hex in either case, and two's-complement hex for
+  signed types, rewritten as the decimal value they mean;
+- objects of a custom ``[TypeDefinitions]`` record type (manufacturer data) as domains;
+- a node-relative COB-ID (``DefaultValue=$NODEID+0x200``) whose ``ParameterValue`` was
+  baked in for another node (``0x201``) is re-derived for the node id in use (noted).
+
+What the file lists without any value stays unknown (``DeviceFile.unknown``): the drive is
+asked for it at start-up instead of taking it as 0.
+"""
+from __future__ import annotations
+
+import io
+import re
+from dataclasses import dataclass, field
+
+from canopen import objectdictionary
+from canopen.objectdictionary import datatypes
+
+Key = tuple[int, int]
+
+_INDEX_SECTION = re.compile(r"([0-9A-Fa-f]{4})(?:sub([0-9A-Fa-f]{1,2}))?", re.IGNORECASE)
+_NODE_ID = re.compile(r"\$node_?id", re.IGNORECASE)
+_INLINE_COMMENT = re.compile(r"\s;.*$")
+#: Keys canopen reads case-sensitively, by their lower-case spelling.
+_KEYS = {k.lower(): k for k in (
+    "ParameterName", "ObjectType", "DataType", "AccessType", "DefaultValue",
+    "ParameterValue", "PDOMapping", "LowLimit", "HighLimit", "SubNumber", "CompactSubObj",
+    "ObjFlags", "StorageLocation", "NrOfEntries", "Denotation", "VendorName",
+    "VendorNumber", "ProductName", "ProductNumber", "RevisionNumber", "OrderCode",
+    "NodeID", "NodeName", "Baudrate", "NetNumber", "SupportedObjects", "Lines")}
+_SECTIONS = {"devicecommissioning": "DeviceComissioning",
+             "devicecomissioning": "DeviceComissioning",
+             "deviceinfo": "DeviceInfo", "fileinfo": "FileInfo", "comments": "Comments",
+             "typedefinitions": "TypeDefinitions", "dummyusage": "DummyUsage",
+             "mandatoryobjects": "MandatoryObjects", "optionalobjects": "OptionalObjects",
+             "manufacturerobjects": "ManufacturerObjects"}
+_SIGNED_BITS = {datatypes.INTEGER8: 8, datatypes.INTEGER16: 16, datatypes.INTEGER32: 32,
+                datatypes.INTEGER64: 64}
+_NOT_NUMBERS = (datatypes.VISIBLE_STRING, datatypes.UNICODE_STRING, datatypes.OCTET_STRING,
+                datatypes.DOMAIN, *datatypes.FLOAT_TYPES)
+_VALUE_KEYS = ("DefaultValue", "ParameterValue", "LowLimit", "HighLimit")
+#: Communication objects whose value is a COB-ID (sub-index 1 of the SDO/PDO parameters)
+_COB_ID_SUB1 = ((0x1200, 0x12FF), (0x1280, 0x12FF), (0x1400, 0x15FF), (0x1800, 0x19FF))
+_COB_ID_SUB0 = (0x1012, 0x1014)
+
+
+class DeviceFileError(ValueError):
+    """The file cannot be read as an EDS/DCF at all (not found, not INI text)."""
+
+
+@dataclass
+class DeviceFile:
+    """One EDS/DCF as read: canopen's input, and what the reading had to assume."""
+    path: str
+    sections: dict[str, dict[str, str]]
+    notes: list[str] = field(default_factory=list)
+    #: objects the file lists with neither DefaultValue nor ParameterValue (or empty ones)
+    unknown: set[Key] = field(default_factory=set)
+    commissioned_node_id: int | None = None
+
+    def text(self) -> str:
+        out = io.StringIO()
+        for name, keys in self.sections.items():
+            out.write(f"[{name}]\n")
+            for key, value in keys.items():
+                out.write(f"{key}={value}\n")
+            out.write("\n")
+        return out.getvalue()
+
+    def object_dictionary(self, node_id: int) -> objectdictionary.ObjectDictionary:
+        """canopen's object dictionary of this file for ``node_id`` ($NODEID resolved, COB-IDs
+        baked in for another node re-derived: see ``for_node``)."""
+        stream = io.StringIO(self.for_node(node_id).text())
+        stream.name = "normalised.dcf"  # canopen picks its importer by the name's suffix
+        od = objectdictionary.import_od(stream, node_id)
+        od.node_id = node_id
+        return od
+
+    def for_node(self, node_id: int) -> DeviceFile:
+        """A copy whose node-relative COB-IDs, given as absolute values for some other node
+        in ``ParameterValue``, are relative again (a DCF exported for node 1, an EDS carrying
+        a commissioning tool's values): the file's COB-ID meant "this node's PDO"."""
+        sections = {name: dict(keys) for name, keys in self.sections.items()}
+        copy = DeviceFile(self.path, sections, list(self.notes), set(self.unknown),
+                          self.commissioned_node_id)
+        rebased: list[str] = []
+        baked_for: set[int] = set()
+        for name, keys in sections.items():
+            key = _object_key(name)
+            if key is None or not _is_cob_id(key):
+                continue
+            default, value = keys.get("DefaultValue", ""), keys.get("ParameterValue", "")
+            base = _relative_base(default)
+            number = _int(value)
+            if base is None or number is None or _NODE_ID.search(value):
+                continue
+            baked = (number & 0x7FF) - (base & 0x7FF)  # flag bits (31, 30) may differ
+            if 1 <= baked <= 127 and baked != node_id:
+                keys["ParameterValue"] = \
+                    f"$NODEID+0x{(number & ~0x7FF) | (base & 0x7FF):X}"
+                rebased.append(f"0x{key[0]:04X}:{key[1]} 0x{number:X}")
+                baked_for.add(baked)
+        if rebased:
+            nodes = ", ".join(str(n) for n in sorted(baked_for))
+            copy.notes.append(
+                f"COB-IDs the file gives for node {nodes} re-derived for node {node_id}: "
+                f"{', '.join(rebased[:4])}"
+                + (f" and {len(rebased) - 4} more" if len(rebased) > 4 else ""))
+        return copy
+
+
+def read_device_file(path: str) -> DeviceFile:
+    """Read and normalise an EDS/DCF; DeviceFileError (one line, naming the file) when it is
+    not one."""
+    try:
+        raw = open(path, "rb").read()  # noqa: SIM115 - read whole, closed by refcount
+    except OSError as exc:
+        raise DeviceFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    notes: list[str] = []
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        text = raw.decode("latin-1")
+        notes.append(f"not UTF-8 (byte 0x{raw[exc.start]:02X} on line {line}): read as "
+                     "Latin-1")
+    sections = _parse(path, text, notes)
+    if not any(_object_key(name) is not None for name in sections):
+        raise DeviceFileError(f"{path}: not an EDS/DCF file (no object sections such as "
+                              "[1000])")
+    device = DeviceFile(path, sections, notes)
+    _normalise_objects(device)
+    commissioning = sections.get("DeviceComissioning", {})
+    node = _int(commissioning.get("NodeID", ""))
+    device.commissioned_node_id = node if node is not None and 1 <= node <= 127 else None
+    return device
+
+
+def _parse(path: str, text: str, notes: list[str]) -> dict[str, dict[str, str]]:
+    sections: dict[str, dict[str, str]] = {}
+    current: dict[str, str] | None = None
+    name = ""
+    duplicates: list[str] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line or line[0] in ";#":
+            continue
+        if line.startswith("["):
+            if not line.endswith("]"):
+                raise DeviceFileError(f"{path}: line {number}: {line[:40]!r} is not a "
+                                      "[section] header")
+            name = _section_name(line[1:-1].strip())
+            current = sections.setdefault(name, {})
+            continue
+        if current is None:
+            raise DeviceFileError(f"{path}: not an EDS/DCF file (line {number}, "
+                                  f"{line[:40]!r}, comes before any [section])")
+        key, sep, value = line.partition("=")
+        if not sep:
+            continue  # a stray word: the vendors' tools skip it too
+        key = key.strip()
+        key = _KEYS.get(key.lower(), key)
+        value = _INLINE_COMMENT.sub("", value).strip()
+        if key in current:
+            duplicates.append(f"{key!r} in [{name}] (line {number})")
+        current[key] = value
+    if duplicates:
+        notes.append(f"{len(duplicates)} duplicate key(s), the last one used: "
+                     + ", ".join(duplicates[:3]) + (" ..." if len(duplicates) > 3 else ""))
+    return sections
+
+
+def _section_name(name: str) -> str:
+    match = _INDEX_SECTION.fullmatch(name)
+    if match:
+        index = int(match.group(1), 16)
+        if match.group(2) is None:
+            return f"{index:04X}"
+        return f"{index:04X}sub{int(match.group(2), 16):X}"
+    return _SECTIONS.get(name.lower(), name)
+
+
+def _object_key(name: str) -> Key | None:
+    match = _INDEX_SECTION.fullmatch(name)
+    if match is None:
+        return None
+    return int(match.group(1), 16), int(match.group(2) or "0", 16)
+
+
+def _int(text: str) -> int | None:
+    """A number as files write them: decimal (leading zeros too), 0x hex in either case, a
+    sign; None for anything else (an expression, empty)."""
+    text = text.strip().replace("_", "")
+    try:
+        if re.fullmatch(r"[+-]?0[xX][0-9A-Fa-f]+", text):
+            return int(text, 16)
+        if re.fullmatch(r"[+-]?[0-9]+", text):
+            return int(text, 10)
+    except ValueError:
+        return None
+    return None
+
+
+def _relative_base(text: str) -> int | None:
+    """``$NODEID+0x200`` -> 0x200; None when the value is not node-relative."""
+    compact = text.replace(" ", "")
+    if not _NODE_ID.search(compact):
+        return None
+    rest = _NODE_ID.sub("", compact).strip("+")
+    return _int(rest) if rest else 0
+
+
+def _is_cob_id(key: Key) -> bool:
+    index, sub = key
+    if sub == 0:
+        return index in _COB_ID_SUB0
+    return sub == 1 and any(lo <= index <= hi for lo, hi in _COB_ID_SUB1)
+
+
+def _normalise_objects(device: DeviceFile) -> None:
+    sections = device.sections
+    custom: set[int] = set()
+    for name, keys in sections.items():
+        key = _object_key(name)
+        if key is None:
+            continue
+        if "AccessType" in keys:
+            keys["AccessType"] = keys["AccessType"].lower()
+        data_type = _int(keys.get("DataType", ""))
+        if data_type is not None and data_type > 0x1B \
+                and f"{data_type:X}sub1" not in sections:
+            # a record type of [TypeDefinitions] used as one variable: manufacturer data
+            # canopen cannot type; read as a domain (nothing rocoma-can maps or commands)
+            custom.add(data_type)
+            keys["DataType"] = f"0x{datatypes.DOMAIN:04X}"
+            keys.pop("DefaultValue", None)
+            keys.pop("ParameterValue", None)
+            data_type = datatypes.DOMAIN
+        for value_key in _VALUE_KEYS:
+            if value_key in keys:
+                value = _normalise_value(keys[value_key], data_type)
+                if value:
+                    keys[value_key] = value
+                else:
+                    del keys[value_key]
+        is_variable = _int(keys.get("ObjectType", "7")) in (None, 7, 2) \
+            and "CompactSubObj" not in keys
+        if is_variable and "DefaultValue" not in keys and "ParameterValue" not in keys:
+            device.unknown.add(key)
+    if custom:
+        device.notes.append(
+            "manufacturer objects of custom record types ("
+            + ", ".join(f"0x{t:X}" for t in sorted(custom))
+            + ", [TypeDefinitions]) read as domains: rocoma-can does not use them")
+
+
+def _normalise_value(value: str, data_type: int | None) -> str:
+    """One DefaultValue/ParameterValue/limit in a form canopen reads as the file meant it;
+    '' when there is none."""
+    value = value.strip()
+    if not value:
+        return ""
+    if data_type is None or data_type in _NOT_NUMBERS:
+        return value
+    if _NODE_ID.search(value):
+        return _NODE_ID.sub("$NODEID", value.replace(" ", ""))
+    number = _int(value)
+    if number is None:
+        return value  # an expression canopen may still read; if not, it stays unknown
+    bits = _SIGNED_BITS.get(data_type)
+    if bits is not None and (1 << (bits - 1)) <= number < (1 << bits):
+        number -= 1 << bits  # two's-complement hex for a signed type
+    return str(number)
