@@ -73,12 +73,13 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
                         "rocoma-can supervises every drive by its heartbeat")
     problems += _mode_problems(drive, caps)
     if len(drive.modes) > 1 and not caps.carries(cia402.MODES_OF_OPERATION):
-        problems.append(f"0x6060 (modes of operation) is not PDO-mappable in {caps.source}, "
-                        "so the mode is set once by SDO at start-up and cannot change in the "
-                        f"cycle: configure one mode, not {[m.name for m in drive.modes]}")
+        problems.append(f"0x6060 (modes of operation): "
+                        f"{caps.why_not_carried(cia402.MODES_OF_OPERATION)}, so the mode is "
+                        "set once by SDO at start-up and cannot change in the cycle: "
+                        f"configure one mode, not {[m.name for m in drive.modes]}")
     elif not caps.carries(cia402.MODES_OF_OPERATION):
-        notes.append(f"0x6060 is not PDO-mappable: mode {drive.modes[0].name} is set by SDO "
-                     "at start-up, before enabling")
+        notes.append(f"no RPDO can carry 0x6060: mode {drive.modes[0].name} is set by SDO at "
+                     "start-up, before enabling")
     if DriveMode.IP in drive.modes and not caps.writable(cia402.INTERPOLATION_PERIOD, 1):
         notes.append("IP without a writable 0x60C2: the drive interpolates over its own "
                      "period, which must equal the loop's")

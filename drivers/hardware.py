@@ -247,7 +247,9 @@ class CanopenHardware:
                                       dtype=bool)
         self._default_mode = [int(d.modes[0]) for d in drives]
         self._got = np.zeros(n, dtype=np.int64)             # TPDO bits seen this cycle
-        self._expected = np.array([(1 << len(lay.tpdos)) - 1 for lay in self.layouts],
+        # one bit per TPDO slot a drive's layout uses (a fixed mapping may use TPDO3 and 4)
+        self._expected = np.array([sum(1 << (p.number - 1) for p in lay.tpdos)
+                                   for lay in self.layouts],
                                   dtype=np.int64)
         self._complete = np.zeros(n, dtype=bool)
         self.enable = EnableSequence(n, supervision.timeouts.enable, self.supervisor.fault,

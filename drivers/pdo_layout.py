@@ -247,13 +247,17 @@ def _fit(need: list[PdoEntry], channels: tuple[PdoChannel, ...], caps: DriveCapa
     bases = cia301.TPDO_BASE if tx else cia301.RPDO_BASE
     used: list[Pdo] = []
     carried: set[str] = set()
-    for ch in channels:
-        if ch.mapping_writable or not ch.mapping:
-            continue
-        entries = [_entry_of(caps, i, s, b, tx, drive, ch.name, need)
-                   for i, s, b in _split(ch)]
-        if not any(e in need for e in entries):
-            continue
+    fixed = {ch.number: (ch, [_entry_of(caps, i, s, b, tx, drive, ch.name, need)
+                              for i, s, b in _split(ch)])
+             for ch in channels if not ch.mapping_writable and ch.mapping}
+    while fixed:
+        # the fixed channel that adds the most of what is still needed (a drive may offer
+        # the controlword in every RPDO: one that adds nothing new is not sent)
+        number, (ch, entries) = max(fixed.items(), key=lambda item: (
+            len({e.name for e in item[1][1] if e in need} - carried), -item[0]))
+        del fixed[number]
+        if not {e.name for e in entries if e in need} - carried:
+            break
         _check_usable(ch, drive)
         used.append(_pdo(ch.number, _cob_id(ch, bases, drive), entries, fixed=True))
         carried.update(e.name for e in entries if e in need)

@@ -23,7 +23,7 @@ def test_demo_on_several_buses_passes():
     report = run_demo(drives=6, rate=100.0, duration=3.0, out=lines.append, buses=3)
     assert report.ok, "\n".join(lines)
     assert "3 inproc buses" in lines[0]
-    assert report.steps[-1].detail.endswith("6/6 drives' RPDO1 on 3 buses")
+    assert report.steps[-1].detail.endswith("6/6 drives' RPDOs on 3 buses")
 
 
 def test_demo_on_python_cans_virtual_bus_passes():

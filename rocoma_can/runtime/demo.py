@@ -186,18 +186,38 @@ def _only(cob_ids: set[int]) -> list[can.typechecking.CanFilter]:
 
 
 class _TorqueOffProbe(can.Listener):
-    """On the operator's bus (its reader thread): once armed, which drives got RPDO1 with
-    controlword 0x0000 (disable voltage), i.e. the torque-off frames of the loop's stop."""
+    """On the operator's bus (its reader thread): once armed, which drives got an RPDO with
+    controlword 0x0000 (disable voltage), i.e. the torque-off frames of the loop's stop.
+    ``carriers``: per drive, the COB-ID of the RPDO with its controlword and where in the
+    frame it sits (RPDO1 at 0 for the generic drive; a fixed mapping may differ)."""
 
-    def __init__(self, node_ids: tuple[int, ...]) -> None:
-        self.rpdo1 = {0x200 + n: n for n in node_ids}
+    def __init__(self, carriers: dict[int, tuple[int, int]]) -> None:
+        self.carriers = carriers  # COB-ID -> (node id, byte offset of the controlword)
         self.armed = False
         self.seen: set[int] = set()
 
     def on_message_received(self, msg: can.Message) -> None:
-        node = self.rpdo1.get(msg.arbitration_id)
-        if self.armed and node is not None and msg.dlc >= 2 and msg.data[0] == msg.data[1] == 0:
-            self.seen.add(node)
+        carrier = self.carriers.get(msg.arbitration_id)
+        if self.armed and carrier is not None:
+            node, at = carrier
+            if msg.dlc >= at + 2 and msg.data[at] == msg.data[at + 1] == 0:
+                self.seen.add(node)
+
+
+def _controlword_carriers(config: Any, bus: str) -> dict[int, tuple[int, int]]:
+    """For the drives on ``bus``: COB-ID -> (node id, offset) of the first RPDO of each
+    drive's layout that carries its controlword."""
+    carriers = {}
+    first = config.buses[0].label
+    for drive in config.drives:
+        if (drive.bus or first) != bus:
+            continue
+        for pdo in config.plans[drive.name].layout.rpdos:
+            if "controlword" in pdo.names:
+                at = sum(e.size for e in pdo.entries[:pdo.names.index("controlword")])
+                carriers[pdo.cob_id] = (drive.node_id, at)
+                break
+    return carriers
 
 
 class _Watch:
@@ -255,8 +275,12 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
             report.latencies.append((what, hit[0] - t0, max(1, round((hit[0] - t0) / dt))))
 
     try:
-        if not step("bring-up", _wait(lambda: hw.all_ready, 30.0, stop),
-                    f"{len(hw.drives_config)} drives configured, mapped and started"):
+        def failed() -> bool:  # a drive that failed start-up ends the wait at once
+            return any(d.phase == "FAILED" for d in hw.drive_status())
+        _wait(lambda: hw.all_ready or failed(), 30.0, stop)
+        if not step("bring-up", hw.all_ready,
+                    f"{len(hw.drives_config)} drives configured, mapped and started"
+                    if hw.all_ready else hw.not_ready() or "drives not ready"):
             return
         client.write(0x2112, 1)  # clear: must-clear starts latched, like an e-stop button
         result = client.switch("pd")
@@ -376,10 +400,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     # process more CPU than the drives' simulation.
     client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False,
                           can_filters=_only({0x580 + MANAGER_ID}))  # its SDO answers
-    probes = [_TorqueOffProbe(s.node_ids) for s in segments]
+    probes = [_TorqueOffProbe(_controlword_carriers(config, b.label)) for b in config.buses]
     # one torque-off probe per bus, each on a bus handle and reader of its own
     probe_buses = [open_bus(interface, b.channel, receive_own_messages=False,
-                            can_filters=_only(set(p.rpdo1)))
+                            can_filters=_only(set(p.carriers)))
                    for b, p in zip(config.buses, probes)]
     readers: list[BusReader] = []
     try:
@@ -417,7 +441,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             seen = int(rt.loop.last_state) == 0 and got == drives
             step = Step("loop stop -> torque-off frames", seen,
                         f"{rt.loop.stop_reason}; controlword 0x0000 seen from "
-                        f"{got}/{drives} drives' RPDO1"
+                        f"{got}/{drives} drives' RPDOs"
                         + (f" on {buses} buses" if buses > 1 else ""))
             report.steps.append(step)
             out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
