@@ -78,7 +78,7 @@ def _u32(v: int) -> bytes:
     return struct.pack("<I", v)
 
 
-def _configure_pdos(sdo: SdoClient, pdos: tuple[Pdo, ...],
+def _configure_pdos(sdo: NamedSdo, pdos: tuple[Pdo, ...],
                     channels: tuple[PdoChannel, ...]) -> None:
     """Every PDO channel the drive has: ours mapped (a fixed one left as it is), each sent
     or applied every SYNC where the drive lets us say so; the others switched off."""
@@ -103,7 +103,7 @@ def _configure_pdos(sdo: SdoClient, pdos: tuple[Pdo, ...],
             sdo.download(comm, 1, _u32(keep | pdo.cob_id))
 
 
-def _read_u32(sdo: SdoClient, index: int, subindex: int) -> int | None:
+def _read_u32(sdo: NamedSdo, index: int, subindex: int) -> int | None:
     """An optional object: None when the drive does not have it."""
     try:
         value: int = struct.unpack("<I", sdo.upload(index, subindex)[:4].ljust(4, b"\0"))[0]
@@ -112,7 +112,7 @@ def _read_u32(sdo: SdoClient, index: int, subindex: int) -> int | None:
         return None
 
 
-def _check_scaling(sdo: SdoClient, drive: DriveConfig) -> None:
+def _check_scaling(sdo: NamedSdo, drive: DriveConfig) -> None:
     """Where the drive states its scaling (0x608F, 0x6091, 0x6076), the config must agree:
     a wrong increments_per_rev or gear ratio would scale every target wrongly."""
     checks: list[tuple[str, float, float, str]] = []
@@ -133,7 +133,7 @@ def _check_scaling(sdo: SdoClient, drive: DriveConfig) -> None:
                                f"{reported:g} ({where})")
 
 
-def _arm_against_manager_loss(sdo: SdoClient, caps: DriveCapabilities, manager_node_id: int,
+def _arm_against_manager_loss(sdo: NamedSdo, caps: DriveCapabilities, manager_node_id: int,
                               consumer_ms: int) -> None:
     """What makes the drive let go when the manager dies or hangs, as far as its objects
     allow (drive_plan.py refuses a drive with none of them unless the config accepts it):
@@ -149,6 +149,43 @@ def _arm_against_manager_loss(sdo: SdoClient, caps: DriveCapabilities, manager_n
     if caps.error_behaviour and sdo.upload(cia301.ERROR_BEHAVIOR, 1)[:1] == _u8(
             ERROR_BEHAVIOUR_NO_CHANGE):
         sdo.download(cia301.ERROR_BEHAVIOR, 1, _u8(ERROR_BEHAVIOUR_PRE_OPERATIONAL))
+
+
+class ObjectRefused(canopen.SdoAbortedError):
+    """An SDO abort, naming the object and the value (bring-up's failure line says which
+    object the drive refused, not only the abort code)."""
+
+    def __init__(self, code: int, what: str) -> None:
+        super().__init__(code)
+        self.what = what
+
+    def __str__(self) -> str:
+        return f"{self.what} refused: {super().__str__()}"
+
+
+class NamedSdo:
+    """The drive's SdoClient, each failure naming its object: what configuration uses."""
+
+    def __init__(self, sdo: SdoClient) -> None:
+        self._sdo = sdo
+
+    def upload(self, index: int, subindex: int) -> bytes:
+        try:
+            data: bytes = self._sdo.upload(index, subindex)
+            return data
+        except canopen.SdoAbortedError as exc:
+            raise ObjectRefused(exc.code, f"SDO read of 0x{index:04X}:{subindex}") from exc
+        except canopen.SdoCommunicationError as exc:
+            raise type(exc)(f"SDO read of 0x{index:04X}:{subindex}: {exc}") from exc
+
+    def download(self, index: int, subindex: int, data: bytes) -> None:
+        what = f"SDO write of 0x{index:04X}:{subindex} = 0x{int.from_bytes(data, 'little'):X}"
+        try:
+            self._sdo.download(index, subindex, data)
+        except canopen.SdoAbortedError as exc:
+            raise ObjectRefused(exc.code, what) from exc
+        except canopen.SdoCommunicationError as exc:
+            raise type(exc)(f"{what}: {exc}") from exc
 
 
 CONFIG_ATTEMPTS = 3
@@ -179,13 +216,15 @@ def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
             if attempt < attempts:
                 time.sleep(2 * node.sdo.RESPONSE_TIMEOUT)
     if isinstance(failure, NoAnswer):
-        raise RuntimeError(f"does not answer ({failure}; {attempts} attempts)") from failure
+        raise RuntimeError(f"did not answer (SDO 0x1000, {attempts} x "
+                           f"{node.sdo.RESPONSE_TIMEOUT:g} s): power, wiring, node id, "
+                           "bitrate?") from failure
     raise RuntimeError(f"SDO exchange failed {attempts} times: {failure}") from failure
 
 
 def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
                     consumer_ms: int, dt: float | None) -> ConfigResult:
-    sdo, drive, layout, caps = node.sdo, plan.drive, plan.layout, plan.caps
+    sdo, drive, layout, caps = NamedSdo(node.sdo), plan.drive, plan.layout, plan.caps
     node.nmt.send_command(cia301.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
     try:
         device_type = struct.unpack("<I", sdo.upload(cia301.DEVICE_TYPE, 0)[:4])[0]

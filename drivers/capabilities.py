@@ -306,8 +306,11 @@ def _channels(od: canopen.ObjectDictionary, tx: bool, node_id: int) -> tuple[Pdo
             cob_id_writable=cob_var is not None and cob_var.writable,
             transmission_type=_value(trans),
             transmission_type_writable=trans is not None and trans.writable,
+            # CiA 301: a PDO's mapping changes only while the PDO is invalid, which takes
+            # a writable COB-ID; a read-only one leaves the mapping as the drive has it
             mapping_writable=(count_var is not None and count_var.writable
-                              and all(e.writable for e in entries)),
+                              and all(e.writable for e in entries)
+                              and cob_var is not None and cob_var.writable),
             max_objects=len(entries),
             mapping=tuple(e for e in given if e)))
     return tuple(found)

@@ -22,7 +22,14 @@ from .capabilities import (
 )
 from .config import FEEDBACK, DriveConfig
 from .modes import DriveMode
-from .pdo_layout import ENTRY_OF_FEEDBACK, DriveLayout, Pdo, check_against_od, layout_for
+from .pdo_layout import (
+    ENTRY_OF_FEEDBACK,
+    DriveLayout,
+    Pdo,
+    always_on,
+    check_against_od,
+    layout_for,
+)
 
 
 @dataclass(frozen=True)
@@ -122,6 +129,7 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
         raise ValueError(f"{where}: " + "; ".join(problems))
     resolved, layout = _fit_feedback(drive, feedback, caps, notes)
     check_against_od(layout, caps.object_dictionary, drive.name)
+    notes += always_on(layout, caps)
     return DrivePlan(resolved, caps, layout, tuple(notes))
 
 

@@ -542,6 +542,11 @@ class CanopenHardware:
             if b.step(now, executor, bool(fresh[i]), int(states[i]), int(codes[i])):
                 self.supervisor.arm(i, now)
                 self.state.error_code[i] = 0
+            elif b.phase == Phase.FAILED:
+                # said once, at once, on stderr (status has it too); written by a worker:
+                # the cycle does no I/O
+                executor.submit(log.error, "drive %r (node %d): start-up failed: %s", b.name,
+                                b.drive.node_id, b.failure)
             elif phase == Phase.CONFIGURING and b.phase == Phase.STARTING:
                 # The drive's heartbeat consumer was just (re)configured, and it only starts
                 # watching with the first heartbeat it receives: send one in this cycle, so

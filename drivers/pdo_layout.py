@@ -282,14 +282,25 @@ def _fit(need: list[PdoEntry], channels: tuple[PdoChannel, ...], caps: DriveCapa
                                 for ch in free], drive, what, node_cob=False)
     for pdo in remapped:
         _check_usable(next(ch for ch in free if ch.number == pdo.number), drive)
-    pdos = sorted((*used, *remapped), key=lambda p: p.number)
-    taken = {p.number for p in pdos}
-    for ch in channels:
-        if ch.number not in taken and not ch.cob_id & PDO_NOT_VALID \
-                and not ch.cob_id_writable:
-            raise ValueError(f"drive {drive.name!r}: {ch.name} ({_describe(ch)}) is always "
-                             "on and its COB-ID cannot be written to switch it off")
-    return tuple(pdos)
+    return tuple(sorted((*used, *remapped), key=lambda p: p.number))
+
+
+def always_on(layout: DriveLayout, caps: DriveCapabilities) -> list[str]:
+    """The drive's PDOs the layout does not use that bring-up cannot switch off (valid, with
+    a read-only COB-ID), one sentence each: an RPDO rocoma-can never sends on is inert; a
+    TPDO keeps sending, on top of the bus load counted for the layout."""
+    notes = []
+    for channels, pdos in ((caps.rpdos, layout.rpdos), (caps.tpdos, layout.tpdos)):
+        taken = {p.number for p in pdos}
+        for ch in channels:
+            if ch.number in taken or ch.cob_id & PDO_NOT_VALID or ch.cob_id_writable:
+                continue
+            what = ("stays on: rocoma-can never sends on it" if not ch.tx else
+                    "keeps sending: frames rocoma-can reads past, not counted in the bus "
+                    "load")
+            notes.append(f"{ch.name} ({_describe(ch)}, COB-ID 0x{ch.cob_id & 0x7FF:03X}, "
+                         f"read-only) {what}")
+    return notes
 
 
 def _cob_id(ch: PdoChannel, bases: tuple[int, ...], drive: DriveConfig) -> int:

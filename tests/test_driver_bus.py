@@ -186,7 +186,7 @@ def test_drive_that_does_not_answer_is_reported(segment, make_rig):
     rig = make_rig(nodes=nodes + (9,))  # no drive 9 on the segment
     bring_up(rig)
     status = {s.node_id: s for s in rig.hw.drive_status()}
-    assert status[9].phase == "FAILED" and "does not answer" in status[9].fault
+    assert status[9].phase == "FAILED" and "did not answer (SDO 0x1000" in status[9].fault
     assert all(status[n].phase == "READY" for n in nodes)
 
 

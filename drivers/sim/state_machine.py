@@ -200,8 +200,10 @@ class StateMachine402:
         self._start_ramp(decel, then)
 
     def _quick_stop_decel(self) -> float:
-        return (float(max(self._values[(c.QUICK_STOP_DECELERATION, 0)], 1))
-                / self._scale.increments_per_rad)
+        value = self._values[(c.QUICK_STOP_DECELERATION, 0)]
+        if value <= 0:  # a file's placeholder 0: ten joint turns per second squared
+            return 20.0 * math.pi
+        return float(value) / self._scale.increments_per_rad
 
     def _start_ramp(self, decel: float, then: State402 | None) -> None:
         self._ramping = True

@@ -71,13 +71,15 @@ def emulate(path: str, drives: int) -> Emulated:
     except CapabilityError as exc:
         raise ValueError(str(exc)) from None
     notes = []
-    position = next((m for m in ("csp", "ip", "pp") if caps.supports(_MODE_NUMBER[m])), None)
+    position = next((m for m in ("csp", "ip", "pp") if caps.usable(_MODE_NUMBER[m])), None)
     if position is None:
-        raise ValueError(f"{path}: no position mode the demo's controllers can use (its "
-                         f"0x6502 lists {', '.join(caps.mode_names)}; needs CSP, IP or PP)")
+        raise ValueError(f"{path}: no position mode the demo's controllers can use (it has "
+                         f"{', '.join(caps.mode_names) or 'no mode'}; needs CSP, IP or PP with "
+                         "a target an RPDO can carry)")
     modes = [position]
-    mode_in_pdo = all(ch.mapping_writable or ch.maps(0x6060) for ch in caps.rpdos)
-    if caps.supports(_MODE_NUMBER["cst"]) and caps.has(0x6071) and mode_in_pdo:
+    mode_in_pdo = caps.carries(0x6060) and all(
+        ch.mapping_writable or ch.maps(0x6060) for ch in caps.rpdos)
+    if caps.usable(_MODE_NUMBER["cst"]) and mode_in_pdo:
         modes.append("cst")
         emergency = {"name": "damp", "plugin": "damp",
                      "params": {"damping": 0.05, "still_time": 0.2, "timeout": 2.0}}
