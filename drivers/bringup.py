@@ -158,9 +158,10 @@ class ObjectRefused(canopen.SdoAbortedError):
     def __init__(self, code: int, what: str) -> None:
         super().__init__(code)
         self.what = what
+        self.aborted = canopen.SdoAbortedError(code)
 
     def __str__(self) -> str:
-        return f"{self.what} refused: {super().__str__()}"
+        return f"{self.what} refused: {self.aborted}"
 
 
 class NamedSdo:

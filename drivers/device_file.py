@@ -89,6 +89,7 @@ class DeviceFile:
         stream.name = "normalised.dcf"  # canopen picks its importer by the name's suffix
         od = objectdictionary.import_od(stream, node_id)
         od.node_id = node_id
+        _check_mappings(self.path, od)
         return od
 
     def for_node(self, node_id: int) -> DeviceFile:
@@ -122,6 +123,23 @@ class DeviceFile:
                 f"{', '.join(rebased[:4])}"
                 + (f" and {len(rebased) - 4} more" if len(rebased) > 4 else ""))
         return copy
+
+
+def _check_mappings(path: str, od: objectdictionary.ObjectDictionary) -> None:
+    """A PDO mapping whose sub-index 0 counts more entries than the file gives cannot be
+    what the drive does: refused here, so check-config, the master and the simulator
+    refuse the file with the same line."""
+    for index in (*range(0x1600, 0x1800), *range(0x1A00, 0x1C00)):
+        mapping = od.get(index)
+        if not isinstance(mapping, objectdictionary.ODRecord | objectdictionary.ODArray) \
+                or 0 not in mapping:
+            continue
+        count_var = mapping[0]
+        count = count_var.value if count_var.value is not None else count_var.default
+        entries = len([s for s in mapping.subindices if s > 0])
+        if isinstance(count, int) and count > entries:
+            raise DeviceFileError(f"{path}: 0x{index:04X}:0 says {count} mapped objects but "
+                                  f"the file gives {entries} (0x{index:04X}:1..{entries})")
 
 
 def read_device_file(path: str) -> DeviceFile:

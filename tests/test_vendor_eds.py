@@ -9,6 +9,14 @@ frames on the drive's own PDO layout.
     commissioned.dcf     the DCF of node 5: ParameterValue over DefaultValue, $NODEID COB-IDs
     minimal.eds          no 0x6077, no 0x608F, no 0x6091; empty defaults
     arm_ip_pp_vl.eds     a robot-arm joint: PP, VL and IP only, no 0x6007 (modes elsewhere)
+    hand_written.eds     every reading quirk: a Latin-1 byte, a key given twice, CRLF with
+                         bare LFs, 0x1000 without value and 0x6502 empty, upper-case access,
+                         lower-case hex, $NodeId, two's-complement hex, a [TypeDefinitions]
+                         record type, a factor group with empty values
+    node1_baked.dcf      a DCF exported for node 1 (DeviceCommissioning, COB-IDs 0x201...)
+    tight_od.eds         0x6060 and 0x607A not PDO-mappable, one TPDO of two objects
+    fixed_split.eds      fixed mappings split over slots: RPDO1 = controlword, RPDO2 =
+                         controlword + target, TPDO3/TPDO4 = statusword + position/velocity
 """
 from __future__ import annotations
 
@@ -23,9 +31,11 @@ from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Ri
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import cia301, cia402
+from rocoma_can.drivers.bringup import NamedSdo, ObjectRefused
 from rocoma_can.drivers.capabilities import read_capabilities
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.config import DriveConfig
+from rocoma_can.drivers.device_file import read_device_file
 from rocoma_can.drivers.drive_plan import plan_drive
 from rocoma_can.drivers.joints import JointMode
 
@@ -194,6 +204,10 @@ DRIVABLE = {
     "no_abort_option.eds": dict(node=1),
     "commissioned.dcf": dict(node=5, increments_per_rev=0x40000),
     "minimal.eds": dict(node=1),
+    "hand_written.eds": dict(node=1),
+    "node1_baked.dcf": dict(node=3, increments_per_rev=0x40000),  # exported for node 1
+    "tight_od.eds": dict(node=2, modes=("ip",)),
+    "fixed_split.eds": dict(node=1),
 }
 
 
@@ -205,7 +219,7 @@ def test_bring_up_track_and_torque_off_on_each_file(file, sim_segment_factory, b
     segment = sim_segment_factory([node], eds_path=str(EDS / file),
                                   increments_per_rev=increments)
     recorder = frame_recorder(virtual_channel)
-    rig = Rig.for_setup(bus_factory(), [node], VIRTUAL, modes=("csp",),
+    rig = Rig.for_setup(bus_factory(), [node], VIRTUAL, modes=info.get("modes", ("csp",)),
                         drive={"eds": str(EDS / file), "increments_per_rev": increments})
     try:
         budget = VIRTUAL.bring_up_budget(1)
@@ -272,7 +286,9 @@ def test_canopens_own_cia402_master_walks_each_simulated_variant(file, sim_segme
     segment = sim_segment_factory([node_id], eds_path=str(EDS / file))
     network = canopen.Network(bus_factory())
     network.connect()
-    node = BaseNode402(node_id, str(EDS / file))
+    # canopen's own master on the dictionary the device-file reader makes (canopen alone
+    # cannot read hand_written.eds: a Latin-1 byte, a key given twice)
+    node = BaseNode402(node_id, read_device_file(str(EDS / file)).object_dictionary(node_id))
     for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
                  "TIMEOUT_CHECK_TPDO"):  # a loaded 2-core machine answers late, not wrong
         setattr(node, name, VIRTUAL.stall)
@@ -295,7 +311,7 @@ def test_canopens_own_cia402_master_walks_each_simulated_variant(file, sim_segme
 
 def test_canopen_reads_every_file_as_the_driver_does():
     for path in sorted(EDS.iterdir()):
-        od = canopen.import_od(str(path), 5)
+        od = read_device_file(str(path)).object_dictionary(5)
         assert cia402.STATUSWORD in od and cia402.CONTROLWORD in od, path.name
 
 
@@ -412,3 +428,107 @@ def test_unused_channels_are_switched_off_and_0x1029_set_at_bring_up(tmp_path,
         assert not sim.od_value(0x1400, 1) & 0x8000_0000
     finally:
         r.close()
+
+
+# --- files as vendors write them --------------------------------------------------------------
+def test_a_hand_written_file_is_read_as_its_vendor_meant_it():
+    device = read_device_file(str(EDS / "hand_written.eds"))
+    assert device.notes[0] == "not UTF-8 (byte 0x94 on line 49): read as Latin-1"
+    assert "'1' in [ManufacturerObjects] (line 117)" in device.notes[1]
+    assert "custom record types (0x40, [TypeDefinitions]) read as domains" in device.notes[2]
+    assert {(0x1000, 0), (cia402.SUPPORTED_DRIVE_MODES, 0), (cia402.GEAR_RATIO, 1),
+            (cia402.GEAR_RATIO, 2)} <= device.unknown
+    od = device.object_dictionary(7)
+    assert od[0x2000].default == -2  # 0xFFFE of an INTEGER16
+    assert od[0x2001].data_type == canopen.objectdictionary.DOMAIN
+    assert od[cia301.PRODUCER_HEARTBEAT_TIME].default == 200  # 0x00c8
+    assert od[0x1800][1].default == 0x40000187  # $NodeId
+    assert od[0x1000].access_type == "ro" and od[0x1000].default is None  # unknown, not 0
+
+
+def test_check_config_says_what_is_read_from_the_drive():
+    plan = plan_drive(drive("hand_written.eds"))
+    lines = plan.report()
+    assert "  modes: PP, PV, TQ, CSP, CSV, CST (from its target objects; 0x6502 read from " \
+        "the drive)" in lines
+    assert "  read from the drive at start-up (no value in the file): 0x1000 (device type), " \
+        "0x6502 (supported modes), 0x6091 (gear ratio)" in lines
+    assert any(n.startswith("not UTF-8 (byte 0x94") for n in plan.notes)
+    with pytest.raises(ValueError, match=r"mode IP is not supported: its target objects "
+                                         r"\(0x6502 has no value in the file\) lists PP, PV"):
+        plan_drive(drive("hand_written.eds", modes=("ip",)))
+
+
+def test_the_simulator_answers_plausible_values_where_the_file_has_none(sim_bench):
+    bench = sim_bench(1, eds_path=str(EDS / "hand_written.eds"))
+    sdo = bench.node(1).sdo
+    assert struct.unpack("<I", sdo.upload(0x1000, 0))[0] == 0x00020192  # a CiA 402 servo
+    modes = struct.unpack("<I", sdo.upload(cia402.SUPPORTED_DRIVE_MODES, 0))[0]
+    assert modes == 0x381 | 0x4  # its targets' modes it implements: PP, PV, CSP, CSV, CST
+    assert sdo.upload(cia402.GEAR_RATIO, 1) == sdo.upload(cia402.GEAR_RATIO, 2) == b"\1\0\0\0"
+    assert bench.drive(1).objects.assumed[(0x1000, 0)] == 0x00020192
+
+
+def test_a_dcf_exported_for_node_1_gives_each_node_its_own_cob_ids():
+    caps = read_capabilities(str(EDS / "node1_baked.dcf"), 3)
+    assert caps.commissioned_node_id == 1  # [DeviceCommissioning], as some tools spell it
+    assert caps.rpdos[0].cob_id == 0x203 and caps.tpdos[0].cob_id == 0x40000183
+    assert caps.rpdos[1].cob_id == 0x80000303  # its flag bits kept
+    assert caps.file_notes[0].startswith("COB-IDs the file gives for node 1 re-derived for "
+                                         "node 3: 0x1014:0 0x81, 0x1400:1 0x201")
+    at_home = read_capabilities(str(EDS / "node1_baked.dcf"), 1)
+    assert at_home.rpdos[0].cob_id == 0x201 and not at_home.file_notes
+
+
+def test_a_tight_dictionary_runs_what_it_can_and_says_what_it_cannot():
+    plan = plan_drive(drive("tight_od.eds", modes=("ip",)))
+    assert plan.layout.rpdos[0].names == ("controlword", "target_position")  # no 0x6060
+    assert "no RPDO can carry 0x6060: mode IP is set by SDO at start-up, before enabling" \
+        in plan.notes
+    assert plan.drive.feedback == ("position",)
+    assert "its TPDOs carry statusword and position only: velocity, torque feedback left " \
+        "out (JointState stays 0 there)" in plan.notes
+    assert "  modes ruled out: PP (0x607A not PDO-mappable)" in plan.report()
+    with pytest.raises(ValueError, match=r"mode PP needs its target 0x607A:0 in an RPDO, but "
+                                         r"its file does not let a PDO carry 0x607A:0 "
+                                         r"\(PDOMapping=0\); modes it can run: IP"):
+        plan_drive(drive("tight_od.eds", modes=("pp",)))
+    with pytest.raises(ValueError, match=r"TPDO needs more PDOs for statusword, position, "
+                                         r"velocity than the 1 it lets us map"):
+        plan_drive(drive("tight_od.eds", modes=("ip",), feedback=("position", "velocity")))
+
+
+def test_fixed_mappings_are_used_only_where_they_add_something():
+    plan = plan_drive(drive("fixed_split.eds"))
+    assert [(p.number, p.names) for p in plan.layout.rpdos] == [
+        (2, ("controlword", "target_position"))]  # RPDO1 (controlword alone) adds nothing
+    assert [(p.number, p.names) for p in plan.layout.tpdos] == [
+        (3, ("statusword", "position")), (4, ("statusword", "velocity"))]
+
+
+def test_bring_up_names_the_object_the_drive_refused(sim_bench):
+    bench = sim_bench(1, eds_path=str(EDS / "minimal.eds"))
+    sdo = NamedSdo(bench.node(1).sdo)
+    with pytest.raises(ObjectRefused) as info:
+        sdo.download(0x1000, 0, struct.pack("<I", 1))
+    assert str(info.value).startswith("SDO write of 0x1000:0 = 0x1 refused: Code 0x06010002")
+
+
+def test_a_mapping_count_beyond_its_entries_is_refused_alike_everywhere(tmp_path):
+    """0x1600:0 says 200 objects, the file gives 8: the same line from check-config, the
+    master and the simulator, never the simulator's SDO traceback."""
+    bad = tmp_path / "count_200.eds"
+    bad.write_text((EDS / "minimal.eds").read_text().replace(
+        "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\n"
+        "DataType=0x0005\nAccessType=rw\nDefaultValue=3",
+        "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\n"
+        "DataType=0x0005\nAccessType=rw\nDefaultValue=200"))
+    assert "DefaultValue=200" in bad.read_text()
+    why = f"{bad}: 0x1600:0 says 200 mapped objects but the file gives 8 (0x1600:1..8)"
+    with pytest.raises(ValueError) as planned:
+        plan_drive(drive(str(bad)))
+    assert str(planned.value) == f"drive 'j1': {why}"
+    from rocoma_can.drivers.sim.objects import load_object_dictionary
+    with pytest.raises(ValueError) as simulated:
+        load_object_dictionary(str(bad), 1)
+    assert str(simulated.value) == f"simulated drive 1: {why}"
