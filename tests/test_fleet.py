@@ -425,3 +425,35 @@ def test_a_refused_switch_is_refused_before_its_payload_is_read(
             "error": "switch over Zenoh is not allowed by this manager's config "
                      "(zenoh.allow_commands: false); e-stop and failproof are"}
 
+
+@contextmanager
+def foreign(endpoint: str, prefix: str, answer: bytes):
+    """Another program serving a manager's keys: every query answered with ``answer``."""
+    session = open_session("peer", [], [endpoint], multicast=False)
+
+    def reply(query) -> None:
+        query.reply(query.key_expr, answer)
+        query.drop()
+    queryable = session.declare_queryable(f"{prefix}/**", reply)
+    try:
+        yield
+    finally:
+        queryable.undeclare()
+        session.close()
+
+
+@pytest.mark.parametrize("answer, said", [
+    (b"\xff\xfe", "not a rocoma-can manager's answer: b'\\xff\\xfe'"),
+    (b"[1, 2]", "not a rocoma-can manager's answer: [1, 2]"),
+    (b'{"state": "OK"}', "not a rocoma-can manager's answer (no 'ok'): {'state': 'OK'}"),
+    (b"\x00" * 4096, "not a rocoma-can manager's answer: b'" + "\\x00" * 20
+     + "'... (4096 bytes)"),
+], ids=["invalid-utf8", "a-list", "no-ok", "huge"])
+def test_the_cli_says_in_one_line_when_the_answer_is_not_a_managers(endpoint, prefix, capsys,
+                                                                   answer, said):
+    """Another program on the manager's keys: the e-stop is reported as failed (exit 1) with
+    why, in one line."""
+    opts = ["--zenoh", prefix, "--zenoh-connect", endpoint, "--zenoh-no-multicast"]
+    with foreign(endpoint, prefix, answer):
+        assert main(["estop", *opts]) == 1
+    assert capsys.readouterr().err == f"rocoma-can: {prefix}/estop: {said}\n"
