@@ -176,7 +176,7 @@ def test_record_writes_every_cycle_and_every_frame_and_exports_csv(config, tmp_p
     assert main(["export", str(out / "trace.mcap"), "--csv", str(tmp_path / "t.csv")]) == 0
     with open(tmp_path / "t.csv") as stream:
         rows = list(csv.DictReader(stream))
-    assert len(rows) == cycles and "position[1]" in rows[0]
+    assert len(rows) == cycles and "position[joint2]" in rows[0]  # the joints by name
 
 
 def test_an_unwritable_flight_directory_is_said_and_the_loop_runs_on(config, tmp_path):
@@ -199,7 +199,8 @@ def test_export_of_a_file_that_is_not_a_trace_is_a_clear_error(tmp_path, capsys)
     earlier = tmp_path / "junk.csv"
     earlier.write_text("an earlier export\n")
     assert main(["export", str(junk)]) == 2
-    assert "cannot export" in capsys.readouterr().err
+    assert capsys.readouterr().err == f"rocoma-can: {junk}: not a rocoma-can trace: " \
+                                      "struct.error: unpack requires a buffer of 8 bytes\n"
     # nothing lost: the earlier CSV stands, no partial file is left behind
     assert earlier.read_text() == "an earlier export\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.csv", "junk.mcap"]
@@ -256,3 +257,134 @@ def test_plot_of_a_file_that_is_not_a_trace_is_a_clear_error(tmp_path, capsys):
     assert main(["plot", str(tmp_path / "missing.mcap")]) == 2
     err = capsys.readouterr().err
     assert "junk.mcap: not a rocoma-can trace" in err and "missing.mcap" in err
+
+
+# --- foreign content in a trace (issue 33): one line, exit 2, nothing left behind ---------
+
+JOINTS = ("hip", "knee")
+
+
+def cycle(k: int, joints: int = 2) -> dict:
+    """A well-formed /rocoma/cycle message, as the writer makes them."""
+    from rocoma_can.runtime.trace import JOINT_FIELDS
+    return {"t": 0.01 * k, "period": 0.01, "work": 0.001, "late": 0.0, "state": "OK",
+            "controller": "pd", **{f: [float(j) for j in range(joints)] for f in JOINT_FIELDS}}
+
+
+def write_mcap(path, cycles, events=(), encoding: str = "json") -> None:
+    """An MCAP file with our schemas and channels but ``cycles`` (objects to JSON-encode, or
+    raw bytes) and ``events`` as given: what another program could put there."""
+    import json
+
+    from mcap.writer import Writer
+
+    from rocoma_can.runtime.trace import EVENT_SCHEMA, cycle_schema
+    with open(path, "wb") as stream:
+        writer = Writer(stream)
+        writer.start()
+        schemas = [writer.register_schema(name=name, encoding="jsonschema",
+                                          data=json.dumps(schema).encode())
+                   for name, schema in (("rocoma_can.Cycle", cycle_schema(JOINTS)),
+                                        ("rocoma_can.ManagerEvent", EVENT_SCHEMA))]
+        channels = [writer.register_channel(topic=topic, message_encoding=encoding,
+                                            schema_id=schema)
+                    for topic, schema in zip(("/rocoma/cycle", "/rocoma/event"), schemas)]
+        for channel, messages in zip(channels, (cycles, events)):
+            for k, msg in enumerate(messages):
+                data = msg if isinstance(msg, bytes) else json.dumps(msg).encode()
+                writer.add_message(channel_id=channel, log_time=10**9 + k * 10**7,
+                                   publish_time=10**9 + k * 10**7, data=data)
+        writer.finish()
+
+
+def without(msg: dict, key: str) -> dict:
+    return {k: v for k, v in msg.items() if k != key}
+
+
+FOREIGN = {  # name: (cycles, events, encoding, why)
+    "missing-field": ([without(cycle(0), "command_mode")], [], "json",
+                      "/rocoma/cycle message 1 has no 'command_mode' array"),
+    "missing-scalar": ([cycle(0), without(cycle(1), "state")], [], "json",
+                       "/rocoma/cycle message 2 has no 'state'"),
+    "list-not-object": ([[1, 2, 3]], [], "json",
+                        "/rocoma/cycle message 1 is an array ([1, 2, 3]), not an object"),
+    "strings-for-numbers": ([{**cycle(0), "position": ["0.1", "0.2"]}], [], "json",
+                            "/rocoma/cycle message 1: 'position' holds text ('0.1'), not a "
+                            "number"),
+    "string-period": ([{**cycle(0), "period": "10ms"}], [], "json",
+                      "/rocoma/cycle message 1: 'period' is text ('10ms'), not a number"),
+    "joint-counts-differ": ([cycle(0), cycle(1, joints=3)], [], "json",
+                            "/rocoma/cycle message 2: 'position' has 3 joints, the trace 2"),
+    "array-not-list": ([{**cycle(0), "torque": {"hip": 1.0}}], [], "json",
+                       "/rocoma/cycle message 1: 'torque' is an object ({'hip': 1.0}), not an "
+                       "array"),
+    "event-not-object": ([cycle(0)], ["e-stop"], "json",
+                         "/rocoma/event message 1 is text ('e-stop'), not an object"),
+    "cdr-encoding": ([b"\x00\x01\x00\x00"], [], "cdr",
+                     "/rocoma/cycle is encoded as 'cdr', not JSON"),
+    "not-json": ([b"\xff\x00garbage"], [], "json",
+                 "a /rocoma/cycle message is not JSON: b'\\xff\\x00garbage'"),
+}
+
+
+@pytest.mark.parametrize("verb", ["plot", "export"])
+@pytest.mark.parametrize("name", FOREIGN)
+def test_a_trace_with_foreign_content_is_said_in_one_line(tmp_path, capsys, name, verb):
+    cycles, events, encoding, why = FOREIGN[name]
+    path = tmp_path / "foreign.mcap"
+    write_mcap(path, cycles, events, encoding)
+    assert main([verb, str(path)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == f"rocoma-can: {path}: not a rocoma-can trace: {why}\n"
+    assert captured.out == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["foreign.mcap"]  # no PNG, no CSV
+
+
+@pytest.mark.parametrize("verb", ["plot", "export"])
+@pytest.mark.parametrize("cut", ["truncated", "garbage", "empty"])
+def test_a_cut_or_garbage_file_is_said_in_one_line(tmp_path, capsys, cut, verb):
+    good = tmp_path / "good.mcap"
+    write_mcap(good, [cycle(k) for k in range(200)])
+    data = good.read_bytes()
+    path = tmp_path / "bad.mcap"
+    path.write_bytes({"truncated": data[: len(data) // 2],
+                      "garbage": bytes(range(256)) * 64, "empty": b""}[cut])
+    good.unlink()
+    assert main([verb, str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"rocoma-can: {path}: not a rocoma-can trace: ") \
+        and err.count("\n") == 1, err
+    assert err.endswith({
+        "truncated": "\n",  # where the reader stops depends on where the cut fell
+        "garbage": "InvalidMagic: not a valid MCAP file, invalid magic: (0, 1, 2, 3, 4, 5, 6, "
+                   "7)\n",
+        "empty": "not a rocoma-can trace: EndOfFile\n"}[cut]), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.mcap"]
+
+
+def test_a_well_formed_foreign_trace_plots_and_exports_with_joint_names(tmp_path, capsys):
+    """Beside the checks: a file written by another program to our schema is a trace; other
+    programs' channels in it are passed over."""
+    path = tmp_path / "ok.mcap"
+    write_mcap(path, [cycle(k) for k in range(20)], [{"kind": "emergency_stop",
+                                                     "state": "EMERGENCY", "cause": "test"}])
+    assert main(["plot", str(path)]) == 0
+    assert main(["export", str(path)]) == 0
+    with open(tmp_path / "ok.csv") as stream:
+        header = next(csv.reader(stream))
+    assert header[:7] == ["log_time_ns", "t", "period", "work", "late", "state", "controller"]
+    assert header[7:9] == ["position[hip]", "position[knee]"]
+    assert header[-1] == "error_code[knee]"
+
+
+def test_export_into_a_directory_that_is_a_file_is_one_line(tmp_path, capsys):
+    """The partial file's clean-up cannot remove what could not be made: no second error."""
+    path = tmp_path / "ok.mcap"
+    write_mcap(path, [cycle(0)])
+    blocker = tmp_path / "file"
+    blocker.write_text("a file, not a directory")
+    out = blocker / "sub" / "t.csv"
+    assert main(["export", str(path), "--csv", str(out)]) == 2
+    assert capsys.readouterr().err == \
+        f"rocoma-can: {out}: cannot write the CSV: Not a directory\n"
+    assert blocker.read_text() == "a file, not a directory"
