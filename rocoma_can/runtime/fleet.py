@@ -13,7 +13,8 @@ Under a prefix (default ``rocoma/<hostname>``), payloads JSON:
 * a liveliness token ``<prefix>/alive`` while the loop runs: it vanishes when the loop stops,
   when its cycles stop coming for ``alive_timeout`` s (a hung loop), and with the process.
 
-Safety: an e-stop and a failproof stop are accepted from anyone; switch, clear and recover
+Safety: an e-stop and a failproof stop are accepted from anyone, whatever their payload (it
+is never read: a stop must not depend on what a querier sends); switch, clear and recover
 only with ``allow_commands: true`` (Zenoh's own access control and TLS, in the Zenoh config
 file given as ``config_file``, decide who reaches this at all). An optional dead-man: with
 ``deadman: KEY`` the manager e-stops when that liveliness token (an operator's console)
