@@ -334,3 +334,126 @@ def test_a_killed_demo_process_loses_its_alive_token(endpoint, operator):
         if proc.poll() is None:
             proc.kill()
             proc.wait(10)
+
+
+# --- hostile payloads (issue 33): a stop acts whatever it carries; every other service answers
+# in its documented shape, never with a decode error ---------------------------------------
+
+#: payloads no client of ours sends; each service is asked with each of them
+HOSTILE = {
+    "bytes": bytes(range(256)),
+    "invalid-utf8": b"\xff\xfe\xc3(",
+    "huge": b"\xff" * (1 << 20),
+    "garbage-json": b'{"name": [1, {"pd": nul',
+    "empty": b"",
+}
+CONTROLLERS = "pd, trajectory"
+
+
+def _enabled_in_pd(rt, z, prefix: str) -> None:
+    """Clear the start-up latch and run pd with every drive enabled: a stop has something to
+    stop."""
+    wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+    assert ask(z, f"{prefix}/clear")["ok"] is True
+    assert ask(z, f"{prefix}/switch", "pd") == {"result": "SWITCHED"}
+    wait_for(lambda: rt.hardware.all_enabled, "the drives enabled")
+
+
+@pytest.mark.parametrize("payload", HOSTILE.values(), ids=HOSTILE.keys())
+@pytest.mark.parametrize("service, state, cause", [
+    ("estop", "EMERGENCY", "Zenoh e-stop"),
+    ("failproof", "FAILPROOF", "Zenoh failproof stop")])
+def test_a_stop_acts_whatever_its_payload(virtual_channel, sim_segment_factory, endpoint,
+                                          prefix, operator, service, state, cause, payload):
+    segment = sim_segment_factory(2)
+    with manager(virtual_channel, endpoint, prefix, allow_commands=True) as rt:
+        z = operator()
+        _enabled_in_pd(rt, z, prefix)
+        answer = ask(z, f"{prefix}/{service}", payload)
+        assert answer["ok"] is True and set(answer) == {"ok", "state"}, answer
+        wait_for(lambda: rt.manager.state.name == state, f"the manager in {state}")
+        assert rt.manager.estop_latched
+        assert ask(z, f"{prefix}/status")["estop_cause"] == cause
+        wait_for(lambda: all(d.state402.name != "OPERATION_ENABLED"
+                             for d in segment.drives.values()), "torque off on every drive")
+
+
+def _expected(service: str, name: str) -> dict:
+    """What the manager answers ``service`` with when asked with HOSTILE[name]."""
+    payload = HOSTILE[name]
+    if service == "clear":
+        return {"ok": True, "state": "FAILPROOF"}  # clear takes no payload
+    if service == "recover":
+        return {"ok": True, "state": "FAILPROOF", "recovery": "started"}
+    try:
+        text = payload.decode()
+    except UnicodeDecodeError:
+        return {"result": "NOT_FOUND",
+                "error": f"no controller: the payload is {len(payload)} bytes that are not "
+                         f"UTF-8 text (controllers: {CONTROLLERS})"}
+    return {"result": "NOT_FOUND", "error": f"no controller {text!r} (controllers: "
+                                            f"{CONTROLLERS})"}
+
+
+@pytest.mark.parametrize("payload", HOSTILE, ids=HOSTILE.keys())
+@pytest.mark.parametrize("service", ["status", "switch", "clear", "recover"])
+def test_every_other_service_answers_in_its_shape_whatever_the_payload(
+        virtual_channel, sim_segment_factory, endpoint, prefix, operator, service, payload):
+    sim_segment_factory(2)
+    with manager(virtual_channel, endpoint, prefix, allow_commands=True) as rt:
+        z = operator()
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        answer = ask(z, f"{prefix}/{service}", HOSTILE[payload])
+        if service == "status":
+            assert answer["state"] == "FAILPROOF" and answer["active"] == "torque_off"
+            assert answer["controllers"] == ["pd", "trajectory"]
+        else:
+            assert answer == _expected(service, payload)
+        assert ask(z, f"{prefix}/status")["zenoh"]["errors"] == 0
+        assert rt.manager.active_controller_name == "torque_off"  # nothing switched
+
+
+@pytest.mark.parametrize("payload", ["invalid-utf8", "huge"])
+def test_a_refused_switch_is_refused_before_its_payload_is_read(
+        virtual_channel, sim_segment_factory, endpoint, prefix, operator, payload):
+    sim_segment_factory(2)
+    with manager(virtual_channel, endpoint, prefix) as rt:  # allow_commands: false
+        z = operator()
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        assert ask(z, f"{prefix}/switch", HOSTILE[payload]) == {
+            "result": "ERROR",
+            "error": "switch over Zenoh is not allowed by this manager's config "
+                     "(zenoh.allow_commands: false); e-stop and failproof are"}
+
+
+@contextmanager
+def foreign(endpoint: str, prefix: str, answer: bytes):
+    """Another program serving a manager's keys: every query answered with ``answer``."""
+    session = open_session("peer", [], [endpoint], multicast=False)
+
+    def reply(query) -> None:
+        query.reply(query.key_expr, answer)
+        query.drop()
+    queryable = session.declare_queryable(f"{prefix}/**", reply)
+    try:
+        yield
+    finally:
+        queryable.undeclare()
+        session.close()
+
+
+@pytest.mark.parametrize("answer, said", [
+    (b"\xff\xfe", "not a rocoma-can manager's answer: b'\\xff\\xfe'"),
+    (b"[1, 2]", "not a rocoma-can manager's answer: [1, 2]"),
+    (b'{"state": "OK"}', "not a rocoma-can manager's answer (no 'ok'): {'state': 'OK'}"),
+    (b"\x00" * 4096, "not a rocoma-can manager's answer: b'" + "\\x00" * 20
+     + "'... (4096 bytes)"),
+], ids=["invalid-utf8", "a-list", "no-ok", "huge"])
+def test_the_cli_says_in_one_line_when_the_answer_is_not_a_managers(endpoint, prefix, capsys,
+                                                                   answer, said):
+    """Another program on the manager's keys: the e-stop is reported as failed (exit 1) with
+    why, in one line."""
+    opts = ["--zenoh", prefix, "--zenoh-connect", endpoint, "--zenoh-no-multicast"]
+    with foreign(endpoint, prefix, answer):
+        assert main(["estop", *opts]) == 1
+    assert capsys.readouterr().err == f"rocoma-can: {prefix}/estop: {said}\n"

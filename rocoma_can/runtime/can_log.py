@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import collections
 import copy
-import logging
 import threading
 from pathlib import Path
 
@@ -23,8 +22,6 @@ import can
 from can.util import channel2int
 
 from ..drivers.bus import BusReader
-
-log = logging.getLogger(__name__)
 
 SUFFIXES = (".log", ".asc", ".blf")
 #: Frames held for the writer at most (~30 s of four saturated buses): a writer that cannot
@@ -77,6 +74,8 @@ class FrameLog(can.Listener):
         return self
 
     def on_message_received(self, msg: can.Message) -> None:
+        if self._stop.is_set() or self.error is not None:  # nothing will write it
+            return
         if len(self._queue) >= MAX_QUEUED:
             self._queue.popleft()
             self.dropped += 1
@@ -102,9 +101,10 @@ class FrameLog(can.Listener):
             file = getattr(writer, "file", None)
             if file is not None:  # on disk now: a crash loses at most one flush period
                 file.flush()
-        except (OSError, ValueError) as exc:  # a full disk: stop writing, say why
+        except (OSError, ValueError) as exc:  # a full disk: stop writing; the owner says
+            # why, once (rocoma-can record at its end, a run's Recording as it happens)
             self.error = f"{self.path}: writing failed after {self.frames} frames: {exc}"
-            log.error("%s", self.error)
+            self._queue.clear()
 
     def _for_file(self, msg: can.Message) -> can.Message:
         """In ASC and BLF, a channel whose name ends in digits too large for a channel

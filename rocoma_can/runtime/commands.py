@@ -155,6 +155,9 @@ def _run(args: argparse.Namespace) -> int:
             _err(str(exc))
             return USAGE
         print(f"rocoma-can: stopped ({runtime.loop.stop_reason}); {summary.line()}", flush=True)
+    # said as it happened (one warning); the exit code tells a script the record has a hole
+    if runtime.recording is not None and runtime.recording.errors:
+        return FAILED
     return OK
 
 

@@ -13,7 +13,8 @@ Under a prefix (default ``rocoma/<hostname>``), payloads JSON:
 * a liveliness token ``<prefix>/alive`` while the loop runs: it vanishes when the loop stops,
   when its cycles stop coming for ``alive_timeout`` s (a hung loop), and with the process.
 
-Safety: an e-stop and a failproof stop are accepted from anyone; switch, clear and recover
+Safety: an e-stop and a failproof stop are accepted from anyone, whatever their payload (it
+is never read: a stop must not depend on what a querier sends); switch, clear and recover
 only with ``allow_commands: true`` (Zenoh's own access control and TLS, in the Zenoh config
 file given as ``config_file``, decide who reaches this at all). An optional dead-man: with
 ``deadman: KEY`` the manager e-stops when that liveliness token (an operator's console)
@@ -342,16 +343,22 @@ class FleetBridge:
             except Exception:  # noqa: BLE001 - a session already gone
                 pass
 
-    # --- queries (Zenoh's threads) ------------------------------------------------------------
+    # --- queries (Zenoh's threads) ---------------------------------------------------------
     def _answerer(self, service: str) -> Callable[[Any], None]:
         def answer(query: Any) -> None:
             self._count("queries")
             key = f"{self.config.prefix}/{service}"
+            if service == "switch":
+                try:
+                    self._switch(query, key)
+                except Exception as exc:  # noqa: BLE001 - a query must get an answer
+                    self._count("errors")
+                    self._reply(query, key, {"result": "ERROR",
+                                             "error": f"{type(exc).__name__}: {exc}"})
+                return
+            # Only switch reads its payload: a stop acts whatever it carries (bytes, nothing,
+            # megabytes), and status, clear and recover take none.
             try:
-                payload = query.payload.to_string() if query.payload is not None else ""
-                if service == "switch":
-                    self._switch(query, key, payload.strip())
-                    return
                 reply = self._serve(service)
             except Exception as exc:  # noqa: BLE001 - a query must get an answer
                 self._count("errors")
@@ -359,8 +366,17 @@ class FleetBridge:
                          "error": f"{type(exc).__name__}: {exc}"}
             if reply.get("ok") is False:
                 self._count("refused")
-            _respond(query, key, reply)
+            self._reply(query, key, reply)
         return answer
+
+    def _reply(self, query: Any, key: str, answer: dict[str, Any]) -> None:
+        """Answer on Zenoh's thread; a querier gone or a session closing is counted, never
+        raised into Zenoh (the stop it asked for has happened already)."""
+        try:
+            _respond(query, key, answer)
+        except Exception as exc:  # noqa: BLE001 - zenoh.ZError: the querier went away
+            self._count("errors")
+            log.debug("zenoh: answering %s failed: %s", key, exc)
 
     def _serve(self, service: str) -> dict[str, Any]:
         m = self.manager
@@ -386,13 +402,13 @@ class FleetBridge:
             return {"ok": True, "state": m.state.name, "recovery": "started"}
         return {"ok": True, "state": m.state.name}
 
-    def _switch(self, query: Any, key: str, name: str) -> None:
+    def _switch(self, query: Any, key: str) -> None:
         m = self.manager
 
         def reply(result: str, error: str = "") -> None:
             if result == "ERROR" or result == "NOT_FOUND":
                 self._count("refused")
-            _respond(query, key, {"result": result, **({"error": error} if error else {})})
+            self._reply(query, key, {"result": result, **({"error": error} if error else {})})
         if not self.config.allow_commands:
             reply("ERROR", _NOT_ALLOWED.format("switch"))
             return
@@ -400,6 +416,13 @@ class FleetBridge:
             reply("ERROR", _NOT_RUNNING)
             return
         names = m.available_controllers()
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            name = raw.decode("utf-8").strip()
+        except UnicodeDecodeError:  # names none of ours; said without echoing the bytes
+            reply("NOT_FOUND", f"no controller: the payload is {len(raw)} bytes that are not "
+                               f"UTF-8 text (controllers: {', '.join(names)})")
+            return
         # a number from `list` (ASCII digits, short: int() of "²" or 5000 digits raises)
         if name.isascii() and name.isdigit() and len(name) <= 6 \
                 and 1 <= int(name) <= len(names):

@@ -79,21 +79,11 @@ class FleetClient:
         key = f"{self.prefix}/{service}"
         for reply in self.session.get(key, payload=payload, timeout=max(0.05, timeout)):
             if reply.ok is None:
-                error = reply.err.payload.to_string()
+                error = reply.err.payload.to_bytes().decode("utf-8", "replace")
                 if error == "Timeout":  # Zenoh's own: no answer within the timeout
                     return None
-                raise RocomaError(f"{key}: {error}")
-            try:
-                answer = json.loads(reply.ok.payload.to_string())
-            except ValueError:
-                raise RocomaError(f"{key}: not a rocoma-can manager's answer: "
-                                  f"{reply.ok.payload.to_string()[:80]!r}") from None
-            if not isinstance(answer, dict):
-                raise RocomaError(f"{key}: not a rocoma-can manager's answer: {answer!r}")
-            if service == "status" and "state" not in answer:
-                raise RocomaError(f"{key}: the manager could not report: "
-                                  f"{answer.get('error', answer)}")
-            return answer
+                raise RocomaError(f"{key}: {_shown(error)}")
+            return _answer(key, service, reply.ok.payload.to_bytes())
         return None
 
     def _silent(self, service: str) -> NoAnswer:
@@ -115,6 +105,41 @@ class FleetClient:
             time.sleep(max(0.0, min(ROUND - (time.monotonic() - started),
                                     deadline - time.monotonic())))
         return sorted(found)
+
+
+#: what each answer must hold, the fields a caller reads (fleet.py's documented shapes)
+_SHAPES = {"status": ("state", str), "switch": ("result", str)}
+
+
+def _answer(key: str, service: str, raw: bytes) -> dict[str, Any]:
+    """A manager's answer as its documented shape; anything else on the key (another
+    program, a different version) is a RocomaError in one line, never a traceback."""
+    try:
+        answer = json.loads(raw)
+    except ValueError:  # UnicodeDecodeError included: not JSON text
+        raise RocomaError(f"{key}: not a rocoma-can manager's answer: "
+                          f"{_shown(raw)}") from None
+    field, kind = _SHAPES.get(service, ("ok", bool))
+    if not isinstance(answer, dict):
+        raise RocomaError(f"{key}: not a rocoma-can manager's answer: {_shown(answer)}")
+    if service == "status" and "state" not in answer:
+        raise RocomaError(f"{key}: the manager could not report: "
+                          f"{_shown(answer.get('error', answer))}")
+    if not isinstance(answer.get(field), kind):
+        raise RocomaError(f"{key}: not a rocoma-can manager's answer (no {field!r}): "
+                          f"{_shown(answer)}")
+    if "error" in answer and not isinstance(answer["error"], str):
+        answer["error"] = _shown(answer["error"])
+    return answer
+
+
+def _shown(value: object, limit: int = 80) -> str:
+    """``value`` for a one-line message, cut: an answer may be megabytes."""
+    if isinstance(value, bytes):
+        head = repr(value[:limit // 4])
+        return head if len(value) <= limit // 4 else f"{head}... ({len(value)} bytes)"
+    text = (value if isinstance(value, str) else repr(value)).replace("\n", " ")
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
 
 
 # --- the CLI ----------------------------------------------------------------------------------
@@ -198,7 +223,7 @@ def fleet(args: argparse.Namespace) -> int:
             except NoAnswer:
                 print(f"{prefix}: alive, no status answer", flush=True)
                 continue
-            print(f"{prefix}: {s['state']}, {s['active']}"
+            print(f"{prefix}: {s['state']}, {s.get('active', '?')}"
                   f"{', e-stop latched' if s.get('latched') else ''}"
                   f"{', last e-stop: ' + s['estop_cause'] if s.get('estop_cause') else ''}"
                   f", {len(s.get('drives', []))} drives", flush=True)

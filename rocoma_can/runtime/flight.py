@@ -146,7 +146,12 @@ class FlightRecorder:
                 writer.events(events, offset)
                 writer.frames(frames)
                 writer.finish()
-        except OSError as exc:  # unwritable directory, full disk: said, never raised
+        except (OSError, ValueError) as exc:  # unwritable directory, full disk: said, never
+            # raised; a file begun and cut short is no record, and takes room the next needs
+            try:
+                path.unlink(missing_ok=True)
+            except OSError:
+                pass
             self.errors.append(f"flight record {path}: {exc}")
             log.error("flight recorder: %s could not be written: %s", path, exc)
             return
@@ -173,7 +178,12 @@ class FlightRecorder:
 class Recording:
     """``--record DIR``: every bus to ``DIR/<bus>.log``, every cycle and manager event to
     ``DIR/trace.mcap`` (written by a thread of its own every ``period`` s; ``on_event`` is
-    the manager subscriber)."""
+    the manager subscriber).
+
+    The first failure of any of its writers (a full disk, mostly) stops them all, each
+    closing its file, with one warning: a recording with a hole is no record of what
+    happened, and writers that keep failing would only fill the log. The loop runs on.
+    ``errors`` keeps every reason, the first one first."""
 
     def __init__(self, trace: SignalTrace, directory: str | Path, buses: Sequence[str],
                  period: float = 0.2) -> None:
@@ -181,12 +191,19 @@ class Recording:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.trace = trace
         self.errors: list[str] = []
-        #: per bus, the FrameLog its passive reader feeds (Taps wires them)
-        self.logs = {name: FrameLog(self.directory / f"{_slug(name)}.log").start()
-                     for name in buses}
         self.path = self.directory / "trace.mcap"
-        self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = McapWriter(self._stream, trace.names)
+        #: per bus, the FrameLog its passive reader feeds (Taps wires them)
+        self.logs: dict[str, FrameLog] = {}
+        self._writer: McapWriter | None = None
+        try:
+            for name in buses:
+                self.logs[name] = FrameLog(self.directory / f"{_slug(name)}.log").start()
+            self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in _stop_writers
+            self._writer = McapWriter(self._stream, trace.names)
+        except BaseException:  # a file that cannot be made: no writer thread left behind
+            for frame_log in self.logs.values():
+                frame_log.stop()
+            raise
         self._offset = time.time() - time.monotonic()
         self._next = 0
         self._events: collections.deque[ManagerEvent] = collections.deque()
@@ -196,41 +213,77 @@ class Recording:
         self._thread.start()
 
     def on_event(self, event: ManagerEvent) -> None:
-        self._events.append(event)
+        if self._writer is not None:  # a stopped recording keeps nothing
+            self._events.append(event)
 
     def _run(self) -> None:
-        while not self._stop.wait(self._period):
+        while not self._stop.wait(self._period) and self._writer is not None:
             self._write()
         self._write()
 
     def _write(self) -> None:
-        if self.errors:
+        writer = self._writer
+        if writer is None:
+            return
+        failed = next((f.error for f in self.logs.values() if f.error), None)
+        if failed is not None:
+            self._fail(failed)
             return
         start, rows = self.trace.rows(self._next)
         if start > self._next:
-            self.errors.append(f"{self.path}: {start - self._next} cycles lost (the writer "
-                               "fell a ring behind)")
+            self._fail(f"{self.path}: {start - self._next} cycles lost (the writer fell a "
+                       "ring behind)")
+            return
         events = [self._events.popleft() for _ in range(len(self._events))]
         try:
-            self._writer.cycles(self.trace, rows, self._offset)
-            self._writer.events(events, self._offset)
-        except OSError as exc:
-            self.errors.append(f"{self.path}: writing failed: {exc}")
-            log.error("%s", self.errors[-1])
+            writer.cycles(self.trace, rows, self._offset)
+            writer.events(events, self._offset)
+        except (OSError, ValueError) as exc:
+            self._fail(f"{self.path}: writing failed: {exc}")
+            return
         self._next = start + len(rows)
+
+    def _fail(self, reason: str) -> None:
+        """The recording's first failure (the writer thread's, or at close): said once,
+        every writer stopped."""
+        self._note(reason)
+        self._stop_writers()
+
+    def _note(self, reason: str) -> None:
+        self.errors.append(reason)
+        if len(self.errors) == 1:
+            log.warning("recording to %s stopped, the loop runs on: %s", self.directory,
+                        reason)
+        else:
+            log.debug("recording to %s: %s", self.directory, reason)
+
+    def _stop_writers(self) -> None:
+        """Every writer stopped and its file closed, whatever fails on the way."""
+        writer, self._writer = self._writer, None
+        self._events.clear()
+        if writer is not None:
+            try:
+                writer.finish()
+            except (OSError, ValueError) as exc:  # a full disk: the summary cannot go out
+                self._note(f"{self.path}: closing failed: {exc}")
+            try:
+                self._stream.close()  # closes the file even when its last flush fails
+            except (OSError, ValueError) as exc:
+                self._note(f"{self.path}: closing failed: {exc}")
+        for frame_log in self.logs.values():
+            frame_log.stop()
+            if frame_log.error and frame_log.error not in self.errors:
+                self._note(frame_log.error)
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(10.0)
-        try:
-            self._writer.finish()
-        except OSError as exc:
-            self.errors.append(f"{self.path}: closing failed: {exc}")
-        self._stream.close()
-        for frame_log in self.logs.values():
-            frame_log.stop()
-            if frame_log.error:
-                self.errors.append(frame_log.error)
+        if self._thread.is_alive():  # stuck in a write: its files are its own to close
+            self._note(f"{self.path}: the trace writer did not stop")
+            for frame_log in self.logs.values():
+                frame_log.stop()
+            return
+        self._stop_writers()
 
 
 class Taps:

@@ -14,7 +14,6 @@ Drawing needs matplotlib (the optional extra ``rocoma-can[plot]``); reading need
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -75,30 +74,26 @@ class Trace:
 
 
 def load(path: str | Path) -> Trace:
-    """The trace in ``path``; PlotError says why a file cannot be read."""
-    from .trace import read_messages
+    """The trace in ``path``; PlotError says why a file cannot be read, in one line."""
+    from .trace import CYCLE_TOPIC, EVENT_TOPIC, TraceError, joint_names, read_trace
     rows: list[tuple[int, dict[str, Any]]] = []
     raw_events: list[tuple[int, dict[str, Any]]] = []
     try:
-        for topic, log_time, msg in read_messages(str(path)):
-            if topic == "/rocoma/cycle":
+        for topic, log_time, msg in read_trace(str(path)):
+            if topic == CYCLE_TOPIC:
                 rows.append((log_time, msg))
-            elif topic == "/rocoma/event":
+            elif topic == EVENT_TOPIC:
                 raw_events.append((log_time, msg))
     except ImportError:
         raise PlotError("reading MCAP needs the mcap package: "
                         "pip install 'rocoma-can[record]'") from None
-    except Exception as exc:  # noqa: BLE001 - no such file, a foreign or truncated file:
-        # the reader fails in many ways (OSError, struct.error, McapError, ValueError)
-        raise PlotError(f"{path}: not a rocoma-can trace: {type(exc).__name__}: "
-                        f"{exc}") from None
+    except TraceError as exc:
+        raise PlotError(f"{path}: not a rocoma-can trace: {exc}") from None
     if not rows:
-        raise PlotError(f"{path}: no cycles (/rocoma/cycle) to plot")
+        raise PlotError(f"{path}: no cycles ({CYCLE_TOPIC}) to plot")
+    joints = len(rows[0][1]["position"])  # every row alike: read_trace checked them
     t0 = rows[0][0]
-    joints = len(rows[0][1]["position"])
-    names = _joint_names(path)
-    if len(names) != joints:
-        names = [f"joint {j}" for j in range(joints)]
+    names = joint_names(str(path), joints) or [f"joint {j}" for j in range(joints)]
 
     def matrix(key: str) -> np.ndarray:
         return np.array([m[key] for _, m in rows], dtype=float).reshape(len(rows), joints)
@@ -115,18 +110,6 @@ def load(path: str | Path) -> Trace:
         names=names,
         events=[((t - t0) / 1e9, m.get("kind", ""), m.get("state", ""), m.get("cause", ""))
                 for t, m in raw_events])
-
-
-def _joint_names(path: str | Path) -> list[str]:
-    """The joint names the cycle schema's description carries ("joints: a, b, c")."""
-    from mcap.reader import make_reader
-    with open(path, "rb") as stream:
-        summary = make_reader(stream).get_summary()
-    for schema in (summary.schemas.values() if summary is not None else ()):
-        if schema.name == "rocoma_can.Cycle":
-            text = json.loads(schema.data)["properties"]["position"].get("description", "")
-            return [n.strip() for n in text.removeprefix("joints:").split(",") if n.strip()]
-    return []
 
 
 def _runs(values: list[str]) -> list[tuple[int, int, str]]:
@@ -221,7 +204,10 @@ def plot(source: str | Path, out: str | Path | None = None, title: str = "") -> 
     the title defaults to the file's name."""
     trace = load(source)
     target = Path(out) if out else Path(source).with_suffix(".png")
-    fig = figure(trace, title=title or str(source))
+    try:
+        fig = figure(trace, title=title or str(source))
+    except ValueError as exc:  # values no trace of ours holds (limits of NaN or inf)
+        raise PlotError(f"{source}: not a rocoma-can trace: cannot draw it: {exc}") from None
     try:
         fig.savefig(target)
     except (OSError, ValueError) as exc:  # no such directory; a format matplotlib lacks

@@ -93,7 +93,7 @@ def _progress(log: FrameLog) -> Callable[[float | None], None]:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from .trace import JOINT_FIELDS, read_messages
+    from .trace import TraceError
     source = Path(args.file)
     out = Path(args.out) if args.out else source.with_suffix(".csv")
     if out.resolve() == source.resolve():
@@ -103,34 +103,52 @@ def _export(args: argparse.Namespace) -> int:
     part = out.with_name(out.name + ".part")
     try:
         with open(part, "w", newline="") as stream:
-            writer: Any = None
-            rows = 0
-            for topic, log_time, msg in read_messages(str(source)):
-                if topic != "/rocoma/cycle":
-                    continue
-                joints = len(msg["position"])
-                if writer is None:
-                    writer = csv.writer(stream)
-                    header = ["log_time_ns", "t", "period", "work", "late", "state",
-                              "controller"]
-                    header += [f"{f}[{j}]" for f in JOINT_FIELDS for j in range(joints)]
-                    writer.writerow(header)
-                writer.writerow([log_time, msg["t"], msg["period"], msg["work"], msg["late"],
-                                 msg["state"], msg["controller"]]
-                                + [v for f in JOINT_FIELDS for v in msg[f]])
-                rows += 1
+            rows = _write_csv(source, stream)
         os.replace(part, out)
     except ImportError:
-        part.unlink(missing_ok=True)
+        _discard(part)
         _say("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
         return USAGE
-    except Exception as exc:  # noqa: BLE001 - no such file, not MCAP (the reader fails in
-        # many ways on a foreign or truncated file: struct.error, McapError), not ours
-        part.unlink(missing_ok=True)
-        _say(f"{source}: cannot export: {type(exc).__name__}: {exc}")
+    except TraceError as exc:
+        _discard(part)
+        _say(f"{source}: not a rocoma-can trace: {exc}")
+        return USAGE
+    except OSError as exc:  # the CSV's side (the trace's failures are TraceErrors)
+        _discard(part)
+        _say(f"{out}: cannot write the CSV: {exc.strerror or exc}")
         return USAGE
     print(f"{rows} cycles written to {out}", flush=True)
     return OK
+
+
+def _write_csv(source: Path, stream: Any) -> int:
+    """The cycles of ``source`` as CSV rows on ``stream`` (a header first); the number of
+    cycles. Per-joint columns are ``FIELD[JOINT]`` with the joints' names from the trace
+    (their numbers where a trace carries none), as the arrays appear in PlotJuggler."""
+    from .trace import CYCLE_TOPIC, JOINT_FIELDS, SCALARS, joint_names, read_trace
+    writer = csv.writer(stream)
+    rows = 0
+    for topic, log_time, msg in read_trace(str(source)):
+        if topic != CYCLE_TOPIC:
+            continue
+        if rows == 0:
+            joints = len(msg["position"])  # every row alike: read_trace checked them
+            names = joint_names(str(source), joints) or [str(j) for j in range(joints)]
+            writer.writerow(["log_time_ns", *SCALARS,
+                             *(f"{f}[{name}]" for f in JOINT_FIELDS for name in names)])
+        writer.writerow([log_time, *(msg[k] for k in SCALARS),
+                         *(v for f in JOINT_FIELDS for v in msg[f])])
+        rows += 1
+    return rows
+
+
+def _discard(part: Path) -> None:
+    """Remove a partial CSV where there is one: a path that could not be opened (a parent
+    that is a file) cannot be removed either, and that is no second error."""
+    try:
+        part.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def _plot(args: argparse.Namespace) -> int:

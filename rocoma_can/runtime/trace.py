@@ -225,9 +225,139 @@ class McapWriter:
         self._writer.finish()  # type: ignore[no-untyped-call]  # mcap 1.6: unannotated
 
 
+class TraceError(ValueError):
+    """Why a file is not a rocoma-can trace, in one line (the file is left out: the caller
+    names it)."""
+
+
+#: the channels this package writes and reads back; anything else in a file is passed over
+CYCLE_TOPIC, EVENT_TOPIC = "/rocoma/cycle", "/rocoma/event"
+#: a cycle message's scalar fields a reader relies on, and their JSON types
+_CYCLE_SCALARS: dict[str, tuple[type, ...]] = {
+    "t": (int, float), "period": (int, float), "work": (int, float), "late": (int, float),
+    "state": (str,), "controller": (str,)}
+
+
 def read_messages(path: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """(topic, log time ns, decoded message) of every message in an MCAP file, in order."""
+    """(topic, log time ns, decoded message) of every JSON message in an MCAP file, in
+    order. Other programs' channels in other encodings are passed over; ours in another
+    encoding, or not JSON, raise TraceError. The MCAP reader's own failures (a truncated or
+    foreign file) come through as they are."""
     from mcap.reader import make_reader
     with open(path, "rb") as stream:
         for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
-            yield channel.topic, message.log_time, json.loads(message.data)
+            ours = channel.topic in (CYCLE_TOPIC, EVENT_TOPIC)
+            if channel.message_encoding != "json":
+                if ours:
+                    raise TraceError(f"{channel.topic} is encoded as "
+                                     f"{channel.message_encoding!r}, not JSON")
+                continue
+            try:
+                decoded = json.loads(message.data)
+            except ValueError:  # UnicodeDecodeError too
+                if ours:
+                    raise TraceError(f"a {channel.topic} message is not JSON: "
+                                     f"{bytes(message.data[:24])!r}") from None
+                continue
+            yield channel.topic, message.log_time, decoded
+
+
+def read_trace(path: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """read_messages with every cycle and event checked (check_cycle, check_event): what
+    ``plot`` and ``export`` read. Any failure to read the file (none there, a foreign,
+    truncated or garbage file) is a TraceError; ImportError stays itself (mcap missing)."""
+    cycles = events = 0
+    joints: int | None = None
+    try:
+        for topic, log_time, msg in read_messages(path):
+            if topic == CYCLE_TOPIC:
+                cycles += 1
+                joints = check_cycle(msg, cycles, joints)
+            elif topic == EVENT_TOPIC:
+                events += 1
+                check_event(msg, events)
+            yield topic, log_time, msg
+    except (TraceError, ImportError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - the reader fails in many ways on a foreign
+        # or cut file (OSError, struct.error, McapError, EndOfFile, ValueError)
+        raise TraceError(_reason(exc)) from None
+
+
+def _reason(exc: BaseException) -> str:
+    """An exception as one line: its type, and its message where it has one (the MCAP
+    reader's end-of-file error has none)."""
+    kind = type(exc).__name__
+    if kind == "error":  # struct.error: the reader read past a cut file's end
+        kind = f"{type(exc).__module__}.error"
+    text = " ".join(str(exc).split())
+    return f"{kind}: {text}" if text else kind
+
+
+def check_cycle(msg: Any, number: int, joints: int | None = None) -> int:
+    """The joint count of cycle message ``number`` (from 1), whose arrays all hold
+    ``joints`` numbers (None: as its ``position`` does); TraceError says what is wrong with
+    it, since another program's messages can sit on our channel."""
+    where = f"{CYCLE_TOPIC} message {number}"
+    if not isinstance(msg, dict):
+        raise TraceError(f"{where} is {_json_kind(msg)}, not an object")
+    for key, kinds in _CYCLE_SCALARS.items():
+        value = msg.get(key)
+        if key not in msg:
+            raise TraceError(f"{where} has no {key!r}")
+        if not isinstance(value, kinds) or isinstance(value, bool):
+            raise TraceError(f"{where}: {key!r} is {_json_kind(value)}, not "
+                             f"{'text' if kinds == (str,) else 'a number'}")
+    for key in JOINT_FIELDS:
+        values = msg.get(key)
+        if not isinstance(values, list):
+            raise TraceError(f"{where} has no {key!r} array" if key not in msg else
+                             f"{where}: {key!r} is {_json_kind(values)}, not an array")
+        if joints is None:
+            joints = len(values)
+        if len(values) != joints:
+            raise TraceError(f"{where}: {key!r} has {len(values)} joints, the trace "
+                             f"{joints}")
+        for value in values:
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise TraceError(f"{where}: {key!r} holds {_json_kind(value)}, not a "
+                                 "number")
+    assert joints is not None  # JOINT_FIELDS is not empty
+    return joints
+
+
+def check_event(msg: Any, number: int) -> None:
+    """TraceError unless event message ``number`` is an object of text fields."""
+    where = f"{EVENT_TOPIC} message {number}"
+    if not isinstance(msg, dict):
+        raise TraceError(f"{where} is {_json_kind(msg)}, not an object")
+    for key in ("kind", "state", "controller", "cause"):
+        if not isinstance(msg.get(key, ""), str):
+            raise TraceError(f"{where}: {key!r} is {_json_kind(msg[key])}, not text")
+
+
+def _json_kind(value: Any) -> str:
+    """A JSON value's kind with a glimpse of it, for a one-line reason."""
+    kinds = {dict: "an object", list: "an array", str: "text", bool: "a boolean",
+             int: "a number", float: "a number", type(None): "null"}
+    glimpse = repr(value)
+    glimpse = glimpse if len(glimpse) <= 24 else glimpse[:24] + "..."
+    return f"{kinds.get(type(value), type(value).__name__)} ({glimpse})"
+
+
+def joint_names(path: str, joints: int) -> list[str] | None:
+    """The ``joints`` joint names the cycle schema's description carries ("joints: a, b"),
+    None where a file has none that fit (another writer's schema, an older file)."""
+    from mcap.reader import make_reader
+    try:
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+        for schema in (summary.schemas.values() if summary is not None else ()):
+            if schema.name == "rocoma_can.Cycle":
+                text = json.loads(schema.data)["properties"]["position"]["description"]
+                names = [n.strip() for n in text.removeprefix("joints:").split(",")]
+                if len(names) == joints and all(names) and len(set(names)) == joints:
+                    return names
+    except Exception:  # noqa: BLE001 - names are a nicety: a foreign schema, a cut file
+        pass
+    return None
