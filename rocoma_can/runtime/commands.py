@@ -155,8 +155,12 @@ def _run(args: argparse.Namespace) -> int:
             _err(str(exc))
             return USAGE
         print(f"rocoma-can: stopped ({runtime.loop.stop_reason}); {summary.line()}", flush=True)
+        hw = runtime.hardware
+        unfinished = hw.starting or any(d.phase == "FAILED" for d in hw.drive_status())
+        if unfinished:  # each failure was said as it happened; this run did not do its job
+            _err(f"bring-up did not finish: {hw.not_ready() or 'drives starting'}")
     # said as it happened (one warning); the exit code tells a script the record has a hole
-    if runtime.recording is not None and runtime.recording.errors:
+    if unfinished or (runtime.recording is not None and runtime.recording.errors):
         return FAILED
     return OK
 
