@@ -215,6 +215,7 @@ def _build_tuple(entry: Mapping[str, Any], name: str, where: str, base: type) ->
 
 def _instantiate(cls: type, name: str, params: Any,
                  where: str) -> Controller | EmergencyController | FailproofController:
+    from .controllers.params import ParamError, annotated_mismatch  # numpy: when building
     params_at = _at(where, "params")
     if params is None:
         params = {}
@@ -226,13 +227,26 @@ def _instantiate(cls: type, name: str, params: Any,
     except (TypeError, ValueError):  # no introspectable signature: let the call decide
         signature = None
     if signature is not None:
+        accepted = ", ".join(list(signature.parameters)[1:]) or "no parameters"
+        takes_any = any(p.kind is p.VAR_KEYWORD for p in signature.parameters.values())
+        for key in params:
+            if not takes_any and key not in signature.parameters:
+                raise _error(_at(params_at, key), f"{cls.__name__} has no parameter {key!r}"
+                             f"{_did_you_mean(key, list(signature.parameters)[1:])} "
+                             f"(accepts: {accepted})")
         try:
             signature.bind(name, **params)
         except TypeError as exc:
-            accepted = ", ".join(list(signature.parameters)[1:]) or "no parameters"
             raise _error(params_at, f"{cls.__name__}() {exc} (accepts: {accepted})") from None
+    # A value its annotation rules out would fail inside the constructor with a message
+    # about an operator, not about the parameter: said here, with its path.
+    mismatch = annotated_mismatch(cls, params)
+    if mismatch is not None:
+        raise _error(_at(params_at, mismatch.param), mismatch.reason)
     try:
         controller: Controller | EmergencyController | FailproofController = cls(name, **params)
+    except ParamError as exc:  # the library's parameter checks: the parameter is the path
+        raise _error(_at(params_at, exc.param), exc.reason) from exc
     except Exception as exc:
         raise _error(params_at, f"{cls.__name__}({name!r}, **params) failed: {exc}") from exc
     # The config's name is the one the manager and the other entries refer to.

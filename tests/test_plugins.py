@@ -141,8 +141,12 @@ def bad(config_path: str, value):
      "emergency_controllers[0].plugin: 'fixtures.plugin_samples:Gains' is a Controller, but this entry "
      "needs an EmergencyController"),
     (bad("controllers.0.params", {"kp": 1.0, "kpp": 1.0}),
-     "controllers[0].params: Gains() got an unexpected keyword argument 'kpp' "
+     "controllers[0].params.kpp: Gains has no parameter 'kpp', did you mean 'kp'? "
      "(accepts: kp, kd)"),
+    (bad("controllers.0.params", {"kp": "high"}),  # its annotation, not '>' on a str
+     "controllers[0].params.kp: expected a number (float), got 'high'"),
+    (bad("emergency_controllers.0.params", {"gain": [1.0]}),
+     "emergency_controllers[0].params.gain: expected a number (float), got [1.0]"),
     (bad("controllers.0.params", {}),
      "controllers[0].params: Gains() missing a required argument: 'kp'"),
     (bad("controllers.0.params", {"kp": 1.0, "name": "x"}),
