@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import logging
 from pathlib import Path
 
 import pytest
@@ -191,6 +192,19 @@ def test_one_mistake_is_one_problem(label, edit, expected):
     with pytest.raises(ConfigError) as info:
         validate(cfg, source="robot.yaml")
     assert info.value.problems == [f"robot.yaml: {p}" for p in expected]
+
+
+def test_a_valid_config_warns_about_nothing(caplog):
+    """An emergency controller no controller uses is a note of the config (check-config
+    prints it), not a WARNING, and not logged by the check."""
+    cfg = good()
+    cfg["controllers"][0].pop("emergency")
+    with caplog.at_level(logging.DEBUG, logger="rocoma_can"):
+        config = validate(cfg)
+    assert config.notes == ["emergency_controllers: emergency controller 'damp' is not used "
+                            "by any controller"]
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.INFO] == []
+    assert validate(good()).notes == []
 
 
 def test_yaml_file_errors(tmp_path):

@@ -87,11 +87,16 @@ def test_emergency_tuple_and_lists_on_their_own():
     assert load_controllers(None) == [] and load_emergency_controllers(None) == {}
 
 
-def test_unused_emergency_controller_is_warned_about(caplog):
+def test_unused_emergency_controller_is_a_note_not_a_warning(caplog):
+    """A valid config warns about nothing: the unused emergency controller is said once,
+    at INFO, and not at all by a caller that reports it itself."""
     config = {"emergency_controllers": [{"name": "idle", "plugin": "fixtures.plugin_samples:Brake"}]}
-    with caplog.at_level(logging.WARNING, logger="rocoma_can.plugins"):
+    with caplog.at_level(logging.DEBUG, logger="rocoma_can.plugins"):
         assert load_config(config) == []
-    assert any("'idle' is not used" in r.getMessage() for r in caplog.records)
+        assert load_config(config, note_unused=False) == []
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [
+        (logging.INFO, "emergency_controllers: emergency controller 'idle' is not used by any "
+                       "controller")]
 
 
 def bad(config_path: str, value):

@@ -61,6 +61,8 @@ def _check_config(args: argparse.Namespace) -> int:
     print(f"{args.config}: ok: {len(config.drives)} drives on {_buses(config)} at "
           f"{config.rate:g} Hz, manager node {config.manager.node_id}, "
           f"e-stop COB-ID 0x{config.manager.estop_cob_id:03X}", flush=True)
+    for note in config.notes:
+        print(f"note: {note}", flush=True)
     several = len(config.buses) > 1
     for name, load_ in config.loads.items():
         print(f"bus load{f' {name}' if several else ''}: {load_.explain()}", flush=True)

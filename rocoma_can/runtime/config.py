@@ -118,6 +118,7 @@ class RuntimeConfig:
     plans: dict[str, DrivePlan] = field(default_factory=dict)  # per drive name
     fleet: FleetConfig | None = None  # the zenoh: section (None: no Zenoh)
     spin: float | None = None  # s the loop spins before each deadline (None: loop.py's)
+    notes: list[str] = field(default_factory=list)  # worth saying, not wrong (check-config)
 
     @property
     def bus(self) -> BusConfig:
@@ -340,17 +341,20 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         fleet.config_file = str(base / fleet.config_file)  # relative to the YAML file
 
     controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
+    notes: list[str] = []
     if not data.get("controllers"):
         problems.append("controllers: at least one controller is needed")
     elif check_controllers:
         from ..errors import PluginError
-        from ..plugins import load_config
+        from ..plugins import load_config, unused_emergency
         try:
-            loaded = load_config(controllers)
+            loaded = load_config(controllers, note_unused=False)
         except PluginError as exc:
             problems.append(str(exc))
         else:
             problems += _feedback_problems(loaded, drives)
+            emergency = controllers["emergency_controllers"] or []
+            notes += unused_emergency(loaded, [e["name"] for e in emergency])
 
     loads: dict[str, BusLoad] = {}
     first = buses[0].label if buses else ""
@@ -372,7 +376,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
                          timing, source, loads, plans, fleet,
-                         spin=None if spin_us is None else spin_us * 1e-6)
+                         spin=None if spin_us is None else spin_us * 1e-6, notes=notes)
 
 
 def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]) -> list[str]:
