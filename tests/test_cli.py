@@ -1,7 +1,9 @@
 """The CLI's exit codes a shell script relies on: 0 ok, 1 refused, 2 usage/config, 3 no answer."""
 from __future__ import annotations
 
+import errno
 import logging
+import socket
 from pathlib import Path
 
 import pytest
@@ -165,3 +167,29 @@ def test_check_config_of_a_valid_file_warns_about_nothing(tmp_path, capsys, capl
     assert err == "" and [r.getMessage() for r in caplog.records] == []
 
 
+def _kernel_has_socketcan() -> bool:
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
+def test_run_without_socketcan_says_what_to_do(tmp_path, capsys, monkeypatch):
+    """A kernel without AF_CAN (this project's CI, containers, WSL): the errno, then what
+    to do instead, on one line."""
+    if _kernel_has_socketcan():  # the same errno as such a kernel gives, from python-can
+        import can
+
+        def no_af_can(*args, **kwargs):
+            raise OSError(errno.EAFNOSUPPORT, "Address family not supported by protocol")
+        monkeypatch.setattr(can, "Bus", no_af_can)
+    cfg = good()
+    cfg["bus"] = {"interface": "socketcan", "channel": "can0"}
+    path = _write(tmp_path, cfg)
+    assert main(["run", str(path), "--no-flight", "--duration", "1"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "rocoma-can: cannot open CAN bus socketcan:can0: [Errno 97] Address family not "
+        "supported by protocol; this kernel has no SocketCAN (AF_CAN): on vcan, from a "
+        "checkout, tools/vcan-run -- rocoma-can run CONFIG with channel: vcan0; without a "
+        "kernel bus, rocoma-can demo, or interface: virtual in CONFIG"]

@@ -11,6 +11,7 @@ Exit codes (for shell scripts):
 from __future__ import annotations
 
 import argparse
+import errno
 import faulthandler
 import importlib.util
 import json
@@ -129,7 +130,7 @@ def _run(args: argparse.Namespace) -> int:
                           flight_seconds=args.flight_seconds,
                           announce=lambda text: print(f"rocoma-can: {text}", flush=True))
     except (OSError, ValueError, FleetError) as exc:
-        _err(str(exc))
+        _err(str(exc) + _no_socketcan_hint(exc))
         return USAGE
     if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
         faulthandler.register(signal.SIGUSR2, all_threads=True)
@@ -154,10 +155,23 @@ def _run(args: argparse.Namespace) -> int:
         try:
             summary = runtime.run(duration=args.duration)
         except OSError as exc:
-            _err(str(exc))
+            _err(str(exc) + _no_socketcan_hint(exc))
             return USAGE
         print(f"rocoma-can: stopped ({runtime.loop.stop_reason}); {summary.line()}", flush=True)
     return OK
+
+
+def _no_socketcan_hint(exc: BaseException) -> str:
+    """What to do when the kernel has no SocketCAN (EAFNOSUPPORT: containers, WSL, macOS),
+    which a new user meets first as an errno: its words say nothing about CAN."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno == errno.EAFNOSUPPORT:
+            return ("; this kernel has no SocketCAN (AF_CAN): on vcan, from a checkout, "
+                    "tools/vcan-run -- rocoma-can run CONFIG with channel: vcan0; without a "
+                    "kernel bus, rocoma-can demo, or interface: virtual in CONFIG")
+        seen = seen.__cause__ or seen.__context__
+    return ""
 
 
 def fleet_from_args(args: argparse.Namespace, fleet: FleetConfig | None) -> FleetConfig | None:
