@@ -63,3 +63,13 @@ def test_demo_cli_says_when_it_cannot_record(tmp_path, capsys):
     blocked.write_text("not a directory")
     assert main(["demo", "--drives", "2", "--record", str(blocked / "rec")]) == 2
     assert "cannot create the directory" in capsys.readouterr().out
+
+
+def test_demo_duration_is_the_walk_throughs_length():
+    """--duration is from bring-up to the loop's stop: the pauses fill it (they used to be
+    a tenth of it each, and 60 s ran 28)."""
+    lines: list[str] = []
+    report = run_demo(drives=2, rate=100.0, duration=5.0, out=lines.append)
+    assert report.ok, "\n".join(lines)
+    assert report.walk_time >= 5.0
+    assert f"  {'walk-through':28s} {report.walk_time:.1f} s" in lines

@@ -40,6 +40,10 @@ MANAGER_ID = 100
 DEFAULT_INTERFACE = "inproc"
 ESTOP_COB_ID = 0x0A0
 ZENOH_PREFIX = "rocoma/demo"
+#: the walk-through's pauses, in shares of --duration, in the order they come: after the
+#: switch to pd, to trajectory, the first fault, the second, the final switch, the e-stop
+PAUSES = (1.0, 1.0, 0.5, 0.5, 1.0, 0.5)
+MIN_PAUSE = 0.2  # s per share: each step is seen to hold for a while, however short the demo
 
 
 def default_buses(drives: int) -> int:
@@ -172,6 +176,7 @@ class Report:
     latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
     recording: Path | None = None      # the run's trace.mcap (with a candump .log per bus)
     plot: Path | None = None           # its PNG
+    walk_time: float = 0.0             # s from the walk-through's start to the loop's stop
 
     @property
     def ok(self) -> bool:
@@ -222,6 +227,23 @@ class _Watch:
         return None
 
 
+class _Pace:
+    """Ends the walk-through ``duration`` s after it began: each pause lasts until its share
+    of the duration (PAUSES) has passed, so what bring-up and recovery take comes out of the
+    pauses instead of adding to them. Steps slower than their share make it longer."""
+
+    def __init__(self, duration: float, stop: threading.Event) -> None:
+        self.start = time.monotonic()
+        self.duration = duration
+        self.stop = stop
+        self.done = 0.0
+
+    def pause(self, share: float) -> None:
+        self.done += share
+        until = self.start + self.duration * self.done / sum(PAUSES)
+        self.stop.wait(max(MIN_PAUSE * share, until - time.monotonic()))
+
+
 def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and not stop.is_set():
@@ -232,11 +254,16 @@ def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) 
 
 
 def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: _Watch,
-              probes: list[_TorqueOffProbe], report: Report, hold: float,
+              probes: list[_TorqueOffProbe], report: Report, duration: float,
               stop: threading.Event,
               say: Callable[[str], None]) -> None:
     hw, mgr = rt.hardware, rt.manager
     dt = rt.config.dt
+    pace = _Pace(duration, stop)
+    pauses = iter(PAUSES)
+
+    def hold() -> None:
+        pace.pause(next(pauses))
 
     def step(name: str, ok: bool, detail: str = "") -> bool:
         report.steps.append(Step(name, ok, detail))
@@ -262,11 +289,11 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
                     result == 0 and _wait(lambda: hw.all_enabled, 3.0, stop),
                     f"result {result}, drives enabled: {hw.all_enabled}"):
             return
-        time.sleep(hold)
+        hold()
         result = client.switch("trajectory")
         step("switch pd -> trajectory (swap state)", result == 0 and state() == 2,
              f"result {result}, active {mgr.active_controller_name}")
-        time.sleep(hold)
+        hold()
 
         node = seg.node_ids[min(2, len(seg.node_ids) - 2)]  # not the last: that one is next
         t0 = time.monotonic()
@@ -275,7 +302,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         latency(f"drive {node} fault -> EMERGENCY", t0, {1, 0})
         step(f"fault on drive {node} -> emergency controller", ok,
              f"state {STATE_NAMES[state()]}, active {mgr.active_controller_name}")
-        time.sleep(hold / 2)
+        hold()
 
         node2 = seg.node_ids[-1]
         if node2 == node:
@@ -289,7 +316,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
             latency(f"drive {node2} fault -> FAILPROOF", t0, {0})
             step(f"second fault on drive {node2} -> failproof torque-off", ok,
                  f"state {STATE_NAMES[state()]}")
-        time.sleep(hold / 2)
+        hold()
 
         client.write(0x2113, 1)  # recover drives; on success the e-stop latch is cleared
         ok = _wait(lambda: hw.all_ready and not mgr.estop_latched, 8.0, stop)
@@ -298,7 +325,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         result = client.switch("pd")
         step("final switch to pd", result == 0 and state() == 2
              and _wait(lambda: hw.all_enabled, 3.0, stop), f"result {result}")
-        time.sleep(hold)
+        hold()
 
         t0 = time.monotonic()
         client.bus.send(can.Message(arbitration_id=ESTOP_COB_ID, data=b"\x01",
@@ -307,7 +334,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         latency(f"CAN e-stop frame 0x{ESTOP_COB_ID:03X} -> EMERGENCY", t0, {1, 0})
         step(f"e-stop by a raw CAN frame on 0x{ESTOP_COB_ID:03X}", ok,
              f"state {STATE_NAMES[state()]}, cause {client.status()['estop_cause']!r}")
-        time.sleep(hold / 2)
+        hold()
     except Exception as exc:  # an SDO failure is a failed step, and the demo ends
         why = ""
         try:  # a refused switch says why (0x2103); a fault, with its cause, in the status
@@ -319,6 +346,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
     finally:
         for probe in probes:
             probe.armed = True
+        report.walk_time = time.monotonic() - pace.start
         rt.loop.stop("walk-through finished")
 
 
@@ -336,7 +364,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
     plot ``demo.png``; ``zenoh_listen``: an endpoint the manager serves Zenoh on, under
-    the prefix ``rocoma/demo`` (another shell can watch and e-stop it)."""
+    the prefix ``rocoma/demo`` (another shell can watch and e-stop it); ``duration``: s
+    from the start of bring-up to the loop's stop (_Pace)."""
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
@@ -360,7 +389,6 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         record = None
     watch = _Watch()
     stop = threading.Event()
-    hold = max(0.2, duration / 10)
     segments = [SimulatedSegment.open(b.channel, interface,
                                       [d.node_id for d in config.drives_on(b)],
                                       **(emulated.segment if emulated else {}))
@@ -399,7 +427,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                     "with estop)")
             operator = threading.Thread(
                 target=_operator, name="demo-operator",
-                args=(rt, seg, client, watch, probes, report, hold, stop, out))
+                args=(rt, seg, client, watch, probes, report, duration, stop, out))
             status = threading.Thread(target=_status_lines, name="demo-status",
                                       args=(rt, stop, out))
             operator.start()
@@ -462,6 +490,7 @@ def _summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out("")
     out("summary")
     out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
+    out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
     out(f"  {'cycles':28s} {timing.cycles}")
     out(f"  {'missed cycles (overruns)':28s} {timing.overruns}")
     out(f"  {'period mean / max':28s} {timing.period_mean * 1e3:.2f} / "
@@ -493,7 +522,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="in-process bus: inproc (default; one copy per frame, fit for "
                         "1 kHz) or python-can's virtual (a copy per frame and receiver)")
     p.add_argument("--duration", type=seconds, default=16.0,
-                   help="approximate length of the walk-through, s (default 16)")
+                   help="the walk-through's length, s, from bring-up to the loop's stop: its "
+                        "pauses stretch to end it then (default 16; steps slower than their "
+                        "share make it longer; set-up and the plot come on top)")
     p.add_argument("--record", default=None, metavar="DIR",
                    help="where the recording and its plot go (default: a new directory "
                         "under ~/.local/state/rocoma-can/demo/)")
