@@ -1,6 +1,9 @@
 """The embedded demo runs its whole walk-through (shortened) and says so with exit code 0."""
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
 from rocoma_can.cli import main
 from rocoma_can.runtime.demo import run_demo
 
@@ -65,6 +68,9 @@ def test_demo_cli_says_when_it_cannot_record(tmp_path, capsys):
     assert "cannot create the directory" in capsys.readouterr().out
 
 
+EDS = Path(__file__).parent / "fixtures" / "eds"
+
+
 def test_demo_duration_is_the_walk_throughs_length():
     """--duration is from bring-up to the loop's stop: the pauses fill it (they used to be
     a tenth of it each, and 60 s ran 28)."""
@@ -73,3 +79,42 @@ def test_demo_duration_is_the_walk_throughs_length():
     assert report.ok, "\n".join(lines)
     assert report.walk_time >= 5.0
     assert f"  {'walk-through':28s} {report.walk_time:.1f} s" in lines
+
+
+def test_demo_cli_groups_the_files_notes(capsys, caplog):
+    """What the file degrades is one line per object naming the drives, and not also the
+    hardware's log line per drive."""
+    with caplog.at_level(logging.WARNING):
+        assert main(["demo", "--eds", str(EDS / "minimal.eds"), "--drives", "3",
+                     "--duration", "2", "--no-record"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    notes = [line for line in out if line.startswith("  note: joint")]
+    assert notes == [
+        "  note: joint1, joint2, joint3: no 0x6077: torque feedback off (JointState.torque "
+        "stays 0)",
+        "  note: joint1, joint2, joint3: no 0x608F: increments_per_rev comes from the config "
+        "alone (the drive cannot confirm it)",
+        "  note: joint1, joint2, joint3: no 0x6091: gear_ratio comes from the config alone "
+        "(the drive cannot confirm it)"]
+    assert [r.getMessage() for r in caplog.records] == []
+    assert "demo passed" in out
+
+
+def test_demo_says_once_what_is_wrong_with_a_file(tmp_path, capsys):
+    """A file no drive can run on is one line about the file: not one per drive, and not
+    prefixed "demo: demo:"."""
+    text = (EDS / "minimal.eds").read_text()
+    head, tail = text.split("[1017]", 1)
+    no_heartbeat = tmp_path / "no_heartbeat.eds"
+    no_heartbeat.write_text(head + "[1017]" + tail.replace("AccessType=rw", "AccessType=ro", 1))
+    assert main(["demo", "--eds", str(no_heartbeat), "--drives", "3", "--no-record"]) == 2
+    assert capsys.readouterr().out.splitlines() == [
+        f"demo: --eds: {no_heartbeat} has no writable heartbeat producer (0x1017): "
+        "rocoma-can supervises every drive by its heartbeat"]
+
+
+def test_demo_config_problems_are_not_prefixed_twice(capsys):
+    assert main(["demo", "--drives", "2", "--no-record", "--zenoh-listen", "bogus"]) == 2
+    assert capsys.readouterr().out.splitlines() == [
+        "demo: zenoh.listen: expected Zenoh endpoints like tcp/192.168.1.10:7447, got "
+        "['bogus']"]

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import logging
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -30,6 +31,7 @@ from .client import ManagerClient
 from .objects import STATE_NAMES
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
+    from ..drivers.drive_plan import DrivePlan
     from ..drivers.sim.segment import SimulatedSegment
     from .loop import TimingSummary
     from .system import Runtime
@@ -44,6 +46,8 @@ ZENOH_PREFIX = "rocoma/demo"
 #: switch to pd, to trajectory, the first fault, the second, the final switch, the e-stop
 PAUSES = (1.0, 1.0, 0.5, 0.5, 1.0, 0.5)
 MIN_PAUSE = 0.2  # s per share: each step is seen to hold for a while, however short the demo
+#: the demo's drives, as demo_config builds them (emulate measures one against the file)
+DRIVE = {"increments_per_rev": 1048576, "rated_torque_nm": 1.0, "heartbeat_ms": 100}
 
 
 def default_buses(drives: int) -> int:
@@ -107,6 +111,15 @@ def emulate(path: str, drives: int) -> Emulated:
     if caps.commissioned_node_id is not None:
         fitted.first_node, fitted.drives = caps.commissioned_node_id, 1
         notes.append(f"a DCF of node {caps.commissioned_node_id}: one drive")
+    # One drive measured against the file says what would be wrong with every drive: once,
+    # about the file, not once per drive of the config.
+    from ..drivers.config import DriveConfig
+    from ..drivers.drive_plan import plan_drive
+    try:
+        plan_drive(DriveConfig.from_dict({"name": "joint1", "node_id": fitted.first_node,
+                                          "modes": modes, **DRIVE, **drive}))
+    except ValueError as exc:
+        raise ValueError(str(exc).removeprefix("drive 'joint1': ")) from None
     return fitted
 
 
@@ -147,9 +160,8 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
         "timing": {"advance": 1.5 * rate, "initialize_fast": 1.5 * rate, "hang": 2.0 * rate},
         "supervision": {"tpdo_timeout_cycles": max(5, round(1.5 * rate)),
                         "heartbeat_timeout_factor": 15.0, "consumer_factor": 15.0},
-        "drives": [{"name": name, "node_id": i % per_bus + first_node,
-                    "increments_per_rev": 1048576, "rated_torque_nm": 1.0,
-                    "modes": modes, "heartbeat_ms": 100,
+        "drives": [{"name": name, "node_id": i % per_bus + first_node, **DRIVE,
+                    "modes": modes,
                     **({"bus": f"bus{i // per_bus}"} if buses > 1 else {}), **drive}
                    for i, name in enumerate(joints)],
         "controllers": [
@@ -383,6 +395,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     if zenoh_listen is not None:
         raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
     config = validate(raw, source="demo")
+    notes = _grouped_notes(config.plans)
+    for line in notes.values():
+        out(line)
     report = Report()
     if record is not None and importlib.util.find_spec("mcap") is None:
         out("rocoma-can demo: not recording: MCAP needs pip install 'rocoma-can[record]'")
@@ -408,6 +423,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                             can_filters=_only(set(p.rpdo1)))
                    for b, p in zip(config.buses, probes)]
     readers: list[BusReader] = []
+    said = _Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
+    hardware_log = logging.getLogger("rocoma_can.drivers.hardware")
+    hardware_log.addFilter(said)
     try:
         simulator.start(lockstep=True)
         readers = readers_for([(b, (p,)) for b, p in zip(probe_buses, probes)],
@@ -452,12 +470,42 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         if record is not None:
             _plot(Path(record), report, out)
     finally:
+        hardware_log.removeFilter(said)
         for r in readers:
             r.stop()
         for b in (client_bus, *probe_buses):
             b.shutdown()
         simulator.stop()
     return report
+
+
+def _grouped_notes(plans: Mapping[str, DrivePlan]) -> dict[str, str]:
+    """Each drive-plan note once, naming its drives: the demo's drives share one file, so
+    a note per drive would say the same thing as many times as there are drives."""
+    drives: dict[str, list[str]] = {}
+    for name, plan in plans.items():
+        for note in plan.notes:
+            drives.setdefault(note, []).append(name)
+    everyone = list(plans)
+    lines = {}
+    for note, names in drives.items():
+        start = everyone.index(names[0])
+        run = len(names) > 3 and everyone[start:start + len(names)] == names
+        who = f"{names[0]}..{names[-1]}" if run else ", ".join(names)
+        lines[note] = f"  note: {who}: {note}"
+    return lines
+
+
+class _Said(logging.Filter):
+    """Drops a log record that repeats one of these notes (the hardware's line per drive)."""
+
+    def __init__(self, notes: set[str]) -> None:
+        super().__init__()
+        self.notes = notes
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not any(message.endswith(": " + note) for note in self.notes)
 
 
 def _plot(directory: Path, report: Report, out: Callable[[str], None]) -> None:
@@ -555,8 +603,9 @@ def _main(args: argparse.Namespace) -> int:
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen)
     except (ValueError, RocomaError) as exc:
-        if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint
-            print("demo: " + "; ".join(exc.problems), flush=True)
+        if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint: "demo: ..."
+            for problem in exc.problems:
+                print(problem, flush=True)
         elif isinstance(exc, ValueError):  # a file that is no EDS, or one it cannot drive
             print(f"demo: --eds: {exc}", flush=True)
         else:  # Zenoh: not installed, the endpoint taken
