@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 import logging
+import sys
 from pathlib import Path
 
 from rocoma_can.cli import main
-from rocoma_can.runtime.demo import run_demo
+from rocoma_can.runtime.demo import path_hint, run_demo
 
 
 def test_demo_walk_through_passes():
@@ -81,9 +82,13 @@ def test_demo_duration_is_the_walk_throughs_length():
     assert f"  {'walk-through':28s} {report.walk_time:.1f} s" in lines
 
 
-def test_demo_cli_groups_the_files_notes(capsys, caplog):
-    """What the file degrades is one line per object naming the drives, and not also the
-    hardware's log line per drive."""
+def test_demo_cli_groups_the_files_notes_and_says_how_to_get_the_command(
+        tmp_path, monkeypatch, capsys, caplog):
+    """`bash tools/demo` runs the venv's rocoma-can without the venv on PATH: the demo's
+    last line says how to get the command. What the file degrades is one line per object
+    naming the drives, and not also the hardware's log line per drive."""
+    monkeypatch.setenv("PATH", str(tmp_path))  # no rocoma-can on it, as after tools/demo
+    monkeypatch.chdir(Path(sys.prefix).parent)
     with caplog.at_level(logging.WARNING):
         assert main(["demo", "--eds", str(EDS / "minimal.eds"), "--drives", "3",
                      "--duration", "2", "--no-record"]) == 0
@@ -97,7 +102,19 @@ def test_demo_cli_groups_the_files_notes(capsys, caplog):
         "  note: joint1, joint2, joint3: no 0x6091: gear_ratio comes from the config alone "
         "(the drive cannot confirm it)"]
     assert [r.getMessage() for r in caplog.records] == []
-    assert "demo passed" in out
+    assert out[-2:] == [
+        "demo passed",
+        f"rocoma-can: not on PATH; for the README's commands: . "
+        f"{Path(sys.prefix).name}/bin/activate (or pip install -e "
+        "'.[record,plot,live,zenoh]' from a checkout)"]
+
+
+def test_no_path_hint_when_the_command_is_found(tmp_path, monkeypatch):
+    command = tmp_path / "rocoma-can"
+    command.write_text("#!/bin/sh\n")
+    command.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert path_hint() is None
 
 
 def test_demo_says_once_what_is_wrong_with_a_file(tmp_path, capsys):

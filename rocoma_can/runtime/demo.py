@@ -14,6 +14,9 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import logging
+import os
+import shutil
+import sys
 import threading
 import time
 import uuid
@@ -613,4 +616,24 @@ def _main(args: argparse.Namespace) -> int:
         if record is not None and not any(record.iterdir()):
             record.rmdir()  # it did not run: no empty recording directory left behind
         return USAGE
+    hint = path_hint()
+    if hint is not None:
+        print(hint, flush=True)
     return OK if report.ok else FAILED
+
+
+def path_hint() -> str | None:
+    """How to get the ``rocoma-can`` command when the shell would not find it.
+
+    ``bash tools/demo`` runs .venv/bin/rocoma-can without activating the venv, and the
+    README's next step is ``rocoma-can check-config``: "command not found", unless this
+    says how. None when a ``rocoma-can`` is on PATH."""
+    if shutil.which("rocoma-can") is not None:
+        return None
+    activate = Path(sys.prefix) / "bin" / "activate"
+    if not activate.is_file():
+        return ("rocoma-can: not on PATH; for the README's commands: pip install -e "
+                "'.[record,plot,live,zenoh]' from a checkout")
+    shown = os.path.relpath(activate) if activate.is_relative_to(Path.cwd()) else activate
+    return (f"rocoma-can: not on PATH; for the README's commands: . {shown} (or pip install "
+            "-e '.[record,plot,live,zenoh]' from a checkout)")
