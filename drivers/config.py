@@ -6,6 +6,7 @@ found at run time is a moving robot doing the wrong thing.
 """
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
@@ -215,9 +216,11 @@ class DriveConfig:
     def from_dict(cls, data: Mapping[str, Any]) -> DriveConfig:
         """Build from a YAML mapping; unknown keys are an error (a typo must not be ignored)."""
         known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = sorted(set(data) - known, key=str)
         if unknown:
-            raise ValueError(f"drive {data.get('name', '?')!r}: unknown keys {unknown}; "
+            close = difflib.get_close_matches(str(unknown[0]), known, n=1)
+            hint = f", did you mean {close[0]!r}?" if len(unknown) == 1 and close else ""
+            raise ValueError(f"drive {data.get('name', '?')!r}: unknown keys {unknown}{hint}; "
                              f"known keys are {sorted(known)}")
         missing = [k for k in _REQUIRED if k not in data]
         if missing:

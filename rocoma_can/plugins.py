@@ -111,9 +111,12 @@ def load_controllers(entries: Sequence[Mapping[str, Any]] | None, where: str = "
     return loaded
 
 
-def load_config(config: Mapping[str, Any], where: str = "") -> list[LoadedController]:
+def load_config(config: Mapping[str, Any], where: str = "", *,
+                note_unused: bool = True) -> list[LoadedController]:
     """Build ``emergency_controllers`` then ``controllers`` of a config mapping (other keys
-    belong to other parts of the configuration and are ignored here)."""
+    belong to other parts of the configuration and are ignored here). ``note_unused``: log
+    (INFO) the emergency controllers no controller uses; a caller that reports them itself
+    (``unused_emergency``) passes False, so the note is not said once per build."""
     if not isinstance(config, Mapping):
         raise _error(where, f"expected a mapping with 'controllers' and "
                             f"'emergency_controllers', got {_kind(config)}")
@@ -130,19 +133,29 @@ def load_config(config: Mapping[str, Any], where: str = "") -> list[LoadedContro
                          f"{name!r} is already the name of an emergency controller "
                          f"(in {emergency_where}); names must be unique")
     loaded = load_controllers(entries, controllers_where, emergency)
-    used = {id(item.emergency) for item in loaded}
-    for name, controller in emergency.items():
-        if id(controller) not in used:
-            log.warning("%s: emergency controller %r is not used by any controller",
-                        emergency_where, name)
+    if note_unused:
+        for note in unused_emergency(loaded, emergency, where):
+            log.info("%s", note)
     return loaded
 
 
-def add_to_manager(manager: Any, config: Mapping[str, Any],
-                   where: str = "") -> list[LoadedController]:
+def unused_emergency(loaded: Sequence[LoadedController],
+                     emergency: Mapping[str, EmergencyController] | Sequence[str],
+                     where: str = "") -> list[str]:
+    """A note per emergency controller (or name of one) that no loaded controller uses.
+
+    Not a warning: a config may declare one for later, and the manager runs as configured
+    (a fault in a controller without an emergency controller goes to failproof)."""
+    used = {item.emergency.name for item in loaded if item.emergency is not None}
+    return [f"{_at(where, 'emergency_controllers')}: emergency controller {name!r} is not "
+            "used by any controller" for name in emergency if name not in used]
+
+
+def add_to_manager(manager: Any, config: Mapping[str, Any], where: str = "", *,
+                   note_unused: bool = True) -> list[LoadedController]:
     """Build every controller of ``config``, then add them to ``manager`` with their
     emergency controllers. Nothing is added when any entry is bad."""
-    loaded = load_config(config, where)
+    loaded = load_config(config, where, note_unused=note_unused)
     for item in loaded:
         manager.add_controller(item.controller, emergency=item.emergency)
     return loaded
@@ -215,6 +228,7 @@ def _build_tuple(entry: Mapping[str, Any], name: str, where: str, base: type) ->
 
 def _instantiate(cls: type, name: str, params: Any,
                  where: str) -> Controller | EmergencyController | FailproofController:
+    from .controllers.params import ParamError, annotated_mismatch  # numpy: when building
     params_at = _at(where, "params")
     if params is None:
         params = {}
@@ -226,13 +240,26 @@ def _instantiate(cls: type, name: str, params: Any,
     except (TypeError, ValueError):  # no introspectable signature: let the call decide
         signature = None
     if signature is not None:
+        accepted = ", ".join(list(signature.parameters)[1:]) or "no parameters"
+        takes_any = any(p.kind is p.VAR_KEYWORD for p in signature.parameters.values())
+        for key in params:
+            if not takes_any and key not in signature.parameters:
+                raise _error(_at(params_at, key), f"{cls.__name__} has no parameter {key!r}"
+                             f"{_did_you_mean(key, list(signature.parameters)[1:])} "
+                             f"(accepts: {accepted})")
         try:
             signature.bind(name, **params)
         except TypeError as exc:
-            accepted = ", ".join(list(signature.parameters)[1:]) or "no parameters"
             raise _error(params_at, f"{cls.__name__}() {exc} (accepts: {accepted})") from None
+    # A value its annotation rules out would fail inside the constructor with a message
+    # about an operator, not about the parameter: said here, with its path.
+    mismatch = annotated_mismatch(cls, params)
+    if mismatch is not None:
+        raise _error(_at(params_at, mismatch.param), mismatch.reason)
     try:
         controller: Controller | EmergencyController | FailproofController = cls(name, **params)
+    except ParamError as exc:  # the library's parameter checks: the parameter is the path
+        raise _error(_at(params_at, exc.param), exc.reason) from exc
     except Exception as exc:
         raise _error(params_at, f"{cls.__name__}({name!r}, **params) failed: {exc}") from exc
     # The config's name is the one the manager and the other entries refer to.

@@ -1,6 +1,9 @@
 """The CLI's exit codes a shell script relies on: 0 ok, 1 refused, 2 usage/config, 3 no answer."""
 from __future__ import annotations
 
+import errno
+import logging
+import socket
 from pathlib import Path
 
 import pytest
@@ -108,3 +111,85 @@ def test_client_commands_against_a_manager(bus_factory, virtual_channel, capsys)
         assert main(["recover", *opts]) == 0 and rig.recovered == 1
     finally:
         rig.close()
+
+
+def _write(tmp_path: Path, cfg: dict, name: str = "robot.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def test_check_config_names_a_parameters_path_and_type(tmp_path, capsys):
+    """`kp: high` is the parameter's path and what it must be, not a comparison's
+    TypeError from inside the constructor."""
+    cfg = good()
+    cfg["controllers"][0]["params"] = {"kp": "high"}
+    cfg["controllers"].append({"name": "mine", "plugin": "fixtures.plugin_samples:Gains",
+                               "params": {"kp": "high"}})  # compares kp > 0 unchecked
+    path = _write(tmp_path, cfg)
+    assert main(["check-config", str(path)]) == 2
+    assert capsys.readouterr().out.splitlines() == [
+        f"{path}: controllers[0].params.kp: expected a number, got 'high'", "1 problem(s)"]
+    cfg["controllers"][0]["params"] = {}
+    path = _write(tmp_path, cfg)
+    assert main(["check-config", str(path)]) == 2
+    assert capsys.readouterr().out.splitlines() == [
+        f"{path}: controllers[1].params.kp: expected a number (float), got 'high'",
+        "1 problem(s)"]
+
+
+def test_check_config_misspelt_key_is_one_problem(tmp_path, capsys):
+    cfg = good()
+    cfg["drives"][0]["mode"] = ["csp"]
+    cfg["controlers"] = cfg.pop("controllers")
+    path = _write(tmp_path, cfg)
+    assert main(["check-config", str(path)]) == 2
+    out = capsys.readouterr().out.splitlines()
+    assert [line.split(" (known: ")[0] for line in out] == [
+        f"{path}: controlers: unknown key, did you mean 'controllers'?",
+        f"{path}: drives[0].mode: unknown key, did you mean 'modes'?",
+        "2 problem(s)"]
+
+
+def test_check_config_of_a_valid_file_warns_about_nothing(tmp_path, capsys, caplog):
+    """The unused emergency controller is a note on stdout, once; nothing is logged."""
+    cfg = good()
+    cfg["controllers"][0].pop("emergency")
+    path = _write(tmp_path, cfg)
+    with caplog.at_level(logging.INFO):
+        assert main(["check-config", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert out.splitlines()[:2] == [
+        f"{path}: ok: 2 drives on socketcan:vcan0 at 100 Hz, manager node 100, e-stop COB-ID "
+        "0x0A0",
+        "note: emergency_controllers: emergency controller 'damp' is not used by any "
+        "controller"]
+    assert err == "" and [r.getMessage() for r in caplog.records] == []
+
+
+def _kernel_has_socketcan() -> bool:
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
+def test_run_without_socketcan_says_what_to_do(tmp_path, capsys, monkeypatch):
+    """A kernel without AF_CAN (this project's CI, containers, WSL): the errno, then what
+    to do instead, on one line."""
+    if _kernel_has_socketcan():  # the same errno as such a kernel gives, from python-can
+        import can
+
+        def no_af_can(*args, **kwargs):
+            raise OSError(errno.EAFNOSUPPORT, "Address family not supported by protocol")
+        monkeypatch.setattr(can, "Bus", no_af_can)
+    cfg = good()
+    cfg["bus"] = {"interface": "socketcan", "channel": "can0"}
+    path = _write(tmp_path, cfg)
+    assert main(["run", str(path), "--no-flight", "--duration", "1"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "rocoma-can: cannot open CAN bus socketcan:can0: [Errno 97] Address family not "
+        "supported by protocol; this kernel has no SocketCAN (AF_CAN): on vcan, from a "
+        "checkout, tools/vcan-run -- rocoma-can run CONFIG with channel: vcan0; without a "
+        "kernel bus, rocoma-can demo, or interface: virtual in CONFIG"]

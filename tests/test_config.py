@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import logging
 from pathlib import Path
 
 import pytest
@@ -83,7 +84,18 @@ BAD = [
      "supervision.tpdo_cycles: unknown key, did you mean 'tpdo_timeout_cycles'?"),
     ("no drives", _set("drives", []), "drives: expected a non-empty list"),
     ("drive field", _set("drives.1.node_id", 0), "drives[1]: drive 'j2': node_id must be"),
-    ("drive key", _set("drives.0.gear", 2), "drives[0]: drive 'j1': unknown keys ['gear']"),
+    ("drive key", _set("drives.0.gear", 2),
+     "drives[0].gear: unknown key, did you mean 'gear_ratio'? (known: accept_unsupervised, "),
+    ("drive mode key", _set("drives.0.mode", ["csp"]),
+     "drives[0].mode: unknown key, did you mean 'modes'? (known: "),
+    ("zenoh key", _set("zenoh", {"prefx": "rocoma/x"}),
+     "zenoh.prefx: unknown key, did you mean 'prefix'? (known: "),
+    ("param type", _set("controllers.0.params", {"kp": "high"}),
+     "controllers[0].params.kp: expected a number, got 'high'"),
+    ("param range", _set("controllers.0.params", {"kd": -1}),
+     "controllers[0].params.kd: must be >= 0.0, got -1.0"),
+    ("param key", _set("controllers.0.params", {"kpp": 5}),
+     "controllers[0].params.kpp: JointPD has no parameter 'kpp', did you mean 'kp'? (accepts: "),
     ("drive mode", _set("drives.0.modes", ["vl"]), "drives[0]: drive 'j1': modes: unknown mode"),
     ("same node", _set("drives.1.node_id", 1), "drives[1].node_id: 1 is already used by drives[0]"),
     ("same name", _set("drives.1.name", "j1"), "drives[1].name: 'j1' is already drives[0]"),
@@ -140,6 +152,59 @@ def test_all_problems_are_collected():
         validate(cfg)
     paths = [p.split(": ")[1] for p in info.value.problems]
     assert paths == ["rate", "manager.node_id", "drives[1].node_id", "controllers[0].plugin"]
+
+
+ONE_MISTAKE = [
+    ("same name", _set("drives.1.name", "j1"), ["drives[1].name: 'j1' is already drives[0]"]),
+    ("same node", _set("drives.1.node_id", 1),
+     ["drives[1].node_id: 1 is already used by drives[0]"]),
+    ("manager's node", _set("drives.1.node_id", 100),
+     ["drives[1].node_id: 100 is the manager's node id (manager.node_id)"]),
+    ("misspelt controllers", lambda cfg: cfg.update(controlers=cfg.pop("controllers")),
+     ["controlers: unknown key, did you mean 'controllers'? (known: bus, buses, controllers, "
+      "drives, emergency_controllers, manager, rate, realtime, supervision, timing, zenoh)"]),
+    ("misspelt emergency", lambda cfg: cfg.update(
+        emergency_controler=cfg.pop("emergency_controllers")),
+     ["emergency_controler: unknown key, did you mean 'emergency_controllers'? (known: bus, "
+      "buses, controllers, drives, emergency_controllers, manager, rate, realtime, "
+      "supervision, timing, zenoh)"]),
+    ("misspelt drives", lambda cfg: cfg.update(drive=cfg.pop("drives")),
+     ["drive: unknown key, did you mean 'drives'? (known: bus, buses, controllers, drives, "
+      "emergency_controllers, manager, rate, realtime, supervision, timing, zenoh)"]),
+    ("misspelt node_id", lambda cfg: cfg["drives"][1].update(
+        node_ids=cfg["drives"][1].pop("node_id")),
+     ["drives[1].node_ids: unknown key, did you mean 'node_id'? (known: accept_unsupervised, "
+      "bus, eds, feedback, gear_ratio, heartbeat_ms, homing_method, homing_timeout, "
+      "increments_per_rev, max_torque_nm, max_velocity, modes, name, node_id, position_max, "
+      "position_min, rated_torque_nm)"]),
+    ("a failed drive is still named", lambda cfg: (
+        cfg["drives"][1].update(node_id=0), cfg["manager"].update(required_drives=["j2"])),
+     ["drives[1]: drive 'j2': node_id must be an integer 1..127, got 0"]),
+]
+
+
+@pytest.mark.parametrize("label, edit, expected", ONE_MISTAKE, ids=[m[0] for m in ONE_MISTAKE])
+def test_one_mistake_is_one_problem(label, edit, expected):
+    """Not also its follow-ups: a taken drive name or node id is not also its PDOs' COB-ID
+    clashes, a misspelt section is not also the section missing."""
+    cfg = copy.deepcopy(good())
+    edit(cfg)
+    with pytest.raises(ConfigError) as info:
+        validate(cfg, source="robot.yaml")
+    assert info.value.problems == [f"robot.yaml: {p}" for p in expected]
+
+
+def test_a_valid_config_warns_about_nothing(caplog):
+    """An emergency controller no controller uses is a note of the config (check-config
+    prints it), not a WARNING, and not logged by the check."""
+    cfg = good()
+    cfg["controllers"][0].pop("emergency")
+    with caplog.at_level(logging.DEBUG, logger="rocoma_can"):
+        config = validate(cfg)
+    assert config.notes == ["emergency_controllers: emergency controller 'damp' is not used "
+                            "by any controller"]
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.INFO] == []
+    assert validate(good()).notes == []
 
 
 def test_yaml_file_errors(tmp_path):

@@ -1,8 +1,12 @@
 """The embedded demo runs its whole walk-through (shortened) and says so with exit code 0."""
 from __future__ import annotations
 
+import logging
+import sys
+from pathlib import Path
+
 from rocoma_can.cli import main
-from rocoma_can.runtime.demo import run_demo
+from rocoma_can.runtime.demo import path_hint, run_demo
 
 
 def test_demo_walk_through_passes():
@@ -63,3 +67,71 @@ def test_demo_cli_says_when_it_cannot_record(tmp_path, capsys):
     blocked.write_text("not a directory")
     assert main(["demo", "--drives", "2", "--record", str(blocked / "rec")]) == 2
     assert "cannot create the directory" in capsys.readouterr().out
+
+
+EDS = Path(__file__).parent / "fixtures" / "eds"
+
+
+def test_demo_duration_is_the_walk_throughs_length():
+    """--duration is from bring-up to the loop's stop: the pauses fill it (they used to be
+    a tenth of it each, and 60 s ran 28)."""
+    lines: list[str] = []
+    report = run_demo(drives=2, rate=100.0, duration=5.0, out=lines.append)
+    assert report.ok, "\n".join(lines)
+    assert report.walk_time >= 5.0
+    assert f"  {'walk-through':28s} {report.walk_time:.1f} s" in lines
+
+
+def test_demo_cli_groups_the_files_notes_and_says_how_to_get_the_command(
+        tmp_path, monkeypatch, capsys, caplog):
+    """`bash tools/demo` runs the venv's rocoma-can without the venv on PATH: the demo's
+    last line says how to get the command. What the file degrades is one line per object
+    naming the drives, and not also the hardware's log line per drive."""
+    monkeypatch.setenv("PATH", str(tmp_path))  # no rocoma-can on it, as after tools/demo
+    monkeypatch.chdir(Path(sys.prefix).parent)
+    with caplog.at_level(logging.WARNING):
+        assert main(["demo", "--eds", str(EDS / "minimal.eds"), "--drives", "3",
+                     "--duration", "2", "--no-record"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    notes = [line for line in out if line.startswith("  note: joint")]
+    assert notes == [
+        "  note: joint1, joint2, joint3: no 0x6077: torque feedback off (JointState.torque "
+        "stays 0)",
+        "  note: joint1, joint2, joint3: no 0x608F: increments_per_rev comes from the config "
+        "alone (the drive cannot confirm it)",
+        "  note: joint1, joint2, joint3: no 0x6091: gear_ratio comes from the config alone "
+        "(the drive cannot confirm it)"]
+    assert [r.getMessage() for r in caplog.records] == []
+    assert out[-2:] == [
+        "demo passed",
+        f"rocoma-can: not on PATH; for the README's commands: . "
+        f"{Path(sys.prefix).name}/bin/activate (or pip install -e "
+        "'.[record,plot,live,zenoh]' from a checkout)"]
+
+
+def test_no_path_hint_when_the_command_is_found(tmp_path, monkeypatch):
+    command = tmp_path / "rocoma-can"
+    command.write_text("#!/bin/sh\n")
+    command.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert path_hint() is None
+
+
+def test_demo_says_once_what_is_wrong_with_a_file(tmp_path, capsys):
+    """A file no drive can run on is one line about the file: not one per drive, and not
+    prefixed "demo: demo:"."""
+    text = (EDS / "minimal.eds").read_text()
+    head, tail = text.split("[1017]", 1)
+    no_heartbeat = tmp_path / "no_heartbeat.eds"
+    no_heartbeat.write_text(head + "[1017]" + tail.replace("AccessType=rw", "AccessType=ro", 1))
+    assert main(["demo", "--eds", str(no_heartbeat), "--drives", "3", "--no-record"]) == 2
+    assert capsys.readouterr().out.splitlines() == [
+        f"demo: --eds: {no_heartbeat} has no writable heartbeat producer (0x1017): "
+        "rocoma-can supervises every drive by its heartbeat"]
+
+
+def test_demo_config_problems_are_not_prefixed_twice(capsys):
+    assert main(["demo", "--drives", "2", "--no-record", "--zenoh-listen", "bogus"]) == 2
+    assert capsys.readouterr().out.splitlines() == [
+        "demo: zenoh.listen: expected Zenoh endpoints like tcp/192.168.1.10:7447, got "
+        "['bogus']"]

@@ -87,11 +87,16 @@ def test_emergency_tuple_and_lists_on_their_own():
     assert load_controllers(None) == [] and load_emergency_controllers(None) == {}
 
 
-def test_unused_emergency_controller_is_warned_about(caplog):
+def test_unused_emergency_controller_is_a_note_not_a_warning(caplog):
+    """A valid config warns about nothing: the unused emergency controller is said once,
+    at INFO, and not at all by a caller that reports it itself."""
     config = {"emergency_controllers": [{"name": "idle", "plugin": "fixtures.plugin_samples:Brake"}]}
-    with caplog.at_level(logging.WARNING, logger="rocoma_can.plugins"):
+    with caplog.at_level(logging.DEBUG, logger="rocoma_can.plugins"):
         assert load_config(config) == []
-    assert any("'idle' is not used" in r.getMessage() for r in caplog.records)
+        assert load_config(config, note_unused=False) == []
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [
+        (logging.INFO, "emergency_controllers: emergency controller 'idle' is not used by any "
+                       "controller")]
 
 
 def bad(config_path: str, value):
@@ -141,8 +146,12 @@ def bad(config_path: str, value):
      "emergency_controllers[0].plugin: 'fixtures.plugin_samples:Gains' is a Controller, but this entry "
      "needs an EmergencyController"),
     (bad("controllers.0.params", {"kp": 1.0, "kpp": 1.0}),
-     "controllers[0].params: Gains() got an unexpected keyword argument 'kpp' "
+     "controllers[0].params.kpp: Gains has no parameter 'kpp', did you mean 'kp'? "
      "(accepts: kp, kd)"),
+    (bad("controllers.0.params", {"kp": "high"}),  # its annotation, not '>' on a str
+     "controllers[0].params.kp: expected a number (float), got 'high'"),
+    (bad("emergency_controllers.0.params", {"gain": [1.0]}),
+     "emergency_controllers[0].params.gain: expected a number (float), got [1.0]"),
     (bad("controllers.0.params", {}),
      "controllers[0].params: Gains() missing a required argument: 'kp'"),
     (bad("controllers.0.params", {"kp": 1.0, "name": "x"}),

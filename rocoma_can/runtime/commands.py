@@ -11,6 +11,7 @@ Exit codes (for shell scripts):
 from __future__ import annotations
 
 import argparse
+import errno
 import faulthandler
 import importlib.util
 import json
@@ -61,6 +62,8 @@ def _check_config(args: argparse.Namespace) -> int:
     print(f"{args.config}: ok: {len(config.drives)} drives on {_buses(config)} at "
           f"{config.rate:g} Hz, manager node {config.manager.node_id}, "
           f"e-stop COB-ID 0x{config.manager.estop_cob_id:03X}", flush=True)
+    for note in config.notes:
+        print(f"note: {note}", flush=True)
     several = len(config.buses) > 1
     for name, load_ in config.loads.items():
         print(f"bus load{f' {name}' if several else ''}: {load_.explain()}", flush=True)
@@ -127,7 +130,7 @@ def _run(args: argparse.Namespace) -> int:
                           flight_seconds=args.flight_seconds,
                           announce=lambda text: print(f"rocoma-can: {text}", flush=True))
     except (OSError, ValueError, FleetError) as exc:
-        _err(str(exc))
+        _err(str(exc) + _no_socketcan_hint(exc))
         return USAGE
     if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
         faulthandler.register(signal.SIGUSR2, all_threads=True)
@@ -152,7 +155,7 @@ def _run(args: argparse.Namespace) -> int:
         try:
             summary = runtime.run(duration=args.duration)
         except OSError as exc:
-            _err(str(exc))
+            _err(str(exc) + _no_socketcan_hint(exc))
             return USAGE
         print(f"rocoma-can: stopped ({runtime.loop.stop_reason}); {summary.line()}", flush=True)
         hw = runtime.hardware
@@ -163,6 +166,19 @@ def _run(args: argparse.Namespace) -> int:
     if unfinished or (runtime.recording is not None and runtime.recording.errors):
         return FAILED
     return OK
+
+
+def _no_socketcan_hint(exc: BaseException) -> str:
+    """What to do when the kernel has no SocketCAN (EAFNOSUPPORT: containers, WSL, macOS),
+    which a new user meets first as an errno: its words say nothing about CAN."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno == errno.EAFNOSUPPORT:
+            return ("; this kernel has no SocketCAN (AF_CAN): on vcan, from a checkout, "
+                    "tools/vcan-run -- rocoma-can run CONFIG with channel: vcan0; without a "
+                    "kernel bus, rocoma-can demo, or interface: virtual in CONFIG")
+        seen = seen.__cause__ or seen.__context__
+    return ""
 
 
 def fleet_from_args(args: argparse.Namespace, fleet: FleetConfig | None) -> FleetConfig | None:

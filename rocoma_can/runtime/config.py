@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import difflib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -64,6 +64,7 @@ _BUS_KEYS = {"interface", "channel", "bitrate", "name", "fd", "data_bitrate"}
 _MANAGER_KEYS = {"node_id", "bus", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
                  "switch_clients", "status_period", "required_drives"}
 _REALTIME_KEYS = {"priority", "cpus", "spin_us"}
+_DRIVE_KEYS = {f.name for f in fields(DriveConfig)}
 #: supervision margins: key -> (whole number?, minimum, maximum); drivers.config.Supervision
 #: has the defaults
 _SUPERVISION = {
@@ -117,6 +118,7 @@ class RuntimeConfig:
     plans: dict[str, DrivePlan] = field(default_factory=dict)  # per drive name
     fleet: FleetConfig | None = None  # the zenoh: section (None: no Zenoh)
     spin: float | None = None  # s the loop spins before each deadline (None: loop.py's)
+    notes: list[str] = field(default_factory=list)  # worth saying, not wrong (check-config)
 
     @property
     def bus(self) -> BusConfig:
@@ -212,7 +214,9 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     if not isinstance(data, Mapping):
         raise ConfigError([f"(top): expected a mapping with bus, rate, drives, controllers, "
                            f"got {type(data).__name__}"])
-    _unknown(data, _TOP_KEYS, "", problems)
+    # a misspelt section is read under the name it was meant to have: its own problem is
+    # the spelling, not also "no controllers" or "no drives"
+    data = _unknown(data, _TOP_KEYS, "", problems)
 
     buses = _buses(data, problems)
 
@@ -294,8 +298,12 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                                           "timing", problems))
 
     plans: dict[str, DrivePlan] = {}
-    drives = _drives(data.get("drives"), manager.node_id, base, problems,
-                     [b.label for b in buses], plans)
+    named: list[str] = []  # every drive name given, built or not
+    planned, clean = _drives(data.get("drives"), manager.node_id, base, problems,
+                             [b.label for b in buses], named)
+    drives = [d for d, _ in planned]
+    for d, plan in planned:
+        plans.setdefault(d.name, plan)
     cob = manager.estop_cob_id
     why = estop_conflict(cob, drives, manager.node_id) if cob else None
     if why is not None:
@@ -303,8 +311,9 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                         "have an identifier no node uses")
     first = buses[0].label if buses else ""
     node_on = m.get("bus") if isinstance(m.get("bus"), str) and m.get("bus") else first
+    # drives already reported for their node id are left out: their clashes are that one
     problems.extend(f"drives: {clash}" for clash in cob_id_clashes(
-        [(d, plans[d.name].layout) for d in drives if d.name in plans], manager.node_id,
+        [(d, plan.layout) for d, plan in clean], manager.node_id,
         cob if isinstance(cob, int) else 0, first, node_on))
     node_bus = m.get("bus", "")
     if not isinstance(node_bus, str) or (node_bus and node_bus not in
@@ -320,7 +329,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
             problems.append("manager.required_drives: expected null (every drive) or a list "
                             f"of drive names, got {required!r}")
         else:
-            unknown = [n for n in required if n not in names]
+            unknown = [n for n in required if n not in named]
             if unknown:
                 problems.append(f"manager.required_drives: no drive named "
                                 f"{', '.join(map(repr, unknown))} (drives: {', '.join(names)})")
@@ -332,17 +341,20 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         fleet.config_file = str(base / fleet.config_file)  # relative to the YAML file
 
     controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
+    notes: list[str] = []
     if not data.get("controllers"):
         problems.append("controllers: at least one controller is needed")
     elif check_controllers:
         from ..errors import PluginError
-        from ..plugins import load_config
+        from ..plugins import load_config, unused_emergency
         try:
-            loaded = load_config(controllers)
+            loaded = load_config(controllers, note_unused=False)
         except PluginError as exc:
             problems.append(str(exc))
         else:
             problems += _feedback_problems(loaded, drives)
+            emergency = controllers["emergency_controllers"] or []
+            notes += unused_emergency(loaded, [e["name"] for e in emergency])
 
     loads: dict[str, BusLoad] = {}
     first = buses[0].label if buses else ""
@@ -352,8 +364,9 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
             continue
         bitrate = b.bitrate or DEFAULT_BITRATE
         data_bitrate = (b.data_bitrate or bitrate) if b.fd else None
-        loads[b.label] = load_ = bus_load([plans[d.name].layout for d in on], float(rate),
-                                          bitrate, data_bitrate)
+        loads[b.label] = load_ = bus_load(
+            [p.layout for d, p in planned if (d.bus or first) == b.label], float(rate),
+            bitrate, data_bitrate)
         if load_.load > 1.0:
             where = f"buses[{k}] ({b.label})" if "buses" in data else "rate"
             assumed = "" if b.bitrate else f" (no bitrate given: {DEFAULT_BITRATE:,} assumed)"
@@ -363,7 +376,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
                          timing, source, loads, plans, fleet,
-                         spin=None if spin_us is None else spin_us * 1e-6)
+                         spin=None if spin_us is None else spin_us * 1e-6, notes=notes)
 
 
 def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]) -> list[str]:
@@ -471,11 +484,17 @@ def _numbers(section: Mapping[str, Any], spec: Mapping[str, tuple[bool, float, f
 
 
 def _drives(entries: Any, manager_id: int, base: Path | None, problems: list[str],
-            buses: list[str], plans: dict[str, DrivePlan]) -> list[DriveConfig]:
+            buses: list[str], named: list[str]
+            ) -> tuple[list[tuple[DriveConfig, DrivePlan]], list[tuple[DriveConfig, DrivePlan]]]:
+    """Each drive built and measured against its file, with its own plan (two drives of
+    one name keep theirs); and those of them whose node id was not already reported, which
+    the COB-ID check takes (a taken node id is one problem, not also its PDOs' clashes).
+    ``named`` gets every name given, so a drive that failed is not also "no such drive"."""
     if not isinstance(entries, list) or not entries:
         problems.append(f"drives: expected a non-empty list of drives, got {entries!r}")
-        return []
-    drives: list[DriveConfig] = []
+        return [], []
+    planned: list[tuple[DriveConfig, DrivePlan]] = []
+    clean: list[tuple[DriveConfig, DrivePlan]] = []
     names: dict[str, int] = {}
     ids: dict[tuple[str, int], int] = {}
     for i, entry in enumerate(entries):
@@ -483,7 +502,9 @@ def _drives(entries: Any, manager_id: int, base: Path | None, problems: list[str
         if not isinstance(entry, Mapping):
             problems.append(f"{where}: expected a mapping, got {entry!r}")
             continue
-        entry = dict(entry)
+        if isinstance(entry.get("name"), str):
+            named.append(entry["name"])
+        entry = _unknown(entry, _DRIVE_KEYS, where, problems)
         if base is not None and isinstance(entry.get("eds"), str):
             entry["eds"] = str((base / entry["eds"]).resolve()) \
                 if not Path(entry["eds"]).is_absolute() else entry["eds"]
@@ -500,18 +521,21 @@ def _drives(entries: Any, manager_id: int, base: Path | None, problems: list[str
             problems.append(f"{where}.bus: no bus named {drive.bus!r} (buses: "
                             f"{', '.join(repr(b) for b in buses)})")
         bus = drive.bus or buses[0]
-        if (bus, drive.node_id) in ids:
+        taken = (bus, drive.node_id) in ids
+        if taken:
             on = f" on bus {bus!r}" if len(buses) > 1 else ""
             problems.append(f"{where}.node_id: {drive.node_id} is already used by "
                             f"drives[{ids[bus, drive.node_id]}]{on}")
-        if drive.node_id == manager_id:
+        elif drive.node_id == manager_id:
+            taken = True
             problems.append(f"{where}.node_id: {drive.node_id} is the manager's node id "
                             "(manager.node_id)")
         names.setdefault(drive.name, i)
         ids.setdefault((bus, drive.node_id), i)
-        plans.setdefault(drive.name, plan)
-        drives.append(drive)
-    return drives
+        planned.append((drive, plan))
+        if not taken:
+            clean.append((drive, plan))
+    return planned, clean
 
 
 def _section(data: Mapping[str, Any], key: str, problems: list[str]) -> Mapping[str, Any]:
@@ -525,13 +549,24 @@ def _section(data: Mapping[str, Any], key: str, problems: list[str]) -> Mapping[
 
 
 def _unknown(section: Mapping[str, Any], known: set[str], where: str,
-             problems: list[str]) -> None:
-    for key in section:
+             problems: list[str]) -> dict[str, Any]:
+    """A problem per unknown key, with the known key it is closest to; returns the section
+    with each such key read as the one it was meant to be where that one is not given
+    too, so what follows is checked as intended instead of reporting the key as missing
+    (the section is wrong already: the problem stands)."""
+    out = {key: value for key, value in section.items() if key in known}
+    for key, value in section.items():
         if key not in known:
             close = difflib.get_close_matches(str(key), known, n=1)
+            if not close:  # a word cut short (gear: gear_ratio) is too short to be "close"
+                close = [k for k in known if k.startswith(str(key))]
+                close = close if len(close) == 1 else []
             hint = f", did you mean {close[0]!r}?" if close else ""
             path = f"{where}.{key}" if where else str(key)
             problems.append(f"{path}: unknown key{hint} (known: {', '.join(sorted(known))})")
+            if close and close[0] not in section and close[0] not in out:
+                out[close[0]] = value
+    return out
 
 
 def _is_int(value: Any) -> bool:

@@ -13,10 +13,14 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import logging
+import os
+import shutil
+import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -30,6 +34,7 @@ from .client import ManagerClient
 from .objects import STATE_NAMES
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
+    from ..drivers.drive_plan import DrivePlan
     from ..drivers.sim.segment import SimulatedSegment
     from .loop import TimingSummary
     from .system import Runtime
@@ -40,6 +45,12 @@ MANAGER_ID = 100
 DEFAULT_INTERFACE = "inproc"
 ESTOP_COB_ID = 0x0A0
 ZENOH_PREFIX = "rocoma/demo"
+#: the walk-through's pauses, in shares of --duration, in the order they come: after the
+#: switch to pd, to trajectory, the first fault, the second, the final switch, the e-stop
+PAUSES = (1.0, 1.0, 0.5, 0.5, 1.0, 0.5)
+MIN_PAUSE = 0.2  # s per share: each step is seen to hold for a while, however short the demo
+#: the demo's drives, as demo_config builds them (emulate measures one against the file)
+DRIVE = {"increments_per_rev": 1048576, "rated_torque_nm": 1.0, "heartbeat_ms": 100}
 
 
 def default_buses(drives: int) -> int:
@@ -107,6 +118,15 @@ def emulate(path: str, drives: int) -> Emulated:
         fitted.first_node = caps.commissioned_node_id
         notes.append(f"a DCF of node {caps.commissioned_node_id}: the drives from node "
                      f"{caps.commissioned_node_id} on, each with its COB-IDs re-derived")
+    # One drive measured against the file says what would be wrong with every drive: once,
+    # about the file, not once per drive of the config.
+    from ..drivers.config import DriveConfig
+    from ..drivers.drive_plan import plan_drive
+    try:
+        plan_drive(DriveConfig.from_dict({"name": "joint1", "node_id": fitted.first_node,
+                                          "modes": modes, **DRIVE, **drive}))
+    except ValueError as exc:
+        raise ValueError(str(exc).removeprefix("drive 'joint1': ")) from None
     return fitted
 
 
@@ -147,9 +167,8 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
         "timing": {"advance": 1.5 * rate, "initialize_fast": 1.5 * rate, "hang": 2.0 * rate},
         "supervision": {"tpdo_timeout_cycles": max(5, round(1.5 * rate)),
                         "heartbeat_timeout_factor": 15.0, "consumer_factor": 15.0},
-        "drives": [{"name": name, "node_id": i % per_bus + first_node,
-                    "increments_per_rev": 1048576, "rated_torque_nm": 1.0,
-                    "modes": modes, "heartbeat_ms": 100,
+        "drives": [{"name": name, "node_id": i % per_bus + first_node, **DRIVE,
+                    "modes": modes,
                     **({"bus": f"bus{i // per_bus}"} if buses > 1 else {}), **drive}
                    for i, name in enumerate(joints)],
         "controllers": [
@@ -176,6 +195,7 @@ class Report:
     latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
     recording: Path | None = None      # the run's trace.mcap (with a candump .log per bus)
     plot: Path | None = None           # its PNG
+    walk_time: float = 0.0             # s from the walk-through's start to the loop's stop
 
     @property
     def ok(self) -> bool:
@@ -246,6 +266,23 @@ class _Watch:
         return None
 
 
+class _Pace:
+    """Ends the walk-through ``duration`` s after it began: each pause lasts until its share
+    of the duration (PAUSES) has passed, so what bring-up and recovery take comes out of the
+    pauses instead of adding to them. Steps slower than their share make it longer."""
+
+    def __init__(self, duration: float, stop: threading.Event) -> None:
+        self.start = time.monotonic()
+        self.duration = duration
+        self.stop = stop
+        self.done = 0.0
+
+    def pause(self, share: float) -> None:
+        self.done += share
+        until = self.start + self.duration * self.done / sum(PAUSES)
+        self.stop.wait(max(MIN_PAUSE * share, until - time.monotonic()))
+
+
 def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and not stop.is_set():
@@ -256,11 +293,16 @@ def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) 
 
 
 def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: _Watch,
-              probes: list[_TorqueOffProbe], report: Report, hold: float,
+              probes: list[_TorqueOffProbe], report: Report, duration: float,
               stop: threading.Event,
               say: Callable[[str], None]) -> None:
     hw, mgr = rt.hardware, rt.manager
     dt = rt.config.dt
+    pace = _Pace(duration, stop)
+    pauses = iter(PAUSES)
+
+    def hold() -> None:
+        pace.pause(next(pauses))
 
     def step(name: str, ok: bool, detail: str = "") -> bool:
         report.steps.append(Step(name, ok, detail))
@@ -290,11 +332,11 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
                     result == 0 and _wait(lambda: hw.all_enabled, 3.0, stop),
                     f"result {result}, drives enabled: {hw.all_enabled}"):
             return
-        time.sleep(hold)
+        hold()
         result = client.switch("trajectory")
         step("switch pd -> trajectory (swap state)", result == 0 and state() == 2,
              f"result {result}, active {mgr.active_controller_name}")
-        time.sleep(hold)
+        hold()
 
         node = seg.node_ids[min(2, len(seg.node_ids) - 2)]  # not the last: that one is next
         t0 = time.monotonic()
@@ -303,7 +345,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         latency(f"drive {node} fault -> EMERGENCY", t0, {1, 0})
         step(f"fault on drive {node} -> emergency controller", ok,
              f"state {STATE_NAMES[state()]}, active {mgr.active_controller_name}")
-        time.sleep(hold / 2)
+        hold()
 
         node2 = seg.node_ids[-1]
         if node2 == node:
@@ -317,7 +359,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
             latency(f"drive {node2} fault -> FAILPROOF", t0, {0})
             step(f"second fault on drive {node2} -> failproof torque-off", ok,
                  f"state {STATE_NAMES[state()]}")
-        time.sleep(hold / 2)
+        hold()
 
         client.write(0x2113, 1)  # recover drives; on success the e-stop latch is cleared
         ok = _wait(lambda: hw.all_ready and not mgr.estop_latched, 8.0, stop)
@@ -327,7 +369,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         result = client.switch("pd")
         step("final switch to pd", result == 0 and state() == 2
              and _wait(lambda: hw.all_enabled, 3.0, stop), f"result {result}")
-        time.sleep(hold)
+        hold()
 
         t0 = time.monotonic()
         client.bus.send(can.Message(arbitration_id=ESTOP_COB_ID, data=b"\x01",
@@ -336,7 +378,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         latency(f"CAN e-stop frame 0x{ESTOP_COB_ID:03X} -> EMERGENCY", t0, {1, 0})
         step(f"e-stop by a raw CAN frame on 0x{ESTOP_COB_ID:03X}", ok,
              f"state {STATE_NAMES[state()]}, cause {client.status()['estop_cause']!r}")
-        time.sleep(hold / 2)
+        hold()
     except Exception as exc:  # an SDO failure is a failed step, and the demo ends
         why = ""
         try:  # a refused switch says why (0x2103); a fault, with its cause, in the status
@@ -348,6 +390,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
     finally:
         for probe in probes:
             probe.armed = True
+        report.walk_time = time.monotonic() - pace.start
         rt.loop.stop("walk-through finished")
 
 
@@ -365,7 +408,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
     plot ``demo.png``; ``zenoh_listen``: an endpoint the manager serves Zenoh on, under
-    the prefix ``rocoma/demo`` (another shell can watch and e-stop it)."""
+    the prefix ``rocoma/demo`` (another shell can watch and e-stop it); ``duration``: s
+    from the start of bring-up to the loop's stop (_Pace)."""
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
@@ -382,13 +426,15 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     if zenoh_listen is not None:
         raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
     config = validate(raw, source="demo")
+    notes = _grouped_notes(config.plans)
+    for line in notes.values():
+        out(line)
     report = Report()
     if record is not None and importlib.util.find_spec("mcap") is None:
         out("rocoma-can demo: not recording: MCAP needs pip install 'rocoma-can[record]'")
         record = None
     watch = _Watch()
     stop = threading.Event()
-    hold = max(0.2, duration / 10)
     segments = [SimulatedSegment.open(b.channel, interface,
                                       [d.node_id for d in config.drives_on(b)],
                                       **(emulated.segment if emulated else {}))
@@ -408,6 +454,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                             can_filters=_only(set(p.carriers)))
                    for b, p in zip(config.buses, probes)]
     readers: list[BusReader] = []
+    said = _Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
+    hardware_log = logging.getLogger("rocoma_can.drivers.hardware")
+    hardware_log.addFilter(said)
     try:
         simulator.start(lockstep=True)
         readers = readers_for([(b, (p,)) for b, p in zip(probe_buses, probes)],
@@ -427,7 +476,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                     "with estop)")
             operator = threading.Thread(
                 target=_operator, name="demo-operator",
-                args=(rt, seg, client, watch, probes, report, hold, stop, out))
+                args=(rt, seg, client, watch, probes, report, duration, stop, out))
             status = threading.Thread(target=_status_lines, name="demo-status",
                                       args=(rt, stop, out))
             operator.start()
@@ -452,12 +501,42 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         if record is not None:
             _plot(Path(record), report, out)
     finally:
+        hardware_log.removeFilter(said)
         for r in readers:
             r.stop()
         for b in (client_bus, *probe_buses):
             b.shutdown()
         simulator.stop()
     return report
+
+
+def _grouped_notes(plans: Mapping[str, DrivePlan]) -> dict[str, str]:
+    """Each drive-plan note once, naming its drives: the demo's drives share one file, so
+    a note per drive would say the same thing as many times as there are drives."""
+    drives: dict[str, list[str]] = {}
+    for name, plan in plans.items():
+        for note in plan.notes:
+            drives.setdefault(note, []).append(name)
+    everyone = list(plans)
+    lines = {}
+    for note, names in drives.items():
+        start = everyone.index(names[0])
+        run = len(names) > 3 and everyone[start:start + len(names)] == names
+        who = f"{names[0]}..{names[-1]}" if run else ", ".join(names)
+        lines[note] = f"  note: {who}: {note}"
+    return lines
+
+
+class _Said(logging.Filter):
+    """Drops a log record that repeats one of these notes (the hardware's line per drive)."""
+
+    def __init__(self, notes: set[str]) -> None:
+        super().__init__()
+        self.notes = notes
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not any(message.endswith(": " + note) for note in self.notes)
 
 
 def _plot(directory: Path, report: Report, out: Callable[[str], None]) -> None:
@@ -490,6 +569,7 @@ def _summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out("")
     out("summary")
     out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
+    out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
     out(f"  {'cycles':28s} {timing.cycles}")
     out(f"  {'missed cycles (overruns)':28s} {timing.overruns}")
     out(f"  {'period mean / max':28s} {timing.period_mean * 1e3:.2f} / "
@@ -521,7 +601,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="in-process bus: inproc (default; one copy per frame, fit for "
                         "1 kHz) or python-can's virtual (a copy per frame and receiver)")
     p.add_argument("--duration", type=seconds, default=16.0,
-                   help="approximate length of the walk-through, s (default 16)")
+                   help="the walk-through's length, s, from bring-up to the loop's stop: its "
+                        "pauses stretch to end it then (default 16; steps slower than their "
+                        "share make it longer; set-up and the plot come on top)")
     p.add_argument("--record", default=None, metavar="DIR",
                    help="where the recording and its plot go (default: a new directory "
                         "under ~/.local/state/rocoma-can/demo/)")
@@ -552,8 +634,9 @@ def _main(args: argparse.Namespace) -> int:
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen)
     except (ValueError, RocomaError) as exc:
-        if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint
-            print("demo: " + "; ".join(exc.problems), flush=True)
+        if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint: "demo: ..."
+            for problem in exc.problems:
+                print(problem, flush=True)
         elif isinstance(exc, ValueError):  # a file that is no EDS, or one it cannot drive
             print(f"demo: --eds: {exc}", flush=True)
         else:  # Zenoh: not installed, the endpoint taken
@@ -561,4 +644,24 @@ def _main(args: argparse.Namespace) -> int:
         if record is not None and not any(record.iterdir()):
             record.rmdir()  # it did not run: no empty recording directory left behind
         return USAGE
+    hint = path_hint()
+    if hint is not None:
+        print(hint, flush=True)
     return OK if report.ok else FAILED
+
+
+def path_hint() -> str | None:
+    """How to get the ``rocoma-can`` command when the shell would not find it.
+
+    ``bash tools/demo`` runs .venv/bin/rocoma-can without activating the venv, and the
+    README's next step is ``rocoma-can check-config``: "command not found", unless this
+    says how. None when a ``rocoma-can`` is on PATH."""
+    if shutil.which("rocoma-can") is not None:
+        return None
+    activate = Path(sys.prefix) / "bin" / "activate"
+    if not activate.is_file():
+        return ("rocoma-can: not on PATH; for the README's commands: pip install -e "
+                "'.[record,plot,live,zenoh]' from a checkout")
+    shown = os.path.relpath(activate) if activate.is_relative_to(Path.cwd()) else activate
+    return (f"rocoma-can: not on PATH; for the README's commands: . {shown} (or pip install "
+            "-e '.[record,plot,live,zenoh]' from a checkout)")

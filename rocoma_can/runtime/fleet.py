@@ -29,6 +29,7 @@ in the status report).
 """
 from __future__ import annotations
 
+import difflib
 import json
 import logging
 import queue
@@ -111,8 +112,10 @@ def parse(section: Any, problems: list[str], where: str = "zenoh",
     if not isinstance(section, Mapping):
         problems.append(f"{where}: expected a mapping, got {type(section).__name__}")
         return None
-    for key in sorted(set(section) - _KEYS):
-        problems.append(f"{where}.{key}: unknown key (known: {', '.join(sorted(_KEYS))})")
+    for key in sorted(set(section) - _KEYS, key=str):
+        close = difflib.get_close_matches(str(key), _KEYS, n=1)
+        hint = f", did you mean {close[0]!r}?" if close else ""
+        problems.append(f"{where}.{key}: unknown key{hint} (known: {', '.join(sorted(_KEYS))})")
     out = base or FleetConfig()
     if "prefix" in section:
         why = key_problem(section["prefix"])
