@@ -270,11 +270,11 @@ class RefusesOneSend(VirtualBus):
         super().send(msg, timeout)
 
 
-def test_a_burst_the_interface_cuts_short_resumes_from_the_clients_ack(bus_factory,
-                                                                        virtual_channel):
+def test_a_burst_the_interface_cuts_short_goes_on_from_the_refused_segment(
+        bus_factory, virtual_channel):
     """The interface refuses a segment in the middle of a block: the node stops the burst
-    (its reader thread does not wait, nothing is raised or logged per frame), the client's
-    ack after its timeout names the last segment it has, and the rest follows."""
+    (its reader thread does not wait, nothing is raised or logged per frame) and sends the
+    rest of the block from that segment on, one burst gap later; the status is whole."""
     plant = JointPlant(3, dt=0.005)
     manager = ControllerManager(TorqueOff(), 0.005, plant.state, plant.command, timing=None)
     refusing = RefusesOneSend(virtual_channel, refuse_at=1_000_000)
