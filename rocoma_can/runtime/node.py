@@ -382,9 +382,10 @@ class ManagerNode(can.Listener):
         m = self.manager
         if m.state is not ManagerState.FAILPROOF and not m.estop_latched:
             raise SdoAbortedError(ABORT_REFUSED)
+        old = self._estop_cob_id
+        self.set_estop_cob_id(cob_id)  # may still refuse it (a drive's identifier)
         log.warning("manager node %d: e-stop COB-ID changed by SDO from 0x%03X to 0x%03X%s",
-                    self.node_id, self._estop_cob_id, cob_id, " (off)" if not cob_id else "")
-        self.set_estop_cob_id(cob_id)
+                    self.node_id, old, cob_id, " (off)" if not cob_id else "")
 
     def _switch(self, name: str) -> None:
         m = self.manager
