@@ -4,10 +4,10 @@ Values live in one flat dict keyed by (index, subindex), initialised from the ED
 services of the drive read and write it directly, so the SDO server, the PDOs and the state
 machine always see the same object. canopen's SdoServer speaks the protocol (expedited and
 segmented; block upload from drivers/sdo_block_upload.py, block download is refused with
-0x05040001 as canopen does); this module makes the checks a real drive makes before a download takes
-effect: access type, length, supported modes, scaling denominators, and the CiA 301 rules
-for changing PDO communication and mapping objects (invalidate first, sub-index 0 to 0
-first, only mappable objects, at most 64 bits).
+0x05040001 as canopen does); this module makes the checks a real drive makes before a
+download takes effect: access type, length, supported modes, scaling denominators, and the
+CiA 301 rules for changing PDO communication and mapping objects (invalidate first,
+sub-index 0 to 0 first, only mappable objects, at most 64 bits).
 """
 from __future__ import annotations
 
