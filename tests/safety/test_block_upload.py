@@ -13,6 +13,7 @@ import time
 import can
 import pytest
 from canopen.sdo.base import CrcXmodem
+from fixtures.budgets import STALL
 from safety_rig import SDO_RX, sdo_exchange
 
 from rocoma_can.runtime.client import ManagerClient
@@ -196,11 +197,13 @@ def test_canopens_block_upload_of_127_segments_is_served_in_paced_bursts(
     rec = frame_recorder()
     try:
         client = network.add_node(service.node.node_id).sdo
-        client.RESPONSE_TIMEOUT = 1.0
+        client.RESPONSE_TIMEOUT = STALL  # a loaded host may hold a frame up that long
         with client.open(DRIVE_STATUS, 0, "rb", block_transfer=True) as stream:
             data = stream.read()
     finally:
         network.disconnect()
+    # the client's end is the exchange's last frame: the recorder has all of it then
+    rec.wait_for(lambda f: f.cob_id == SDO_RX and f.data[0] == END, timeout=STALL)
     assert data == expected and len(data) > 127 * 7  # more than one block
     answers = rec.frames(SDO_RX - 0x80)
     assert answers[0].data[0] == 0xC6  # block upload, size indicated, CRC
