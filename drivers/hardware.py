@@ -625,7 +625,14 @@ class CanopenHardware:
         if self._now >= self._next_heartbeat:
             for port in ports:
                 port.send(port.heartbeat)
-            self._next_heartbeat = self._now + self.manager_heartbeat_period
+            # On the grid 0x1017 declares: due a period after the last due time, sent in the
+            # first cycle at or after it (at most a cycle late, never late on average). From
+            # the send time, every beat was late by the part of a cycle it waited, and those
+            # added up (520 ms for 500 at 25 Hz). A grid a whole period behind (a stalled
+            # loop, a beat sent out of turn) starts again from now: no burst of beats.
+            due = self._next_heartbeat + self.manager_heartbeat_period
+            self._next_heartbeat = (due if due > self._now
+                                    else self._now + self.manager_heartbeat_period)
         limit = self.supervisor.tpdo_timeout_cycles
         for port in ports:
             cause = port.end_of_write(limit)

@@ -270,11 +270,11 @@ class RefusesOneSend(VirtualBus):
         super().send(msg, timeout)
 
 
-def test_a_burst_the_interface_cuts_short_resumes_from_the_clients_ack(bus_factory,
-                                                                        virtual_channel):
+def test_a_burst_the_interface_cuts_short_goes_on_from_the_refused_segment(
+        bus_factory, virtual_channel):
     """The interface refuses a segment in the middle of a block: the node stops the burst
-    (its reader thread does not wait, nothing is raised or logged per frame), the client's
-    ack after its timeout names the last segment it has, and the rest follows."""
+    (its reader thread does not wait, nothing is raised or logged per frame) and sends the
+    rest of the block from that segment on, one burst gap later; the status is whole."""
     plant = JointPlant(3, dt=0.005)
     manager = ControllerManager(TorqueOff(), 0.005, plant.state, plant.command, timing=None)
     refusing = RefusesOneSend(virtual_channel, refuse_at=1_000_000)
@@ -481,3 +481,33 @@ def test_the_node_receives_only_what_it_serves(bus_factory, in_cycle):
         node.close()
         manager.shutdown()
     assert node_bus.filters is None
+
+
+def test_only_an_accepted_estop_cob_id_is_logged_as_a_change(bus_factory, caplog):
+    """A write of 0x2130 the hardware refuses (a drive's identifier) was logged as a change
+    before it was refused: the log then told of an e-stop path that was never set."""
+    plant = JointPlant(3, dt=0.005)
+    manager = ControllerManager(TorqueOff(), 0.005, plant.state, plant.command, timing=None)
+    drives = {0x181}
+
+    def in_cycle(cob_id: int) -> None:
+        if cob_id in drives:
+            raise ValueError(f"0x{cob_id:03X} is drive 1's TPDO1")
+
+    node = ManagerNode(manager, NODE, bus_factory(), estop_cob_id=ESTOP_COB,
+                       estop_in_cycle=in_cycle).start()
+    changed = "e-stop COB-ID changed by SDO"
+    try:
+        with ManagerClient(bus_factory(), NODE, timeout=STALL) as client, \
+                caplog.at_level("WARNING", logger="rocoma_can.runtime.node"):
+            with pytest.raises(Refused) as info:
+                client.write(0x2130, 0x181)
+            assert info.value.code == ABORT_NOT_FOUND and node.estop_cob_id == ESTOP_COB
+            assert not [r for r in caplog.records if changed in r.getMessage()]
+            client.write(0x2130, 0x0B5)
+        assert node.estop_cob_id == 0x0B5
+        changes = [r.getMessage() for r in caplog.records if changed in r.getMessage()]
+        assert len(changes) == 1 and "from 0x0A0 to 0x0B5" in changes[0]
+    finally:
+        node.close()
+        manager.shutdown()

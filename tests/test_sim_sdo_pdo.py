@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import struct
+import time
 
+import can
 import pytest
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
@@ -199,3 +201,90 @@ def test_event_driven_tpdo_on_state_change(sim_bench):
     states = [c.state_from_statusword(struct.unpack("<H", f.data)[0]) for f in frames]
     assert states == [State402.SWITCH_ON_DISABLED, State402.READY_TO_SWITCH_ON,
                       State402.SWITCHED_ON, State402.OPERATION_ENABLED]
+
+
+#: 0x1008 (manufacturer device name) of 54 bytes, as the drive in issue 33 had
+DEVICE_NAME = "rocoma-can simulated CiA 402 servo drive, firmware 1.0"
+
+
+@pytest.fixture
+def named_drive_eds(tmp_path):
+    """The shipped drive EDS with a 54-byte 0x1008, longer than a client's switch threshold."""
+    from rocoma_can import eds
+    assert len(DEVICE_NAME) == 54
+    path = tmp_path / "named_drive.eds"
+    path.write_text(eds.path(eds.CIA402_DRIVE).read_text() + (
+        "\n[1008]\nParameterName=Manufacturer device name\nObjectType=0x7\n"
+        f"DataType=0x0009\nAccessType=const\nDefaultValue={DEVICE_NAME}\nPDOMapping=0\n"))
+    return path
+
+
+class _RawSdo:
+    """Raw SDO requests to drive 1 on a bus of the test's own: its answers in the order
+    the drive sent them, each wait bounded by the bench's stall."""
+
+    def __init__(self, bench, bus) -> None:
+        self.bench, self.bus = bench, bus
+
+    def __call__(self, request: bytes, answers: int) -> list[bytes]:
+        self.bus.send(can.Message(arbitration_id=0x601, data=request, is_extended_id=False))
+        got: list[bytes] = []
+        deadline = time.monotonic() + self.bench.stall
+        while len(got) < answers and time.monotonic() < deadline:
+            msg = self.bus.recv(max(0.0, deadline - time.monotonic()))
+            if msg is not None and msg.arbitration_id == 0x581:
+                got.append(bytes(msg.data))
+        assert len(got) == answers, (request.hex(), got)
+        return got
+
+
+def test_a_block_upload_above_the_switch_threshold_is_a_block_upload(sim_bench, bus_factory,
+                                                                     named_drive_eds):
+    """Issue 33: asked with blksize 127 and threshold 21, the 54-byte 0x1008 came back as a
+    segmented upload, which CiA 301 allows only at or below the threshold. Now: the block
+    upload's answer (size, CRC), eight segments in order with the last one marked, the end
+    with the unused bytes and the CRC; the client's end is not answered."""
+    from canopen.sdo.base import CrcXmodem
+    bench = sim_bench(1, eds_path=str(named_drive_eds))
+    raw = _RawSdo(bench, bus_factory())
+    value = DEVICE_NAME.encode()
+    (answer,) = raw(bytes.fromhex("A40810007F150000"), 1)
+    assert answer == bytes([0xC6, 0x08, 0x10, 0x00]) + struct.pack("<I", len(value))
+    segments = raw(bytes([0xA3]) + bytes(7), 8)
+    assert [s[0] for s in segments] == [1, 2, 3, 4, 5, 6, 7, 0x88]
+    assert b"".join(s[1:] for s in segments)[:len(value)] == value
+    (end,) = raw(bytes([0xA2, 8, 127]) + bytes(5), 1)
+    crc = CrcXmodem()
+    crc.process(value)
+    assert end[0] == 0xC1 | (-len(value) % 7) << 2
+    assert struct.unpack_from("<H", end, 1)[0] == crc.final()
+    # the client's end is not answered: the next answer is the one to an upload of 0x1000
+    raw.bus.send(can.Message(arbitration_id=0x601, data=bytes([0xA1]) + bytes(7),
+                             is_extended_id=False))
+    (answer,) = raw(bytes([0x40, 0x00, 0x10, 0x00]) + bytes(4), 1)
+    assert answer[:4] == bytes([0x43, 0x00, 0x10, 0x00])
+    # at or below the threshold: a normal upload, as CiA 301 allows
+    (answer,) = raw(bytes.fromhex("A40810007F360000"), 1)
+    assert answer == bytes([0x41, 0x08, 0x10, 0x00]) + struct.pack("<I", len(value))
+
+
+def test_canopens_block_upload_reads_the_drive(sim_bench, bus_factory, named_drive_eds):
+    """canopen's own BlockUploadStream (blksize 127, CRC) against the simulated drive, and a
+    lost segment resumed by the ack: the value whole, the CRC checked by canopen."""
+    bench = sim_bench(1, eds_path=str(named_drive_eds))
+    sdo = bench.node(1).sdo
+    with sdo.open(0x1008, 0, "rb", block_transfer=True) as stream:
+        assert stream.read() == DEVICE_NAME.encode()
+    raw = _RawSdo(bench, bus_factory())
+    # an ack of 3: segments 4.. again, renumbered from 1, then the end
+    raw(bytes.fromhex("A40810007F000000"), 1)
+    first = raw(bytes([0xA3]) + bytes(7), 8)
+    again = raw(bytes([0xA2, 3, 127]) + bytes(5), 5)
+    assert [s[0] for s in again] == [1, 2, 3, 4, 0x85]
+    assert [s[1:] for s in again] == [s[1:] for s in first[3:]]
+    # an ack beyond what was sent aborts (0x05040003), naming the object
+    answer, = raw(bytes([0xA2, 6, 127]) + bytes(5), 1)
+    assert answer == bytes([0x80, 0x08, 0x10, 0x00]) + struct.pack("<I", 0x05040003)
+    # and a block command with nothing open is an abort, not an upload
+    answer, = raw(bytes([0xA3]) + bytes(7), 1)
+    assert answer[0] == 0x80 and struct.unpack_from("<I", answer, 4)[0] == 0x05040001

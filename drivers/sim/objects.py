@@ -2,11 +2,12 @@
 
 Values live in one flat dict keyed by (index, subindex), initialised from the EDS; the other
 services of the drive read and write it directly, so the SDO server, the PDOs and the state
-machine always see the same object. canopen's SdoServer speaks the protocol (expedited,
-segmented, block); this module makes the checks a real drive makes before a download takes
-effect: access type, length, supported modes, scaling denominators, and the CiA 301 rules
-for changing PDO communication and mapping objects (invalidate first, sub-index 0 to 0
-first, only mappable objects, at most 64 bits).
+machine always see the same object. canopen's SdoServer speaks the protocol (expedited and
+segmented; block upload from drivers/sdo_block_upload.py, block download is refused with
+0x05040001 as canopen does); this module makes the checks a real drive makes before a
+download takes effect: access type, length, supported modes, scaling denominators, and the
+CiA 301 rules for changing PDO communication and mapping objects (invalidate first,
+sub-index 0 to 0 first, only mappable objects, at most 64 bits).
 """
 from __future__ import annotations
 
@@ -29,11 +30,11 @@ from canopen.sdo.constants import (
     ABORT_WRITE_READONLY,
 )
 from canopen.sdo.exceptions import SdoAbortedError
-from canopen.sdo.server import SdoServer
 
 from .. import cia301 as c301
 from .. import cia402 as c
 from ..capabilities import modes_from_targets
+from ..sdo_block_upload import BlockUploadServer
 
 Key = tuple[int, int]
 PDO_NOT_VALID = 0x80000000
@@ -100,7 +101,7 @@ class ObjectDictionaryServer:
                 else:
                     self.defaults[key] = _empty(var.data_type)
         self.values: dict[Key, Any] = dict(self.defaults)
-        self._sdo = SdoServer(c301.SDO_RX + node_id, c301.SDO_TX + node_id, self)
+        self._sdo = BlockUploadServer(c301.SDO_RX + node_id, c301.SDO_TX + node_id, self)
         self._sdo.network = _SdoLink(send)  # type: ignore[assignment]  # send_message only
 
     def request(self, data: bytes) -> None:

@@ -66,6 +66,7 @@ from ..drivers.cia301 import (
 from ..errors import HomingFailed
 from ..events import EventKind, ManagerEvent, ManagerState
 from ..manager import ControllerManager, SwitchResult
+from .bus_load import frame_bits
 from .objects import (
     ABORT_NO_RECOVERY,
     ABORT_NOT_FOUND,
@@ -91,7 +92,7 @@ from .objects import (
     SWITCH_REFUSAL,
     SWITCH_RESULT,
 )
-from .sdo_server import StrictSdoServer
+from .sdo_server import BURST, StrictSdoServer
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +100,18 @@ def _visible(text: str) -> str:
     """A VISIBLE_STRING is ASCII (CiA 301; canopen encodes it so and fails on anything else,
     which made the whole read abort): other characters are escaped, e.g. "j\\xe9"."""
     return text.encode("ascii", "backslashreplace").decode("ascii")
+
+
+#: The bit rate block uploads are paced for when the node is not told its bus's: 125 kbit/s,
+#: the slowest rate CANopen drives commonly run at.
+ASSUMED_BITRATE = 125_000
+
+
+def burst_gap(bitrate: int) -> float:
+    """Seconds between two bursts of a block upload: a burst's time on the wire twice over
+    (worst-case 8-byte frames), so its frames have left the transmit queue, and the control
+    loop's frames that queued behind them too, before the next burst joins the queue."""
+    return 2 * BURST * frame_bits(8) / bitrate
 
 
 def _never_produce_heartbeats(node: canopen.LocalNode) -> None:
@@ -139,10 +152,13 @@ class ManagerNode(can.Listener):
                  heartbeat_ms: int | None = None,
                  drive_status: Callable[[], dict[str, Any]] | None = None,
                  estop_in_cycle: Callable[[int], None] | None = None,
-                 home: Callable[[str], object] | None = None) -> None:
+                 home: Callable[[str], object] | None = None,
+                 bitrate: int | None = None) -> None:
         """``estop_in_cycle``: the hardware takes e-stop frames itself, on every bus, in
         the cycle (CanopenHardware.set_estop_cob_id): the node then only owns the COB-ID
-        (0x2130) and hands it over on every change, and ignores the frames."""
+        (0x2130) and hands it over on every change, and ignores the frames. ``bitrate``:
+        the bus's, which paces block uploads (StrictSdoServer); None assumes
+        ASSUMED_BITRATE, slow enough that a faster bus only waits longer than it needs."""
         self.manager = manager
         self.node_id = node_id
         self.bus = bus
@@ -164,7 +180,8 @@ class ManagerNode(can.Listener):
         self.heartbeat_ms = heartbeat_ms  # the loop's period, answered on 0x1017 reads
         self._node = canopen.LocalNode(node_id, od)
         self._node.sdo = StrictSdoServer(self._node.sdo.rx_cobid, self._node.sdo.tx_cobid,
-                                          self._node)
+                                          self._node,
+                                          burst_gap=burst_gap(bitrate or ASSUMED_BITRATE))
         _never_produce_heartbeats(self._node)
         self._node.add_read_callback(self._on_read)
         self._node.add_write_callback(self._on_write)
@@ -177,6 +194,12 @@ class ManagerNode(can.Listener):
         self._estop_in_cycle = estop_in_cycle
         self._started = False
         self._reader: BusReader | None = None
+
+    @property
+    def _sdo(self) -> StrictSdoServer:
+        sdo = self._node.sdo
+        assert isinstance(sdo, StrictSdoServer)  # set in __init__
+        return sdo
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self) -> ManagerNode:
@@ -200,6 +223,7 @@ class ManagerNode(can.Listener):
         if self._reader is not None:
             self._reader.stop()
             self._reader = None
+        self._sdo.close()
         if self._started:
             try:
                 self.bus.set_filters(None)  # the lent handle as it came
@@ -358,9 +382,10 @@ class ManagerNode(can.Listener):
         m = self.manager
         if m.state is not ManagerState.FAILPROOF and not m.estop_latched:
             raise SdoAbortedError(ABORT_REFUSED)
+        old = self._estop_cob_id
+        self.set_estop_cob_id(cob_id)  # may still refuse it (a drive's identifier)
         log.warning("manager node %d: e-stop COB-ID changed by SDO from 0x%03X to 0x%03X%s",
-                    self.node_id, self._estop_cob_id, cob_id, " (off)" if not cob_id else "")
-        self.set_estop_cob_id(cob_id)
+                    self.node_id, old, cob_id, " (off)" if not cob_id else "")
 
     def _switch(self, name: str) -> None:
         m = self.manager

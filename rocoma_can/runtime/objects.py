@@ -22,9 +22,9 @@ STATE, ACTIVE_NAME, ACTIVE_INDEX, CONTROLLER_LIST, ESTOP_CAUSE = (
     0x2120, 0x2121, 0x2122, 0x2123, 0x2124)
 ESTOP_COB_ID, ESTOP_LATCHED = 0x2130, 0x2131
 PENDING, NO_SWITCH_YET = 0xFF, 0xFE
-#: Segments per SDO block the node sends in one burst and the client asks for: 8 frames are
-#: ~1 ms of a 1 Mbit/s bus, which the control loop's frames may queue behind (the node shares
-#: the drives' interface and its first-in-first-out transmit queue).
+#: Segments per SDO block the client (sdo_block.upload) asks for: one burst of the node's
+#: (sdo_server.BURST), so each block is one round trip without a pause. The node serves any
+#: block size 1..127, as stock clients ask.
 MAX_BLOCK_SIZE = 8
 SEGMENT = 7  # bytes of data in one SDO segment (the frame's first byte is the command)
 #: The longest value the node takes by SDO download (a controller or joint name): a longer
@@ -34,7 +34,7 @@ MAX_DOWNLOAD = 256
 # SDO abort codes the node answers with (CiA 301; canopen's names)
 ABORT_NOT_FOUND = ABORT_INVALID_VALUE  # 0x06090030 value range exceeded: no such controller
 ABORT_COMMAND_SPECIFIER = ABORT_INVALID_COMMAND_SPECIFIER  # 0x05040001
-ABORT_BLOCK_SIZE = ABORT_INVALID_BLOCK_SIZE  # 0x05040002 blksize above MAX_BLOCK_SIZE
+ABORT_BLOCK_SIZE = ABORT_INVALID_BLOCK_SIZE  # 0x05040002 blksize outside 1..127
 ABORT_SEQUENCE_NUMBER = ABORT_INVALID_SEQUENCE_NUMBER  # 0x05040003 acked more than was sent
 ABORT_CRC = ABORT_CRC_ERROR  # 0x05040004 a block upload's data does not match its CRC
 ABORT_NO_ANSWER = ABORT_TIMED_OUT  # 0x05040000 SDO protocol timed out

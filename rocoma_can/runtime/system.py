@@ -104,7 +104,8 @@ class Runtime:
                                     recover=hardware.recover, home=hardware.home,
                                     heartbeat_ms=m.heartbeat_ms,
                                     drive_status=self.status_report,
-                                    estop_in_cycle=hardware.set_estop_cob_id)
+                                    estop_in_cycle=hardware.set_estop_cob_id,
+                                    bitrate=bus.bitrate)
             self._parts.insert(0, self.node.close)
             trace = self._recorders(record, flight, flight_seconds, announce)
             self.loop = ControlLoop(self.hardware, self.manager, config.rate,

@@ -13,6 +13,7 @@ import time
 import can
 import pytest
 from canopen.sdo.base import CrcXmodem
+from fixtures.budgets import STALL
 from safety_rig import SDO_RX, sdo_exchange
 
 from rocoma_can.runtime.client import ManagerClient
@@ -133,10 +134,10 @@ def test_a_short_object_under_the_switch_threshold_is_a_normal_upload(service):
     (bytes([START]) + bytes(7), ABORT_COMMAND_SPECIFIER),          # nothing initiated
     (bytes([END]) + bytes(7), ABORT_COMMAND_SPECIFIER),
     (_initiate(DRIVE_STATUS, blksize=0), ABORT_BLOCK_SIZE),
-    (_initiate(DRIVE_STATUS, blksize=MAX_BLOCK_SIZE + 1), ABORT_BLOCK_SIZE),
-    (_initiate(DRIVE_STATUS, blksize=127), ABORT_BLOCK_SIZE),
+    (_initiate(DRIVE_STATUS, blksize=128), ABORT_BLOCK_SIZE),
+    (_initiate(DRIVE_STATUS, blksize=255), ABORT_BLOCK_SIZE),
 ], ids=["ack-without-upload", "start-without-initiate", "end-without-upload", "blksize-0",
-        "blksize-over-the-burst-limit", "blksize-127"])
+        "blksize-128", "blksize-255"])
 def test_a_block_command_out_of_place_is_an_abort(service, request_, code):
     assert _abort_code(sdo_exchange(service.raw, request_)) == code
 
@@ -171,3 +172,66 @@ def test_the_client_reads_text_in_a_few_round_trips(service, frame_recorder, vir
         burst = burst + 1 if cob_id == SDO_RX - 0x80 else 0
         longest = max(longest, burst)
     assert longest == MAX_BLOCK_SIZE
+
+
+def test_a_one_byte_object_asked_as_a_stock_client_asks_is_an_expedited_upload(service):
+    """Issue 33, as CANopenNode's client asks (blksize 127, switch threshold 21): the node
+    refused 0x2120 with 0x05040002; a value of one byte is answered with a normal upload."""
+    answer = sdo_exchange(service.raw, bytes.fromhex("A42021007F150000"))
+    assert answer == bytes([0x4F, 0x20, 0x21, 0x00, int(service.manager.state), 0, 0, 0])
+
+
+def test_canopens_block_upload_of_127_segments_is_served_in_paced_bursts(
+        service, frame_recorder, bus_factory):
+    """canopen's own BlockUploadStream (blksize 127, no switch threshold) reads 0x2140 whole:
+    every block has its segments 1..127 in order on the bus, the last block ends with the
+    last segment, the end names the unused bytes and the CRC; and the node hands the
+    interface at most BURST segments at a time, the next burst no sooner than its gap."""
+    import canopen
+
+    from rocoma_can.runtime.sdo_server import BURST
+    _twelve_drives(service)
+    expected = service.node._on_read(DRIVE_STATUS, 0, None).encode()  # type: ignore[arg-type]
+    network = canopen.Network(bus_factory())
+    network.connect()
+    rec = frame_recorder()
+    try:
+        client = network.add_node(service.node.node_id).sdo
+        client.RESPONSE_TIMEOUT = STALL  # a loaded host may hold a frame up that long
+        with client.open(DRIVE_STATUS, 0, "rb", block_transfer=True) as stream:
+            data = stream.read()
+    finally:
+        network.disconnect()
+    # the client's end is the exchange's last frame: the recorder has all of it then
+    rec.wait_for(lambda f: f.cob_id == SDO_RX and f.data[0] == END, timeout=STALL)
+    assert data == expected and len(data) > 127 * 7  # more than one block
+    answers = rec.frames(SDO_RX - 0x80)
+    assert answers[0].data[0] == 0xC6  # block upload, size indicated, CRC
+    assert struct.unpack_from("<I", answers[0].data, 4)[0] == len(expected)
+    segments, end = answers[1:-1], answers[-1]
+    blocks, block = [], []
+    for frame in segments:
+        block.append(frame)
+        if frame.data[0] & 0x7F == 127 or frame.data[0] & 0x80:
+            blocks.append(block)
+            block = []
+    assert block == [] and len(blocks) == -(-len(expected) // (127 * 7))
+    for block in blocks:
+        assert [f.data[0] & 0x7F for f in block] == list(range(1, len(block) + 1))
+    assert [bool(f.data[0] & 0x80) for f in segments].count(True) == 1
+    assert segments[-1].data[0] & 0x80
+    assert end.data[0] & 0xE3 == 0xC1 and (end.data[0] >> 2) & 7 == -len(expected) % 7
+    crc = CrcXmodem()
+    crc.process(expected)
+    assert struct.unpack_from("<H", end.data, 1)[0] == crc.final()
+    # the acks and the end came from the client, one per block and one at the end
+    acks = [f.data for f in rec.frames(SDO_RX) if f.data[0] == ACK]
+    assert [a[1] for a in acks] == [len(b) for b in blocks]
+    # paced: within a block, a burst is BURST segments, the next one at least the gap later
+    sdo = service.node._node.sdo
+    assert sdo.longest_burst == BURST
+    gap = sdo.burst_gap
+    assert gap > 0
+    for block in blocks:
+        for k in range(BURST, len(block), BURST):
+            assert block[k].time - block[k - 1].time >= gap / 2, (k, gap)
