@@ -139,7 +139,8 @@ class SimulatedSegment:
                  sync_period: float | None = None, max_dt: float = 0.05,
                  free_run_period: float | None = 0.05, seed: int = 0,
                  own_bus: bool = False, fd: bool = False,
-                 increments_per_rev: int = 1 << 20, rated_torque_nm: float = 1.0) -> None:
+                 increments_per_rev: int = 1 << 20, rated_torque_nm: float = 1.0,
+                 overrides: Mapping[tuple[int, int], Any] | None = None) -> None:
         ids = sorted(set(int(n) for n in node_ids))
         if not ids:
             raise ValueError("a simulated segment needs at least one node id")
@@ -185,6 +186,9 @@ class SimulatedSegment:
         self.drives: dict[int, SimulatedDrive] = {
             n: SimulatedDrive(self, n, j, dictionaries[n], fallbacks)
             for j, n in enumerate(ids)}
+        for drive in self.drives.values():  # values the file gives that a run replaces
+            drive.objects.defaults.update(overrides or {})
+            drive.objects.values.update(overrides or {})
         assumed = next(iter(self.drives.values())).objects.assumed if self.drives else {}
         if assumed:
             log.info("simulated drives of %s: where the file gives no value they answer %s",

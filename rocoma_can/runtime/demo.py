@@ -76,7 +76,12 @@ def emulate(path: str, drives: int) -> Emulated:
     for the emergency controller damp where it has it (else hold in the position mode),
     its scaling, its node id if it is a DCF. ValueError when no position mode fits."""
     from ..drivers.capabilities import CapabilityError, read_capabilities
-    from ..drivers.cia402 import GEAR_RATIO, POSITION_ENCODER_RESOLUTION, RATED_TORQUE
+    from ..drivers.cia402 import (
+        GEAR_RATIO,
+        POSITION_ENCODER_RESOLUTION,
+        QUICK_STOP_DECELERATION,
+        RATED_TORQUE,
+    )
     try:
         caps = read_capabilities(path, 1)
     except CapabilityError as exc:
@@ -100,9 +105,13 @@ def emulate(path: str, drives: int) -> Emulated:
                      f"(position targets, carried in {position.upper()}), not damp")
     increments, revs = (caps.value(POSITION_ENCODER_RESOLUTION, 1),
                         caps.value(POSITION_ENCODER_RESOLUTION, 2))
-    # without 0x608F a file's ramps (0x6084/0x6085) are in units the demo cannot know: a
-    # 12-bit encoder keeps a quick stop of 10,000 increments/s² a stop within seconds
+    # without 0x608F a file's ramps (0x6084/0x6085) are in units the demo cannot know
     per_rev = int(increments // revs) if increments and revs else 1 << 12
+    overrides: dict[tuple[int, int], int] = {}
+    if not (increments and revs) and caps.has(QUICK_STOP_DECELERATION):
+        overrides[(QUICK_STOP_DECELERATION, 0)] = 10 * per_rev
+        notes.append("its ramps are in units it does not state (no 0x608F): the simulated "
+                     "drives stop at 10 turns/s² (0x6085)")
     motor, shaft = caps.value(GEAR_RATIO, 1), caps.value(GEAR_RATIO, 2)
     rated = caps.value(RATED_TORQUE) or 1000
     drive = {"eds": path, "increments_per_rev": per_rev, "rated_torque_nm": rated / 1000.0,
@@ -113,6 +122,7 @@ def emulate(path: str, drives: int) -> Emulated:
                      "accepted for this simulation only")
     fitted = Emulated(path, modes, emergency, drive, notes=notes,
                       segment={"eds_path": path, "increments_per_rev": per_rev,
+                               "overrides": overrides,
                                "rated_torque_nm": rated / 1000.0})
     if caps.commissioned_node_id is not None:
         fitted.first_node = caps.commissioned_node_id
