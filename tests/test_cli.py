@@ -193,3 +193,21 @@ def test_run_without_socketcan_says_what_to_do(tmp_path, capsys, monkeypatch):
         "supported by protocol; this kernel has no SocketCAN (AF_CAN): on vcan, from a "
         "checkout, tools/vcan-run -- rocoma-can run CONFIG with channel: vcan0; without a "
         "kernel bus, rocoma-can demo, or interface: virtual in CONFIG"]
+
+
+def test_a_timed_run_with_no_drive_answering_says_so_and_fails(tmp_path, capfd, caplog):
+    """No drive on the bus: each drive's failure once on stderr with what to check, and a
+    run whose bring-up never finished exits 1, not "stopped (duration reached)" and 0."""
+    cfg = good()
+    cfg["bus"] = {"interface": "virtual", "channel": f"nobody-{tmp_path.name}"}
+    cfg["drives"] = cfg["drives"][:1]
+    cfg["supervision"] = {"boot_wait": 0.0, "sdo_timeout": 0.05}
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["run", str(path), "--duration", "3", "--no-flight"]) == 1
+    err = capfd.readouterr().err
+    assert "rocoma-can: bring-up did not finish: drives not ready: j1 (FAILED: did not " \
+        "answer (SDO 0x1000" in err, err
+    said = [r.getMessage() for r in caplog.records if "start-up failed" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith(
+        "drive 'j1' (node 1): start-up failed: did not answer (SDO 0x1000, "), said
