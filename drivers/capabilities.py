@@ -142,14 +142,10 @@ class DriveCapabilities:
         by its target objects); a file with neither is taken at its word (True)."""
         return self.supported_modes is None or bool(self.supported_modes & mode_bit(mode))
 
-    def target_of(self, mode: int) -> tuple[int, int] | None:
-        """The object a mode's cyclic target goes to (None: a mode without one, homing)."""
-        return TARGET_OF_MODE.get(mode)
-
     def usable(self, mode: int) -> bool:
         """Supported, and its target can travel in an RPDO (a mode whose target cannot is
         no use to a cyclic master)."""
-        target = self.target_of(mode)
+        target = TARGET_OF_MODE.get(mode)  # None: a mode without one (homing)
         return self.supports(mode) and (target is None or self.carries(*target))
 
     @property

@@ -27,6 +27,7 @@ from __future__ import annotations
 import io
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from canopen import objectdictionary
 from canopen.objectdictionary import datatypes
@@ -55,7 +56,7 @@ _NOT_NUMBERS = (datatypes.VISIBLE_STRING, datatypes.UNICODE_STRING, datatypes.OC
                 datatypes.DOMAIN, *datatypes.FLOAT_TYPES)
 _VALUE_KEYS = ("DefaultValue", "ParameterValue", "LowLimit", "HighLimit")
 #: Communication objects whose value is a COB-ID (sub-index 1 of the SDO/PDO parameters)
-_COB_ID_SUB1 = ((0x1200, 0x12FF), (0x1280, 0x12FF), (0x1400, 0x15FF), (0x1800, 0x19FF))
+_COB_ID_SUB1 = ((0x1200, 0x12FF), (0x1400, 0x15FF), (0x1800, 0x19FF))
 _COB_ID_SUB0 = (0x1012, 0x1014)
 
 
@@ -72,6 +73,8 @@ class DeviceFile:
     #: objects the file lists with neither DefaultValue nor ParameterValue (or empty ones)
     unknown: set[Key] = field(default_factory=set)
     commissioned_node_id: int | None = None
+    #: the node its COB-IDs are re-derived for (``for_node``); None: as the file gives them
+    node_id: int | None = None
 
     def text(self) -> str:
         out = io.StringIO()
@@ -96,9 +99,11 @@ class DeviceFile:
         """A copy whose node-relative COB-IDs, given as absolute values for some other node
         in ``ParameterValue``, are relative again (a DCF exported for node 1, an EDS carrying
         a commissioning tool's values): the file's COB-ID meant "this node's PDO"."""
+        if self.node_id == node_id:
+            return self
         sections = {name: dict(keys) for name, keys in self.sections.items()}
         copy = DeviceFile(self.path, sections, list(self.notes), set(self.unknown),
-                          self.commissioned_node_id)
+                          self.commissioned_node_id, node_id)
         rebased: list[str] = []
         baked_for: set[int] = set()
         for name, keys in sections.items():
@@ -146,7 +151,7 @@ def read_device_file(path: str) -> DeviceFile:
     """Read and normalise an EDS/DCF; DeviceFileError (one line, naming the file) when it is
     not one."""
     try:
-        raw = open(path, "rb").read()  # noqa: SIM115 - read whole, closed by refcount
+        raw = Path(path).read_bytes()
     except OSError as exc:
         raise DeviceFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
     notes: list[str] = []

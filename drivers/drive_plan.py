@@ -158,22 +158,22 @@ def _fit_feedback(drive: DriveConfig, feedback: tuple[str, ...], caps: DriveCapa
     its TPDOs cannot carry all of it, the least needed goes first (torque, then velocity:
     the shipped controllers need position and velocity), said in a note. A controller that
     needs what was left out is refused when the controllers are loaded."""
-    options = [feedback] if drive.feedback is not None else \
-        [feedback[:k] for k in range(len(feedback), 0, -1)]
-    for k, option in enumerate(options):
+    option = feedback
+    while True:
         resolved = dataclasses.replace(drive, feedback=option)
         try:
             layout = layout_for(resolved, caps)
+            break
         except ValueError:
-            if k == len(options) - 1 or not _tpdo_short(resolved, caps):
+            if drive.feedback is not None or len(option) <= 1 \
+                    or not _tpdo_short(resolved, caps):
                 raise
-            continue
-        if option != feedback:
-            notes.append(f"its TPDOs carry statusword and {', '.join(option)} only: "
-                         f"{', '.join(f for f in feedback if f not in option)} feedback left "
-                         "out (JointState stays 0 there)")
-        return resolved, layout
-    raise AssertionError("unreachable: options is never empty")
+            option = option[:-1]
+    if option != feedback:
+        notes.append(f"its TPDOs carry statusword and {', '.join(option)} only: "
+                     f"{', '.join(f for f in feedback if f not in option)} feedback left "
+                     "out (JointState stays 0 there)")
+    return resolved, layout
 
 
 def _tpdo_short(drive: DriveConfig, caps: DriveCapabilities) -> bool:

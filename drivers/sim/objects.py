@@ -12,7 +12,7 @@ sub-index 0 to 0 first, only mappable objects, at most 64 bits).
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from canopen import objectdictionary
@@ -34,6 +34,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from .. import cia301 as c301
 from .. import cia402 as c
 from ..capabilities import modes_from_targets
+from ..device_file import DeviceFileError, read_device_file
 from ..sdo_block_upload import BlockUploadServer
 
 Key = tuple[int, int]
@@ -256,11 +257,19 @@ def fallback_values(increments_per_rev: int, rated_torque_nm: float,
     }
 
 
-def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.ObjectDictionary:
-    """The drive's object dictionary from its EDS/DCF for one node, read as the master reads
-    it (device_file.py: the same repairs, the same one-line refusal)."""
-    from ..device_file import DeviceFileError, read_device_file
+def load_object_dictionaries(eds_path: str, node_ids: Iterable[int]
+                             ) -> dict[int, objectdictionary.ObjectDictionary]:
+    """Each drive's object dictionary from one EDS/DCF (the file read once), read as the
+    master reads it (device_file.py: the same repairs, the same one-line refusal)."""
+    ids = list(node_ids)
     try:
-        return read_device_file(str(eds_path)).for_node(node_id).object_dictionary(node_id)
+        device = read_device_file(str(eds_path))
+        return {n: device.object_dictionary(n) for n in ids}
     except DeviceFileError as exc:
-        raise ValueError(f"simulated drive {node_id}: {exc}") from None
+        raise ValueError(f"simulated drive {ids[0] if len(ids) == 1 else ids}: {exc}") \
+            from None
+
+
+def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.ObjectDictionary:
+    """One drive's object dictionary (``load_object_dictionaries`` for one node)."""
+    return load_object_dictionaries(eds_path, [node_id])[node_id]

@@ -42,7 +42,7 @@ from ..bus import enlarge_bus_buffer
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
-from .objects import fallback_values, load_object_dictionary
+from .objects import fallback_values, load_object_dictionaries
 from .port import Route
 
 log = logging.getLogger(__name__)
@@ -180,7 +180,7 @@ class SimulatedSegment:
                              f"{rated_torque_nm!r}")
         eds = str(eds_path) if eds_path else _default_eds()
         # what the drives assume where the file has no object (scaling: these numbers)
-        dictionaries = {n: load_object_dictionary(eds, n) for n in ids}
+        dictionaries = load_object_dictionaries(eds, ids)
         fallbacks = fallback_values(increments_per_rev, rated_torque_nm,
                                     next(iter(dictionaries.values()), None))
         self.drives: dict[int, SimulatedDrive] = {
