@@ -133,6 +133,29 @@ def _check_scaling(sdo: NamedSdo, drive: DriveConfig) -> None:
                                f"{reported:g} ({where})")
 
 
+def life_time_factor(guard_ms: int, consumer_ms: int) -> int:
+    """0x100D for a guarded drive: its life time (guard time x factor) as close to the
+    heartbeat consumer time as the factor allows (the same loss time either way), at least
+    2 (one late request is not a loss), at most 255 (UNSIGNED8)."""
+    return max(2, min(255, -(-consumer_ms // guard_ms)))
+
+
+def _arm_guarding(sdo: NamedSdo, plan: DrivePlan, consumer_ms: int) -> None:
+    """The drive's heartbeat producer, or node guarding: guard time and life time factor
+    (the drive's life guarding starts with the manager's first request, sent from the
+    cycle once the drive is configured). A guarded drive's producer, where it has one, is
+    set to 0: CiA 301 lets a node answer guarding only while it produces no heartbeat."""
+    drive, caps = plan.drive, plan.caps
+    if not plan.guarded:
+        sdo.download(cia301.PRODUCER_HEARTBEAT_TIME, 0, _u16(drive.heartbeat_ms))
+        return
+    if caps.writable(cia301.PRODUCER_HEARTBEAT_TIME):
+        sdo.download(cia301.PRODUCER_HEARTBEAT_TIME, 0, _u16(0))
+    sdo.download(cia301.GUARD_TIME, 0, _u16(drive.heartbeat_ms))
+    sdo.download(cia301.LIFE_TIME_FACTOR, 0,
+                 _u8(life_time_factor(drive.heartbeat_ms, consumer_ms)))
+
+
 def _arm_against_manager_loss(sdo: NamedSdo, caps: DriveCapabilities, manager_node_id: int,
                               consumer_ms: int) -> None:
     """What makes the drive let go when the manager dies or hangs, as far as its objects
@@ -244,7 +267,7 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
     _check_scaling(sdo, drive)
     _configure_pdos(sdo, layout.rpdos, caps.rpdos)
     _configure_pdos(sdo, layout.tpdos, caps.tpdos)
-    sdo.download(cia301.PRODUCER_HEARTBEAT_TIME, 0, _u16(drive.heartbeat_ms))
+    _arm_guarding(sdo, plan, consumer_ms)
     _arm_against_manager_loss(sdo, caps, manager_node_id, consumer_ms)
     if drive.homing_method is not None:  # drive_plan.py checked that 0x6098 is writable
         sdo.download(cia402.HOMING_METHOD, 0, struct.pack("<b", drive.homing_method))

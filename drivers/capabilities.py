@@ -28,7 +28,7 @@ Key = tuple[int, int]
 #: 0x6502 bits (CiA 402): bit n-1 for mode n of 0x6060, except these vendor-neutral ones
 MODE_NAMES = {1: "PP", 2: "VL", 3: "PV", 4: "TQ", 6: "HM", 7: "IP", 8: "CSP", 9: "CSV",
               10: "CST"}
-NODE_GUARDING = (0x100C, 0x100D)  # guard time (ms), life time factor
+NODE_GUARDING = (cia301.GUARD_TIME, cia301.LIFE_TIME_FACTOR)
 PDO_NOT_VALID = 0x8000_0000
 
 
@@ -179,32 +179,51 @@ class DriveCapabilities:
 
     @property
     def node_guarding(self) -> bool:
+        """0x100C/0x100D are writable: the manager can guard the drive by remote frames,
+        and the drive watches the guarding (life guarding)."""
         return all(self.writable(index) for index in NODE_GUARDING)
 
-    def manager_loss(self) -> list[str]:
+    def guarded_by_default(self) -> bool:
+        """What ``guarding: auto`` picks: node guarding when the drive has no heartbeat
+        producer, or has no heartbeat consumer but can be life-guarded (then guarding is the
+        only way it watches the manager); otherwise the heartbeat (CiA 301 prefers it: one
+        frame per period instead of a request and an answer)."""
+        if not self.node_guarding:
+            return False
+        return not (self.writable(cia301.PRODUCER_HEARTBEAT_TIME) and self.heartbeat_consumer)
+
+    def manager_loss(self, guarded: bool | None = None) -> list[str]:
         """What the drive does when the manager dies or hangs, strongest first ([] = nothing
-        the file lets a master configure)."""
-        ways = []
-        if self.heartbeat_consumer and self.abort_connection:
-            ways.append("heartbeat consumer 0x1016 -> 0x6007 = 2: disable voltage")
-        elif self.heartbeat_consumer:
-            ways.append("heartbeat consumer 0x1016 -> EMCY 0x8130 only (no 0x6007: the "
-                        "drive's CiA 402 reaction is its vendor's)")
-        if self.heartbeat_consumer and self.error_behaviour:
+        the file lets a master configure). ``guarded``: whether the manager drives node
+        guarding (None: as ``guarding: auto`` would)."""
+        if guarded is None:
+            guarded = self.guarded_by_default()
+        watchers = [what for what, there in (
+            ("heartbeat consumer 0x1016", self.heartbeat_consumer),
+            ("life guarding 0x100C/0x100D", guarded and self.node_guarding)) if there]
+        if not watchers:
+            return []
+        watch = " and ".join(watchers)
+        if self.abort_connection:
+            ways = [f"{watch} -> 0x6007 = 2: disable voltage"]
+        else:
+            ways = [f"{watch} -> EMCY 0x8130 only (no 0x6007: the drive's CiA 402 reaction "
+                    "is its vendor's)"]
+        if self.error_behaviour:
             ways.append("0x1029:1 communication error -> leaves OPERATIONAL (no more RPDOs "
                         "applied)")
-        if self.node_guarding:
-            ways.append("node guarding 0x100C/0x100D (not driven by rocoma-can: the drive's "
-                        "life guarding is not armed)")
         return ways
 
-    def supervised(self) -> bool:
+    def supervised(self, guarded: bool | None = None) -> bool:
         """Losing the manager makes the drive stop applying or obeying commands."""
-        return self.heartbeat_consumer and (self.abort_connection or self.error_behaviour)
+        watched = self.heartbeat_consumer or (
+            self.guarded_by_default() if guarded is None else guarded) and self.node_guarding
+        return watched and (self.abort_connection or self.error_behaviour)
 
     # ------------------------------------------------------------------ report
-    def report(self) -> list[str]:
-        """Lines for check-config: what the file offers and what is missing."""
+    def report(self, guarded: bool | None = None) -> list[str]:
+        """Lines for check-config: what the file offers and what is missing (``guarded``:
+        as for ``manager_loss``)."""
         modes = ", ".join(self.mode_names) if self.supported_modes is not None \
             else "no 0x6502 (not stated)"
         if not self.modes_stated and self.supported_modes is not None:
@@ -231,9 +250,9 @@ class DriveCapabilities:
                    if not self.has(index, 1 if index in _SUB1 else 0)]
         if missing:
             lines.append("missing: " + ", ".join(missing))
-        loss = self.manager_loss()
+        loss = self.manager_loss(guarded)
         lines.append("manager loss: " + ("; ".join(loss) if loss else
-                                         "NOTHING (no heartbeat consumer, no node guarding)"))
+                                         "NOTHING (no heartbeat consumer, no life guarding)"))
         return lines
 
 

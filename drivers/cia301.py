@@ -12,6 +12,8 @@ import enum
 DEVICE_TYPE = 0x1000
 ERROR_REGISTER = 0x1001
 PREDEFINED_ERROR_FIELD = 0x1003
+GUARD_TIME = 0x100C         # node guarding: the master's guard request period (ms)
+LIFE_TIME_FACTOR = 0x100D   # life time = guard time x this factor (the drive's deadline)
 CONSUMER_HEARTBEAT_TIME = 0x1016
 PRODUCER_HEARTBEAT_TIME = 0x1017
 IDENTITY = 0x1018
@@ -29,7 +31,9 @@ TPDO_BASE = (0x180, 0x280, 0x380, 0x480)
 RPDO_BASE = (0x200, 0x300, 0x400, 0x500)
 SDO_TX = 0x580
 SDO_RX = 0x600
-HEARTBEAT = 0x700
+HEARTBEAT = 0x700          # heartbeat, boot-up and node guarding (remote request + answer)
+#: Node guarding answer: bit 7 toggles with every answer, bits 0..6 are the NMT state.
+GUARD_TOGGLE = 0x80
 
 
 def reserved_cob_id(cob_id: int) -> str | None:

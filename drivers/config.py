@@ -128,6 +128,12 @@ def _mode(value: Any, where: str) -> DriveMode:
                      "or pp; velocity: csv or pv; torque: cst)")
 
 
+#: How the manager and a drive watch each other's life (CiA 301): the drive's heartbeat
+#: producer (0x1017), or node guarding (0x100C/0x100D: the manager asks by remote frame,
+#: the drive answers and watches the asking), for drives that have no heartbeat.
+GUARDING = ("auto", "heartbeat", "node_guarding")
+
+
 @dataclass
 class DriveConfig:
     """One CiA 402 drive driving one joint.
@@ -148,7 +154,10 @@ class DriveConfig:
     max_velocity: float = math.inf          # rad/s, joint side
     position_min: float = -math.inf         # rad, joint side
     position_max: float = math.inf
-    heartbeat_ms: int = 100                 # the drive's heartbeat producer (0x1017)
+    heartbeat_ms: int = 100                 # the drive's heartbeat period (0x1017), or
+                                            # its guard time (0x100C) when node-guarded
+    guarding: str = "auto"                  # how the drive's life is watched: heartbeat,
+                                            # node_guarding, or auto (heartbeat if it can)
     bus: str = ""                           # its bus's name; "" = the first (or only) bus
     accept_unsupervised: bool = False       # run a drive that ignores losing the manager
     homing_method: int | None = None        # 0x6098 written at bring-up; None: as commissioned
@@ -199,6 +208,9 @@ class DriveConfig:
         if not _whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
             raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
                              f"got {self.heartbeat_ms!r}")
+        if self.guarding not in GUARDING:
+            raise ValueError(f"{where}: guarding must be one of {list(GUARDING)}, "
+                             f"got {self.guarding!r}")
         if self.homing_method is not None and (not _whole(self.homing_method)
                                                or not -128 <= self.homing_method <= 127):
             raise ValueError(f"{where}: homing_method must be a CiA 402 method number "

@@ -38,6 +38,7 @@ class DrivePlan:
     caps: DriveCapabilities
     layout: DriveLayout
     notes: tuple[str, ...]      # what is degraded, one sentence each
+    guarded: bool = False       # watched by node guarding (0x100C/0x100D), not heartbeat
 
     def report(self) -> list[str]:
         """check-config's lines for this drive."""
@@ -54,7 +55,7 @@ class DrivePlan:
                  f"  modes {', '.join(m.name for m in d.modes)}; feedback "
                  f"{', '.join(d.feedback or ()) or 'statusword only'}",
                  f"  {pdos}"]
-        lines += [f"  {line}" for line in self.caps.report()]
+        lines += [f"  {line}" for line in self.caps.report(self.guarded)]
         lines += [f"  note: {n}" for n in self.notes]
         return lines
 
@@ -75,9 +76,7 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
     if caps.device_type is not None and caps.device_type & 0xFFFF != 402:
         problems.append(f"{caps.source} is not a CiA 402 drive's (0x1000 = "
                         f"0x{caps.device_type:08X})")
-    if not caps.writable(cia301.PRODUCER_HEARTBEAT_TIME):
-        problems.append(f"{caps.source} has no writable heartbeat producer (0x1017): "
-                        "rocoma-can supervises every drive by its heartbeat")
+    guarded = _guarding(drive, caps, problems, notes)
     problems += _mode_problems(drive, caps)
     if len(drive.modes) > 1 and not caps.carries(cia402.MODES_OF_OPERATION):
         problems.append(f"0x6060 (modes of operation): "
@@ -112,7 +111,7 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
         if not caps.has(index, sub):
             notes.append(f"no 0x{index:04X}: {what} comes from the config alone (the drive "
                          "cannot confirm it)")
-    if not caps.supervised():
+    if not caps.supervised(guarded):
         if drive.accept_unsupervised:
             notes.append("RISK accepted (accept_unsupervised): if the manager dies or hangs, "
                          "this drive keeps its last command until its own limits stop it")
@@ -130,7 +129,35 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
     resolved, layout = _fit_feedback(drive, feedback, caps, notes)
     check_against_od(layout, caps.object_dictionary, drive.name)
     notes += always_on(layout, caps)
-    return DrivePlan(resolved, caps, layout, tuple(notes))
+    return DrivePlan(resolved, caps, layout, tuple(notes), guarded)
+
+
+def _guarding(drive: DriveConfig, caps: DriveCapabilities, problems: list[str],
+              notes: list[str]) -> bool:
+    """Whether the manager watches the drive by node guarding instead of its heartbeat. A
+    drive with neither is a problem: the manager would not see it leave OPERATIONAL (a
+    reboot, an NMT stop from another node) and would not hear it when it stops sending."""
+    heartbeat = caps.writable(cia301.PRODUCER_HEARTBEAT_TIME)
+    guarding = caps.node_guarding
+    if drive.guarding == "heartbeat" and not heartbeat:
+        problems.append(f"guarding: heartbeat, but {caps.source} has no writable heartbeat "
+                        "producer (0x1017)" + ("; it has node guarding (guarding: "
+                                               "node_guarding)" if guarding else ""))
+    elif drive.guarding == "node_guarding" and not guarding:
+        problems.append(f"guarding: node_guarding, but {caps.source} has no writable guard "
+                        "time and life time factor (0x100C/0x100D)")
+    elif drive.guarding == "auto" and not (heartbeat or guarding):
+        problems.append(f"{caps.source} has neither a writable heartbeat producer (0x1017) "
+                        "nor node guarding (0x100C/0x100D): rocoma-can must see every "
+                        "drive's life")
+    guarded = guarding and (drive.guarding == "node_guarding" or (
+        drive.guarding == "auto" and caps.guarded_by_default()))
+    if guarded and drive.guarding == "auto":
+        why = "no heartbeat producer (0x1017)" if not heartbeat else \
+            "no heartbeat consumer (0x1016): guarding is how it watches the manager"
+        notes.append(f"{why}: node guarding, the manager asks every {drive.heartbeat_ms} ms "
+                     "(0x100C) and the drive watches the asking (0x100D)")
+    return guarded
 
 
 def _mode_problems(drive: DriveConfig, caps: DriveCapabilities) -> list[str]:

@@ -4,12 +4,14 @@ One cycle, on the one thread that owns the loop (``run_cycle`` does exactly this
 
     hw.read(now)       drain received frames -> JointState; bring-up steps; supervision
     manager.update()   the active layer writes JointCommand
-    hw.write(state)    RPDOs (or torque-off frames) for every drive, SYNC, manager heartbeat
+    hw.write(state)    RPDOs (or torque-off frames) for every drive, SYNC, manager heartbeat,
+                       guard requests to node-guarded drives
 
 The safety path, top to bottom (each step names where it lives):
 
 1. A drive goes wrong. Supervision (supervision.py) turns every symptom into a FaultEvent:
-   EMCY, statusword fault bit, heartbeat deadline or non-operational heartbeat, TPDOs missing
+   EMCY, statusword fault bit, heartbeat (or node guarding answer) deadline or a non-
+   operational state in it, TPDOs missing
    for k cycles, a drive dropping out of operation enabled or not enabling in time
    (``_command_frames`` below). A whole bus can fail too: a bus-off error frame or the bus
    refusing frames in ``tpdo_timeout_cycles`` cycles in a row (``BusPort.bus_off`` and
@@ -49,6 +51,8 @@ The safety path, top to bottom (each step names where it lives):
    its abort connection option (0x6007 = 2, disable voltage) switches the power stage off.
    A consumer watches only after the first heartbeat it receives, so ``_step_bringup`` has
    one sent in the cycle a drive's configuration completes, before it can become READY.
+   A node-guarded drive (no heartbeat, drive_plan.py) is the same with its life guarding:
+   the guard requests (``_guard``) come from ``write`` only, from that cycle on.
 
 Start-up (bringup.py) never enables a drive; it ends in READY (torque off). Drives are enabled
 step by step from the cyclic controlword (``_command_frames``, enable.py) only while the
@@ -221,7 +225,8 @@ class CanopenHardware:
         self.layouts: list[DriveLayout] = [p.layout for p in self.plans]
         self.scaling = Scaling(drives)
         self.supervisor = Supervisor(drives, supervision.tpdo_timeout_cycles,
-                                     supervision.heartbeat_timeout_factor)
+                                     supervision.heartbeat_timeout_factor,
+                                     guarded=[p.guarded for p in self.plans])
 
         # --- raw bus values, one slot per drive (the codecs read and write these) ---------
         self._raw = {name: np.zeros(n, dtype=np.int64) for name in
@@ -291,6 +296,18 @@ class CanopenHardware:
         self._probe_frames = [self._preencode(i, int(cia402.Controlword.SHUTDOWN))
                               for i in range(n)]
         self._next_heartbeat = -math.inf
+        # node guarding (drives without a heartbeat, drive_plan): a remote request every
+        # heartbeat_ms from the cycle, once the drive is configured; the answers come in
+        # as heartbeats do, with a toggle bit that must change
+        self._guarded = [p.guarded for p in self.plans]
+        self._any_guarded = any(self._guarded)
+        self._guard_frames = [can.Message(arbitration_id=cia301.HEARTBEAT + d.node_id,
+                                          is_remote_frame=True, dlc=1, is_extended_id=False)
+                              for d in drives]
+        self._guard_period = np.array([d.heartbeat_ms / 1000.0 for d in drives])
+        self._guard_due = np.full(n, math.inf)   # inf: not guarded (yet)
+        self._toggle = [-1] * n                  # the last answer's toggle bit; -1: none yet
+        self.guard_repeats = 0                   # answers whose toggle bit did not change
         self._manager_state = ManagerState.FAILPROOF  # as of the last write
 
         self._started = False
@@ -515,6 +532,18 @@ class CanopenHardware:
             self.supervisor.bus_fault(cause, now, port.drives, bus=port.name)
 
     def _on_heartbeat(self, i: int, nmt_state: int, t: float) -> None:
+        if self._guarded[i]:  # a node guarding answer: toggle bit 7, the state below it
+            toggle = nmt_state & cia301.GUARD_TOGGLE
+            nmt_state &= ~cia301.GUARD_TOGGLE
+            if nmt_state == cia301.NmtState.BOOT_UP:  # a boot-up restarts the toggling
+                self._toggle[i] = -1
+            elif toggle == self._toggle[i]:
+                # the same answer again, not one to the last request: it does not count
+                # (answers that never toggle run into the deadline, a guarding loss)
+                self.guard_repeats += 1
+                return
+            else:
+                self._toggle[i] = toggle
         self._hb_state[i] = nmt_state
         self._hb_time[i] = t
         self._bringup[i].alive = True
@@ -551,7 +580,10 @@ class CanopenHardware:
                 # The drive's heartbeat consumer was just (re)configured, and it only starts
                 # watching with the first heartbeat it receives: send one in this cycle, so
                 # the drive is protected before it can become READY (a TPDO round trip later).
+                # Life guarding likewise starts with the first guard request.
                 self._next_heartbeat = -math.inf
+                if self._guarded[i]:
+                    self._guard_due[i] = -math.inf
 
     def _still_latched(self, i: int, event: FaultEvent) -> Callable[[], bool]:
         """For the SDO switch-off: whether drive i is still latched by ``event``."""
@@ -633,11 +665,23 @@ class CanopenHardware:
             due = self._next_heartbeat + self.manager_heartbeat_period
             self._next_heartbeat = (due if due > self._now
                                     else self._now + self.manager_heartbeat_period)
+        if self._any_guarded and self._guard_due.min() <= self._now:
+            self._guard()
         limit = self.supervisor.tpdo_timeout_cycles
         for port in ports:
             cause = port.end_of_write(limit)
             if cause is not None:
                 self._bus_failed(port, cause, self._now)
+
+    def _guard(self) -> None:
+        """The guard requests that are due, on the grid heartbeats use (``_end_of_write``).
+        Like the manager's heartbeat they come from the cycle only: a loop that stops or
+        hangs stops guarding, and each guarded drive's life guarding times out."""
+        now, due, period = self._now, self._guard_due, self._guard_period
+        for i in np.flatnonzero(due <= now).tolist():
+            self._send_of[i](self._guard_frames[i])
+            nxt = due[i] + period[i]
+            due[i] = nxt if nxt > now else now + period[i]
 
     def _torque_off(self) -> None:
         """FAILPROOF: pre-encoded disable-voltage frames to every configured drive."""

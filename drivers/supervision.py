@@ -1,7 +1,9 @@
 """Drive supervision: every way a drive can go wrong becomes one FaultEvent.
 
 Causes: heartbeat deadline missed (monotonic clock, not canopen's wall-clock timestamps),
-heartbeat reporting a state other than operational (the drive rebooted or was stopped), an
+heartbeat reporting a state other than operational (the drive rebooted or was stopped), the
+same for a node-guarded drive's answers (hardware.py sends the requests and drops answers
+whose toggle bit did not change), an
 EMCY with a non-zero code, the statusword fault bit or a statusword that is no CiA 402 state,
 TPDOs missing for k cycles, a TPDO
 whose length is not its mapping's, a drive
@@ -62,7 +64,8 @@ class Supervisor:
     """Deadlines and fault latches for N drives; all methods run on the cycle thread."""
 
     def __init__(self, drives: Sequence[DriveConfig], tpdo_timeout_cycles: int,
-                 heartbeat_timeout_factor: float, history: int = 64) -> None:
+                 heartbeat_timeout_factor: float, history: int = 64,
+                 guarded: Sequence[bool] = ()) -> None:
         if tpdo_timeout_cycles < 1:
             raise ValueError(f"tpdo_timeout_cycles must be >= 1, got {tpdo_timeout_cycles}")
         if heartbeat_timeout_factor <= 1.0:
@@ -81,6 +84,9 @@ class Supervisor:
         self.bus_latched: FaultEvent | None = None  # bus-off: not one drive's fault
         self.history: collections.deque[FaultEvent] = collections.deque(maxlen=history)
         self.pending: list[FaultEvent] = []
+        # what a drive's life signal is (a node-guarded drive answers requests instead)
+        self._signal = ["node guarding answer" if i < len(guarded) and guarded[i]
+                        else "heartbeat" for i in range(n)]
 
     def arm(self, i: int, now: float) -> None:
         """Start supervising drive i (brought up); heartbeat deadline from now."""
@@ -135,7 +141,7 @@ class Supervisor:
         if state != cia301.NmtState.OPERATIONAL:
             name = cia301.NmtState(state).name if state in cia301.NmtState._value2member_map_ \
                 else f"0x{state:02X}"
-            self.fault(i, f"NMT state {name} reported in heartbeat", now)
+            self.fault(i, f"NMT state {name} reported in {self._signal[i]}", now)
 
     def on_bad_tpdo(self, i: int, cob_id: int, dlc: int, size: int, now: float) -> None:
         """A TPDO whose length is not its mapping's: garbled or remapped, never feedback."""
@@ -168,7 +174,7 @@ class Supervisor:
         if self.heartbeat_deadline.min() < now:
             heard = now if heard_until is None else heard_until
             for i in np.flatnonzero(watch & (self.heartbeat_deadline < heard)):
-                self.fault(int(i), "heartbeat lost (none for "
+                self.fault(int(i), f"{self._signal[i]} lost (none for "
                                    f"{self.heartbeat_timeout[i]:.3f} s)", now)
                 self.heartbeat_deadline[i] = math.inf  # one event per loss
         if missing.max() >= self.tpdo_timeout_cycles:

@@ -102,7 +102,8 @@ def test_no_abort_option_is_said_and_the_other_ways_are_named():
     report = "\n".join(plan.report())
     assert "missing: 0x6007" in report
     assert "heartbeat consumer 0x1016 -> EMCY 0x8130 only" in report
-    assert "0x1029:1 communication error" in report and "node guarding 0x100C/0x100D" in report
+    assert "0x1029:1 communication error" in report
+    assert "life guarding" not in report  # it has a heartbeat: node guarding is not driven
     assert any("no 0x6007" in n for n in plan.notes)
 
 
@@ -115,6 +116,12 @@ def test_a_drive_that_ignores_losing_the_manager_needs_an_explicit_yes(tmp_path)
                                          "\nObjectType=0x7\nDataType=0x0007\nAccessType=ro"))
     assert not read_capabilities(str(unsupervised), 1).heartbeat_consumer
     config = DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(unsupervised))
+    # node guarding is then how it watches the manager (0x1029 behind it) ...
+    assert plan_drive(config).guarded
+    # ... and without it, nothing does
+    unsupervised.write_text(unsupervised.read_text().replace(
+        "ParameterName=Life time factor\nObjectType=0x7\nDataType=0x0005\nAccessType=rw",
+        "ParameterName=Life time factor\nObjectType=0x7\nDataType=0x0005\nAccessType=ro"))
     with pytest.raises(ValueError, match="losing the manager would leave this drive running.*"
                                          "accept_unsupervised: true"):
         plan_drive(config)
@@ -208,6 +215,7 @@ DRIVABLE = {
     "node1_baked.dcf": dict(node=3, increments_per_rev=0x40000),  # exported for node 1
     "tight_od.eds": dict(node=2, modes=("ip",)),
     "fixed_split.eds": dict(node=1),
+    "guarded.eds": dict(node=1),  # node guarding only
 }
 
 
@@ -227,7 +235,10 @@ def test_bring_up_track_and_torque_off_on_each_file(file, sim_segment_factory, b
         assert rig.hw.all_ready, rig.hw.drive_status()
         sim = segment.drives[node]
         assert sim.nmt_state == cia301.NmtState.OPERATIONAL
-        assert sim.od_value(cia301.CONSUMER_HEARTBEAT_TIME, 1) >> 16 == 100  # watches us
+        if rig.hw.plans[0].guarded:  # watches us: by life guarding, or the heartbeat
+            assert sim.od_value(cia301.LIFE_TIME_FACTOR) > 0 and sim.nmt.guard_requests > 0
+        else:
+            assert sim.od_value(cia301.CONSUMER_HEARTBEAT_TIME, 1) >> 16 == 100
         rig.mgr.add_controller(Sine("sine", JointMode.CSP, amplitude=0.2))
         assert rig.switch("sine") == SwitchResult.SWITCHED
         assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget()), \

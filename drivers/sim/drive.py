@@ -1,8 +1,8 @@
 """One simulated CiA 402 servo drive, as seen from the CAN bus.
 
 It behaves like a real drive where a master can tell the difference: boot-up and NMT,
-heartbeat producer and consumer with the 0x6007 reaction, an SDO server on the EDS (PDO
-mapping and communication objects written by SDO take effect, with the CiA 301 rules for
+heartbeat producer and consumer, node guarding, the 0x6007 reaction, an SDO server on the
+EDS (PDO mapping and communication objects written by SDO take effect, with the CiA 301 rules for
 changing them), synchronous and event-driven TPDOs, RPDOs only in OPERATIONAL, the complete
 CiA 402 state machine with quick stop, fault reaction and fault reset, CSP/CSV/CST, EMCY,
 and an STO input. Faults can be injected to test a master's supervision.
@@ -287,8 +287,12 @@ class SimulatedDrive:
     def on_heartbeat(self, node: int, arrived: float) -> None:
         self.nmt.on_heartbeat(node, arrived)
 
+    def on_guard_request(self, arrived: float) -> None:
+        self.nmt.on_guard_request(arrived)  # a silent drive hears it, its answer is lost
+
     def _heartbeat_lost(self) -> None:
-        """The manager's heartbeat is lost: EMCY, 0x1029 error behaviour, 0x6007 reaction."""
+        """The manager's heartbeat or its guarding is lost: EMCY, 0x1029 error behaviour,
+        0x6007 reaction."""
         option = self._values[(c.ABORT_CONNECTION_OPTION, 0)]
         if option != c.AbortConnectionOption.FAULT:  # the fault sends its own EMCY
             self.emcy.flag(c301.EMCY_HEARTBEAT)

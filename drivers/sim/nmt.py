@@ -1,4 +1,5 @@
-"""The simulated drive's NMT slave: its NMT state, heartbeat producer and heartbeat consumer.
+"""The simulated drive's NMT slave: its NMT state, heartbeat producer, heartbeat consumer
+and node guarding.
 
 The consumer watches the heartbeats of the nodes listed in 0x1016 (the manager's, on a
 rocoma-can bus). Monitoring of a node starts with its first heartbeat. A deadline is judged
@@ -6,6 +7,12 @@ only once every frame that arrived before it has been handled (``Segment.judge_a
 loaded machine the receive thread may run late, and a heartbeat that came in time must not
 be reported lost because it was still queued. What a loss does (EMCY, 0x1029, 0x6007) is
 the drive's reaction, given as ``on_lost``.
+
+Node guarding (CiA 301), for a drive whose file has 0x100C/0x100D: a remote request on
+0x700 + node id is answered with the NMT state and a toggle bit that changes with every
+answer (reset to 0 by a reset of communication), while the drive produces no heartbeat.
+Life guarding starts with the first request when guard time and life time factor are both
+set: no request for guard time x factor is the same loss as a lost heartbeat.
 """
 from __future__ import annotations
 
@@ -35,10 +42,20 @@ class NmtSlave:
         self._deadline: dict[int, float] = {}
         self._armed: set[int] = set()
         self.lost: set[int] = set()              # nodes whose heartbeat is lost now
+        self.guardable = (c301.GUARD_TIME, 0) in values
+        self._toggle = 0
+        self._guard_generation = 0
+        self._guard_deadline: float | None = None  # None: life guarding not running
+        self.guarding_lost = False
+        self.guard_requests = 0
 
     def boot_up(self) -> None:
-        """The boot-up message, then PRE-OPERATIONAL."""
+        """The boot-up message, then PRE-OPERATIONAL; node guarding starts over."""
         self.state = NmtState.BOOT_UP
+        self._toggle = 0
+        self._guard_generation += 1
+        self._guard_deadline = None
+        self.guarding_lost = False
         self._send(self._hb_cob_id, b"\x00")
         self.state = NmtState.PRE_OPERATIONAL
 
@@ -106,4 +123,37 @@ class NmtSlave:
             return
         self._armed.discard(node)
         self.lost.add(node)
+        self._on_lost()
+
+    # ------------------------------------------------------------------ node guarding
+    def on_guard_request(self, arrived: float) -> None:
+        """A remote request for this node's 0x700 frame: answer, and (re)arm life guarding."""
+        if not self.guardable or self._values.get((c301.PRODUCER_HEARTBEAT_TIME, 0)):
+            return  # no node guarding, or a heartbeat producer running (CiA 301)
+        self.guard_requests += 1
+        self._send(self._hb_cob_id, bytes((self._toggle | self.state,)))
+        self._toggle ^= c301.GUARD_TOGGLE
+        life = (self._values.get((c301.GUARD_TIME, 0), 0)
+                * self._values.get((c301.LIFE_TIME_FACTOR, 0), 0)) / 1000.0
+        if not life:
+            return
+        if self.guarding_lost:
+            self.guarding_lost = False
+            self._on_regained()
+        running = self._guard_deadline is not None
+        self._guard_deadline = arrived + life
+        if not running:
+            self._seg.schedule(self._guard_deadline, self._check_guarding,
+                               self._guard_generation)
+
+    def _check_guarding(self, generation: int) -> None:
+        deadline = self._guard_deadline
+        if generation != self._guard_generation or deadline is None:
+            return
+        later = self._seg.judge_at(deadline)
+        if later is not None:  # a request that came in time may still be queued
+            self._seg.schedule(later, self._check_guarding, generation)
+            return
+        self._guard_deadline = None  # re-armed by the next request
+        self.guarding_lost = True
         self._on_lost()

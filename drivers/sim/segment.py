@@ -359,9 +359,14 @@ class SimulatedSegment:
         with self.lock:
             arrived = now
             for k, msg in enumerate(batch):
-                if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+                if msg.is_error_frame or msg.is_extended_id:
                     continue
                 arrived = to_monotonic(offset, msg.timestamp, now)
+                if msg.is_remote_frame:  # node guarding: the only remote request a drive takes
+                    guarded = self.drives.get(msg.arbitration_id - c301.HEARTBEAT)
+                    if guarded is not None:
+                        guarded.on_guard_request(arrived)
+                    continue
                 try:
                     self._dispatch(msg.arbitration_id, bytes(msg.data), arrived)
                 except Exception as exc:  # noqa: BLE001 - keep the segment receiving

@@ -1,0 +1,202 @@
+"""Node guarding (CiA 301) for drives that have no heartbeat (tests/fixtures/eds/guarded.eds:
+guard time and life time factor, no 0x1016/0x1017, as Faulhaber's CC and Infranor's Easy-ak
+files). The cycle sends a remote request to each guarded drive every ``heartbeat_ms``; the
+drive answers with its NMT state and a toggle bit, and watches the requests (life guarding).
+
+Run on python-can's virtual bus (fast suite) and on SocketCAN vcan0 (vcan suite): a remote
+frame is a frame of its own kind on a real socket. Every wait is a budget of the setup.
+"""
+from __future__ import annotations
+
+import math
+import struct
+import time
+from pathlib import Path
+
+import can
+import pytest
+from fixtures.driver_rig import (
+    VCAN,
+    VIRTUAL,
+    Brake,
+    Can,
+    Rig,
+    Sine,
+    seconds_until_all_off,
+    synced_mark,
+)
+
+from rocoma_can import ManagerState, SwitchResult
+from rocoma_can.drivers import cia301
+from rocoma_can.drivers.bringup import life_time_factor
+from rocoma_can.drivers.config import DriveConfig
+from rocoma_can.drivers.drive_plan import plan_drive
+from rocoma_can.drivers.joints import JointMode
+
+GUARDED = str(Path(__file__).parent / "fixtures" / "eds" / "guarded.eds")
+
+
+@pytest.fixture(params=[pytest.param(VIRTUAL, id="virtual"),
+                        pytest.param(VCAN, id="vcan", marks=pytest.mark.vcan)])
+def can_setup(request) -> Can:
+    return request.param
+
+
+@pytest.fixture
+def rig_on(can_setup, virtual_channel, sim_segment_factory, bus_factory):
+    """Two simulated guarded drives (CSP and CSV, as the file says) and a rig for them; node
+    guarding is what ``guarding: auto`` picks for them."""
+    rigs: list[Rig] = []
+
+    def make(**kw):
+        nodes = can_setup.nodes[:2]
+        channel = can_setup.channel(virtual_channel)
+        segment = sim_segment_factory(nodes, channel=channel, interface=can_setup.interface,
+                                      eds_path=GUARDED, params=can_setup.joints,
+                                      sync_period=can_setup.dt)
+        rig = Rig.for_setup(bus_factory(channel, can_setup.interface), nodes, can_setup,
+                            modes=("csp", "csv"), drive={"eds": GUARDED}, **kw)
+        rigs.append(rig)
+        return segment, rig
+
+    yield make
+    for rig in rigs:
+        rig.close()
+
+
+def _bring_up_and_hold(rig: Rig) -> None:
+    budget = rig.setup.bring_up_budget(len(rig.hw.drives_config))
+    assert rig.run_until(lambda: not rig.hw.starting, budget), rig.hw.drive_status()
+    assert rig.hw.all_ready, rig.hw.drive_status()
+    rig.mgr.add_controller(Sine("sine", JointMode.CSP, amplitude=0.1), emergency=Brake())
+    assert rig.switch("sine") == SwitchResult.SWITCHED
+    assert rig.run_until(lambda: rig.hw.all_enabled, rig.setup.enable_budget()), \
+        rig.hw.drive_status()
+
+
+def _guarding(recorder, node: int, since: int) -> tuple[list, list]:
+    """The remote requests to ``node`` and its answers, recorded since ``since``."""
+    frames = recorder.frames(cia301.HEARTBEAT + node, since=since)
+    return ([f for f in frames if f.message.is_remote_frame],
+            [f for f in frames if not f.message.is_remote_frame])
+
+
+def test_a_drive_without_heartbeat_is_guarded_by_the_cycle_and_answers_toggling(
+        can_setup, rig_on, frame_recorder, virtual_channel):
+    recorder = frame_recorder(can_setup.channel(virtual_channel), can_setup.interface)
+    segment, rig = rig_on()
+    _bring_up_and_hold(rig)
+    period = rig.hw.drives_config[0].heartbeat_ms
+    for sim in segment.drives.values():  # configured at bring-up, by SDO
+        assert sim.od_value(cia301.GUARD_TIME) == period
+        assert sim.od_value(cia301.LIFE_TIME_FACTOR) == life_time_factor(period,
+                                                                         rig.hw.consumer_ms)
+        assert sim.nmt_state == cia301.NmtState.OPERATIONAL
+    mark = recorder.mark()
+    rig.run(6 * period / 1000)
+    for node in segment.drives:
+        requests, answers = _guarding(recorder, node, mark)
+        assert len(requests) >= 4, (node, requests)
+        # each answer: OPERATIONAL, the toggle bit flipped from the answer before
+        states = [f.data[0] & 0x7F for f in answers]
+        toggles = [f.data[0] >> 7 for f in answers]
+        assert len(answers) >= 3 and set(states) == {cia301.NmtState.OPERATIONAL}, answers
+        assert all(a != b for a, b in zip(toggles, toggles[1:])), toggles
+    assert rig.hw.guard_repeats == 0
+    assert rig.mgr.state == ManagerState.OK
+    assert "node guarding" in "\n".join(plan_drive(rig.hw.drives_config[0]).notes)
+
+
+def test_a_guarded_drive_that_stops_answering_is_an_estop(rig_on):
+    # TPDO supervision out of the way (a silent drive sends no TPDOs either): the guarding
+    # deadline is what trips
+    segment, rig = rig_on(tpdo_timeout_cycles=1_000_000)
+    _bring_up_and_hold(rig)
+    silent = tuple(segment.drives)[-1]
+    segment.drives[silent].set_silent(True)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget()), rig.hw.drive_status()
+    latched = rig.hw.supervisor.latched[1]
+    assert latched.node_id == silent and "node guarding answer lost" in latched.cause
+
+
+def test_a_stopped_loop_stops_guarding_and_the_drives_switch_off_by_themselves(
+        can_setup, rig_on, frame_recorder, virtual_channel):
+    """The requests come from the cycle only: when it stops, each drive's life guarding
+    (guard time x life time factor) times out, it sends EMCY 0x8130 and 0x6007 switches
+    its power stage off."""
+    recorder = frame_recorder(can_setup.channel(virtual_channel), can_setup.interface)
+    segment, rig = rig_on()
+    _bring_up_and_hold(rig)
+    mark = synced_mark(recorder, rig)  # and the loop stops here
+    stopped = time.monotonic()
+    guard_ms = rig.hw.drives_config[0].heartbeat_ms
+    life = guard_ms * life_time_factor(guard_ms, rig.hw.consumer_ms) / 1000
+    # the last request came at most one guard time before the stop
+    bound = life + guard_ms / 1000 + rig.setup.stall
+    seconds_until_all_off(segment, stopped, bound)
+    nodes = tuple(segment.drives)
+    lost = recorder.wait_for_count(
+        len(nodes), rig.setup.stall, {cia301.EMCY + n for n in nodes}, since=mark,
+        where=lambda f: struct.unpack_from("<H", f.data)[0] == cia301.EMCY_HEARTBEAT)
+    assert {f.cob_id - cia301.EMCY for f in lost} == set(nodes)
+    assert all(d.nmt.guarding_lost for d in segment.drives.values())
+
+
+def test_an_answer_whose_toggle_did_not_change_is_not_counted(can_setup, rig_on, bus_factory,
+                                                               virtual_channel):
+    """A second answer with the toggle bit of the one before answers no new request (a
+    stale or doubled frame): it does not keep the drive alive and is counted. (Should the
+    drive's own next answer come first, that one repeats the injected one's bit instead.)"""
+    segment, rig = rig_on()
+    _bring_up_and_hold(rig)
+    node = tuple(segment.drives)[0]
+    last = rig.hw._toggle[0]
+    assert last in (0, cia301.GUARD_TOGGLE)
+    other = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
+    other.send(can.Message(arbitration_id=cia301.HEARTBEAT + node, is_extended_id=False,
+                           data=bytes((last | cia301.NmtState.OPERATIONAL,))))
+    guard_s = rig.hw.drives_config[0].heartbeat_ms / 1000
+    assert rig.run_until(lambda: rig.hw.guard_repeats >= 1,
+                         guard_s + rig.setup.cycles_budget(10))
+    rig.run(3 * guard_s)
+    assert rig.mgr.state == ManagerState.OK  # the real answers go on toggling
+
+
+# --- which way a drive is watched (check-config), without a bus ----------------------------
+def _plan(eds: str | None, **kw):
+    return plan_drive(DriveConfig("j1", 1, 4096, 1.0, eds=eds, **kw))
+
+
+def test_auto_guards_a_drive_without_heartbeat_and_says_how_it_is_protected():
+    plan = _plan(GUARDED)
+    assert plan.guarded
+    report = "\n".join(plan.report())
+    assert "no heartbeat producer (0x1017): node guarding, the manager asks every 100 ms " \
+        "(0x100C)" in report
+    assert "manager loss: life guarding 0x100C/0x100D -> 0x6007 = 2: disable voltage" in report
+
+
+def test_a_drive_with_a_heartbeat_keeps_it_unless_told():
+    assert not _plan(None).guarded  # the shipped drive file: heartbeat producer and consumer
+    with pytest.raises(ValueError, match=r"guarding: node_guarding, but .* has no writable "
+                                         r"guard time and life time factor \(0x100C/0x100D\)"):
+        _plan(None, guarding="node_guarding")
+    assert _plan(GUARDED, guarding="node_guarding").guarded
+
+
+def test_a_drive_told_heartbeat_without_one_is_refused_naming_the_object_and_the_way_out():
+    with pytest.raises(ValueError, match=r"guarding: heartbeat, but .* has no writable "
+                                         r"heartbeat producer \(0x1017\); it has node "
+                                         r"guarding \(guarding: node_guarding\)"):
+        _plan(GUARDED, guarding="heartbeat")
+    with pytest.raises(ValueError, match="guarding must be one of"):
+        _plan(GUARDED, guarding="nodeguarding")
+
+
+def test_the_life_time_is_the_consumer_time_within_what_a_factor_can_say():
+    assert life_time_factor(100, 500) == 5
+    assert life_time_factor(200, 500) == 3       # rounded up: never shorter than asked
+    assert life_time_factor(1000, 500) == 2      # one late request is never a loss
+    assert life_time_factor(1, 65535) == 255     # UNSIGNED8
+    assert math.isclose(200 * life_time_factor(200, 6000) / 1000, 6.0)
