@@ -95,7 +95,8 @@ def _configure_pdos(sdo: NamedSdo, pdos: tuple[Pdo, ...],
         if not pdo.fixed:
             sdo.download(mapping, 0, _u8(0))
             for j, entry in enumerate(pdo.entries, start=1):
-                sdo.download(mapping, j, _u32(entry.mapping))
+                index = cia402.on_axis(entry.mapping >> 16, sdo.axis)  # the axis's object
+                sdo.download(mapping, j, _u32(index << 16 | entry.mapping & 0xFFFF))
             sdo.download(mapping, 0, _u8(len(pdo.entries)))
         if ch.transmission_type_writable:
             sdo.download(comm, 2, _u8(SYNC_EVERY_CYCLE))
@@ -157,19 +158,20 @@ def _arm_guarding(sdo: NamedSdo, plan: DrivePlan, consumer_ms: int) -> None:
 
 
 def _arm_against_manager_loss(sdo: NamedSdo, caps: DriveCapabilities, manager_node_id: int,
-                              consumer_ms: int) -> None:
+                              consumer_ms: int, node_level: bool = True) -> None:
     """What makes the drive let go when the manager dies or hangs, as far as its objects
     allow (drive_plan.py refuses a drive with none of them unless the config accepts it):
     the heartbeat consumer watches the manager; 0x6007 = disable voltage switches the power
     stage off on its timeout; a 0x1029:1 of "no state change" becomes "pre-operational", so
-    the drive at least stops applying RPDOs."""
-    if caps.heartbeat_consumer:
+    the drive at least stops applying RPDOs. The consumer and 0x1029 are the node's, 0x6007
+    each axis's own."""
+    if caps.heartbeat_consumer and node_level:
         sdo.download(cia301.CONSUMER_HEARTBEAT_TIME, 1,
                      _u32((manager_node_id << 16) | consumer_ms))
     if caps.abort_connection:
         sdo.download(cia402.ABORT_CONNECTION_OPTION, 0,
                      struct.pack("<h", cia402.AbortConnectionOption.DISABLE_VOLTAGE))
-    if caps.error_behaviour and sdo.upload(cia301.ERROR_BEHAVIOR, 1)[:1] == _u8(
+    if node_level and caps.error_behaviour and sdo.upload(cia301.ERROR_BEHAVIOR, 1)[:1] == _u8(
             ERROR_BEHAVIOUR_NO_CHANGE):
         sdo.download(cia301.ERROR_BEHAVIOR, 1, _u8(ERROR_BEHAVIOUR_PRE_OPERATIONAL))
 
@@ -188,12 +190,16 @@ class ObjectRefused(canopen.SdoAbortedError):
 
 
 class NamedSdo:
-    """The drive's SdoClient, each failure naming its object: what configuration uses."""
+    """The drive's SdoClient, each failure naming its object: what configuration uses. For
+    axis n of a multi-axis node, a profile object (0x6000-0x67FF) is the axis's own, at
+    + (n - 1) x 0x800 (the plan reads the axis at axis 1's indices: capabilities.py)."""
 
-    def __init__(self, sdo: SdoClient) -> None:
+    def __init__(self, sdo: SdoClient, axis: int = 1) -> None:
         self._sdo = sdo
+        self.axis = axis
 
     def upload(self, index: int, subindex: int) -> bytes:
+        index = cia402.on_axis(index, self.axis)
         try:
             data: bytes = self._sdo.upload(index, subindex)
             return data
@@ -203,6 +209,7 @@ class NamedSdo:
             raise type(exc)(f"SDO read of 0x{index:04X}:{subindex}: {exc}") from exc
 
     def download(self, index: int, subindex: int, data: bytes) -> None:
+        index = cia402.on_axis(index, self.axis)
         what = f"SDO write of 0x{index:04X}:{subindex} = 0x{int.from_bytes(data, 'little'):X}"
         try:
             self._sdo.download(index, subindex, data)
@@ -248,8 +255,14 @@ def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
 
 def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
                     consumer_ms: int, dt: float | None) -> ConfigResult:
-    sdo, drive, layout, caps = NamedSdo(node.sdo), plan.drive, plan.layout, plan.caps
-    node.nmt.send_command(cia301.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
+    sdo, drive, layout, caps = NamedSdo(node.sdo, plan.drive.axis), plan.drive, plan.layout, \
+        plan.caps
+    # The node's lowest axis configures the node: NMT, its heartbeat or guarding, its
+    # consumer. A higher axis comes after it (DriveBringup.step), in OPERATIONAL, and maps
+    # its own PDO channels the CiA 301 way (invalid first), leaving the running axis be.
+    node_level = plan.leads_node
+    if node_level:
+        node.nmt.send_command(cia301.NmtCommand.PRE_OPERATIONAL)  # PDO mapping needs pre-op
     try:
         device_type = struct.unpack("<I", sdo.upload(cia301.DEVICE_TYPE, 0)[:4])[0]
     except canopen.SdoCommunicationError as e:
@@ -267,8 +280,9 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
     _check_scaling(sdo, drive)
     _configure_pdos(sdo, layout.rpdos, caps.rpdos)
     _configure_pdos(sdo, layout.tpdos, caps.tpdos)
-    _arm_guarding(sdo, plan, consumer_ms)
-    _arm_against_manager_loss(sdo, caps, manager_node_id, consumer_ms)
+    if node_level:
+        _arm_guarding(sdo, plan, consumer_ms)
+    _arm_against_manager_loss(sdo, caps, manager_node_id, consumer_ms, node_level)
     if drive.homing_method is not None:  # drive_plan.py checked that 0x6098 is writable
         sdo.download(cia402.HOMING_METHOD, 0, struct.pack("<b", drive.homing_method))
     if DriveMode.IP in drive.modes and dt is not None \
@@ -285,7 +299,8 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
         error_code = struct.unpack("<H", sdo.upload(cia402.ERROR_CODE, 0)[:2])[0]
     except canopen.SdoAbortedError:
         error_code = 0
-    node.nmt.send_command(cia301.NmtCommand.START)
+    if node_level:
+        node.nmt.send_command(cia301.NmtCommand.START)
     return ConfigResult(statusword, error_code)
 
 
@@ -293,7 +308,8 @@ class DriveBringup:
     """Start-up state of one drive; ``step`` is called from the cycle and never blocks."""
 
     def __init__(self, plan: DrivePlan, node: canopen.RemoteNode, manager_node_id: int,
-                 consumer_ms: int, timeouts: Timeouts, dt: float | None = None) -> None:
+                 consumer_ms: int, timeouts: Timeouts, dt: float | None = None,
+                 lead: DriveBringup | None = None) -> None:
         self.dt = dt  # the loop period: an IP drive's interpolation period
         self.plan = plan
         self.drive = plan.drive
@@ -310,9 +326,13 @@ class DriveBringup:
         self.reset_cycles = 0       # cycles spent in RESETTING (edge: 0x00 first, then 0x80)
         self.sto_seen = False       # an EMCY 0x5441 arrived during start-up
         self._job: Future[ConfigResult] | None = None
+        # A higher axis of a multi-axis node: configured once its node's lowest axis
+        # (``lead``) has configured and started the node, with the node's SDO client
+        self.lead = lead
         # canopen's SdoClient has no lock: configuration (worker pool) and the SDO
         # switch-off (switch_off.py) must never overlap on this drive's node
-        self._sdo_lock = threading.Lock()
+        self._sdo_lock: threading.Lock = lead._sdo_lock if lead is not None \
+            else threading.Lock()
 
     def _locked(self, job: Callable[..., Any], *args: Any) -> Any:
         with self._sdo_lock:
@@ -328,7 +348,8 @@ class DriveBringup:
         if not self._sdo_lock.acquire(blocking=False):
             return False
         try:
-            self.node.sdo.download(cia402.CONTROLWORD, 0, struct.pack("<H", value))
+            self.node.sdo.download(cia402.on_axis(cia402.CONTROLWORD, self.drive.axis), 0,
+                                   struct.pack("<H", value))
             return True
         finally:
             self._sdo_lock.release()
@@ -358,7 +379,13 @@ class DriveBringup:
         """Advance one cycle; returns True on the cycle the drive becomes READY."""
         phase = self.phase
         if phase == Phase.WAIT_BOOT:
-            if self.alive or now - self.since >= self.timeouts.boot_wait:
+            lead = self.lead
+            if lead is not None and lead.phase == Phase.FAILED:
+                self._fail(f"its node's axis {lead.drive.axis} (drive {lead.name!r}) did not "
+                           f"start: {lead.failure}", now)
+            elif lead is not None and Phase.STARTING <= lead.phase <= Phase.READY \
+                    or lead is None and (self.alive
+                                         or now - self.since >= self.timeouts.boot_wait):
                 self._job = executor.submit(self._locked, configure, self.node, self.plan,
                                             self.manager_node_id, self.consumer_ms, self.dt)
                 self._enter(Phase.CONFIGURING, now)

@@ -93,7 +93,7 @@ class BusPort:
         self.heartbeat.data[0] = cia301.NmtState.OPERATIONAL
         # receive tables, COB-ID -> drive index (filled by the hardware)
         self.heartbeat_of: dict[int, int] = {}
-        self.emcy_of: dict[int, int] = {}
+        self.emcy_of: dict[int, tuple[int, ...]] = {}  # the axes of the node
         # transmit health
         self.tx_errors = 0
         self.last_tx_error: Exception | None = None

@@ -12,6 +12,7 @@ drive is asked at start-up (bring-up reads 0x1000, 0x6502 and the factor group f
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -88,6 +89,9 @@ class DriveCapabilities:
     modes_stated: bool = True
     #: what reading the file had to assume (encoding, duplicate keys, re-derived COB-IDs)
     file_notes: tuple[str, ...] = ()
+    #: the axis of a multi-axis device these facts are of; its profile objects appear at
+    #: axis 1's indices in ``object_dictionary`` (``_axis_view``)
+    axis: int = 1
 
     # ------------------------------------------------------------------ objects
     def variable(self, index: int, subindex: int = 0) -> objectdictionary.ODVariable | None:
@@ -337,10 +341,10 @@ def _value(var: objectdictionary.ODVariable | None) -> Any:
     return var.value if var.value is not None else var.default
 
 
-def read_capabilities(path: str | None, node_id: int) -> DriveCapabilities:
-    """Parse an EDS/DCF (None: the shipped generic drive) for one node id. Raises
-    CapabilityError naming the file when it is not a readable EDS/DCF (never a parser's
-    traceback)."""
+def read_capabilities(path: str | None, node_id: int, axis: int = 1) -> DriveCapabilities:
+    """Parse an EDS/DCF (None: the shipped generic drive) for one node id and one of its
+    axes. Raises CapabilityError naming the file when it is not a readable EDS/DCF (never a
+    parser's traceback), or has no such axis."""
     source = path or str(shipped_eds.path(shipped_eds.CIA402_DRIVE))
     try:
         device = read_device_file(source).for_node(node_id)
@@ -350,6 +354,9 @@ def read_capabilities(path: str | None, node_id: int) -> DriveCapabilities:
     except Exception as exc:  # canopen's importer on what the reader let through
         raise CapabilityError(f"{source} is not a readable EDS/DCF file "
                               f"({type(exc).__name__}: {str(exc)[:200]})") from None
+    unknown = frozenset(device.unknown)
+    if axis > 1:
+        od, unknown = _axis_view(od, unknown, axis, source)
     modes = od.get(cia402.SUPPORTED_DRIVE_MODES)
     supported = _value(modes) if isinstance(modes, objectdictionary.ODVariable) else None
     stated = isinstance(supported, int)
@@ -363,6 +370,46 @@ def read_capabilities(path: str | None, node_id: int) -> DriveCapabilities:
         device_type=_value(device_type) if isinstance(device_type, objectdictionary.ODVariable)
         else None,
         commissioned_node_id=device.commissioned_node_id,
-        unknown=frozenset(device.unknown), modes_stated=stated,
-        file_notes=tuple(device.notes))
+        unknown=unknown, modes_stated=stated,
+        file_notes=tuple(device.notes), axis=axis)
+
+
+_PROFILE = range(0x6000, 0x6000 + cia402.MAX_AXES * cia402.AXIS_STRIDE)
+
+
+def _axis_view(od: canopen.ObjectDictionary, unknown: frozenset[Key], axis: int,
+               source: str) -> tuple[canopen.ObjectDictionary, frozenset[Key]]:
+    """The dictionary as axis ``axis`` of a multi-axis device sees it: its profile objects
+    (at + (axis - 1) x 0x800 in the file) at the indices of axis 1, the other axes' gone,
+    the node's own objects (0x1000-0x5FFF) as they are. Everything that plans a drive then
+    reads one axis as it reads a single-axis drive; only the SDO traffic and the mapping
+    entries of bring-up shift the indices back (bringup.NamedSdo)."""
+    controlword = cia402.on_axis(cia402.CONTROLWORD, axis)
+    if controlword not in od:
+        raise CapabilityError(f"{source} has no axis {axis}: no 0x{controlword:04X} (axis "
+                              f"{axis}'s controlword, 0x6040 + {axis - 1} x 0x800)")
+    shift = (axis - 1) * cia402.AXIS_STRIDE
+    view = canopen.ObjectDictionary()
+    view.bitrate, view.node_id = od.bitrate, od.node_id
+    view.device_information = od.device_information
+    for index in od:
+        obj = od[index]
+        if index not in _PROFILE:
+            view.add_object(obj)
+        elif 0x6000 + shift <= index < 0x6000 + shift + cia402.AXIS_STRIDE:
+            moved = copy.copy(obj)
+            moved.index = index - shift
+            if isinstance(moved, (objectdictionary.ODRecord, objectdictionary.ODArray)):
+                subs = list(moved.subindices.values())
+                moved.subindices, moved.names = {}, {}
+                for sub in subs:
+                    var = copy.copy(sub)
+                    var.index = moved.index
+                    moved.add_member(var)
+            view.add_object(moved)
+    kept = frozenset((i - shift, sub) if 0x6000 + shift <= i < 0x6000 + shift
+                     + cia402.AXIS_STRIDE else (i, sub)
+                     for i, sub in unknown if i not in _PROFILE
+                     or 0x6000 + shift <= i < 0x6000 + shift + cia402.AXIS_STRIDE)
+    return view, kept
 

@@ -42,6 +42,20 @@ SUPPORTED_DRIVE_MODES = 0x6502
 
 DEVICE_TYPE_SERVO = 0x00020192  # CiA 402, servo drive
 
+# --- several axes in one node (CiA 402-2) ---------------------------------------------------
+#: Axis n of a multi-axis device has the profile's objects 0x6000-0x67FF at + (n - 1) x this
+#: (Roboteq's second channel: controlword 0x6840, supported modes 0x6D02).
+AXIS_STRIDE = 0x800
+MAX_AXES = 8
+_AXIS_OBJECTS = range(0x6000, 0x6000 + AXIS_STRIDE)
+
+
+def on_axis(index: int, axis: int) -> int:
+    """Where axis ``axis`` (1..8) has the profile object ``index`` (objects outside
+    0x6000-0x67FF are the node's, shared by its axes)."""
+    return index + (axis - 1) * AXIS_STRIDE if index in _AXIS_OBJECTS else index
+
+
 # --- CiA 402 state machine -----------------------------------------------------------------
 class State402(enum.IntEnum):
     UNKNOWN = -1

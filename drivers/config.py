@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from . import cia301
+from .cia402 import MAX_AXES
 from .joints import JointMode
 from .modes import BY_NAME, KIND, DriveMode
 
@@ -159,6 +160,8 @@ class DriveConfig:
     guarding: str = "auto"                  # how the drive's life is watched: heartbeat,
                                             # node_guarding, or auto (heartbeat if it can)
     bus: str = ""                           # its bus's name; "" = the first (or only) bus
+    axis: int = 1                           # its axis in a multi-axis node (CiA 402-2):
+                                            # objects at + (axis - 1) x 0x800
     accept_unsupervised: bool = False       # run a drive that ignores losing the manager
     homing_method: int | None = None        # 0x6098 written at bring-up; None: as commissioned
     homing_timeout: float = 60.0            # s a homing may take (rocoma-can home DRIVE)
@@ -208,6 +211,9 @@ class DriveConfig:
         if not _whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
             raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
                              f"got {self.heartbeat_ms!r}")
+        if not _whole(self.axis) or not 1 <= self.axis <= MAX_AXES:
+            raise ValueError(f"{where}: axis must be an integer 1..{MAX_AXES} (CiA 402-2), "
+                             f"got {self.axis!r}")
         if self.guarding not in GUARDING:
             raise ValueError(f"{where}: guarding must be one of {list(GUARDING)}, "
                              f"got {self.guarding!r}")
@@ -250,7 +256,8 @@ def check_drives(drives: list[DriveConfig], manager_node_id: int,
     if not _whole(manager_node_id) or not 1 <= manager_node_id <= 127:
         raise ValueError(f"manager_node_id must be an integer 1..127, got {manager_node_id!r}")
     seen_names: set[str] = set()
-    seen_ids: dict[tuple[str, int], str] = {}
+    seen_ids: dict[tuple[str, int, int], str] = {}
+    first_of_node: dict[tuple[str, int], DriveConfig] = {}
     for d in drives:
         if d.name in seen_names:
             raise ValueError(f"drive name {d.name!r} is used twice")
@@ -260,12 +267,28 @@ def check_drives(drives: list[DriveConfig], manager_node_id: int,
                              f"{', '.join(repr(b) for b in buses)})")
         bus = d.bus or buses[0]
         on = f" on bus {bus!r}" if len(buses) > 1 else ""
-        if (bus, d.node_id) in seen_ids:
-            raise ValueError(f"drive {d.name!r}: node_id {d.node_id} is already used by "
-                             f"drive {seen_ids[bus, d.node_id]!r}{on}")
+        if (bus, d.node_id, d.axis) in seen_ids:
+            axis = f" axis {d.axis}" if d.axis > 1 else ""
+            raise ValueError(f"drive {d.name!r}: node_id {d.node_id}{axis} is already used by "
+                             f"drive {seen_ids[bus, d.node_id, d.axis]!r}{on}")
         if d.node_id == manager_node_id:
             raise ValueError(f"drive {d.name!r}: node_id {d.node_id} is the manager's node id")
-        seen_ids[bus, d.node_id] = d.name
+        seen_ids[bus, d.node_id, d.axis] = d.name
+        sibling = first_of_node.setdefault((bus, d.node_id), d)
+        why = node_mismatch(sibling, d)
+        if why is not None:
+            raise ValueError(why)
+
+
+def node_mismatch(a: DriveConfig, b: DriveConfig) -> str | None:
+    """Why two axes of one node cannot be configured as given, or None: what belongs to
+    the node (its file, its heartbeat or guarding) must be said alike for each."""
+    for key in ("eds", "heartbeat_ms", "guarding"):
+        if getattr(a, key) != getattr(b, key):
+            return (f"drive {b.name!r}: node {b.node_id} is also drive {a.name!r} (axis "
+                    f"{a.axis}), whose {key} is {getattr(a, key)!r}, not "
+                    f"{getattr(b, key)!r}: one node has one {key}")
+    return None
 
 
 def estop_conflict(cob_id: int, drives: Sequence[DriveConfig],

@@ -10,6 +10,7 @@ the drive, the file and the object.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from . import cia301, cia402
@@ -39,6 +40,8 @@ class DrivePlan:
     layout: DriveLayout
     notes: tuple[str, ...]      # what is degraded, one sentence each
     guarded: bool = False       # watched by node guarding (0x100C/0x100D), not heartbeat
+    leads_node: bool = True     # configures its node (NMT, heartbeat or guarding, consumer,
+                                # unused PDOs): False for the higher axes of a shared node
 
     def report(self) -> list[str]:
         """check-config's lines for this drive."""
@@ -51,7 +54,8 @@ class DrivePlan:
                          for p in lay.rpdos)
         pdos += "; " + "; ".join(f"{'fixed ' if p.fixed else ''}TPDO{p.number} "
                                  f"[{', '.join(p.names)}]" for p in lay.tpdos)
-        lines = [f"{d.name} (node {d.node_id}, {self.caps.source}):",
+        axis = f" axis {d.axis}" if d.axis > 1 else ""
+        lines = [f"{d.name} (node {d.node_id}{axis}, {self.caps.source}):",
                  f"  modes {', '.join(m.name for m in d.modes)}; feedback "
                  f"{', '.join(d.feedback or ()) or 'statusword only'}",
                  f"  {pdos}"]
@@ -60,13 +64,59 @@ class DrivePlan:
         return lines
 
 
-def plan_drive(drive: DriveConfig) -> DrivePlan:
-    """Measure one drive's config against its file; ValueError with every problem found."""
+def plan_drives(drives: Sequence[DriveConfig], first_bus: str = "") -> list[DrivePlan]:
+    """Every drive's plan (``plan_drive``). The axes of one node share its PDO channels:
+    planned in axis order, each takes from the channels the ones before it left; then each
+    keeps only its own, so its bring-up configures those alone, and the node's lowest axis
+    (``leads_node``) also switches off the channels no axis uses."""
+    plans: list[DrivePlan | None] = [None] * len(drives)
+    nodes: dict[tuple[str, int], list[int]] = {}
+    for i, d in enumerate(drives):
+        nodes.setdefault((d.bus or first_bus, d.node_id), []).append(i)
+    for members in nodes.values():
+        members.sort(key=lambda i: drives[i].axis)
+        taken: set[tuple[bool, int]] = set()
+        for i in members:
+            planned = plan_drive(drives[i], frozenset(taken))
+            taken |= _channels_of(planned.layout)
+            plans[i] = planned
+        if len(members) > 1:
+            for k, i in enumerate(members):
+                plan = plans[i]
+                assert plan is not None
+                own = _channels_of(plan.layout)
+                every = {(ch.tx, ch.number) for ch in plan.caps.rpdos + plan.caps.tpdos}
+                drop = (taken if k == 0 else every) - own
+                plans[i] = dataclasses.replace(plan, caps=_without(plan.caps, drop),
+                                               leads_node=k == 0)
+    return [p for p in plans if p is not None]
+
+
+def _channels_of(layout: DriveLayout) -> set[tuple[bool, int]]:
+    return {(False, p.number) for p in layout.rpdos} | {(True, p.number) for p in layout.tpdos}
+
+
+def _without(caps: DriveCapabilities, channels: Iterable[tuple[bool, int]]) -> DriveCapabilities:
+    drop = set(channels)
+    return dataclasses.replace(
+        caps, rpdos=tuple(ch for ch in caps.rpdos if (False, ch.number) not in drop),
+        tpdos=tuple(ch for ch in caps.tpdos if (True, ch.number) not in drop))
+
+
+def plan_drive(drive: DriveConfig,
+               taken: frozenset[tuple[bool, int]] = frozenset()) -> DrivePlan:
+    """Measure one drive's config against its file; ValueError with every problem found.
+    ``taken``: PDO channels (is a TPDO, number) other axes of its node use already."""
     where = f"drive {drive.name!r}"
     try:
-        caps = read_capabilities(drive.eds, drive.node_id)
+        caps = read_capabilities(drive.eds, drive.node_id, drive.axis)
     except CapabilityError as exc:
         raise ValueError(f"{where}: {exc}") from None
+    if drive.axis > 1:  # a fixed mapping names the objects of the axis it was made for
+        taken |= {(ch.tx, ch.number) for ch in caps.rpdos + caps.tpdos
+                  if not ch.mapping_writable}
+    if taken:
+        caps = _without(caps, taken)
     problems: list[str] = []
     notes: list[str] = list(caps.file_notes)
     commissioned = caps.commissioned_node_id
@@ -117,11 +167,13 @@ def plan_drive(drive: DriveConfig) -> DrivePlan:
                          "this drive keeps its last command until its own limits stop it")
         else:
             problems.append("losing the manager would leave this drive running: its file has "
-                            "no writable heartbeat consumer (0x1016) with 0x6007 or 0x1029 "
-                            "behind it; set accept_unsupervised: true to run it anyway, with "
+                            "no writable heartbeat consumer (0x1016) or life guarding "
+                            "(0x100C/0x100D) with 0x6007 or 0x1029 behind it; set "
+                            "accept_unsupervised: true to run it anyway, with "
                             "that risk")
     elif not caps.abort_connection:
-        notes.append("no 0x6007: on manager loss the drive's heartbeat consumer makes it "
+        notes.append("no 0x6007: on manager loss the drive's heartbeat consumer (or life "
+                     "guarding) makes it "
                      "leave OPERATIONAL (0x1029) and stop applying RPDOs; whether it also "
                      "switches its power stage off is its vendor's choice")
     if problems:

@@ -88,7 +88,7 @@ from .bus import start_reading
 from .bus_port import BusPort
 from .cia402 import State402
 from .config import BusConfig, DriveConfig, Supervision, check_drives, estop_conflict
-from .drive_plan import plan_drive
+from .drive_plan import plan_drives
 from .enable import OP_ENABLED, EnableSequence
 from .frame_io import clock_offset, to_monotonic
 from .homing import HOMING_MODE, HomingJob
@@ -181,8 +181,9 @@ class CanopenHardware:
                  on_fault: Callable[[FaultEvent], None] | None = None) -> None:
         buses = _named_buses(bus)
         check_drives(list(drives), manager_node_id, list(buses))
-        # each drive measured against its EDS/DCF: modes, feedback, PDOs, manager loss
-        self.plans = [plan_drive(d) for d in drives]
+        # each drive measured against its EDS/DCF: modes, feedback, PDOs, manager loss (the
+        # axes of a multi-axis node share its PDO channels out)
+        self.plans = plan_drives(list(drives), next(iter(buses)))
         drives = [p.drive for p in self.plans]
         clashes = cob_id_clashes([(p.drive, p.layout) for p in self.plans], manager_node_id,
                                  estop_cob_id, next(iter(buses)))
@@ -266,6 +267,13 @@ class CanopenHardware:
         self._switches_seen = -1
         self._hb_state = [-1] * n
         self._hb_time = np.full(n, -math.inf)
+        # the drives of each drive's node (several: the axes of a multi-axis device, which
+        # share its NMT state, heartbeat or guarding, EMCY and SDO server), lowest axis first
+        node_of: dict[tuple[str, int], list[int]] = {}
+        for i, d in enumerate(drives):
+            node_of.setdefault((self._port_of[i].name, d.node_id), []).append(i)
+        self._node = [tuple(sorted(node_of[self._port_of[i].name, d.node_id],
+                                   key=lambda k: drives[k].axis)) for i, d in enumerate(drives)]
         # per drive: its bus's reader had handed over every frame that arrived before this
         # when the cycle began draining (heartbeat deadlines are judged against it, below)
         self._heard_until = np.full(n, -math.inf)
@@ -280,8 +288,9 @@ class CanopenHardware:
                     self._tpdo_of[k][pdo.cob_id] = (
                         i, 1 << (pdo.number - 1), pdo.size, pdo.codec.unpack_from,
                         tuple(self._raw[name] for name in pdo.names))
-                port.heartbeat_of[cia301.HEARTBEAT + d.node_id] = i
-                port.emcy_of[cia301.EMCY + d.node_id] = i
+                if self.plans[i].leads_node:
+                    port.heartbeat_of[cia301.HEARTBEAT + d.node_id] = i
+                    port.emcy_of[cia301.EMCY + d.node_id] = self._node[i]
 
         # --- transmit frames, allocated once -------------------------------------------------
         # Per drive and RPDO: (frame, codec.pack_into, positions of its entries in the
@@ -299,7 +308,7 @@ class CanopenHardware:
         # node guarding (drives without a heartbeat, drive_plan): a remote request every
         # heartbeat_ms from the cycle, once the drive is configured; the answers come in
         # as heartbeats do, with a toggle bit that must change
-        self._guarded = [p.guarded for p in self.plans]
+        self._guarded = [p.guarded and p.leads_node for p in self.plans]  # once per node
         self._any_guarded = any(self._guarded)
         self._guard_frames = [can.Message(arbitration_id=cia301.HEARTBEAT + d.node_id,
                                           is_remote_frame=True, dlc=1, is_extended_id=False)
@@ -382,8 +391,17 @@ class CanopenHardware:
             started.wait(WORKER_START)
         except threading.BrokenBarrierError:  # a machine that slow starts the rest later
             log.warning("configuration workers not all started within %.0f s", WORKER_START)
-        for plan, port in zip(self.plans, self._port_of):
+        made: dict[int, DriveBringup] = {}
+        # each node's lowest axis first: a higher axis shares its node's SDO client and lock
+        for i in sorted(range(len(self.plans)), key=lambda k: self._node[k][0] != k):
+            plan, port = self.plans[i], self._port_of[i]
             assert port.canopen is not None  # opened above
+            lead = self._node[i][0]
+            if lead != i:
+                made[i] = DriveBringup(plan, made[lead].node, self.manager_node_id,
+                                       self.consumer_ms, self.timeouts, self.dt,
+                                       lead=made[lead])
+                continue
             network = port.canopen.network
             node = network.add_node(plan.drive.node_id, plan.caps.object_dictionary)
             # The cycle decodes heartbeats and EMCYs itself (read): canopen's consumers of
@@ -398,10 +416,11 @@ class CanopenHardware:
             node.sdo.RESPONSE_TIMEOUT = self.supervision.sdo_timeout
             # canopen counts tries (0 = forever)
             node.sdo.MAX_RETRIES = self.supervision.sdo_retries + 1
-            b = DriveBringup(plan, node, self.manager_node_id, self.consumer_ms,
-                             self.timeouts, self.dt)
+            made[i] = DriveBringup(plan, node, self.manager_node_id, self.consumer_ms,
+                                   self.timeouts, self.dt)
+        self._bringup = [made[i] for i in range(len(self.plans))]
+        for b in self._bringup:
             b.restart(now)
-            self._bringup.append(b)
         self._now = now
 
     def close(self) -> None:
@@ -489,14 +508,17 @@ class CanopenHardware:
                     if msg.dlc >= 1:
                         self._on_heartbeat(beat, msg.data[0], t)
                     continue
-                j = emcy_of.get(cob)
-                if j is not None:
-                    if msg.dlc >= 2:
-                        code = msg.data[0] | (msg.data[1] << 8)
+                axes = emcy_of.get(cob)
+                if axes is not None and msg.dlc >= 2:
+                    code = msg.data[0] | (msg.data[1] << 8)
+                    for j in axes:
                         self.state.error_code[j] = code
                         if code == cia301.EMCY_STO:
                             self._bringup[j].sto_seen = True
-                        sup.on_emcy(j, code, t)
+                    # An EMCY does not say which axis of a multi-axis node it is about:
+                    # there each axis is faulted by its own statusword, not by the EMCY
+                    if len(axes) == 1:
+                        sup.on_emcy(axes[0], code, t)
             if estops:
                 self._on_estop_frames(port, estops)
                 estops = 0
@@ -544,10 +566,11 @@ class CanopenHardware:
                 return
             else:
                 self._toggle[i] = toggle
-        self._hb_state[i] = nmt_state
-        self._hb_time[i] = t
-        self._bringup[i].alive = True
-        self.supervisor.on_heartbeat(i, nmt_state, t)
+        for k in self._node[i]:  # every axis of the node: its NMT state is theirs
+            self._hb_state[k] = nmt_state
+            self._hb_time[k] = t
+            self._bringup[k].alive = True
+            self.supervisor.on_heartbeat(k, nmt_state, t)
 
     def _decode(self, now: float) -> None:
         s, raw, sc = self.state, self._raw, self.scaling
@@ -936,6 +959,7 @@ class CanopenHardware:
             sup.bus_latched = None
             for port in self.ports:
                 port.latched = None
+            restarted: set[int] = set()
             for i, b in enumerate(self._bringup):
                 if b.phase == Phase.READY and sup.latched[i] is None:
                     continue
@@ -948,6 +972,13 @@ class CanopenHardware:
                     b.reset_fault(now)
                 elif b.phase != Phase.CONFIGURING:
                     b.restart(now, probe_at_once=True)
+                    restarted.add(i)
+            for i in restarted:  # a node configured again is NMT-reset: all its axes restart
+                if self.plans[i].leads_node:
+                    for k in self._node[i][1:]:
+                        if k not in restarted and self._bringup[k].phase != Phase.CONFIGURING:
+                            sup.disarm(k)
+                            self._bringup[k].restart(now, probe_at_once=True)
             return
         drives_ready = (all(b.phase == Phase.READY for b in self._bringup)
                         and not any(sup.latched) and sup.bus_latched is None)

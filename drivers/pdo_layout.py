@@ -373,11 +373,11 @@ def cob_id_clashes(drives: Sequence[tuple[DriveConfig, DriveLayout]], manager_no
     node = {cia301.EMCY + manager_node_id: "the manager's EMCY",
             cia301.TPDO_BASE[0] + manager_node_id: "the manager's state frame (TPDO1)"}
     every = {estop_cob_id: "the e-stop frame (manager.estop_cob_id)"} if estop_cob_id else {}
-    nodes: set[tuple[str, int]] = set()
+    nodes: set[tuple[str, int, int]] = set()
     distinct = []  # a node id used twice on a bus is its own error (check_drives), not this
-    for drive, layout in drives:
-        if (drive.bus or first_bus, drive.node_id) not in nodes:
-            nodes.add((drive.bus or first_bus, drive.node_id))
+    for drive, layout in drives:  # (the axes of a multi-axis node are distinct drives)
+        if (drive.bus or first_bus, drive.node_id, drive.axis) not in nodes:
+            nodes.add((drive.bus or first_bus, drive.node_id, drive.axis))
             distinct.append((drive, layout))
     for drive, _ in distinct:
         bus = drive.bus or first_bus

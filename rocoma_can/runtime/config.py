@@ -42,8 +42,15 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from ..drivers.cia301 import reserved_cob_id
-from ..drivers.config import BusConfig, DriveConfig, Supervision, Timeouts, estop_conflict
-from ..drivers.drive_plan import DrivePlan, plan_drive
+from ..drivers.config import (
+    BusConfig,
+    DriveConfig,
+    Supervision,
+    Timeouts,
+    estop_conflict,
+    node_mismatch,
+)
+from ..drivers.drive_plan import DrivePlan, plan_drive, plan_drives
 from ..drivers.pdo_layout import cob_id_clashes
 from ..errors import ConfigError
 from ..manager import TimingSupervision
@@ -496,7 +503,7 @@ def _drives(entries: Any, manager_id: int, base: Path | None, problems: list[str
     planned: list[tuple[DriveConfig, DrivePlan]] = []
     clean: list[tuple[DriveConfig, DrivePlan]] = []
     names: dict[str, int] = {}
-    ids: dict[tuple[str, int], int] = {}
+    ids: dict[tuple[str, int, int], int] = {}
     for i, entry in enumerate(entries):
         where = f"drives[{i}]"
         if not isinstance(entry, Mapping):
@@ -521,21 +528,47 @@ def _drives(entries: Any, manager_id: int, base: Path | None, problems: list[str
             problems.append(f"{where}.bus: no bus named {drive.bus!r} (buses: "
                             f"{', '.join(repr(b) for b in buses)})")
         bus = drive.bus or buses[0]
-        taken = (bus, drive.node_id) in ids
+        taken = (bus, drive.node_id, drive.axis) in ids
         if taken:
             on = f" on bus {bus!r}" if len(buses) > 1 else ""
-            problems.append(f"{where}.node_id: {drive.node_id} is already used by "
-                            f"drives[{ids[bus, drive.node_id]}]{on}")
+            axis = f" axis {drive.axis}" if drive.axis > 1 else ""
+            problems.append(f"{where}.node_id: {drive.node_id}{axis} is already used by "
+                            f"drives[{ids[bus, drive.node_id, drive.axis]}]{on}")
         elif drive.node_id == manager_id:
             taken = True
             problems.append(f"{where}.node_id: {drive.node_id} is the manager's node id "
                             "(manager.node_id)")
         names.setdefault(drive.name, i)
-        ids.setdefault((bus, drive.node_id), i)
+        ids.setdefault((bus, drive.node_id, drive.axis), i)
         planned.append((drive, plan))
         if not taken:
             clean.append((drive, plan))
-    return planned, clean
+    return _share_nodes(planned, buses, problems), _share_nodes(clean, buses, [])
+
+
+def _share_nodes(drives: list[tuple[DriveConfig, DrivePlan]], buses: list[str],
+                 problems: list[str]) -> list[tuple[DriveConfig, DrivePlan]]:
+    """The axes of a multi-axis node planned together (they share its PDO channels:
+    drive_plan.plan_drives), each problem said once."""
+    nodes: dict[tuple[str, int], list[int]] = {}
+    for k, (d, _) in enumerate(drives):
+        nodes.setdefault((d.bus or buses[0], d.node_id), []).append(k)
+    out = list(drives)
+    for members in nodes.values():
+        if len(members) < 2:
+            continue
+        axes = [drives[k][0] for k in members]
+        why = next((w for w in (node_mismatch(axes[0], d) for d in axes[1:]) if w), None)
+        try:
+            if why is not None:
+                raise ValueError(why)
+            shared = plan_drives(axes, buses[0])
+        except ValueError as exc:
+            problems.append(f"drives: {exc}")
+            continue
+        for k, plan in zip(members, shared):
+            out[k] = (drives[k][0], plan)
+    return out
 
 
 def _section(data: Mapping[str, Any], key: str, problems: list[str]) -> Mapping[str, Any]:

@@ -67,6 +67,7 @@ class Emulated:
     emergency: dict[str, Any]
     drive: dict[str, Any]              # DriveConfig fields: eds, scaling, ...
     first_node: int = 1                # a DCF's commissioned node id
+    axes: int = 1                      # axes per node (a multi-axis device: CiA 402-2)
     notes: list[str] = field(default_factory=list)
     segment: dict[str, Any] = field(default_factory=dict)  # SimulatedSegment keywords
 
@@ -77,10 +78,13 @@ def emulate(path: str, drives: int) -> Emulated:
     its scaling, its node id if it is a DCF. ValueError when no position mode fits."""
     from ..drivers.capabilities import CapabilityError, read_capabilities
     from ..drivers.cia402 import (
+        CONTROLWORD,
         GEAR_RATIO,
+        MAX_AXES,
         POSITION_ENCODER_RESOLUTION,
         QUICK_STOP_DECELERATION,
         RATED_TORQUE,
+        on_axis,
     )
     try:
         caps = read_capabilities(path, 1)
@@ -131,12 +135,26 @@ def emulate(path: str, drives: int) -> Emulated:
     # One drive measured against the file says what would be wrong with every drive: once,
     # about the file, not once per drive of the config.
     from ..drivers.config import DriveConfig
-    from ..drivers.drive_plan import plan_drive
+    from ..drivers.drive_plan import plan_drive, plan_drives
+
+    def axis(n: int) -> DriveConfig:
+        return DriveConfig.from_dict({"name": f"joint{n}", "node_id": fitted.first_node,
+                                      "modes": modes, "axis": n, **DRIVE, **drive})
     try:
-        plan_drive(DriveConfig.from_dict({"name": "joint1", "node_id": fitted.first_node,
-                                          "modes": modes, **DRIVE, **drive}))
+        plan_drive(axis(1))
     except ValueError as exc:
         raise ValueError(str(exc).removeprefix("drive 'joint1': ")) from None
+    # A multi-axis device: the demo drives every axis it can share the node's PDOs out to
+    while fitted.axes < MAX_AXES and caps.has(on_axis(CONTROLWORD, fitted.axes + 1)):
+        try:
+            plan_drives([axis(n) for n in range(1, fitted.axes + 2)])
+        except ValueError as exc:
+            notes.append(f"axis {fitted.axes + 1} not driven: {exc}")
+            break
+        fitted.axes += 1
+    if fitted.axes > 1:
+        notes.append(f"{fitted.axes} axes per node (CiA 402-2): each axis a joint, "
+                     f"axis n's objects at + (n - 1) x 0x800")
     return fitted
 
 
@@ -157,6 +175,7 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
         "params": {"damping": 0.05, "still_time": 0.2, "timeout": 2.0}}
     drive = emulated.drive if emulated else {}
     first_node = emulated.first_node if emulated else 1
+    axes = emulated.axes if emulated else 1
     if buses == 1:
         bus_section: dict[str, Any] = {"bus": {"interface": interface, "channel": channel}}
     else:
@@ -177,8 +196,8 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
         "timing": {"advance": 1.5 * rate, "initialize_fast": 1.5 * rate, "hang": 2.0 * rate},
         "supervision": {"tpdo_timeout_cycles": max(5, round(1.5 * rate)),
                         "heartbeat_timeout_factor": 15.0, "consumer_factor": 15.0},
-        "drives": [{"name": name, "node_id": i % per_bus + first_node, **DRIVE,
-                    "modes": modes,
+        "drives": [{"name": name, "node_id": i % per_bus // axes + first_node, **DRIVE,
+                    "modes": modes, **({"axis": i % per_bus % axes + 1} if axes > 1 else {}),
                     **({"bus": f"bus{i // per_bus}"} if buses > 1 else {}), **drive}
                    for i, name in enumerate(joints)],
         "controllers": [
@@ -223,21 +242,21 @@ class _TorqueOffProbe(can.Listener):
     ``carriers``: per drive, the COB-ID of the RPDO with its controlword and where in the
     frame it sits (RPDO1 at 0 for the generic drive; a fixed mapping may differ)."""
 
-    def __init__(self, carriers: dict[int, tuple[int, int]]) -> None:
-        self.carriers = carriers  # COB-ID -> (node id, byte offset of the controlword)
+    def __init__(self, carriers: dict[int, tuple[str, int]]) -> None:
+        self.carriers = carriers  # COB-ID -> (drive, byte offset of the controlword)
         self.armed = False
-        self.seen: set[int] = set()
+        self.seen: set[str] = set()
 
     def on_message_received(self, msg: can.Message) -> None:
         carrier = self.carriers.get(msg.arbitration_id)
         if self.armed and carrier is not None:
-            node, at = carrier
+            drive, at = carrier
             if msg.dlc >= at + 2 and msg.data[at] == msg.data[at + 1] == 0:
-                self.seen.add(node)
+                self.seen.add(drive)
 
 
-def _controlword_carriers(config: Any, bus: str) -> dict[int, tuple[int, int]]:
-    """For the drives on ``bus``: COB-ID -> (node id, offset) of the first RPDO of each
+def _controlword_carriers(config: Any, bus: str) -> dict[int, tuple[str, int]]:
+    """For the drives on ``bus``: COB-ID -> (drive name, offset) of the first RPDO of each
     drive's layout that carries its controlword."""
     carriers = {}
     first = config.buses[0].label
@@ -247,7 +266,7 @@ def _controlword_carriers(config: Any, bus: str) -> dict[int, tuple[int, int]]:
         for pdo in config.plans[drive.name].layout.rpdos:
             if "controlword" in pdo.names:
                 at = sum(e.size for e in pdo.entries[:pdo.names.index("controlword")])
-                carriers[pdo.cob_id] = (drive.node_id, at)
+                carriers[pdo.cob_id] = (drive.name, at)
                 break
     return carriers
 
@@ -461,7 +480,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     stop = threading.Event()
     segments = [SimulatedSegment.open(b.channel, interface,
                                       [d.node_id for d in config.drives_on(b)],
-                                      **(emulated.segment if emulated else {}))
+                                      **(emulated.segment if emulated else {}),
+                                      **({"axes": {d.node_id: emulated.axes
+                                                   for d in config.drives_on(b)}}
+                                         if emulated and emulated.axes > 1 else {}))
                 for b in config.buses]
     # one receive thread for every bus where possible, standing by while the loop steps
     # the simulator on its own thread after each write (stepped_before: in on_cycle)
