@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from rocoma_can import cli
 from rocoma_can.drivers import cia301 as c301
 from rocoma_can.drivers.cia301 import NmtCommand
 from rocoma_can.drivers.cia402 import AbortConnectionOption, Mode, State402
@@ -216,3 +217,16 @@ def test_joints_in_order_of_node_then_axis_with_params_per_node_or_axis(sim_segm
     assert segment.dynamics.inertia.tolist() == [0.5, 0.7, JointParams().inertia]
     assert len(segment.status_lines()) == 3
 
+
+def test_cli_axes_flag(virtual_channel, capsys):
+    args = ["sim", "--interface", "virtual", "--channel", virtual_channel, "--nodes", "1",
+            "--axes", "2"]
+    assert cli.main([*args, "--duration", "0.3", "--status-interval", "0.1",
+                     "--eds", TWO_AXES]) == 0
+    out = capsys.readouterr().out
+    status = [line.split()[:4] for line in out.splitlines() if line.startswith("node")]
+    assert ["node", "1", "axis", "1"] in status and ["node", "1", "axis", "2"] in status
+    assert cli.main(args) == 2  # the shipped EDS has one axis
+    assert "--axes 2: axis 2 needs its controlword 0x6840" in capsys.readouterr().err
+    assert cli.main([*args[:-1], "9", "--eds", TWO_AXES]) == 2
+    assert "--axes 9: a node has 1..8 axes" in capsys.readouterr().err
