@@ -4,12 +4,14 @@ PDO frames and SYNC: one CANopen node (one boot-up, one heartbeat, one EMCY prod
 state machines, two joints."""
 from __future__ import annotations
 
+import math
 import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from canopen.sdo import SdoAbortedError
 
 from rocoma_can import cli
 from rocoma_can.drivers import cia301 as c301
@@ -76,10 +78,38 @@ def test_sdo_to_axis_2_objects_drives_axis_2_only(sim_bench):
     assert axis2.state402 == State402.OPERATION_ENABLED
     assert axis1.state402 == State402.SWITCH_ON_DISABLED
     assert (drive.state402, drive.statusword) == (axis1.state402, axis1.statusword)
-    with pytest.raises(Exception) as err:  # CST is not in axis 2's 0x6D02 (CSP, CSV)
+    with pytest.raises(SdoAbortedError) as err:  # CST is not in axis 2's 0x6D02 (CSP, CSV)
         node.sdo[0x6860].raw = int(Mode.CST)
-    assert getattr(err.value, "code", None) == 0x06090030
+    assert err.value.code == 0x06090030
     assert axis2.mode_display == Mode.CSP
+
+
+def test_each_axis_has_its_own_scaling(sim_bench):
+    bench, node, drive = _bench(sim_bench, increments_per_rev=4096)
+    axis1, axis2 = drive.axes
+    # no 0x608F/0x6091 in the file: both axes take the segment's fallback
+    assert axis1.increments_per_rad == axis2.increments_per_rad == pytest.approx(
+        4096 / (2 * math.pi))
+    node.sdo[0x6876].raw = 2500  # axis 2's rated torque, mNm
+    assert axis2.nm_per_permille == pytest.approx(2.5e-3)
+    assert axis1.nm_per_permille == pytest.approx(1e-3)  # 0x6076 = 1000
+    with pytest.raises(SdoAbortedError) as err:  # a rated torque of 0 is refused on axis 2 too
+        node.sdo[0x6876].raw = 0
+    assert err.value.code == 0x06090032
+
+
+def test_nmt_stop_aborts_the_connection_of_every_axis(sim_bench):
+    bench, node, drive = _bench(sim_bench)
+    axis1, axis2 = drive.axes
+    bench.nmt(NmtCommand.START, 1)
+    for index, mode in ((0x6060, Mode.CSV), (0x6860, Mode.CSV)):
+        node.sdo[index].raw = int(mode)
+    for cw in (0x06, 0x07, 0x0F):
+        node.sdo[0x6040].raw = cw
+        node.sdo[0x6840].raw = cw
+    assert axis1.state402 == axis2.state402 == State402.OPERATION_ENABLED
+    bench.nmt(NmtCommand.STOP, 1)  # 0x6007 = 0x6807 = 2 (the file's): disable voltage
+    assert axis1.state402 == axis2.state402 == State402.SWITCH_ON_DISABLED
 
 
 def _map(node, comm: int, mapping: int, entries: tuple[int, ...], cob_id: int,
