@@ -3,7 +3,10 @@
 Bench testing without hardware: ``rocoma-can sim --channel vcan0 --interface socketcan
 --nodes 1-12`` and point the driver (or candump) at vcan0. Faults can be injected at start
 or after a delay, e.g. ``--fault 3:0x2310@5`` trips an over-current fault on node 3 five
-seconds in. A status line per drive is printed on SIGUSR1 and every --status-interval s.
+seconds in. ``--axes 2`` makes every node a two-axis drive (CiA 402-2, a dual-channel
+controller: axis 2's objects at +0x800, in the --eds file); --fault trips axis 1, the
+other injections are the node's (all its axes).
+A status line per axis is printed on SIGUSR1 and every --status-interval s.
 """
 from __future__ import annotations
 
@@ -102,6 +105,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--eds", default=None, metavar="FILE",
                    help="EDS or DCF the drives emulate: exactly its objects, access types and "
                         "0x6502 modes (default: the shipped generic drive)")
+    p.add_argument("--axes", type=count, default=1, metavar="N",
+                   help="CiA 402 axes per node, 1..8 (CiA 402-2: axis n's objects at "
+                        "index + 0x800 (n - 1); the file must have each axis's 0x6040/0x6041; "
+                        "default 1)")
     p.add_argument("--increments-per-rev", type=count, default=1 << 20, metavar="N",
                    help="encoder increments per motor turn where the file has no 0x608F "
                         "(default 1048576)")
@@ -113,7 +120,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--sync-period", type=seconds, default=None, metavar="S",
                    help="integrate each SYNC over this fixed period instead of measured time")
     p.add_argument("--status-interval", type=seconds_or_zero, default=0.0, metavar="S",
-                   help="print a status line per drive every S seconds (also on SIGUSR1)")
+                   help="print a status line per axis every S seconds (also on SIGUSR1)")
     p.add_argument("--duration", type=seconds, default=None, metavar="S",
                    help="stop after S seconds (default: run until Ctrl-C / SIGTERM)")
     for flag, (nargs, text, _) in INJECTIONS.items():
@@ -141,11 +148,17 @@ def run(args: argparse.Namespace) -> int:
     except CapabilityError as exc:
         print(f"rocoma-can sim: --eds: {exc}", file=sys.stderr)
         return USAGE
+    from .objects import axes_problem
+    problem = axes_problem(caps.object_dictionary, args.axes)
+    if problem:
+        print(f"rocoma-can sim: --axes {args.axes}: {problem} ({caps.source})", file=sys.stderr)
+        return USAGE
     try:
         segment = SimulatedSegment.open(args.channel, args.interface, args.nodes,
                                         eds_path=args.eds, sync_period=args.sync_period,
                                         fd=args.fd, increments_per_rev=args.increments_per_rev,
-                                        rated_torque_nm=args.rated_torque_nm)
+                                        rated_torque_nm=args.rated_torque_nm,
+                                        axes={n: args.axes for n in args.nodes})
     except (OSError, ValueError, ImportError) as exc:
         print(f"rocoma-can sim: cannot open {args.interface} channel {args.channel}: {exc}",
               file=sys.stderr)
@@ -173,8 +186,9 @@ def run(args: argparse.Namespace) -> int:
                 previous[sig] = signal.signal(sig, handler)
     try:
         with segment:
-            print(f"sim: {len(segment.drives)} drive(s) {args.nodes[0]}..{args.nodes[-1]} on "
-                  f"{args.interface} {args.channel}{' (CAN FD)' if args.fd else ''}; Ctrl-C "
+            axes = f" of {args.axes} axes" if args.axes > 1 else ""
+            print(f"sim: {len(segment.drives)} drive(s){axes} {args.nodes[0]}..{args.nodes[-1]} "
+                  f"on {args.interface} {args.channel}{' (CAN FD)' if args.fd else ''}; Ctrl-C "
                   "to stop", file=sys.stderr, flush=True)
             start = segment.clock()
             for inj in injections:

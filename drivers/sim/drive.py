@@ -1,4 +1,5 @@
-"""One simulated CiA 402 servo drive, as seen from the CAN bus.
+"""One simulated CiA 402 servo drive (one CANopen node, one or more axes), as seen from
+the CAN bus.
 
 It behaves like a real drive where a master can tell the difference: boot-up and NMT,
 heartbeat producer and consumer, node guarding, the 0x6007 reaction, an SDO server on the
@@ -12,6 +13,14 @@ The drive is composed of one object per CANopen service, as canopen's LocalNode 
 heartbeats, nmt.py), ``pdos`` (pdo.py), ``cia402`` (state machine and loops,
 state_machine.py) and ``emcy`` (error register, history, EMCY, faults.py). This module wires
 them: what a write, an NMT command or a lost heartbeat does to the other services is here.
+
+A node may have up to eight axes (CiA 402-2, e.g. a dual-channel controller): one CANopen
+node (one NMT state, heartbeat, SDO server, PDO set, EMCY producer and error register) with
+one SimulatedAxis per axis: its objects at +0x800 per axis (objects.AxisKeys), its factor
+group, its CiA 402 state machine and its own joint (consecutive joints, axis 1 first). A
+lost connection makes every axis react with its own 0x6007; a fault of one axis is the
+node's EMCY with the axis's 0x603F. The node's read-only properties and fault injection are
+axis 1's; ``axes`` gives every axis's.
 
 A drive never owns a thread or a socket: its segment feeds it frames and timer events with
 the segment lock held, and sends what it transmits (port.Segment).
@@ -29,28 +38,24 @@ from .. import cia301 as c301
 from .. import cia402 as c
 from ..cia301 import NmtCommand, NmtState
 from ..cia402 import State402
-from .faults import Babble, EmcyProducer, InjectedFaults
+from .faults import Babble, EmcyProducer, InjectedFaults, register_bits
 from .nmt import NmtSlave
 from .objects import (
-    CONTROLWORD,
-    ERROR_CODE,
-    MODE,
-    MODE_DISPLAY,
-    POSITION,
     SCALING,
-    STATUSWORD,
-    TORQUE,
-    VELOCITY,
+    AxisKeys,
     Key,
     ObjectDictionaryServer,
+    axes_problem,
+    axis_of,
     fallback_values,
+    for_axes,
     load_object_dictionary,
 )
 from .pdo import PdoService
 from .port import Segment
 from .state_machine import Scaling, StateMachine402
 
-__all__ = ["SimulatedDrive", "load_object_dictionary"]
+__all__ = ["SimulatedAxis", "SimulatedDrive", "load_object_dictionary"]
 
 
 _OPERATIONAL = NmtState.OPERATIONAL  # a module global: an enum member costs ~100 ns a look-up
@@ -59,80 +64,57 @@ _OPERATIONAL = NmtState.OPERATIONAL  # a module global: an enum member costs ~10
 _HALF32, _SPAN32, _HALF16 = 1 << 31, 1 << 32, 1 << 15
 
 
-class SimulatedDrive:
-    """A CiA 402 servo drive on a SimulatedSegment; use ``segment.drives[node_id]``.
+class SimulatedAxis:
+    """One CiA 402 axis of a node (``segment.drives[node_id].axes``): its objects
+    (``keys``: axis n's 0x6000-0x67FF at +0x800 (n - 1)), its factor group, its state
+    machine and its joint. The properties are safe to read from any thread; ``trip_fault``
+    takes the segment lock, as the node's does."""
 
-    Properties are safe to read from any thread; the fault-injection methods take the
-    segment lock.
-    """
-
-    def __init__(self, segment: Segment, node_id: int, joint: int,
-                 object_dictionary: objectdictionary.ObjectDictionary,
-                 fallbacks: Mapping[Key, Any] | None = None) -> None:
-        if not 1 <= node_id <= 127:
-            raise ValueError(f"CANopen node id must be 1..127, got {node_id}")
-        self.node_id = node_id
+    def __init__(self, node: SimulatedDrive, number: int, joint: int) -> None:
+        self.node = node
+        self.number = number
         self.joint = joint
-        self.object_dictionary = object_dictionary
-        self._seg = segment
-        self._dyn = segment.dynamics
-        self._faults = InjectedFaults()
-        self._babble = Babble(segment)
-        self.objects = ObjectDictionaryServer(
-            object_dictionary, node_id, self._tx, self._after_write,
-            fallback_values(1 << 20, 1.0) if fallbacks is None else fallbacks)
-        self._values = self.objects.values
-        self.nmt = NmtSlave(node_id, segment, self._values, self._tx,
-                            on_lost=self._heartbeat_lost, on_regained=self._heartbeat_regained)
-        self.emcy = EmcyProducer(node_id, self._values, self._tx,
-                                 stopped=lambda: self.nmt.state == NmtState.STOPPED)
-        self._scaling = Scaling()
-        self.cia402 = StateMachine402(joint, self._dyn, self._values, self._scaling,
-                                      self.emcy, self.nmt, self._faults)
-        self.pdos = PdoService(node_id, segment, self.objects, self.nmt, self.emcy,
-                               self._faults, self._tx, self._tx_frame,
-                               self.cia402.on_controlword)
+        self.keys = AxisKeys.of(number)
+        self._values = node.objects.values
+        self._dyn = node._dyn
+        self._faults = node._faults
+        self._rng = node._seg.rng
+        self.scaling = Scaling(self.keys)
+        self.cia402 = StateMachine402(joint, self._dyn, self._values, self.scaling, node.emcy,
+                                      self._faults, self.keys, node._fault_reset)
 
     # ------------------------------------------------------------------ read-only view
-    @property
-    def nmt_state(self) -> NmtState:
-        return self.nmt.state
-
     @property
     def state402(self) -> State402:
         return self.cia402.state
 
     @property
     def statusword(self) -> int:
-        return int(self._values[STATUSWORD])
+        return int(self._values[self.keys.statusword])
 
     @property
     def controlword(self) -> int:
-        return int(self._values[CONTROLWORD])
+        return int(self._values[self.keys.controlword])
 
     @property
     def mode_display(self) -> int:
-        return int(self._values[MODE_DISPLAY])
+        return int(self._values[self.keys.mode_display])
 
     @property
     def error_code(self) -> int:
-        return int(self._values[ERROR_CODE])
-
-    @property
-    def error_register(self) -> int:
-        return self.emcy.register
+        return int(self._values[self.keys.error_code])
 
     @property
     def position_increments(self) -> int:
-        return int(self._values[POSITION])
+        return int(self._values[self.keys.position])
 
     @property
     def velocity_increments(self) -> int:
-        return int(self._values[VELOCITY])
+        return int(self._values[self.keys.velocity])
 
     @property
     def torque_per_mille(self) -> int:
-        return int(self._values[TORQUE])
+        return int(self._values[self.keys.torque])
 
     @property
     def position_rad(self) -> float:
@@ -150,34 +132,182 @@ class SimulatedDrive:
 
     @property
     def increments_per_rad(self) -> float:
+        """Joint radians to position increments (the axis's 0x608F and 0x6091)."""
+        return self.scaling.increments_per_rad
+
+    @property
+    def nm_per_permille(self) -> float:
+        """Joint torque of one per mille of rated torque (the axis's 0x6076, gear ratio)."""
+        return self.scaling.nm_per_permille
+
+    def status_line(self) -> str:
+        node = self.node
+        try:
+            mode = c.Mode(self.mode_display).name
+        except ValueError:
+            mode = str(self.mode_display)
+        f = self._faults
+        flags = "".join((" STO" if node.sto_low else "", " SILENT" if f.silent else "",
+                         " NO-SYNC" if not f.answer_sync else ""))
+        axis = f" axis {self.number}" if len(node.axes) > 1 else ""
+        return (f"node {node.node_id:3d}{axis} {node.nmt_state.name:15s} "
+                f"{self.state402.name:22s} sw=0x{self.statusword:04X} mode={mode:4s} "
+                f"pos={self.position_rad:+9.4f} rad vel={self.velocity_rad_s:+9.4f} rad/s "
+                f"torque={self.torque_nm:+7.3f} Nm err=0x{self.error_code:04X}{flags}")
+
+    def trip_fault(self, code: int = c301.EMCY_GENERIC) -> None:
+        """An internal fault of this axis: the node's EMCY with ``code``, this axis's
+        0x603F, fault reaction, then FAULT; the other axes run on."""
+        self.node.trip_fault(code, axis=self.number)
+
+    # ------------------------------------------------------------------ each step
+    def sample(self, position: list[float], velocity: list[float],
+               torque: list[float]) -> None:
+        """Actual values from the joint's (rad, rad/s, Nm): integer counters wrap like a
+        drive's do, velocity and torque saturate at their object's range."""
+        j = self.joint
+        values = self._values
+        keys = self.keys
+        per_rad = self.scaling.increments_per_rad
+        q = position[j] * per_rad + self.cia402.position_offset
+        if self._faults.position_noise:
+            q += float(self._rng.normal(0.0, self._faults.position_noise))
+        values[keys.position] = (round(q) + _HALF32) % _SPAN32 - _HALF32
+        values[keys.velocity] = max(-_HALF32, min(_HALF32 - 1, round(velocity[j] * per_rad)))
+        values[keys.torque] = max(-_HALF16, min(
+            _HALF16 - 1, round(torque[j] / self.scaling.nm_per_permille)))
+
+
+class SimulatedDrive:
+    """A CiA 402 servo drive on a SimulatedSegment; use ``segment.drives[node_id]``.
+
+    ``axes`` (1..8) CiA 402 axes in the one node, on joints ``joint``, ``joint + 1``, ...
+    The node's properties and fault injection are axis 1's unless they are the node's
+    (NMT, error register, STO, the injected communication faults); ``axes[n - 1]`` or
+    ``axis(n)`` is axis n. Properties are safe to read from any thread; the
+    fault-injection methods take the segment lock.
+    """
+
+    def __init__(self, segment: Segment, node_id: int, joint: int,
+                 object_dictionary: objectdictionary.ObjectDictionary,
+                 fallbacks: Mapping[Key, Any] | None = None, axes: int = 1) -> None:
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"CANopen node id must be 1..127, got {node_id}")
+        problem = axes_problem(object_dictionary, axes)
+        if problem:
+            raise ValueError(f"simulated drive {node_id}: {problem}")
+        self.node_id = node_id
+        self.joint = joint
+        self.object_dictionary = object_dictionary
+        self._seg = segment
+        self._dyn = segment.dynamics
+        self._faults = InjectedFaults()
+        self._babble = Babble(segment)
+        self.objects = ObjectDictionaryServer(
+            object_dictionary, node_id, self._tx, self._after_write,
+            for_axes(fallback_values(1 << 20, 1.0) if fallbacks is None else fallbacks, axes),
+            [AxisKeys.of(n) for n in range(1, axes + 1)])
+        self._values = self.objects.values
+        self.nmt = NmtSlave(node_id, segment, self._values, self._tx,
+                            on_lost=self._heartbeat_lost, on_regained=self._errors_cleared)
+        self.emcy = EmcyProducer(node_id, self._values, self._tx,
+                                 stopped=lambda: self.nmt.state == NmtState.STOPPED)
+        self._sto_low = False
+        self.axes = tuple(SimulatedAxis(self, n, joint + n - 1) for n in range(1, axes + 1))
+        self.cia402 = self.axes[0].cia402
+        # each SYNC, per axis (bound once: this runs for every drive at 1 kHz)
+        self._command_joints = tuple(axis.cia402.command_joint for axis in self.axes)
+        self._after_steps = tuple((axis.cia402.end_ramp, axis.sample) for axis in self.axes)
+        self.pdos = PdoService(node_id, segment, self.objects, self.nmt, self.emcy,
+                               self._faults, self._tx, self._tx_frame,
+                               [(axis.keys, axis.cia402.on_controlword) for axis in self.axes])
+
+    def axis(self, number: int) -> SimulatedAxis:
+        """Axis ``number`` (1 = the first)."""
+        if not 1 <= number <= len(self.axes):
+            raise ValueError(f"simulated drive {self.node_id} has axes 1..{len(self.axes)}, "
+                             f"not {number}")
+        return self.axes[number - 1]
+
+    # ------------------------------------------------------------------ read-only view
+    @property
+    def nmt_state(self) -> NmtState:
+        return self.nmt.state
+
+    @property
+    def state402(self) -> State402:
+        return self.axes[0].state402
+
+    @property
+    def statusword(self) -> int:
+        return self.axes[0].statusword
+
+    @property
+    def controlword(self) -> int:
+        return self.axes[0].controlword
+
+    @property
+    def mode_display(self) -> int:
+        return self.axes[0].mode_display
+
+    @property
+    def error_code(self) -> int:
+        return self.axes[0].error_code
+
+    @property
+    def error_register(self) -> int:
+        return self.emcy.register
+
+    @property
+    def position_increments(self) -> int:
+        return self.axes[0].position_increments
+
+    @property
+    def velocity_increments(self) -> int:
+        return self.axes[0].velocity_increments
+
+    @property
+    def torque_per_mille(self) -> int:
+        return self.axes[0].torque_per_mille
+
+    @property
+    def position_rad(self) -> float:
+        """True joint position (no sensor noise)."""
+        return self.axes[0].position_rad
+
+    @property
+    def velocity_rad_s(self) -> float:
+        return self.axes[0].velocity_rad_s
+
+    @property
+    def torque_nm(self) -> float:
+        """Joint torque the power stage applied in the last step."""
+        return self.axes[0].torque_nm
+
+    @property
+    def increments_per_rad(self) -> float:
         """Joint radians to position increments (0x608F and 0x6091)."""
-        return self._scaling.increments_per_rad
+        return self.axes[0].increments_per_rad
 
     @property
     def nm_per_permille(self) -> float:
         """Joint torque of one per mille of rated torque (0x6076, gear ratio)."""
-        return self._scaling.nm_per_permille
+        return self.axes[0].nm_per_permille
 
     @property
     def sto_low(self) -> bool:
-        return self.cia402.sto_low
+        return self._sto_low
 
     def od_value(self, index: int, subindex: int = 0) -> Any:
         """Current value of an object, as the SDO server would return it."""
         return self._values[(index, subindex)]
 
     def status_line(self) -> str:
-        try:
-            mode = c.Mode(self.mode_display).name
-        except ValueError:
-            mode = str(self.mode_display)
-        f = self._faults
-        flags = "".join((" STO" if self.sto_low else "", " SILENT" if f.silent else "",
-                         " NO-SYNC" if not f.answer_sync else ""))
-        return (f"node {self.node_id:3d} {self.nmt_state.name:15s} {self.state402.name:22s} "
-                f"sw=0x{self.statusword:04X} mode={mode:4s} pos={self.position_rad:+9.4f} rad "
-                f"vel={self.velocity_rad_s:+9.4f} rad/s torque={self.torque_nm:+7.3f} Nm "
-                f"err=0x{self.error_code:04X}{flags}")
+        """Axis 1's status line (``status_lines``: every axis's)."""
+        return self.axes[0].status_line()
+
+    def status_lines(self) -> list[str]:
+        return [axis.status_line() for axis in self.axes]
 
     # ------------------------------------------------------------------ fault injection
     @contextlib.contextmanager
@@ -189,21 +319,23 @@ class SimulatedDrive:
             self._seg.finish_pending_step()
             yield
 
-    def trip_fault(self, code: int = c301.EMCY_GENERIC) -> None:
-        """An internal fault: EMCY with ``code``, fault reaction, then FAULT."""
+    def trip_fault(self, code: int = c301.EMCY_GENERIC, axis: int = 1) -> None:
+        """An internal fault of ``axis``: EMCY with ``code``, fault reaction, then FAULT."""
         if not 0 < code <= 0xFFFF:
             raise ValueError(f"EMCY error code must be 0x0001..0xFFFF, got 0x{code:X}")
+        machine = self.axis(axis).cia402
         with self._injecting():
-            self.cia402.fault(code)
+            machine.fault(code)
             self.pdos.emit_event_tpdos()
 
     def garble_statusword(self, xor: int = 0x0008) -> None:
-        """Every statusword this drive reports (TPDO, SDO) is XORed with ``xor`` from now on
-        (0 = healthy again): a bit error in firmware. The default flips the fault bit, which
-        makes switch on disabled, ready to switch on and switched on read as no CiA 402
-        state, and operation enabled as fault reaction active."""
+        """Every statusword this drive reports (TPDO, SDO; every axis's) is XORed with
+        ``xor`` from now on (0 = healthy again): a bit error in firmware. The default flips
+        the fault bit, which makes switch on disabled, ready to switch on and switched on
+        read as no CiA 402 state, and operation enabled as fault reaction active."""
         with self._injecting():
-            self._values[STATUSWORD] ^= self._faults.statusword_xor ^ xor
+            for axis in self.axes:
+                self._values[axis.keys.statusword] ^= self._faults.statusword_xor ^ xor
             self._faults.statusword_xor = xor
 
     def set_silent(self, silent: bool = True) -> None:
@@ -225,14 +357,25 @@ class SimulatedDrive:
             self._faults.tpdo_delay = float(seconds)
 
     def set_sto(self, low: bool) -> None:
-        """STO input low: the power stage is off and the drive holds in switch on disabled
-        (EMCY EMCY_STO, warning bit); back high: EMCY 0x0000, the drive may be enabled."""
+        """The node's STO input low: the power stage of every axis is off and each holds in
+        switch on disabled (EMCY EMCY_STO, warning bit); back high: EMCY 0x0000, the axes
+        may be enabled."""
+        low = bool(low)
         with self._injecting():
-            self.cia402.set_sto(bool(low))
+            if low == self._sto_low:
+                return
+            self._sto_low = low
+            for axis in self.axes:
+                axis.cia402.set_sto(low)
+            if low:
+                self.emcy.register |= 1
+                self.emcy.emit(c301.EMCY_STO)
+            else:
+                self._errors_cleared()
             self.pdos.emit_event_tpdos()
 
     def set_position_noise(self, std_increments: float) -> None:
-        """Gaussian noise (standard deviation, increments) on the reported 0x6064."""
+        """Gaussian noise (standard deviation, increments) on every axis's reported 0x6064."""
         if std_increments < 0:
             raise ValueError(f"noise must be >= 0, got {std_increments}")
         with self._injecting():
@@ -248,16 +391,40 @@ class SimulatedDrive:
         with self._injecting():
             self._babble.start(count, cob_id, data, burst)
 
+    # ------------------------------------------------------------------ errors of the node
+    def _fault_reset(self) -> None:
+        """An axis's fault reset: the error register keeps what is still wrong (another
+        axis's fault, STO), a lost heartbeat is forgotten; EMCY 0x0000."""
+        register = 1 if self._sto_low else 0
+        for axis in self.axes:
+            if axis.cia402.faulted:
+                register |= register_bits(axis.error_code)
+        self.emcy.register = register
+        self.nmt.lost.clear()
+        self.emcy.emit(c301.EMCY_NO_ERROR)
+
+    def _errors_cleared(self) -> None:
+        """A condition went away (STO high, a heartbeat back): EMCY 0x0000 if nothing else
+        is wrong now."""
+        if not (self._sto_low or self.nmt.lost
+                or any(axis.cia402.faulted for axis in self.axes)):
+            self.emcy.register = 0
+            self.emcy.emit(c301.EMCY_NO_ERROR)
+
     # ------------------------------------------------------------------ power-up and NMT
     def power_on(self) -> None:
-        """Power-on / reset node: whole OD to defaults, CiA 402 state machine restarts."""
+        """Power-on / reset node: whole OD to defaults, every axis's CiA 402 state machine
+        restarts."""
         self.objects.reset_all()
         self.emcy.clear_history()
-        self.emcy.register = 1 if self.sto_low else 0
-        self._scaling.update(self._values)
-        self.cia402.power_on()
-        j, dyn = self.joint, self._dyn
-        self._sample(float(dyn.position[j]), float(dyn.velocity[j]), float(dyn.torque[j]))
+        self.emcy.register = 1 if self._sto_low else 0
+        dyn = self._dyn
+        position, velocity, torque = (dyn.position.tolist(), dyn.velocity.tolist(),
+                                      dyn.torque.tolist())
+        for axis in self.axes:
+            axis.scaling.update(self._values)
+            axis.cia402.power_on()
+            axis.sample(position, velocity, torque)
         self._reset_communication()
 
     def _reset_communication(self) -> None:
@@ -268,19 +435,24 @@ class SimulatedDrive:
         self.nmt.load_consumers()
         self.nmt.start_heartbeat()
 
+    def _abort_connection(self) -> None:
+        """Every axis's 0x6007 reaction."""
+        for axis in self.axes:
+            axis.cia402.abort_connection(c301.EMCY_HEARTBEAT)
+
     def on_nmt(self, command: int) -> None:
         if command == NmtCommand.START:
             self.pdos.build()
             self.nmt.state = NmtState.OPERATIONAL
         elif command == NmtCommand.STOP:
             self.nmt.state = NmtState.STOPPED
-            self.cia402.abort_connection(c301.EMCY_HEARTBEAT)
+            self._abort_connection()
         elif command == NmtCommand.PRE_OPERATIONAL:
             self.nmt.state = NmtState.PRE_OPERATIONAL
         elif command == NmtCommand.RESET_NODE:
             self.power_on()
         elif command == NmtCommand.RESET_COMMUNICATION:
-            self.cia402.abort_connection(c301.EMCY_HEARTBEAT)
+            self._abort_connection()
             self._reset_communication()
         self.pdos.emit_event_tpdos()
 
@@ -291,19 +463,17 @@ class SimulatedDrive:
         self.nmt.on_guard_request(arrived)  # a silent drive hears it, its answer is lost
 
     def _heartbeat_lost(self) -> None:
-        """The manager's heartbeat or its guarding is lost: EMCY, 0x1029 error behaviour,
-        0x6007 reaction."""
-        option = self._values[(c.ABORT_CONNECTION_OPTION, 0)]
-        if option != c.AbortConnectionOption.FAULT:  # the fault sends its own EMCY
+        """The manager's heartbeat or its guarding is lost: EMCY (once, from the node, unless
+        an axis faults on it and sends its own), 0x1029 error behaviour, each axis's 0x6007
+        reaction."""
+        if all(self._values[axis.keys.abort_connection_option]
+               != c.AbortConnectionOption.FAULT for axis in self.axes):
             self.emcy.flag(c301.EMCY_HEARTBEAT)
             self.emcy.record(c301.EMCY_HEARTBEAT)
             self.emcy.emit(c301.EMCY_HEARTBEAT)
         self.nmt.apply_error_behaviour()
-        self.cia402.abort_connection(c301.EMCY_HEARTBEAT)
+        self._abort_connection()
         self.pdos.emit_event_tpdos()
-
-    def _heartbeat_regained(self) -> None:
-        self.cia402.errors_cleared()
 
     # ------------------------------------------------------------------ SDO
     def on_sdo(self, data: bytes) -> None:
@@ -315,20 +485,23 @@ class SimulatedDrive:
         self.pdos.emit_event_tpdos()
 
     def _after_write(self, key: Key, value: Any) -> None:
-        """An SDO download was accepted: make it take effect."""
-        index = key[0]
-        if key == CONTROLWORD:
-            self.cia402.on_controlword(value)
-        elif key == MODE:
-            self._values[MODE_DISPLAY] = value
+        """An SDO download was accepted: make it take effect (on its axis's objects)."""
+        index, subindex = key
+        number, base = axis_of(index, len(self.axes))
+        if number:
+            axis = self.axes[number - 1]
+            if key == axis.keys.controlword:
+                axis.cia402.on_controlword(value)
+            elif key == axis.keys.mode:
+                self._values[axis.keys.mode_display] = value
+            elif base in SCALING:
+                axis.scaling.update(self._values)
         elif index == c301.PRODUCER_HEARTBEAT_TIME:
             self.nmt.start_heartbeat()
         elif index == c301.CONSUMER_HEARTBEAT_TIME:
             self.nmt.load_consumers()
         elif index == c301.PREDEFINED_ERROR_FIELD:
             self.emcy.clear_history()
-        elif index in SCALING:
-            self._scaling.update(self._values)
         elif 0x1400 <= index <= 0x1A03:
             self.pdos.build()
 
@@ -337,35 +510,23 @@ class SimulatedDrive:
         return on_sync and self._faults.answer_sync and self.nmt.state == _OPERATIONAL
 
     def prepare_step(self, dt: float, on_sync: bool) -> None:
-        """Apply synchronous RPDOs and write this joint's command into the dynamics."""
+        """Apply synchronous RPDOs and write each axis's command into the dynamics."""
         if self._answers_sync(on_sync):
             self.pdos.apply_synchronous()
-        self.cia402.command_joint(dt)
+        for command_joint in self._command_joints:
+            command_joint(dt)
 
     def finish_step(self, on_sync: bool, position: list[float], velocity: list[float],
                     torque: list[float]) -> None:
         """After the dynamics step: end ramps, sample actual values, send TPDOs. The joint
         values come as the segment's lists of Python floats (one ``tolist`` per array and
         step instead of a numpy scalar per drive and value: this runs at 1 kHz)."""
-        self.cia402.end_ramp()
-        j = self.joint
-        self._sample(position[j], velocity[j], torque[j])
+        for end_ramp, sample in self._after_steps:
+            end_ramp()
+            sample(position, velocity, torque)
         if self._answers_sync(on_sync):
             self.pdos.send_synchronous()
         self.pdos.emit_event_tpdos()
-
-    def _sample(self, position: float, velocity: float, torque: float) -> None:
-        """Actual values from the joint's (rad, rad/s, Nm): integer counters wrap like a
-        drive's do, velocity and torque saturate at their object's range."""
-        values, scale = self._values, self._scaling
-        per_rad = scale.increments_per_rad
-        q = position * per_rad + self.cia402.position_offset
-        if self._faults.position_noise:
-            q += float(self._seg.rng.normal(0.0, self._faults.position_noise))
-        values[POSITION] = (round(q) + _HALF32) % _SPAN32 - _HALF32
-        values[VELOCITY] = max(-_HALF32, min(_HALF32 - 1, round(velocity * per_rad)))
-        values[TORQUE] = max(-_HALF16, min(_HALF16 - 1,
-                                           round(torque / scale.nm_per_permille)))
 
     def _tx(self, cob_id: int, data: bytes) -> None:
         if not self._faults.silent:

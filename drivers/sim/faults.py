@@ -21,6 +21,11 @@ from .port import Segment
 ERROR_REGISTER_BIT = {0x2: 1 << 1, 0x3: 1 << 2, 0x4: 1 << 3, 0x8: 1 << 4}
 
 
+def register_bits(code: int) -> int:
+    """The error register bits an error with EMCY ``code`` sets: generic, and its class's."""
+    return 1 | ERROR_REGISTER_BIT.get(code >> 12, 0)
+
+
 @dataclass
 class InjectedFaults:
     silent: bool = False          # transmit nothing at all
@@ -31,7 +36,7 @@ class InjectedFaults:
 
 
 class EmcyProducer:
-    """Error register, error history and EMCY frames of one drive."""
+    """Error register, error history and EMCY frames of one node (all its axes')."""
 
     def __init__(self, node_id: int, values: dict[Key, Any],
                  send: Callable[[int, bytes], None], stopped: Callable[[], bool]) -> None:
@@ -44,7 +49,7 @@ class EmcyProducer:
 
     def flag(self, code: int) -> None:
         """Set the generic bit and the bit of ``code``'s error class."""
-        self.register |= 1 | ERROR_REGISTER_BIT.get(code >> 12, 0)
+        self.register |= register_bits(code)
 
     def record(self, code: int) -> None:
         """Push ``code`` onto the error history 0x1003."""

@@ -6,11 +6,14 @@ PDO. Synchronous RPDOs (transmission type 0-240) take effect at the next SYNC; e
 ones (254/255) at once. Synchronous TPDOs go out every n-th SYNC (type 1-240) or on SYNC
 when changed (type 0); event-driven TPDOs whenever their data changed. PDOs are sent and
 received only in OPERATIONAL.
+
+The PDOs are the node's, shared by its axes (CiA 402-2): a PDO maps objects of any axis, and
+an RPDO's controlword or mode of operation takes effect on the axis whose object it is.
 """
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from operator import itemgetter
@@ -22,7 +25,7 @@ from .. import cia301 as c301
 from ..cia301 import NmtState
 from .faults import EmcyProducer, InjectedFaults
 from .nmt import NmtSlave
-from .objects import CONTROLWORD, MODE, MODE_DISPLAY, PDO_NOT_VALID, Key, ObjectDictionaryServer
+from .objects import PDO_NOT_VALID, AxisKeys, Key, ObjectDictionaryServer
 from .port import Segment
 
 _OPERATIONAL = NmtState.OPERATIONAL  # a module global: an enum member costs ~100 ns a look-up
@@ -39,19 +42,24 @@ class Pdo:
     layout: struct.Struct
     values_of: Callable[[dict[Key, Any]], tuple[Any, ...]]
     frame: can.Message             # TPDO: pre-encoded, filled in place before each send
-    controlword_at: int | None = None  # RPDO: where the controlword and the mode of
-    mode_at: int | None = None         # operation are in ``keys``, if mapped
+    # RPDO: where in ``keys`` an axis's controlword is, with what it does; where an axis's
+    # mode of operation is, with the axis's objects (each empty if none is mapped)
+    controlwords: tuple[tuple[int, Callable[[int], None]], ...] = ()
+    modes: tuple[tuple[int, AxisKeys], ...] = ()
     counter: int = 0
     last: bytes | None = None      # event-driven TPDO: what was sent last
     pending: bytes | None = None   # synchronous RPDO: received, applied at the next SYNC
 
 
 class PdoService:
+    """The node's PDOs. ``axes``: each axis's objects and what a controlword written to
+    it does (its state machine's ``on_controlword``)."""
+
     def __init__(self, node_id: int, segment: Segment, objects: ObjectDictionaryServer,
                  nmt: NmtSlave, emcy: EmcyProducer, faults: InjectedFaults,
                  send: Callable[[int, bytes], None],
                  send_frame: Callable[[can.Message], None],
-                 on_controlword: Callable[[int], None]) -> None:
+                 axes: Sequence[tuple[AxisKeys, Callable[[int], None]]]) -> None:
         self._node_id = node_id
         self._seg = segment
         self._objects = objects
@@ -61,7 +69,8 @@ class PdoService:
         self._faults = faults
         self._send = send
         self._send_frame = send_frame
-        self._on_controlword = on_controlword
+        self._controlword_of = {keys.controlword: on_cw for keys, on_cw in axes}
+        self._axis_of_mode = {keys.mode: keys for keys, _ in axes}
         self._tpdos: list[Pdo] = []
         self._rpdos: list[Pdo] = []
         self._event_tpdos: list[Pdo] = []
@@ -104,8 +113,11 @@ class PdoService:
         return Pdo(number=number, cob_id=raw & 0x7FF, valid=not raw & PDO_NOT_VALID,
                    trans_type=self._values.get((comm, 2), 255), keys=tuple(keys),
                    layout=layout, values_of=values_of, frame=frame,
-                   controlword_at=keys.index(CONTROLWORD) if CONTROLWORD in keys else None,
-                   mode_at=keys.index(MODE) if MODE in keys else None)
+                   controlwords=tuple((at, self._controlword_of[key])
+                                      for at, key in enumerate(keys)
+                                      if key in self._controlword_of),
+                   modes=tuple((at, self._axis_of_mode[key]) for at, key in enumerate(keys)
+                               if key in self._axis_of_mode))
 
     # ------------------------------------------------------------------ RPDOs
     def on_rpdo(self, pdo: Pdo, data: bytes) -> None:
@@ -129,21 +141,31 @@ class PdoService:
 
     def _apply(self, pdo: Pdo, data: bytes) -> None:
         """The PDO's objects take their values at once (one dict update: this runs for every
-        drive on every SYNC), then what the controlword and the mode make happen."""
+        drive on every SYNC), then what the modes and the controlwords make happen."""
         new = pdo.layout.unpack_from(data)
         values = self._values
-        mode_at = pdo.mode_at
-        if mode_at is not None and new[mode_at] != values[MODE] \
-                and not self._objects.mode_supported(new[mode_at]):
-            # a real drive ignores an unsupported mode from a PDO; the other objects apply
-            values.update((k, v) for k, v in zip(pdo.keys, new) if k != MODE)
-            mode_at = None
-        else:
-            values.update(zip(pdo.keys, new))
-        if mode_at is not None:
-            values[MODE_DISPLAY] = new[mode_at]
-        if pdo.controlword_at is not None:
-            self._on_controlword(new[pdo.controlword_at])
+        for at, axis in pdo.modes:  # (a display is read-only: never one of ``keys``)
+            mode = new[at]
+            if mode != values[axis.mode] and not self._objects.mode_supported(mode, axis):
+                self._apply_refusing_modes(pdo, new)
+                return
+            values[axis.mode_display] = mode
+        values.update(zip(pdo.keys, new))
+        for at, on_controlword in pdo.controlwords:
+            on_controlword(new[at])
+
+    def _apply_refusing_modes(self, pdo: Pdo, new: tuple[Any, ...]) -> None:
+        """``_apply`` of an RPDO with a mode the axis does not support: a real drive ignores
+        that mode; the other objects apply."""
+        values = self._values
+        refused = {axis.mode for at, axis in pdo.modes if new[at] != values[axis.mode]
+                   and not self._objects.mode_supported(new[at], axis)}
+        values.update((k, v) for k, v in zip(pdo.keys, new) if k not in refused)
+        for at, axis in pdo.modes:
+            if axis.mode not in refused:
+                values[axis.mode_display] = new[at]
+        for at, on_controlword in pdo.controlwords:
+            on_controlword(new[at])
 
     # ------------------------------------------------------------------ TPDOs
     def send_synchronous(self) -> None:

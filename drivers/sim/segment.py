@@ -42,7 +42,7 @@ from ..bus import enlarge_bus_buffer
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
-from .objects import fallback_values, load_object_dictionaries
+from .objects import MAX_AXES, fallback_values, load_object_dictionaries
 from .port import Route
 
 log = logging.getLogger(__name__)
@@ -130,17 +130,25 @@ class _Timers:
 class SimulatedSegment:
     """Simulated CiA 402 drives sharing one python-can bus.
 
-    ``params`` gives the joint physics and loop gains: one JointParams for every drive, or
-    a mapping node id -> JointParams (missing nodes get the defaults).
+    ``axes`` maps a node id to its number of CiA 402 axes (1..8, CiA 402-2: axis n's objects
+    at +0x800 (n - 1) in the same file; nodes not in it have one). Each axis is a joint of
+    ``dynamics``, numbered in order of node id, then axis (node 1 axis 1, node 1 axis 2,
+    node 2 axis 1, ...).
+
+    ``params`` gives the joint physics and loop gains: one JointParams for every joint, or
+    a mapping whose key is a node id (every axis of that node) or a (node id, axis) pair
+    (that axis; it wins over the node's). Joints not in it get the defaults.
     """
 
     def __init__(self, bus: can.BusABC, node_ids: Iterable[int], eds_path: str | None = None,
-                 params: JointParams | Mapping[int, JointParams] | None = None, *,
+                 params: JointParams | Mapping[int | tuple[int, int], JointParams]
+                 | None = None, *,
                  sync_period: float | None = None, max_dt: float = 0.05,
                  free_run_period: float | None = 0.05, seed: int = 0,
                  own_bus: bool = False, fd: bool = False,
                  increments_per_rev: int = 1 << 20, rated_torque_nm: float = 1.0,
-                 overrides: Mapping[tuple[int, int], Any] | None = None) -> None:
+                 overrides: Mapping[tuple[int, int], Any] | None = None,
+                 axes: Mapping[int, int] | None = None) -> None:
         ids = sorted(set(int(n) for n in node_ids))
         if not ids:
             raise ValueError("a simulated segment needs at least one node id")
@@ -151,6 +159,14 @@ class SimulatedSegment:
             raise ValueError(f"sync_period must be in (0, 1] s, got {sync_period}")
         if not 0 < max_dt <= 1:
             raise ValueError(f"max_dt must be in (0, 1] s, got {max_dt}")
+        axes = dict(axes or {})
+        unknown = sorted(set(axes) - set(ids))
+        if unknown:
+            raise ValueError(f"axes given for node ids {unknown}, which are not simulated")
+        bad_axes = {n: a for n, a in axes.items() if not 1 <= a <= MAX_AXES}
+        if bad_axes:
+            raise ValueError(f"a node has 1..{MAX_AXES} axes, got {bad_axes}")
+        axis_count = {n: axes.get(n, 1) for n in ids}
         self.bus = enlarge_bus_buffer(bus)  # the one receive thread may lag behind its socket
         self.node_ids = tuple(ids)
         self.sync_period = sync_period
@@ -168,10 +184,11 @@ class SimulatedSegment:
         self.sync_count = 0  # SYNC and NMT frames handled: tests wait on these
         self.nmt_count = 0
         self._own_bus = own_bus
+        joints = [(n, a) for n in ids for a in range(1, axis_count[n] + 1)]
         if isinstance(params, Mapping):
-            joint_params = [params.get(n, JointParams()) for n in ids]
+            joint_params = [params.get((n, a), params.get(n, JointParams())) for n, a in joints]
         else:
-            joint_params = [params or JointParams()] * len(ids)
+            joint_params = [params or JointParams()] * len(joints)
         self.dynamics = JointDynamics(joint_params)
         if not isinstance(increments_per_rev, int) or increments_per_rev <= 0 \
                 or not rated_torque_nm > 0:
@@ -184,8 +201,9 @@ class SimulatedSegment:
         fallbacks = fallback_values(increments_per_rev, rated_torque_nm,
                                     next(iter(dictionaries.values()), None))
         self.drives: dict[int, SimulatedDrive] = {
-            n: SimulatedDrive(self, n, j, dictionaries[n], fallbacks)
-            for j, n in enumerate(ids)}
+            n: SimulatedDrive(self, n, joints.index((n, 1)), dictionaries[n], fallbacks,
+                              axis_count[n])
+            for n in ids}
         for drive in self.drives.values():  # values the file gives that a run replaces
             drive.objects.defaults.update(overrides or {})
             drive.objects.values.update(overrides or {})
@@ -545,5 +563,6 @@ class SimulatedSegment:
         log.error("simulated segment: %r", exc, exc_info=exc)
 
     def status_lines(self) -> list[str]:
+        """One line per axis of every drive."""
         with self.lock:
-            return [d.status_line() for d in self.drives.values()]
+            return [line for d in self.drives.values() for line in d.status_lines()]

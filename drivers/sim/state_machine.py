@@ -6,36 +6,28 @@ when powered, then FAULT), fault reset on the rising edge of controlword bit 7, 
 and the 0x6007 reaction to a lost connection. Each SYNC, ``command_joint`` turns the state,
 the mode (CSP/CSV/CST) and the targets into this joint's loop command in the segment's
 dynamics; ``end_ramp`` ends a ramp once the joint stands still.
+
+One StateMachine402 per axis: it reads and writes its axis's objects in the node's values
+through the axis's ``AxisKeys`` (objects.py), so axis 2 runs the same code on 0x6840 and
+its siblings. The node's error register and EMCY (faults.py) are shared: a fault reset or
+the STO input ends in the node's reaction (drive.py), which knows the other axes.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
-from .. import cia301 as c301
 from .. import cia402 as c
 from ..cia402 import State402
 from .dynamics import JointDynamics, LoopMode
 from .faults import EmcyProducer, InjectedFaults
-from .nmt import NmtSlave
-from .objects import (
-    CONTROLWORD,
-    ERROR_CODE,
-    INTERPOLATION_TARGET,
-    MAX_TORQUE,
-    MODE_DISPLAY,
-    STATUSWORD,
-    TARGET_POSITION,
-    TARGET_TORQUE,
-    TARGET_VELOCITY,
-    TORQUE_OFFSET,
-    VELOCITY_OFFSET,
-    Key,
-)
+from .objects import AxisKeys, Key
 
 # States in which the power stage is on (the loops may produce torque).
 POWERED = (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE,
            State402.FAULT_REACTION_ACTIVE)
+FAULTY = (State402.FAULT_REACTION_ACTIVE, State402.FAULT)
 # States left for switch on disabled when STO goes low or on "disable voltage".
 VOLTAGE_STATES = (State402.READY_TO_SWITCH_ON, State402.SWITCHED_ON,
                   State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE)
@@ -51,8 +43,8 @@ SW_HOMING_ERROR = 1 << 13
 HOMING_TIME = 0.2  # s a simulated homing takes
 
 
-# What command_joint reads each SYNC, as plain ints and pre-built keys (objects.py): an enum
-# member or a key tuple built per access costs ~100 ns, and this runs for every drive at 1 kHz.
+# What command_joint reads each SYNC, as plain ints and pre-built keys (AxisKeys): an enum
+# member or a key tuple built per access costs ~100 ns, and this runs for every axis at 1 kHz.
 _LOOP_OFF, _LOOP_TORQUE, _LOOP_VELOCITY, _LOOP_POSITION = (
     int(LoopMode.OFF), int(LoopMode.TORQUE), int(LoopMode.VELOCITY), int(LoopMode.POSITION))
 _IP, _PP, _HOMING, _PV, _CSP, _CSV, _CST = (
@@ -63,34 +55,42 @@ _CW_HALT = c.CW_HALT
 
 
 class Scaling:
-    """Joint units from the factor group: 0x608F encoder resolution, 0x6091 gear ratio,
-    0x6076 rated torque (torque objects are motor torque; an ideal gearbox multiplies it
-    by the ratio)."""
+    """Joint units from an axis's factor group: 0x608F encoder resolution, 0x6091 gear
+    ratio, 0x6076 rated torque (torque objects are motor torque; an ideal gearbox multiplies
+    it by the ratio)."""
 
-    def __init__(self) -> None:
+    def __init__(self, keys: AxisKeys) -> None:
+        self._keys = keys
         self.increments_per_rad = 1.0
         self.nm_per_permille = 1.0
 
     def update(self, v: dict[Key, Any]) -> None:
         # a factor of 0 (a file's stated default; SDO writes of 0 are refused) counts as 1
-        increments = (v[(c.POSITION_ENCODER_RESOLUTION, 1)] or 1) \
-            / (v[(c.POSITION_ENCODER_RESOLUTION, 2)] or 1)
-        ratio = (v[(c.GEAR_RATIO, 1)] or 1) / (v[(c.GEAR_RATIO, 2)] or 1)
+        k = self._keys
+        increments = (v[k.resolution_increments] or 1) / (v[k.resolution_revolutions] or 1)
+        ratio = (v[k.gear_motor] or 1) / (v[k.gear_shaft] or 1)
         self.increments_per_rad = increments * ratio / (2.0 * math.pi)
-        self.nm_per_permille = (v[(c.RATED_TORQUE, 0)] or 1000) / 1e6 * ratio
+        self.nm_per_permille = (v[k.rated_torque] or 1000) / 1e6 * ratio
 
 
 class StateMachine402:
+    """One axis's CiA 402 state machine on its objects (``keys``) and its joint.
+
+    ``on_fault_reset`` is the node's part of a fault reset (transition 15): its error
+    register and the EMCY that says the error is gone.
+    """
+
     def __init__(self, joint: int, dynamics: JointDynamics, values: dict[Key, Any],
-                 scaling: Scaling, emcy: EmcyProducer, nmt: NmtSlave,
-                 faults: InjectedFaults) -> None:
+                 scaling: Scaling, emcy: EmcyProducer, faults: InjectedFaults,
+                 keys: AxisKeys, on_fault_reset: Callable[[], None]) -> None:
         self._j = joint
         self._dyn = dynamics
         self._values = values
         self._scale = scaling
         self._emcy = emcy
-        self._nmt = nmt
         self._faults = faults
+        self._keys = keys
+        self._on_fault_reset = on_fault_reset
         self.state = State402.NOT_READY_TO_SWITCH_ON
         self.sto_low = False
         self._last_controlword = 0
@@ -132,7 +132,7 @@ class StateMachine402:
             sw |= c.SW_VOLTAGE_ENABLED
         if self.sto_low:
             sw |= c.SW_WARNING
-        self._values[STATUSWORD] = sw ^ self._faults.statusword_xor
+        self._values[self._keys.statusword] = sw ^ self._faults.statusword_xor
         if state not in POWERED:
             self._ramping = False
 
@@ -159,7 +159,7 @@ class StateMachine402:
                 self._quick_stop()
             return
         if s == S.QUICK_STOP_ACTIVE:  # transition 16, only for options 5-8
-            if cw & 0x0F == 0x0F and self._values[(c.QUICK_STOP_OPTION, 0)] in (5, 6, 7, 8):
+            if cw & 0x0F == 0x0F and self._values[self._keys.quick_stop_option] in (5, 6, 7, 8):
                 self._ramping = False
                 self.set_state(S.OPERATION_ENABLED)
             return
@@ -170,7 +170,7 @@ class StateMachine402:
             elif s == S.SWITCHED_ON:
                 self.set_state(S.READY_TO_SWITCH_ON)
             elif s == S.OPERATION_ENABLED:
-                self._leave_operation(c.SHUTDOWN_OPTION, S.READY_TO_SWITCH_ON)
+                self._leave_operation(self._keys.shutdown_option, S.READY_TO_SWITCH_ON)
             return
         if s == S.READY_TO_SWITCH_ON:  # switch on (3), with enable operation also 4
             self.set_state(S.SWITCHED_ON)
@@ -179,17 +179,17 @@ class StateMachine402:
             self._ramping = False
             self.set_state(S.OPERATION_ENABLED)
         elif s == S.OPERATION_ENABLED and not cw & 0x08:  # disable operation (5)
-            self._leave_operation(c.DISABLE_OPERATION_OPTION, S.SWITCHED_ON)
+            self._leave_operation(self._keys.disable_operation_option, S.SWITCHED_ON)
 
-    def _leave_operation(self, option_index: int, target: State402) -> None:
+    def _leave_operation(self, option: Key, target: State402) -> None:
         """Shutdown / disable operation from operation enabled: option 1 ramps down first."""
-        if self._values[(option_index, 0)] == 1 and not self.sto_low:
+        if self._values[option] == 1 and not self.sto_low:
             self._start_ramp(self._quick_stop_decel(), then=target)
         else:
             self.set_state(target)
 
     def _quick_stop(self) -> None:
-        option = self._values[(c.QUICK_STOP_OPTION, 0)]
+        option = self._values[self._keys.quick_stop_option]
         if option <= 0 or self.sto_low:  # disable drive function: coast
             self.set_state(State402.SWITCH_ON_DISABLED)
             return
@@ -200,7 +200,7 @@ class StateMachine402:
         self._start_ramp(decel, then)
 
     def _quick_stop_decel(self) -> float:
-        value = self._values[(c.QUICK_STOP_DECELERATION, 0)]
+        value = self._values[self._keys.quick_stop_deceleration]
         if value <= 0:  # a file's placeholder 0: ten joint turns per second squared
             return 20.0 * math.pi
         return float(value) / self._scale.increments_per_rad
@@ -215,7 +215,7 @@ class StateMachine402:
     # ------------------------------------------------------------------ faults and inputs
     def abort_connection(self, code: int) -> None:
         """0x6007 reaction to heartbeat loss, NMT stop or reset communication."""
-        option = self._values[(c.ABORT_CONNECTION_OPTION, 0)]
+        option = self._values[self._keys.abort_connection_option]
         if option == c.AbortConnectionOption.FAULT:
             if self.state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
                 self.fault(code)
@@ -231,7 +231,7 @@ class StateMachine402:
     def fault(self, code: int) -> None:
         """Transition 13 (fault reaction: quick-stop ramp if powered), then 14."""
         self._emcy.flag(code)
-        self._values[ERROR_CODE] = code
+        self._values[self._keys.error_code] = code
         self._emcy.record(code)
         self._emcy.emit(code)
         if self.state == State402.FAULT:
@@ -243,52 +243,40 @@ class StateMachine402:
         else:
             self.set_state(State402.FAULT)
 
+    @property
+    def faulted(self) -> bool:
+        return self.state in FAULTY
+
     def _fault_reset(self) -> None:
-        """Transition 15 on the rising edge of controlword bit 7: EMCY 0x0000."""
-        self._emcy.register = 0
-        self._nmt.lost.clear()
-        self._values[ERROR_CODE] = 0
+        """Transition 15 on the rising edge of controlword bit 7; then the node's reaction
+        (EMCY 0x0000)."""
+        self._values[self._keys.error_code] = 0
         self.set_state(State402.SWITCH_ON_DISABLED)
-        if self.sto_low:
-            self._emcy.register |= 1
-        self._emcy.emit(c301.EMCY_NO_ERROR)
+        self._on_fault_reset()
 
     def set_sto(self, low: bool) -> None:
-        """The STO input: low switches the power stage off (EMCY, warning bit)."""
-        if low == self.sto_low:
-            return
+        """The STO input: low switches the power stage off (warning bit); the node sends
+        the EMCY."""
         self.sto_low = low
-        if low:
-            self._emcy.register |= 1
-            if self.state in VOLTAGE_STATES:
-                self.set_state(State402.SWITCH_ON_DISABLED)
-            else:
-                self.set_state(self.state)  # warning bit
-            self._emcy.emit(c301.EMCY_STO)
+        if low and self.state in VOLTAGE_STATES:
+            self.set_state(State402.SWITCH_ON_DISABLED)
         else:
-            self.set_state(self.state)
-            self.errors_cleared()
-
-    def errors_cleared(self) -> None:
-        """A condition went away: EMCY 0x0000 if nothing else is wrong now."""
-        if not (self.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)
-                or self.sto_low or self._nmt.lost):
-            self._emcy.register = 0
-            self._emcy.emit(c301.EMCY_NO_ERROR)
+            self.set_state(self.state)  # warning bit
 
     # ------------------------------------------------------------------ each SYNC
     def command_joint(self, dt: float) -> None:
         """Write this joint's loop command for the next dynamics step."""
         dyn, j, values = self._dyn, self._j, self._values
         nm_per_permille = self._scale.nm_per_permille
-        dyn.torque_limit[j] = values[MAX_TORQUE] * nm_per_permille
+        keys = self._keys
+        dyn.torque_limit[j] = values[keys.max_torque] * nm_per_permille
         dyn.target_velocity[j] = 0.0
         dyn.torque_feedforward[j] = 0.0
         state = self.state
         if state not in POWERED or self.sto_low:
             dyn.mode[j] = _LOOP_OFF
             return
-        halt = bool(values[CONTROLWORD] & _CW_HALT)
+        halt = bool(values[keys.controlword] & _CW_HALT)
         if state == _ENABLED and halt and not self._ramping:
             self._start_ramp(self._quick_stop_decel(), then=None)
         elif state == _ENABLED and not halt and self._ramping \
@@ -307,12 +295,12 @@ class StateMachine402:
             dyn.mode[j] = _LOOP_VELOCITY
             return
         scale = self._scale.increments_per_rad
-        mode = values[MODE_DISPLAY]
+        mode = values[keys.mode_display]
         bits = 0
         if mode == _IP:
-            if values[CONTROLWORD] & CW_BIT4:  # interpolation enabled: follow 0x60C1:1
+            if values[keys.controlword] & CW_BIT4:  # interpolation enabled: follow 0x60C1:1
                 dyn.mode[j] = _LOOP_POSITION
-                dyn.target_position[j] = values[INTERPOLATION_TARGET] / scale
+                dyn.target_position[j] = values[keys.interpolation_target] / scale
                 bits = SW_BIT12
             else:  # interpolation inactive: hold still
                 dyn.mode[j] = _LOOP_VELOCITY
@@ -322,21 +310,21 @@ class StateMachine402:
             bits = self._homing(values, scale, dt)
         elif mode == _PV:
             dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = values[TARGET_VELOCITY] / scale
+            dyn.target_velocity[j] = values[keys.target_velocity] / scale
         elif mode == _CSP:
             dyn.mode[j] = _LOOP_POSITION
-            dyn.target_position[j] = values[TARGET_POSITION] / scale
-            dyn.target_velocity[j] = values[VELOCITY_OFFSET] / scale
-            dyn.torque_feedforward[j] = values[TORQUE_OFFSET] * nm_per_permille
+            dyn.target_position[j] = values[keys.target_position] / scale
+            dyn.target_velocity[j] = values[keys.velocity_offset] / scale
+            dyn.torque_feedforward[j] = values[keys.torque_offset] * nm_per_permille
         elif mode == _CSV:
             dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = (values[TARGET_VELOCITY]
-                                      + values[VELOCITY_OFFSET]) / scale
-            dyn.torque_feedforward[j] = values[TORQUE_OFFSET] * nm_per_permille
+            dyn.target_velocity[j] = (values[keys.target_velocity]
+                                      + values[keys.velocity_offset]) / scale
+            dyn.torque_feedforward[j] = values[keys.torque_offset] * nm_per_permille
         elif mode == _CST:
             dyn.mode[j] = _LOOP_TORQUE
-            dyn.torque_feedforward[j] = ((values[TARGET_TORQUE]
-                                          + values[TORQUE_OFFSET]) * nm_per_permille)
+            dyn.torque_feedforward[j] = ((values[keys.target_torque]
+                                          + values[keys.torque_offset]) * nm_per_permille)
         else:
             dyn.mode[j] = _LOOP_OFF  # no mode this drive runs selected: no torque
         if bits != self._mode_bits:
@@ -348,17 +336,17 @@ class StateMachine402:
         acknowledged by statusword bit 12 until bit 4 falls; the joint moves to the latched
         set-point no faster than 0x6081; bit 10 once it is there."""
         dyn, j = self._dyn, self._j
-        cw = values[CONTROLWORD]
+        cw = values[self._keys.controlword]
         rising = bool(cw & CW_BIT4) and not self._new_setpoint
         self._new_setpoint = bool(cw & CW_BIT4)
         if rising:
-            target = values[(c.TARGET_POSITION, 0)] / scale
+            target = values[self._keys.target_position] / scale
             if cw & CW_RELATIVE and self._pp_target is not None:
                 target += self._pp_target
             self._pp_target = target
         q = float(dyn.position[j])
         goal = q if self._pp_target is None else self._pp_target
-        limit = float(values[(c.PROFILE_VELOCITY, 0)]) / scale
+        limit = float(values[self._keys.profile_velocity]) / scale
         error = goal - q
         dyn.mode[j] = LoopMode.VELOCITY
         dyn.target_velocity[j] = max(-limit, min(limit, dyn.kp[j] * error))
@@ -374,21 +362,21 @@ class StateMachine402:
         outside CiA 402's 1..37 ends in bit 13 (homing error)."""
         dyn, j = self._dyn, self._j
         dyn.mode[j] = LoopMode.VELOCITY  # held still
-        cw = values[CONTROLWORD]
+        cw = values[self._keys.controlword]
         rising = bool(cw & CW_BIT4) and not self._new_setpoint
         self._new_setpoint = bool(cw & CW_BIT4)
         if rising:
             self._homing_left = HOMING_TIME
         if self._homing_left is None:
             return self._mode_bits & (SW_BIT12 | c.SW_TARGET_REACHED | SW_HOMING_ERROR)
-        if not 1 <= values[(c.HOMING_METHOD, 0)] <= 37:
+        if not 1 <= values[self._keys.homing_method] <= 37:
             self._homing_left = None
             return SW_HOMING_ERROR
         self._homing_left -= dt
         if self._homing_left > 0:
             return 0
         self._homing_left = None
-        self.position_offset = (values[(c.HOME_OFFSET, 0)]
+        self.position_offset = (values[self._keys.home_offset]
                                 - float(dyn.position[j]) * scale)
         return SW_BIT12 | c.SW_TARGET_REACHED
 
