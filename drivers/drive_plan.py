@@ -116,7 +116,15 @@ def plan_drive(drive: DriveConfig,
         taken |= {(ch.tx, ch.number) for ch in caps.rpdos + caps.tpdos
                   if not ch.mapping_writable}
     if taken:
-        caps = _without(caps, taken)
+        left = _without(caps, taken)
+        for kind, before, after in (("RPDOs", caps.rpdos, left.rpdos),
+                                    ("TPDOs", caps.tpdos, left.tpdos)):
+            if not after:
+                raise ValueError(f"{where}: no {kind} left for axis {drive.axis}: the node's "
+                                 f"other axes use {', '.join(ch.name for ch in before)}"
+                                 + (" (a fixed mapping serves axis 1 only)"
+                                    if any(not ch.mapping_writable for ch in before) else ""))
+        caps = left
     problems: list[str] = []
     notes: list[str] = list(caps.file_notes)
     commissioned = caps.commissioned_node_id

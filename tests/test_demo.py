@@ -151,8 +151,8 @@ def test_demo_says_once_what_is_wrong_with_a_file(tmp_path, capsys):
     no_heartbeat.write_text(head + "[1017]" + tail.replace("AccessType=rw", "AccessType=ro", 1))
     assert main(["demo", "--eds", str(no_heartbeat), "--drives", "3", "--no-record"]) == 2
     assert capsys.readouterr().out.splitlines() == [
-        f"demo: --eds: {no_heartbeat} has no writable heartbeat producer (0x1017): "
-        "rocoma-can supervises every drive by its heartbeat"]
+        f"demo: --eds: {no_heartbeat} has neither a writable heartbeat producer (0x1017) "
+        "nor node guarding (0x100C/0x100D): rocoma-can must see every drive's life"]
 
 
 def test_demo_config_problems_are_not_prefixed_twice(capsys):

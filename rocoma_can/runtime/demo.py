@@ -149,7 +149,8 @@ def emulate(path: str, drives: int) -> Emulated:
         try:
             plan_drives([axis(n) for n in range(1, fitted.axes + 2)])
         except ValueError as exc:
-            notes.append(f"axis {fitted.axes + 1} not driven: {exc}")
+            why = str(exc).removeprefix(f"drive 'joint{fitted.axes + 1}': ").split("; ")[0]
+            notes.append(f"axis {fitted.axes + 1} not driven: {why}")
             break
         fitted.axes += 1
     if fitted.axes > 1:
