@@ -17,10 +17,8 @@ import numpy as np
 import pytest
 from fixtures.driver_rig import (
     MANAGER_NODE_ID,
-    VCAN,
     VIRTUAL,
     Brake,
-    Can,
     HoldPD,
     Rig,
     Sine,
@@ -36,12 +34,6 @@ from rocoma_can.drivers.joints import JointMode
 
 NODES = VIRTUAL.nodes
 RPDO1 = {cia301.RPDO_BASE[0] + n: n for n in NODES}  # any drive's RPDO1 in these tests
-
-
-@pytest.fixture(params=[pytest.param(VIRTUAL, id="virtual"),
-                        pytest.param(VCAN, id="vcan", marks=pytest.mark.vcan)])
-def can_setup(request) -> Can:
-    return request.param
 
 
 @pytest.fixture

@@ -16,10 +16,7 @@ from pathlib import Path
 import can
 import pytest
 from fixtures.driver_rig import (
-    VCAN,
-    VIRTUAL,
     Brake,
-    Can,
     Rig,
     Sine,
     seconds_until_all_off,
@@ -34,12 +31,6 @@ from rocoma_can.drivers.drive_plan import plan_drive
 from rocoma_can.drivers.joints import JointMode
 
 GUARDED = str(Path(__file__).parent / "fixtures" / "eds" / "guarded.eds")
-
-
-@pytest.fixture(params=[pytest.param(VIRTUAL, id="virtual"),
-                        pytest.param(VCAN, id="vcan", marks=pytest.mark.vcan)])
-def can_setup(request) -> Can:
-    return request.param
 
 
 @pytest.fixture

@@ -42,6 +42,16 @@ def _sync_until(bench, predicate: Callable[[], bool], what: str, seconds: float)
         bench.sync(1)
 
 
+def _enable_both_by_sdo(bench, node, first: Mode, second: Mode) -> None:
+    """NMT start, each axis's mode, then shutdown, switch on, enable operation on both."""
+    bench.nmt(NmtCommand.START, 1)
+    for index, mode in ((0x6060, first), (0x6860, second)):
+        node.sdo[index].raw = int(mode)
+    for cw in (0x06, 0x07, 0x0F):
+        node.sdo[0x6040].raw = cw
+        node.sdo[0x6840].raw = cw
+
+
 def test_two_axis_node_boots_once_and_beats_once(sim_bench):
     bench, node, drive = _bench(sim_bench)
     rec = bench.recorder
@@ -101,12 +111,7 @@ def test_each_axis_has_its_own_scaling(sim_bench):
 def test_nmt_stop_aborts_the_connection_of_every_axis(sim_bench):
     bench, node, drive = _bench(sim_bench)
     axis1, axis2 = drive.axes
-    bench.nmt(NmtCommand.START, 1)
-    for index, mode in ((0x6060, Mode.CSV), (0x6860, Mode.CSV)):
-        node.sdo[index].raw = int(mode)
-    for cw in (0x06, 0x07, 0x0F):
-        node.sdo[0x6040].raw = cw
-        node.sdo[0x6840].raw = cw
+    _enable_both_by_sdo(bench, node, Mode.CSV, Mode.CSV)
     assert axis1.state402 == axis2.state402 == State402.OPERATION_ENABLED
     bench.nmt(NmtCommand.STOP, 1)  # 0x6007 = 0x6807 = 2 (the file's): disable voltage
     assert axis1.state402 == axis2.state402 == State402.SWITCH_ON_DISABLED
@@ -208,12 +213,7 @@ def test_lost_master_heartbeat_switches_each_axis_off_by_its_own_option(sim_benc
     node.sdo[0x1016][1].raw = (MASTER << 16) | round(consumer * 1000)
     node.sdo[0x6007].raw = int(AbortConnectionOption.DISABLE_VOLTAGE)
     node.sdo[0x6807].raw = int(AbortConnectionOption.FAULT)
-    bench.nmt(NmtCommand.START, 1)
-    for index, mode in ((0x6060, Mode.CSV), (0x6860, Mode.CSP)):
-        node.sdo[index].raw = int(mode)
-    for cw in (0x06, 0x07, 0x0F):
-        node.sdo[0x6040].raw = cw
-        node.sdo[0x6840].raw = cw
+    _enable_both_by_sdo(bench, node, Mode.CSV, Mode.CSP)
     assert axis1.state402 == axis2.state402 == State402.OPERATION_ENABLED
     mark = rec.mark()
     bench.send(0x700 + MASTER, b"\x05")  # monitoring starts; then the master is gone

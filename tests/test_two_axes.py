@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
-from fixtures.driver_rig import VCAN, VIRTUAL, Brake, Can, Rig
+from fixtures.driver_rig import Brake, Rig
 
 from rocoma_can import Controller, ManagerState, SwitchResult
 from rocoma_can.drivers import cia301
@@ -104,12 +104,6 @@ def test_check_config_plans_the_axes_of_a_node_together():
 
 
 # --- on a bus, against a simulated two-axis node --------------------------------------------
-@pytest.fixture(params=[pytest.param(VIRTUAL, id="virtual"),
-                        pytest.param(VCAN, id="vcan", marks=pytest.mark.vcan)])
-def can_setup(request) -> Can:
-    return request.param
-
-
 @pytest.fixture
 def two_axes(can_setup, virtual_channel, sim_segment_factory, bus_factory):
     """A simulated node 1 with two axes and a rig driving both (joints a1, a2)."""
