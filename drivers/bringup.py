@@ -269,6 +269,8 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
         raise NoAnswer(f"no SDO reply to 0x1000: {e}") from e
     if device_type & 0xFFFF != 402:
         raise RuntimeError(f"is not a CiA 402 drive (0x1000 = 0x{device_type:08X})")
+    for axis in plan.other_axes:  # pre-operational stops their RPDOs: switched off first
+        NamedSdo(node.sdo, axis).download(cia402.CONTROLWORD, 0, _u16(0))
     try:
         supported = struct.unpack("<I", sdo.upload(cia402.SUPPORTED_DRIVE_MODES, 0)[:4])[0]
     except canopen.SdoAbortedError:
@@ -302,6 +304,11 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
     if node_level:
         node.nmt.send_command(cia301.NmtCommand.START)
     return ConfigResult(statusword, error_code)
+
+
+#: The longest the SDO switch-off waits for another axis's configuration to free the node's
+#: SDO client (seconds): a configuration is a few dozen SDO exchanges.
+SWITCH_OFF_WAIT = 5.0
 
 
 class DriveBringup:
@@ -344,8 +351,13 @@ class DriveBringup:
 
     def write_controlword_by_sdo(self, value: int) -> bool:
         """For the SDO switch-off (switch_off.py): False, without writing, while this
-        drive's configuration holds its SDO client (it is in start-up: torque off)."""
-        if not self._sdo_lock.acquire(blocking=False):
+        drive's own configuration runs (it is in start-up: torque off). Another axis of its
+        node may hold the node's SDO client for its configuration while this one runs
+        enabled: then this waits for it (on the switch-off thread, never the cycle's), at
+        most ``SWITCH_OFF_WAIT``."""
+        if self.phase == Phase.CONFIGURING:
+            return False
+        if not self._sdo_lock.acquire(timeout=SWITCH_OFF_WAIT):
             return False
         try:
             self.node.sdo.download(cia402.on_axis(cia402.CONTROLWORD, self.drive.axis), 0,

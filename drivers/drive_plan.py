@@ -42,6 +42,7 @@ class DrivePlan:
     guarded: bool = False       # watched by node guarding (0x100C/0x100D), not heartbeat
     leads_node: bool = True     # configures its node (NMT, heartbeat or guarding, consumer,
                                 # unused PDOs): False for the higher axes of a shared node
+    other_axes: tuple[int, ...] = ()  # the node's other axes (set on the one that leads)
 
     def report(self) -> list[str]:
         """check-config's lines for this drive."""
@@ -87,8 +88,9 @@ def plan_drives(drives: Sequence[DriveConfig], first_bus: str = "") -> list[Driv
                 own = _channels_of(plan.layout)
                 every = {(ch.tx, ch.number) for ch in plan.caps.rpdos + plan.caps.tpdos}
                 drop = (taken if k == 0 else every) - own
+                others = tuple(drives[j].axis for j in members[1:]) if k == 0 else ()
                 plans[i] = dataclasses.replace(plan, caps=_without(plan.caps, drop),
-                                               leads_node=k == 0)
+                                               leads_node=k == 0, other_axes=others)
     return [p for p in plans if p is not None]
 
 
@@ -212,6 +214,10 @@ def _guarding(drive: DriveConfig, caps: DriveCapabilities, problems: list[str],
                         "drive's life")
     guarded = guarding and (drive.guarding == "node_guarding" or (
         drive.guarding == "auto" and caps.guarded_by_default()))
+    if guarded and not heartbeat and caps.value(cia301.PRODUCER_HEARTBEAT_TIME):
+        problems.append(f"{caps.source} has a read-only heartbeat producer (0x1017 = "
+                        f"{caps.value(cia301.PRODUCER_HEARTBEAT_TIME)}): a node that sends "
+                        "heartbeats does not answer node guarding (CiA 301)")
     if guarded and drive.guarding == "auto":
         why = "no heartbeat producer (0x1017)" if not heartbeat else \
             "no heartbeat consumer (0x1016): guarding is how it watches the manager"

@@ -309,13 +309,15 @@ class CanopenHardware:
         # heartbeat_ms from the cycle, once the drive is configured; the answers come in
         # as heartbeats do, with a toggle bit that must change
         self._guarded = [p.guarded and p.leads_node for p in self.plans]  # once per node
-        self._any_guarded = any(self._guarded)
         self._guard_frames = [can.Message(arbitration_id=cia301.HEARTBEAT + d.node_id,
                                           is_remote_frame=True, dlc=1, is_extended_id=False)
                               for d in drives]
-        self._guard_period = np.array([d.heartbeat_ms / 1000.0 for d in drives])
-        self._guard_due = np.full(n, math.inf)   # inf: not guarded (yet)
+        self._guard_period = [d.heartbeat_ms / 1000.0 for d in drives]
+        self._guarded_drives = [i for i in range(n) if self._guarded[i]]
+        self._guard_due = [math.inf] * n         # inf: not guarded (yet)
+        self._next_guard = math.inf              # the earliest of them
         self._toggle = [-1] * n                  # the last answer's toggle bit; -1: none yet
+        self._asked = [0] * n                    # requests sent since the last answer taken
         self.guard_repeats = 0                   # answers whose toggle bit did not change
         self._manager_state = ManagerState.FAILPROOF  # as of the last write
 
@@ -559,13 +561,16 @@ class CanopenHardware:
             nmt_state &= ~cia301.GUARD_TOGGLE
             if nmt_state == cia301.NmtState.BOOT_UP:  # a boot-up restarts the toggling
                 self._toggle[i] = -1
-            elif toggle == self._toggle[i]:
-                # the same answer again, not one to the last request: it does not count
-                # (answers that never toggle run into the deadline, a guarding loss)
+            elif toggle == self._toggle[i] and self._asked[i] < 2:
+                # the answer taken last, again (a stale or doubled frame): it does not
+                # count (answers that never toggle run into the deadline, a guarding loss).
+                # After two requests or more the same bit is a new answer: the one between
+                # was lost, and one lost frame is not a lost drive.
                 self.guard_repeats += 1
                 return
             else:
                 self._toggle[i] = toggle
+                self._asked[i] = 0
         for k in self._node[i]:  # every axis of the node: its NMT state is theirs
             self._hb_state[k] = nmt_state
             self._hb_time[k] = t
@@ -606,7 +611,7 @@ class CanopenHardware:
                 # Life guarding likewise starts with the first guard request.
                 self._next_heartbeat = -math.inf
                 if self._guarded[i]:
-                    self._guard_due[i] = -math.inf
+                    self._guard_due[i] = self._next_guard = -math.inf
 
     def _still_latched(self, i: int, event: FaultEvent) -> Callable[[], bool]:
         """For the SDO switch-off: whether drive i is still latched by ``event``."""
@@ -688,7 +693,7 @@ class CanopenHardware:
             due = self._next_heartbeat + self.manager_heartbeat_period
             self._next_heartbeat = (due if due > self._now
                                     else self._now + self.manager_heartbeat_period)
-        if self._any_guarded and self._guard_due.min() <= self._now:
+        if self._now >= self._next_guard:
             self._guard()
         limit = self.supervisor.tpdo_timeout_cycles
         for port in ports:
@@ -700,11 +705,17 @@ class CanopenHardware:
         """The guard requests that are due, on the grid heartbeats use (``_end_of_write``).
         Like the manager's heartbeat they come from the cycle only: a loop that stops or
         hangs stops guarding, and each guarded drive's life guarding times out."""
-        now, due, period = self._now, self._guard_due, self._guard_period
-        for i in np.flatnonzero(due <= now).tolist():
-            self._send_of[i](self._guard_frames[i])
-            nxt = due[i] + period[i]
-            due[i] = nxt if nxt > now else now + period[i]
+        now, due, period, asked = self._now, self._guard_due, self._guard_period, self._asked
+        nearest = math.inf
+        for i in self._guarded_drives:
+            if due[i] <= now:
+                self._send_of[i](self._guard_frames[i])
+                asked[i] += 1
+                nxt = due[i] + period[i]
+                due[i] = nxt if nxt > now else now + period[i]
+            if due[i] < nearest:
+                nearest = due[i]
+        self._next_guard = nearest
 
     def _torque_off(self) -> None:
         """FAILPROOF: pre-encoded disable-voltage frames to every configured drive."""
@@ -976,9 +987,17 @@ class CanopenHardware:
             for i in restarted:  # a node configured again is NMT-reset: all its axes restart
                 if self.plans[i].leads_node:
                     for k in self._node[i][1:]:
-                        if k not in restarted and self._bringup[k].phase != Phase.CONFIGURING:
-                            sup.disarm(k)
-                            self._bringup[k].restart(now, probe_at_once=True)
+                        if k in restarted or self._bringup[k].phase == Phase.CONFIGURING:
+                            continue
+                        if self._bringup[k].phase == Phase.READY and sup.latched[k] is None:
+                            # it may be under command: the manager hears it drop out (an
+                            # e-stop, delivered this cycle), its configuration switched it
+                            # off by SDO before the node's NMT pre-operational
+                            sup.fault(k, "its node is configured again (recovery of drive "
+                                         f"{self.drives_config[i].name!r})", now)
+                        sup.disarm(k)
+                        sup.clear(k)
+                        self._bringup[k].restart(now, probe_at_once=True)
             return
         drives_ready = (all(b.phase == Phase.READY for b in self._bringup)
                         and not any(sup.latched) and sup.bus_latched is None)

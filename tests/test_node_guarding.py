@@ -154,6 +154,27 @@ def test_an_answer_whose_toggle_did_not_change_is_not_counted(can_setup, rig_on,
     assert rig.mgr.state == ManagerState.OK  # the real answers go on toggling
 
 
+def test_one_lost_answer_is_not_taken_for_a_repeat(can_setup, rig_on, frame_recorder,
+                                                   virtual_channel):
+    """The drive toggles with every answer it sends: after a lost one, the next carries the
+    bit of the one before it. Two requests on, that is a new answer, not a repeat."""
+    recorder = frame_recorder(can_setup.channel(virtual_channel), can_setup.interface)
+    segment, rig = rig_on()
+    _bring_up_and_hold(rig)
+    node = tuple(segment.drives)[0]
+    guard_s = rig.hw.drives_config[0].heartbeat_ms / 1000
+    mark = recorder.mark()
+    segment.drives[node].set_silent(True)  # it hears the next request, its answer is lost
+    assert rig.run_until(lambda: len(_guarding(recorder, node, mark)[0]) >= 1,
+                         guard_s + rig.setup.cycles_budget(10))
+    segment.drives[node].set_silent(False)
+    mark = recorder.mark()
+    assert rig.run_until(lambda: len(_guarding(recorder, node, mark)[1]) >= 2,
+                         3 * guard_s + rig.setup.cycles_budget(10))
+    assert rig.hw.guard_repeats == 0
+    assert rig.mgr.state == ManagerState.OK
+
+
 # --- which way a drive is watched (check-config), without a bus ----------------------------
 def _plan(eds: str | None, **kw):
     return plan_drive(DriveConfig("j1", 1, 4096, 1.0, eds=eds, **kw))

@@ -103,7 +103,8 @@ def test_no_abort_option_is_said_and_the_other_ways_are_named():
     assert "missing: 0x6007" in report
     assert "heartbeat consumer 0x1016 -> EMCY 0x8130 only" in report
     assert "0x1029:1 communication error" in report
-    assert "life guarding" not in report  # it has a heartbeat: node guarding is not driven
+    # it has a heartbeat: node guarding is not driven
+    assert "life guarding 0x100C/0x100D" not in report
     assert any("no 0x6007" in n for n in plan.notes)
 
 
