@@ -28,8 +28,8 @@ from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.sim.group import SegmentGroup
 from rocoma_can.drivers.sim.segment import SimulatedSegment
 from rocoma_can.interfaces import Controller, EmergencyController
+from rocoma_can.node.server import ManagerNode
 from rocoma_can.runtime import ControlLoop
-from rocoma_can.runtime.node import ManagerNode
 from rocoma_can.runtime.system import manager_for
 
 MANAGER_NODE_ID = 100

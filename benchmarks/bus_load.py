@@ -4,7 +4,7 @@
 
 Computed, not measured: frames per cycle come from the driver's own PDO layouts
 (drivers/pdo_layout.py, the same ``layout_for`` the hardware layer uses) and bits per frame
-from the classic-CAN formula the config check uses (rocoma_can.runtime.bus_load.frame_bits):
+from the classic-CAN formula the config check uses (rocoma_can.drivers.wire.frame_bits):
 8n + 47 bits for n data bytes (with intermission), plus up to floor((34 + 8n - 1) / 4) stuff
 bits in the worst case.
 Per cycle: every drive's RPDOs and TPDOs and one SYNC; per second on top: the manager's and
@@ -20,7 +20,7 @@ from _report import report
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.joints import JointMode
 from rocoma_can.drivers.pdo_layout import layout_for
-from rocoma_can.runtime.bus_load import frame_bits as wire_bits
+from rocoma_can.drivers.wire import frame_bits as wire_bits
 
 BITRATES = (500_000, 1_000_000)
 #: name -> (modes, feedback): the default drive and the leanest CSP drive

@@ -24,8 +24,8 @@ from _report import report, stats
 
 from rocoma_can import ManagerState
 from rocoma_can.drivers.joints import JointCommand, JointState
-from rocoma_can.runtime.flight import FrameTap
-from rocoma_can.runtime.trace import McapWriter, SignalTrace
+from rocoma_can.record.flight import FrameTap
+from rocoma_can.record.trace import McapWriter, SignalTrace
 
 
 class _Manager:

@@ -10,74 +10,19 @@ logs it and reports the create as failed).
 from __future__ import annotations
 
 import math
-import numbers
-import types
-import typing
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from rocoma_can.drivers.joints import JointMode
-
-
-class ParamError(ValueError):
-    """A parameter that is wrong. It keeps the parameter's name and the reason apart, so a
-    config loader can put the parameter in its path (``controllers[0].params.kp``) instead
-    of a message about a constructor call."""
-
-    def __init__(self, controller: str, param: str, reason: str) -> None:
-        self.controller = controller
-        self.param = param
-        self.reason = reason
-        super().__init__(f"{controller}: parameter {param!r}: {reason}")
+from rocoma_can.errors import ParamError
 
 
 def param_error(owner: Any, param: str, reason: str) -> ParamError:
     """The one error format: which controller, which parameter, what is wrong."""
     return ParamError(f"{type(owner).__name__} {owner.name!r}", param, reason)
-
-
-#: what an annotated parameter must be: the YAML scalars a constructor can be given (and
-#: numpy's numbers, from a caller in Python)
-_KINDS: dict[Any, tuple[str, Callable[[Any], bool]]] = {
-    float: ("a number (float)", lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool)),
-    int: ("an integer (int)",
-          lambda v: isinstance(v, numbers.Integral) and not isinstance(v, bool)),
-    bool: ("true or false (bool)", lambda v: isinstance(v, bool)),
-    str: ("a string (str)", lambda v: isinstance(v, str)),
-}
-
-
-def annotated_mismatch(cls: type, params: Mapping[str, Any]) -> ParamError | None:
-    """The first of ``params`` whose value is not what ``cls.__init__`` annotates it as
-    (float, int, bool, str, optionally ``| None``), or None.
-
-    A controller written as ``def __init__(self, name, kp: float = 20.0)`` that compares
-    ``kp < 0`` fails on ``kp: high`` with "'<' not supported between instances of 'str' and
-    'int'", which names neither the parameter nor what it should be; its annotation says
-    both. Parameters annotated otherwise (``Any``, lists, classes) are the constructor's to
-    check, as this library's controllers do with the helpers below.
-    """
-    try:
-        hints = typing.get_type_hints(cls.__init__)  # type: ignore[misc]  # the class's own
-    except Exception:  # noqa: BLE001 - unresolvable annotations: nothing to check against
-        return None
-    for param, value in params.items():
-        hint = hints.get(param)
-        optional = False
-        if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-            members = [a for a in typing.get_args(hint) if a is not type(None)]
-            optional = len(members) < len(typing.get_args(hint))
-            hint = members[0] if len(members) == 1 else None
-        if hint not in _KINDS or (value is None and optional):
-            continue
-        kind, fits = _KINDS[hint]
-        if not fits(value):
-            none = " or null" if optional else ""
-            return ParamError(cls.__name__, param, f"expected {kind}{none}, got {value!r}")
-    return None
 
 
 def _as_float(owner: Any, param: str, value: Any) -> float:

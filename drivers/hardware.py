@@ -46,7 +46,7 @@ The safety path, top to bottom (each step names where it lives):
    failure and the manager goes straight to FAILPROOF (the drives are off already).
 7. If the loop itself dies or hangs, nothing is sent at all, including the manager
    heartbeat (produced by ``write``, never by a kernel BCM task that would outlive the
-   process; the manager's CANopen node cannot start one either: runtime/node.py). Each
+   process; the manager's CANopen node cannot start one either: node/server.py). Each
    drive's heartbeat consumer (0x1016, set at start-up by bringup.configure) times out and
    its abort connection option (0x6007 = 2, disable voltage) switches the power stage off.
    A consumer watches only after the first heartbeat it receives, so ``_step_bringup`` has

@@ -1,5 +1,5 @@
 """SDO block upload, the server's side (CiA 301), for any canopen SdoServer: the manager
-node's (rocoma_can/runtime/sdo_server.py) and the simulated drive's (drivers/sim/objects.py).
+node's (rocoma_can/node/sdo_server.py) and the simulated drive's (drivers/sim/objects.py).
 
 canopen's SdoServer answers every block command with a normal upload: a client that opened
 a block upload of a value longer than its protocol switch threshold then gets a transfer

@@ -34,3 +34,15 @@ class Refused(RocomaError, RuntimeError):
 
 class HomingFailed(RocomaError, RuntimeError):
     """Homing of a drive did not end with it homed (the message names the drive and why)."""
+
+
+class ParamError(RocomaError, ValueError):
+    """A parameter that is wrong. It keeps the parameter's name and the reason apart, so a
+    config loader can put the parameter in its path (``controllers[0].params.kp``) instead
+    of a message about a constructor call."""
+
+    def __init__(self, controller: str, param: str, reason: str) -> None:
+        self.controller = controller
+        self.param = param
+        self.reason = reason
+        super().__init__(f"{controller}: parameter {param!r}: {reason}")

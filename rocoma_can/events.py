@@ -17,6 +17,11 @@ from dataclasses import dataclass, field
 log = logging.getLogger("rocoma_can.manager")
 
 
+#: How the failproof stop of the control loop's own ending is worded (runtime/loop.py): the
+#: flight recorder and the plot do not take it for a fault.
+STOP_CAUSE = "loop stopping:"
+
+
 class ManagerState(enum.IntEnum):
     FAILPROOF = 0
     EMERGENCY = 1

@@ -31,12 +31,15 @@ import difflib
 import importlib
 import inspect
 import logging
-from collections.abc import Mapping, Sequence
+import numbers
+import types
+import typing
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
-from .errors import PluginError
+from .errors import ParamError, PluginError
 from .interfaces import Controller, EmergencyController, FailproofController
 from .tuples import ControllerTuple, EmergencyControllerTuple
 
@@ -228,7 +231,6 @@ def _build_tuple(entry: Mapping[str, Any], name: str, where: str, base: type) ->
 
 def _instantiate(cls: type, name: str, params: Any,
                  where: str) -> Controller | EmergencyController | FailproofController:
-    from .controllers.params import ParamError, annotated_mismatch  # numpy: when building
     params_at = _at(where, "params")
     if params is None:
         params = {}
@@ -343,3 +345,44 @@ def _is_list(value: Any) -> bool:
 def _did_you_mean(word: str, choices: Any) -> str:
     close = difflib.get_close_matches(word, list(choices), n=1)
     return f", did you mean {close[0]!r}?" if close else ""
+
+
+#: what an annotated parameter must be: the YAML scalars a constructor can be given (and
+#: numpy's numbers, from a caller in Python)
+_KINDS: dict[Any, tuple[str, Callable[[Any], bool]]] = {
+    float: ("a number (float)", lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool)),
+    int: ("an integer (int)",
+          lambda v: isinstance(v, numbers.Integral) and not isinstance(v, bool)),
+    bool: ("true or false (bool)", lambda v: isinstance(v, bool)),
+    str: ("a string (str)", lambda v: isinstance(v, str)),
+}
+
+
+def annotated_mismatch(cls: type, params: Mapping[str, Any]) -> ParamError | None:
+    """The first of ``params`` whose value is not what ``cls.__init__`` annotates it as
+    (float, int, bool, str, optionally ``| None``), or None.
+
+    A controller written as ``def __init__(self, name, kp: float = 20.0)`` that compares
+    ``kp < 0`` fails on ``kp: high`` with "'<' not supported between instances of 'str' and
+    'int'", which names neither the parameter nor what it should be; its annotation says
+    both. Parameters annotated otherwise (``Any``, lists, classes) are the constructor's to
+    check, as this library's controllers do with the helpers below.
+    """
+    try:
+        hints = typing.get_type_hints(cls.__init__)  # type: ignore[misc]  # the class's own
+    except Exception:  # noqa: BLE001 - unresolvable annotations: nothing to check against
+        return None
+    for param, value in params.items():
+        hint = hints.get(param)
+        optional = False
+        if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+            members = [a for a in typing.get_args(hint) if a is not type(None)]
+            optional = len(members) < len(typing.get_args(hint))
+            hint = members[0] if len(members) == 1 else None
+        if hint not in _KINDS or (value is None and optional):
+            continue
+        kind, fits = _KINDS[hint]
+        if not fits(value):
+            none = " or null" if optional else ""
+            return ParamError(cls.__name__, param, f"expected {kind}{none}, got {value!r}")
+    return None

@@ -11,7 +11,7 @@ import yaml
 from test_config import good
 from test_services import NODE, Rig
 
-from rocoma_can.cli import main
+from rocoma_can.cli.main import main
 
 EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
 

@@ -5,7 +5,7 @@ import os
 import subprocess
 import sys
 
-from rocoma_can.cli import main
+from rocoma_can.cli.main import main
 
 
 def test_generated_package_tests_pass(tmp_path, capsys):

@@ -6,8 +6,8 @@ import sys
 import time
 from pathlib import Path
 
-from rocoma_can.cli import main
-from rocoma_can.runtime.demo import path_hint, run_demo
+from rocoma_can.cli.demo import path_hint, run_demo
+from rocoma_can.cli.main import main
 
 
 def test_demo_walk_through_passes():
@@ -73,7 +73,7 @@ def test_demo_cli_rejects_bad_options(capsys):
 def test_demo_records_its_run_and_plots_it(tmp_path):
     """What `rocoma-can demo` does by default: the run recorded (every cycle, event and
     frame), drawn, and both paths said."""
-    from rocoma_can.runtime.plot import load
+    from rocoma_can.record.plot import load
     lines: list[str] = []
     report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append, record=tmp_path)
     assert report.ok, "\n".join(lines)

@@ -21,12 +21,12 @@ from fixtures.running import DEMO_WAIT, runtime_running
 from fixtures.running import wait_for as wait_until
 
 from rocoma_can import Controller, ManagerState
-from rocoma_can.cli import main
+from rocoma_can.cli.demo import demo_config
+from rocoma_can.cli.main import main
 from rocoma_can.errors import ConfigError
+from rocoma_can.fleet.bridge import FleetError, open_session
 from rocoma_can.runtime import Runtime
 from rocoma_can.runtime.config import validate
-from rocoma_can.runtime.demo import demo_config
-from rocoma_can.runtime.fleet import FleetError, open_session
 
 RATE = 100.0
 BIN = Path(sys.executable).parent / "rocoma-can"

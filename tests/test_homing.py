@@ -13,7 +13,8 @@ from fixtures.driver_rig import VIRTUAL, Rig, Sine
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can import SwitchResult
-from rocoma_can.cli import main
+from rocoma_can.cli.demo import demo_config
+from rocoma_can.cli.main import main
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.homing import CW_HOMING_START, HOMING_MODE
 from rocoma_can.drivers.joints import JointMode
@@ -21,7 +22,6 @@ from rocoma_can.drivers.sim.state_machine import HOMING_TIME
 from rocoma_can.errors import HomingFailed
 from rocoma_can.runtime import Runtime
 from rocoma_can.runtime.config import validate
-from rocoma_can.runtime.demo import demo_config
 
 EDS = Path(__file__).parent / "fixtures" / "eds"
 # a homing: the drive enabled in mode 6, then the simulated drive's homing time

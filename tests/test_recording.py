@@ -20,12 +20,12 @@ import pytest
 import yaml
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
-from rocoma_can.cli import main
+from rocoma_can.cli.demo import demo_config
+from rocoma_can.cli.main import main
+from rocoma_can.record.flight import _slug
+from rocoma_can.record.trace import read_messages
 from rocoma_can.runtime import Runtime
 from rocoma_can.runtime.config import validate
-from rocoma_can.runtime.demo import demo_config
-from rocoma_can.runtime.flight import _slug
-from rocoma_can.runtime.trace import read_messages
 
 RATE = 100.0
 
@@ -58,7 +58,7 @@ def test_a_channel_named_with_many_digits_is_written_as_channel_1(suffix, tmp_pa
     """python-can numbers a channel by the digits its name ends in: an in-process bus named
     by a random id ("...-98765432") does not fit BLF's 16 bits; it is the file's channel 1,
     and the received frame is not changed (other receivers share it)."""
-    from rocoma_can.runtime.can_log import FrameLog
+    from rocoma_can.record.can_log import FrameLog
     frame_log = FrameLog(tmp_path / f"x{suffix}").start()
     msg = can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False,
                       channel="rocoma-98765432", timestamp=1.0)
@@ -229,7 +229,7 @@ def test_plot_draws_state_band_positions_torques_period_and_each_estop(bench, tm
                                                                        capsys):
     """The figure's axes, not its pixels: the five panels, a position and a target line per
     joint, the controllers on the band, a line at the e-stop with its cause listed."""
-    from rocoma_can.runtime.plot import PANELS, figure, load
+    from rocoma_can.record.plot import PANELS, figure, load
     config, segment = bench
     out = tmp_path / "rec"
     with Runtime(config, record=str(out)) as rt:
@@ -275,7 +275,7 @@ JOINTS = ("hip", "knee")
 
 def cycle(k: int, joints: int = 2) -> dict:
     """A well-formed /rocoma/cycle message, as the writer makes them."""
-    from rocoma_can.runtime.trace import JOINT_FIELDS
+    from rocoma_can.record.trace import JOINT_FIELDS
     return {"t": 0.01 * k, "period": 0.01, "work": 0.001, "late": 0.0, "state": "OK",
             "controller": "pd", **{f: [float(j) for j in range(joints)] for f in JOINT_FIELDS}}
 
@@ -287,7 +287,7 @@ def write_mcap(path, cycles, events=(), encoding: str = "json") -> None:
 
     from mcap.writer import Writer
 
-    from rocoma_can.runtime.trace import EVENT_SCHEMA, cycle_schema
+    from rocoma_can.record.trace import EVENT_SCHEMA, cycle_schema
     with open(path, "wb") as stream:
         writer = Writer(stream)
         writer.start()
@@ -489,7 +489,7 @@ def test_a_recording_that_cannot_be_written_stops_every_writer(config, small_dis
     """On a full disk the run records nothing, says so once and runs its time; on a
     read-only one the Runtime does not start (its files cannot be made). Either way no
     writer thread or open file is left."""
-    from rocoma_can.runtime.can_log import RecordingError
+    from rocoma_can.record.can_log import RecordingError
     kind, mount = small_disk
     caplog.set_level("WARNING")
     if kind == "read-only":
@@ -534,7 +534,7 @@ def test_the_flight_recorder_leaves_no_file_where_it_cannot_write(config, small_
 def test_a_frame_log_that_failed_keeps_nothing_more(tmp_path):
     """After a failed write no frame is queued any more: nothing would write it, and the
     bus reader goes on handing frames to it for the rest of the run."""
-    from rocoma_can.runtime.can_log import FrameLog
+    from rocoma_can.record.can_log import FrameLog
     with tmpfs(tmp_path / "disk") as mount:
         fill(mount)
         frame_log = FrameLog(mount / "bus.log", flush_period=0.01).start()

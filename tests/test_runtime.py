@@ -11,9 +11,9 @@ import can
 import pytest
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
+from rocoma_can.cli.demo import demo_config
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
-from rocoma_can.runtime.demo import demo_config
 
 
 @pytest.fixture

@@ -16,9 +16,9 @@ from fixtures.joint_plant import JointPlant
 from rocoma_can import ControllerManager, add_to_manager
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.errors import NoAnswer, Refused
-from rocoma_can.runtime.client import ManagerClient
-from rocoma_can.runtime.node import ManagerNode
-from rocoma_can.runtime.objects import ABORT_NOT_FOUND, ABORT_REFUSED
+from rocoma_can.node.client import ManagerClient
+from rocoma_can.node.objects import ABORT_NOT_FOUND, ABORT_REFUSED
+from rocoma_can.node.server import ManagerNode
 
 NODE = 100
 ESTOP_COB = 0x0A0
@@ -499,7 +499,7 @@ def test_only_an_accepted_estop_cob_id_is_logged_as_a_change(bus_factory, caplog
     changed = "e-stop COB-ID changed by SDO"
     try:
         with ManagerClient(bus_factory(), NODE, timeout=STALL) as client, \
-                caplog.at_level("WARNING", logger="rocoma_can.runtime.node"):
+                caplog.at_level("WARNING", logger="rocoma_can.node.server"):
             with pytest.raises(Refused) as info:
                 client.write(0x2130, 0x181)
             assert info.value.code == ABORT_NOT_FOUND and node.estop_cob_id == ESTOP_COB

@@ -265,7 +265,7 @@ def test_bring_up_track_and_torque_off_on_each_file(file, sim_segment_factory, b
 def test_the_demo_walks_through_on_each_file(file):
     """`rocoma-can demo --eds FILE`: the modes the file supports, the steps it cannot do
     skipped with the reason, and every step that runs passes."""
-    from rocoma_can.runtime.demo import run_demo
+    from rocoma_can.cli.demo import run_demo
     lines: list[str] = []
     report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append,
                       eds=str(EDS / file))
@@ -278,7 +278,7 @@ def test_the_demo_walks_through_on_each_file(file):
 
 
 def test_the_demo_says_why_it_cannot_use_a_file(tmp_path, capsys):
-    from rocoma_can.cli import main
+    from rocoma_can.cli.main import main
     velocity_only = tmp_path / "pv_only.eds"
     velocity_only.write_text((EDS / "minimal.eds").read_text().replace(
         "DefaultValue=0x00000180", "DefaultValue=0x00000100"))  # CSV only
@@ -328,9 +328,9 @@ def test_canopen_reads_every_file_as_the_driver_does():
 
 
 def test_a_controller_that_needs_missing_feedback_is_refused_at_load():
+    from rocoma_can.cli.demo import demo_config
     from rocoma_can.errors import ConfigError
     from rocoma_can.runtime.config import validate
-    from rocoma_can.runtime.demo import demo_config
     cfg = demo_config("x", drives=2, rate=100.0, emulated=None)
     for d in cfg["drives"]:
         d["eds"] = str(EDS / "minimal.eds")  # no 0x6077: no torque feedback

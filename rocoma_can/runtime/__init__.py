@@ -1,7 +1,7 @@
-"""Everything that runs the manager on a bus: config (the YAML), loop (one thread, fixed rate,
-a safe way out), system (hardware + manager + node wired), node (the manager's CANopen
-server) and client (what the CLI verbs use), commands (the CLI verbs), demo, scaffold
-(``rocoma-can new-controller``). Public names are imported on first use (``_lazy.py``)."""
+"""What runs the manager on a bus: config (the YAML, checked whole), bus_load (what the
+config puts on each bus), loop (one thread, fixed rate, a safe way out), system (hardware,
+manager, node, recorders and fleet bridge wired). Public names are imported on first use
+(``_lazy.py``)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING

@@ -21,7 +21,7 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
     timing: {advance: 0.5, initialize_fast: 0.5, overruns: 5, hang: 20}  # in cycles (dt):
                                    # the manager's wall-time supervision of controllers
     zenoh: {prefix: rocoma/<host>, mode: null, connect: [], listen: [], multicast: null,
-            allow_commands: false, deadman: null, required: true}  # optional (fleet.py);
+            allow_commands: false, deadman: null, required: true}  # optional (fleet/bridge.py);
                                    # null mode/multicast: Zenoh's own (peer, scouting on)
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
     controllers: [ ... ]           # rocoma_can.plugins format
@@ -53,10 +53,10 @@ from ..drivers.config import (
 from ..drivers.drive_plan import DrivePlan, plan_drive, plan_drives
 from ..drivers.pdo_layout import cob_id_clashes
 from ..errors import ConfigError
+from ..fleet.bridge import FleetConfig
+from ..fleet.bridge import parse as parse_fleet
 from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
-from .fleet import FleetConfig
-from .fleet import parse as parse_fleet
 from .loop import spin_fits
 
 if TYPE_CHECKING:  # loaded with the controllers, only when they are checked

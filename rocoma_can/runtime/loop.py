@@ -33,7 +33,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..events import ManagerState
+from ..events import STOP_CAUSE, ManagerState
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +56,6 @@ DEFAULT_SPIN = 0.0005
 #: 5 ms a loop that wakes for its 1 ms deadline can wait five periods for a busy simulator
 #: or reader thread.
 SWITCH_FRACTION = 0.1
-#: how the failproof stop of the loop's own ending is worded (the flight recorder does not
-#: take it for a fault)
-STOP_CAUSE = "loop stopping:"
 SWITCH_MIN, SWITCH_MAX = 5e-5, 5e-3
 
 

@@ -13,15 +13,15 @@ import can
 from ..controllers.torque_off import TorqueOff
 from ..drivers.bus import open_bus
 from ..drivers.hardware import CanopenHardware
+from ..fleet.bridge import FleetBridge, FleetConfig, FleetError
 from ..manager import ControllerManager
+from ..node.objects import RESULT_NAMES
+from ..node.server import ManagerNode
 from ..plugins import add_to_manager
+from ..record.flight import FlightRecorder, Recording, Taps
+from ..record.trace import SignalTrace
 from .config import RuntimeConfig
-from .fleet import FleetBridge, FleetConfig, FleetError
-from .flight import FlightRecorder, Recording, Taps
 from .loop import ControlLoop, TimingSummary
-from .node import ManagerNode
-from .objects import RESULT_NAMES
-from .trace import SignalTrace
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ class Runtime:
         """``record``: a directory for every frame and cycle (flight.Recording); ``flight``:
         the flight recorder's directory (None: off), keeping ``flight_seconds``;
         ``announce``: told each flight record's path (``rocoma-can run`` prints it).
-        ``config.fleet`` serves the manager on Zenoh (fleet.py): FleetError when Zenoh
+        ``config.fleet`` serves the manager on Zenoh (fleet/bridge.py): FleetError when Zenoh
         cannot be used and the section says ``required``; otherwise a warning, and the
         reason in the status report."""
         self.config = config
@@ -133,7 +133,7 @@ class Runtime:
     def _recorders(self, record: str | None, flight: str | None, seconds: float,
                    announce: Callable[[str], None] | None) -> SignalTrace | None:
         """The signal trace, the flight recorder and --record, with a passive handle of
-        every bus feeding their frame listeners (flight.py)."""
+        every bus feeding their frame listeners (record/flight.py)."""
         if record is None and flight is None:
             return None
         config = self.config

@@ -14,7 +14,7 @@ from fixtures.recorder import FrameRecorder
 
 from rocoma_can import SwitchResult, eds
 from rocoma_can.drivers.sim.segment import SimulatedSegment
-from rocoma_can.runtime.node import ManagerNode
+from rocoma_can.node.server import ManagerNode
 
 NODES = (1, 2, 3)
 #: The virtual-bus setup on three drives (its supervision outlasts the host's stall: the

@@ -16,8 +16,8 @@ from canopen.sdo.base import CrcXmodem
 from fixtures.budgets import STALL
 from safety_rig import SDO_RX, sdo_exchange
 
-from rocoma_can.runtime.client import ManagerClient
-from rocoma_can.runtime.objects import (
+from rocoma_can.node.client import ManagerClient
+from rocoma_can.node.objects import (
     ABORT_BLOCK_SIZE,
     ABORT_COMMAND_SPECIFIER,
     ABORT_SEQUENCE_NUMBER,
@@ -189,7 +189,7 @@ def test_canopens_block_upload_of_127_segments_is_served_in_paced_bursts(
     interface at most BURST segments at a time, the next burst no sooner than its gap."""
     import canopen
 
-    from rocoma_can.runtime.sdo_server import BURST
+    from rocoma_can.node.sdo_server import BURST
     _twelve_drives(service)
     expected = service.node._on_read(DRIVE_STATUS, 0, None).encode()  # type: ignore[arg-type]
     network = canopen.Network(bus_factory())

@@ -34,14 +34,14 @@ from test_services import ESTOP_COB as SERVICE_ESTOP
 from rocoma_can import ControllerManager, ManagerState, SwitchResult
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.errors import Refused
-from rocoma_can.runtime.client import ManagerClient
-from rocoma_can.runtime.config import ConfigError, load, validate
-from rocoma_can.runtime.objects import (
+from rocoma_can.node.client import ManagerClient
+from rocoma_can.node.objects import (
     ABORT_NOT_FOUND,
     ABORT_REFUSED,
     ABORT_TOO_LONG,
     MAX_DOWNLOAD,
 )
+from rocoma_can.runtime.config import ConfigError, load, validate
 
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 OK, FAILPROOF = ManagerState.OK, ManagerState.FAILPROOF
@@ -148,7 +148,7 @@ def test_estop_cob_id_changes_only_while_stopped_or_latched(service, caplog):
     assert refused.value.code == ABORT_REFUSED and service.node.estop_cob_id == SERVICE_ESTOP
     service.client.write(0x2111, 1)  # failproof stop
     assert service.wait_state(0)
-    with caplog.at_level(logging.WARNING, logger="rocoma_can.runtime.node"):
+    with caplog.at_level(logging.WARNING, logger="rocoma_can.node.server"):
         service.client.write(0x2130, 0x0B0)
     assert service.node.estop_cob_id == 0x0B0 and "e-stop COB-ID changed" in caplog.text
     service.client.write(0x2130, 0x80000000)  # bit 31: not valid = off

@@ -63,10 +63,10 @@ from ..drivers.cia301 import (
     TPDO_COMM,
     reserved_cob_id,
 )
+from ..drivers.wire import frame_bits
 from ..errors import HomingFailed
 from ..events import EventKind, ManagerEvent, ManagerState
 from ..manager import ControllerManager, SwitchResult
-from .bus_load import frame_bits
 from .objects import (
     ABORT_NO_RECOVERY,
     ABORT_NOT_FOUND,

@@ -31,9 +31,8 @@ from pathlib import Path
 import can
 
 from ..drivers.bus import readers_for
-from ..events import EventKind, ManagerEvent
+from ..events import STOP_CAUSE, EventKind, ManagerEvent
 from .can_log import FrameLog
-from .loop import STOP_CAUSE
 from .trace import Frame, McapWriter, SignalTrace
 
 log = logging.getLogger(__name__)

@@ -30,14 +30,14 @@ import can
 from ..cli_args import positive, seconds
 from ..errors import ConfigError, RocomaError
 from ..exit_codes import FAILED, OK, USAGE
-from .client import ManagerClient
-from .objects import STATE_NAMES
+from ..node.client import ManagerClient
+from ..node.objects import STATE_NAMES
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
     from ..drivers.drive_plan import DrivePlan
     from ..drivers.sim.segment import SimulatedSegment
-    from .loop import TimingSummary
-    from .system import Runtime
+    from ..runtime.loop import TimingSummary
+    from ..runtime.system import Runtime
 
 MANAGER_ID = 100
 #: the demo's buses: drivers/inproc.py, which copies a frame once per send, not once per
@@ -457,8 +457,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
-    from .config import validate
-    from .system import Runtime
+    from ..runtime.config import validate
+    from ..runtime.system import Runtime
     emulated = emulate(eds, drives) if eds else None
     if emulated is not None:
         out(f"rocoma-can demo: the drives emulate {eds}: modes {', '.join(emulated.modes)}")
@@ -588,7 +588,7 @@ class _Said(logging.Filter):
 
 def _plot(directory: Path, report: Report, out: Callable[[str], None]) -> None:
     """After the run (the recording closed): draw it, say where both are."""
-    from .plot import PlotError, plot
+    from ..record.plot import PlotError, plot
     report.recording = directory / "trace.mcap"
     logs = ", ".join(str(p) for p in sorted(directory.glob("*.log")))
     out(f"recording: {report.recording} (frames: {logs})")

@@ -9,15 +9,15 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from .exit_codes import INTERRUPTED, OK, USAGE
+from ..exit_codes import INTERRUPTED, OK, USAGE
 
 # Modules that contribute sub-commands, in help order.
 COMMAND_MODULES: tuple[str, ...] = (
-    "rocoma_can.runtime.demo",
-    "rocoma_can.runtime.commands",
-    "rocoma_can.runtime.record_cli",
-    "rocoma_can.runtime.fleet_client",
-    "rocoma_can.runtime.scaffold",
+    "rocoma_can.cli.demo",
+    "rocoma_can.cli.commands",
+    "rocoma_can.cli.record",
+    "rocoma_can.fleet.client",
+    "rocoma_can.cli.scaffold",
     "rocoma_can.drivers.sim.cli",
 )
 

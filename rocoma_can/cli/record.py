@@ -17,7 +17,7 @@ from ..cli_args import seconds
 from ..exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:
-    from .can_log import FrameLog
+    from ..record.can_log import FrameLog
 
 
 def _say(text: str) -> None:
@@ -26,7 +26,7 @@ def _say(text: str) -> None:
 
 def _record(args: argparse.Namespace) -> int:
     from ..drivers.bus import open_bus
-    from .can_log import BusRecording, RecordingError, check_path
+    from ..record.can_log import BusRecording, RecordingError, check_path
     try:
         check_path(args.file)
         bus = open_bus(args.interface, args.channel, receive_own_messages=False)
@@ -93,7 +93,7 @@ def _progress(log: FrameLog) -> Callable[[float | None], None]:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from .trace import TraceError
+    from ..record.trace import TraceError
     source = Path(args.file)
     out = Path(args.out) if args.out else source.with_suffix(".csv")
     if out.resolve() == source.resolve():
@@ -125,7 +125,7 @@ def _write_csv(source: Path, stream: Any) -> int:
     """The cycles of ``source`` as CSV rows on ``stream`` (a header first); the number of
     cycles. Per-joint columns are ``FIELD[JOINT]`` with the joints' names from the trace
     (their numbers where a trace carries none), as the arrays appear in PlotJuggler."""
-    from .trace import CYCLE_TOPIC, JOINT_FIELDS, SCALARS, joint_names, read_trace
+    from ..record.trace import CYCLE_TOPIC, JOINT_FIELDS, SCALARS, joint_names, read_trace
     writer = csv.writer(stream)
     rows = 0
     for topic, log_time, msg in read_trace(str(source)):
@@ -152,7 +152,7 @@ def _discard(part: Path) -> None:
 
 
 def _plot(args: argparse.Namespace) -> int:
-    from .plot import PlotError, plot
+    from ..record.plot import PlotError, plot
     try:
         path = plot(args.file, args.out or None)
     except PlotError as exc:

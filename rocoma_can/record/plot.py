@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import RocomaError
-from .loop import STOP_CAUSE
+from ..events import STOP_CAUSE
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

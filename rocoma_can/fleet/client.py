@@ -1,4 +1,4 @@
-"""Talking to managers over Zenoh (fleet.py serves them): the CLI verbs' ``--zenoh`` path
+"""Talking to managers over Zenoh (bridge.py serves them): the CLI verbs' ``--zenoh`` path
 and ``rocoma-can fleet``. A query that nobody answers is retried until its timeout (a new
 peer session finds the others within a moment), then NoAnswer."""
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any
 from ..cli_args import seconds
 from ..errors import NoAnswer, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
-from .fleet import (
+from .bridge import (
     STOPS,
     FleetError,
     close_session,
@@ -107,7 +107,7 @@ class FleetClient:
         return sorted(found)
 
 
-#: what each answer must hold, the fields a caller reads (fleet.py's documented shapes)
+#: what each answer must hold, the fields a caller reads (bridge.py's documented shapes)
 _SHAPES = {"status": ("state", str), "switch": ("result", str)}
 
 

@@ -1,5 +1,5 @@
 """The manager node's objects (eds/rocoma_manager.eds), values and SDO abort codes: what the
-node (node.py) serves and the client (client.py) asks for, in one place."""
+node (server.py) serves and the client (client.py) asks for, in one place."""
 from __future__ import annotations
 
 from canopen.sdo.constants import (

@@ -25,12 +25,11 @@ from typing import TYPE_CHECKING, Any
 from ..cli_args import flight_seconds, node_id, seconds, seconds_or_zero
 from ..errors import ConfigError, NoAnswer, Refused, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
-from . import fleet_client
-from .client import ManagerClient
-from .fleet import FleetConfig, FleetError
-from .fleet import parse as parse_fleet
-from .live import cycle_text
-from .objects import (
+from ..fleet import client as fleet_client
+from ..fleet.bridge import FleetConfig, FleetError
+from ..fleet.bridge import parse as parse_fleet
+from ..node.client import ManagerClient
+from ..node.objects import (
     ABORT_NOT_FOUND,
     CLEAR,
     ESTOP,
@@ -39,9 +38,10 @@ from .objects import (
     RESULT_NAMES,
     SWITCH_REFUSAL,
 )
+from .live import cycle_text
 
 if TYPE_CHECKING:  # the client verbs do not import the config (a fast start)
-    from .config import RuntimeConfig
+    from ..runtime.config import RuntimeConfig
 
 
 def _err(message: str) -> None:
@@ -51,7 +51,7 @@ def _err(message: str) -> None:
 # --- run / check-config -----------------------------------------------------------------------
 
 def _check_config(args: argparse.Namespace) -> int:
-    from .config import load
+    from ..runtime.config import load
     try:
         config = load(args.config)
     except ConfigError as exc:
@@ -104,8 +104,8 @@ def recording_available() -> bool:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .config import load
-    from .system import Runtime
+    from ..runtime.config import load
+    from ..runtime.system import Runtime
     try:
         config = load(args.config, rate=args.rate)
     except ConfigError as exc:

@@ -496,6 +496,6 @@ _NOT_RUNNING = "the manager's loop is not running"
 
 
 def _event_message(event: ManagerEvent) -> dict[str, Any]:
-    """A trace's event message (trace.py) with its wall-clock time."""
-    from .trace import event_message  # numpy: not for the CLI verbs' quick start
+    """A trace's event message (record/trace.py) with its wall-clock time."""
+    from ..record.trace import event_message  # numpy: not for the CLI verbs' quick start
     return {**event_message(event), "time": time.time() - (time.monotonic() - event.time)}

@@ -1,0 +1,30 @@
+"""What one CAN frame costs on the wire, in bits at the nominal bit rate: the bus-load check
+(runtime/bus_load.py) and the manager node's block-upload pacing (node/server.py) count
+with it."""
+from __future__ import annotations
+
+
+def frame_bits(data_bytes: int, worst_case: bool = True,
+               data_ratio: float | None = None) -> float:
+    """Bits on the wire of an 11-bit CAN frame, 3-bit intermission included, counted at the
+    nominal (arbitration) bit rate.
+
+    ``data_ratio`` None: a classic frame, 47 + 8n bits plus stuffing. Otherwise a CAN FD
+    frame whose data phase (ESI, DLC, data, stuff count, CRC-17 up to 16 bytes or CRC-21,
+    the fixed stuff bits and the CRC delimiter) runs at the data bit rate: ``data_ratio`` =
+    nominal / data bit rate (1.0 without bit rate switching). Worst case: one stuff bit per
+    four bits where stuffing is dynamic."""
+    if data_ratio is None:
+        bits = 8 * data_bytes + 47
+        if worst_case:
+            bits += (34 + 8 * data_bytes - 1) // 4
+        return bits
+    arbitration = 17  # SOF, 11-bit id, RRS, IDE, FDF, res, BRS
+    tail = 12         # ACK slot and delimiter, EOF, intermission
+    dynamic = 1 + 4 + 8 * data_bytes  # ESI, DLC, data
+    fixed = 4 + (17 if data_bytes <= 16 else 21)  # stuff count with parity, CRC
+    data_phase = dynamic + fixed + -(-fixed // 4) + 1  # fixed stuff bits, CRC delimiter
+    if worst_case:
+        arbitration += (arbitration - 1) // 4
+        data_phase += (dynamic - 1) // 4
+    return arbitration + tail + data_phase * data_ratio
