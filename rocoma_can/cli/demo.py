@@ -407,7 +407,10 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         hold()
 
         client.write(0x2113, 1)  # recover drives; on success the e-stop latch is cleared
-        ok = _wait(lambda: hw.all_ready and not mgr.estop_latched, 8.0, stop)
+        # done when the switch guard says so: the recovery clears the latch a moment before
+        # it reports its own end, and a switch in between is refused ("a recovery is in
+        # progress")
+        ok = _wait(lambda: hw.not_ready() is None and not mgr.estop_latched, 8.0, stop)
         step("recovery (SDO 0x2113)", ok, f"drives ready: {hw.all_ready}, "
                                           f"latched: {mgr.estop_latched}"
              + ("" if ok else f"; {hw.not_ready() or 'not ready'}"))

@@ -216,7 +216,8 @@ def _check_expanded_size(root: yaml.Node | None, source: str) -> None:
 
 def validate(data: Any, source: str = "<memory>", base: Path | None = None,
              check_controllers: bool = True) -> RuntimeConfig:
-    """Build a RuntimeConfig from a parsed YAML mapping, or raise ConfigError (all problems)."""
+    """Build a RuntimeConfig from a parsed YAML mapping, or raise ConfigError (all problems).
+    One function per section below; each appends what is wrong with it to ``problems``."""
     problems: list[str] = []
     if not isinstance(data, Mapping):
         raise ConfigError([f"(top): expected a mapping with bus, rate, drives, controllers, "
@@ -224,16 +225,48 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     # a misspelt section is read under the name it was meant to have: its own problem is
     # the spelling, not also "no controllers" or "no drives"
     data = _unknown(data, _TOP_KEYS, "", problems)
-
     buses = _buses(data, problems)
+    rate = _rate(data, problems)
+    m = _section(data, "manager", problems)
+    _unknown(m, _MANAGER_KEYS, "manager", problems)
+    manager = _manager(m, problems)
+    priority, cpus, spin_us = _realtime(_section(data, "realtime", problems), rate, problems)
+    supervision = _supervision(_section(data, "supervision", problems), manager, problems)
+    timing = TimingSupervision(**_numbers(_section(data, "timing", problems), _TIMING,
+                                          "timing", problems))
+    named: list[str] = []  # every drive name given, built or not
+    planned, clean = _drives(data.get("drives"), manager.node_id, base, problems,
+                             [b.label for b in buses], named)
+    drives = [d for d, _ in planned]
+    plans: dict[str, DrivePlan] = {}
+    for d, plan in planned:
+        plans.setdefault(d.name, plan)
+    _manager_and_drives(manager, m, buses, drives, clean, named, problems)
+    fleet = parse_fleet(data.get("zenoh"), problems)
+    if fleet is not None and fleet.config_file and base is not None:
+        fleet.config_file = str(base / fleet.config_file)  # relative to the YAML file
+    controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
+    notes = _controllers(controllers, drives, check_controllers, problems)
+    loads = _bus_loads(data, buses, planned, rate, problems)
+    if problems:
+        raise ConfigError([f"{source}: {p}" for p in problems])
+    assert rate is not None  # a rate that is wrong is a problem
+    return RuntimeConfig(buses, float(rate), manager, drives,
+                         controllers, priority, set(cpus) if cpus else None, supervision,
+                         timing, source, loads, plans, fleet,
+                         spin=None if spin_us is None else spin_us * 1e-6, notes=notes)
 
+
+def _rate(data: Mapping[str, Any], problems: list[str]) -> float | None:
     rate = data.get("rate", 500)
     if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not 0 < rate <= 10_000:
         problems.append(f"rate: expected a loop rate in Hz, 0 < rate <= 10000, got {rate!r}")
-        rate = None
+        return None
+    return float(rate)
 
-    m = _section(data, "manager", problems)
-    _unknown(m, _MANAGER_KEYS, "manager", problems)
+
+def _manager(m: Mapping[str, Any], problems: list[str]) -> ManagerNodeConfig:
+    """The manager's own keys (its bus and required drives need the drives: later)."""
     manager = ManagerNodeConfig()
     node_id = m.get("node_id", manager.node_id)
     if not _is_int(node_id) or not 1 <= node_id <= 127:
@@ -270,8 +303,12 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         problems.append(f"manager.status_period: expected seconds 0.01..10, got {period!r}")
     else:
         manager.status_period = float(period)
+    return manager
 
-    rt = _section(data, "realtime", problems)
+
+def _realtime(rt: Mapping[str, Any], rate: float | None, problems: list[str]
+              ) -> tuple[int | None, list[int] | None, float | None]:
+    """(priority, cpus, spin_us), each None where not given or wrong."""
     _unknown(rt, _REALTIME_KEYS, "realtime", problems)
     priority = rt.get("priority")
     if priority is not None and (not _is_int(priority) or not 1 <= priority <= 99):
@@ -291,9 +328,12 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         problems.append(f"realtime.spin_us: expected null or µs, 0 <= spin_us < one "
                         f"period{period}, got {spin_us!r}")
         spin_us = None
+    return priority, cpus, spin_us
 
-    margins = _numbers(_section(data, "supervision", problems), _SUPERVISION,
-                       "supervision", problems)
+
+def _supervision(section: Mapping[str, Any], manager: ManagerNodeConfig,
+                 problems: list[str]) -> Supervision:
+    margins = _numbers(section, _SUPERVISION, "supervision", problems)
     timeouts = {name: margins.pop(key) for key, name in TIMEOUT_KEYS.items() if key in margins}
     supervision = Supervision(**margins, timeouts=Timeouts(**timeouts))  # ranges checked above
     consumer_ms = round(manager.heartbeat_ms * supervision.consumer_factor)
@@ -301,16 +341,15 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         problems.append(f"supervision.consumer_factor: {supervision.consumer_factor:g} x "
                         f"manager.heartbeat_ms {manager.heartbeat_ms} = {consumer_ms} ms, more "
                         "than the drives' heartbeat consumer (0x1016) can hold (65535 ms)")
-    timing = TimingSupervision(**_numbers(_section(data, "timing", problems), _TIMING,
-                                          "timing", problems))
+    return supervision
 
-    plans: dict[str, DrivePlan] = {}
-    named: list[str] = []  # every drive name given, built or not
-    planned, clean = _drives(data.get("drives"), manager.node_id, base, problems,
-                             [b.label for b in buses], named)
-    drives = [d for d, _ in planned]
-    for d, plan in planned:
-        plans.setdefault(d.name, plan)
+
+def _manager_and_drives(manager: ManagerNodeConfig, m: Mapping[str, Any],
+                        buses: list[BusConfig], drives: list[DriveConfig],
+                        clean: list[tuple[DriveConfig, DrivePlan]], named: list[str],
+                        problems: list[str]) -> None:
+    """What the manager's keys say about the drives: the e-stop COB-ID no node uses, no
+    frame of two nodes sharing a COB-ID, the node's bus, the drives a switch requires."""
     cob = manager.estop_cob_id
     why = estop_conflict(cob, drives, manager.node_id) if cob else None
     if why is not None:
@@ -343,13 +382,13 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
             else:
                 manager.required_drives = list(required)
 
-    fleet = parse_fleet(data.get("zenoh"), problems)
-    if fleet is not None and fleet.config_file and base is not None:
-        fleet.config_file = str(base / fleet.config_file)  # relative to the YAML file
 
-    controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
+def _controllers(controllers: dict[str, Any], drives: list[DriveConfig],
+                 check_controllers: bool, problems: list[str]) -> list[str]:
+    """The controllers load (with ``check_controllers``) and get the feedback they need;
+    the notes about them (an emergency controller nothing uses)."""
     notes: list[str] = []
-    if not data.get("controllers"):
+    if not controllers["controllers"]:
         problems.append("controllers: at least one controller is needed")
     elif check_controllers:
         from ..errors import PluginError
@@ -362,7 +401,14 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
             problems += _feedback_problems(loaded, drives)
             emergency = controllers["emergency_controllers"] or []
             notes += unused_emergency(loaded, [e["name"] for e in emergency])
+    return notes
 
+
+def _bus_loads(data: Mapping[str, Any], buses: list[BusConfig],
+               planned: list[tuple[DriveConfig, DrivePlan]], rate: float | None,
+               problems: list[str]) -> dict[str, BusLoad]:
+    """Each bus's load per cycle at the rate (in-process buses have no bit rate)."""
+    drives = [d for d, _ in planned]
     loads: dict[str, BusLoad] = {}
     first = buses[0].label if buses else ""
     for k, b in enumerate(buses):
@@ -378,12 +424,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
             where = f"buses[{k}] ({b.label})" if "buses" in data else "rate"
             assumed = "" if b.bitrate else f" (no bitrate given: {DEFAULT_BITRATE:,} assumed)"
             problems.append(f"{where}: bus overload{assumed}: {load_.explain()}")
-    if problems:
-        raise ConfigError([f"{source}: {p}" for p in problems])
-    return RuntimeConfig(buses, float(rate), manager, drives,
-                         controllers, priority, set(cpus) if cpus else None, supervision,
-                         timing, source, loads, plans, fleet,
-                         spin=None if spin_us is None else spin_us * 1e-6, notes=notes)
+    return loads
 
 
 def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]) -> list[str]:
