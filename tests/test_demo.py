@@ -29,7 +29,7 @@ def test_every_latency_is_reported_when_the_watch_runs_late(monkeypatch):
     """The flaky CI run, made certain: the loop's watch records a state change a few cycles
     after the manager's state shows it (as a loaded host may schedule it). Each fault and
     e-stop step still reports its latency."""
-    from rocoma_can.runtime import demo
+    from rocoma_can.cli import demo
     rate = 100.0
     record = demo._Watch.__call__
 
