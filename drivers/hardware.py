@@ -61,7 +61,7 @@ manager is OK or EMERGENCY and the active layer commands a cyclic mode for them.
 
 This is everything software over CAN can do, and it is not a certified safe torque off: a
 bus-off, a babbling node or firmware that ignores the controlword defeats it. Hard-wired STO
-inputs or CANopen Safety (SRDO) are needed for that (README, safety model). The README
+inputs or CANopen Safety (SRDO) are needed for that (docs/safety.md). That page
 points here for these steps instead of keeping a second copy.
 """
 from __future__ import annotations

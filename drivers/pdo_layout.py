@@ -1,6 +1,6 @@
 """PDO layouts computed once at start-up from each drive's configured modes and feedback.
 
-The bus budget (README, Configuration: bus load) assumes one RPDO and one TPDO
+The bus budget (docs/configuration.md: bus load) assumes one RPDO and one TPDO
 of at most 8 bytes per drive per cycle. So the driver maps only the objects the configured
 modes need and packs them first-fit into 8-byte PDOs: a CSP-only drive needs one RPDO
 (controlword + mode + target position = 7 bytes); statusword + position + velocity + torque

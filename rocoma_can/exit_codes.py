@@ -1,5 +1,5 @@
 """The exit codes of every ``rocoma-can`` command (``rocoma-can sim`` too): one set, since
-scripts and the fleet client's ``--zenoh`` path must mean the same thing by each (README:
+scripts and the fleet client's ``--zenoh`` path must mean the same thing by each (docs/cli.md:
 "Exit codes")."""
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
 """The controller manager: run-time switching over two safety layers (rocoma, made exact).
 
-Threads and who calls what (rocoma's timestep tables, made exact; README, Writing a
-controller):
+Threads and who calls what (rocoma's timestep tables, made exact; docs/controllers.md):
 
 * update thread (whoever calls ``update()``): advances exactly one layer per call. A failure
   (advance False or raising, check_state or limit_command False) or a pending e-stop request

@@ -205,9 +205,9 @@ def test_worker_example_runs_only_while_its_controller_is_active(robot):
     assert not worker_alive()
 
 
-def test_readme_yaml_snippet_builds_and_runs(robot):
-    readme = (Path(__file__).parents[1] / "README.md").read_text()
-    section = readme.split("<!-- section: controllers library -->", 1)[1]
+def test_docs_yaml_snippet_builds_and_runs(robot):
+    page = (Path(__file__).parents[1] / "docs" / "controllers.md").read_text()
+    section = page.split("<!-- section: controllers library -->", 1)[1]
     snippet = section.split("```yaml\n", 1)[1].split("```", 1)[0]
     r = robot(config=False)
     loaded = add_to_manager(r.mgr, yaml.safe_load(snippet))

@@ -1,18 +1,22 @@
-"""The README's controller example runs as written (docs that cannot rot silently)."""
+"""The controller example runs as written, in the README and on the docs page it comes from
+(docs/controllers.md): docs that cannot rot silently."""
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
-def test_readme_controller_example_runs():
-    text = README.read_text()
-    section = text[text.index("## Writing a controller"):]
+@pytest.mark.parametrize("page", ["README.md", "docs/controllers.md"])
+def test_controller_example_runs(page):
+    text = (ROOT / page).read_text()
+    section = text[re.search(r"^#+ Writing a controller$", text, re.M).start():]
     blocks = re.findall(r"```python\n(.*?)```", section, re.S)[:2]
     assert len(blocks) == 2
     namespace: dict = {}
-    exec(compile(blocks[0] + blocks[1], str(README), "exec"), namespace)
+    exec(compile(blocks[0] + blocks[1], str(ROOT / page), "exec"), namespace)
     assert namespace["mgr"].state.name == "FAILPROOF"  # after the with-block: shut down
     assert namespace["command"].mode.tolist() == [0] * 6  # torque-off written at shutdown

@@ -376,7 +376,7 @@ def _bus_options(p: argparse.ArgumentParser, zenoh: bool = True) -> None:
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("run", help="run the manager from a YAML config")
-    p.add_argument("config", help="YAML file (see README, Configuration)")
+    p.add_argument("config", help="YAML file (see docs/configuration.md)")
     p.add_argument("--duration", type=seconds, default=None, help="stop after this many s")
     p.add_argument("--rate", type=float, default=None, help="override the loop rate, Hz")
     p.add_argument("--record", default=None, metavar="DIR",

@@ -87,7 +87,7 @@ def key_problem(key: Any) -> str | None:
 
 @dataclass
 class FleetConfig:
-    """The ``zenoh:`` config section (README "Fleet"); the CLI flags set the same. ``mode``
+    """The ``zenoh:`` config section (docs/fleet.md); the CLI flags set the same. ``mode``
     and ``multicast`` left None keep what ``config_file`` (or Zenoh's default: peer,
     multicast scouting on) says."""
     prefix: str = field(default_factory=default_prefix)

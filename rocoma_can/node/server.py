@@ -1,6 +1,6 @@
 """The manager as a CANopen node (eds/rocoma_manager.eds): SDO services, e-stop frame, state frames.
 
-Server side, ``ManagerNode`` (objects; README "CLI and CAN services" has the full table):
+Server side, ``ManagerNode`` (objects; docs/cli.md has the full table):
 
   0x2100 VISIBLE_STRING w  switch to the controller with this name
   0x2101 U8 w              switch to controller number n of 0x2123 (1-based)
@@ -11,7 +11,7 @@ Server side, ``ManagerNode`` (objects; README "CLI and CAN services" has the ful
   0x2120 U8 r state (0 FAILPROOF, 1 EMERGENCY, 2 OK); 0x2121 active controller name;
   0x2122 U8 r active controller number (0 = none of 0x2123); 0x2123 controller list
   (comma separated); 0x2124 last e-stop cause; 0x2130 U32 rw e-stop COB-ID (0 = off);
-  0x2131 U8 r e-stop latched; 0x2140 VISIBLE_STRING r drive status (JSON, see README);
+  0x2131 U8 r e-stop latched; 0x2140 VISIBLE_STRING r drive status (JSON, see docs/cli.md);
   0x2150 VISIBLE_STRING w home the drive of this name (homing runs in the cycle: its
   progress is the drive's "homing" in 0x2140); 0x2151 VISIBLE_STRING r why the last homing
   request was refused

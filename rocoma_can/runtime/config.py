@@ -1,6 +1,6 @@
 """The run-time configuration (one YAML file) and its validation.
 
-Layout (every key but ``drives`` and ``controllers`` has a default; README "Configuration")::
+Layout (every key but ``drives`` and ``controllers`` has a default; docs/configuration.md)::
 
     bus: {interface: socketcan, channel: can0, bitrate: 1000000}
     rate: 500                      # control loop, Hz
@@ -9,7 +9,7 @@ Layout (every key but ``drives`` and ``controllers`` has a default; README "Conf
       heartbeat_ms: 100            # its heartbeat; drives torque-off when it stops
       estop_cob_id: 0x0A0          # any frame with this COB-ID e-stops (0 = off)
       estop_must_be_cleared: true  # every e-stop latches until "clear"
-      switch_clients: null         # must stay null: any SDO client may switch (README)
+      switch_clients: null         # must stay null: any SDO client may switch (docs/cli.md)
       status_period: 0.1           # s, state TPDO repeat period
       required_drives: null        # drives a switch needs ready (null = all; [] = none)
     realtime: {priority: null, cpus: null,   # SCHED_FIFO priority, CPU list

@@ -1,5 +1,5 @@
 """Every fault a simulated drive can have, injected into one drive of a holding manager whose
-controller has a braking emergency controller. Documented end state (README, safety model):
+controller has a braking emergency controller. Documented end state (docs/safety.md):
 the drive's fault is latched with its cause, the drive gets nothing but torque-off frames
 from then on, the manager is in EMERGENCY and the others are braked (enabled, CSV); the
 operator's second e-stop then gives torque-off frames for every drive."""

@@ -3,7 +3,7 @@ the controller's advance and the emergency controller's initialize_fast and adva
 raising, returning False, None or a numpy array, writing NaN or inf into the command, or
 hanging. (The other callbacks run off the cycle; their matrix is in test_holes.py.)
 
-Documented end states (README, safety model):
+Documented end states (docs/safety.md):
 - the controller fails: EMERGENCY in the same update(), the emergency controller brakes the
   drives in CSV (they stay enabled: a smart stop);
 - the emergency controller fails too: FAILPROOF in the same update(), controlword 0x0000 to
