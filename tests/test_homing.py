@@ -13,7 +13,7 @@ from fixtures.driver_rig import VIRTUAL, Rig, Sine
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can import SwitchResult
-from rocoma_can.cli.demo import demo_config
+from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.drivers.cia402 import State402
 from rocoma_can.drivers.homing import CW_HOMING_START, HOMING_MODE

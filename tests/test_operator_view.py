@@ -15,7 +15,7 @@ from fixtures.running import runtime_running
 from fixtures.running import wait_for as wait_until
 
 from rocoma_can import ManagerState
-from rocoma_can.cli.demo import MANAGER_ID, demo_config
+from rocoma_can.cli.demo_config import MANAGER_ID, demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.drivers import cia301
 from rocoma_can.drivers.cia402 import State402

@@ -20,7 +20,7 @@ import pytest
 import yaml
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
-from rocoma_can.cli.demo import demo_config
+from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.record.flight import _slug
 from rocoma_can.record.trace import read_messages

@@ -11,7 +11,7 @@ import can
 import pytest
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
-from rocoma_can.cli.demo import demo_config
+from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
 

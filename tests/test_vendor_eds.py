@@ -328,7 +328,7 @@ def test_canopen_reads_every_file_as_the_driver_does():
 
 
 def test_a_controller_that_needs_missing_feedback_is_refused_at_load():
-    from rocoma_can.cli.demo import demo_config
+    from rocoma_can.cli.demo_config import demo_config
     from rocoma_can.errors import ConfigError
     from rocoma_can.runtime.config import validate
     cfg = demo_config("x", drives=2, rate=100.0, emulated=None)
