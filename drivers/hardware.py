@@ -309,11 +309,12 @@ class CanopenHardware:
         # heartbeat_ms from the cycle, once the drive is configured; the answers come in
         # as heartbeats do, with a toggle bit that must change
         self._guarded = [p.guarded and p.leads_node for p in self.plans]  # once per node
-        self._guard_frames = [can.Message(arbitration_id=cia301.HEARTBEAT + d.node_id,
-                                          is_remote_frame=True, dlc=1, is_extended_id=False)
-                              for d in drives]
-        self._guard_period = [d.heartbeat_ms / 1000.0 for d in drives]
         self._guarded_drives = [i for i in range(n) if self._guarded[i]]
+        self._guard_frames = {i: can.Message(arbitration_id=cia301.HEARTBEAT
+                                             + drives[i].node_id, is_remote_frame=True,
+                                             dlc=1, is_extended_id=False)
+                              for i in self._guarded_drives}
+        self._guard_period = [d.heartbeat_ms / 1000.0 for d in drives]
         self._guard_due = [math.inf] * n         # inf: not guarded (yet)
         self._next_guard = math.inf              # the earliest of them
         self._toggle = [-1] * n                  # the last answer's toggle bit; -1: none yet

@@ -224,10 +224,14 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
              f"result {result}, active {mgr.active_controller_name}")
         hold()
 
+        def fault(node: int, becomes: str, target: int) -> bool:
+            """Trip a drive's fault; whether the manager reached ``target`` in time."""
+            mark, t0 = len(watch.changes), time.monotonic()
+            seg.drives[node].trip_fault()
+            return reached(f"drive {node} fault -> {becomes}", t0, mark, {target}, 2.0)
+
         node = seg.node_ids[min(2, len(seg.node_ids) - 2)]  # not the last: that one is next
-        mark, t0 = len(watch.changes), time.monotonic()
-        seg.drives[node].trip_fault()
-        ok = reached(f"drive {node} fault -> EMERGENCY", t0, mark, {1}, 2.0)
+        ok = fault(node, "EMERGENCY", 1)
         step(f"fault on drive {node} -> emergency controller", ok,
              f"state {STATE_NAMES[state()]}, active {mgr.active_controller_name}")
         hold()
@@ -238,9 +242,7 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
                  "skipped: one drive, and it is faulted already")
             mgr.failproof_stop("demo: the step the second fault would have shown")
         else:
-            mark, t0 = len(watch.changes), time.monotonic()
-            seg.drives[node2].trip_fault()
-            ok = reached(f"drive {node2} fault -> FAILPROOF", t0, mark, {0}, 2.0)
+            ok = fault(node2, "FAILPROOF", 0)
             step(f"second fault on drive {node2} -> failproof torque-off", ok,
                  f"state {STATE_NAMES[state()]}")
         hold()
