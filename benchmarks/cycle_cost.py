@@ -77,7 +77,7 @@ def time_ours(n: int, repeat: int, channel: str) -> tuple[list[float], list[floa
         hw.supervisor.heartbeat_deadline[:] = np.inf  # no heartbeats in this benchmark
         def leave_out(msg: can.Message) -> None:    # leave the bus out (see docstring)
             pass
-        hw._send_of = [leave_out] * len(drives)
+        hw.frames._send = [leave_out] * len(drives)
         for port in hw.ports:
             port.send = leave_out
         receiver = hw.ports[0].canopen.listeners[-1]  # the port's receiver, attached last

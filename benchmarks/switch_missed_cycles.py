@@ -72,10 +72,10 @@ class Switches:
 class NoHardware:
     """The plain set-up: ControlLoop's read and write with nothing behind them."""
 
-    def read(self, now: float) -> None:
-        pass
+    def read(self, now: float) -> tuple[()]:
+        return ()
 
-    def write(self, state: Any) -> None:
+    def write(self, state: Any, switch_count: int | None = None) -> None:
         pass
 
 

@@ -26,7 +26,7 @@ import enum
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Any
@@ -35,8 +35,9 @@ import canopen
 from canopen.sdo.client import SdoClient
 
 from . import cia301, cia402
+from .bus import CanopenBus
 from .capabilities import DriveCapabilities, PdoChannel
-from .config import DriveConfig, Timeouts
+from .config import DriveConfig, Supervision, Timeouts
 from .drive_plan import DrivePlan
 from .modes import DriveMode, interpolation_period
 from .pdo_layout import Pdo
@@ -463,3 +464,34 @@ class DriveBringup:
     def cancel(self) -> None:
         if self._job is not None:
             self._job.cancel()
+
+
+def create_bringups(plans: Sequence[DrivePlan], networks: Sequence[CanopenBus | None],
+                    node: Sequence[tuple[int, ...]], manager_node_id: int, consumer_ms: int,
+                    dt: float, supervision: Supervision) -> list[DriveBringup]:
+    """Every drive's bring-up on its opened bus: one canopen node per CANopen node, its
+    lowest axis first (a higher axis shares that node's SDO client and lock)."""
+    made: dict[int, DriveBringup] = {}
+    for i in sorted(range(len(plans)), key=lambda k: node[k][0] != k):
+        plan, bus, lead = plans[i], networks[i], node[i][0]
+        if lead != i:
+            made[i] = DriveBringup(plan, made[lead].node, manager_node_id, consumer_ms,
+                                   supervision.timeouts, dt, lead=made[lead])
+            continue
+        assert bus is not None  # opened by the hardware's start
+        network = bus.network
+        remote = network.add_node(plan.drive.node_id, plan.caps.object_dictionary)
+        # The cycle decodes heartbeats and EMCYs itself (receive.py): canopen's consumers
+        # of them would only keep an EMCY log that grows for the whole run and log an
+        # error per short frame a faulty drive sends.
+        network.unsubscribe(cia301.HEARTBEAT + plan.drive.node_id, remote.nmt.on_heartbeat)
+        network.unsubscribe(cia301.EMCY + plan.drive.node_id, remote.emcy.on_emcy)
+        network.unsubscribe(cia301.NMT, remote.nmt.on_command)
+        # No retransmission by default (CiA 301 clients abort on timeout): a late answer
+        # to the first copy would be taken as the answer to the next request. configure()
+        # repeats a whole failed attempt instead, after stale answers have drained.
+        remote.sdo.RESPONSE_TIMEOUT = supervision.sdo_timeout
+        remote.sdo.MAX_RETRIES = supervision.sdo_retries + 1  # canopen counts tries (0: forever)
+        made[i] = DriveBringup(plan, remote, manager_node_id, consumer_ms,
+                               supervision.timeouts, dt)
+    return [made[i] for i in range(len(plans))]

@@ -277,3 +277,12 @@ def _tpdo_short(drive: DriveConfig, caps: DriveCapabilities) -> bool:
         return False
     return True
 
+
+
+def pdo_using(cob_id: int, plans: Sequence[DrivePlan]) -> str | None:
+    """Which drive's PDO uses ``cob_id`` (an absolute COB-ID from its EDS/DCF), or None."""
+    for plan in plans:
+        for pdo in (*plan.layout.rpdos, *plan.layout.tpdos):
+            if pdo.cob_id == cob_id:
+                return f"a PDO of drive {plan.drive.name!r}"
+    return None

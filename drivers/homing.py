@@ -18,11 +18,17 @@ failproof path is untouched (FAILPROOF sends torque-off to every drive, homing o
 """
 from __future__ import annotations
 
+import collections
 import enum
+import threading
 from concurrent.futures import Future
 
 from ..errors import HomingFailed
 from . import cia402
+from .bringup import Phase as BringupPhase
+from .capabilities import DriveCapabilities
+from .pdo_layout import DriveLayout
+from .supervision import FaultEvent
 
 HOMING_MODE = int(cia402.Mode.HOMING)
 CW_HOMING_START = int(cia402.Controlword.ENABLE_OPERATION) | (1 << 4)
@@ -97,3 +103,64 @@ class HomingJob:
             return self.phase.value
         exc = self.future.exception()
         return "homed" if exc is None else f"failed: {exc}"
+
+
+def refusal(caps: DriveCapabilities, layout: DriveLayout, phase: BringupPhase | None,
+            latched: FaultEvent | None, manager_ok: bool) -> str | None:
+    """Why a drive cannot be homed now, or None: ``phase`` its bring-up's (None: not
+    started), ``manager_ok`` whether the manager was OK as of the last cycle."""
+    if not caps.supports(HOMING_MODE):
+        return (f"its 0x6502 (0x{caps.supported_modes or 0:X}) has no homing mode; "
+                f"it lists {', '.join(caps.mode_names)}")
+    if not layout.maps("mode"):
+        return "its RPDO mapping carries no 0x6060, so the cycle cannot select homing"
+    if phase is not BringupPhase.READY:
+        return "it is not READY (start-up or recovery not finished)"
+    if latched is not None:
+        return f"it is faulted ({latched}); recover it first"
+    if not manager_ok:
+        return ("the manager is not OK: homing runs while a controller holds the other "
+                "joints (clear the e-stop and switch to one first)")
+    return None
+
+
+class HomingQueue:
+    """Homing requests from any thread (``submit``), taken by the cycle (``take``): the
+    cycle never takes the lock, which only orders callers among themselves."""
+
+    def __init__(self, drives: int) -> None:
+        self.jobs: list[HomingJob | None] = [None] * drives  # running: the cycle's own
+        self.seen: list[HomingJob | None] = [None] * drives  # the latest job, for status
+        self._requests: collections.deque[HomingJob] = collections.deque()
+        self._lock = threading.Lock()
+
+    def submit(self, job: HomingJob, refused: str | None) -> None:
+        """Queue ``job`` unless ``refused`` (why it cannot run) or its drive is homing:
+        HomingFailed then, at once."""
+        with self._lock:
+            seen = self.seen[job.index]
+            if refused is None and seen is not None and not seen.done():
+                refused = "it is already homing"
+            if refused is not None:
+                raise HomingFailed(f"{job.name}: cannot home: {refused}")
+            self.seen[job.index] = job  # status shows this request, not the last result
+            self._requests.append(job)
+
+    def take(self) -> None:
+        """The cycle: requests become running jobs."""
+        while self._requests:
+            job = self._requests.popleft()
+            self.jobs[job.index] = job
+
+    def end_all(self, why: str) -> list[int]:
+        """Fail queued and running jobs; the drives whose running job ended (they stay off
+        until the next switch: their position reference may have changed)."""
+        while self._requests:
+            self._requests.popleft().fail(f"{why} before homing started")
+        ended = []
+        for i, job in enumerate(self.jobs):
+            if job is not None:
+                job.fail(why)
+                self.jobs[i] = None
+                ended.append(i)
+        return ended

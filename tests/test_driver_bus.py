@@ -503,7 +503,6 @@ def test_torque_off_frames_do_not_depend_on_the_failproof_controller(segment, ma
     bring_up(rig)
     rig.mgr.shutdown()
     rig.mgr = ControllerManager(Reckless(), rig.dt, rig.hw.state, rig.hw.command)
-    rig.hw.attach(rig.mgr)
     rig.run(5 * rig.dt)
     mark = synced_mark(recorder, rig)
     rig.run(10 * rig.dt)
@@ -567,7 +566,6 @@ def test_unconfigured_mode_is_not_sent_even_without_limit_command(segment, make_
     bring_up(rig)
     rig.mgr.shutdown()
     rig.mgr = ControllerManager(TorqueOff(), rig.dt, rig.hw.state, rig.hw.command)
-    rig.hw.attach(rig.mgr)
     rig.mgr.add_controller(HoldPD())  # CST
     mark = synced_mark(recorder, rig)
     assert rig.switch("hold") == SwitchResult.SWITCHED

@@ -187,12 +187,12 @@ def test_limit_command_rejects_nan_and_clips(hw):
 
 
 def test_torque_off_frames_are_preencoded(hw):
-    frames = hw._torque_off_frames
+    frames = hw.frames._torque_off
     assert [m.arbitration_id for m in frames[0]] == [0x201]
     assert bytes(frames[0][0].data) == struct.pack("<HbI", 0, 8, 0)
     assert [m.arbitration_id for m in frames[1]] == [0x202, 0x302]
     assert bytes(frames[1][0].data)[:2] == b"\0\0"
-    assert bytes(hw._fault_reset_frames[0][0].data)[:2] == struct.pack("<H", 0x80)
+    assert bytes(hw.frames._fault_reset[0][0].data)[:2] == struct.pack("<H", 0x80)
     assert hw.frames_per_cycle == (1 + 2) + (2 + 2) + 1
 
 
@@ -260,11 +260,11 @@ def test_a_frozen_process_is_not_a_stuck_drive():
 
 def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
     import threading
+    import time
 
     import can
 
     from rocoma_can import EventKind, ManagerState
-    from rocoma_can.drivers.supervision import FaultEvent
 
     def hook(event):
         raise RuntimeError("reporting failed")
@@ -278,7 +278,9 @@ def test_a_raising_on_fault_hook_is_counted_and_the_estop_still_requested():
     mgr.subscribe(lambda ev: (estops.append(ev.cause), seen.set())
                   if ev.kind is EventKind.EMERGENCY_STOP else None)
     try:
-        hw._deliver([FaultEvent(node_id=1, drive="j1", cause="test", code=0, index=0)])
+        hw.supervisor.fault(0, "test", time.monotonic())
+        for event in hw.read(time.monotonic()):  # as the loop's run_cycle does
+            event.apply(mgr)
         assert hw.hook_errors == 1
         assert mgr.update() is ManagerState.FAILPROOF
         assert seen.wait(5.0) and "test" in estops[0]

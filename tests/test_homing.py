@@ -201,13 +201,14 @@ def test_a_bit_12_left_set_before_the_start_counts_only_after_it_was_low():
 def test_a_home_right_after_a_switch_is_taken(rig):
     """The manager is OK once a switch commits, and the hardware hears of it at its next
     write: a home asked in between was refused as "the manager is not OK" (the CLI test
-    over the node lost that race once, at 100 Hz). It is judged on the manager's state."""
+    over the node lost that race once, at 100 Hz). It is judged on the manager's state, which
+    the caller passes (the hardware does not hold the manager)."""
     rig.mgr.failproof_stop("test")
     rig.run(3 * rig.dt)
     assert rig.mgr.clear_emergency_stop() or not rig.mgr.estop_latched
     rig.mgr.add_controller(Sine("again", JointMode.CSP, amplitude=0.1))
     switched = rig.mgr.request_switch("again")
     assert switched.result(timeout=VIRTUAL.stall) == SwitchResult.SWITCHED  # no cycle ran
-    future = rig.hw.home("j1")
+    future = rig.hw.home("j1", manager_state=rig.mgr.state)  # as runtime.system does
     _run_until_done(rig, future, HOMING)
     assert future.result() == "j1: homed"

@@ -18,6 +18,7 @@ from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig
 from rocoma_can import EventKind, ManagerState, SwitchResult
 from rocoma_can.drivers import cia301
 from rocoma_can.drivers.cia402 import State402
+from rocoma_can.runtime.loop import run_cycle
 
 NODES = (1, 2)
 SIDES = ("left", "right")
@@ -125,8 +126,8 @@ def test_a_failed_bus_is_a_failproof_stop_with_torque_off_on_every_bus(two_buses
                                      for s in segments.values() for d in s.drives.values()),
                          VIRTUAL.enable_budget())
     status = rig.hw.status_report()
-    assert [(b["name"], bool(b["fault"])) for b in status["buses"]] == [("left", False),
-                                                                       ("right", True)]
+    assert [(b.name, bool(b.fault)) for b in status.buses] == [("left", False),
+                                                               ("right", True)]
     recovered = rig.hw.recover()
     assert rig.run_until(recovered.done, VIRTUAL.recovery_budget()) and recovered.result()
     assert rig.hw.bus_fault is None and rig.hw.all_ready
@@ -151,7 +152,7 @@ def test_an_estop_frame_on_any_bus_acts_in_the_cycle_that_reads_it(two_buses, bu
         assert time.monotonic() < deadline, "the e-stop frame never reached the receiver"
         time.sleep(0.0005)
     assert rig.mgr.state is ManagerState.OK
-    assert rig.hw.run_cycle() is ManagerState.EMERGENCY  # that very cycle
+    assert run_cycle(rig.hw, rig.mgr, time.monotonic()) is ManagerState.EMERGENCY  # that cycle
     assert rig.hw.estop_frames == 1
     deadline = time.monotonic() + VIRTUAL.stall  # events are delivered off the cycle
     while not any(e.kind is EventKind.EMERGENCY_STOP for e in events):

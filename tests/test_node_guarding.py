@@ -142,7 +142,7 @@ def test_an_answer_whose_toggle_did_not_change_is_not_counted(can_setup, rig_on,
     segment, rig = rig_on()
     _bring_up_and_hold(rig)
     node = tuple(segment.drives)[0]
-    last = rig.hw._toggle[0]
+    last = rig.hw.guarding._toggle[0]
     assert last in (0, cia301.GUARD_TOGGLE)
     other = bus_factory(can_setup.channel(virtual_channel), can_setup.interface)
     other.send(can.Message(arbitration_id=cia301.HEARTBEAT + node, is_extended_id=False,

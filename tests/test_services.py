@@ -6,6 +6,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+from types import SimpleNamespace
 
 import can
 import pytest
@@ -279,8 +280,9 @@ def test_a_burst_the_interface_cuts_short_goes_on_from_the_refused_segment(
     manager = ControllerManager(TorqueOff(), 0.005, plant.state, plant.command, timing=None)
     refusing = RefusesOneSend(virtual_channel, refuse_at=1_000_000)
     drive = {"name": "j", "phase": "READY", "fault": "EMCY 0x2310 (overcurrent)"}
-    node = ManagerNode(manager, NODE, refusing, drive_status=lambda: {
-        "startup_finished": True, "drives": [drive] * 12}).start()
+    report = {"startup_finished": True, "drives": [drive] * 12}
+    node = ManagerNode(manager, NODE, refusing,
+                       drive_status=lambda: SimpleNamespace(as_dict=lambda: report)).start()
     try:
         with ManagerClient(bus_factory(), NODE, timeout=0.2) as client:
             refusing.refuse_at = refusing.sends + 4  # the initiate answer, then segment 3

@@ -45,7 +45,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from typing import Any
+from typing import Any, Protocol
 
 import can
 import canopen
@@ -136,6 +136,11 @@ def _integer(od: ODVariable, data: bytes) -> int:
     return value
 
 
+class StatusReport(Protocol):
+    """The running system's status (runtime.system.RuntimeStatus), serialized here only."""
+    def as_dict(self) -> dict[str, Any]: ...
+
+
 class ManagerNode(can.Listener):
     """Serves a ControllerManager on a CAN bus (lent, not shut down here).
 
@@ -150,7 +155,7 @@ class ManagerNode(can.Listener):
                  recover: Callable[[], Future[bool]] | None = None,
                  eds_path: str | None = None,
                  heartbeat_ms: int | None = None,
-                 drive_status: Callable[[], dict[str, Any]] | None = None,
+                 drive_status: Callable[[], StatusReport] | None = None,
                  estop_in_cycle: Callable[[int], None] | None = None,
                  home: Callable[[str], object] | None = None,
                  bitrate: int | None = None) -> None:
@@ -313,7 +318,7 @@ class ManagerNode(can.Listener):
         if index == SWITCH_REFUSAL:
             return _visible(m.last_refusal)
         if index == DRIVE_STATUS:
-            report = (self.drive_status() if self.drive_status is not None
+            report = (self.drive_status().as_dict() if self.drive_status is not None
                       else {"startup_finished": True, "recovery": "", "drives": []})
             return json.dumps(report, separators=(",", ":"))
         if index == ESTOP_COB_ID:

@@ -1,5 +1,6 @@
 """What runs the manager on a bus: config (the YAML, checked whole), bus_load (what the
-config puts on each bus), loop (one thread, fixed rate, a safe way out), system (hardware,
+config puts on each bus), loop (run_cycle, the cycle's order in one place; one thread,
+fixed rate, a safe way out), system (hardware,
 manager, node, recorders and fleet bridge wired). Public names are imported on first use
 (``_lazy.py``)."""
 from __future__ import annotations
@@ -8,13 +9,13 @@ from typing import TYPE_CHECKING
 
 from .._lazy import lazy_exports
 
-__all__ = ["ControlLoop", "CycleStats", "TimingSummary", "set_realtime", "Runtime",
-           "manager_for"]
+__all__ = ["ControlLoop", "CycleStats", "TimingSummary", "run_cycle", "set_realtime",
+           "Runtime", "manager_for"]
 __getattr__, __dir__ = lazy_exports(__name__, {
     "ControlLoop": "loop", "CycleStats": "loop", "TimingSummary": "loop",
-    "set_realtime": "loop", "Runtime": "system", "manager_for": "system",
+    "run_cycle": "loop", "set_realtime": "loop", "Runtime": "system", "manager_for": "system",
 })
 
 if TYPE_CHECKING:
-    from .loop import ControlLoop, CycleStats, TimingSummary, set_realtime
+    from .loop import ControlLoop, CycleStats, TimingSummary, run_cycle, set_realtime
     from .system import Runtime, manager_for

@@ -1,8 +1,9 @@
 """The control loop: one thread, a fixed rate on the monotonic clock, and a safe way out.
 
-Each cycle is ``hardware.read(now)`` -> ``manager.update()`` -> ``hardware.write(state)``
--> ``manager.post_cycle()`` (the threads the update has work for are woken only once the
-cycle's frames are out).
+Each cycle is ``run_cycle``, the one place that writes its order: ``hardware.read(now)``,
+whose findings (faults, e-stop frames, a finished recovery) are applied to the manager ->
+``manager.update()`` -> ``hardware.write(state, switch_count)`` -> ``manager.post_cycle()``
+(the threads the update has work for are woken only once the cycle's frames are out).
 Timing: sleep until shortly before the deadline, then spin to it (``time.sleep`` alone
 overshoots by the scheduler's slack). While the loop runs, Python's GIL hand-over interval
 is a tenth of the period (at most its 5 ms default; restored afterwards), so a thread
@@ -26,13 +27,14 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import FrameType
 from typing import Protocol
 
 import numpy as np
 
+from ..drivers.stop_requests import StopTarget
 from ..events import STOP_CAUSE, ManagerState
 
 log = logging.getLogger(__name__)
@@ -139,19 +141,39 @@ def set_realtime(priority: int | None, cpus: set[int] | None) -> list[str]:
     return warnings
 
 
+class CycleManager(StopTarget, Protocol):
+    """What the loop needs of a manager (rocoma_can.ControllerManager)."""
+
+    @property
+    def switch_count(self) -> int: ...
+    def update(self) -> ManagerState: ...
+    def post_cycle(self) -> None: ...
+
+
+class CycleEvent(Protocol):
+    """A finding of the hardware's read for the manager (drivers/stop_requests.py)."""
+
+    def apply(self, manager: StopTarget) -> None: ...
+
+
 class CycleHardware(Protocol):
     """What the loop needs of a hardware layer (drivers.hardware.CanopenHardware)."""
 
-    def read(self, now: float) -> None: ...
-    def write(self, manager_state: ManagerState) -> None: ...
+    def read(self, now: float) -> Sequence[CycleEvent]: ...
+    def write(self, manager_state: ManagerState, switch_count: int | None = ...) -> None: ...
 
 
-class CycleManager(Protocol):
-    """What the loop needs of a manager (rocoma_can.ControllerManager)."""
-
-    def update(self) -> ManagerState: ...
-    def post_cycle(self) -> None: ...
-    def failproof_stop(self, cause: str = ...) -> None: ...
+def run_cycle(hardware: CycleHardware, manager: CycleManager, now: float) -> ManagerState:
+    """One cycle, in the order every caller uses (the loop, the tests' rigs, benchmarks):
+    what the read found reaches the manager before its update, so a fault is acted on in
+    the cycle it is seen; the frames go out after the update; the manager's threads are
+    woken after the frames."""
+    for event in hardware.read(now):
+        event.apply(manager)
+    state = manager.update()
+    hardware.write(state, manager.switch_count)
+    manager.post_cycle()
+    return state
 
 
 class CycleTrace(Protocol):
@@ -245,10 +267,7 @@ class ControlLoop:
                 if now >= end:
                     self.stop("duration reached")
                     break
-                hw.read(now)
-                state = mgr.update()
-                hw.write(state)
-                mgr.post_cycle()  # the threads update() has work for, after the frames
+                state = run_cycle(hw, mgr, now)
                 self.last_state = state
                 if on_cycle is not None:
                     on_cycle(now)
@@ -288,11 +307,7 @@ class ControlLoop:
             log.exception("failproof_stop raised while stopping the loop")
         for _ in range(self.stop_cycles):
             try:
-                now = time.monotonic()
-                self.hardware.read(now)
-                state = self.manager.update()
-                self.hardware.write(state)
-                self.last_state = state
+                self.last_state = run_cycle(self.hardware, self.manager, time.monotonic())
             except Exception:
                 log.exception("torque-off cycle raised while stopping the loop")
                 try:
@@ -300,7 +315,6 @@ class ControlLoop:
                     self.hardware.write(ManagerState.FAILPROOF)
                 except Exception:
                     log.exception("torque-off frames could not be sent")
-            finally:
                 try:
                     self.manager.post_cycle()  # the stop's events reach the subscribers
                 except Exception:

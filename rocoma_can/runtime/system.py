@@ -3,9 +3,12 @@ the manager with its controllers (built here: nothing in drivers/ builds a manag
 manager's CANopen node, and the loop."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import Any
 
 import can
@@ -13,6 +16,7 @@ import can
 from ..controllers.torque_off import TorqueOff
 from ..drivers.bus import open_bus
 from ..drivers.hardware import CanopenHardware
+from ..drivers.status import HardwareStatus
 from ..fleet.bridge import FleetBridge, FleetConfig, FleetError
 from ..manager import ControllerManager
 from ..node.objects import RESULT_NAMES
@@ -26,11 +30,43 @@ from .loop import ControlLoop, TimingSummary
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class CycleReport:
+    """The loop's cycle statistics in a status report (ms; None: no cycle yet)."""
+    rate: float
+    cycles: int
+    overruns: int
+    period_mean_ms: float | None
+    period_max_ms: float | None
+    jitter_p99_ms: float | None
+    work_max_ms: float | None
+
+
+@dataclass(frozen=True)
+class RuntimeStatus:
+    """The hardware's status with what the running system adds; typed until ``as_dict``
+    makes the JSON shape 0x2140, ``status --json`` and the Zenoh status query serve."""
+    hardware: HardwareStatus
+    loads: dict[str, float]   # per bus: planned load at the running rate (0..1)
+    cycle: CycleReport
+    zenoh: dict[str, Any] | None
+
+    def as_dict(self) -> dict[str, Any]:
+        report = self.hardware.as_dict()
+        for bus in report["buses"]:
+            bus["load"] = self.loads.get(bus["name"])
+        report["cycle"] = dataclasses.asdict(self.cycle)
+        if self.zenoh is not None:
+            report["zenoh"] = self.zenoh
+        return report
+
+
 def manager_for(hardware: CanopenHardware, **kwargs: Any) -> ControllerManager:
     """A ControllerManager over a CanopenHardware, wired to it: TorqueOff as the failproof
     layer, the hardware's ``limit_command`` (modes, NaN, limits), ``neutral_command`` (on
     every fall to a lower layer) and ``send_torque_off`` (on a hung update), and its fault
-    events routed to ``emergency_stop`` (``attach``).
+    events reach it through the loop (``runtime.loop.run_cycle``): the hardware never
+    holds the manager.
 
     The failproof layer is not configurable: passing ``failproof`` is a TypeError. The
     torque-off frames in FAILPROOF do not depend on it anyway (drivers/hardware.py).
@@ -47,7 +83,6 @@ def manager_for(hardware: CanopenHardware, **kwargs: Any) -> ControllerManager:
     manager = ControllerManager(TorqueOff(), hardware.dt, hardware.state, hardware.command,
                                 limit_command=hardware.limit_command,
                                 reset_command=hardware.neutral_command, **kwargs)
-    hardware.attach(manager)
     return manager
 
 
@@ -101,7 +136,7 @@ class Runtime:
             self._parts.append(self._node_bus.shutdown)
             self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
                                     estop_cob_id=m.estop_cob_id, status_period=m.status_period,
-                                    recover=hardware.recover, home=hardware.home,
+                                    recover=hardware.recover, home=self._home,
                                     heartbeat_ms=m.heartbeat_ms,
                                     drive_status=self.status_report,
                                     estop_in_cycle=hardware.set_estop_cob_id,
@@ -165,34 +200,31 @@ class Runtime:
         self._parts.insert(0, taps.close)  # the readers stop before what they feed
         return trace
 
-    def status_report(self) -> dict[str, Any]:
+    def _home(self, drive: str) -> Future[str]:
+        """The node's home service: judged on the manager's state now, not the last cycle's
+        (a switch that has just committed is OK before the hardware hears of it)."""
+        return self.hardware.home(drive, manager_state=self.manager.state)
+
+    def status_report(self) -> RuntimeStatus:
         """What the manager node serves as 0x2140 (``rocoma-can status``): the hardware's
         report (start-up, recovery, buses, drives), each bus's planned load at the running
         rate, and the loop's cycle statistics (over its last 4096 cycles)."""
-        report = self.hardware.status_report()
         rate = self.config.rate
-        for bus in report["buses"]:
-            planned = self.config.loads.get(bus["name"])
-            bus["load"] = (None if planned is None
-                           else round(planned.bits_per_cycle * rate / planned.bitrate, 4))
+        loads = {name: round(planned.bits_per_cycle * rate / planned.bitrate, 4)
+                 for name, planned in self.config.loads.items()}
         t = self.loop.stats.summary()
-        report["cycle"] = {"rate": rate, "cycles": t.cycles, "overruns": t.overruns,
-                           **{f"{k}_ms": round(v * 1e3, 3) if math.isfinite(v) else None
-                              for k, v in (("period_mean", t.period_mean),
-                                           ("period_max", t.period_max),
-                                           ("jitter_p99", t.jitter_p99),
-                                           ("work_max", t.work_max))}}
-        if self.fleet is not None:
-            report["zenoh"] = self.fleet.info()
-        elif self.fleet_error:
-            report["zenoh"] = {"error": self.fleet_error}
-        return report
+        ms = [round(v * 1e3, 3) if math.isfinite(v) else None
+              for v in (t.period_mean, t.period_max, t.jitter_p99, t.work_max)]
+        zenoh = (self.fleet.info() if self.fleet is not None
+                 else {"error": self.fleet_error} if self.fleet_error else None)
+        return RuntimeStatus(self.hardware.status_report(), loads,
+                             CycleReport(rate, t.cycles, t.overruns, *ms), zenoh)
 
     def status(self) -> dict[str, Any]:
         """What ``rocoma-can status --json`` prints, built here rather than read over SDO
         (the Zenoh status query answers with it)."""
         m, node = self.manager, self.node
-        report = self.status_report()
+        report = self.status_report().as_dict()
         return {"state": m.state.name, "active": m.active_controller_name,
                 "latched": m.estop_latched,
                 "last_switch": RESULT_NAMES.get(node.last_result, "?"),

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import struct
 import time
+from types import SimpleNamespace
 
 import can
 import pytest
@@ -70,9 +71,9 @@ def _twelve_drives(service) -> None:
     """0x2140 as a 12-drive manager reports it (~2.5 KB: the node serves what it is given)."""
     drive = {"phase": "READY", "enabled": False, "fault": "EMCY 0x2310 (overcurrent)",
              "homing": "", "bus": "front"}
-    service.node.drive_status = lambda: {
-        "startup_finished": True, "recovery": "",
-        "drives": [{"name": f"j{n}", "node_id": n, **drive} for n in range(1, 13)]}
+    report = {"startup_finished": True, "recovery": "",
+              "drives": [{"name": f"j{n}", "node_id": n, **drive} for n in range(1, 13)]}
+    service.node.drive_status = lambda: SimpleNamespace(as_dict=lambda: report)
 
 
 def test_status_in_blocks_resumes_from_the_acked_segment_and_ends_with_the_crc(service):

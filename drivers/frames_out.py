@@ -1,0 +1,99 @@
+"""Every frame the cycle sends to the drives, torque-off first: a safety review starts here.
+
+Frames are allocated at start-up, torque-off ones encoded then too: sending them takes no
+arithmetic and no branch that can raise. ``BusPort.send`` never raises or blocks: a refused
+frame is counted; refused cycle after cycle, a bus fault. What goes out (hardware.py):
+
+* FAILPROOF: ``torque_off`` to every drive whose PDOs are configured, whatever JointCommand
+  holds: controlword 0x0000 (disable voltage), the drive's default mode, every target 0.
+* a hung update(): ``watchdog_torque_off`` (the manager's watchdog thread): the same frames
+  and SYNC, no heartbeat: a loop that never returns is still caught by the drives' 0x6007.
+* OK / EMERGENCY: ``off`` for a drive not under command (in bring-up, latched, not armed),
+  ``rpdos`` for one under command with the values command.py chose.
+* then every cycle: ``sync_and_heartbeat`` and node_guarding.py's guard requests, from the
+  cycle only: a loop that stops or hangs falls silent and the drives switch themselves off.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import can
+
+from . import cia402
+from .bringup import DriveBringup
+from .bus_port import BusPort
+from .pdo_layout import DriveLayout
+
+
+class FramesOut:
+    """The frames of N drives on their buses, with ``heartbeat_period`` s between beats."""
+
+    def __init__(self, layouts: Sequence[DriveLayout], port_of: Sequence[BusPort],
+                 default_mode: Sequence[int], heartbeat_period: float) -> None:
+        self._layouts, self._port_of, self._default_mode = layouts, port_of, default_mode
+        self._ports, self._send = list(dict.fromkeys(port_of)), [p.send for p in port_of]
+        n = range(len(layouts))
+        self._torque_off = [self._encode(i, 0) for i in n]
+        self._fault_reset = [self._encode(i, int(cia402.Controlword.FAULT_RESET)) for i in n]
+        self._probe = [self._encode(i, int(cia402.Controlword.SHUTDOWN)) for i in n]
+        # per RPDO: (frame, codec.pack_into, where its entries are in (cw, mode, targets...))
+        self._rpdo = [[(port_of[i].frame(p.cob_id, p.size), p.codec.pack_into,
+                        p.positions_in(lay.rpdo_fields)) for p in lay.rpdos]
+                      for i, lay in enumerate(layouts)]
+        self._constants = [lay.rpdo_constants for lay in layouts]
+        self._period, self.next_heartbeat = heartbeat_period, -math.inf  # -inf: next cycle
+
+    def _encode(self, i: int, controlword: int) -> list[can.Message]:
+        lay = self._layouts[i]
+        values = (controlword, self._default_mode[i], 0, 0, 0, *lay.rpdo_constants)
+        frames = [self._port_of[i].frame(pdo.cob_id, pdo.size) for pdo in lay.rpdos]
+        for msg, pdo in zip(frames, lay.rpdos):
+            where = pdo.positions_in(lay.rpdo_fields)
+            pdo.codec.pack_into(msg.data, 0, *(values[k] for k in where))
+        return frames
+
+    def torque_off(self, bringup: Sequence[DriveBringup]) -> None:
+        """FAILPROOF: every configured drive off (or in its bring-up's power-off steps)."""
+        for i, b in enumerate(bringup):
+            if b.mapped:
+                self.off(i, b)
+
+    def watchdog_torque_off(self, bringup: Sequence[DriveBringup]) -> None:
+        """From any thread: disable voltage to every configured drive, then SYNC."""
+        for i, b in enumerate(bringup):
+            for msg in self._torque_off[i] if b.mapped else ():
+                self._send[i](msg)
+        for port in self._ports:
+            port.send(port.sync)
+
+    def off(self, i: int, b: DriveBringup) -> None:
+        """A drive not under command: torque off, or its bring-up's fault-reset edge or
+        shutdown probe (controlword 0x80 / 0x06: the power stage stays off in both)."""
+        frames = (self._fault_reset[i] if b.fault_reset_bit
+                  else self._probe[i] if b.probing else self._torque_off[i])
+        for msg in frames:
+            self._send[i](msg)
+
+    def rpdos(self, i: int, values: tuple[int, ...]) -> None:
+        """Drive i's RPDOs packed from (controlword, mode, position, velocity, torque)."""
+        constants = self._constants[i]
+        if constants:  # a fixed mapping's other objects: sent as the file gives them
+            values += constants
+        send = self._send[i]
+        for msg, pack_into, where in self._rpdo[i]:
+            pack_into(msg.data, 0, *[values[k] for k in where])
+            send(msg)
+
+    def sync_and_heartbeat(self, now: float) -> None:
+        """SYNC on every bus, then the manager heartbeat when due, back to back. Due on the
+        grid 0x1017 declares (a period after the last due time, sent in the first cycle at
+        or after it: never late on average); a grid a whole period behind (a stalled loop,
+        a beat sent out of turn) starts again from now, with no burst of beats."""
+        for port in self._ports:
+            port.send(port.sync)
+        if now >= self.next_heartbeat:
+            for port in self._ports:
+                port.send(port.heartbeat)
+            due = self.next_heartbeat + self._period
+            self.next_heartbeat = due if due > now else now + self._period

@@ -1,0 +1,112 @@
+"""Recovery: fault reset or restart of every latched or failed drive, over the cycles.
+
+``request`` comes from any thread and returns a future; ``step`` runs in the cycle's read.
+A fault of the very cycle a recovery would start in is delivered first, never erased. Then
+the bus latches are cleared, and per drive: a READY drive whose heartbeat says operational
+gets the fault-reset edge, any other drive a restart of its bring-up (a node configured again
+is NMT-reset, so its other axes restart too; one under command is faulted first, so the
+manager hears it drop out). The recovery succeeds when every drive is READY without a latch
+and every bus has sent as many cycles in a row without a refused frame as TPDOs may be
+missing; ``step`` then returns the future, for the loop to clear the manager's e-stop latch
+before it says True (stop_requests.RecoveryDone). It fails at its timeout, or when every
+drive has settled and some did not come back.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from concurrent.futures import Future
+
+import numpy as np
+
+from . import cia301
+from .bringup import DriveBringup, Phase
+from .bus_port import BusPort
+from .drive_plan import DrivePlan
+from .supervision import Supervisor
+
+
+class Recovery:
+    """At most one recovery at a time; ``bringup`` is set when the hardware starts."""
+
+    def __init__(self, plans: Sequence[DrivePlan], node: Sequence[tuple[int, ...]],
+                 ports: Sequence[BusPort], supervisor: Supervisor,
+                 hb_state: list[int], hb_time: np.ndarray, error_code: np.ndarray) -> None:
+        self._plans, self._node, self._ports, self._sup = plans, node, ports, supervisor
+        self._hb_state, self._hb_time, self._error_code = hb_state, hb_time, error_code
+        self.bringup: Sequence[DriveBringup] = ()
+        self.future: Future[bool] | None = None
+        self._started = False
+        self._timeout = 5.0
+        self._deadline = math.inf
+
+    @property
+    def running(self) -> bool:
+        return self.future is not None and not self.future.done()
+
+    def request(self, timeout: float) -> Future[bool]:
+        """A new recovery, or the one already running."""
+        if self.future is not None and not self.future.done():
+            return self.future
+        future: Future[bool] = Future()
+        self._timeout = timeout
+        self._started = False
+        self.future = future
+        return future
+
+    def step(self, now: float) -> Future[bool] | None:
+        """One cycle of the running recovery: its future once the drives are back (the
+        caller clears the e-stop latch, then resolves it), else None."""
+        future = self.future
+        if future is None or future.done():
+            return None
+        sup = self._sup
+        if not self._started:
+            if not sup.pending:
+                self._begin(now)
+            return None
+        drives_ready = (all(b.phase == Phase.READY for b in self.bringup)
+                        and not any(sup.latched) and sup.bus_latched is None)
+        if drives_ready and min(p.clean_cycles for p in self._ports) >= sup.tpdo_timeout_cycles:
+            return future
+        if now > self._deadline or (not drives_ready and all(
+                b.phase in (Phase.READY, Phase.FAILED) for b in self.bringup)):
+            future.set_result(False)
+        return None
+
+    def _begin(self, now: float) -> None:
+        sup, bringup = self._sup, self.bringup
+        self._started = True
+        self._deadline = now + self._timeout
+        sup.bus_latched = None
+        for port in self._ports:
+            port.latched = None
+        restarted: set[int] = set()
+        for i, b in enumerate(bringup):
+            if b.phase == Phase.READY and sup.latched[i] is None:
+                continue
+            sup.disarm(i)
+            sup.clear(i)
+            self._error_code[i] = 0
+            hb_ok = (self._hb_state[i] == cia301.NmtState.OPERATIONAL
+                     and now - self._hb_time[i] < sup.heartbeat_timeout[i])
+            if b.phase == Phase.READY and hb_ok:
+                b.reset_fault(now)
+            elif b.phase != Phase.CONFIGURING:
+                b.restart(now, probe_at_once=True)
+                restarted.add(i)
+        for i in restarted:  # a node configured again is NMT-reset: all its axes restart
+            if not self._plans[i].leads_node:
+                continue
+            for k in self._node[i][1:]:
+                if k in restarted or bringup[k].phase == Phase.CONFIGURING:
+                    continue
+                if bringup[k].phase == Phase.READY and sup.latched[k] is None:
+                    # it may be under command: the manager hears it drop out (an e-stop,
+                    # delivered this cycle); its configuration switched it off by SDO
+                    # before the node's NMT pre-operational
+                    sup.fault(k, "its node is configured again (recovery of drive "
+                                 f"{self._plans[i].drive.name!r})", now)
+                sup.disarm(k)
+                sup.clear(k)
+                bringup[k].restart(now, probe_at_once=True)
