@@ -41,7 +41,7 @@ The safety path, top to bottom (each step names where it lives):
    raise; a send error is counted, never raised. The failproof controller (TorqueOff) also
    zeroes JointCommand so loggers see the truth, but the frames do not depend on it.
 6. If a controller hangs inside update(), the manager's watchdog thread
-   (``ControllerManager._run_watchdog``) calls ``send_torque_off`` every cycle until it
+   (``rocoma_can.stopper.Watchdog``) calls ``send_torque_off`` every cycle until it
    returns: the pre-encoded frames and SYNC, no heartbeat. The hung advance then counts as a
    failure and the manager goes straight to FAILPROOF (the drives are off already).
 7. If the loop itself dies or hangs, nothing is sent at all, including the manager

@@ -43,6 +43,7 @@ from .adapters import (
 )
 from .events import EventDispatcher, EventKind, ManagerEvent, ManagerState, Subscriber
 from .interfaces import Controller, EmergencyController, FailproofController
+from .stopper import Stoppers, Watchdog
 from .workers import WorkerManager
 
 log = logging.getLogger("rocoma_can.manager")
@@ -99,45 +100,6 @@ class _Pair:
     emergency: EmergencyControllerAdapter | None
 
 
-class _Stoppers:
-    """Threads that run pre_stop + stop. One per controller, so a slow stop never delays
-    another controller's (a controller has at most one stop in flight)."""
-
-    def __init__(self, name: str) -> None:
-        self._name = name
-        self._queue: queue.SimpleQueue[ControllerAdapter | None] = queue.SimpleQueue()
-        self._threads: list[threading.Thread] = []
-
-    def grow_to(self, n: int) -> None:
-        while len(self._threads) < n:
-            t = threading.Thread(target=self._run, daemon=True,
-                                 name=f"{self._name}/stopper{len(self._threads)}")
-            t.start()
-            self._threads.append(t)
-
-    def hand_over(self, adapter: ControllerAdapter) -> None:
-        """Non-blocking; the caller has set adapter.being_stopped."""
-        self._queue.put(adapter)
-
-    def close(self, timeout: float) -> list[str]:
-        for _ in self._threads:
-            self._queue.put(None)
-        deadline = time.monotonic() + timeout
-        for t in self._threads:
-            t.join(max(0.0, deadline - time.monotonic()))
-        return [t.name for t in self._threads if t.is_alive()]
-
-    def _run(self) -> None:
-        while True:
-            adapter = self._queue.get()
-            if adapter is None:
-                return
-            try:
-                adapter.stop()
-            finally:
-                adapter.being_stopped = False
-
-
 class ControllerManager:
     """Runs one controller at a time over an emergency and a failproof layer."""
 
@@ -172,7 +134,6 @@ class ControllerManager:
         self.last_refusal = ""  # why the last switch request was refused ("" = it was not)
         self.switch_count = 0   # switches committed: the hardware arms the drives ready then
         self.timing = timing
-        self._on_hang = on_hang
         self.hang_calls = 0       # how often on_hang ran while update() was stuck
         self._update_started = 0.0  # monotonic start of the update() in progress, else 0
         # The longest update() waits for the cycle lock (the hang limit): the switcher holds
@@ -215,19 +176,17 @@ class ControllerManager:
         self.cycle_count = 0
         self.internal_errors = 0  # update() steps that raised inside the manager itself
 
-        self._stoppers = _Stoppers(name)
+        self._stoppers = Stoppers(name)
         self._switch_busy = threading.Lock()
         self._switch_jobs: queue.SimpleQueue[tuple[_Pair, Future[SwitchResult]] | None] = \
             queue.SimpleQueue()
         self._switcher = threading.Thread(target=self._run_switcher, daemon=True,
                                           name=f"{name}/switcher")
         self._switcher.start()
-        self._watchdog_stop = threading.Event()
-        self._watchdog = None
+        self._watchdog: Watchdog | None = None
         if timing is not None and timing.hang > 0:
-            self._watchdog = threading.Thread(target=self._run_watchdog, daemon=True,
-                                              name=f"{name}/watchdog")
-            self._watchdog.start()
+            self._watchdog = Watchdog(self, name, timing.hang * self.dt, self.dt, on_hang,
+                                      self._events.log)
 
     # --- set-up ---------------------------------------------------------------------------
     def _attach(self, controller: Controller | FailproofController) -> None:
@@ -466,28 +425,6 @@ class ControllerManager:
                 self._held.append((self._stoppers.hand_over, (adapter,)))
             else:
                 self._stoppers.hand_over(adapter)
-
-    def _run_watchdog(self) -> None:
-        """Torque off through on_hang while an update() is stuck (a hung advance)."""
-        assert self.timing is not None  # the watchdog runs only with timing supervision
-        hang = self.timing.hang * self.dt
-        reported = 0.0
-        while not self._watchdog_stop.wait(hang / 4):
-            started = self._update_started
-            while started and started == self._update_started \
-                    and time.monotonic() - started > hang:
-                if reported != started:
-                    reported = started
-                    self._events.log(logging.ERROR, f"update() stuck for more than "
-                                     f"{hang * 1e3:.1f} ms: commanding torque-off", None)
-                if self._on_hang is not None:
-                    self.hang_calls += 1
-                    try:
-                        self._on_hang()
-                    except Exception as exc:  # keep trying: this is the last line
-                        self._events.log(logging.ERROR, f"on_hang raised {exc!r}", exc)
-                if self._watchdog_stop.wait(self.dt):
-                    return
 
     # --- e-stop requests (any thread) -----------------------------------------------------
     def emergency_stop(self, cause: str = "request") -> None:
@@ -759,12 +696,10 @@ class ControllerManager:
                 ok = each.cleanup() and ok
         self._switch_jobs.put(None)
         self._switcher.join(limit)
-        self._watchdog_stop.set()
-        if self._watchdog is not None:
-            self._watchdog.join(limit)
+        watchdog_stuck = self._watchdog.close(limit) if self._watchdog is not None else []
         stuck = self._stoppers.close(limit)
-        stuck += [t.name for t in (self._switcher, self._watchdog)
-                  if t is not None and t.is_alive()]
+        stuck += [self._switcher.name] if self._switcher.is_alive() else []
+        stuck += watchdog_stuck
         if not self._events.close(limit):
             stuck.append(f"{self.name}/events")
         for thread_name in stuck:
