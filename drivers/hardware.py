@@ -47,9 +47,9 @@ The safety path, top to bottom (each step names where it lives):
    send error is counted, never raised. A bug in the command path ends in the same frames.
    The failproof controller (TorqueOff) also zeroes JointCommand so loggers see the truth,
    but the frames do not depend on it.
-6. If a controller hangs inside update(), the manager's watchdog thread calls
-   ``send_torque_off`` every cycle until it returns: the pre-encoded frames and SYNC, no
-   heartbeat. The hung advance then counts as a failure and the manager goes straight to
+6. If a controller hangs inside update(), the manager's watchdog thread
+   (``rocoma_can.stopper.Watchdog``) calls ``send_torque_off`` every cycle until it
+   returns: the pre-encoded frames and SYNC, no heartbeat. The hung advance then counts as a failure and the manager goes straight to
    FAILPROOF (the drives are off already).
 7. If the loop itself dies or hangs, nothing is sent at all, including the manager
    heartbeat (produced by ``write``, never by a kernel BCM task that would outlive the

@@ -1,6 +1,24 @@
 """rocoma-can: the rocoma controller manager for CANopen actuator buses.
 
-The public names are imported on first use (``_lazy.py`` says why).
+The public names are imported on first use (``_lazy.py`` says why). The core's modules:
+
+manager      ControllerManager: states, layers, update() and its e-stops (the safety path)
+switcher     the switch protocol, on the manager's switcher thread (Switcher, SwitchResult)
+stopper      the manager's stopper threads and its hang watchdog
+adapters     how the manager calls a controller: judged results, timing budgets
+interfaces   Controller, EmergencyController, FailproofController, SwapState
+tuples       controller tuples (several controllers as one)
+workers      worker threads owned by a controller
+events       notifications and logging, delivered off the cycle
+plugins      controllers by name from configuration (entry points)
+errors       RocomaError, the one root of the errors raised on purpose
+cli_args     argument types every verb shares
+exit_codes   the exit codes every verb shares
+__main__     ``python -m rocoma_can``: the rocoma-can command
+_lazy        package attributes imported on first use (a fast CLI start)
+
+Subpackages: runtime (the manager on a bus), node (its CANopen node), record, fleet, cli;
+drivers and controllers are installed into this namespace.
 """
 from __future__ import annotations
 

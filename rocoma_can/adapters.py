@@ -257,6 +257,14 @@ class EmergencyControllerAdapter(ControllerAdapter):
         return self._set_initialized(ok)
 
 
+@dataclass
+class ControllerPair:
+    """A switchable controller and the emergency layer it falls to: what the manager
+    registers, switches into and runs (one emergency adapter may serve several pairs)."""
+    controller: ControllerAdapter
+    emergency: EmergencyControllerAdapter | None
+
+
 class FailproofControllerAdapter(_Adapter):
     """The last layer cannot fail: whatever advance raises is counted and reported."""
 

@@ -19,13 +19,16 @@ Threads and who calls what (rocoma's timestep tables, made exact; docs/controlle
 
 The cycle lock is held by ``update()`` and by the switcher's commit only; the commit is a few
 assignments, so the update thread never waits on slow work.
+
+This module is the cycle and its e-stops: update() and the fall failure -> emergency ->
+failproof read top to bottom here. The threads it starts live apart, each in its own
+module: the switch protocol in ``switcher.py``, the stopper threads and the hang watchdog
+in ``stopper.py``.
 """
 from __future__ import annotations
 
-import enum
 import itertools
 import logging
-import queue
 import threading
 import time
 from collections import deque
@@ -36,6 +39,7 @@ from typing import Any
 
 from .adapters import (
     ControllerAdapter,
+    ControllerPair,
     EmergencyControllerAdapter,
     FailproofControllerAdapter,
     StateCheck,
@@ -43,16 +47,12 @@ from .adapters import (
 )
 from .events import EventDispatcher, EventKind, ManagerEvent, ManagerState, Subscriber
 from .interfaces import Controller, EmergencyController, FailproofController
+from .stopper import Stoppers, Watchdog
+from .switcher import Switcher
+from .switcher import SwitchResult as SwitchResult  # re-exported: imported from here
 from .workers import WorkerManager
 
 log = logging.getLogger("rocoma_can.manager")
-
-
-class SwitchResult(enum.IntEnum):
-    SWITCHED = 0
-    RUNNING = 1    # already the active controller in OK
-    NOT_FOUND = 2  # unknown name, or an emergency / failproof controller's name
-    ERROR = 3      # refused (busy, latched e-stop, shutting down) or failed / interrupted
 
 
 #: The least update() waits for the cycle lock with timing supervision (see __init__)
@@ -93,51 +93,6 @@ class TimingSupervision:
                             overruns=self.overruns, hang_ns=int(self.hang * dt * 1e9))
 
 
-@dataclass
-class _Pair:
-    controller: ControllerAdapter
-    emergency: EmergencyControllerAdapter | None
-
-
-class _Stoppers:
-    """Threads that run pre_stop + stop. One per controller, so a slow stop never delays
-    another controller's (a controller has at most one stop in flight)."""
-
-    def __init__(self, name: str) -> None:
-        self._name = name
-        self._queue: queue.SimpleQueue[ControllerAdapter | None] = queue.SimpleQueue()
-        self._threads: list[threading.Thread] = []
-
-    def grow_to(self, n: int) -> None:
-        while len(self._threads) < n:
-            t = threading.Thread(target=self._run, daemon=True,
-                                 name=f"{self._name}/stopper{len(self._threads)}")
-            t.start()
-            self._threads.append(t)
-
-    def hand_over(self, adapter: ControllerAdapter) -> None:
-        """Non-blocking; the caller has set adapter.being_stopped."""
-        self._queue.put(adapter)
-
-    def close(self, timeout: float) -> list[str]:
-        for _ in self._threads:
-            self._queue.put(None)
-        deadline = time.monotonic() + timeout
-        for t in self._threads:
-            t.join(max(0.0, deadline - time.monotonic()))
-        return [t.name for t in self._threads if t.is_alive()]
-
-    def _run(self) -> None:
-        while True:
-            adapter = self._queue.get()
-            if adapter is None:
-                return
-            try:
-                adapter.stop()
-            finally:
-                adapter.being_stopped = False
-
-
 class ControllerManager:
     """Runs one controller at a time over an emergency and a failproof layer."""
 
@@ -166,13 +121,9 @@ class ControllerManager:
         # must not inherit the failed controller's targets (a NaN in a field the emergency
         # controller does not write would fail it too and skip the smart stop).
         self._reset_command = reset_command
-        # Why a switch into a controller must be refused now (e.g. drives not ready), or
-        # None: asked when a switch is requested, from the requesting thread.
-        self._switch_guard = switch_guard
         self.last_refusal = ""  # why the last switch request was refused ("" = it was not)
         self.switch_count = 0   # switches committed: the hardware arms the drives ready then
         self.timing = timing
-        self._on_hang = on_hang
         self.hang_calls = 0       # how often on_hang ran while update() was stuck
         self._update_started = 0.0  # monotonic start of the update() in progress, else 0
         # The longest update() waits for the cycle lock (the hang limit): the switcher holds
@@ -202,10 +153,10 @@ class ControllerManager:
             raise RuntimeError(f"failproof controller {failproof.name!r} could not be created: "
                                f"{self._failproof.failure}")
 
-        self._pairs: dict[str, _Pair] = {}
+        self._pairs: dict[str, ControllerPair] = {}
         self._emergencies: dict[str, EmergencyControllerAdapter] = {}
         self._state = ManagerState.FAILPROOF
-        self._active: _Pair | None = None
+        self._active: ControllerPair | None = None
         self._cycle_lock = threading.Lock()
         self._requests: deque[tuple[bool, str]] = deque()  # (failproof?, cause), any thread
         self._estop_counter = itertools.count(1)
@@ -215,19 +166,12 @@ class ControllerManager:
         self.cycle_count = 0
         self.internal_errors = 0  # update() steps that raised inside the manager itself
 
-        self._stoppers = _Stoppers(name)
-        self._switch_busy = threading.Lock()
-        self._switch_jobs: queue.SimpleQueue[tuple[_Pair, Future[SwitchResult]] | None] = \
-            queue.SimpleQueue()
-        self._switcher = threading.Thread(target=self._run_switcher, daemon=True,
-                                          name=f"{name}/switcher")
-        self._switcher.start()
-        self._watchdog_stop = threading.Event()
-        self._watchdog = None
+        self._stoppers = Stoppers(name)
+        self._switcher = Switcher(self, name, switch_guard)
+        self._watchdog: Watchdog | None = None
         if timing is not None and timing.hang > 0:
-            self._watchdog = threading.Thread(target=self._run_watchdog, daemon=True,
-                                              name=f"{name}/watchdog")
-            self._watchdog.start()
+            self._watchdog = Watchdog(self, name, timing.hang * self.dt, self.dt, on_hang,
+                                      self._events.log)
 
     # --- set-up ---------------------------------------------------------------------------
     def _attach(self, controller: Controller | FailproofController) -> None:
@@ -284,7 +228,7 @@ class ControllerManager:
         if not adapter.create(self.dt):
             log.error("controller %r could not be created: %s", name, adapter.failure)
             return False
-        self._pairs[name] = _Pair(adapter, emcy_adapter)
+        self._pairs[name] = ControllerPair(adapter, emcy_adapter)
         self._stoppers.grow_to(len(self._pairs) + len(self._emergencies))
         return True
 
@@ -467,28 +411,6 @@ class ControllerManager:
             else:
                 self._stoppers.hand_over(adapter)
 
-    def _run_watchdog(self) -> None:
-        """Torque off through on_hang while an update() is stuck (a hung advance)."""
-        assert self.timing is not None  # the watchdog runs only with timing supervision
-        hang = self.timing.hang * self.dt
-        reported = 0.0
-        while not self._watchdog_stop.wait(hang / 4):
-            started = self._update_started
-            while started and started == self._update_started \
-                    and time.monotonic() - started > hang:
-                if reported != started:
-                    reported = started
-                    self._events.log(logging.ERROR, f"update() stuck for more than "
-                                     f"{hang * 1e3:.1f} ms: commanding torque-off", None)
-                if self._on_hang is not None:
-                    self.hang_calls += 1
-                    try:
-                        self._on_hang()
-                    except Exception as exc:  # keep trying: this is the last line
-                        self._events.log(logging.ERROR, f"on_hang raised {exc!r}", exc)
-                if self._watchdog_stop.wait(self.dt):
-                    return
-
     # --- e-stop requests (any thread) -----------------------------------------------------
     def emergency_stop(self, cause: str = "request") -> None:
         """OK → EMERGENCY (or FAILPROOF), EMERGENCY → FAILPROOF; effective by the next update."""
@@ -517,44 +439,12 @@ class ControllerManager:
     # --- switching ------------------------------------------------------------------------
     def request_switch(self, name: str) -> Future[SwitchResult]:
         """Start a switch on the switcher thread; the future resolves to a SwitchResult."""
-        future: Future[SwitchResult] = Future()
-        pair = self._pairs.get(name)
-        if pair is None:
-            self.last_refusal = f"no controller {name!r}"
-            log.warning("switch to %r: no such controller (available: %s)",
-                        name, ", ".join(self.available_controllers()) or "none")
-            future.set_result(SwitchResult.NOT_FOUND)
-        elif self._closed:
-            log.error("switch to %r refused: manager is shut down", name)
-            future.set_result(SwitchResult.ERROR)
-        elif (blocked := self.switch_blocked()) is not None:
-            self.last_refusal = blocked
-            log.error("switch to %r refused: %s", name, blocked)
-            future.set_result(SwitchResult.ERROR)
-        elif not self._switch_busy.acquire(blocking=False):
-            self.last_refusal = "another switch is in progress"
-            log.error("switch to %r refused: another switch is in progress", name)
-            future.set_result(SwitchResult.ERROR)
-        else:
-            self.last_refusal = ""
-            future.set_running_or_notify_cancel()
-            self._switch_jobs.put((pair, future))
-        return future
+        return self._switcher.request(name)
 
     def switch_blocked(self) -> str | None:
         """Why a switch would be refused now, or None: the e-stop latch, then the switch
         guard's reason (a guard that raises blocks too: it could not say all is well)."""
-        if self._latched:
-            return "emergency stop not cleared"
-        return self._guard_reason()
-
-    def _guard_reason(self) -> str | None:
-        if self._switch_guard is None:
-            return None
-        try:
-            return self._switch_guard()
-        except Exception as exc:  # noqa: BLE001 - reported as the reason
-            return f"switch guard failed: {exc!r}"
+        return self._switcher.blocked()
 
     def switch_controller(self, name: str, timeout: float | None = None) -> SwitchResult:
         """Switch and wait for the result (at most ``timeout``, default timeouts.switch)."""
@@ -566,94 +456,6 @@ class ControllerManager:
             log.error("switch to %r: no result within %.1f s; it goes on in the background",
                       name, wait)
             return SwitchResult.ERROR
-
-    def _run_switcher(self) -> None:
-        while True:
-            job = self._switch_jobs.get()
-            if job is None:
-                return
-            pair, future = job
-            try:
-                result = self._switch(pair)
-            except Exception:  # a bug here must not leave the caller waiting
-                log.exception("switch to %r failed unexpectedly", pair.controller.name)
-                result = SwitchResult.ERROR
-            finally:
-                self._switch_busy.release()
-            future.set_result(result)
-
-    def _switch(self, pair: _Pair) -> SwitchResult:
-        new = pair.controller
-        with self._cycle_lock:  # a consistent view of who runs, between two cycles
-            if self._latched:
-                log.error("switch to %r refused: emergency stop not cleared", new.name)
-                return SwitchResult.ERROR
-            if self._state is ManagerState.OK and self._active is pair:
-                return SwitchResult.RUNNING
-            serial = self._estop_serial
-            old = self._running_adapter()
-            if old is not None:
-                old.being_stopped = True  # this switch owns its stop from here on
-
-        if old is not None and not old.pre_stop():
-            return self._abort_switch(old, f"switch: {old.failure}")
-
-        deadline = time.monotonic() + self.timeouts.being_stopped
-        while new.being_stopped:
-            if time.monotonic() > deadline:
-                return self._abort_switch(old, f"switch: {new.name} still being stopped "
-                                          f"after {self.timeouts.being_stopped:.1f} s")
-            time.sleep(0.001)
-
-        swap_state = old.get_swap_state() if old is not None else None
-        if not new.swap(self.dt, swap_state):
-            new.being_stopped = True  # its swap may have left half-initialized state
-            self._stoppers.hand_over(new)
-            return self._abort_switch(old, f"switch: {new.failure}")
-
-        with self._cycle_lock:
-            # asked again at the commit: a drive may have faulted while the new controller
-            # initialized (the switch then fails like any other, with an e-stop)
-            blocked = self._guard_reason() if self._estop_serial == serial else None
-            committed = (self._estop_serial == serial and not self._requests
-                         and not self._closed and blocked is None)
-            if committed:
-                previous = self._state
-                new.running = True
-                self._active = pair
-                self._state = ManagerState.OK
-                self.switch_count += 1
-                self._emit_changed()
-            elif blocked is None:  # a requested e-stop may not have reached update() yet:
-                self._apply_requests()  # the old one must stop running before its stop
-        if blocked is not None:
-            self.last_refusal = blocked
-            new.being_stopped = True
-            self._stoppers.hand_over(new)
-            return self._abort_switch(old, f"switch: {blocked}")
-        if not committed:
-            log.error("switch to %r interrupted by an emergency stop", new.name)
-            new.being_stopped = True
-            self._stoppers.hand_over(new)
-            return self._finish_old(old, SwitchResult.ERROR)
-        log.info("switched to %r (from %s)", new.name, previous.name)
-        return self._finish_old(old, SwitchResult.SWITCHED)
-
-    def _abort_switch(self, old: ControllerAdapter | None, cause: str) -> SwitchResult:
-        """A switch failed after the old controller was told to stop: e-stop, like rocoma.
-        The e-stop is applied here, between two cycles, so the old controller no longer runs
-        when its stop is handed over."""
-        log.error("%s; emergency stop", cause)
-        with self._cycle_lock:
-            self._apply_requests()
-            self._estop(False, cause)
-        return self._finish_old(old, SwitchResult.ERROR)
-
-    def _finish_old(self, old: ControllerAdapter | None, result: SwitchResult) -> SwitchResult:
-        if old is not None:
-            old.running = False
-            self._stoppers.hand_over(old)  # being_stopped was set when the switch began
-        return result
 
     def _running_adapter(self) -> ControllerAdapter | None:
         pair = self._active
@@ -729,9 +531,7 @@ class ControllerManager:
                 self._wake()
             finally:
                 self._cycle_lock.release()
-        if self._switch_busy.acquire(timeout=limit):
-            self._switch_busy.release()
-        else:
+        if not self._switcher.wait_idle(limit):
             log.error("shutdown: a switch did not finish within %.1f s", limit)
             ok = False
         if self._cycle_lock.acquire(timeout=limit):
@@ -757,14 +557,9 @@ class ControllerManager:
         for each in self.adapters().values():
             if each.created and each not in pending:
                 ok = each.cleanup() and ok
-        self._switch_jobs.put(None)
-        self._switcher.join(limit)
-        self._watchdog_stop.set()
-        if self._watchdog is not None:
-            self._watchdog.join(limit)
-        stuck = self._stoppers.close(limit)
-        stuck += [t.name for t in (self._switcher, self._watchdog)
-                  if t is not None and t.is_alive()]
+        switcher_stuck = self._switcher.close(limit)
+        watchdog_stuck = self._watchdog.close(limit) if self._watchdog is not None else []
+        stuck = self._stoppers.close(limit) + switcher_stuck + watchdog_stuck
         if not self._events.close(limit):
             stuck.append(f"{self.name}/events")
         for thread_name in stuck:
