@@ -1,6 +1,6 @@
 """DriveBringup (drivers/bringup.py), the per-drive start-up state machine, without a bus: its
 phases, timeouts and failure causes. The SDO configuration job is replaced by its result
-(the job itself is tested on the bus: tests/test_driver_bus.py); jobs run inline."""
+(the job itself is tested on the bus: tests/test_driver_bus_bring_up.py); jobs run inline."""
 from __future__ import annotations
 
 from collections.abc import Callable
