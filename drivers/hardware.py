@@ -49,8 +49,8 @@ The safety path, top to bottom (each step names where it lives):
    but the frames do not depend on it.
 6. If a controller hangs inside update(), the manager's watchdog thread
    (``rocoma_can.stopper.Watchdog``) calls ``send_torque_off`` every cycle until it
-   returns: the pre-encoded frames and SYNC, no heartbeat. The hung advance then counts as a failure and the manager goes straight to
-   FAILPROOF (the drives are off already).
+   returns: the pre-encoded frames and SYNC, no heartbeat. The hung advance then counts as
+   a failure and the manager goes straight to FAILPROOF (the drives are off already).
 7. If the loop itself dies or hangs, nothing is sent at all, including the manager
    heartbeat (produced by ``write``, never by a kernel BCM task that would outlive the
    process; the manager's CANopen node cannot start one either: node/server.py). Each
