@@ -9,18 +9,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import EmergencyController
 
 from .joint_group import JointGroup
 from .params import number, per_joint
 
 
-class Damp(EmergencyController):
+class Damp(EmergencyController[JointState, JointCommand]):
     """Parameters:
       joints          joint names this controller drives (default: all)
       damping         braking gain, Nm·s/rad, > 0 (torque = -damping * velocity), per joint
@@ -34,8 +33,9 @@ class Damp(EmergencyController):
     feedback_needed = frozenset({"velocity"})
 
     def __init__(self, name: str = "damp", *, joints: Sequence[str] | None = None,
-                 damping: Any = 1.0, torque_limit: Any = math.inf, still_velocity: Any = 0.05,
-                 still_time: Any = 0.2, timeout: Any = math.inf) -> None:
+                 damping: object = 1.0, torque_limit: object = math.inf,
+                 still_velocity: object = 0.05, still_time: object = 0.2,
+                 timeout: object = math.inf) -> None:
         super().__init__(name)
         self.group = JointGroup(self, joints)
         self._p_damping = per_joint(self, "damping", damping, positive=True)

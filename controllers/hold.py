@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import EmergencyController
 
 from .joint_group import JointGroup
@@ -21,7 +20,7 @@ from .pd_law import PdGains, track
 from .pose_swap import PoseSwapState
 
 
-class Hold(EmergencyController):
+class Hold(EmergencyController[JointState, JointCommand]):
     """Parameters (per joint: a scalar or one value per selected joint):
       joints        joint names this controller drives (default: all)
       kp, kd        gains, Nm/rad and Nm·s/rad, >= 0 (CST only)
@@ -32,8 +31,8 @@ class Hold(EmergencyController):
     feedback_needed = frozenset({"position"})
 
     def __init__(self, name: str = "hold", *, joints: Sequence[str] | None = None,
-                 kp: Any = 200.0, kd: Any = 5.0, torque_limit: Any = math.inf,
-                 mode: Any = "CST") -> None:
+                 kp: object = 200.0, kd: object = 5.0, torque_limit: object = math.inf,
+                 mode: object = "CST") -> None:
         super().__init__(name)
         self.group = JointGroup(self, joints)
         self._gains = PdGains.check(self, kp, kd, torque_limit)

@@ -9,20 +9,18 @@ allocate no arrays in the cycle.
 """
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
 
-from .params import joint_names, param_error
+from .params import Owner, joint_names, param_error
 
 
 class JointGroup:
     """Measured ``position``/``velocity`` in, ``mode``/``position``/``velocity``/``torque``
     command buffers out, all of length ``n`` in the order of ``names``."""
 
-    def __init__(self, owner: Any, joints: Any) -> None:
+    def __init__(self, owner: Owner, joints: object) -> None:
         """``joints``: the controller's ``joints`` parameter, checked here (None: all)."""
         self._owner = owner
         self._requested = joint_names(owner, joints)
@@ -32,9 +30,6 @@ class JointGroup:
     def bind(self, state: JointState, command: JointCommand) -> None:
         """Resolve the joint names against the manager's state; raises ValueError."""
         owner = self._owner
-        if state is None or command is None:
-            raise ValueError(f"{type(owner).__name__} {owner.name!r}: no state/command "
-                             "attached; add the controller to a ControllerManager first")
         if tuple(state.names) != tuple(command.names):
             raise ValueError(f"{type(owner).__name__} {owner.name!r}: state joints "
                              f"{list(state.names)} differ from command joints "

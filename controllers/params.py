@@ -6,13 +6,16 @@ Per-joint parameters take a scalar (same value for every joint) or a list with o
 selected joint. The number of joints is only known once the manager has attached the state,
 so a list's length is checked in ``create``, which raises ValueError (the manager's adapter
 logs it and reports the create as failed).
+
+Raw values are typed ``object``, not ``Any``: they come from YAML unchecked, so mypy makes a
+controller pass them through these functions before it can compute with them.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 
@@ -20,18 +23,25 @@ from rocoma_can.drivers.joints import JointMode
 from rocoma_can.errors import ParamError
 
 
-def param_error(owner: Any, param: str, reason: str) -> ParamError:
+class Owner(Protocol):
+    """The controller a parameter belongs to: errors name it."""
+
+    @property
+    def name(self) -> str: ...
+
+
+def param_error(owner: Owner, param: str, reason: str) -> ParamError:
     """The one error format: which controller, which parameter, what is wrong."""
     return ParamError(f"{type(owner).__name__} {owner.name!r}", param, reason)
 
 
-def _as_float(owner: Any, param: str, value: Any) -> float:
+def _as_float(owner: Owner, param: str, value: object) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise param_error(owner, param, f"expected a number, got {value!r}")
     return float(value)
 
 
-def number(owner: Any, param: str, value: Any, *, minimum: float | None = None,
+def number(owner: Owner, param: str, value: object, *, minimum: float | None = None,
            positive: bool = False, allow_inf: bool = False) -> float:
     """A scalar parameter: finite unless allow_inf, >= minimum, > 0 if positive."""
     x = _as_float(owner, param, value)
@@ -39,7 +49,7 @@ def number(owner: Any, param: str, value: Any, *, minimum: float | None = None,
     return x
 
 
-def _check(owner: Any, param: str, x: float, *, minimum: float | None, positive: bool,
+def _check(owner: Owner, param: str, x: float, *, minimum: float | None, positive: bool,
            allow_inf: bool, where: str = "") -> None:
     if math.isnan(x) or (math.isinf(x) and not allow_inf):
         raise param_error(owner, param, f"must be finite{where}, got {x}")
@@ -56,7 +66,7 @@ class PerJoint:
     values: tuple[float, ...]
     scalar: bool
 
-    def resolve(self, owner: Any, n: int) -> np.ndarray:
+    def resolve(self, owner: Owner, n: int) -> np.ndarray:
         """One float64 value per selected joint (a fresh array the controller may keep)."""
         if self.scalar:
             return np.full(n, self.values[0])
@@ -67,7 +77,7 @@ class PerJoint:
         return np.array(self.values, dtype=float)
 
 
-def per_joint(owner: Any, param: str, value: Any, *, minimum: float | None = None,
+def per_joint(owner: Owner, param: str, value: object, *, minimum: float | None = None,
               positive: bool = False, allow_inf: bool = False) -> PerJoint:
     """A scalar or a non-empty list of numbers, each checked like ``number``."""
     if isinstance(value, (list, tuple, np.ndarray)):
@@ -82,12 +92,12 @@ def per_joint(owner: Any, param: str, value: Any, *, minimum: float | None = Non
     return PerJoint(param, (x,), scalar=True)
 
 
-def optional_per_joint(owner: Any, param: str, value: Any) -> PerJoint | None:
+def optional_per_joint(owner: Owner, param: str, value: object) -> PerJoint | None:
     """A per-joint pose that may be left out (None: use the measured position)."""
     return None if value is None else per_joint(owner, param, value)
 
 
-def output_mode(owner: Any, value: Any, allowed: Iterable[JointMode],
+def output_mode(owner: Owner, value: object, allowed: Iterable[JointMode],
                 param: str = "mode") -> JointMode:
     """A CiA 402 mode given as a name ("CST", "csp") or a JointMode."""
     allowed = tuple(allowed)
@@ -103,13 +113,13 @@ def output_mode(owner: Any, value: Any, allowed: Iterable[JointMode],
     return mode
 
 
-def choice(owner: Any, param: str, value: Any, allowed: Sequence[str]) -> str:
+def choice(owner: Owner, param: str, value: object, allowed: Sequence[str]) -> str:
     if not isinstance(value, str) or value not in allowed:
         raise param_error(owner, param, f"must be one of {', '.join(allowed)}, got {value!r}")
     return value
 
 
-def joint_names(owner: Any, value: Any) -> tuple[str, ...] | None:
+def joint_names(owner: Owner, value: object) -> tuple[str, ...] | None:
     """The ``joints`` parameter: None (all joints) or a non-empty list of unique names."""
     if value is None:
         return None

@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import Controller, SwapState
 
 from .joint_group import JointGroup
@@ -23,7 +22,7 @@ from .pd_law import PdGains, track
 from .pose_swap import PoseSwapState, find_pose_state
 
 
-class JointPD(Controller):
+class JointPD(Controller[JointState, JointCommand]):
     """PD to a target pose.
 
     Parameters (per-joint ones take a scalar or one value per selected joint):
@@ -38,10 +37,11 @@ class JointPD(Controller):
     """
 
     def __init__(self, name: str = "pd", *, joints: Sequence[str] | None = None,
-                 kp: Any = 50.0, kd: Any = 2.0, target: Any = None, feedforward: Any = 0.0,
-                 torque_limit: Any = math.inf, velocity_limit: Any = math.inf,
-                 position_min: Any = -math.inf, position_max: Any = math.inf,
-                 mode: Any = "CST") -> None:
+                 kp: object = 50.0, kd: object = 2.0, target: object = None,
+                 feedforward: object = 0.0,
+                 torque_limit: object = math.inf, velocity_limit: object = math.inf,
+                 position_min: object = -math.inf, position_max: object = math.inf,
+                 mode: object = "CST") -> None:
         super().__init__(name)
         self.group = JointGroup(self, joints)
         self._gains = PdGains.check(self, kp, kd, torque_limit)
@@ -112,7 +112,7 @@ class JointPD(Controller):
                              self.reference_velocity.copy(), self.target.copy(),
                              self.group.q.copy())
 
-    def set_target(self, target: Any) -> None:
+    def set_target(self, target: object) -> None:
         """Set a new target pose from any thread; the cycle picks it up at its next advance."""
         values = per_joint(self, "target", target).resolve(self, self.group.n)
         self._clip_target(values)

@@ -6,14 +6,13 @@ the caller's buffer so the cycle allocates nothing.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from rocoma_can.drivers.joints import JointMode
 
 from .joint_group import JointGroup
-from .params import PerJoint, per_joint
+from .params import Owner, PerJoint, per_joint
 
 
 @dataclass(frozen=True)
@@ -24,13 +23,13 @@ class PdGains:
     torque_limit: PerJoint
 
     @classmethod
-    def check(cls, owner: Any, kp: Any, kd: Any, torque_limit: Any) -> PdGains:
+    def check(cls, owner: Owner, kp: object, kd: object, torque_limit: object) -> PdGains:
         return cls(per_joint(owner, "kp", kp, minimum=0.0),
                    per_joint(owner, "kd", kd, minimum=0.0),
                    per_joint(owner, "torque_limit", torque_limit, positive=True,
                              allow_inf=True))
 
-    def law(self, owner: Any, n: int) -> PdLaw:
+    def law(self, owner: Owner, n: int) -> PdLaw:
         """The law for ``n`` joints (raises ValueError for a list of another length)."""
         return PdLaw(self.kp.resolve(owner, n), self.kd.resolve(owner, n),
                      self.torque_limit.resolve(owner, n))

@@ -7,16 +7,15 @@ command. Optionally the power stage is switched off ``torque_off_after`` seconds
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import EmergencyController
 
 from .joint_group import JointGroup
 from .params import number
 
 
-class QuickStop(EmergencyController):
+class QuickStop(EmergencyController[JointState, JointCommand]):
     """Parameters:
       joints            joint names this controller drives (default: all)
       torque_off_after  seconds after which the joints are switched to torque-off, > 0
@@ -24,7 +23,7 @@ class QuickStop(EmergencyController):
     """
 
     def __init__(self, name: str = "quick_stop", *, joints: Sequence[str] | None = None,
-                 torque_off_after: Any = None) -> None:
+                 torque_off_after: object = None) -> None:
         super().__init__(name)
         self.group = JointGroup(self, joints)
         self.torque_off_after = (None if torque_off_after is None else

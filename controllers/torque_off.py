@@ -6,10 +6,11 @@ shared JointCommand truthful for loggers and for the next controller's swap.
 """
 from __future__ import annotations
 
+from rocoma_can.drivers.joints import JointCommand, JointState
 from rocoma_can.interfaces import FailproofController
 
 
-class TorqueOff(FailproofController):
+class TorqueOff(FailproofController[JointState, JointCommand]):
     """Every joint: CiA 402 disable voltage, all targets zero."""
 
     def __init__(self, name: str = "torque_off") -> None:

@@ -38,7 +38,7 @@ class TrackingMonitor(JointPD):
       monitor_frequency   Hz at which the worker samples the tracking error, > 0 (default 30)
     """
 
-    def __init__(self, name: str = "worker_example", *, monitor_frequency: Any = 30.0,
+    def __init__(self, name: str = "worker_example", *, monitor_frequency: object = 30.0,
                  **pd_params: Any) -> None:
         super().__init__(name, **pd_params)
         self.monitor_frequency = number(self, "monitor_frequency", monitor_frequency,

@@ -16,11 +16,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import Controller, SwapState
 
 from .joint_group import JointGroup
@@ -41,7 +40,7 @@ def min_jerk(tau: float) -> tuple[float, float]:
     return t2 * tau * (10.0 - 15.0 * tau + 6.0 * t2), 30.0 * t2 * (1.0 - 2.0 * tau + t2)
 
 
-class Trajectory(Controller):
+class Trajectory(Controller[JointState, JointCommand]):
     """Follows a sine or a minimum-jerk move.
 
     Parameters (per-joint ones take a scalar or one value per selected joint):
@@ -59,10 +58,10 @@ class Trajectory(Controller):
     """
 
     def __init__(self, name: str = "trajectory", *, joints: Sequence[str] | None = None,
-                 kind: str = "sine", amplitude: Any = 0.0, frequency: Any = 0.0,
-                 offset: Any = None, phase: Any = 0.0, blend_time: Any = 1.0,
-                 target: Any = None, duration: Any = 1.0, mode: Any = "CSP",
-                 kp: Any = 50.0, kd: Any = 2.0, torque_limit: Any = math.inf) -> None:
+                 kind: str = "sine", amplitude: object = 0.0, frequency: object = 0.0,
+                 offset: object = None, phase: object = 0.0, blend_time: object = 1.0,
+                 target: object = None, duration: object = 1.0, mode: object = "CSP",
+                 kp: object = 50.0, kd: object = 2.0, torque_limit: object = math.inf) -> None:
         super().__init__(name)
         self.group = JointGroup(self, joints)
         self.kind = choice(self, "kind", kind, KINDS)

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import Controller
 
 from .joint_group import JointGroup
 
 
-class Float(Controller):
+class Float(Controller[JointState, JointCommand]):
     """Parameters:
       joints   joint names this controller drives (default: all)
     """

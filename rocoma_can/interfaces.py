@@ -7,16 +7,27 @@ controller (TypeError), as rocoma does with its separate interfaces.
 Everything a controller needs from the manager is set as attributes before ``create`` runs:
 ``name``, ``dt``, ``state`` and ``command`` (the objects shared by all controllers of one
 manager) and ``workers`` (its own WorkerManager; not for failproof controllers).
+
 User callbacks return ``True`` on success. ``False`` or an exception is a failure; the adapter
 turns an exception into a logged ``False`` so no user code can take the manager down.
+
+The layers are generic in the types of ``state`` and ``command`` because the core runs any
+robot and cannot name a CAN robot's types: a controller says what it reads and writes,
+``class Hold(Controller[JointState, JointCommand])``, and mypy checks its use of them. A bare
+``class Hold(Controller)`` means ``Controller[Any, Any]``: untyped code works as before.
 """
 from __future__ import annotations
 
 import abc
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Generic
+
+from typing_extensions import TypeVar  # a default (PEP 696) before Python 3.13
 
 if TYPE_CHECKING:
     from .workers import HandleOrName, WorkerHandle, WorkerManager, WorkerOptions
+
+StateT = TypeVar("StateT", default=Any)
+CommandT = TypeVar("CommandT", default=Any)
 
 
 class SwapState:
@@ -27,7 +38,15 @@ class SwapState:
     """
 
 
-class _Named:
+class _Unset:
+    """The type of ``state``/``command`` before the manager set them: None cannot mark
+    that, a manager given no state object (the default) sets None."""
+
+
+_UNSET = _Unset()
+
+
+class _Named(Generic[StateT, CommandT]):
     """What all layers share: a name and the manager's state/command objects."""
 
     #: Joint feedback the controller cannot work without ("position", "velocity",
@@ -39,10 +58,37 @@ class _Named:
     def __init__(self, name: str | None = None) -> None:
         self.name: str = name or type(self).__name__
         self.dt: float = 0.0
-        # Whatever the manager was given: the core runs any robot, so these are not typed
-        # here (on a CAN bus: drivers.joints.JointState and JointCommand).
-        self.state: Any = None
-        self.command: Any = None
+        self._state: StateT | _Unset = _UNSET
+        self._command: CommandT | _Unset = _UNSET
+
+    # Properties, not plain attributes, so that their type can be StateT and CommandT
+    # without pretending the None they held before the manager set them was one: reading
+    # them before that is a clear error instead of an AttributeError on None later.
+    @property
+    def state(self) -> StateT:
+        """The manager's state object (on a CAN bus a drivers.joints.JointState)."""
+        if isinstance(self._state, _Unset):
+            raise self._unattached("state")
+        return self._state
+
+    @state.setter
+    def state(self, state: StateT) -> None:
+        self._state = state
+
+    @property
+    def command(self) -> CommandT:
+        """The manager's command object (on a CAN bus a drivers.joints.JointCommand)."""
+        if isinstance(self._command, _Unset):
+            raise self._unattached("command")
+        return self._command
+
+    @command.setter
+    def command(self, command: CommandT) -> None:
+        self._command = command
+
+    def _unattached(self, what: str) -> RuntimeError:
+        return RuntimeError(f"controller {self.name!r} has no {what} yet: "
+                            "add it to a ControllerManager first")
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r})"
@@ -56,7 +102,7 @@ class _Named:
         return True
 
 
-class Controller(_Named, abc.ABC):
+class Controller(_Named[StateT, CommandT], abc.ABC):
     """A controller that can be switched to at run time; it may fail or raise."""
 
     def __init__(self, name: str | None = None) -> None:
@@ -115,7 +161,7 @@ class Controller(_Named, abc.ABC):
         return self.workers
 
 
-class EmergencyController(Controller):
+class EmergencyController(Controller[StateT, CommandT]):
     """A smart-stop controller; it may fail, and then the failproof layer takes over."""
 
     @abc.abstractmethod
@@ -123,7 +169,7 @@ class EmergencyController(Controller):
         """Take over within the cycle of the failure: must take far less than dt."""
 
 
-class FailproofController(_Named, abc.ABC):
+class FailproofController(_Named[StateT, CommandT], abc.ABC):
     """The last layer. It has no initialize and cannot fail: advance returns nothing and the
     adapter swallows anything it raises."""
 

@@ -25,7 +25,7 @@ import logging
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar, cast
 
-from .interfaces import Controller, EmergencyController, SwapState
+from .interfaces import CommandT, Controller, EmergencyController, StateT, SwapState
 
 log = logging.getLogger(__name__)
 
@@ -52,17 +52,17 @@ class TupleSwapState(SwapState):
         return f"TupleSwapState({list(self.states)!r})"
 
 
-class ControllerTuple(Controller):
+class ControllerTuple(Controller[StateT, CommandT]):
     """Members run in the order given; the tuple fails as soon as one member fails."""
 
     MEMBER_TYPE: ClassVar[type] = Controller
 
-    def __init__(self, name: str, controllers: Sequence[Controller]) -> None:
+    def __init__(self, name: str, controllers: Sequence[Controller[StateT, CommandT]]) -> None:
         super().__init__(name)
         members = tuple(controllers)
         if not members:
             raise ValueError(f"controller tuple {name!r} needs at least one member")
-        seen: dict[str, Controller] = {}
+        seen: dict[str, Controller[StateT, CommandT]] = {}
         for i, member in enumerate(members):
             if not isinstance(member, self.MEMBER_TYPE):
                 raise TypeError(f"controller tuple {name!r}: member {i} ({member!r}) is not "
@@ -82,7 +82,7 @@ class ControllerTuple(Controller):
                 setattr(member, key, value)
 
     @property
-    def controllers(self) -> tuple[Controller, ...]:
+    def controllers(self) -> tuple[Controller[StateT, CommandT], ...]:
         return self._members
 
     def __repr__(self) -> str:
@@ -126,7 +126,7 @@ class ControllerTuple(Controller):
     def cleanup(self) -> bool:
         return self._every("cleanup", lambda m: m.cleanup())
 
-    def _in_order(self, call: str, fn: Callable[[Controller], Any],
+    def _in_order(self, call: str, fn: Callable[[Controller[StateT, CommandT]], Any],
                   initializes: bool = False) -> bool:
         """Call the members in order; stop at the first that fails (exceptions propagate
         to the tuple's adapter, which reports them as the tuple's failure)."""
@@ -142,7 +142,7 @@ class ControllerTuple(Controller):
                 return False
         return True
 
-    def _every(self, call: str, fn: Callable[[Controller], Any]) -> bool:
+    def _every(self, call: str, fn: Callable[[Controller[StateT, CommandT]], Any]) -> bool:
         ok = True
         for member in self._members:
             try:
@@ -157,7 +157,8 @@ class ControllerTuple(Controller):
         return ok
 
 
-class EmergencyControllerTuple(ControllerTuple, EmergencyController):
+class EmergencyControllerTuple(ControllerTuple[StateT, CommandT],
+                               EmergencyController[StateT, CommandT]):
     """A tuple of emergency controllers, itself usable as an emergency controller."""
 
     MEMBER_TYPE = EmergencyController
@@ -165,7 +166,7 @@ class EmergencyControllerTuple(ControllerTuple, EmergencyController):
     def initialize_fast(self, dt: float) -> bool:
         # Runs in the update thread within the failure's cycle: no logging here.
         for member in self._members:
-            ok = bool(cast(EmergencyController, member).initialize_fast(dt))
+            ok = bool(cast("EmergencyController[StateT, CommandT]", member).initialize_fast(dt))
             member._initialized = ok
             if not ok:
                 self.failed_member = member.name

@@ -117,8 +117,11 @@ def test_position_limits_must_be_ordered():
 
 
 def test_create_without_state_says_to_add_the_controller_to_a_manager():
-    with pytest.raises(ValueError, match="add the controller to a ControllerManager"):
+    with pytest.raises(RuntimeError, match="'float' has no state yet: add it to a "
+                                           "ControllerManager first"):
         Float("float").create(0.001)
+    with pytest.raises(RuntimeError, match="'torque_off' has no command yet"):
+        TorqueOff().advance(0.001)
 
 
 def test_mode_accepts_names_in_any_case_and_joint_modes():
