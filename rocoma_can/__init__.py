@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 from ._lazy import lazy_exports
 
-__version__ = "0.2.0"  # the distribution's version (pyproject.toml reads it from here)
+__version__ = "0.3.0"  # the distribution's version (pyproject.toml reads it from here)
 
 __all__ = [
     "ControllerManager", "ManagerState", "ManagerTimeouts", "SwitchResult", "TimingSupervision",
