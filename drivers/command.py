@@ -38,7 +38,8 @@ class Commands:
     def __init__(self, drives: Sequence[DriveConfig], state: JointState,
                  command: JointCommand, raw: dict[str, np.ndarray], scaling: Scaling,
                  supervisor: Supervisor, enable: EnableSequence, frames: FramesOut,
-                 position_fed: np.ndarray) -> None:
+                 position_fed: np.ndarray, ready: Callable[[], np.ndarray]) -> None:
+        """``ready``: per drive, READY without a latched fault (read at a switch)."""
         n = len(drives)
         self._state, self._command, self._raw = state, command, raw
         self._scaling, self._sup, self.enable, self._frames = scaling, supervisor, enable, frames
@@ -52,7 +53,7 @@ class Commands:
         self._pp = [DriveMode.PP in d.modes for d in drives]  # the set-point handshake
         self._setpoints = SetPointHandshake(n)
         self._default_mode = [int(d.modes[0]) for d in drives]
-        self._position_fed = position_fed
+        self._position_fed, self._ready = position_fed, ready
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
         self._finite = np.zeros(n, dtype=bool)
@@ -68,8 +69,8 @@ class Commands:
     def disarm(self, i: int) -> None:
         self._armed[i] = False
 
-    def send(self, bringup: Sequence[DriveBringup], now: float, switch_count: int | None,
-             ready: Callable[[], np.ndarray]) -> None:
+    def send(self, bringup: Sequence[DriveBringup], now: float,
+             switch_count: int | None) -> None:
         """This cycle's frames of every configured drive. ``switch_count``: the manager's
         committed switches (None: no manager, every READY drive is under command)."""
         cmd, raw, sc, sup, frames = self._command, self._raw, self._scaling, self._sup, \
@@ -85,7 +86,7 @@ class Commands:
         enable = self.enable
         if switch_count is not None and switch_count != self._switches_seen:
             self._switches_seen = switch_count  # a switch committed: arm who is ready
-            self._armed = ready().tolist()
+            self._armed = self._ready().tolist()
         armed = self._armed if switch_count is not None else None
         homing = self.homing.jobs
         self.homing.take()

@@ -27,12 +27,13 @@ from .pdo_layout import DriveLayout
 
 
 class FramesOut:
-    """The frames of N drives on their buses, with ``heartbeat_period`` s between beats."""
+    """Frames of N drives (drive i on ``port_of[i]``); SYNC, heartbeat on every bus."""
 
-    def __init__(self, layouts: Sequence[DriveLayout], port_of: Sequence[BusPort],
-                 default_mode: Sequence[int], heartbeat_period: float) -> None:
+    def __init__(self, layouts: Sequence[DriveLayout], ports: Sequence[BusPort],
+                 port_of: Sequence[BusPort], default_mode: Sequence[int],
+                 heartbeat_period: float) -> None:
         self._layouts, self._port_of, self._default_mode = layouts, port_of, default_mode
-        self._ports, self._send = list(dict.fromkeys(port_of)), [p.send for p in port_of]
+        self._ports, self._send = ports, [p.send for p in port_of]
         n = range(len(layouts))
         self._torque_off = [self._encode(i, 0) for i in n]
         self._fault_reset = [self._encode(i, int(cia402.Controlword.FAULT_RESET)) for i in n]
@@ -76,10 +77,9 @@ class FramesOut:
             self._send[i](msg)
 
     def rpdos(self, i: int, values: tuple[int, ...]) -> None:
-        """Drive i's RPDOs packed from (controlword, mode, position, velocity, torque)."""
-        constants = self._constants[i]
-        if constants:  # a fixed mapping's other objects: sent as the file gives them
-            values += constants
+        """Drive i's RPDOs packed from (controlword, mode, position, velocity, torque) and a
+        fixed mapping's other objects as its file gives them."""
+        values += self._constants[i]
         send = self._send[i]
         for msg, pack_into, where in self._rpdo[i]:
             pack_into(msg.data, 0, *[values[k] for k in where])

@@ -198,7 +198,8 @@ class CanopenHardware:
             node_of.setdefault((self._port_of[i].name, d.node_id), []).append(i)
         self._node = [tuple(sorted(node_of[self._port_of[i].name, d.node_id],
                                    key=lambda k: drives[k].axis)) for i, d in enumerate(drives)]
-        self.frames = FramesOut(self.layouts, self._port_of, [int(d.modes[0]) for d in drives],
+        self.frames = FramesOut(self.layouts, self.ports, self._port_of,
+                                [int(d.modes[0]) for d in drives],
                                 self.manager_heartbeat_period)
         self.guarding = NodeGuarding([p.guarded and p.leads_node for p in self.plans],
                                      [d.node_id for d in drives],
@@ -212,7 +213,7 @@ class CanopenHardware:
         self.commands = Commands(drives, self.state, self.command, self._raw, self.scaling,
                                  self.supervisor, self.enable, self.frames,
                                  np.array([lay.maps("position") for lay in self.layouts],
-                                          dtype=bool))
+                                          dtype=bool), lambda: self.ready)
         self.recovery = Recovery(self.plans, self._node, self.ports, self.supervisor,
                                  self.receiver.hb_state, self.receiver.hb_time,
                                  self.state.error_code)
@@ -323,8 +324,8 @@ class CanopenHardware:
         sup.tick(now, self.receiver.complete, self.state.cia402_state, self.state.error_code,
                  self.receiver.heard_until)
         recovered = self.recovery.step(now)
-        if recovered is not None:
-            events.append(RecoveryDone(recovered))
+        if recovered is not None:  # first: an e-stop of this read latches after its clear
+            events.insert(0, RecoveryDone(recovered))
         self._deliver(sup.take_pending())
         self.cycles += 1
         return events
@@ -409,14 +410,14 @@ class CanopenHardware:
     def _write(self, manager_state: ManagerState, switch_count: int | None) -> None:
         self._manager_state = manager_state
         commands = self.commands
-        if manager_state != ManagerState.OK:  # an e-stop ends homing, queued ones too
+        if manager_state != ManagerState.OK and commands.homing.busy:  # an e-stop ends
             for i in commands.homing.end_all(f"the manager left OK ({manager_state.name})"):
-                commands.disarm(i)  # off until the next switch
+                commands.disarm(i)  # homing, queued jobs too; off until the next switch
         if manager_state == ManagerState.FAILPROOF:
             self._torque_off()
         else:
             try:
-                commands.send(self._bringup, self._now, switch_count, lambda: self.ready)
+                commands.send(self._bringup, self._now, switch_count)
             except Exception:  # a bug here must still end in torque-off
                 self.internal_errors += 1
                 self._torque_off()
@@ -476,7 +477,8 @@ class CanopenHardware:
         why = refusal(self.plans[i].caps, self.layouts[i],
                       self._bringup[i].phase if self._bringup else None,
                       self.supervisor.latched[i],
-                      (manager_state or self._manager_state) == ManagerState.OK)
+                      (self._manager_state if manager_state is None else manager_state)
+                      == ManagerState.OK)
         future: Future[str] = Future()
         job = HomingJob(i, drive, timeout or self.drives_config[i].homing_timeout, future)
         self.commands.homing.submit(job, why)

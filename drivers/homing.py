@@ -146,6 +146,11 @@ class HomingQueue:
             self.seen[job.index] = job  # status shows this request, not the last result
             self._requests.append(job)
 
+    @property
+    def busy(self) -> bool:
+        """A job queued or running (checked every cycle: no allocation)."""
+        return bool(self._requests) or any(self.jobs)
+
     def take(self) -> None:
         """The cycle: requests become running jobs."""
         while self._requests:

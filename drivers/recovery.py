@@ -8,14 +8,15 @@ is NMT-reset, so its other axes restart too; one under command is faulted first,
 manager hears it drop out). The recovery succeeds when every drive is READY without a latch
 and every bus has sent as many cycles in a row without a refused frame as TPDOs may be
 missing; ``step`` then returns the future, for the loop to clear the manager's e-stop latch
-before it says True (stop_requests.RecoveryDone). It fails at its timeout, or when every
+before it says True (stop_requests.RecoveryDone); a hardware cycled without a manager
+resolves it True in the next cycle. It fails at its timeout, or when every
 drive has settled and some did not come back.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 
 import numpy as np
 
@@ -37,6 +38,7 @@ class Recovery:
         self.bringup: Sequence[DriveBringup] = ()
         self.future: Future[bool] | None = None
         self._started = False
+        self._reported = False  # step returned the future for the loop to resolve
         self._timeout = 5.0
         self._deadline = math.inf
 
@@ -49,8 +51,9 @@ class Recovery:
         if self.future is not None and not self.future.done():
             return self.future
         future: Future[bool] = Future()
+        future.set_running_or_notify_cancel()  # a caller's cancel() cannot end it early
         self._timeout = timeout
-        self._started = False
+        self._started = self._reported = False
         self.future = future
         return future
 
@@ -60,6 +63,9 @@ class Recovery:
         future = self.future
         if future is None or future.done():
             return None
+        if self._reported:  # handed over last cycle and nobody applied it: no manager
+            self._finish(future, True)
+            return None
         sup = self._sup
         if not self._started:
             if not sup.pending:
@@ -68,11 +74,20 @@ class Recovery:
         drives_ready = (all(b.phase == Phase.READY for b in self.bringup)
                         and not any(sup.latched) and sup.bus_latched is None)
         if drives_ready and min(p.clean_cycles for p in self._ports) >= sup.tpdo_timeout_cycles:
+            self._reported = True
             return future
         if now > self._deadline or (not drives_ready and all(
                 b.phase in (Phase.READY, Phase.FAILED) for b in self.bringup)):
-            future.set_result(False)
+            self._finish(future, False)
         return None
+
+    @staticmethod
+    def _finish(future: Future[bool], result: bool) -> None:
+        """Resolve ``future`` unless another thread has (the hardware's close)."""
+        try:
+            future.set_result(result)
+        except InvalidStateError:
+            pass
 
     def _begin(self, now: float) -> None:
         sup, bringup = self._sup, self.bringup

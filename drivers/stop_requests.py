@@ -2,11 +2,12 @@
 
 The hardware never holds the manager: ``CanopenHardware.read`` returns these, and the loop
 (``rocoma_can.runtime.loop.run_cycle``) applies each to the manager before update(), so a
-fault found in a read is acted on in the same cycle.
+fault found in a read is acted on in the same cycle. A finished recovery comes first: an
+e-stop read in the same cycle then latches again after the recovery's clear.
 """
 from __future__ import annotations
 
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -41,12 +42,17 @@ class RecoveryDone:
     future: Future[bool]
 
     def apply(self, manager: StopTarget) -> None:
+        if self.future.done():  # the hardware closed meanwhile: it said False
+            return
         try:
             manager.clear_emergency_stop()
+            ok = True
         except Exception:
-            self.future.set_result(False)
-            return
-        self.future.set_result(True)
+            ok = False
+        try:
+            self.future.set_result(ok)
+        except InvalidStateError:  # closed in between, from another thread
+            pass
 
 
 CycleEvent = StopRequest | RecoveryDone

@@ -12,6 +12,8 @@ events and the frames seen on the bus, never on wall time.
 """
 from __future__ import annotations
 
+import time
+
 from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig, bring_up, enable_with
 
 from rocoma_can import ManagerState, SwitchResult
@@ -98,3 +100,21 @@ def test_a_drive_ready_after_the_switch_stays_off_until_the_next(virtual_channel
             rig.hw.drive_status()
     finally:
         rig.close()
+
+
+def test_a_recovery_ends_when_the_hardware_is_cycled_without_a_manager(segment, make_rig):
+    """The loop applies read()'s findings to the manager; a hardware cycled without one
+    (read and write alone) still sees its recovery end, one cycle later, never hanging."""
+    rig = make_rig()
+    bring_up(rig)
+    rig.mgr.shutdown()
+    hw = rig.hw
+    hw.supervisor.fault(0, "test", time.monotonic())
+    future = hw.recover()
+    deadline = time.monotonic() + rig.setup.recovery_budget()
+    while not future.done() and time.monotonic() < deadline:
+        hw.read(time.monotonic())  # the findings are not applied: there is no manager
+        hw.write(ManagerState.FAILPROOF)
+        time.sleep(rig.dt)
+    assert future.done() and future.result() is True, hw.drive_status()
+    assert hw.not_ready() is None

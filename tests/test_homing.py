@@ -12,7 +12,7 @@ import pytest
 from fixtures.driver_rig import VIRTUAL, Rig, Sine
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
-from rocoma_can import SwitchResult
+from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.drivers.cia402 import State402
@@ -212,3 +212,12 @@ def test_a_home_right_after_a_switch_is_taken(rig):
     future = rig.hw.home("j1", manager_state=rig.mgr.state)  # as runtime.system does
     _run_until_done(rig, future, HOMING)
     assert future.result() == "j1: homed"
+
+
+def test_the_manager_state_the_caller_passes_is_judged_even_when_failproof(rig):
+    """FAILPROOF is 0, a false value: the state the caller passes must still be the one
+    judged, never the last cycle's OK (a home asked right after an e-stop is refused)."""
+    assert rig.mgr.state is ManagerState.OK  # the cycles so far wrote OK
+    with pytest.raises(HomingFailed, match="j1: cannot home: the manager is not OK"):
+        rig.hw.home("j1", manager_state=ManagerState.FAILPROOF)
+    assert rig.hw.drive_status()[0].homing == ""  # nothing was queued

@@ -198,3 +198,27 @@ def test_can_fd_buses_carry_fd_frames_both_ways(two_buses):
         assert ours and theirs
         assert all(f.message.is_fd and f.message.bitrate_switch for f in ours + theirs)
         assert all(len(f.data) <= 8 for f in ours + theirs)
+
+
+def test_a_bus_without_drives_still_gets_sync_and_the_manager_heartbeat(virtual_channel,
+                                                                        bus_factory):
+    """SYNC and the manager heartbeat go out on every configured bus, one without drives
+    too (a bus for a later limb, or for the integrator's e-stop box that watches the
+    manager's heartbeat), in FAILPROOF and under the hang watchdog alike."""
+    from rocoma_can.drivers.config import DriveConfig
+    from rocoma_can.drivers.hardware import CanopenHardware
+
+    channels = {side: f"{virtual_channel}-{side}" for side in SIDES}
+    empty = record(channels["left"])
+    hw = CanopenHardware({side: bus_factory(ch) for side, ch in channels.items()},
+                         [DriveConfig("j1", 1, 4096, 1.0, bus="right")], 100, VIRTUAL.dt)
+    try:
+        hw.start()
+        hw.read(time.monotonic())
+        hw.write(ManagerState.FAILPROOF)
+        hw.send_torque_off()
+        empty.wait_for_count(2, VIRTUAL.stall, cia301.SYNC)
+        empty.wait_for_count(1, VIRTUAL.stall, cia301.HEARTBEAT + 100)
+    finally:
+        hw.close()
+        empty.stop()

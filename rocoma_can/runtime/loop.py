@@ -168,11 +168,19 @@ def run_cycle(hardware: CycleHardware, manager: CycleManager, now: float) -> Man
     what the read found reaches the manager before its update, so a fault is acted on in
     the cycle it is seen; the frames go out after the update; the manager's threads are
     woken after the frames."""
-    for event in hardware.read(now):
-        event.apply(manager)
+    state = _read_update_write(hardware, manager, now)
+    manager.post_cycle()
+    return state
+
+
+def _read_update_write(hardware: CycleHardware, manager: CycleManager,
+                       now: float) -> ManagerState:
+    events = hardware.read(now)
+    if events:
+        for event in events:
+            event.apply(manager)
     state = manager.update()
     hardware.write(state, manager.switch_count)
-    manager.post_cycle()
     return state
 
 
@@ -306,8 +314,9 @@ class ControlLoop:
         except Exception:
             log.exception("failproof_stop raised while stopping the loop")
         for _ in range(self.stop_cycles):
-            try:
-                self.last_state = run_cycle(self.hardware, self.manager, time.monotonic())
+            try:  # run_cycle's steps, with post_cycle in any case
+                self.last_state = _read_update_write(self.hardware, self.manager,
+                                                     time.monotonic())
             except Exception:
                 log.exception("torque-off cycle raised while stopping the loop")
                 try:
@@ -315,6 +324,7 @@ class ControlLoop:
                     self.hardware.write(ManagerState.FAILPROOF)
                 except Exception:
                     log.exception("torque-off frames could not be sent")
+            finally:
                 try:
                     self.manager.post_cycle()  # the stop's events reach the subscribers
                 except Exception:
