@@ -288,3 +288,20 @@ def test_canopens_block_upload_reads_the_drive(sim_bench, bus_factory, named_dri
     # and a block command with nothing open is an abort, not an upload
     answer, = raw(bytes([0xA3]) + bytes(7), 1)
     assert answer[0] == 0x80 and struct.unpack_from("<I", answer, 4)[0] == 0x05040001
+
+
+def test_each_drive_answers_the_identity_it_was_given(sim_bench, bus_factory):
+    """0x1018 is what tells drives apart on a bus (a scan, a generated config, bring-up's
+    check): the fields given replace the file's; a drive given none answers the file's
+    vendor and product and its node id as serial number, so no two are alike."""
+    from rocoma_can.drivers.identity import Identity
+    from rocoma_can.drivers.sim.segment import SimulatedSegment
+
+    bench = sim_bench([1, 2], identities={2: Identity(vendor_id=0x9A, product_code=0x77,
+                                                      serial=0x1234_5678)})
+    one, two = bench.node(1), bench.node(2)
+    assert [one.sdo[0x1018][s].raw for s in (1, 2, 4)] == [0, 0x402, 1]
+    assert [two.sdo[0x1018][s].raw for s in (1, 2, 4)] == [0x9A, 0x77, 0x1234_5678]
+    assert two.sdo[0x1018][3].raw == one.sdo[0x1018][3].raw  # the file's revision
+    with pytest.raises(ValueError, match=r"identities given for node ids \[5\]"):
+        SimulatedSegment(bus_factory(), [1], identities={5: Identity(serial=1)})

@@ -40,6 +40,7 @@ import numpy as np
 from .. import cia301 as c301
 from ..bus import enlarge_bus_buffer
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
+from ..identity import SUBINDEX, Identity
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
 from .objects import MAX_AXES, fallback_values, load_object_dictionaries
@@ -138,6 +139,10 @@ class SimulatedSegment:
     ``params`` gives the joint physics and loop gains: one JointParams for every joint, or
     a mapping whose key is a node id (every axis of that node) or a (node id, axis) pair
     (that axis; it wins over the node's). Joints not in it get the defaults.
+
+    ``identities`` maps a node id to its identity object (0x1018: vendor-ID, product code,
+    revision, serial number; the fields given replace the file's). A node not in it answers
+    the file's values, with its node id as serial number where the file gives none.
     """
 
     def __init__(self, bus: can.BusABC, node_ids: Iterable[int], eds_path: str | None = None,
@@ -148,7 +153,8 @@ class SimulatedSegment:
                  own_bus: bool = False, fd: bool = False,
                  increments_per_rev: int = 1 << 20, rated_torque_nm: float = 1.0,
                  overrides: Mapping[tuple[int, int], Any] | None = None,
-                 axes: Mapping[int, int] | None = None) -> None:
+                 axes: Mapping[int, int] | None = None,
+                 identities: Mapping[int, Identity] | None = None) -> None:
         ids = sorted(set(int(n) for n in node_ids))
         if not ids:
             raise ValueError("a simulated segment needs at least one node id")
@@ -159,6 +165,9 @@ class SimulatedSegment:
             raise ValueError(f"sync_period must be in (0, 1] s, got {sync_period}")
         if not 0 < max_dt <= 1:
             raise ValueError(f"max_dt must be in (0, 1] s, got {max_dt}")
+        strays = sorted(set(identities or {}) - set(ids))
+        if strays:
+            raise ValueError(f"identities given for node ids {strays}, which are not simulated")
         axes = dict(axes or {})
         unknown = sorted(set(axes) - set(ids))
         if unknown:
@@ -204,9 +213,15 @@ class SimulatedSegment:
             n: SimulatedDrive(self, n, joints.index((n, 1)), dictionaries[n], fallbacks,
                               axis_count[n])
             for n in ids}
-        for drive in self.drives.values():  # values the file gives that a run replaces
-            drive.objects.defaults.update(overrides or {})
-            drive.objects.values.update(overrides or {})
+        for n, drive in self.drives.items():  # values the file gives that a run replaces
+            # 0x1018 as the file gives it, a serial number of its own (the node id where the
+            # file has none) so that each drive is one of a kind, then what the caller gave
+            own = {(c301.IDENTITY, SUBINDEX["serial"]): n} if not drive.objects.values.get(
+                (c301.IDENTITY, SUBINDEX["serial"])) else {}
+            for values in (drive.objects.defaults, drive.objects.values):
+                values.update(own)
+                values.update(overrides or {})
+                values.update((identities or {}).get(n, Identity()).objects())
         assumed = next(iter(self.drives.values())).objects.assumed if self.drives else {}
         if assumed:
             log.info("simulated drives of %s: where the file gives no value they answer %s",
