@@ -128,6 +128,12 @@ class AxisKeys:
     gear_motor: Key             # 0x6091:1 / :2
     gear_shaft: Key
     rated_torque: Key
+    position_limit_min: Key     # 0x607D:1 / :2
+    position_limit_max: Key
+    max_profile_velocity: Key
+    max_motor_speed: Key
+    following_error_window: Key
+    following_error_timeout: Key
 
     @classmethod
     def of(cls, axis: int) -> AxisKeys:
@@ -157,7 +163,13 @@ class AxisKeys:
             resolution_increments=key(c.POSITION_ENCODER_RESOLUTION, 1),
             resolution_revolutions=key(c.POSITION_ENCODER_RESOLUTION, 2),
             gear_motor=key(c.GEAR_RATIO, 1), gear_shaft=key(c.GEAR_RATIO, 2),
-            rated_torque=key(c.RATED_TORQUE))
+            rated_torque=key(c.RATED_TORQUE),
+            position_limit_min=key(c.SOFTWARE_POSITION_LIMIT, 1),
+            position_limit_max=key(c.SOFTWARE_POSITION_LIMIT, 2),
+            max_profile_velocity=key(c.MAX_PROFILE_VELOCITY),
+            max_motor_speed=key(c.MAX_MOTOR_SPEED),
+            following_error_window=key(c.FOLLOWING_ERROR_WINDOW),
+            following_error_timeout=key(c.FOLLOWING_ERROR_TIMEOUT))
 
 
 class _SdoLink:
