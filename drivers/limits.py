@@ -169,7 +169,8 @@ def report(drive: DriveConfig, caps: DriveCapabilities) -> list[str]:
             manager_only.append(f"{limit} (its file has no writable {names})")
     manager_only += [f"{key} (old key: under limits: the drive enforces it too)"
                      for key in drive.manager_only_limits()]
-    lines = []
+    lines = [] if drive_side or manager_only else [
+        "limits: none configured (the drive keeps its own, as commissioned)"]
     if drive_side:
         lines.append("limits the drive enforces (written at bring-up): " + "; ".join(drive_side))
     if manager_only:

@@ -3,9 +3,9 @@
 * 0x607D software position limit (:1 min, :2 max, increments): a position target (CSP, IP,
   PP) outside is clamped to the limit, as CiA 402 says for every new target; in the
   velocity and torque modes, where there is no target to clamp, the drive stops at the
-  limit: a velocity target is cut to what the position loop would allow towards the limit
-  (the joint slows down and stands at it), and a torque pushing past it is replaced by a
-  hold of the limit. Either way the joint ends at the limit, whoever commands it.
+  limit: a velocity target towards a limit runs as a position move to the limit no faster
+  than the target (the joint slows down and stands at it), and a torque pushing past it is
+  replaced by a hold of the limit. Either way the joint ends at the limit, whoever commands it.
 * 0x607F max profile velocity (increments/s) and 0x6080 max motor speed (motor rpm): the
   lower one bounds the velocity loop's command in every mode.
 * 0x6065 following error window (increments; 0xFFFFFFFF: off) and 0x6066 time out (ms): in
@@ -27,6 +27,7 @@ from .objects import AxisKeys, Key
 
 #: 0x6065 value that switches following error monitoring off (CiA 402)
 WINDOW_OFF = 0xFFFF_FFFF
+_INT32_MIN, _INT32_MAX = -(1 << 31), (1 << 31) - 1
 #: the objects whose writes change these limits (axis 1's indices)
 OBJECTS = {c.SOFTWARE_POSITION_LIMIT, c.MAX_PROFILE_VELOCITY, c.MAX_MOTOR_SPEED,
            c.FOLLOWING_ERROR_WINDOW, c.FOLLOWING_ERROR_TIMEOUT}
@@ -51,9 +52,9 @@ class AxisLimits:
         low, high = v.get(k.position_limit_min), v.get(k.position_limit_max)
         if low is None or high is None or low >= high:  # no object, or an empty range
             self.position_min, self.position_max = -math.inf, math.inf
-        else:
-            self.position_min = low / increments_per_rad
-            self.position_max = high / increments_per_rad
+        else:  # the INTEGER32 range's ends (the file's default): no limit that side
+            self.position_min = -math.inf if low <= _INT32_MIN else low / increments_per_rad
+            self.position_max = math.inf if high >= _INT32_MAX else high / increments_per_rad
         limits = [math.inf]
         profile = v.get(k.max_profile_velocity)
         if profile:
@@ -73,14 +74,15 @@ class AxisLimits:
         return self.position_min if target < self.position_min else \
             self.position_max if target > self.position_max else target
 
-    def velocity_towards(self, target: float, position: float, gain: float) -> float:
-        """A velocity target no faster towards a limit than the position loop (``gain``,
-        1/s) would pull the joint to it: it slows down and stands at the limit."""
-        if target > 0.0 and self.position_max < math.inf:
-            return min(target, gain * (self.position_max - position))
-        if target < 0.0 and self.position_min > -math.inf:
-            return max(target, gain * (self.position_min - position))
-        return target
+    def heading_to(self, velocity: float) -> float | None:
+        """The limit a velocity target heads to (None: none in that direction). The drive
+        then runs a position move to it no faster than the target: the same motion far from
+        the limit, a stop at it (and exact within the step, however long the step is)."""
+        if velocity > 0.0 and self.position_max < math.inf:
+            return self.position_max
+        if velocity < 0.0 and self.position_min > -math.inf:
+            return self.position_min
+        return None
 
     def pushed_past(self, torque: float, position: float) -> float | None:
         """The limit to hold when ``torque`` pushes the joint beyond it (None: it does not)."""

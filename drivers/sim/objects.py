@@ -5,7 +5,8 @@ services of the drive read and write it directly, so the SDO server, the PDOs an
 machine always see the same object. canopen's SdoServer speaks the protocol (expedited and
 segmented; block upload from drivers/sdo_block_upload.py, block download is refused with
 0x05040001 as canopen does); this module makes the checks a real drive makes before a
-download takes effect: access type, length, supported modes, scaling denominators, and the
+download takes effect: access type, length, the file's LowLimit/HighLimit, supported
+modes, scaling denominators, and the
 CiA 301 rules for changing PDO communication and mapping objects (invalidate first,
 sub-index 0 to 0 first, only mappable objects, at most 64 bits).
 
@@ -32,6 +33,7 @@ from canopen.sdo.constants import (
     ABORT_PDO_CANNOT_MAP,
     ABORT_PDO_LENGTH_EXCEEDED,
     ABORT_READ_WRITEONLY,
+    ABORT_VALUE_TOO_HIGH,
     ABORT_VALUE_TOO_LOW,
     ABORT_WRITE_READONLY,
 )
@@ -274,6 +276,10 @@ class ObjectDictionaryServer:
         if var.data_type in objectdictionary.NUMBER_TYPES and 8 * len(data) != len(var):
             raise SdoAbortedError(ABORT_LENGTH_NOT_MATCHED)
         value = var.decode_raw(bytes(data))
+        if var.max is not None and value > var.max:  # the file's HighLimit / LowLimit
+            raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
+        if var.min is not None and value < var.min:
+            raise SdoAbortedError(ABORT_VALUE_TOO_LOW)
         key = (var.index, var.subindex)
         self._check_write(key, value)
         self.values[key] = value

@@ -322,9 +322,7 @@ class StateMachine402:
         elif mode == _HOMING:
             bits = self._homing(values, scale, dt)
         elif mode == _PV:
-            dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = limits.velocity_towards(
-                values[keys.target_velocity] / scale, float(dyn.position[j]), dyn.kp[j])
+            self._velocity(values[keys.target_velocity] / scale)
         elif mode == _CSP:
             demand = limits.clamp(values[keys.target_position] / scale)
             if limits.following_error(demand, float(dyn.position[j]), dt):
@@ -337,10 +335,7 @@ class StateMachine402:
             dyn.target_velocity[j] = values[keys.velocity_offset] / scale
             dyn.torque_feedforward[j] = values[keys.torque_offset] * nm_per_permille
         elif mode == _CSV:
-            dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = limits.velocity_towards(
-                (values[keys.target_velocity] + values[keys.velocity_offset]) / scale,
-                float(dyn.position[j]), dyn.kp[j])
+            self._velocity((values[keys.target_velocity] + values[keys.velocity_offset]) / scale)
             dyn.torque_feedforward[j] = values[keys.torque_offset] * nm_per_permille
         elif mode == _CST:
             torque = (values[keys.target_torque] + values[keys.torque_offset]) * nm_per_permille
@@ -356,6 +351,19 @@ class StateMachine402:
         if bits != self._mode_bits:
             self._mode_bits = bits
             self.set_state(self.state)
+
+    def _velocity(self, target: float) -> None:
+        """A velocity target (CSV, PV); towards a software position limit, a move to the
+        limit no faster than the target (limits.py)."""
+        dyn, j, limits = self._dyn, self._j, self.limits
+        limit = limits.heading_to(target)
+        if limit is None:
+            dyn.mode[j] = _LOOP_VELOCITY
+            dyn.target_velocity[j] = target
+        else:
+            dyn.mode[j] = _LOOP_POSITION
+            dyn.target_position[j] = limit
+            dyn.velocity_limit[j] = min(limits.velocity, abs(target))
 
     def _profile_position(self, values: dict[Key, Any], scale: float) -> int:
         """PP: a rising controlword bit 4 latches 0x607A (relative with bit 6) and is
