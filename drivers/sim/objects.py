@@ -276,10 +276,11 @@ class ObjectDictionaryServer:
         if var.data_type in objectdictionary.NUMBER_TYPES and 8 * len(data) != len(var):
             raise SdoAbortedError(ABORT_LENGTH_NOT_MATCHED)
         value = var.decode_raw(bytes(data))
-        if var.max is not None and value > var.max:  # the file's HighLimit / LowLimit
-            raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
-        if var.min is not None and value < var.min:
-            raise SdoAbortedError(ABORT_VALUE_TOO_LOW)
+        if isinstance(value, (int, float)):  # the file's HighLimit / LowLimit
+            if var.max is not None and value > var.max:
+                raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
+            if var.min is not None and value < var.min:
+                raise SdoAbortedError(ABORT_VALUE_TOO_LOW)
         key = (var.index, var.subindex)
         self._check_write(key, value)
         self.values[key] = value
