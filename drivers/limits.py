@@ -11,7 +11,7 @@ Joint side (config, SI) to drive units with the drive's own scaling (``increment
 ``gear_ratio``, ``rated_torque_nm``: bring-up has checked them against 0x608F, 0x6091 and
 0x6076 just before), each rounded outward (a position min down, everything else up): the
 drive's limit is never tighter than the manager's, so it never clips a command the manager
-let through, and the manager's clip is the one a controller meets.
+let through, and the manager's clip is the one a controller meets. The objects::
 
     position        0x607D:1 min, :2 max   increments (a negative gear ratio swaps them)
     velocity        0x607F                 increments/s (max profile velocity)

@@ -115,3 +115,36 @@ def test_check_config_says_which_limits_the_drive_enforces_and_which_only_the_ma
 def test_check_config_without_limits_says_the_drive_keeps_its_own():
     assert "  limits: none configured (the drive keeps its own, as commissioned)" in \
         plan_drive(drive()).report()
+
+
+def test_the_following_error_watch_keeps_nothing_allocated_and_faults_after_n_cycles():
+    import tracemalloc
+
+    from rocoma_can.drivers.supervision import FollowingErrorWatch, Supervisor
+    drives = [DriveConfig.from_dict({**BASE, "name": f"j{i}", "node_id": i,
+                                     "limits": {"following_error": 0.1}}) for i in range(1, 25)]
+    watch = FollowingErrorWatch(drives, np.ones(24, dtype=bool))
+    sup = Supervisor(drives, 5, 2.5)
+    actual, targets = np.zeros(24), np.full(24, 0.05)  # within the window
+    for _ in range(10):  # warm up
+        watch.tracking.fill(True)
+        watch.check(actual, sup, 0.0)
+        watch.sent(targets)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.take_snapshot()
+        for _ in range(1000):
+            watch.tracking.fill(True)
+            watch.check(actual, sup, 0.0)
+            watch.sent(targets)
+        grown = sum(s.size_diff for s in tracemalloc.take_snapshot().compare_to(before, "lineno")
+                    if "supervision.py" in str(s.traceback))
+    finally:
+        tracemalloc.stop()
+    assert grown <= 0 and not sup.pending
+    watch.tracking.fill(True)
+    for _ in range(3):  # beyond for the configured 3 cycles: one fault
+        watch.check(np.full(24, 0.2), sup, 1.0)
+        watch.tracking.fill(True)
+    assert len(sup.pending) == 24 and "beyond the window 0.1 rad for 3 cycles" in \
+        sup.pending[0].cause
