@@ -25,8 +25,6 @@ time but still queued would read as lost, and the drives would switch off for no
 """
 from __future__ import annotations
 
-import heapq
-import itertools
 import logging
 import math
 import threading
@@ -45,12 +43,10 @@ from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
 from .objects import MAX_AXES, fallback_values, load_object_dictionaries
 from .port import Route
+from .timers import RX_IDLE, Timers
 
 log = logging.getLogger(__name__)
 
-#: Longest wait for a frame before the receive thread looks at ``_stopped`` again; also how
-#: stale ``received_until`` may get on a silent bus (a heartbeat loss is seen this much late).
-RX_IDLE = 0.02
 #: Frames handled under one lock hold: bounded so timers still run during a flood.
 RX_BATCH = 64
 #: Longest a segment's SYNC waits for the other segments' of its group before its joints
@@ -63,69 +59,6 @@ JOIN_WAIT = 0.0002
 def _default_eds() -> str:
     from rocoma_can import eds  # the EDS shipped with the package
     return str(eds.path(eds.CIA402_DRIVE))
-
-
-class _Timers:
-    """Monotonic one-shot timers on one thread (a heap, no thread per timer), or on the
-    thread of a lockstep pass (``run_due``): the timer thread then stands by until no pass
-    has run them for RX_IDLE."""
-
-    def __init__(self, run: Callable[[Callable[..., Any], tuple[Any, ...]], None]) -> None:
-        self._run = run
-        self._heap: list[tuple[float, int, Callable[..., Any], tuple[Any, ...]]] = []
-        self._seq = itertools.count()
-        self._cond = threading.Condition()
-        self._stopped = False
-        self._driven_at = -math.inf  # the latest run_due
-        self._thread = threading.Thread(target=self._loop, name="sim-timers", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self, timeout: float = 2.0) -> None:
-        with self._cond:
-            self._stopped = True
-            self._cond.notify()
-        if self._thread.is_alive():
-            self._thread.join(timeout)
-
-    def call_at(self, when: float, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
-        with self._cond:
-            heapq.heappush(self._heap, (when, next(self._seq), fn, args))
-            if time.monotonic() - self._driven_at >= RX_IDLE:  # (standing by: no wake-up)
-                self._cond.notify()
-
-    def run_due(self, now: float) -> None:
-        """Run the events due by ``now`` on the caller's thread, in order."""
-        if now - self._driven_at >= RX_IDLE:  # the thread may be in a long wait: from
-            with self._cond:  # now on it stands by in RX_IDLE turns, and resumes in time
-                self._driven_at = now
-                self._cond.notify()
-        self._driven_at = now
-        heap = self._heap
-        while heap and heap[0][0] <= now:  # (a look without the lock: popped under it)
-            with self._cond:
-                if not heap or heap[0][0] > now:
-                    return
-                _, _, fn, args = heapq.heappop(heap)
-            self._run(fn, args)
-
-    def _loop(self) -> None:
-        while True:
-            with self._cond:
-                while not self._stopped:
-                    now = time.monotonic()
-                    if now - self._driven_at < RX_IDLE:  # a lockstep pass runs them
-                        self._cond.wait(RX_IDLE)
-                        continue
-                    if self._heap and self._heap[0][0] <= now:
-                        break
-                    wait = self._heap[0][0] - now if self._heap else 0.5
-                    self._cond.wait(min(wait, 0.5))
-                if self._stopped:
-                    return
-                _, _, fn, args = heapq.heappop(self._heap)
-            self._run(fn, args)
 
 
 class SimulatedSegment:
@@ -244,7 +177,7 @@ class SimulatedSegment:
         self.received_until = -math.inf
         self._backlog: list[can.Message] = []  # see pump
         self._writer = FrameWriter(bus, fd=fd)  # an FD bus: the drives answer in FD frames
-        self._timers = _Timers(self._run_timer)
+        self._timers = Timers(self._run_timer)
         self._stopped = threading.Event()
         self._rx_thread = threading.Thread(target=self._receive_loop,
                                            name="sim-segment-rx", daemon=True)
