@@ -18,6 +18,7 @@ from typing import Any
 #: stale ``received_until`` may get on a silent bus (a heartbeat loss is seen this much late).
 RX_IDLE = 0.02
 
+
 class Timers:
     """Monotonic one-shot timers on one thread (a heap, no thread per timer), or on the
     thread of a lockstep pass (``run_due``): the timer thread then stands by until no pass
