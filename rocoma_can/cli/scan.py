@@ -56,6 +56,10 @@ def _hex(value: int | None, digits: int = 8) -> str:
     return "-" if value is None else f"0x{value:0{digits}X}"
 
 
+def _period(ms: int | None) -> str:
+    return "-" if ms is None else f"{ms} ms" if ms else "off"
+
+
 def table(nodes: list[FoundNode]) -> list[str]:
     """One row per node, columns as wide as their widest cell."""
     from ..drivers.scan import device_type_text
@@ -65,7 +69,7 @@ def table(nodes: list[FoundNode]) -> list[str]:
         str(n.node_id), _hex(n.identity.vendor_id), _hex(n.identity.product_code),
         _hex(n.identity.revision), _hex(n.identity.serial), device_type_text(n.device_type),
         n.device_name or "-", n.software_version or "-",
-        f"{n.heartbeat_ms} ms" if n.heartbeat_ms else "-", n.nmt_state) for n in nodes]
+        _period(n.heartbeat_ms), n.nmt_state) for n in nodes]
     widths = [max(len(row[k]) for row in rows) for k in range(len(head))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip()
              for row in rows]
