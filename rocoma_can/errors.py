@@ -36,6 +36,10 @@ class HomingFailed(RocomaError, RuntimeError):
     """Homing of a drive did not end with it homed (the message names the drive and why)."""
 
 
+class LssFailed(RocomaError, RuntimeError):
+    """An LSS service (CiA 305) got no answer or an error answer; the message says which."""
+
+
 class ParamError(RocomaError, ValueError):
     """A parameter that is wrong. It keeps the parameter's name and the reason apart, so a
     config loader can put the parameter in its path (``controllers[0].params.kp``) instead

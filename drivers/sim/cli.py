@@ -23,6 +23,7 @@ from ...cli_args import LONGEST, count, positive, seconds, seconds_or_zero
 from ...exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
+    from ..identity import Identity
     from .drive import SimulatedDrive
     from .segment import SimulatedSegment
 
@@ -71,6 +72,47 @@ def _injection(flag: str, nargs: tuple[int, int]) -> Callable[[str], Injection]:
 
 def _int(text: str) -> int:
     return int(text, 0)
+
+
+#: --identity / --unconfigured keys -> Identity fields
+IDENTITY_KEYS = {"vendor": "vendor_id", "product": "product_code", "revision": "revision",
+                 "serial": "serial"}
+
+
+def parse_identity(text: str) -> Identity:
+    """'serial=0x1234,vendor=0x9A' -> Identity(serial=0x1234, vendor_id=0x9A)."""
+    from ..identity import Identity
+    fields: dict[str, int] = {}
+    for part in text.split(","):
+        key, _, value = part.strip().partition("=")
+        if key not in IDENTITY_KEYS:
+            raise argparse.ArgumentTypeError(
+                f"identity {text!r}: {key!r} is not one of {', '.join(IDENTITY_KEYS)}")
+        try:
+            fields[IDENTITY_KEYS[key]] = int(value, 0)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"identity {text!r}: {key}: not a number "
+                                             f"{value!r}") from None
+    try:
+        return Identity(**fields)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"identity {text!r}: {exc}") from None
+
+
+def _node_identity(text: str) -> tuple[int, Identity]:
+    node, sep, rest = text.partition(":")
+    if not sep or not node.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"--identity: expected NODE:KEY=VALUE[,...], "
+                                         f"got {text!r}")
+    return int(node), parse_identity(rest)
+
+
+def _unconfigured(text: str) -> Identity:
+    identity = parse_identity(text)
+    if identity.serial is None:
+        raise argparse.ArgumentTypeError(f"--unconfigured {text!r}: give serial= (the "
+                                         "node's LSS address tells it from the others)")
+    return identity
 
 
 # flag -> (number of ARGs min/max, help, action on the drive)
@@ -123,6 +165,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="print a status line per axis every S seconds (also on SIGUSR1)")
     p.add_argument("--duration", type=seconds, default=None, metavar="S",
                    help="stop after S seconds (default: run until Ctrl-C / SIGTERM)")
+    p.add_argument("--identity", type=_node_identity, action="append", default=[],
+                   metavar="NODE:KEY=VALUE[,...]",
+                   help="a node's identity object 0x1018, keys vendor, product, revision, "
+                        "serial, e.g. 2:vendor=0x9A,serial=0x1234 (default: the file's, "
+                        "the node id as serial number)")
+    p.add_argument("--unconfigured", type=_unconfigured, action="append", default=[],
+                   metavar="KEY=VALUE[,...]",
+                   help="one more node without a node id (LSS, CiA 305), e.g. serial=0x77: "
+                        "it answers only LSS until `rocoma-can lss` gives it one")
     for flag, (nargs, text, _) in INJECTIONS.items():
         p.add_argument(f"--{flag}", type=_injection(flag, nargs), action="append", default=[],
                        metavar="SPEC", help=text)
@@ -137,6 +188,11 @@ def _inject(segment: SimulatedSegment, inj: Injection) -> None:
 def run(args: argparse.Namespace) -> int:
     from .segment import SimulatedSegment
     injections = [inj for flag in INJECTIONS for inj in getattr(args, flag.replace("-", "_"))]
+    identities = dict(args.identity)
+    strays = sorted(set(identities) - set(args.nodes))
+    if strays:
+        print(f"rocoma-can sim: --identity: node(s) {strays} not in --nodes", file=sys.stderr)
+        return USAGE
     for inj in injections:
         if inj.node not in args.nodes:
             print(f"rocoma-can sim: --{inj.flag}: node {inj.node} is not in --nodes",
@@ -158,7 +214,9 @@ def run(args: argparse.Namespace) -> int:
                                         eds_path=args.eds, sync_period=args.sync_period,
                                         fd=args.fd, increments_per_rev=args.increments_per_rev,
                                         rated_torque_nm=args.rated_torque_nm,
-                                        axes={n: args.axes for n in args.nodes})
+                                        axes={n: args.axes for n in args.nodes},
+                                        identities=identities,
+                                        unconfigured=args.unconfigured)
     except (OSError, ValueError, ImportError) as exc:
         print(f"rocoma-can sim: cannot open {args.interface} channel {args.channel}: {exc}",
               file=sys.stderr)
@@ -187,9 +245,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         with segment:
             axes = f" of {args.axes} axes" if args.axes > 1 else ""
-            print(f"sim: {len(segment.drives)} drive(s){axes} {args.nodes[0]}..{args.nodes[-1]} "
-                  f"on {args.interface} {args.channel}{' (CAN FD)' if args.fd else ''}; Ctrl-C "
-                  "to stop", file=sys.stderr, flush=True)
+            blank = (f" and {len(args.unconfigured)} without a node id (LSS)"
+                     if args.unconfigured else "")
+            print(f"sim: {len(segment.drives)} drive(s){axes} {args.nodes[0]}..{args.nodes[-1]}"
+                  f"{blank} on {args.interface} {args.channel}"
+                  f"{' (CAN FD)' if args.fd else ''}; Ctrl-C to stop", file=sys.stderr,
+                  flush=True)
             start = segment.clock()
             for inj in injections:
                 segment.schedule(start + inj.after, _inject, segment, inj)

@@ -68,7 +68,8 @@ import numpy as np
 
 from ..frame_io import BusSelector, FrameReader
 from .dynamics import JointDynamics
-from .segment import JOIN_WAIT, RX_IDLE, SimulatedSegment
+from .segment import JOIN_WAIT, SimulatedSegment
+from .timers import RX_IDLE
 
 #: Cycles of every bus one pass catches up at most: a pass holds its segments' locks and
 #: their buses' wake-ups, so a long catch-up is cut into passes between which the timers

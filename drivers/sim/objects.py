@@ -17,6 +17,7 @@ every axis; the communication objects (0x1000-0x1FFF) are the node's.
 """
 from __future__ import annotations
 
+import dataclasses
 import struct
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -43,6 +44,8 @@ from .. import cia301 as c301
 from .. import cia402 as c
 from ..capabilities import modes_from_targets
 from ..device_file import DeviceFileError, read_device_file
+from ..identity import SUBINDEX, Identity
+from ..lss import UNCONFIGURED
 from ..sdo_block_upload import BlockUploadServer
 
 Key = tuple[int, int]
@@ -398,3 +401,19 @@ def load_object_dictionaries(eds_path: str, node_ids: Iterable[int]
 def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.ObjectDictionary:
     """One drive's object dictionary (``load_object_dictionaries`` for one node)."""
     return load_object_dictionaries(eds_path, [node_id])[node_id]
+
+
+def own_identity(od: objectdictionary.ObjectDictionary, node_id: int, overrides: Mapping[Key, Any],
+                 given: Identity | None) -> Identity:
+    """A node's 0x1018: the file's, a serial number of its own where the file has none
+    (the node id) so that each node is one of a kind, then ``overrides`` and ``given``."""
+    values: dict[str, int | None] = {}
+    for name, sub in SUBINDEX.items():
+        variable = od.get_variable(c301.IDENTITY, sub)
+        values[name] = overrides.get((c301.IDENTITY, sub), variable.default
+                                     if variable is not None else None)
+    if not values["serial"] and node_id != UNCONFIGURED:
+        values["serial"] = node_id
+    return dataclasses.replace(Identity(**values), **{
+        name: value for name, value in dataclasses.asdict(given or Identity()).items()
+        if value is not None})

@@ -25,8 +25,6 @@ time but still queued would read as lost, and the drives would switch off for no
 """
 from __future__ import annotations
 
-import heapq
-import itertools
 import logging
 import math
 import threading
@@ -36,21 +34,28 @@ from typing import Any
 
 import can
 import numpy as np
+from canopen.objectdictionary import ObjectDictionary
 
 from .. import cia301 as c301
 from ..bus import enlarge_bus_buffer
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
-from ..identity import SUBINDEX, Identity
+from ..identity import Identity
+from ..lss import LSS_REQUEST, UNCONFIGURED
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
-from .objects import MAX_AXES, fallback_values, load_object_dictionaries
+from .lss import LssSlave
+from .objects import (
+    MAX_AXES,
+    fallback_values,
+    load_object_dictionaries,
+    load_object_dictionary,
+    own_identity,
+)
 from .port import Route
+from .timers import RX_IDLE, Timers
 
 log = logging.getLogger(__name__)
 
-#: Longest wait for a frame before the receive thread looks at ``_stopped`` again; also how
-#: stale ``received_until`` may get on a silent bus (a heartbeat loss is seen this much late).
-RX_IDLE = 0.02
 #: Frames handled under one lock hold: bounded so timers still run during a flood.
 RX_BATCH = 64
 #: Longest a segment's SYNC waits for the other segments' of its group before its joints
@@ -63,69 +68,6 @@ JOIN_WAIT = 0.0002
 def _default_eds() -> str:
     from rocoma_can import eds  # the EDS shipped with the package
     return str(eds.path(eds.CIA402_DRIVE))
-
-
-class _Timers:
-    """Monotonic one-shot timers on one thread (a heap, no thread per timer), or on the
-    thread of a lockstep pass (``run_due``): the timer thread then stands by until no pass
-    has run them for RX_IDLE."""
-
-    def __init__(self, run: Callable[[Callable[..., Any], tuple[Any, ...]], None]) -> None:
-        self._run = run
-        self._heap: list[tuple[float, int, Callable[..., Any], tuple[Any, ...]]] = []
-        self._seq = itertools.count()
-        self._cond = threading.Condition()
-        self._stopped = False
-        self._driven_at = -math.inf  # the latest run_due
-        self._thread = threading.Thread(target=self._loop, name="sim-timers", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self, timeout: float = 2.0) -> None:
-        with self._cond:
-            self._stopped = True
-            self._cond.notify()
-        if self._thread.is_alive():
-            self._thread.join(timeout)
-
-    def call_at(self, when: float, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
-        with self._cond:
-            heapq.heappush(self._heap, (when, next(self._seq), fn, args))
-            if time.monotonic() - self._driven_at >= RX_IDLE:  # (standing by: no wake-up)
-                self._cond.notify()
-
-    def run_due(self, now: float) -> None:
-        """Run the events due by ``now`` on the caller's thread, in order."""
-        if now - self._driven_at >= RX_IDLE:  # the thread may be in a long wait: from
-            with self._cond:  # now on it stands by in RX_IDLE turns, and resumes in time
-                self._driven_at = now
-                self._cond.notify()
-        self._driven_at = now
-        heap = self._heap
-        while heap and heap[0][0] <= now:  # (a look without the lock: popped under it)
-            with self._cond:
-                if not heap or heap[0][0] > now:
-                    return
-                _, _, fn, args = heapq.heappop(heap)
-            self._run(fn, args)
-
-    def _loop(self) -> None:
-        while True:
-            with self._cond:
-                while not self._stopped:
-                    now = time.monotonic()
-                    if now - self._driven_at < RX_IDLE:  # a lockstep pass runs them
-                        self._cond.wait(RX_IDLE)
-                        continue
-                    if self._heap and self._heap[0][0] <= now:
-                        break
-                    wait = self._heap[0][0] - now if self._heap else 0.5
-                    self._cond.wait(min(wait, 0.5))
-                if self._stopped:
-                    return
-                _, _, fn, args = heapq.heappop(self._heap)
-            self._run(fn, args)
 
 
 class SimulatedSegment:
@@ -143,6 +85,12 @@ class SimulatedSegment:
     ``identities`` maps a node id to its identity object (0x1018: vendor-ID, product code,
     revision, serial number; the fields given replace the file's). A node not in it answers
     the file's values, with its node id as serial number where the file gives none.
+
+    ``unconfigured``: further nodes without a node id (CiA 305: 0xFF), one per identity,
+    which must give the serial number (the other fields default as above). Each answers
+    nothing but LSS until it is given a node id (lss.py); its joints come after the
+    configured nodes'. Every node with a whole identity is an LSS slave
+    (``lss_slaves``); ``drives`` holds the nodes on the bus now, by node id.
     """
 
     def __init__(self, bus: can.BusABC, node_ids: Iterable[int], eds_path: str | None = None,
@@ -154,10 +102,15 @@ class SimulatedSegment:
                  increments_per_rev: int = 1 << 20, rated_torque_nm: float = 1.0,
                  overrides: Mapping[tuple[int, int], Any] | None = None,
                  axes: Mapping[int, int] | None = None,
-                 identities: Mapping[int, Identity] | None = None) -> None:
+                 identities: Mapping[int, Identity] | None = None,
+                 unconfigured: Iterable[Identity] = ()) -> None:
         ids = sorted(set(int(n) for n in node_ids))
-        if not ids:
-            raise ValueError("a simulated segment needs at least one node id")
+        blank = list(unconfigured)
+        if not ids and not blank:
+            raise ValueError("a simulated segment needs at least one node")
+        if any(i.serial is None for i in blank):
+            raise ValueError("an unconfigured node needs a serial number (its LSS address "
+                             "tells it from the others)")
         bad = [n for n in ids if not 1 <= n <= 127]
         if bad:
             raise ValueError(f"CANopen node ids must be 1..127, got {bad}")
@@ -198,40 +151,44 @@ class SimulatedSegment:
             joint_params = [params.get((n, a), params.get(n, JointParams())) for n, a in joints]
         else:
             joint_params = [params or JointParams()] * len(joints)
+        joint_params += [JointParams()] * len(blank)  # theirs: the defaults
         self.dynamics = JointDynamics(joint_params)
         if not isinstance(increments_per_rev, int) or increments_per_rev <= 0 \
                 or not rated_torque_nm > 0:
             raise ValueError("increments_per_rev must be a positive integer and "
                              f"rated_torque_nm > 0, got {increments_per_rev!r}, "
                              f"{rated_torque_nm!r}")
-        eds = str(eds_path) if eds_path else _default_eds()
+        self._eds = eds = str(eds_path) if eds_path else _default_eds()
         # what the drives assume where the file has no object (scaling: these numbers)
-        dictionaries = load_object_dictionaries(eds, ids)
-        fallbacks = fallback_values(increments_per_rev, rated_torque_nm,
-                                    next(iter(dictionaries.values()), None))
-        self.drives: dict[int, SimulatedDrive] = {
-            n: SimulatedDrive(self, n, joints.index((n, 1)), dictionaries[n], fallbacks,
-                              axis_count[n])
-            for n in ids}
-        for n, drive in self.drives.items():  # values the file gives that a run replaces
-            # 0x1018 as the file gives it, a serial number of its own (the node id where the
-            # file has none) so that each drive is one of a kind, then what the caller gave
-            own = {(c301.IDENTITY, SUBINDEX["serial"]): n} if not drive.objects.values.get(
-                (c301.IDENTITY, SUBINDEX["serial"])) else {}
-            for values in (drive.objects.defaults, drive.objects.values):
-                values.update(own)
-                values.update(overrides or {})
-                values.update((identities or {}).get(n, Identity()).objects())
+        dictionaries = load_object_dictionaries(eds, ids or [1])
+        template = next(iter(dictionaries.values()))
+        self._fallbacks = fallback_values(increments_per_rev, rated_torque_nm, template)
+        self._overrides = dict(overrides or {})
+        self.drives: dict[int, SimulatedDrive] = {}
+        self._fixed_routes: dict[int, Route] = {}
+        self._rpdo_routes: dict[int, Route] = {}
+        self._rpdo_of_drive: dict[int, dict[int, Route]] = {}
+        self.lss_slaves: list[LssSlave] = []
+        for n in ids:
+            identity = own_identity(template, n, self._overrides, (identities or {}).get(n))
+            self._put_on_bus(n, joints.index((n, 1)), axis_count[n], identity, dictionaries[n])
+            if len(identity.objects()) == 4:  # an LSS address needs all four
+                self.lss_slaves.append(LssSlave(identity, n, joints.index((n, 1)),
+                                                axis_count[n], self.send, self._move))
+        for k, given in enumerate(blank):
+            self.lss_slaves.append(LssSlave(
+                own_identity(template, UNCONFIGURED, self._overrides, given), UNCONFIGURED,
+                len(joints) + k, 1, self.send, self._move))
+        addresses = [slave.address for slave in self.lss_slaves]
+        if len(set(addresses)) < len(addresses):
+            raise ValueError("two simulated nodes have the same identity (LSS address): "
+                             "give each its own serial number")
         assumed = next(iter(self.drives.values())).objects.assumed if self.drives else {}
         if assumed:
             log.info("simulated drives of %s: where the file gives no value they answer %s",
                      eds, ", ".join(f"0x{i:04X}:{s} = {v if v < 10 else hex(v)}"
                                     for (i, s), v in sorted(assumed.items())
                                     if isinstance(v, int) and not 0x2000 <= i < 0x6000))
-        self._fixed_routes: dict[int, Route] = {
-            c301.SDO_RX + n: d.on_sdo for n, d in self.drives.items()}
-        self._rpdo_routes: dict[int, Route] = {}
-        self._rpdo_of_drive: dict[int, dict[int, Route]] = {}
         self._last_step: float | None = None
         # A SegmentGroup that steps its segments' joints together (group.py) leaves a SYNC's
         # dynamics step to itself: ``deferred_dt`` is the step this segment's drives are
@@ -244,7 +201,7 @@ class SimulatedSegment:
         self.received_until = -math.inf
         self._backlog: list[can.Message] = []  # see pump
         self._writer = FrameWriter(bus, fd=fd)  # an FD bus: the drives answer in FD frames
-        self._timers = _Timers(self._run_timer)
+        self._timers = Timers(self._run_timer)
         self._stopped = threading.Event()
         self._rx_thread = threading.Thread(target=self._receive_loop,
                                            name="sim-segment-rx", daemon=True)
@@ -275,7 +232,7 @@ class SimulatedSegment:
         self._started = True
         with self.lock:
             for drive in self.drives.values():
-                drive.power_on()
+                drive.power_on()  # an unconfigured node: silent until it has a node id
             self._last_step = self.clock()
         if receive:
             self._rx_thread.start()
@@ -436,10 +393,14 @@ class SimulatedSegment:
             self._finish_deferred_or_record()
         if cob_id == c301.NMT:
             if len(data) >= 2:
-                for node, drive in self.drives.items():
-                    if data[1] in (0, node):
+                for node, drive in list(self.drives.items()):  # a reset may move a node
+                    if data[1] in (0, node) and not self._reset_moves(node, data[0]):
                         drive.on_nmt(data[0])
             self.nmt_count += 1
+            return
+        if cob_id == LSS_REQUEST:
+            for slave in self.lss_slaves:
+                slave.on_request(data)
             return
         if cob_id == c301.SYNC:
             self._on_sync(arrived)
@@ -455,6 +416,46 @@ class SimulatedSegment:
         if c301.HEARTBEAT < cob_id <= c301.HEARTBEAT + 0x7F and data:
             for drive in self.drives.values():
                 drive.on_heartbeat(cob_id - c301.HEARTBEAT, arrived)
+
+    # ------------------------------------------------------------------ node ids (LSS)
+    def _put_on_bus(self, node_id: int, joint: int, axes: int, identity: Identity,
+                    od: ObjectDictionary | None = None) -> SimulatedDrive:
+        drive = SimulatedDrive(self, node_id, joint,
+                               od or load_object_dictionary(self._eds, node_id),
+                               self._fallbacks, axes)
+        for values in (drive.objects.defaults, drive.objects.values):
+            values.update(self._overrides)  # values the file gives that a run replaces
+            values.update(identity.objects())
+        self.drives[node_id] = drive
+        self._fixed_routes[c301.SDO_RX + node_id] = drive.on_sdo
+        return drive
+
+    def _reset_moves(self, node_id: int, command: int) -> bool:
+        """An NMT reset that gives the node its pending LSS node id (then it has booted
+        at that id: True)."""
+        for slave in self.lss_slaves:
+            if slave.active_id == node_id:
+                return slave.on_reset(command)
+        return False
+
+    def _move(self, slave: LssSlave, old: int) -> None:
+        """An LSS slave's node took another node id: off the bus at the old one, a drive
+        booted at the new one (the node's joints; its drive state starts afresh). A node
+        id already taken leaves the node without one (a real bus would have two nodes
+        answering at it)."""
+        if old in self.drives:
+            del self.drives[old]
+            del self._fixed_routes[c301.SDO_RX + old]
+            self.set_rpdo_routes(old, {})
+        new = slave.active_id
+        if new == UNCONFIGURED:
+            return
+        if new in self.drives:
+            log.warning("simulated node %s: node id %d is taken, the node stays without one",
+                        slave.identity.describe(), new)
+            slave.active_id = UNCONFIGURED
+            return
+        self._put_on_bus(new, slave.joint, slave.axes, slave.identity).power_on()
 
     def _on_sync(self, arrived: float) -> None:
         dt = self._prepare(on_sync=True, now=arrived)

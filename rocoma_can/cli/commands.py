@@ -130,7 +130,7 @@ def _run(args: argparse.Namespace) -> int:
                           flight_seconds=args.flight_seconds,
                           announce=lambda text: print(f"rocoma-can: {text}", flush=True))
     except (OSError, ValueError, FleetError) as exc:
-        _err(str(exc) + _no_socketcan_hint(exc))
+        _err(str(exc) + no_socketcan_hint(exc))
         return USAGE
     if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
         faulthandler.register(signal.SIGUSR2, all_threads=True)
@@ -155,7 +155,7 @@ def _run(args: argparse.Namespace) -> int:
         try:
             summary = runtime.run(duration=args.duration)
         except OSError as exc:
-            _err(str(exc) + _no_socketcan_hint(exc))
+            _err(str(exc) + no_socketcan_hint(exc))
             return USAGE
         print(f"rocoma-can: stopped ({runtime.loop.stop_reason}); {summary.line()}", flush=True)
         hw = runtime.hardware
@@ -168,7 +168,7 @@ def _run(args: argparse.Namespace) -> int:
     return OK
 
 
-def _no_socketcan_hint(exc: BaseException) -> str:
+def no_socketcan_hint(exc: BaseException) -> str:
     """What to do when the kernel has no SocketCAN (EAFNOSUPPORT: containers, WSL, macOS),
     which a new user meets first as an errno: its words say nothing about CAN."""
     seen: BaseException | None = exc

@@ -1,0 +1,210 @@
+"""Sub-commands ``scan`` (which nodes are on a bus, and what each one is) and ``lss`` (give
+a node a node id by LSS, CiA 305).
+
+``scan`` only reads (SDO uploads; with ``--lss`` also LSS fastscan, which changes no node
+id): it may run beside a manager. Exit codes: 0 the scan ran (also when no node
+answered), 1 ``lss`` got no answer or a refusal, 2 usage errors and a bus that cannot be
+opened.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from ..cli_args import node_id, seconds
+from ..errors import LssFailed
+from ..exit_codes import FAILED, OK, USAGE
+from .commands import no_socketcan_hint
+
+if TYPE_CHECKING:  # imported when a verb runs: `rocoma-can --help` stays fast
+    import can
+
+    from ..drivers.identity import Identity
+    from ..drivers.scan import FoundNode
+
+#: what a scan that found nothing asks a person to look at
+NOTHING_FOUND = ("no nodes answered: check the bit rate (every node's and the interface's "
+                 "must be the same), termination (120 ohm at both ends of the bus) and that "
+                 "the drives have power")
+
+
+def _err(message: str) -> None:
+    print(f"rocoma-can: {message}", file=sys.stderr, flush=True)
+
+
+def _on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
+    """``work`` on a bus opened from --interface/--channel; one line when it cannot open."""
+    from ..drivers.bus import open_bus
+    try:
+        bus = open_bus(args.interface, args.channel, receive_own_messages=False)
+    except OSError as exc:
+        _err(str(exc) + no_socketcan_hint(exc))
+        return USAGE
+    except NotImplementedError as exc:  # python-can: an interface it does not know
+        _err(f"--interface {args.interface}: {exc}")
+        return USAGE
+    try:
+        return work(bus)
+    finally:
+        bus.shutdown()
+
+
+def _hex(value: int | None, digits: int = 8) -> str:
+    return "-" if value is None else f"0x{value:0{digits}X}"
+
+
+def _period(ms: int | None) -> str:
+    return "-" if ms is None else f"{ms} ms" if ms else "off"
+
+
+def table(nodes: list[FoundNode]) -> list[str]:
+    """One row per node, columns as wide as their widest cell."""
+    from ..drivers.scan import device_type_text
+    head = ("node", "vendor", "product", "revision", "serial", "device type", "name",
+            "software", "heartbeat", "NMT state")
+    rows = [head] + [(
+        str(n.node_id), _hex(n.identity.vendor_id), _hex(n.identity.product_code),
+        _hex(n.identity.revision), _hex(n.identity.serial), device_type_text(n.device_type),
+        n.device_name or "-", n.software_version or "-",
+        _period(n.heartbeat_ms), n.nmt_state) for n in nodes]
+    widths = [max(len(row[k]) for row in rows) for k in range(len(head))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip()
+             for row in rows]
+    lines += [f"node {n.node_id}: {n.problem}" for n in nodes if n.problem]
+    return lines
+
+
+def _scan(args: argparse.Namespace) -> int:
+    from ..drivers.scan import scan
+
+    def work(bus: can.BusABC) -> int:
+        nodes = scan(bus, timeout=args.timeout, listen=args.listen)
+        unconfigured = _unconfigured(bus, args.timeout) if args.lss else None
+        if args.json:
+            print(json.dumps({"nodes": [n.as_json() for n in nodes],
+                              **({"unconfigured": [vars(i) for i in unconfigured]}
+                                 if unconfigured is not None else {})}, indent=2))
+            return OK
+        if nodes:
+            print("\n".join(table(nodes)), flush=True)
+        if unconfigured:
+            print(f"{len(unconfigured)} node(s) without a node id (LSS; give one with "
+                  "`rocoma-can lss`):")
+            for identity in unconfigured:
+                print(f"  {identity.describe()}")
+        if not nodes and not unconfigured:
+            print(NOTHING_FOUND, flush=True)
+        return OK
+    return _on_bus(args, work)
+
+
+def _unconfigured(bus: can.BusABC, timeout: float) -> list[Identity]:
+    from ..drivers.bus import CanopenBus
+    from ..drivers.lss import find_unconfigured
+    lent = CanopenBus(bus)
+    try:
+        return find_unconfigured(lent.network, timeout=min(timeout, 1.0))
+    finally:
+        lent.close()
+
+
+def _lss(args: argparse.Namespace) -> int:
+    from ..drivers.bus import CanopenBus
+    from ..drivers.identity import Identity
+    from ..drivers.lss import assign, bit_timing_index
+    address = None
+    if not args.fastscan:
+        parts = {"vendor_id": args.vendor, "product_code": args.product,
+                 "revision": args.revision, "serial": args.serial}
+        missing = [f"--{k}" for k, v in zip(("vendor", "product", "revision", "serial"),
+                                             parts.values()) if v is None]
+        if missing:
+            _err(f"lss: an LSS address needs {', '.join(missing)} too (or --fastscan)")
+            return USAGE
+        address = Identity(**parts)
+    if args.bitrate is not None:
+        try:
+            bit_timing_index(args.bitrate)
+        except ValueError as exc:
+            _err(f"lss: --bitrate: {exc}")
+            return USAGE
+
+    def work(bus: can.BusABC) -> int:
+        lent = CanopenBus(bus)
+        try:
+            target = assign(lent.network, args.set_node_id, address, bitrate=args.bitrate,
+                            store=args.store, timeout=args.timeout)
+        except LssFailed as exc:
+            _err(str(exc))
+            return FAILED
+        finally:
+            lent.close()
+        rate = f", bit rate {args.bitrate} (from its next power-up)" if args.bitrate else ""
+        kept = "stored" if args.store else "not stored: lost at power-off (--store keeps it)"
+        print(f"{target.describe()}: node id {args.set_node_id}{rate}, {kept}; a node "
+              "that had no node id starts with it now, one that had one at its next NMT "
+              "reset", flush=True)
+        return OK
+    return _on_bus(args, work)
+
+
+def _u32(text: str) -> int:
+    try:
+        value = int(text, 0)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 0xFFFF_FFFF:
+        raise argparse.ArgumentTypeError(f"expected an unsigned 32-bit number, got {text!r}")
+    return value
+
+
+def _bus_options(p: argparse.ArgumentParser, timeout: float, what: str) -> None:
+    p.add_argument("--channel", required=True, help="CAN channel, e.g. can0")
+    p.add_argument("--interface", default="socketcan",
+                   help="python-can interface (default socketcan)")
+    p.add_argument("--timeout", type=seconds, default=timeout, metavar="S",
+                   help=f"{what} (default {timeout:g})")
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    from ..drivers.scan import LISTEN, TIMEOUT  # constants only: no canopen import
+    p = subparsers.add_parser(
+        "scan", help="list the nodes on a bus: identity, device type, name, NMT state",
+        description="Listen for heartbeats, probe node ids 1..127 by SDO, and read each "
+                    "node's 0x1000, 0x1018, 0x1008, 0x100A and 0x1017. Reads only: it may "
+                    "run beside a manager.")
+    _bus_options(p, TIMEOUT, "seconds to wait for each SDO answer")
+    p.add_argument("--listen", type=seconds, default=LISTEN, metavar="S",
+                   help=f"listen for heartbeats this long first (default {LISTEN:g})")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--lss", action="store_true",
+                   help="also list nodes without a node id (LSS fastscan, CiA 305)")
+    p.set_defaults(func=_scan)
+
+    from ..drivers.lss import TIMEOUT as LSS_TIMEOUT
+    p = subparsers.add_parser(
+        "lss", help="give a node a node id (and bit rate) by LSS (CiA 305)",
+        description="Select one node by its LSS address (0x1018: --vendor --product "
+                    "--revision --serial) or the first unconfigured one LSS fastscan "
+                    "finds, and give it --set-node-id (and --bitrate); --store keeps "
+                    "them across a power cycle.")
+    _bus_options(p, LSS_TIMEOUT, "seconds to wait for each LSS answer")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--serial", type=_u32, help="serial number (0x1018:4)")
+    which.add_argument("--fastscan", action="store_true",
+                       help="the first node without a node id that LSS fastscan finds")
+    for flag, sub in (("vendor", 1), ("product", 2), ("revision", 3)):
+        p.add_argument(f"--{flag}", type=_u32, help=f"0x1018:{sub} (with --serial)")
+    p.add_argument("--set-node-id", type=node_id, required=True, metavar="ID",
+                   help="the node id to give, 1..127")
+    p.add_argument("--bitrate", type=int, default=None, metavar="B",
+                   help="also the bit rate, bit/s (CiA 305 table: 1000000 ... 10000)")
+    p.add_argument("--store", action="store_true",
+                   help="store the configuration in the node (kept across a power cycle)")
+    p.set_defaults(func=_lss)
+
+
+__all__ = ["register", "table", "NOTHING_FOUND"]

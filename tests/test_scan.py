@@ -1,0 +1,165 @@
+"""`rocoma-can scan` and `rocoma-can lss` against simulated drives over a CAN bus: the real
+CLI entry, the simulator's identities and LSS slaves (CiA 305).
+
+The tests taking ``sim_interface`` or ``can_setup`` run on python-can's virtual bus and
+again on SocketCAN vcan0 (the vcan suite, through tools/vcan-run)."""
+from __future__ import annotations
+
+import json
+import threading
+
+import pytest
+from fixtures.budgets import GUEST_STALL, STALL, within
+from fixtures.driver_rig import HoldPD, bring_up, enable_with
+
+from rocoma_can import ManagerState
+from rocoma_can.cli.main import main
+from rocoma_can.drivers import cia301
+from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.identity import Identity
+from rocoma_can.drivers.lss import LSS_REQUEST
+
+IDENTITIES = {1: Identity(vendor_id=0x9A, product_code=0x10, revision=0x2, serial=0x1001),
+              2: Identity(vendor_id=0x9A, product_code=0x10, revision=0x2, serial=0x1002),
+              3: Identity(vendor_id=0x9A, product_code=0x20, revision=0x1, serial=0x0B0B)}
+#: an unconfigured node: few one bits in its address, so a fastscan waits few timeouts
+BLANK = Identity(serial=0x11)
+
+
+def _stall(interface: str) -> float:
+    return GUEST_STALL if interface == "socketcan" else STALL
+
+
+def _bus_args(interface: str, channel: str, stall: float) -> list[str]:
+    """The bus, and waits for a loaded host: an SDO answer within a quarter of a stall,
+    heartbeats (100 ms) listened for as a budget says."""
+    return ["--interface", interface, "--channel", channel,
+            "--timeout", f"{stall / 4:g}", "--listen", f"{within(0.1, stall):g}"]
+
+
+def scan_json(capsys, interface: str, channel: str, *extra: str) -> dict:
+    capsys.readouterr()
+    assert main(["scan", "--json", *_bus_args(interface, channel, _stall(interface)),
+                 *extra]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def _channel(interface: str, virtual_channel: str) -> str:
+    return virtual_channel if interface == "virtual" else "vcan0"
+
+
+def test_scan_lists_exactly_the_drives_with_their_identities(
+        sim_segment_factory, sim_interface, virtual_channel, capsys):
+    sim_segment_factory([1, 2, 3], interface=sim_interface, identities=IDENTITIES)
+    found = scan_json(capsys, sim_interface, _channel(sim_interface, virtual_channel))
+    assert [n["node_id"] for n in found["nodes"]] == [1, 2, 3]
+    for node in found["nodes"]:
+        assert Identity(**node["identity"]) == IDENTITIES[node["node_id"]]
+        assert node["device_type"] == 0x00020192  # the file's: CiA 402
+        assert node["device_name"] == "rocoma-can simulated CiA 402 drive"  # segmented
+        assert node["software_version"] == "1.0"
+        assert node["heartbeat_ms"] == 100
+        assert node["nmt_state"] == "PRE-OPERATIONAL"
+        assert node["seen_by"] == "heartbeat" and node["problem"] is None
+    assert "unconfigured" not in found
+
+
+def test_scan_table_and_an_empty_bus(sim_segment_factory, virtual_channel, capsys):
+    sim_segment_factory([4], identities={4: IDENTITIES[1]})
+    assert main(["scan", *_bus_args("virtual", virtual_channel, STALL)]) == 0
+    head, row = capsys.readouterr().out.splitlines()
+    assert head.split()[:5] == ["node", "vendor", "product", "revision", "serial"]
+    assert row.split()[:5] == ["4", "0x0000009A", "0x00000010", "0x00000002", "0x00001001"]
+    assert "PRE-OPERATIONAL" in row and "100 ms" in row
+    # nobody there: the scan ran (exit 0) and says what to check
+    assert main(["scan", *_bus_args("virtual", virtual_channel + "-empty", STALL)]) == 0
+    out = capsys.readouterr().out
+    assert "no nodes answered" in out and "bit rate" in out and "termination" in out
+
+
+def test_a_node_without_heartbeat_is_found_by_its_sdo_answer(
+        sim_segment_factory, virtual_channel, capsys):
+    sim_segment_factory([7], overrides={(cia301.PRODUCER_HEARTBEAT_TIME, 0): 0})
+    (node,) = scan_json(capsys, "virtual", virtual_channel)["nodes"]
+    assert node["node_id"] == 7 and node["seen_by"] == "sdo"
+    assert node["heartbeat_ms"] == 0 and node["nmt_state"] == "unknown"  # 0x1017 = 0: off
+    assert node["identity"]["serial"] == 7  # the node id, where the file has none
+
+
+def test_a_scan_beside_a_running_manager_only_reads(segment, make_rig, can_setup,
+                                                    frame_recorder, virtual_channel, capsys):
+    """No NMT command, no SDO download, no LSS on the bus while the scan runs; the manager
+    stays OK and every drive enabled."""
+    rig = make_rig()
+    bring_up(rig)
+    enable_with(rig, HoldPD())
+    recorder = frame_recorder(interface=can_setup.interface)
+    mark = recorder.mark()
+    result: dict[str, int] = {}
+    args = ["scan", "--json", *_bus_args(can_setup.interface,
+                                         can_setup.channel(virtual_channel), can_setup.stall)]
+    scanner = threading.Thread(target=lambda: result.update(rc=main(args)), daemon=True)
+    scanner.start()
+    rig.run_until(lambda: not scanner.is_alive(), within(30.0, can_setup.stall))
+    assert result.get("rc") == 0
+    found = json.loads(capsys.readouterr().out)["nodes"]
+    assert {n["node_id"] for n in found} >= set(segment.drives)
+    assert all(n["nmt_state"] == "OPERATIONAL" for n in found if n["node_id"] in segment.drives)
+    frames = recorder.frames(since=mark)
+    sdo_requests = [f for f in frames if cia301.SDO_RX < f.cob_id <= cia301.SDO_RX + 0x7F]
+    assert sdo_requests, "the scan sent no SDO request"
+    # upload initiate / segment requests, or an abort: never a download (ccs 1)
+    assert {f.data[0] & 0xE0 for f in sdo_requests} <= {0x40, 0x60, 0x80}, sdo_requests[:5]
+    assert not [f for f in frames if f.cob_id in (cia301.NMT, LSS_REQUEST)]
+    assert rig.mgr.state == ManagerState.OK and rig.hw.all_enabled
+    assert all(d.state402 == State402.OPERATION_ENABLED for d in segment.drives.values())
+
+
+def test_lss_fastscan_finds_an_unconfigured_node_and_lss_gives_it_an_id(
+        sim_segment_factory, sim_interface, virtual_channel, capsys):
+    segment = sim_segment_factory([1], interface=sim_interface, unconfigured=[BLANK])
+    channel = _channel(sim_interface, virtual_channel)
+    found = scan_json(capsys, sim_interface, channel, "--lss")
+    assert [n["node_id"] for n in found["nodes"]] == [1]  # silent until it has a node id
+    (blank,) = found["unconfigured"]
+    assert blank["serial"] == 0x11 and blank["product_code"] == 0x402  # the file's
+    bus = ["--interface", sim_interface, "--channel", channel,
+           "--timeout", f"{_stall(sim_interface) / 4:g}"]
+    assert main(["lss", *bus, "--fastscan", "--set-node-id", "9", "--store"]) == 0
+    assert "node id 9, stored" in capsys.readouterr().out
+    found = scan_json(capsys, sim_interface, channel, "--lss")
+    assert [n["node_id"] for n in found["nodes"]] == [1, 9]
+    assert found["nodes"][1]["identity"]["serial"] == 0x11
+    assert found["unconfigured"] == []
+    assert segment.drives[9].nmt_state == cia301.NmtState.PRE_OPERATIONAL  # it booted
+
+
+def test_lss_by_address_moves_a_configured_node_at_its_next_reset(
+        sim_bench, virtual_channel, capsys):
+    bench = sim_bench([2], identities={2: IDENTITIES[2]})
+    i = IDENTITIES[2]
+    bus = ["--interface", "virtual", "--channel", virtual_channel, "--timeout", f"{STALL / 4:g}"]
+    assert main(["lss", *bus, "--vendor", hex(i.vendor_id), "--product", hex(i.product_code),
+                 "--revision", str(i.revision), "--serial", hex(i.serial),
+                 "--set-node-id", "5", "--bitrate", "500000"]) == 0
+    assert "not stored" in capsys.readouterr().out
+    assert list(bench.segment.drives) == [2]  # a node with an id keeps it until a reset
+    bench.nmt(cia301.NmtCommand.RESET_COMMUNICATION, 2)
+    assert list(bench.segment.drives) == [5]
+    assert bench.recorder.wait_for_count(1, bench.within(0.1), cob_id=cia301.HEARTBEAT + 5,
+                                         where=lambda f: f.data == b"\x00")  # boot-up
+    # nobody at that address: exit 1 and what was asked
+    assert main(["lss", *bus, "--vendor", "1", "--product", "2", "--revision", "3",
+                 "--serial", "4", "--set-node-id", "6"]) == 1
+    assert "no node answered" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args", [
+    ["lss", "--channel", "x", "--serial", "1", "--set-node-id", "3"],  # no --vendor etc.
+    ["lss", "--channel", "x", "--fastscan", "--set-node-id", "3", "--bitrate", "100000"],
+    ["scan", "--channel", "x", "--interface", "nonesuch"],
+])
+def test_usage_errors_exit_2_with_one_line(args, capsys):
+    assert main([*args, "--interface", "virtual"] if "nonesuch" not in args else args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("rocoma-can: ") and "\n" not in err and "Traceback" not in err
