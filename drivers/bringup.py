@@ -39,6 +39,7 @@ from .bus import CanopenBus
 from .capabilities import DriveCapabilities, PdoChannel
 from .config import DriveConfig, Supervision, Timeouts
 from .drive_plan import DrivePlan
+from .identity import verify_identity
 from .modes import DriveMode, interpolation_period
 from .pdo_layout import Pdo
 
@@ -270,6 +271,8 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
         raise NoAnswer(f"no SDO reply to 0x1000: {e}") from e
     if device_type & 0xFFFF != 402:
         raise RuntimeError(f"is not a CiA 402 drive (0x1000 = 0x{device_type:08X})")
+    if node_level:  # before anything is written: a wrong drive must not be reconfigured
+        verify_identity(sdo, plan.identity)
     for axis in plan.other_axes:  # pre-operational stops their RPDOs: switched off first
         NamedSdo(node.sdo, axis).download(cia402.CONTROLWORD, 0, _u16(0))
     try:

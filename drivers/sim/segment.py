@@ -40,7 +40,7 @@ import numpy as np
 from .. import cia301 as c301
 from ..bus import enlarge_bus_buffer
 from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
-from ..identity import SUBINDEX, Identity
+from ..identity import SUBINDEX, Identity, file_identity
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
 from .objects import MAX_AXES, fallback_values, load_object_dictionaries
@@ -214,10 +214,15 @@ class SimulatedSegment:
                               axis_count[n])
             for n in ids}
         for n, drive in self.drives.items():  # values the file gives that a run replaces
-            # 0x1018 as the file gives it, a serial number of its own (the node id where the
+            # 0x1018 as the file gives it, with the vendor and product its [DeviceInfo] names
+            # where it names a vendor (what bring-up holds a drive to without identity:
+            # identity.file_identity), a serial number of its own (the node id where the
             # file has none) so that each drive is one of a kind, then what the caller gave
-            own = {(c301.IDENTITY, SUBINDEX["serial"]): n} if not drive.objects.values.get(
-                (c301.IDENTITY, SUBINDEX["serial"])) else {}
+            made_for = file_identity(drive.object_dictionary)
+            own = {key: v for key, v in made_for.objects().items()
+                   if made_for.vendor_id is not None and key in drive.objects.values}
+            if not drive.objects.values.get((c301.IDENTITY, SUBINDEX["serial"])):
+                own[c301.IDENTITY, SUBINDEX["serial"]] = n
             for values in (drive.objects.defaults, drive.objects.values):
                 values.update(own)
                 values.update(overrides or {})
