@@ -25,11 +25,11 @@ from .homing import HOMING_MODE, HomingJob, HomingQueue
 from .joints import JointCommand, JointMode, JointState
 from .modes import CW_ENABLE_INTERPOLATION, KIND, DriveMode, SetPointHandshake, carrier
 from .scaling import Scaling
-from .supervision import Supervisor
+from .supervision import FollowingErrorWatch, Supervisor
 
 _CW_QUICK_STOP = int(cia402.Controlword.QUICK_STOP)
 _CYCLIC = (int(JointMode.CSP), int(JointMode.CSV), int(JointMode.CST))
-_PP, _IP = int(DriveMode.PP), int(DriveMode.IP)
+_PP, _IP, _CSP = int(DriveMode.PP), int(DriveMode.IP), int(DriveMode.CSP)
 
 
 class Commands:
@@ -54,6 +54,7 @@ class Commands:
         self._setpoints = SetPointHandshake(n)
         self._default_mode = [int(d.modes[0]) for d in drives]
         self._position_fed, self._ready = position_fed, ready
+        self.following = FollowingErrorWatch(drives, position_fed)
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
         self._finite = np.zeros(n, dtype=bool)
@@ -63,6 +64,7 @@ class Commands:
     def reset(self, i: int) -> None:
         """Drive i is not under command: its enable sequence and set-point start over."""
         self.enable.reset(i)
+        self.following.tracking[i] = False
         if self._pp[i]:
             self._setpoints.reset(i)
 
@@ -75,6 +77,8 @@ class Commands:
         committed switches (None: no manager, every READY drive is under command)."""
         cmd, raw, sc, sup, frames = self._command, self._raw, self._scaling, self._sup, \
             self._frames
+        following = self.following
+        following.check(self._state.position, sup, now)  # last cycle's CSP targets
         sc.encode_position(cmd.position, raw["target_position"])
         sc.encode_velocity(cmd.velocity, raw["target_velocity"])
         sc.encode_torque(cmd.torque, raw["target_torque"])
@@ -128,12 +132,15 @@ class Commands:
                 else:
                     if carried == _IP:
                         cw |= CW_ENABLE_INTERPOLATION
+                    elif carried == _CSP:
+                        following.tracking[i] = True
                     values = (cw, carried, tpos[i], tvel[i], ttrq[i])
             else:
                 cw = _CW_QUICK_STOP if mode == JointMode.QUICK_STOP else 0
                 values = (cw, self._default_mode[i], actual[i], 0, 0)
                 self.reset(i)
             frames.rpdos(i, values)
+        following.sent(cmd.position)
 
     def _home_step(self, i: int, b: DriveBringup, job: HomingJob, state: int,
                    now: float) -> bool:

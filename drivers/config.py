@@ -130,6 +130,73 @@ def _mode(value: Any, where: str) -> DriveMode:
                      "or pp; velocity: csv or pv; torque: cst)")
 
 
+#: Keys of a drive's ``limits:`` mapping.
+LIMIT_KEYS = ("position", "velocity", "torque", "following_error", "following_error_cycles")
+
+
+@dataclass(frozen=True)
+class DriveLimits:
+    """A drive's ``limits:`` (joint side, SI; None = not limited): enforced by the manager
+    on every command and written to the drive at bring-up where its file has the object
+    (drivers/limits.py), so they hold while the manager is gone too. ``following_error``
+    (rad) is the window a CSP drive's actual position may lag its target by: the manager
+    e-stops after ``following_error_cycles`` cycles beyond it, the drive (0x6065/0x6066)
+    faults after twice that."""
+    position: tuple[float, float] | None = None  # rad: [min, max]
+    velocity: float | None = None                # rad/s, either direction
+    torque: float | None = None                  # Nm, either direction
+    following_error: float | None = None         # rad
+    following_error_cycles: int = 3
+
+    @classmethod
+    def from_value(cls, value: Any, where: str) -> DriveLimits:
+        """From YAML: a mapping of any subset of LIMIT_KEYS; every value checked, one line."""
+        if isinstance(value, DriveLimits):
+            return value
+        if not isinstance(value, Mapping):
+            raise ValueError(f"{where}: limits must be a mapping of {', '.join(LIMIT_KEYS)}, "
+                             f"got {value!r}")
+        unknown = sorted(str(k) for k in value if k not in LIMIT_KEYS)
+        if unknown:
+            close = difflib.get_close_matches(unknown[0], LIMIT_KEYS, n=1)
+            hint = f", did you mean {close[0]!r}?" if close else ""
+            raise ValueError(f"{where}: limits.{unknown[0]} unknown{hint}; use "
+                             f"{', '.join(LIMIT_KEYS)}")
+        position = value.get("position")
+        if position is not None:
+            if isinstance(position, (str, bytes)) or not isinstance(position, Sequence) \
+                    or len(position) != 2 or not all(_finite(p) for p in position):
+                raise ValueError(f"{where}: limits.position must be [min, max] in rad (two "
+                                 f"finite numbers), got {position!r}")
+            if not position[0] < position[1]:
+                raise ValueError(f"{where}: limits.position min ({position[0]}) must be below "
+                                 f"max ({position[1]})")
+            position = (float(position[0]), float(position[1]))
+        for name in ("velocity", "torque", "following_error"):
+            if value.get(name) is not None:
+                _positive(where, f"limits.{name}", value[name])
+        cycles = value.get("following_error_cycles", 3)
+        if not _whole(cycles) or cycles < 1:
+            raise ValueError(f"{where}: limits.following_error_cycles must be a whole number "
+                             f">= 1, got {cycles!r}")
+
+        def number(name: str) -> float | None:
+            return None if value.get(name) is None else float(value[name])
+        return cls(position, number("velocity"), number("torque"), number("following_error"),
+                   cycles)
+
+    def given(self) -> list[str]:
+        """The limits set, by name (following_error_cycles goes with following_error)."""
+        return [name for name in LIMIT_KEYS[:4] if getattr(self, name) is not None]
+
+
+#: The old per-drive keys a ``limits:`` entry also sets, and what they hold (manager only).
+_OLD_LIMIT_KEYS = (("position", ("position_min", "position_max")),
+                   ("velocity", ("max_velocity",)), ("torque", ("max_torque_nm",)))
+_OLD_DEFAULTS = {"position_min": -math.inf, "position_max": math.inf,
+                 "max_velocity": math.inf, "max_torque_nm": math.inf}
+
+
 #: How the manager and a drive watch each other's life (CiA 301): the drive's heartbeat
 #: producer (0x1017), or node guarding (0x100C/0x100D: the manager asks by remote frame,
 #: the drive answers and watches the asking), for drives that have no heartbeat.
@@ -156,6 +223,9 @@ class DriveConfig:
     max_velocity: float = math.inf          # rad/s, joint side
     position_min: float = -math.inf         # rad, joint side
     position_max: float = math.inf
+    limits: DriveLimits = DriveLimits()     # enforced by the manager and, where its file
+                                            # has the objects, the drive (limits.py); the
+                                            # four keys above are the manager's only
     heartbeat_ms: int = 100                 # the drive's heartbeat period (0x1017), or
                                             # its guard time (0x100C) when node-guarded
     guarding: str = "auto"                  # how the drive's life is watched: heartbeat,
@@ -201,6 +271,8 @@ class DriveConfig:
                     raise ValueError(f"{where}: feedback {name!r} unknown; use "
                                      f"{list(FEEDBACK)}")
             self.feedback = tuple(f for f in FEEDBACK if f in feedback)
+        self.limits = DriveLimits.from_value(self.limits, where)
+        self._take_limits(where)
         for name in ("max_torque_nm", "max_velocity"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or math.isnan(value) or value <= 0:
@@ -233,6 +305,29 @@ class DriveConfig:
         self.identity = identity_from_config(self.identity, where)
         if self.eds is not None and not Path(self.eds).is_file():
             raise ValueError(f"{where}: eds file {self.eds!r} does not exist")
+
+    def _take_limits(self, where: str) -> None:
+        """``limits:`` sets the manager's limits too (one set of numbers for both); an old
+        key (position_min, ..., manager only) that says otherwise is an error, not a
+        choice made silently."""
+        for name, keys in _OLD_LIMIT_KEYS:
+            value = getattr(self.limits, name)
+            if value is None:
+                continue
+            values = value if isinstance(value, tuple) else (value,)
+            for key, new in zip(keys, values):
+                old = getattr(self, key)
+                if old != _OLD_DEFAULTS[key] and old != new:
+                    raise ValueError(f"{where}: {key} = {old} and limits.{name} = {value} "
+                                     f"disagree; keep limits.{name} ({key} is the old, "
+                                     "manager-only key)")
+                setattr(self, key, new)
+
+    def manager_only_limits(self) -> list[str]:
+        """The old keys set without ``limits:`` behind them: the manager enforces them, the
+        drive is never told (what they always did)."""
+        return [key for name, keys in _OLD_LIMIT_KEYS for key in keys
+                if getattr(self.limits, name) is None and getattr(self, key) != _OLD_DEFAULTS[key]]
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> DriveConfig:

@@ -13,7 +13,7 @@ import dataclasses
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-from . import cia301, cia402
+from . import cia301, cia402, limits
 from .capabilities import (
     MODE_NAMES,
     TARGET_OF_MODE,
@@ -68,6 +68,7 @@ class DrivePlan:
                  f"{', '.join(d.feedback or ()) or 'statusword only'}",
                  f"  {pdos}"]
         lines += [f"  {line}" for line in self.caps.report(self.guarded)]
+        lines += [f"  {line}" for line in limits.report(d, self.caps)]
         lines.append(f"  {self.identity.describe()}"
                      + ("" if self.leads_node else " (the node's: checked by its lowest axis)"))
         lines += [f"  note: {n}" for n in self.notes]
@@ -195,6 +196,10 @@ def plan_drive(drive: DriveConfig,
                      "guarding) makes it "
                      "leave OPERATIONAL (0x1029) and stop applying RPDOs; whether it also "
                      "switches its power stage off is its vendor's choice")
+    try:
+        limits.drive_writes(drive, caps)
+    except ValueError as exc:
+        problems.append(str(exc).removeprefix(f"{where}: "))
     if problems:
         raise ValueError(f"{where}: " + "; ".join(problems))
     resolved, layout = _fit_feedback(drive, feedback, caps, notes)

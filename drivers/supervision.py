@@ -27,6 +27,7 @@ import numpy as np
 
 from . import cia301, cia402
 from .config import DriveConfig
+from .modes import DriveMode
 
 EMCY_NAMES = {
     cia301.EMCY_GENERIC: "generic error",
@@ -195,3 +196,57 @@ class Supervisor:
     def take_pending(self) -> list[FaultEvent]:
         events, self.pending = self.pending, []
         return events
+
+
+class FollowingErrorWatch:
+    """The manager's following error check of the drives it runs in CSP with a
+    ``limits.following_error`` window: the position target sent last cycle against the
+    actual position read this cycle, beyond the window for ``following_error_cycles``
+    consecutive cycles -> the drive's fault (an e-stop), EMCY code 0x8611 as a drive's own.
+
+    The drive itself (0x6065/0x6066, written at bring-up) faults after twice as long: the
+    manager, which knows the target it meant, reports first, the drive backs it up. The
+    window must hold the drive's lag at full speed (its position loop's, plus a cycle or two
+    of the bus). On the cycle, numpy on preallocated arrays only.
+    """
+
+    def __init__(self, drives: Sequence[DriveConfig], position_fed: np.ndarray) -> None:
+        n = len(drives)
+        self.window = np.array([d.limits.following_error if d.limits.following_error
+                                is not None and DriveMode.CSP in d.modes and position_fed[i]
+                                else math.inf for i, d in enumerate(drives)])
+        self.active = bool(np.isfinite(self.window).any())
+        self.cycles = np.array([d.limits.following_error_cycles for d in drives], dtype=np.int64)
+        self.target = np.zeros(n)                 # rad, the CSP targets sent last cycle
+        self.tracking = np.zeros(n, dtype=bool)   # a CSP target went out last cycle
+        self.over = np.zeros(n, dtype=np.int64)   # consecutive cycles beyond the window
+        self._error = np.zeros(n)
+        self._beyond = np.zeros(n, dtype=bool)
+
+    def check(self, actual: np.ndarray, sup: Supervisor, now: float) -> None:
+        """This cycle's actual positions against last cycle's targets; then forget which
+        drives were tracking (``sent`` marks this cycle's)."""
+        if not self.active:
+            return
+        error, beyond, over = self._error, self._beyond, self.over
+        np.subtract(self.target, actual, out=error)
+        np.abs(error, out=error)
+        np.greater(error, self.window, out=beyond)
+        np.logical_and(beyond, self.tracking, out=beyond)
+        np.multiply(over, beyond, out=over)  # back to 0 within the window
+        np.add(over, beyond, out=over)
+        np.greater_equal(over, self.cycles, out=beyond)
+        if beyond.any():  # rare: a fault, allocation is fine here
+            for i in np.flatnonzero(beyond).tolist():
+                over[i] = 0
+                if sup.latched[i] is None:
+                    sup.fault(i, f"following error {error[i]:.4g} rad beyond the window "
+                                 f"{self.window[i]:g} rad for {self.cycles[i]} cycles (CSP "
+                                 f"target {self.target[i]:.4g} rad, actual {actual[i]:.4g} "
+                                 "rad)", now, cia301.EMCY_FOLLOWING_ERROR)
+        self.tracking.fill(False)
+
+    def sent(self, targets: np.ndarray) -> None:
+        """This cycle's targets (rad; those of the drives marked in ``tracking``)."""
+        if self.active:
+            np.copyto(self.target, targets)

@@ -177,8 +177,8 @@ ONE_MISTAKE = [
      ["drives[1].node_ids: unknown key, did you mean 'node_id'? (known: accept_unsupervised, "
       "axis, bus, eds, feedback, gear_ratio, guarding, heartbeat_ms, homing_method, "
       "homing_timeout, identity, "
-      "increments_per_rev, max_torque_nm, max_velocity, modes, name, node_id, position_max, "
-      "position_min, rated_torque_nm)"]),
+      "increments_per_rev, limits, max_torque_nm, max_velocity, modes, name, node_id, "
+      "position_max, position_min, rated_torque_nm)"]),
     ("a failed drive is still named", lambda cfg: (
         cfg["drives"][1].update(node_id=0), cfg["manager"].update(required_drives=["j2"])),
      ["drives[1]: drive 'j2': node_id must be an integer 1..127, got 0"]),

@@ -40,6 +40,7 @@ from ..cia301 import NmtCommand, NmtState
 from ..cia402 import State402
 from ..identity import Identity
 from .faults import Babble, EmcyProducer, InjectedFaults, register_bits
+from .limits import OBJECTS as LIMIT_OBJECTS
 from .nmt import NmtSlave
 from .objects import (
     SCALING,
@@ -155,6 +156,12 @@ class SimulatedAxis:
                 f"{self.state402.name:22s} sw=0x{self.statusword:04X} mode={mode:4s} "
                 f"pos={self.position_rad:+9.4f} rad vel={self.velocity_rad_s:+9.4f} rad/s "
                 f"torque={self.torque_nm:+7.3f} Nm err=0x{self.error_code:04X}{flags}")
+
+    def update_units(self) -> None:
+        """The factor group or a limit object changed: the joint-side numbers anew."""
+        self.scaling.update(self._values)
+        self.cia402.limits.update(self.scaling.increments_per_rad,
+                                  self.scaling.motor_revs_per_rad)
 
     def trip_fault(self, code: int = c301.EMCY_GENERIC) -> None:
         """An internal fault of this axis: the node's EMCY with ``code``, this axis's
@@ -432,7 +439,7 @@ class SimulatedDrive:
         position, velocity, torque = (dyn.position.tolist(), dyn.velocity.tolist(),
                                       dyn.torque.tolist())
         for axis in self.axes:
-            axis.scaling.update(self._values)
+            axis.update_units()
             axis.cia402.power_on()
             axis.sample(position, velocity, torque)
         self._reset_communication()
@@ -504,8 +511,8 @@ class SimulatedDrive:
                 axis.cia402.on_controlword(value)
             elif key == axis.keys.mode:
                 self._values[axis.keys.mode_display] = value
-            elif base in SCALING:
-                axis.scaling.update(self._values)
+            elif base in SCALING or base in LIMIT_OBJECTS:
+                axis.update_units()
         elif index == c301.PRODUCER_HEARTBEAT_TIME:
             self.nmt.start_heartbeat()
         elif index == c301.CONSUMER_HEARTBEAT_TIME:

@@ -84,6 +84,7 @@ class JointDynamics:
         self.target_velocity = np.zeros(n)  # CSV target, or CSP velocity feed-forward
         self.torque_feedforward = np.zeros(n)  # CST target, or CSP/CSV torque offset
         self.torque_limit = np.full(n, np.inf)
+        self.velocity_limit = np.full(n, np.inf)  # bounds the velocity loop's command
         self._dt = np.zeros(n)            # this step's length per joint (0: not stepped)
 
     @classmethod
@@ -115,11 +116,12 @@ class JointDynamics:
         joint is left as it is, as a joined segment whose SYNC did not come).
 
         Per joint and sub-step: the velocity command (CSP: position loop + feed-forward;
-        CSV: the target), the PI velocity loop (CSP/CSV; CST: the torque target alone;
-        OFF: nothing) plus the torque offset, limited to +-``torque_limit``; the integral
-        grows only while the output is not saturated (anti-windup) and is cleared when no
-        velocity loop runs; then the rigid joint with viscous friction and Coulomb friction
-        that sticks at rest (semi-implicit Euler, position by the mean velocity)."""
+        CSV: the target) within +-``velocity_limit``, the PI velocity loop (CSP/CSV; CST:
+        the torque target alone; OFF: nothing) plus the torque offset, limited to
+        +-``torque_limit``; the integral grows only while the output is not saturated
+        (anti-windup) and is cleared when no velocity loop runs; then the rigid joint with
+        viscous friction and Coulomb friction that sticks at rest (semi-implicit Euler,
+        position by the mean velocity)."""
         lengths = self._dt
         np.copyto(lengths, dt)
         dts = lengths.tolist()
@@ -130,9 +132,10 @@ class JointDynamics:
         position, velocity, torque, integral_of = (
             self.position.tolist(), self.velocity.tolist(), self.torque.tolist(),
             self._integral.tolist())
-        mode_of, target_position, target_velocity, feedforward, limit_of = (
+        mode_of, target_position, target_velocity, feedforward, limit_of, vlimit_of = (
             self.mode.tolist(), self.target_position.tolist(), self.target_velocity.tolist(),
-            self.torque_feedforward.tolist(), self.torque_limit.tolist())
+            self.torque_feedforward.tolist(), self.torque_limit.tolist(),
+            self.velocity_limit.tolist())
         kp_of, kv_of, ki_of, viscous_of, coulomb_of, inertia_of = (
             self.kp.tolist(), self.kv.tolist(), self.ki.tolist(), self.viscous.tolist(),
             self.coulomb.tolist(), self.inertia.tolist())
@@ -141,7 +144,7 @@ class JointDynamics:
                 continue
             h = length / steps
             half_h = h * 0.5
-            mode, limit = mode_of[j], limit_of[j]
+            mode, limit, vlimit = mode_of[j], limit_of[j], vlimit_of[j]
             looped = mode >= _VELOCITY
             q, v = position[j], velocity[j]
             integral = integral_of[j] if looped else 0.0
@@ -152,6 +155,7 @@ class JointDynamics:
             tau = 0.0
             for _ in range(steps):
                 vcmd = (qt - q) * kp + vt if mode == _POSITION else vt
+                vcmd = -vlimit if vcmd < -vlimit else vlimit if vcmd > vlimit else vcmd
                 err = vcmd - v
                 tau = (kv * err + integral if looped else 0.0) + tff
                 tau = -limit if tau < -limit else limit if tau > limit else tau

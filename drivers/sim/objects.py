@@ -5,7 +5,8 @@ services of the drive read and write it directly, so the SDO server, the PDOs an
 machine always see the same object. canopen's SdoServer speaks the protocol (expedited and
 segmented; block upload from drivers/sdo_block_upload.py, block download is refused with
 0x05040001 as canopen does); this module makes the checks a real drive makes before a
-download takes effect: access type, length, supported modes, scaling denominators, and the
+download takes effect: access type, length, the file's LowLimit/HighLimit, supported
+modes, scaling denominators, and the
 CiA 301 rules for changing PDO communication and mapping objects (invalidate first,
 sub-index 0 to 0 first, only mappable objects, at most 64 bits).
 
@@ -32,6 +33,7 @@ from canopen.sdo.constants import (
     ABORT_PDO_CANNOT_MAP,
     ABORT_PDO_LENGTH_EXCEEDED,
     ABORT_READ_WRITEONLY,
+    ABORT_VALUE_TOO_HIGH,
     ABORT_VALUE_TOO_LOW,
     ABORT_WRITE_READONLY,
 )
@@ -128,6 +130,12 @@ class AxisKeys:
     gear_motor: Key             # 0x6091:1 / :2
     gear_shaft: Key
     rated_torque: Key
+    position_limit_min: Key     # 0x607D:1 / :2
+    position_limit_max: Key
+    max_profile_velocity: Key
+    max_motor_speed: Key
+    following_error_window: Key
+    following_error_timeout: Key
 
     @classmethod
     def of(cls, axis: int) -> AxisKeys:
@@ -157,7 +165,13 @@ class AxisKeys:
             resolution_increments=key(c.POSITION_ENCODER_RESOLUTION, 1),
             resolution_revolutions=key(c.POSITION_ENCODER_RESOLUTION, 2),
             gear_motor=key(c.GEAR_RATIO, 1), gear_shaft=key(c.GEAR_RATIO, 2),
-            rated_torque=key(c.RATED_TORQUE))
+            rated_torque=key(c.RATED_TORQUE),
+            position_limit_min=key(c.SOFTWARE_POSITION_LIMIT, 1),
+            position_limit_max=key(c.SOFTWARE_POSITION_LIMIT, 2),
+            max_profile_velocity=key(c.MAX_PROFILE_VELOCITY),
+            max_motor_speed=key(c.MAX_MOTOR_SPEED),
+            following_error_window=key(c.FOLLOWING_ERROR_WINDOW),
+            following_error_timeout=key(c.FOLLOWING_ERROR_TIMEOUT))
 
 
 class _SdoLink:
@@ -262,6 +276,11 @@ class ObjectDictionaryServer:
         if var.data_type in objectdictionary.NUMBER_TYPES and 8 * len(data) != len(var):
             raise SdoAbortedError(ABORT_LENGTH_NOT_MATCHED)
         value = var.decode_raw(bytes(data))
+        if isinstance(value, (int, float)):  # the file's HighLimit / LowLimit
+            if var.max is not None and value > var.max:
+                raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
+            if var.min is not None and value < var.min:
+                raise SdoAbortedError(ABORT_VALUE_TOO_LOW)
         key = (var.index, var.subindex)
         self._check_write(key, value)
         self.values[key] = value

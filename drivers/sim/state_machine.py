@@ -18,10 +18,12 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from .. import cia301
 from .. import cia402 as c
 from ..cia402 import State402
 from .dynamics import JointDynamics, LoopMode
 from .faults import EmcyProducer, InjectedFaults
+from .limits import AxisLimits
 from .objects import AxisKeys, Key
 
 # States in which the power stage is on (the loops may produce torque).
@@ -62,6 +64,7 @@ class Scaling:
     def __init__(self, keys: AxisKeys) -> None:
         self._keys = keys
         self.increments_per_rad = 1.0
+        self.motor_revs_per_rad = 1.0 / (2.0 * math.pi)
         self.nm_per_permille = 1.0
 
     def update(self, v: dict[Key, Any]) -> None:
@@ -70,6 +73,7 @@ class Scaling:
         increments = (v[k.resolution_increments] or 1) / (v[k.resolution_revolutions] or 1)
         ratio = (v[k.gear_motor] or 1) / (v[k.gear_shaft] or 1)
         self.increments_per_rad = increments * ratio / (2.0 * math.pi)
+        self.motor_revs_per_rad = ratio / (2.0 * math.pi)
         self.nm_per_permille = (v[k.rated_torque] or 1000) / 1e6 * ratio
 
 
@@ -77,7 +81,8 @@ class StateMachine402:
     """One axis's CiA 402 state machine on its objects (``keys``) and its joint.
 
     ``on_fault_reset`` is the node's part of a fault reset (transition 15): its error
-    register and the EMCY that says the error is gone.
+    register and the EMCY that says the error is gone. ``limits``: the axis's own
+    (0x607D, 0x607F/0x6080, 0x6065/0x6066: limits.py), applied to its loop commands.
     """
 
     def __init__(self, joint: int, dynamics: JointDynamics, values: dict[Key, Any],
@@ -91,6 +96,8 @@ class StateMachine402:
         self._faults = faults
         self._keys = keys
         self._on_fault_reset = on_fault_reset
+        self.limits = AxisLimits(keys, values)
+        self.following_error = False  # statusword bit 13 until a fault reset
         self.state = State402.NOT_READY_TO_SWITCH_ON
         self.sto_low = False
         self._last_controlword = 0
@@ -114,6 +121,7 @@ class StateMachine402:
         """NOT READY TO SWITCH ON, then transition 1 (automatic) to SWITCH ON DISABLED."""
         self._last_controlword = 0
         self._ramping = False
+        self.following_error = False
         self.position_offset = 0.0  # an incremental encoder forgets its home at power-on
         self.state = State402.NOT_READY_TO_SWITCH_ON
         self.set_state(State402.SWITCH_ON_DISABLED)
@@ -126,6 +134,8 @@ class StateMachine402:
             self._new_setpoint = False
             self._homing_left = None
         sw = c.STATUSWORD_OF_STATE[state] | c.SW_REMOTE | self._mode_bits
+        if self.following_error:
+            sw |= c.SW_FOLLOWING_ERROR
         if state != State402.QUICK_STOP_ACTIVE:
             sw |= c.SW_QUICK_STOP
         if state in VOLTAGE_STATES and not self.sto_low:
@@ -251,6 +261,8 @@ class StateMachine402:
         """Transition 15 on the rising edge of controlword bit 7; then the node's reaction
         (EMCY 0x0000)."""
         self._values[self._keys.error_code] = 0
+        self.following_error = False
+        self.limits.reset()
         self.set_state(State402.SWITCH_ON_DISABLED)
         self._on_fault_reset()
 
@@ -268,8 +280,9 @@ class StateMachine402:
         """Write this joint's loop command for the next dynamics step."""
         dyn, j, values = self._dyn, self._j, self._values
         nm_per_permille = self._scale.nm_per_permille
-        keys = self._keys
+        keys, limits = self._keys, self.limits
         dyn.torque_limit[j] = values[keys.max_torque] * nm_per_permille
+        dyn.velocity_limit[j] = limits.velocity
         dyn.target_velocity[j] = 0.0
         dyn.torque_feedforward[j] = 0.0
         state = self.state
@@ -300,7 +313,7 @@ class StateMachine402:
         if mode == _IP:
             if values[keys.controlword] & CW_BIT4:  # interpolation enabled: follow 0x60C1:1
                 dyn.mode[j] = _LOOP_POSITION
-                dyn.target_position[j] = values[keys.interpolation_target] / scale
+                dyn.target_position[j] = limits.clamp(values[keys.interpolation_target] / scale)
                 bits = SW_BIT12
             else:  # interpolation inactive: hold still
                 dyn.mode[j] = _LOOP_VELOCITY
@@ -309,27 +322,48 @@ class StateMachine402:
         elif mode == _HOMING:
             bits = self._homing(values, scale, dt)
         elif mode == _PV:
-            dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = values[keys.target_velocity] / scale
+            self._velocity(values[keys.target_velocity] / scale)
         elif mode == _CSP:
+            demand = limits.clamp(values[keys.target_position] / scale)
+            if limits.following_error(demand, float(dyn.position[j]), dt):
+                self.following_error = True
+                self.fault(cia301.EMCY_FOLLOWING_ERROR)
+                self.command_joint(dt)  # the fault reaction's ramp, from this step on
+                return
             dyn.mode[j] = _LOOP_POSITION
-            dyn.target_position[j] = values[keys.target_position] / scale
+            dyn.target_position[j] = demand
             dyn.target_velocity[j] = values[keys.velocity_offset] / scale
             dyn.torque_feedforward[j] = values[keys.torque_offset] * nm_per_permille
         elif mode == _CSV:
-            dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = (values[keys.target_velocity]
-                                      + values[keys.velocity_offset]) / scale
+            self._velocity((values[keys.target_velocity] + values[keys.velocity_offset]) / scale)
             dyn.torque_feedforward[j] = values[keys.torque_offset] * nm_per_permille
         elif mode == _CST:
-            dyn.mode[j] = _LOOP_TORQUE
-            dyn.torque_feedforward[j] = ((values[keys.target_torque]
-                                          + values[keys.torque_offset]) * nm_per_permille)
+            torque = (values[keys.target_torque] + values[keys.torque_offset]) * nm_per_permille
+            hold = limits.pushed_past(torque, float(dyn.position[j]))
+            if hold is None:
+                dyn.mode[j] = _LOOP_TORQUE
+                dyn.torque_feedforward[j] = torque
+            else:  # beyond a software position limit: the drive holds it
+                dyn.mode[j] = _LOOP_POSITION
+                dyn.target_position[j] = hold
         else:
             dyn.mode[j] = _LOOP_OFF  # no mode this drive runs selected: no torque
         if bits != self._mode_bits:
             self._mode_bits = bits
             self.set_state(self.state)
+
+    def _velocity(self, target: float) -> None:
+        """A velocity target (CSV, PV); towards a software position limit, a move to the
+        limit no faster than the target (limits.py)."""
+        dyn, j, limits = self._dyn, self._j, self.limits
+        limit = limits.heading_to(target)
+        if limit is None:
+            dyn.mode[j] = _LOOP_VELOCITY
+            dyn.target_velocity[j] = target
+        else:
+            dyn.mode[j] = _LOOP_POSITION
+            dyn.target_position[j] = limit
+            dyn.velocity_limit[j] = min(limits.velocity, abs(target))
 
     def _profile_position(self, values: dict[Key, Any], scale: float) -> int:
         """PP: a rising controlword bit 4 latches 0x607A (relative with bit 6) and is
@@ -343,7 +377,7 @@ class StateMachine402:
             target = values[self._keys.target_position] / scale
             if cw & CW_RELATIVE and self._pp_target is not None:
                 target += self._pp_target
-            self._pp_target = target
+            self._pp_target = self.limits.clamp(target)
         q = float(dyn.position[j])
         goal = q if self._pp_target is None else self._pp_target
         limit = float(values[self._keys.profile_velocity]) / scale

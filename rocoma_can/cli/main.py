@@ -15,6 +15,7 @@ from ..exit_codes import INTERRUPTED, OK, USAGE
 COMMAND_MODULES: tuple[str, ...] = (
     "rocoma_can.cli.demo",
     "rocoma_can.cli.commands",
+    "rocoma_can.cli.doctor",
     "rocoma_can.cli.record",
     "rocoma_can.fleet.client",
     "rocoma_can.cli.scaffold",

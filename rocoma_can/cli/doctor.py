@@ -1,0 +1,130 @@
+"""``rocoma-can doctor [CONFIG]``: is this host ready for the configuration, as a checklist
+with the fix for each miss. It only reads (sysfs, iproute2, rlimits, one SCHED_FIFO probe
+on a thread that ends at once); every fix is printed, never run.
+
+Exit codes: 0 nothing blocks the configuration (warnings allowed), 1 something does (a
+link missing, down, at another bit rate or bus-off; a realtime priority that is refused),
+2 usage or a configuration that does not load.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from ..errors import ConfigError
+from ..exit_codes import FAILED, OK, USAGE
+
+if TYPE_CHECKING:  # the checks load on use: ``rocoma-can --help`` stays quick
+    from ..drivers.config import BusConfig
+    from ..runtime.host import Check
+
+_MARK = {"ok": "ok", "warn": "WARN", "fail": "FAIL", "n/a": "n/a"}
+
+
+def _err(text: str) -> None:
+    print(f"rocoma-can: {text}", file=sys.stderr, flush=True)
+
+
+def _link_checks(channels: Sequence[tuple[str, BusConfig | None]]) -> list[Check]:
+    """Each (channel, its bus in the config or None) as a link of this host."""
+    from ..drivers.can_link import read_link
+    from ..runtime.can_checks import Wanted, link_checks
+    checks: list[Check] = []
+    for channel, bus in channels:
+        want = Wanted.of(bus) if bus is not None else Wanted(channel)
+        checks += link_checks(read_link(channel), want)
+    return checks
+
+
+def gather(args: argparse.Namespace) -> tuple[str, list[Check]]:
+    """(what was checked against, the checks). ConfigError: a config that does not load."""
+    from ..drivers.can_link import can_interfaces
+    from ..runtime.host import Check, realtime_checks
+    if args.config:
+        from ..runtime.config import load
+        config = load(args.config)
+        checks: list[Check] = []
+        for bus in config.buses:
+            if bus.interface == "socketcan":
+                checks += _link_checks([(bus.channel, bus)])
+            else:
+                checks.append(Check(f"bus {bus.label}", "n/a", f"interface {bus.interface!r}: "
+                                    "doctor reads SocketCAN links only"))
+        return args.config, checks + realtime_checks(config.priority, config.cpus, True)
+    if args.channel:
+        checks = _link_checks([(args.channel, None)])
+        subject = f"{args.channel} (no config: bit rates shown, not compared)"
+    else:
+        found = can_interfaces()
+        checks = _link_checks([(name, None) for name in found])
+        subject = (f"CAN interfaces {', '.join(found)} (no config: bit rates shown, not "
+                   "compared)" if found else "this host (no config)")
+        if not found:
+            checks.append(Check("CAN interfaces", "warn", "none in /sys/class/net (no link of "
+                                "type 280, ARPHRD_CAN)", "connect the adapter or load its "
+                                "driver; for a bench: sudo modprobe vcan && sudo ip link add "
+                                "dev vcan0 type vcan && sudo ip link set vcan0 up"))
+    checks += realtime_checks(None, None, False)
+    checks.append(Check("configuration", "n/a", "no CONFIG: the bit rates, CAN FD and "
+                        "realtime.priority/cpus it asks for were not judged",
+                        "rocoma-can doctor CONFIG"))
+    return subject, checks
+
+
+def _print(subject: str, checks: Sequence[Check]) -> None:
+    width = max(len(c.name) for c in checks)
+    print(f"doctor: {subject}", flush=True)
+    for c in checks:
+        print(f"  {_MARK[c.status]:<4}  {c.name:<{width}}  {c.found}", flush=True)
+        if c.fix and c.status in ("warn", "fail"):
+            print(f"        {'':<{width}}  fix: {c.fix}", flush=True)
+    fails = sum(c.status == "fail" for c in checks)
+    warns = sum(c.status == "warn" for c in checks)
+    verdict = "blocks it" if fails else "nothing blocks it"
+    print(f"{fails} failed, {warns} warnings: {verdict}", flush=True)
+
+
+def _doctor(args: argparse.Namespace) -> int:
+    if args.config and (args.channel or args.interface):
+        _err("doctor: give CONFIG or --channel, not both (the config names its buses)")
+        return USAGE
+    if args.interface and not args.channel:
+        _err("doctor: --interface needs --channel")
+        return USAGE
+    if args.interface not in (None, "socketcan"):
+        _err(f"doctor: --interface {args.interface!r}: doctor reads SocketCAN links only")
+        return USAGE
+    try:
+        subject, checks = gather(args)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            _err(problem)
+        return USAGE
+    if args.json:
+        print(json.dumps([c.as_dict() for c in checks], indent=2), flush=True)
+    else:
+        _print(subject, checks)
+    return FAILED if any(c.status == "fail" for c in checks) else OK
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = subparsers.add_parser(
+        "doctor", help="is this host ready for CONFIG: CAN links, real-time rights, CPUs; "
+                       "the fix for each miss",
+        description="A checklist of the host, read only: each configured SocketCAN link "
+                    "(exists, up, bit rate and CAN FD as configured, ERROR-ACTIVE, error "
+                    "counters, txqueuelen, restart-ms), the PREEMPT_RT kernel, SCHED_FIFO "
+                    "at realtime.priority, mlockall, the CPU governor and isolated CPUs. "
+                    "Without CONFIG: every CAN link of the host, or --channel. Exit 0: "
+                    "nothing blocks the config (warnings allowed); 1: something does; 2: "
+                    "usage, or a config that does not load.")
+    p.add_argument("config", nargs="?", default=None, help="the run's YAML (optional)")
+    p.add_argument("--channel", default=None, help="without CONFIG: check this link only")
+    p.add_argument("--interface", default=None,
+                   help="without CONFIG: python-can interface of --channel (socketcan)")
+    p.add_argument("--json", action="store_true",
+                   help="a JSON list of {name, status, found, fix}")
+    p.set_defaults(func=_doctor)
