@@ -7,9 +7,10 @@ by COB-ID into JointState), supervision (every symptom -> one FaultEvent), stop_
 frames_out (every frame sent, torque-off first), node_guarding, recovery, status, homing,
 enable (the CiA 402 enable sequence), switch_off (controlword 0 by SDO to a latched drive).
 Start-up: bringup (per-drive state machine and SDO configuration), drive_plan (a config
-measured against its EDS/DCF), capabilities (what the file offers), device_file (the
-tolerant EDS/DCF reader), pdo_layout, modes, scaling, joints (JointState, JointCommand),
-config (DriveConfig, BusConfig). CANopen and the wire: cia301, cia402, bus (python-can
+measured against its EDS/DCF), identity (0x1018: the drive bring-up requires),
+capabilities (what the file offers), device_file (the tolerant EDS/DCF reader),
+pdo_layout, modes, scaling, joints (JointState, JointCommand), config (DriveConfig,
+BusConfig). CANopen and the wire: cia301, cia402, bus (python-can
 bus, canopen Network, reader threads), bus_port (one bus of the hardware), frame_io,
 inproc (the in-process bus), sdo_block_upload (server side), wire (frame bits).
 sim/ is the simulated drive.

@@ -1,7 +1,7 @@
 """Per-drive start-up as a non-blocking state machine, stepped once per cycle.
 
     WAIT_BOOT ──boot-up / heartbeat (or boot_wait elapsed)──> CONFIGURING
-    CONFIGURING ──SDO job done──> STARTING      (job failed ──> FAILED: cause)
+    CONFIGURING ──SDO job done──> STARTING      (job failed, wrong drive ──> FAILED: cause)
     STARTING ──first TPDO──> PROBING, or RESETTING if the statusword says fault
     RESETTING ──fault cleared──> PROBING        (timeout ──> FAILED)
     PROBING ──ready to switch on──> READY       (timeout, EMCY STO ──> FAILED)
@@ -9,7 +9,9 @@
 All SDO traffic runs in ``configure`` on a worker thread (canopen's SdoClient has no lock:
 one job per node at a time, never two threads on one node's SDO). The cycle only looks at
 ``Future.done()``. A drive that is faulted, whose STO input is low or that does not answer
-ends in FAILED with the cause, and the others carry on.
+ends in FAILED with the cause, and the others carry on; so does one whose identity
+(0x1018, read before anything is written) is not the one its config or file names
+(identity.py).
 
 PROBING sends "shutdown" (0x06) until the drive reports ready to switch on: the power stage
 stays off in that state, and a drive whose STO input is low refuses the transition, so it is
@@ -39,6 +41,7 @@ from .bus import CanopenBus
 from .capabilities import DriveCapabilities, PdoChannel
 from .config import DriveConfig, Supervision, Timeouts
 from .drive_plan import DrivePlan
+from .identity import verify_identity
 from .limits import write_limits
 from .modes import DriveMode, interpolation_period
 from .pdo_layout import Pdo
@@ -271,6 +274,8 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
         raise NoAnswer(f"no SDO reply to 0x1000: {e}") from e
     if device_type & 0xFFFF != 402:
         raise RuntimeError(f"is not a CiA 402 drive (0x1000 = 0x{device_type:08X})")
+    if node_level:  # before anything is written: a wrong drive must not be reconfigured
+        verify_identity(sdo, plan.identity)
     for axis in plan.other_axes:  # pre-operational stops their RPDOs: switched off first
         NamedSdo(node.sdo, axis).download(cia402.CONTROLWORD, 0, _u16(0))
     try:

@@ -11,10 +11,11 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from . import cia301
 from .cia402 import MAX_AXES
+from .identity import Identity, identity_from_config
 from .joints import JointMode
 from .modes import BY_NAME, KIND, DriveMode
 
@@ -235,6 +236,8 @@ class DriveConfig:
     accept_unsupervised: bool = False       # run a drive that ignores losing the manager
     homing_method: int | None = None        # 0x6098 written at bring-up; None: as commissioned
     homing_timeout: float = 60.0            # s a homing may take (rocoma-can home DRIVE)
+    identity: Identity | Literal["any"] | None = None  # 0x1018 bring-up requires (identity.py);
+                                            # None: the file's vendor/product, any: none
 
     def __post_init__(self) -> None:
         where = f"drive {self.name!r}"
@@ -299,6 +302,7 @@ class DriveConfig:
                              f"got {self.accept_unsupervised!r}")
         if not isinstance(self.bus, str):
             raise ValueError(f"{where}: bus must be the name of a bus, got {self.bus!r}")
+        self.identity = identity_from_config(self.identity, where)
         if self.eds is not None and not Path(self.eds).is_file():
             raise ValueError(f"{where}: eds file {self.eds!r} does not exist")
 
@@ -377,8 +381,8 @@ def check_drives(drives: list[DriveConfig], manager_node_id: int,
 
 def node_mismatch(a: DriveConfig, b: DriveConfig) -> str | None:
     """Why two axes of one node cannot be configured as given, or None: what belongs to
-    the node (its file, its heartbeat or guarding) must be said alike for each."""
-    for key in ("eds", "heartbeat_ms", "guarding"):
+    the node (its file, its heartbeat or guarding, its identity) must be said alike for each."""
+    for key in ("eds", "heartbeat_ms", "guarding", "identity"):
         if getattr(a, key) != getattr(b, key):
             return (f"drive {b.name!r}: node {b.node_id} is also drive {a.name!r} (axis "
                     f"{a.axis}), whose {key} is {getattr(a, key)!r}, not "

@@ -22,6 +22,7 @@ from .capabilities import (
     read_capabilities,
 )
 from .config import FEEDBACK, DriveConfig
+from .identity import IdentityCheck
 from .modes import DriveMode
 from .pdo_layout import (
     ENTRY_OF_FEEDBACK,
@@ -44,6 +45,12 @@ class DrivePlan:
                                 # unused PDOs): False for the higher axes of a shared node
     other_axes: tuple[int, ...] = ()  # the node's other axes (set on the one that leads)
 
+    @property
+    def identity(self) -> IdentityCheck:
+        """What bring-up requires of the node's 0x1018 (checked by the node's lowest axis)."""
+        return IdentityCheck.of(self.drive.identity, self.caps.object_dictionary,
+                                self.caps.source)
+
     def report(self) -> list[str]:
         """check-config's lines for this drive."""
         d, lay = self.drive, self.layout
@@ -62,6 +69,8 @@ class DrivePlan:
                  f"  {pdos}"]
         lines += [f"  {line}" for line in self.caps.report(self.guarded)]
         lines += [f"  {line}" for line in limits.report(d, self.caps)]
+        lines.append(f"  {self.identity.describe()}"
+                     + ("" if self.leads_node else " (the node's: checked by its lowest axis)"))
         lines += [f"  note: {n}" for n in self.notes]
         return lines
 

@@ -50,3 +50,8 @@ class ParamError(RocomaError, ValueError):
         self.param = param
         self.reason = reason
         super().__init__(f"{controller}: parameter {param!r}: {reason}")
+
+
+class WrongDevice(RocomaError, RuntimeError):
+    """The device at a drive's node id is not the one its config (or its EDS/DCF) names:
+    its identity object (0x1018) differs. Bring-up refuses it before writing anything."""

@@ -176,7 +176,7 @@ ONE_MISTAKE = [
         node_ids=cfg["drives"][1].pop("node_id")),
      ["drives[1].node_ids: unknown key, did you mean 'node_id'? (known: accept_unsupervised, "
       "axis, bus, eds, feedback, gear_ratio, guarding, heartbeat_ms, homing_method, "
-      "homing_timeout, "
+      "homing_timeout, identity, "
       "increments_per_rev, limits, max_torque_nm, max_velocity, modes, name, node_id, "
       "position_max, position_min, rated_torque_nm)"]),
     ("a failed drive is still named", lambda cfg: (

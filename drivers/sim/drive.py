@@ -38,6 +38,7 @@ from .. import cia301 as c301
 from .. import cia402 as c
 from ..cia301 import NmtCommand, NmtState
 from ..cia402 import State402
+from ..identity import Identity
 from .faults import Babble, EmcyProducer, InjectedFaults, register_bits
 from .limits import OBJECTS as LIMIT_OBJECTS
 from .nmt import NmtSlave
@@ -334,6 +335,15 @@ class SimulatedDrive:
         with self._injecting():
             machine.fault(code)
             self.pdos.emit_event_tpdos()
+
+    def swap(self, identity: Identity) -> None:
+        """Another drive in this one's place, as when a drive is swapped while the robot
+        runs: it answers ``identity`` (the fields given; 0x1018) and powers on (boot-up,
+        pre-operational, every object at its default)."""
+        with self._injecting():
+            for values in (self.objects.defaults, self.objects.values):
+                values.update(identity.objects())
+            self.power_on()
 
     def garble_statusword(self, xor: int = 0x0008) -> None:
         """Every statusword this drive reports (TPDO, SDO; every axis's) is XORed with

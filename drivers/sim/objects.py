@@ -44,7 +44,7 @@ from .. import cia301 as c301
 from .. import cia402 as c
 from ..capabilities import modes_from_targets
 from ..device_file import DeviceFileError, read_device_file
-from ..identity import SUBINDEX, Identity
+from ..identity import SUBINDEX, Identity, file_identity
 from ..lss import UNCONFIGURED
 from ..sdo_block_upload import BlockUploadServer
 
@@ -405,12 +405,17 @@ def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.Obje
 
 def own_identity(od: objectdictionary.ObjectDictionary, node_id: int, overrides: Mapping[Key, Any],
                  given: Identity | None) -> Identity:
-    """A node's 0x1018: the file's, a serial number of its own where the file has none
-    (the node id) so that each node is one of a kind, then ``overrides`` and ``given``."""
+    """A node's 0x1018: the file's, with the vendor and product its [DeviceInfo] names where
+    it names a vendor (what bring-up holds a drive to without ``identity:``:
+    identity.file_identity), a serial number of its own where the file has none (the node
+    id) so that each node is one of a kind, then ``overrides`` and ``given``."""
     values: dict[str, int | None] = {}
+    made_for = file_identity(od)
     for name, sub in SUBINDEX.items():
         variable = od.get_variable(c301.IDENTITY, sub)
-        values[name] = overrides.get((c301.IDENTITY, sub), variable.default
+        stated = getattr(made_for, name, None) if made_for.vendor_id is not None else None
+        values[name] = overrides.get((c301.IDENTITY, sub), stated if stated is not None
+                                     and variable is not None else variable.default
                                      if variable is not None else None)
     if not values["serial"] and node_id != UNCONFIGURED:
         values["serial"] = node_id

@@ -71,10 +71,11 @@ def _check_config(args: argparse.Namespace) -> int:
         for plan in config.plans.values():
             for line in plan.report():
                 print(line, flush=True)
-    else:  # what is degraded is worth a line each even without --drives
+    else:  # what is degraded, and what bring-up will require, is worth a line each
         for plan in config.plans.values():
             for note in plan.notes:
                 print(f"drive {plan.drive.name!r}: {note}", flush=True)
+            print(f"drive {plan.drive.name!r}: {plan.identity.describe()}", flush=True)
     return OK
 
 
