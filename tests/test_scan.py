@@ -10,6 +10,7 @@ import threading
 
 import pytest
 from fixtures.budgets import GUEST_STALL, STALL, within
+from fixtures.bus import scan_bus_args
 from fixtures.driver_rig import HoldPD, bring_up, enable_with
 
 from rocoma_can import ManagerState
@@ -30,16 +31,9 @@ def _stall(interface: str) -> float:
     return GUEST_STALL if interface == "socketcan" else STALL
 
 
-def _bus_args(interface: str, channel: str, stall: float) -> list[str]:
-    """The bus, and waits for a loaded host: an SDO answer within a quarter of a stall,
-    heartbeats (100 ms) listened for as a budget says."""
-    return ["--interface", interface, "--channel", channel,
-            "--timeout", f"{stall / 4:g}", "--listen", f"{within(0.1, stall):g}"]
-
-
 def scan_json(capsys, interface: str, channel: str, *extra: str) -> dict:
     capsys.readouterr()
-    assert main(["scan", "--json", *_bus_args(interface, channel, _stall(interface)),
+    assert main(["scan", "--json", *scan_bus_args(interface, channel, _stall(interface)),
                  *extra]) == 0
     return json.loads(capsys.readouterr().out)
 
@@ -66,13 +60,13 @@ def test_scan_lists_exactly_the_drives_with_their_identities(
 
 def test_scan_table_and_an_empty_bus(sim_segment_factory, virtual_channel, capsys):
     sim_segment_factory([4], identities={4: IDENTITIES[1]})
-    assert main(["scan", *_bus_args("virtual", virtual_channel, STALL)]) == 0
+    assert main(["scan", *scan_bus_args("virtual", virtual_channel, STALL)]) == 0
     head, row = capsys.readouterr().out.splitlines()
     assert head.split()[:5] == ["node", "vendor", "product", "revision", "serial"]
     assert row.split()[:5] == ["4", "0x0000009A", "0x00000010", "0x00000002", "0x00001001"]
     assert "PRE-OPERATIONAL" in row and "100 ms" in row
     # nobody there: the scan ran (exit 0) and says what to check
-    assert main(["scan", *_bus_args("virtual", virtual_channel + "-empty", STALL)]) == 0
+    assert main(["scan", *scan_bus_args("virtual", virtual_channel + "-empty", STALL)]) == 0
     out = capsys.readouterr().out
     assert "no nodes answered" in out and "bit rate" in out and "termination" in out
 
@@ -96,7 +90,7 @@ def test_a_scan_beside_a_running_manager_only_reads(segment, make_rig, can_setup
     recorder = frame_recorder(interface=can_setup.interface)
     mark = recorder.mark()
     result: dict[str, int] = {}
-    args = ["scan", "--json", *_bus_args(can_setup.interface,
+    args = ["scan", "--json", *scan_bus_args(can_setup.interface,
                                          can_setup.channel(virtual_channel), can_setup.stall)]
     scanner = threading.Thread(target=lambda: result.update(rc=main(args)), daemon=True)
     scanner.start()

@@ -35,7 +35,7 @@ def _err(message: str) -> None:
     print(f"rocoma-can: {message}", file=sys.stderr, flush=True)
 
 
-def _on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
+def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
     """``work`` on a bus opened from --interface/--channel; one line when it cannot open."""
     from ..drivers.bus import open_bus
     try:
@@ -98,7 +98,7 @@ def _scan(args: argparse.Namespace) -> int:
         if not nodes and not unconfigured:
             print(NOTHING_FOUND, flush=True)
         return OK
-    return _on_bus(args, work)
+    return on_bus(args, work)
 
 
 def _unconfigured(bus: can.BusABC, timeout: float) -> list[Identity]:
@@ -148,7 +148,7 @@ def _lss(args: argparse.Namespace) -> int:
               "that had no node id starts with it now, one that had one at its next NMT "
               "reset", flush=True)
         return OK
-    return _on_bus(args, work)
+    return on_bus(args, work)
 
 
 def _u32(text: str) -> int:
@@ -161,7 +161,7 @@ def _u32(text: str) -> int:
     return value
 
 
-def _bus_options(p: argparse.ArgumentParser, timeout: float, what: str) -> None:
+def bus_options(p: argparse.ArgumentParser, timeout: float, what: str) -> None:
     p.add_argument("--channel", required=True, help="CAN channel, e.g. can0")
     p.add_argument("--interface", default="socketcan",
                    help="python-can interface (default socketcan)")
@@ -176,7 +176,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Listen for heartbeats, probe node ids 1..127 by SDO, and read each "
                     "node's 0x1000, 0x1018, 0x1008, 0x100A and 0x1017. Reads only: it may "
                     "run beside a manager.")
-    _bus_options(p, TIMEOUT, "seconds to wait for each SDO answer")
+    bus_options(p, TIMEOUT, "seconds to wait for each SDO answer")
     p.add_argument("--listen", type=seconds, default=LISTEN, metavar="S",
                    help=f"listen for heartbeats this long first (default {LISTEN:g})")
     p.add_argument("--json", action="store_true", help="machine-readable output")
@@ -191,7 +191,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                     "--revision --serial) or the first unconfigured one LSS fastscan "
                     "finds, and give it --set-node-id (and --bitrate); --store keeps "
                     "them across a power cycle.")
-    _bus_options(p, LSS_TIMEOUT, "seconds to wait for each LSS answer")
+    bus_options(p, LSS_TIMEOUT, "seconds to wait for each LSS answer")
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--serial", type=_u32, help="serial number (0x1018:4)")
     which.add_argument("--fastscan", action="store_true",
