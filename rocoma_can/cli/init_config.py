@@ -200,6 +200,8 @@ def generate(found: Sequence[Found], eds_dir: str, interface: str, channel: str,
         f"rate: {rate}   # the highest of {', '.join(map(str, RATES))} Hz the bus carries "
         "(worst case)",
         f"manager: {{node_id: {manager_id}, heartbeat_ms: 100, estop_must_be_cleared: true}}",
+        "# realtime: {priority: 80, cpus: [1]}   # SCHED_FIFO on an isolated CPU: see what",
+        "#                                        # `rocoma-can doctor` says of this host",
         "drives:",
     ]
     footer = [
