@@ -15,6 +15,7 @@ drive has settled and some did not come back.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Sequence
 from concurrent.futures import Future, InvalidStateError
 
@@ -37,6 +38,7 @@ class Recovery:
         self._hb_state, self._hb_time, self._error_code = hb_state, hb_time, error_code
         self.bringup: Sequence[DriveBringup] = ()
         self.future: Future[bool] | None = None
+        self._request_lock = threading.Lock()
         self._started = False
         self._reported = False  # step returned the future for the loop to resolve
         self._timeout = 5.0
@@ -47,15 +49,18 @@ class Recovery:
         return self.future is not None and not self.future.done()
 
     def request(self, timeout: float) -> Future[bool]:
-        """A new recovery, or the one already running."""
-        if self.future is not None and not self.future.done():
-            return self.future
-        future: Future[bool] = Future()
-        future.set_running_or_notify_cancel()  # a caller's cancel() cannot end it early
-        self._timeout = timeout
-        self._started = self._reported = False
-        self.future = future
-        return future
+        """A new recovery, or the one already running. From any thread: the lock orders
+        callers among themselves (two at once must get the same future, never one the cycle
+        does not step); the cycle never takes it."""
+        with self._request_lock:
+            if self.future is not None and not self.future.done():
+                return self.future
+            future: Future[bool] = Future()
+            future.set_running_or_notify_cancel()  # a caller's cancel() cannot end it early
+            self._timeout = timeout
+            self._started = self._reported = False
+            self.future = future
+            return future
 
     def step(self, now: float) -> Future[bool] | None:
         """One cycle of the running recovery: its future once the drives are back (the

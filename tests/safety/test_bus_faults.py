@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import random
 import threading
+from concurrent.futures import Future
 
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
@@ -64,25 +65,26 @@ def test_switch_and_estop_storms_from_several_threads(served):
     recoveries while the loop cycles; afterwards the manager answers, nothing escaped, and
     the operator's e-stops still give torque-off frames for every drive."""
     rig = served.rig
-    actions = (
-        lambda: rig.mgr.request_switch("hold"),
-        lambda: rig.mgr.request_switch("other"),
-        lambda: rig.mgr.request_switch("no such controller"),
-        lambda: rig.mgr.emergency_stop(cause="storm"),
-        lambda: rig.mgr.failproof_stop(cause="storm"),
-        rig.mgr.clear_emergency_stop,
-        rig.hw.recover,
-    )
+    actions = {
+        "switch hold": lambda: rig.mgr.request_switch("hold"),
+        "switch other": lambda: rig.mgr.request_switch("other"),
+        "switch unknown": lambda: rig.mgr.request_switch("no such controller"),
+        "e-stop": lambda: rig.mgr.emergency_stop(cause="storm"),
+        "failproof": lambda: rig.mgr.failproof_stop(cause="storm"),
+        "clear": rig.mgr.clear_emergency_stop,
+        "recover": rig.hw.recover,
+    }
     errors: list[BaseException] = []
-    futures = []
+    futures: list[tuple[str, Future[object]]] = []
 
     def storm(seed: int) -> None:
         pick = random.Random(seed)
         try:
             for _ in range(200):
-                result = pick.choice(actions)()
-                if hasattr(result, "add_done_callback"):
-                    futures.append(result)
+                what = pick.choice(sorted(actions))
+                result = actions[what]()
+                if isinstance(result, Future):
+                    futures.append((what, result))
         except BaseException as exc:  # noqa: BLE001 - reported on the test's thread
             errors.append(exc)
     threads = [threading.Thread(target=storm, args=(seed,)) for seed in range(4)]
@@ -94,9 +96,10 @@ def test_switch_and_estop_storms_from_several_threads(served):
         t.join()
     assert not errors
     # every switch and recovery ends (the loop keeps cycling) with a result, never an error
-    assert rig.run_until(lambda: all(f.done() for f in futures),
-                         rig.mgr.timeouts.being_stopped + SAFETY.recovery_budget())
-    assert {type(f.result()) for f in futures} <= {SwitchResult, bool}
+    assert rig.run_until(lambda: all(f.done() for _, f in futures),
+                         rig.mgr.timeouts.being_stopped + SAFETY.recovery_budget()), \
+        sorted({what for what, f in futures if not f.done()})  # which never ended
+    assert {type(f.result()) for _, f in futures} <= {SwitchResult, bool}
     assert rig.mgr.internal_errors == 0
 
     mark = served.recorder.mark()
