@@ -1,7 +1,8 @@
 """The ``rocoma-can`` command: main (the parser; each verb's module registers itself),
 commands (``run``, ``check-config`` and the verbs that talk to a running manager), record
 (``record``, ``export``, ``plot``), live (``status --watch``), scaffold (``new-controller``),
-demo (the whole system in one process) and demo_config (its drives and config).
+scan (``scan``, ``lss``), init_config (``init-config``), doctor (``doctor``), demo (the
+whole system in one process) and demo_config (its drives and config).
 ``rocoma-can fleet`` lives with the fleet (fleet/client.py), ``rocoma-can sim`` with the
 simulator (drivers/sim/cli.py).
 """

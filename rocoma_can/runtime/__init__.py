@@ -1,7 +1,8 @@
 """What runs the manager on a bus: config (the YAML, checked whole), config_check (its
 checks, one per section), bus_load (what the config puts on each bus), loop (run_cycle, the
 cycle's order in one place; one thread, fixed rate, a safe way out), system (hardware,
-manager, node, recorders and fleet bridge wired). Public names are imported on first use
+manager, node, recorders and fleet bridge wired), host and can_checks (what ``doctor``
+judges: the host for a 1 kHz loop, each CAN link against its bus). Public names are imported on first use
 (``_lazy.py``)."""
 from __future__ import annotations
 
