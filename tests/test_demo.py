@@ -116,7 +116,7 @@ def test_demo_cli_groups_the_files_notes_and_says_how_to_get_the_command(
     monkeypatch.chdir(Path(sys.prefix).parent)
     with caplog.at_level(logging.WARNING):
         assert main(["demo", "--eds", str(EDS / "minimal.eds"), "--drives", "3",
-                     "--duration", "2", "--no-record"]) == 0
+                     "--duration", "2", "--no-record", "--no-flight"]) == 0
     out = capsys.readouterr().out.splitlines()
     notes = [line for line in out if line.startswith("  note: joint")]
     assert notes == [
@@ -160,3 +160,26 @@ def test_demo_config_problems_are_not_prefixed_twice(capsys):
     assert capsys.readouterr().out.splitlines() == [
         "demo: zenoh.listen: expected Zenoh endpoints like tcp/192.168.1.10:7447, got "
         "['bogus']"]
+
+
+def test_each_estop_of_the_demo_leaves_a_flight_record(tmp_path):
+    """As `run` does: the walk-through's e-stops leave flight records, each path said as it
+    is written; together they hold every e-stop's cause (e-stops within half the demo's
+    window share a record), and the demo's window is the one recorded."""
+    from rocoma_can.cli.demo import FLIGHT_SECONDS
+    from rocoma_can.record.plot import load
+    lines: list[str] = []
+    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append, record=None,
+                      flight=tmp_path / "flight")
+    assert report.ok, "\n".join(lines)
+    assert report.flight_records, "\n".join(lines)
+    assert sorted(report.flight_records) == sorted((tmp_path / "flight").glob("*.mcap"))
+    said = [line for line in lines if line.startswith("rocoma-can demo: flight record (")]
+    assert [line.rsplit(": ", 1)[1] for line in said] == \
+        [str(p) for p in report.flight_records]
+    assert f"flight records: {len(report.flight_records)} in {tmp_path / 'flight'}" in lines
+    causes = [cause for p in report.flight_records for _, cause in load(p).estops]
+    assert any("CAN e-stop from 0x0A0" in c for c in causes), causes
+    assert any("EMCY" in c for c in causes), causes  # the drive faults the demo trips
+    first = load(report.flight_records[0])
+    assert first.time[-1] - first.time[0] <= FLIGHT_SECONDS + 0.5  # its window, not run's

@@ -44,6 +44,10 @@ from .demo_config import (
     emulate,
 )
 
+#: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
+#: one record, and the walk-through's come seconds apart
+FLIGHT_SECONDS = 2.0
+
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
     from ..drivers.drive_plan import DrivePlan
     from ..drivers.sim.segment import SimulatedSegment
@@ -64,6 +68,7 @@ class Report:
     latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
     recording: Path | None = None      # the run's trace.mcap (with a candump .log per bus)
     plot: Path | None = None           # its PNG
+    flight_records: list[Path] = field(default_factory=list)  # one per e-stop (grouped)
     walk_time: float = 0.0             # s from the walk-through's start to the loop's stop
 
     @property
@@ -288,16 +293,21 @@ def default_record_dir() -> Path:
     return state_dir("demo", time.strftime("%Y%m%d-%H%M%S"))
 
 
+
 def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              out: Callable[[str], None] = print, buses: int | None = None,
              interface: str = DEFAULT_INTERFACE, eds: str | None = None,
-             record: str | Path | None = None, zenoh_listen: str | None = None) -> Report:
+             record: str | Path | None = None, zenoh_listen: str | None = None,
+             flight: str | Path | None = None) -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
     plot ``demo.png``; ``zenoh_listen``: an endpoint the manager serves Zenoh on, under
     the prefix ``rocoma/demo`` (another shell can watch and e-stop it); ``duration``: s
-    from the start of bring-up to the loop's stop (_Pace)."""
+    from the start of bring-up to the loop's stop (_Pace); ``flight``: the flight
+    recorder's directory, as ``run`` has it: each e-stop leaves a record there, its path
+    said as it is written. Its window is FLIGHT_SECONDS, not run's 10 s: e-stops within
+    half a window make one record, and the walk-through's are seconds apart."""
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
@@ -318,9 +328,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     for line in notes.values():
         out(line)
     report = Report()
-    if record is not None and importlib.util.find_spec("mcap") is None:
-        out("rocoma-can demo: not recording: MCAP needs pip install 'rocoma-can[record]'")
-        record = None
+    if (record is not None or flight is not None) and importlib.util.find_spec("mcap") is None:
+        out("rocoma-can demo: not recording, no flight records: MCAP needs pip install "
+            "'rocoma-can[record]'")
+        record = flight = None
     watch = _Watch()
     stop = threading.Event()
     segments = [SimulatedSegment.open(b.channel, interface,
@@ -353,7 +364,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         readers = readers_for([(b, (p,)) for b, p in zip(probe_buses, probes)],
                               name="demo-probes")
         with Runtime(config, on_cycle=simulator.stepped_before(watch),
-                     record=None if record is None else str(record)) \
+                     record=None if record is None else str(record),
+                     flight=None if flight is None else str(flight),
+                     flight_seconds=FLIGHT_SECONDS,
+                     announce=lambda text: out(f"rocoma-can demo: {text}")) \
                 as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
             on = (f"{interface} bus {config.bus.channel}" if buses == 1
@@ -388,6 +402,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             report.steps.append(step)
             out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
             _summary(out, report, summary, rt)
+        if rt.flight is not None:  # closed: the last record is written
+            report.flight_records = list(rt.flight.dumps)
+            out(f"flight records: {len(report.flight_records)} in {rt.flight.directory}")
         simulator.check()
         if record is not None:
             _plot(Path(record), report, out)
@@ -499,6 +516,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="where the recording and its plot go (default: a new directory "
                         "under ~/.local/state/rocoma-can/demo/)")
     p.add_argument("--no-record", action="store_true", help="no recording, no plot")
+    p.add_argument("--flight-dir", default=None, metavar="DIR",
+                   help="where each e-stop's flight record goes, as with run (default: "
+                        "flight/ in the recording's directory, or run's default without one)")
+    p.add_argument("--no-flight", action="store_true", help="no flight recorder")
     p.add_argument("--zenoh-listen", default=None, metavar="ENDPOINT",
                    help="serve the demo's manager on Zenoh as rocoma/demo at ENDPOINT "
                         "(e.g. tcp/127.0.0.1:7447): watch and e-stop it from another shell")
@@ -519,11 +540,14 @@ def _main(args: argparse.Namespace) -> int:
         except OSError as exc:
             print(f"demo: --record {record}: cannot create the directory: {exc}", flush=True)
             return USAGE
+    from .commands import default_flight_dir
+    flight = None if args.no_flight else Path(
+        args.flight_dir or (record / "flight" if record is not None else default_flight_dir()))
     try:
         report = run_demo(args.drives, args.rate, args.duration,
                           out=lambda line: print(line, flush=True), buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
-                          zenoh_listen=args.zenoh_listen)
+                          zenoh_listen=args.zenoh_listen, flight=flight)
     except (ValueError, RocomaError) as exc:
         if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint: "demo: ..."
             for problem in exc.problems:

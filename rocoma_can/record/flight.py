@@ -155,9 +155,10 @@ class FlightRecorder:
             log.error("flight recorder: %s could not be written: %s", path, exc)
             return
         self.dumps.append(path)
-        log.warning("flight record (%s): %s", cause, path)
-        if self._announce is not None:
+        if self._announce is not None:  # said once: by the announcer, else in the log
             self._announce(f"flight record ({cause}): {path}")
+        else:
+            log.warning("flight record (%s): %s", cause, path)
 
     def close(self, timeout: float = 10.0) -> None:
         """A shutdown after an e-stop dumps once more (what led to the stop is then all in
