@@ -22,8 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {ROOT / "rocoma_can": "rocoma_can", ROOT / "drivers": "rocoma_can.drivers",
             ROOT / "controllers": "rocoma_can.controllers"}
 #: rank of each part of the package: a module imports its own rank or lower
-RANK = {"core": 0, "eds": 0, "drivers": 1, "node": 2, "record": 2, "fleet": 2, "runtime": 3,
-        "cli": 4}
+RANK = {"core": 0, "eds": 0, "drivers": 1, "node": 2, "record": 2, "fleet": 2, "live": 2,
+        "runtime": 3, "cli": 4}
 #: what the controllers may use besides the core
 CONTROLLERS_MAY = ("rocoma_can.drivers.joints",)
 
