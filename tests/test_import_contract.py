@@ -1,5 +1,5 @@
-"""The import contract: dependencies point one way, core <- drivers <- node, record, fleet <-
-runtime <- cli, and controllers see the core and the joint types they command only. Read
+"""The import contract: dependencies point one way, core <- drivers <- node, record, fleet,
+live <- runtime <- cli, and controllers see the core and the joint types they command only. Read
 from the source (every import statement, at any depth, relative ones resolved), so a
 violation fails the fast suite wherever it hides; and the CLI's verbs start without numpy.
 
