@@ -22,12 +22,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..cli_args import flight_seconds, node_id, seconds, seconds_or_zero
+from ..cli_args import flight_seconds, node_id, positive, seconds, seconds_or_zero
 from ..errors import ConfigError, NoAnswer, Refused, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from ..fleet import client as fleet_client
 from ..fleet.bridge import FleetConfig, FleetError
 from ..fleet.bridge import parse as parse_fleet
+from ..live.foxglove import FoxgloveConfig, FoxgloveError, describe, parse_address
 from ..node.client import ManagerClient
 from ..node.objects import (
     ABORT_NOT_FOUND,
@@ -129,8 +130,9 @@ def _run(args: argparse.Namespace) -> int:
     try:
         runtime = Runtime(config, record=args.record, flight=flight,
                           flight_seconds=args.flight_seconds,
-                          announce=lambda text: print(f"rocoma-can: {text}", flush=True))
-    except (OSError, ValueError, FleetError) as exc:
+                          announce=lambda text: print(f"rocoma-can: {text}", flush=True),
+                          foxglove=foxglove_from_args(args))
+    except (OSError, ValueError, FleetError, FoxgloveError) as exc:
         _err(str(exc) + no_socketcan_hint(exc))
         return USAGE
     if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
@@ -153,6 +155,8 @@ def _run(args: argparse.Namespace) -> int:
                   flush=True)
         elif runtime.fleet_error:
             _err(f"running without Zenoh: {runtime.fleet_error}")
+        if runtime.foxglove is not None:
+            print(f"rocoma-can: {describe(runtime.foxglove)}", flush=True)
         try:
             summary = runtime.run(duration=args.duration)
         except OSError as exc:
@@ -180,6 +184,22 @@ def no_socketcan_hint(exc: BaseException) -> str:
                     "kernel bus, rocoma-can demo, or interface: virtual in CONFIG")
         seen = seen.__cause__ or seen.__context__
     return ""
+
+
+def foxglove_from_args(args: argparse.Namespace) -> FoxgloveConfig | None:
+    """--foxglove and its options (None: no live view)."""
+    if args.foxglove is None:
+        return None
+    host, port = args.foxglove
+    return FoxgloveConfig(host, port, rate=args.foxglove_rate,
+                          allow_commands=args.foxglove_allow_commands)
+
+
+def _foxglove_address(text: str) -> tuple[str, int]:
+    try:
+        return parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def fleet_from_args(args: argparse.Namespace, fleet: FleetConfig | None) -> FleetConfig | None:
@@ -400,6 +420,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="accept switch, clear and recover over Zenoh (e-stops always are)")
     g.add_argument("--zenoh-deadman", default=None, metavar="KEY",
                    help="e-stop when this liveliness token vanishes (once seen)")
+    g = p.add_argument_group("Foxglove (the live view, extra foxglove)")
+    g.add_argument("--foxglove", nargs="?", type=_foxglove_address, default=None,
+                   const=_foxglove_address(""), metavar="HOST:PORT",
+                   help="serve the live view on a Foxglove WebSocket (127.0.0.1:8765; "
+                        "0.0.0.0 serves every interface)")
+    g.add_argument("--foxglove-rate", type=positive, default=FoxgloveConfig.rate,
+                   metavar="HZ", help="joint states and manager state per second (30)")
+    g.add_argument("--foxglove-allow-commands", action="store_true",
+                   help="accept switch, clear and recover from Foxglove (stops always are)")
     p.set_defaults(func=_run)
 
     p = subparsers.add_parser("check-config", help="validate a YAML config, list every problem")

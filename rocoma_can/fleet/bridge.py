@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
 from ..events import ManagerEvent
+from ..remote import Transport, serve, switch_target
 
 if TYPE_CHECKING:
     import zenoh
@@ -52,8 +53,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 SERVICES = ("status", "switch", "estop", "failproof", "clear", "recover")
-#: the services anyone may use; the others need ``allow_commands``
-STOPS = ("estop", "failproof")
 MODES = ("peer", "client")
 _KEYS = {"prefix", "mode", "connect", "listen", "multicast", "allow_commands", "deadman",
          "required", "drives_period", "alive_timeout", "config_file"}
@@ -382,28 +381,12 @@ class FleetBridge:
             log.debug("zenoh: answering %s failed: %s", key, exc)
 
     def _serve(self, service: str) -> dict[str, Any]:
-        m = self.manager
         if service == "status":
             return self.status()
-        if service not in STOPS and not self.config.allow_commands:
-            return {"ok": False, "state": m.state.name, "error": _NOT_ALLOWED.format(service)}
-        if service not in STOPS and not self._running:
-            return {"ok": False, "state": m.state.name, "error": _NOT_RUNNING}
-        if service == "estop":
-            m.emergency_stop(cause="Zenoh e-stop")
-        elif service == "failproof":
-            m.failproof_stop(cause="Zenoh failproof stop")
-        elif service == "clear":
-            if not m.clear_emergency_stop():
-                return {"ok": False, "state": m.state.name,
-                        "error": "the e-stop latch was not cleared (see the manager log)"}
-        elif service == "recover":
-            if self._recover is None:
-                return {"ok": False, "state": m.state.name,
-                        "error": "this manager has no drives to recover"}
-            self._recover()
-            return {"ok": True, "state": m.state.name, "recovery": "started"}
-        return {"ok": True, "state": m.state.name}
+        return serve(self.manager, service, self._transport(), self._running, self._recover)
+
+    def _transport(self) -> Transport:
+        return Transport("Zenoh", "zenoh.allow_commands", self.config.allow_commands)
 
     def _switch(self, query: Any, key: str) -> None:
         m = self.manager
@@ -412,31 +395,10 @@ class FleetBridge:
             if result == "ERROR" or result == "NOT_FOUND":
                 self._count("refused")
             self._reply(query, key, {"result": result, **({"error": error} if error else {})})
-        if not self.config.allow_commands:
-            reply("ERROR", _NOT_ALLOWED.format("switch"))
-            return
-        if not self._running:
-            reply("ERROR", _NOT_RUNNING)
-            return
-        names = m.available_controllers()
         raw = query.payload.to_bytes() if query.payload is not None else b""
-        try:
-            name = raw.decode("utf-8").strip()
-        except UnicodeDecodeError:  # names none of ours; said without echoing the bytes
-            reply("NOT_FOUND", f"no controller: the payload is {len(raw)} bytes that are not "
-                               f"UTF-8 text (controllers: {', '.join(names)})")
-            return
-        # a number from `list` (ASCII digits, short: int() of "²" or 5000 digits raises)
-        if name.isascii() and name.isdigit() and len(name) <= 6 \
-                and 1 <= int(name) <= len(names):
-            name = names[int(name) - 1]
-        if name not in names:
-            reply("NOT_FOUND", f"no controller {_shown(name)} (controllers: "
-                               f"{', '.join(names)})")
-            return
-        blocked = m.switch_blocked()
-        if blocked is not None:
-            reply("ERROR", f"switch refused: {blocked}")
+        name, refusal = switch_target(m, raw, self._transport(), self._running)
+        if name is None:
+            reply(refusal["result"], refusal["error"])
             return
 
         def done(future: Future[SwitchResult]) -> None:
@@ -464,17 +426,6 @@ class FleetBridge:
             self.manager.emergency_stop(cause=f"Zenoh dead-man: {sample.key_expr} vanished")
 
 
-#: a query's name is echoed back at most this long: a payload of any size may come in
-SHOWN_NAME = 64
-
-
-def _shown(name: str) -> str:
-    """``name`` quoted for an answer, cut to SHOWN_NAME characters with its length."""
-    if len(name) <= SHOWN_NAME:
-        return repr(name)
-    return f"{name[:SHOWN_NAME]!r}... ({len(name)} characters)"
-
-
 def _respond(query: Any, key: str, answer: dict[str, Any]) -> None:
     """Reply, then finalize the query at once: the querier's default consolidation holds
     replies back until then (Python would finalize it only when the object is collected)."""
@@ -486,13 +437,6 @@ def _respond(query: Any, key: str, answer: dict[str, Any]) -> None:
 
 def close_session(session: zenoh.Session) -> None:
     session.close()  # type: ignore[no-untyped-call]  # zenoh 1.x: unannotated
-
-
-_NOT_ALLOWED = ("{} over Zenoh is not allowed by this manager's config "
-                "(zenoh.allow_commands: false); e-stop and failproof are")
-
-
-_NOT_RUNNING = "the manager's loop is not running"
 
 
 def _event_message(event: ManagerEvent) -> dict[str, Any]:

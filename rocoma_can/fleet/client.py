@@ -13,8 +13,8 @@ from typing import Any
 from ..cli_args import seconds
 from ..errors import NoAnswer, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
+from ..remote import STOPS
 from .bridge import (
-    STOPS,
     FleetError,
     close_session,
     default_prefix,

@@ -18,6 +18,7 @@ from ..drivers.bus import open_bus
 from ..drivers.hardware import CanopenHardware
 from ..drivers.status import HardwareStatus
 from ..fleet.bridge import FleetBridge, FleetConfig, FleetError
+from ..live.foxglove import FoxgloveConfig, FoxgloveView
 from ..manager import ControllerManager
 from ..node.objects import RESULT_NAMES
 from ..node.server import ManagerNode
@@ -96,17 +97,20 @@ class Runtime:
                  on_cycle: Callable[[float], None] | None = None,
                  record: str | None = None, flight: str | None = None,
                  flight_seconds: float = 10.0,
-                 announce: Callable[[str], None] | None = None) -> None:
+                 announce: Callable[[str], None] | None = None,
+                 foxglove: FoxgloveConfig | None = None) -> None:
         """``record``: a directory for every frame and cycle (flight.Recording); ``flight``:
         the flight recorder's directory (None: off), keeping ``flight_seconds``;
         ``announce``: told each flight record's path (``rocoma-can run`` prints it).
         ``config.fleet`` serves the manager on Zenoh (fleet/bridge.py): FleetError when Zenoh
         cannot be used and the section says ``required``; otherwise a warning, and the
-        reason in the status report."""
+        reason in the status report. ``foxglove``: the live view (live/foxglove.py;
+        FoxgloveError when it cannot be served)."""
         self.config = config
         self.recording: Recording | None = None
         self.flight: FlightRecorder | None = None
         self.fleet: FleetBridge | None = None
+        self.foxglove: FoxgloveView | None = None
         self.fleet_error = ""
         m = config.manager
         self.hardware = CanopenHardware({b.label: b for b in config.buses}, config.drives,
@@ -148,6 +152,13 @@ class Runtime:
                                     on_cycle=on_cycle, trace=trace, spin=config.spin)
             if config.fleet is not None:  # its queries read the loop's statistics
                 self._bridge(config.fleet)
+            if foxglove is not None:
+                stats = self.loop.stats
+                self.foxglove = FoxgloveView(foxglove, self.manager, self.hardware.state,
+                                             self.status,
+                                             lambda: (stats.cycles, stats.overruns),
+                                             recover=self.hardware.recover)
+                self._parts.insert(0, self.foxglove.close)
         except BaseException:
             self.close()
             raise
@@ -231,7 +242,8 @@ class Runtime:
                 "switch_refused": m.last_refusal, "estop_cause": node.last_cause,
                 "estop_cob_id": node.estop_cob_id,
                 **{k: report.get(k) for k in ("startup_finished", "recovery", "bus_fault",
-                                              "cycle", "buses", "drives", "zenoh")}}
+                                              "cycle", "buses", "drives", "zenoh")},
+                **({"foxglove": self.foxglove.info()} if self.foxglove is not None else {})}
 
     def run(self, duration: float | None = None, signals: bool = True) -> TimingSummary:
         """Start the bus side, run the loop until stopped, torque-off; the caller closes."""
@@ -241,10 +253,14 @@ class Runtime:
             self.node.start()
             if self.fleet is not None:
                 self.fleet.start()
+            if self.foxglove is not None:
+                self.foxglove.start()
             return self.loop.run(duration)
         finally:
             if self.fleet is not None:
                 self.fleet.loop_stopped()
+            if self.foxglove is not None:
+                self.foxglove.loop_stopped()
             if restore is not None:
                 restore()
 

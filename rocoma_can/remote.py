@@ -1,0 +1,101 @@
+"""The manager's commands from a remote caller (the Zenoh bridge, the Foxglove live view):
+one set of rules, so no transport can be laxer than another.
+
+A stop (e-stop, failproof) is obeyed from anyone and never reads what the caller sent: a
+stop must not depend on a payload. Switch, clear and recover need the transport's
+``allow_commands`` and a running loop. Every answer is a JSON-ready dict:
+``{"ok", "state", "error"?}`` for the services, ``{"result", "error"?}`` for a switch.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .manager import ControllerManager
+
+#: the services anyone may use; the others need ``allow_commands``
+STOPS = ("estop", "failproof")
+#: every command service (``status`` and the like are each transport's own)
+COMMANDS = ("switch", "estop", "failproof", "clear", "recover")
+NOT_RUNNING = "the manager's loop is not running"
+#: a switch's controller name is echoed back at most this long: a payload of any size may
+#: come in
+SHOWN_NAME = 64
+
+
+@dataclass(frozen=True)
+class Transport:
+    """Who calls: ``name`` in the stop causes and refusals ("Zenoh"), ``setting`` the config
+    key that allows commands ("zenoh.allow_commands")."""
+    name: str
+    setting: str
+    allow_commands: bool
+
+    def not_allowed(self, service: str) -> str:
+        return (f"{service} over {self.name} is not allowed by this manager's config "
+                f"({self.setting}: false); e-stop and failproof are")
+
+
+def serve(manager: ControllerManager, service: str, transport: Transport, running: bool,
+          recover: Callable[[], Future[bool]] | None) -> dict[str, Any]:
+    """Run one of estop, failproof, clear, recover under the rules (see the module)."""
+    m = manager
+    if service not in STOPS and not transport.allow_commands:
+        return {"ok": False, "state": m.state.name, "error": transport.not_allowed(service)}
+    if service not in STOPS and not running:
+        return {"ok": False, "state": m.state.name, "error": NOT_RUNNING}
+    if service == "estop":
+        m.emergency_stop(cause=f"{transport.name} e-stop")
+    elif service == "failproof":
+        m.failproof_stop(cause=f"{transport.name} failproof stop")
+    elif service == "clear":
+        if not m.clear_emergency_stop():
+            return {"ok": False, "state": m.state.name,
+                    "error": "the e-stop latch was not cleared (see the manager log)"}
+    elif service == "recover":
+        if recover is None:
+            return {"ok": False, "state": m.state.name,
+                    "error": "this manager has no drives to recover"}
+        recover()
+        return {"ok": True, "state": m.state.name, "recovery": "started"}
+    else:
+        return {"ok": False, "state": m.state.name, "error": f"no service {service!r}"}
+    return {"ok": True, "state": m.state.name}
+
+
+def switch_target(manager: ControllerManager, raw: bytes, transport: Transport,
+                  running: bool) -> tuple[str | None, dict[str, Any]]:
+    """The controller a switch request names (a name, or its number in ``list``) and None,
+    or None and the refusal to answer with."""
+    def refused(result: str, error: str) -> tuple[None, dict[str, Any]]:
+        return None, {"result": result, "error": error}
+    if not transport.allow_commands:
+        return refused("ERROR", transport.not_allowed("switch"))
+    if not running:
+        return refused("ERROR", NOT_RUNNING)
+    names = manager.available_controllers()
+    try:
+        name = raw.decode("utf-8").strip()
+    except UnicodeDecodeError:  # names none of ours; said without echoing the bytes
+        return refused("NOT_FOUND", f"no controller: the payload is {len(raw)} bytes that "
+                                    f"are not UTF-8 text (controllers: {', '.join(names)})")
+    # a number from `list` (ASCII digits, short: int() of "²" or 5000 digits raises)
+    if name.isascii() and name.isdigit() and len(name) <= 6 and 1 <= int(name) <= len(names):
+        name = names[int(name) - 1]
+    if name not in names:
+        return refused("NOT_FOUND", f"no controller {shown(name)} (controllers: "
+                                    f"{', '.join(names)})")
+    blocked = manager.switch_blocked()
+    if blocked is not None:
+        return refused("ERROR", f"switch refused: {blocked}")
+    return name, {}
+
+
+def shown(name: str) -> str:
+    """``name`` quoted for an answer, cut to SHOWN_NAME characters with its length."""
+    if len(name) <= SHOWN_NAME:
+        return repr(name)
+    return f"{name[:SHOWN_NAME]!r}... ({len(name)} characters)"

@@ -1,0 +1,258 @@
+"""The live view on a Foxglove WebSocket (rocoma_can/live/foxglove.py), seen by a client
+speaking the Foxglove WebSocket protocol on loopback: channels advertised, joint states with
+the joints' names, services under the remote rules, a stalled viewer that costs the loop
+nothing."""
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import time
+from contextlib import ExitStack
+from typing import Any
+
+import pytest
+from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
+
+from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.main import build_parser
+from rocoma_can.live.foxglove import (
+    DEFAULT_HOST,
+    DEFAULT_PORT,
+    SCHEMAS,
+    FoxgloveConfig,
+    parse_address,
+)
+from rocoma_can.remote import COMMANDS
+
+pytest.importorskip("foxglove")
+sync_client = pytest.importorskip("websockets.sync.client")
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+MESSAGE_DATA, SERVICE_CALL_REQUEST, SERVICE_CALL_RESPONSE = 0x01, 0x02, 0x03
+
+
+class Viewer:
+    """A Foxglove WebSocket client: advertisements, subscriptions, service calls."""
+
+    def __init__(self, port: int, **connect: Any) -> None:
+        self._stack = ExitStack()
+        self.ws = self._stack.enter_context(sync_client.connect(
+            f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=DEMO_WAIT,
+            **connect))
+        self.channels: dict[str, dict[str, Any]] = {}
+        self.services: dict[str, dict[str, Any]] = {}
+        self.received: dict[str, list[dict[str, Any]]] = {}
+        self.answers: dict[int, dict[str, Any]] = {}
+        self._topics: dict[int, str] = {}
+        self._call = 0
+
+    def pump(self, until, what: str, timeout: float = DEMO_WAIT) -> None:
+        """Read messages until ``until()`` holds (AssertionError naming ``what``)."""
+        deadline = time.monotonic() + timeout
+        while not until():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}")
+            try:
+                message = self.ws.recv(timeout=0.05)
+            except TimeoutError:
+                continue
+            self._take(message)
+
+    def _take(self, message: str | bytes) -> None:
+        if isinstance(message, str):
+            doc = json.loads(message)
+            if doc["op"] == "advertise":
+                self.channels.update({c["topic"]: c for c in doc["channels"]})
+            elif doc["op"] == "advertiseServices":
+                self.services.update({s["name"]: s for s in doc["services"]})
+            elif doc["op"] == "serviceCallFailure":
+                self.answers[doc["callId"]] = {"failure": doc["message"]}
+            return
+        op = message[0]
+        if op == MESSAGE_DATA:
+            sub, _ = struct.unpack_from("<IQ", message, 1)
+            self.received.setdefault(self._topics[sub], []).append(json.loads(message[13:]))
+        elif op == SERVICE_CALL_RESPONSE:
+            _, call, n = struct.unpack_from("<III", message, 1)
+            self.answers[call] = json.loads(message[13 + n:])
+
+    def subscribe(self, *topics: str) -> None:
+        self.pump(lambda: all(t in self.channels for t in topics), f"channels {topics}")
+        subs = []
+        for topic in topics:
+            sub = len(self._topics) + 1
+            self._topics[sub] = topic
+            subs.append({"id": sub, "channelId": self.channels[topic]["id"]})
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def call(self, service: str, request: dict[str, Any] | None = None) -> dict[str, Any]:
+        self.pump(lambda: service in self.services, f"service {service}")
+        self._call += 1
+        call, encoding = self._call, b"json"
+        payload = json.dumps(request or {}).encode()
+        self.ws.send(struct.pack("<BIII", SERVICE_CALL_REQUEST, self.services[service]["id"],
+                                 call, len(encoding)) + encoding + payload)
+        self.pump(lambda: call in self.answers, f"the answer of {service}")
+        return self.answers[call]
+
+    def close(self) -> None:
+        self._stack.close()
+
+
+def _config(channel: str, drives: int = 2) -> dict[str, Any]:
+    cfg = demo_config(channel, drives=drives, rate=100.0)
+    cfg["manager"]["estop_must_be_cleared"] = False
+    return cfg
+
+
+def _view(**options: Any) -> FoxgloveConfig:
+    return FoxgloveConfig(host="127.0.0.1", port=0, **options)
+
+
+def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory):
+    sim_segment_factory(2)
+    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
+        viewer = Viewer(rt.foxglove.port)
+        try:
+            viewer.subscribe(*SCHEMAS)
+            assert {t: viewer.channels[t]["schemaName"] for t in SCHEMAS} == {
+                t: s["title"] for t, s in SCHEMAS.items()}
+            viewer.pump(lambda: {f"/rocoma/{c}" for c in COMMANDS} <= set(viewer.services),
+                        "every command service advertised")
+            viewer.pump(lambda: viewer.received.get("/joint_states"), "joint states")
+            joints = viewer.received["/joint_states"][-1]
+            assert joints["name"] == [d["name"] for d in _config(virtual_channel)["drives"]]
+            assert len(joints["position"]) == len(joints["velocity"]) == len(
+                joints["effort"]) == 2
+            viewer.pump(lambda: viewer.received.get("/rocoma/status"), "a status report")
+            assert {"cycle", "buses", "drives"} <= set(viewer.received["/rocoma/status"][-1])
+            wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
+            assert rt.manager.switch_controller("pd", timeout=DEMO_WAIT) == 0  # to OK
+            viewer.pump(lambda: any(m["state"] == "OK" and m["controller"] == "pd"
+                                    for m in viewer.received.get("/rocoma/manager", [])),
+                        "the manager in OK on /rocoma/manager")
+
+            answer = viewer.call("/rocoma/estop", {"anything": "ignored"})
+            assert answer["ok"] is True  # taken: the next cycle acts on it
+            viewer.pump(lambda: any(m["state"] == "EMERGENCY" and m["cause"]
+                                    == "Foxglove e-stop"
+                                    for m in viewer.received.get("/rocoma/manager", [])),
+                        "the manager's e-stop on /rocoma/manager")
+            viewer.pump(lambda: any("e-stop" in m["message"] and m["level"] == 3
+                                    for m in viewer.received.get("/rocoma/log", [])),
+                        "the e-stop in the log")
+        finally:
+            viewer.close()
+
+
+def test_switch_is_refused_unless_allowed_and_failproof_is_not(virtual_channel,
+                                                               sim_segment_factory):
+    sim_segment_factory(2)
+    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
+        viewer = Viewer(rt.foxglove.port)
+        try:
+            wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
+            answer = viewer.call("/rocoma/switch", {"controller": "pd"})
+            assert answer["result"] == "ERROR"
+            assert "--foxglove-allow-commands: false" in answer["error"]
+            assert viewer.call("/rocoma/clear")["ok"] is False
+            assert rt.manager.active_controller_name != "pd"
+            assert viewer.call("/rocoma/failproof")["ok"] is True
+            assert rt.foxglove.info()["refused"] == 2
+        finally:
+            viewer.close()
+
+
+def test_an_allowed_switch_switches(virtual_channel, sim_segment_factory):
+    sim_segment_factory(2)
+    with runtime_running(_config(virtual_channel), DEMO_RUN,
+                         foxglove=_view(allow_commands=True)) as rt:
+        viewer = Viewer(rt.foxglove.port)
+        try:
+            wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
+            assert viewer.call("/rocoma/switch", {"controller": "pd"}) == {
+                "result": "SWITCHED"}
+            assert rt.manager.active_controller_name == "pd"
+            viewer.subscribe("/rocoma/log")
+            viewer.pump(lambda: any("switched to pd" in m["message"]
+                                    for m in viewer.received.get("/rocoma/log", [])),
+                        "the switch in the log")
+        finally:
+            viewer.close()
+
+
+def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_factory):
+    """A viewer subscribed to everything that never reads (a tiny receive buffer, at most
+    one frame queued in the client), then vanishes, while another keeps reading: the view
+    keeps publishing, the other viewer keeps receiving, and the loop has no overrun over
+    hundreds of messages published to the stalled viewer, counted from the loop's 300th
+    cycle: its first seconds (bring-up, first calls) may cost it a cycle, with or without a
+    view."""
+    sim_segment_factory(2)
+    with runtime_running(_config(virtual_channel), DEMO_RUN,
+                         foxglove=_view(rate=500.0, backlog=8)) as rt:
+        wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
+        assert rt.manager.switch_controller("pd", timeout=DEMO_WAIT) == 0  # drives enabled
+        wait_for(lambda: rt.loop.stats.cycles >= 300, "300 cycles", DEMO_RUN)
+        raw = socket.socket()
+        raw.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        raw.connect(("127.0.0.1", rt.foxglove.port))
+        stalled = Viewer(rt.foxglove.port, sock=raw, max_queue=1)
+        healthy = Viewer(rt.foxglove.port)
+        try:
+            stalled.subscribe(*SCHEMAS)  # reads the advertisements, then never again
+            healthy.subscribe("/joint_states")
+            healthy.pump(lambda: len(healthy.received.get("/joint_states", [])) >= 100,
+                         "a first hundred joint states")
+            stats = rt.loop.stats
+            cycles, overruns = stats.cycles, stats.overruns
+            published = rt.foxglove.info()["published"]
+            healthy.pump(lambda: len(healthy.received["/joint_states"]) >= 400,
+                         "300 joint states while another viewer stalls", DEMO_RUN)
+            assert rt.foxglove.info()["published"] - published >= 600
+            assert stats.cycles > cycles and stats.overruns == overruns
+            assert rt.foxglove.info()["events_dropped"] == 0
+            raw.shutdown(socket.SHUT_RDWR)  # vanished: the view serves the other one on
+            stalled.close()
+            n = len(healthy.received["/joint_states"])
+            healthy.pump(lambda: len(healthy.received["/joint_states"]) >= n + 100,
+                         "joint states after the stalled viewer vanished", DEMO_RUN)
+            assert stats.overruns == overruns
+        finally:
+            raw.close()
+            stalled.close()
+            healthy.close()
+
+
+def test_the_address_and_the_flag():
+    assert parse_address("") == (DEFAULT_HOST, DEFAULT_PORT)
+    assert parse_address("0.0.0.0:9000") == ("0.0.0.0", 9000)
+    assert parse_address(":9001") == (DEFAULT_HOST, 9001)
+    assert parse_address("[::1]:9002") == ("::1", 9002)
+    with pytest.raises(ValueError, match="port 0..65535"):
+        parse_address("host:99999")
+    args = build_parser().parse_args(["run", "robot.yaml", "--foxglove"])
+    assert args.foxglove == (DEFAULT_HOST, DEFAULT_PORT)
+    assert build_parser().parse_args(["run", "robot.yaml"]).foxglove is None
+
+
+def test_the_port_taken_is_said_in_one_line(virtual_channel, sim_segment_factory, tmp_path,
+                                            capsys):
+    import yaml
+
+    from rocoma_can.cli.main import main
+    sim_segment_factory(2)
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        path = tmp_path / "robot.yaml"
+        path.write_text(yaml.safe_dump(_config(virtual_channel)))
+        code = main(["run", str(path), "--no-flight", "--duration", "0.1",
+                     "--foxglove", f"127.0.0.1:{taken.getsockname()[1]}"])
+    finally:
+        taken.close()
+    err = capsys.readouterr().err
+    assert code == 2 and "Foxglove: cannot serve on 127.0.0.1:" in err
+    assert "Traceback" not in err
