@@ -182,13 +182,20 @@ def test_an_allowed_switch_switches(virtual_channel, sim_segment_factory):
             viewer.close()
 
 
+def _odd_late(cycles: int) -> int:
+    """Overruns a busy machine gives ``cycles`` cycles of a loop with nothing to wait on: one
+    in a hundred, at least two (a count, never a wall time)."""
+    return max(2, cycles // 100)
+
+
 def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_factory):
     """A viewer subscribed to everything that never reads (a tiny receive buffer, at most
     one frame queued in the client), then vanishes, while another keeps reading: the view
-    keeps publishing, the other viewer keeps receiving, and the loop has no overrun over
+    keeps publishing, the other viewer keeps receiving, and the loop keeps its rate over
     hundreds of messages published to the stalled viewer, counted from the loop's 300th
     cycle: its first seconds (bring-up, first calls) may cost it a cycle, with or without a
-    view."""
+    view. A view that made the loop wait on the stalled socket would overrun every cycle it
+    published in; a busy machine makes the odd cycle late whatever the view does."""
     sim_segment_factory(2)
     with runtime_running(_config(virtual_channel), DEMO_RUN,
                          foxglove=_view(rate=500.0, backlog=8)) as rt:
@@ -211,14 +218,15 @@ def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_fa
             healthy.pump(lambda: len(healthy.received["/joint_states"]) >= 400,
                          "300 joint states while another viewer stalls", DEMO_RUN)
             assert rt.foxglove.info()["published"] - published >= 600
-            assert stats.cycles > cycles and stats.overruns == overruns
+            assert stats.cycles > cycles
+            assert stats.overruns - overruns <= _odd_late(stats.cycles - cycles)
             assert rt.foxglove.info()["events_dropped"] == 0
             raw.shutdown(socket.SHUT_RDWR)  # vanished: the view serves the other one on
             stalled.close()
             n = len(healthy.received["/joint_states"])
             healthy.pump(lambda: len(healthy.received["/joint_states"]) >= n + 100,
                          "joint states after the stalled viewer vanished", DEMO_RUN)
-            assert stats.overruns == overruns
+            assert stats.overruns - overruns <= _odd_late(stats.cycles - cycles)
         finally:
             raw.close()
             stalled.close()
@@ -256,3 +264,40 @@ def test_the_port_taken_is_said_in_one_line(virtual_channel, sim_segment_factory
     err = capsys.readouterr().err
     assert code == 2 and "Foxglove: cannot serve on 127.0.0.1:" in err
     assert "Traceback" not in err
+
+
+def test_the_demo_serves_its_robot_live(capsys):
+    """`demo --foxglove`: the walk-through's manager on the live view, said where, and a
+    viewer sees the demo's joints move by name while it runs."""
+    import re
+    import threading
+
+    from rocoma_can.cli.demo import run_demo
+    lines: list[str] = []
+    served = threading.Event()
+
+    def out(line: str) -> None:
+        lines.append(line)
+        if "ws://" in line:
+            served.set()
+    seen: dict[str, Any] = {}
+
+    def watch() -> None:
+        assert served.wait(DEMO_WAIT)
+        port = int(re.search(r"ws://127\.0\.0\.1:(\d+)", next(
+            line for line in lines if "ws://" in line)).group(1))
+        viewer = Viewer(port)
+        try:
+            viewer.subscribe("/joint_states")
+            viewer.pump(lambda: len(viewer.received.get("/joint_states", [])) >= 10,
+                        "ten joint states from the demo")
+            seen["names"] = viewer.received["/joint_states"][-1]["name"]
+        finally:
+            viewer.close()
+    viewer = threading.Thread(target=watch)
+    viewer.start()
+    report = run_demo(drives=2, rate=100.0, duration=3.0, out=out, record=None,
+                      foxglove=_view())
+    viewer.join(DEMO_WAIT)
+    assert report.ok, "\n".join(lines)
+    assert seen.get("names") == ["joint1", "joint2"], (seen, lines)

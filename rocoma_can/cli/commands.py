@@ -186,6 +186,19 @@ def no_socketcan_hint(exc: BaseException) -> str:
     return ""
 
 
+def add_foxglove_options(p: argparse.ArgumentParser) -> None:
+    """--foxglove and its options, for run and demo alike."""
+    g = p.add_argument_group("Foxglove (the live view, extra foxglove)")
+    g.add_argument("--foxglove", nargs="?", type=_foxglove_address, default=None,
+                   const=_foxglove_address(""), metavar="HOST:PORT",
+                   help="serve the live view on a Foxglove WebSocket (127.0.0.1:8765; "
+                        "0.0.0.0 serves every interface)")
+    g.add_argument("--foxglove-rate", type=positive, default=FoxgloveConfig.rate,
+                   metavar="HZ", help="joint states and manager state per second (30)")
+    g.add_argument("--foxglove-allow-commands", action="store_true",
+                   help="accept switch, clear and recover from Foxglove (stops always are)")
+
+
 def foxglove_from_args(args: argparse.Namespace) -> FoxgloveConfig | None:
     """--foxglove and its options (None: no live view)."""
     if args.foxglove is None:
@@ -420,15 +433,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="accept switch, clear and recover over Zenoh (e-stops always are)")
     g.add_argument("--zenoh-deadman", default=None, metavar="KEY",
                    help="e-stop when this liveliness token vanishes (once seen)")
-    g = p.add_argument_group("Foxglove (the live view, extra foxglove)")
-    g.add_argument("--foxglove", nargs="?", type=_foxglove_address, default=None,
-                   const=_foxglove_address(""), metavar="HOST:PORT",
-                   help="serve the live view on a Foxglove WebSocket (127.0.0.1:8765; "
-                        "0.0.0.0 serves every interface)")
-    g.add_argument("--foxglove-rate", type=positive, default=FoxgloveConfig.rate,
-                   metavar="HZ", help="joint states and manager state per second (30)")
-    g.add_argument("--foxglove-allow-commands", action="store_true",
-                   help="accept switch, clear and recover from Foxglove (stops always are)")
+    add_foxglove_options(p)
     p.set_defaults(func=_run)
 
     p = subparsers.add_parser("check-config", help="validate a YAML config, list every problem")

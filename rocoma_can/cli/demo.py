@@ -51,6 +51,7 @@ FLIGHT_SECONDS = 2.0
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
     from ..drivers.drive_plan import DrivePlan
     from ..drivers.sim.segment import SimulatedSegment
+    from ..live.foxglove import FoxgloveConfig
     from ..runtime.loop import TimingSummary
     from ..runtime.system import Runtime
 
@@ -298,7 +299,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              out: Callable[[str], None] = print, buses: int | None = None,
              interface: str = DEFAULT_INTERFACE, eds: str | None = None,
              record: str | Path | None = None, zenoh_listen: str | None = None,
-             flight: str | Path | None = None) -> Report:
+             flight: str | Path | None = None,
+             foxglove: FoxgloveConfig | None = None) -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
@@ -307,7 +309,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     from the start of bring-up to the loop's stop (_Pace); ``flight``: the flight
     recorder's directory, as ``run`` has it: each e-stop leaves a record there, its path
     said as it is written. Its window is FLIGHT_SECONDS, not run's 10 s: e-stops within
-    half a window make one record, and the walk-through's are seconds apart."""
+    half a window make one record, and the walk-through's are seconds apart. ``foxglove``:
+    the live view, as ``run --foxglove`` serves it."""
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
@@ -366,7 +369,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         with Runtime(config, on_cycle=simulator.stepped_before(watch),
                      record=None if record is None else str(record),
                      flight=None if flight is None else str(flight),
-                     flight_seconds=FLIGHT_SECONDS,
+                     flight_seconds=FLIGHT_SECONDS, foxglove=foxglove,
                      announce=lambda text: out(f"rocoma-can demo: {text}")) \
                 as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
@@ -374,6 +377,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                   else f"{buses} {interface} buses {channel}-0..{buses - 1}")
             out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
                 f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
+            if rt.foxglove is not None:
+                from ..live.foxglove import describe
+                out(f"rocoma-can demo: {describe(rt.foxglove)}")
             if zenoh_listen is not None:
                 out(f"rocoma-can demo: on Zenoh as {ZENOH_PREFIX} at {zenoh_listen}; from "
                     f"another shell: rocoma-can status --watch --zenoh {ZENOH_PREFIX} "
@@ -520,6 +526,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="where each e-stop's flight record goes, as with run (default: "
                         "flight/ in the recording's directory, or run's default without one)")
     p.add_argument("--no-flight", action="store_true", help="no flight recorder")
+    from .commands import add_foxglove_options
+    add_foxglove_options(p)
     p.add_argument("--zenoh-listen", default=None, metavar="ENDPOINT",
                    help="serve the demo's manager on Zenoh as rocoma/demo at ENDPOINT "
                         "(e.g. tcp/127.0.0.1:7447): watch and e-stop it from another shell")
@@ -540,14 +548,15 @@ def _main(args: argparse.Namespace) -> int:
         except OSError as exc:
             print(f"demo: --record {record}: cannot create the directory: {exc}", flush=True)
             return USAGE
-    from .commands import default_flight_dir
+    from .commands import default_flight_dir, foxglove_from_args
     flight = None if args.no_flight else Path(
         args.flight_dir or (record / "flight" if record is not None else default_flight_dir()))
     try:
         report = run_demo(args.drives, args.rate, args.duration,
                           out=lambda line: print(line, flush=True), buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
-                          zenoh_listen=args.zenoh_listen, flight=flight)
+                          zenoh_listen=args.zenoh_listen, flight=flight,
+                          foxglove=foxglove_from_args(args))
     except (ValueError, RocomaError) as exc:
         if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint: "demo: ..."
             for problem in exc.problems:
