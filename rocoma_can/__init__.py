@@ -11,13 +11,16 @@ tuples       controller tuples (several controllers as one)
 workers      worker threads owned by a controller
 events       notifications and logging, delivered off the cycle
 plugins      controllers by name from configuration (entry points)
+remote       the rules for commands from afar (Zenoh, Foxglove): stops always, the rest when
+             allowed
 errors       RocomaError, the one root of the errors raised on purpose
 cli_args     argument types every verb shares
 exit_codes   the exit codes every verb shares
 __main__     ``python -m rocoma_can``: the rocoma-can command
 _lazy        package attributes imported on first use (a fast CLI start)
 
-Subpackages: runtime (the manager on a bus), node (its CANopen node), record, fleet, cli;
+Subpackages: runtime (the manager on a bus), node (its CANopen node), record, fleet, live
+(the Foxglove view), cli;
 drivers and controllers are installed into this namespace.
 """
 from __future__ import annotations
