@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import struct
 import time
+from pathlib import Path
 
 import can
 import pytest
@@ -305,3 +306,13 @@ def test_each_drive_answers_the_identity_it_was_given(sim_bench, bus_factory):
     assert two.sdo[0x1018][3].raw == one.sdo[0x1018][3].raw  # the file's revision
     with pytest.raises(ValueError, match=r"identities given for node ids \[5\]"):
         SimulatedSegment(bus_factory(), [1], identities={5: Identity(serial=1)})
+
+
+def test_nodes_simulated_from_a_file_with_a_serial_number_are_each_their_own(sim_bench):
+    """A file read off one device (a DCF) carries that device's serial number: several nodes
+    simulated from it are still each a device of their own (an LSS address, a serial
+    bring-up may hold each to): node 1 keeps the file's, the next one more."""
+    bench = sim_bench([1, 2, 5], eds_path=str(Path(__file__).parent / "fixtures" / "eds"
+                                              / "serial_in_file.eds"))
+    assert [bench.node(n).sdo[0x1018][4].raw for n in (1, 2, 5)] == \
+        [0xC0FFEE, 0xC0FFEF, 0xC0FFF2]

@@ -169,7 +169,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    metavar="NODE:KEY=VALUE[,...]",
                    help="a node's identity object 0x1018, keys vendor, product, revision, "
                         "serial, e.g. 2:vendor=0x9A,serial=0x1234 (default: the file's, "
-                        "the node id as serial number)")
+                        "with a serial number per node: the file's + node id - 1, or the "
+                        "node id)")
     p.add_argument("--unconfigured", type=_unconfigured, action="append", default=[],
                    metavar="KEY=VALUE[,...]",
                    help="one more node without a node id (LSS, CiA 305), e.g. serial=0x77: "

@@ -407,8 +407,9 @@ def own_identity(od: objectdictionary.ObjectDictionary, node_id: int, overrides:
                  given: Identity | None) -> Identity:
     """A node's 0x1018: the file's, with the vendor and product its [DeviceInfo] names where
     it names a vendor (what bring-up holds a drive to without ``identity:``:
-    identity.file_identity), a serial number of its own where the file has none (the node
-    id) so that each node is one of a kind, then ``overrides`` and ``given``."""
+    identity.file_identity), a serial number of its own so that each node is one of a kind
+    (the file's plus node id - 1, or the node id where the file gives none), then
+    ``overrides`` and ``given``."""
     values: dict[str, int | None] = {}
     made_for = file_identity(od)
     for name, sub in SUBINDEX.items():
@@ -417,8 +418,12 @@ def own_identity(od: objectdictionary.ObjectDictionary, node_id: int, overrides:
         values[name] = overrides.get((c301.IDENTITY, sub), stated if stated is not None
                                      and variable is not None else variable.default
                                      if variable is not None else None)
-    if not values["serial"] and node_id != UNCONFIGURED:
-        values["serial"] = node_id
+    if node_id != UNCONFIGURED and not (overrides.get((c301.IDENTITY, SUBINDEX["serial"]))):
+        # one file, many simulated nodes: each a device of its own (an LSS address, a
+        # serial bring-up may hold it to). A file's serial (a DCF read off one device) is
+        # node 1's, the next node's one more; no serial in the file: the node id.
+        values["serial"] = ((values["serial"] + node_id - 1) & 0xFFFF_FFFF if values["serial"]
+                            else node_id)
     return dataclasses.replace(Identity(**values), **{
         name: value for name, value in dataclasses.asdict(given or Identity()).items()
         if value is not None})

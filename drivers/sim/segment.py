@@ -84,7 +84,8 @@ class SimulatedSegment:
 
     ``identities`` maps a node id to its identity object (0x1018: vendor-ID, product code,
     revision, serial number; the fields given replace the file's). A node not in it answers
-    the file's values, with its node id as serial number where the file gives none.
+    the file's values, with a serial number of its own (the file's plus node id - 1, or the
+    node id where the file gives none).
 
     ``unconfigured``: further nodes without a node id (CiA 305: 0xFF), one per identity,
     which must give the serial number (the other fields default as above). Each answers
