@@ -316,3 +316,24 @@ def test_nodes_simulated_from_a_file_with_a_serial_number_are_each_their_own(sim
                                               / "serial_in_file.eds"))
     assert [bench.node(n).sdo[0x1018][4].raw for n in (1, 2, 5)] == \
         [0xC0FFEE, 0xC0FFEF, 0xC0FFF2]
+
+
+def test_a_files_limits_hold_for_profile_objects_not_for_communication_objects(sim_bench,
+                                                                                 tmp_path):
+    """Elmo's DCF limits 0x1016:1 to 65535 as if it were a plain time: its drives take the
+    CiA 301 layout (the producer's node id in bits 16..23) all the same, and so does the
+    simulator; a profile object's limit (0x6072 HighLimit=300) is refused as a drive does."""
+    from rocoma_can import eds
+    text = Path(eds.path(eds.CIA402_DRIVE)).read_text().replace("\r\n", "\n")
+    for section, extra in (("[1016sub1]\n", "LowLimit=0\nHighLimit=65535\n"),
+                           ("[6072]\n", "HighLimit=300\n")):
+        assert section in text
+        text = text.replace(section, section + extra)
+    path = tmp_path / "limited.eds"
+    path.write_text(text)
+    node = sim_bench(1, eds_path=str(path)).node(1)
+    node.sdo[0x1016][1].raw = (100 << 16) | 1500  # the manager's heartbeat, 1.5 s
+    assert node.sdo[0x1016][1].raw == (100 << 16) | 1500
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x6072].raw = 500
+    assert err.value.code == 0x06090031  # value too high

@@ -60,6 +60,9 @@ MAX_AXES = 8
 _PROFILE_FIRST, _PROFILE_END = 0x6000, 0x6800
 
 
+#: the first object a file's LowLimit/HighLimit is honoured for (0x1000..0x1FFF: CiA 301's)
+_PROFILE_AREA = 0x2000
+
 def axis_index(index: int, axis: int) -> int:
     """Axis ``axis``'s index of the CiA 402 object ``index`` (axis 1's); an index outside
     0x6000-0x67FF is the node's and the same for every axis."""
@@ -279,7 +282,11 @@ class ObjectDictionaryServer:
         if var.data_type in objectdictionary.NUMBER_TYPES and 8 * len(data) != len(var):
             raise SdoAbortedError(ABORT_LENGTH_NOT_MATCHED)
         value = var.decode_raw(bytes(data))
-        if isinstance(value, (int, float)):  # the file's HighLimit / LowLimit
+        # The file's HighLimit / LowLimit, on the device profile's objects: a communication
+        # object's layout is CiA 301's (0x1016's producer node id in bits 16..23), and files
+        # that limit one as if it were a plain number (Elmo's 0x1016:1 HighLimit=65535) are
+        # wrong about the devices, which take the standard values.
+        if isinstance(value, (int, float)) and var.index >= _PROFILE_AREA:
             if var.max is not None and value > var.max:
                 raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
             if var.min is not None and value < var.min:
