@@ -372,6 +372,26 @@ class CanopenFrames(can.Listener):
             self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
 
+#: frames the canopen services sent, held for the cycle to record (a recording only)
+SENT_HELD = 4096
+
+
+class RecordedNetwork(canopen.Network):
+    """canopen's Network that, once ``sent`` is set (a recording of the bus's frames),
+    keeps each frame it sent there with its stamp. Its senders are other threads (SDO
+    workers, NMT): the cycle moves the frames into the recording (BusPort.end_of_write),
+    so a recording ring keeps one producer."""
+
+    sent: collections.deque[tuple[can.Message, float]] | None = None
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        super().send_message(can_id, data, remote)
+        sent = self.sent
+        if sent is not None:
+            sent.append((can.Message(arbitration_id=can_id, data=data, is_remote_frame=remote,
+                                     is_extended_id=can_id > 0x7FF), time.time()))
+
+
 class CanopenBus:
     """A bus (opened here or lent by the caller), a canopen Network and the bus's reader.
 
@@ -382,7 +402,7 @@ class CanopenBus:
         self.bus = bus
         self.own_bus = own_bus
         enlarge_bus_buffer(bus)  # a lent bus too
-        self.network = canopen.Network(bus)  # not connect(): BusReader replaces its Notifier
+        self.network = RecordedNetwork(bus)  # not connect(): BusReader replaces its Notifier
         self.listeners: list[can.Listener] = [CanopenFrames(self.network)]
         self.reader: BusReader | None = BusReader(bus, self.listeners) if read else None
         self.writer = FrameWriter(bus)  # the cycle's frames: never blocks, one system call

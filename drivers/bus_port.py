@@ -13,12 +13,14 @@ and the transmit health that makes a bus that refuses frames cycle after cycle a
 from __future__ import annotations
 
 import collections
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Mapping
+from typing import Protocol
 
 import can
 
 from . import cia301
-from .bus import CanopenBus, open_bus
+from .bus import SENT_HELD, CanopenBus, open_bus
 from .config import BusConfig
 from .frame_io import FrameWriter
 
@@ -61,6 +63,25 @@ class _Receiver(can.Listener):
 
     def on_error(self, exc: Exception) -> None:  # counted by the reader; nothing to do here
         pass
+
+
+Bus = can.BusABC | BusConfig
+
+
+def named_buses(bus: Bus | Mapping[str, Bus]) -> dict[str, Bus]:
+    """One bus (named by its config, or "bus" when lent) or a name -> bus mapping."""
+    if isinstance(bus, Mapping):
+        if not bus:
+            raise ValueError("buses: at least one bus is needed")
+        return dict(bus)
+    return {bus.label if isinstance(bus, BusConfig) else "bus": bus}
+
+
+class SentFrames(Protocol):
+    """Where a recording keeps the frames a bus sent (record/rings.py FrameRing): called on
+    the cycle's thread only."""
+
+    def put(self, msg: can.Message, stamp: float) -> None: ...
 
 
 def _frame(cob_id: int, size: int, fd: bool) -> can.Message:
@@ -106,6 +127,11 @@ class BusPort:
         # hold_wakeups; a no-op on interfaces without it)
         self.hold_wakeups: Callable[[], None] = _no_hold
         self.release_wakeups: Callable[[], None] = _no_hold
+        # a recording of this bus's frames (record_frames): what the cycle sent, and what
+        # other threads sent, held for the cycle to hand over
+        self._sent: SentFrames | None = None
+        self._sent_elsewhere: collections.deque[tuple[can.Message, float]] = \
+            collections.deque(maxlen=SENT_HELD)
 
     def frame(self, cob_id: int, size: int) -> can.Message:
         return _frame(cob_id, size, self.fd)
@@ -135,6 +161,16 @@ class BusPort:
         cb.add_listener(self._receiver)
         return cb
 
+    def record_frames(self, received: can.Listener, sent: SentFrames) -> None:
+        """Record every frame of the open bus: ``received`` is fed by the bus's own reader
+        (the frames the hardware reads anyway: no second socket), ``sent`` gets each frame
+        sent here (the cycle's, and on the cycle's thread, the canopen services' and the
+        hang watchdog's, which other threads sent)."""
+        assert self.canopen is not None, "record_frames() before open()"
+        self.canopen.add_listener(received)
+        self.canopen.network.sent = self._sent_elsewhere
+        self._sent = sent
+
     def set_estop_cob_id(self, cob_id: int) -> None:
         if self._receiver is not None:
             self._receiver.estop_cob_id = cob_id
@@ -147,18 +183,41 @@ class BusPort:
             self.hold_wakeups = self.release_wakeups = _no_hold
 
     def send(self, msg: can.Message) -> None:
-        """Never raises, never blocks: a refused frame is counted (``end_of_write``)."""
+        """Never raises, never blocks: a refused frame is counted (``end_of_write``). The
+        cycle's thread only (``send_elsewhere`` for the others)."""
+        if self._send(msg):
+            sent = self._sent
+            if sent is not None:
+                sent.put(msg, time.time())
+
+    def send_elsewhere(self, msg: can.Message) -> None:
+        """``send`` from a thread other than the cycle's (the hang watchdog's torque-off):
+        a recording gets the frame from the cycle (``end_of_write``), one producer."""
+        if self._send(msg) and self._sent is not None:
+            self._sent_elsewhere.append((can.Message(
+                arbitration_id=msg.arbitration_id, data=bytes(msg.data), is_fd=msg.is_fd,
+                bitrate_switch=msg.bitrate_switch, is_extended_id=msg.is_extended_id),
+                time.time()))
+
+    def _send(self, msg: can.Message) -> bool:
         try:
             self._writer.send_message(msg)  # type: ignore[union-attr]
         except Exception as exc:  # a full queue, a failed interface, or not started/closed
             self.tx_errors += 1
             self.last_tx_error = exc
             self.refused = True
+            return False
+        return True
 
     def end_of_write(self, limit: int) -> str | None:
         """After a cycle's frames: the cause while the bus has refused frames ``limit`` or
         more cycles in a row (a bus fault), else None. One refused frame is not a fault (a
         transmit queue can be full for a moment); the frames are tried again every cycle."""
+        held = self._sent_elsewhere
+        if held and self._sent is not None:  # SDO, NMT, the watchdog: into the recording
+            put = self._sent.put
+            for _ in range(len(held)):
+                put(*held.popleft())
         if not self.refused:
             self.refused_cycles = 0
             if self.clean_cycles < limit:

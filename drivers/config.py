@@ -113,6 +113,16 @@ class Supervision:
             raise ValueError("supervision.sdo_retries must be a whole number >= 0, "
                              f"got {self.sdo_retries!r}")
 
+    def consumer_ms(self, manager_heartbeat_ms: int) -> int:
+        """The drives' heartbeat consumer time (0x1016) for this manager heartbeat."""
+        consumer_ms = int(round(manager_heartbeat_ms * self.consumer_factor))
+        if not 1 <= manager_heartbeat_ms or consumer_ms > 0xFFFF:
+            raise ValueError("manager_heartbeat_ms must be >= 1 and its product with "
+                             "supervision.consumer_factor <= 65535 ms (the drives' heartbeat "
+                             f"consumer time); got {manager_heartbeat_ms} and "
+                             f"{self.consumer_factor}")
+        return consumer_ms
+
 
 #: Feedback objects a drive can report in its TPDOs (statusword is always mapped).
 FEEDBACK = ("position", "velocity", "torque")

@@ -64,9 +64,9 @@ class FramesOut:
         """From any thread: disable voltage to every configured drive, then SYNC."""
         for i, b in enumerate(bringup):
             for msg in self._torque_off[i] if b.mapped else ():
-                self._send[i](msg)
+                self._port_of[i].send_elsewhere(msg)
         for port in self._ports:
-            port.send(port.sync)
+            port.send_elsewhere(port.sync)
 
     def off(self, i: int, b: DriveBringup) -> None:
         """A drive not under command: torque off, or its bring-up's fault-reset edge or

@@ -87,10 +87,10 @@ from ..errors import HomingFailed
 from ..events import ManagerState
 from .bringup import DriveBringup, Phase, create_bringups
 from .bus import start_reading
-from .bus_port import BusPort
+from .bus_port import Bus, BusPort, SentFrames, named_buses
 from .cia402 import State402
 from .command import Commands
-from .config import BusConfig, DriveConfig, Supervision, check_drives, estop_conflict
+from .config import DriveConfig, Supervision, check_drives, estop_conflict
 from .drive_plan import pdo_using, plan_drives
 from .enable import EnableSequence
 from .frames_out import FramesOut
@@ -109,7 +109,6 @@ from .switch_off import SdoSwitchOff
 
 __all__ = ["CanopenHardware", "DriveStatus", "HardwareStatus", "WORKER_START"]
 
-Bus = can.BusABC | BusConfig
 log = logging.getLogger(__name__)
 #: how long start() waits for the configuration workers' threads to run
 WORKER_START = 5.0
@@ -117,15 +116,6 @@ WORKER_START = 5.0
 
 def _whole_cob_id(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0x7FF
-
-
-def _named_buses(bus: Bus | Mapping[str, Bus]) -> dict[str, Bus]:
-    """One bus (named by its config, or "bus" when lent) or a name -> bus mapping."""
-    if isinstance(bus, Mapping):
-        if not bus:
-            raise ValueError("buses: at least one bus is needed")
-        return dict(bus)
-    return {bus.label if isinstance(bus, BusConfig) else "bus": bus}
 
 
 class CanopenHardware:
@@ -141,7 +131,7 @@ class CanopenHardware:
                  manager_heartbeat_ms: int = 100, supervision: Supervision | None = None,
                  config_workers: int = 4, estop_cob_id: int = 0,
                  on_fault: Callable[[FaultEvent], None] | None = None) -> None:
-        buses = _named_buses(bus)
+        buses = named_buses(bus)
         check_drives(list(drives), manager_node_id, list(buses))
         # each drive measured against its EDS/DCF: modes, feedback, PDOs, manager loss (the
         # axes of a multi-axis node share its PDO channels out)
@@ -157,12 +147,7 @@ class CanopenHardware:
         supervision = supervision or Supervision()
         if not dt > 0:
             raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
-        consumer_ms = int(round(manager_heartbeat_ms * supervision.consumer_factor))
-        if not 1 <= manager_heartbeat_ms or consumer_ms > 0xFFFF:
-            raise ValueError("manager_heartbeat_ms must be >= 1 and its product with "
-                             "supervision.consumer_factor <= 65535 ms (the drives' heartbeat "
-                             f"consumer time); got {manager_heartbeat_ms} and "
-                             f"{supervision.consumer_factor}")
+        consumer_ms = supervision.consumer_ms(manager_heartbeat_ms)
         self.drives_config = drives
         self.manager_node_id = manager_node_id
         self.dt = float(dt)
@@ -222,8 +207,8 @@ class CanopenHardware:
         self.estop_frames = 0  # e-stop frames received (any bus)
         self._manager_state = ManagerState.FAILPROOF  # as of the last write
         self._events: list[CycleEvent] = []  # read's findings, handed to the loop
-
         self._started = False
+        self._recorded: list[tuple[can.Listener, SentFrames]] = []
         # (hold_wakeups, release_wakeups) of every bus, taken by start (write wraps in them)
         self._wake_holds: list[tuple[Callable[[], None], Callable[[], None]]] = []
         # the bus readers' drain_now (start): read hands over what waits on the buses first
@@ -238,6 +223,13 @@ class CanopenHardware:
         self.cycles = 0
 
     # --- life cycle ---------------------------------------------------------------------------
+    def record_frames(self, taps: Sequence[tuple[can.Listener, SentFrames]]) -> None:
+        """Before ``start``: per port, in order, where its received and sent frames are
+        recorded (BusPort.record_frames)."""
+        if len(taps) != len(self.ports):
+            raise ValueError(f"{len(taps)} frame recorders for {len(self.ports)} buses")
+        self._recorded = list(taps)
+
     def start(self, now: float | None = None) -> None:
         """Open the buses (unless lent), attach the receivers, begin every drive's bring-up.
         A bus that cannot be opened closes the ones opened before it and raises OSError."""
@@ -249,6 +241,8 @@ class CanopenHardware:
             for k, port in enumerate(self.ports):
                 port.open(self.receiver.cob_ids(k))
                 port.set_estop_cob_id(self._estop_cob_id)
+                if self._recorded:
+                    port.record_frames(*self._recorded[k])
             # one reader thread for every bus where the interface allows (bus.readers_for)
             start_reading([port.canopen for port in self.ports if port.canopen is not None])
             # the open buses' wake-up holds for write, as pairs: a port closed while a
