@@ -22,7 +22,7 @@ from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
-from rocoma_can.record.flight import _slug
+from rocoma_can.record.recording import slug as _slug
 from rocoma_can.record.trace import read_messages
 from rocoma_can.runtime import Runtime
 from rocoma_can.runtime.config import validate
@@ -454,8 +454,12 @@ def open_files_under(directory: Path) -> list[str]:
 
 
 def writer_threads() -> list[str]:
-    return [t.name for t in threading.enumerate()
-            if t.name.startswith(("can-log", "trace-writer", "flight-recorder"))]
+    """The recorder's threads and writer processes still there (none once a run ended)."""
+    threads = [t.name for t in threading.enumerate()
+               if t.name.startswith(("can-log", "recorder-"))]
+    children = subprocess.run(["pgrep", "-f", "-P", str(os.getpid()),
+                               "rocoma_can.record.writer"], capture_output=True, text=True)
+    return threads + children.stdout.split()
 
 
 def test_run_record_on_a_disk_that_fills_up(bench, tmp_path, capfd, caplog):

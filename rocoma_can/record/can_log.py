@@ -32,6 +32,27 @@ MAX_QUEUED = 1_000_000
 MAX_CHANNEL_NUMBER = 0xFFFE
 
 
+#: candump's error-frame id (linux/can.h CAN_ERR_FLAG | CAN_ERR_BUSERROR), as python-can
+#: writes every error frame
+_ERROR_ID = 0x20000000 | 0x00000080
+
+
+def candump_line(stamp: float, channel: str, cob_id: int, flags: int, data: str) -> str:
+    """One frame as a ``candump -L`` line, as python-can's writer makes it (``can.LogReader``
+    and ``canplayer`` read it); ``flags`` as rings.py keeps them (1 extended, 2 remote,
+    4 error, 8 FD, 16 bit rate switch, 32 error state, 64 sent: ``T``, else ``R``); ``data``
+    the payload in upper-case hex."""
+    if flags & 4:
+        return f"({stamp:f}) {channel} {_ERROR_ID:08X}#{data}\n"
+    head = f"({stamp:f}) {channel} {cob_id:08X}#" if flags & 1 else \
+        f"({stamp:f}) {channel} {cob_id:03X}#"
+    eol = " T\n" if flags & 64 else " R\n"
+    if flags & 2:
+        return f"{head}R{eol}"
+    fd = f"#{(flags >> 4 & 1) | (flags >> 5 & 1) << 1:X}" if flags & 8 else ""
+    return f"{head}{fd}{data}{eol}"
+
+
 class RecordingError(OSError):
     """The file cannot be written (bad suffix, no such directory, not writable)."""
 

@@ -2,9 +2,10 @@
 
 ``SignalTrace.record`` runs on the loop thread after each cycle: it copies the cycle's
 timing, the manager's state and active controller, and every joint's feedback and command
-into one preallocated row (a dozen numpy copies, no allocation). Everything else happens on
-other threads: ``McapWriter`` turns rows (and CAN frames) into MCAP messages, JSON-encoded
-with a JSON schema, so Foxglove Studio and PlotJuggler open the file as it is.
+into one preallocated row (a dozen numpy copies, no allocation), in memory the recording's
+writer process shares (rings.py). Everything else happens in that process: ``McapWriter``
+turns rows (and CAN frames) into MCAP messages, JSON-encoded with a JSON schema, so
+Foxglove and PlotJuggler open the file as it is.
 
 Channels: ``/rocoma/cycle`` (one message per cycle: ``t``, ``period``, ``work``, ``late``,
 ``state``, ``controller``, then per joint arrays ``position``, ``velocity``, ``torque``,
@@ -12,13 +13,13 @@ Channels: ``/rocoma/cycle`` (one message per cycle: ``t``, ``period``, ``work``,
 ``statusword``, ``cia402_state``, ``error_code``), ``/rocoma/event`` (one message per
 manager event: ``kind`` emergency_stop / state_changed / active_controller_changed,
 ``state``, ``controller``, ``cause``) and ``/can/<bus>`` (one message per frame: ``id``,
-``data`` as hex, ``dlc``, ``extended``, ``remote``, ``error``, ``fd``).
+``data`` as hex, ``dlc``, ``extended``, ``remote``, ``error``, ``fd``, ``sent``: sent by
+this manager, not received).
 """
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any, BinaryIO, Protocol
 
 import numpy as np
@@ -39,27 +40,62 @@ class ActiveController(Protocol):
     def active_controller_name(self) -> str: ...
 
 
+class RowLayout:
+    """Where each signal lies in a row of ``joints`` joints: the scalars, then one block of
+    ``len(joints)`` numbers per JOINT_FIELDS entry. The loop's SignalTrace writes rows in
+    it; the writer process turns them into messages (``message``)."""
+
+    def __init__(self, joints: Sequence[str]) -> None:
+        self.names = list(joints)
+        n = len(self.names)
+        self.width = len(SCALARS) + n * len(JOINT_FIELDS)
+        base = len(SCALARS)
+        self.slices = tuple(slice(base + k * n, base + (k + 1) * n)
+                            for k in range(len(JOINT_FIELDS)))
+
+    def message(self, row: np.ndarray, controllers: Mapping[int, str]) -> dict[str, Any]:
+        """One row as the /rocoma/cycle message (``controllers``: number -> name)."""
+        values = row.tolist()  # plain floats at once: ~5x faster than element by element
+        state = int(values[4])
+        msg: dict[str, Any] = {"t": values[0], "period": values[1], "work": values[2],
+                               "late": values[3], "state": STATE_NAMES.get(state, str(state)),
+                               "controller": controllers.get(int(values[5]), "")}
+        for field, where in zip(JOINT_FIELDS, self.slices):
+            msg[field] = ([int(v) for v in values[where]] if field in _INTEGER_FIELDS
+                          else values[where])
+        return msg
+
+
 class SignalTrace:
-    """The last ``capacity`` cycles of signals (a ring). ``record`` is the loop's part."""
+    """The last ``capacity`` cycles of signals (a ring). ``record`` is the loop's part.
+
+    ``rows`` (capacity x layout width, default: allocated here) and ``publish`` (told the
+    number of rows recorded after each) let the ring lie in memory the recording's writer
+    process reads (rings.py). ``known``: controller names numbered from the start, so the
+    writer knows every name a row can carry (a controller added later is numbered when
+    first seen, and the writer told of it from ``controllers``)."""
 
     def __init__(self, state: JointState, command: JointCommand, manager: ActiveController,
-                 capacity: int) -> None:
+                 capacity: int, *, rows: np.ndarray | None = None,
+                 publish: Callable[[int], None] | None = None,
+                 known: Sequence[str] = ()) -> None:
         if capacity < 2:
             raise ValueError(f"a signal trace needs room for 2 cycles or more, got {capacity}")
-        self.names = state.names
+        self.layout = RowLayout(state.names)
+        self.names = self.layout.names
         self.capacity = capacity
         self.count = 0               # cycles recorded so far (the ring's write position)
-        n = len(state.names)
-        self._rows = np.zeros((capacity, len(SCALARS) + n * len(JOINT_FIELDS)))
+        shape = (capacity, self.layout.width)
+        if rows is not None and rows.shape != shape:
+            raise ValueError(f"rows of shape {rows.shape} for a trace of {shape}")
+        self._rows = np.zeros(shape) if rows is None else rows
+        self._publish = publish if publish is not None else _unpublished
         self._sources = (state.position, state.velocity, state.torque, command.mode,
                          command.position, command.velocity, command.torque,
                          state.statusword, state.cia402_state, state.error_code)
-        base = len(SCALARS)
-        self._slices = tuple(slice(base + k * n, base + (k + 1) * n)
-                             for k in range(len(JOINT_FIELDS)))
-        self._joint_columns = slice(base, None)
+        self._joint_columns = slice(len(SCALARS), None)
         self._manager = manager
-        self.controllers: dict[str, int] = {}  # name -> the number rows carry
+        self.controllers: dict[str, int] = {name: k for k, name in enumerate(known)}
         self._previous = float("nan")
 
     def record(self, now: float, work: float, late: float, state: ManagerState) -> None:
@@ -79,43 +115,11 @@ class SignalTrace:
         np.concatenate(self._sources, out=row[self._joint_columns])
         self._previous = now
         self.count += 1
+        self._publish(self.count)
 
-    def rows(self, since: int) -> tuple[int, np.ndarray]:
-        """A copy of the rows recorded from cycle ``since`` on (any thread): (the first
-        cycle number in the copy, rows). Rows the ring overwrote meanwhile are left out."""
-        end = self.count
-        start = max(since, end - self.capacity + 1, 0)  # the row being written is not safe
-        if start >= end:
-            return end, self._rows[:0].copy()
-        k0, k1 = start % self.capacity, end % self.capacity
-        if k0 < k1:
-            out = self._rows[k0:k1].copy()
-        else:
-            out = np.concatenate((self._rows[k0:], self._rows[:k1]))
-        first_safe = self.count - self.capacity + 1  # what the loop overwrote while copying
-        if first_safe > start:
-            out = out[first_safe - start:]
-            start = first_safe
-        return start, out
 
-    def since_time(self, t: float) -> int:
-        """The first cycle number at or after monotonic time ``t`` still in the ring."""
-        start, rows = self.rows(self.count - self.capacity + 1)
-        later = np.nonzero(rows[:, 0] >= t)[0]
-        return start + int(later[0]) if len(later) else self.count
-
-    def message(self, row: np.ndarray) -> dict[str, Any]:
-        """One row as the /rocoma/cycle message."""
-        names = {v: k for k, v in self.controllers.items()}
-        msg: dict[str, Any] = {"t": float(row[0]), "period": float(row[1]),
-                               "work": float(row[2]), "late": float(row[3]),
-                               "state": STATE_NAMES.get(int(row[4]), str(int(row[4]))),
-                               "controller": names.get(int(row[5]), "")}
-        for field, where in zip(JOINT_FIELDS, self._slices):
-            values = row[where]
-            msg[field] = ([int(v) for v in values] if field in _INTEGER_FIELDS
-                          else [float(v) for v in values])
-        return msg
+def _unpublished(count: int) -> None:
+    """A trace nobody outside this process reads."""
 
 
 _INTEGER_FIELDS = {"command_mode", "statusword", "cia402_state", "error_code"}
@@ -135,7 +139,8 @@ def cycle_schema(joints: Sequence[str]) -> dict[str, Any]:
 FRAME_SCHEMA = {"type": "object", "title": "rocoma_can.CanFrame", "properties": {
     "id": {"type": "integer"}, "data": {"type": "string", "description": "hex"},
     "dlc": {"type": "integer"}, "extended": {"type": "boolean"},
-    "remote": {"type": "boolean"}, "error": {"type": "boolean"}, "fd": {"type": "boolean"}}}
+    "remote": {"type": "boolean"}, "error": {"type": "boolean"}, "fd": {"type": "boolean"},
+    "sent": {"type": "boolean", "description": "sent by this manager, not received"}}}
 
 
 EVENT_SCHEMA = {"type": "object", "title": "rocoma_can.ManagerEvent", "properties": {
@@ -146,24 +151,20 @@ EVENT_SCHEMA = {"type": "object", "title": "rocoma_can.ManagerEvent", "propertie
 
 
 def event_message(event: ManagerEvent) -> dict[str, Any]:
+    """A manager event as plain values (what the writer process is sent), with its
+    monotonic ``time``."""
     return {"kind": event.kind.value, "state": event.state.name,
-            "controller": event.active_controller, "cause": event.cause}
+            "controller": event.active_controller, "cause": event.cause, "time": event.time}
 
 
-@dataclass(frozen=True)
-class Frame:
-    """A received CAN frame, compact (the flight recorder keeps tens of thousands)."""
-    time: float        # time.time() stamp of the frame
-    bus: str
-    cob_id: int
-    data: bytes
-    flags: int         # 1 extended, 2 remote, 4 error, 8 fd
+def _frame_tail(flags: int) -> str:
+    """The end of a /can/<bus> message for these flags (rings.py's bits)."""
+    names = (("extended", 1), ("remote", 2), ("error", 4), ("fd", 8), ("sent", 64))
+    return "".join(f',"{name}":{"true" if flags & bit else "false"}' for name, bit in names)
 
-    def message(self) -> dict[str, Any]:
-        f = self.flags
-        return {"id": self.cob_id, "data": self.data.hex(), "dlc": len(self.data),
-                "extended": bool(f & 1), "remote": bool(f & 2), "error": bool(f & 4),
-                "fd": bool(f & 8)}
+
+#: every flag combination's message end, made once
+_FRAME_TAILS = [_frame_tail(flags) for flags in range(128)]
 
 
 class McapWriter:
@@ -190,35 +191,39 @@ class McapWriter:
         self._buses: dict[str, int] = {}
         self.messages = 0
 
-    def cycles(self, trace: SignalTrace, rows: np.ndarray, offset: float) -> None:
+    def cycles(self, layout: RowLayout, controllers: Mapping[int, str], rows: np.ndarray,
+               offset: float) -> None:
         """Rows as messages; ``offset``: add to a row's monotonic time for wall-clock time."""
         channel, add = self._cycle, self._writer.add_message
         for row in rows:
             ns = int((row[0] + offset) * 1e9)
             add(channel_id=channel, log_time=ns, publish_time=ns,
-                data=json.dumps(trace.message(row), separators=(",", ":")).encode())
+                data=json.dumps(layout.message(row, controllers),
+                                separators=(",", ":")).encode())
             self.messages += 1
 
-    def events(self, events: Iterable[ManagerEvent], offset: float) -> None:
-        """Manager events (their monotonic ``time`` + ``offset``: wall-clock time)."""
+    def events(self, events: Iterable[Mapping[str, Any]], offset: float) -> None:
+        """Manager events as ``event_message`` makes them (their monotonic ``time`` +
+        ``offset``: wall-clock time)."""
         for event in events:
-            ns = int((event.time + offset) * 1e9)
+            ns = int((float(event["time"]) + offset) * 1e9)
+            message = {key: event[key] for key in ("kind", "state", "controller", "cause")}
             self._writer.add_message(channel_id=self._events, log_time=ns, publish_time=ns,
-                                     data=json.dumps(event_message(event),
-                                                     separators=(",", ":")).encode())
+                                     data=json.dumps(message, separators=(",", ":")).encode())
             self.messages += 1
 
-    def frames(self, frames: Iterable[Frame]) -> None:
-        for frame in frames:
-            channel = self._buses.get(frame.bus)
-            if channel is None:
-                channel = self._buses[frame.bus] = self._writer.register_channel(
-                    topic=f"/can/{frame.bus}", message_encoding="json",
-                    schema_id=self._frame_schema)
-            ns = int(frame.time * 1e9)
-            self._writer.add_message(channel_id=channel, log_time=ns, publish_time=ns,
-                                     data=json.dumps(frame.message(),
-                                                     separators=(",", ":")).encode())
+    def frames(self, bus: str, frames: Iterable[tuple[float, int, int, str]]) -> None:
+        """A bus's frames as rings.frame_fields gives them, on /can/<bus>."""
+        channel = self._buses.get(bus)
+        if channel is None:
+            channel = self._buses[bus] = self._writer.register_channel(
+                topic=f"/can/{bus}", message_encoding="json", schema_id=self._frame_schema)
+        add, tails = self._writer.add_message, _FRAME_TAILS
+        for t, cob_id, flags, data in frames:
+            ns = int(t * 1e9)
+            add(channel_id=channel, log_time=ns, publish_time=ns,
+                data=(f'{{"id":{cob_id},"data":"{data.lower()}","dlc":{len(data) // 2}'
+                      f'{tails[flags & 127]}}}').encode())
             self.messages += 1
 
     def finish(self) -> None:

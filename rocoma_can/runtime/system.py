@@ -11,8 +11,6 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
-import can
-
 from ..controllers.torque_off import TorqueOff
 from ..drivers.bus import open_bus
 from ..drivers.hardware import CanopenHardware
@@ -23,7 +21,7 @@ from ..manager import ControllerManager
 from ..node.objects import RESULT_NAMES
 from ..node.server import ManagerNode
 from ..plugins import add_to_manager
-from ..record.flight import FlightRecorder, Recording, Taps
+from ..record.recorder import BusToRecord, FlightStatus, Recorder, RecordingStatus
 from ..record.trace import SignalTrace
 from .config import RuntimeConfig
 from .loop import ControlLoop, TimingSummary
@@ -99,7 +97,7 @@ class Runtime:
                  flight_seconds: float = 10.0,
                  announce: Callable[[str], None] | None = None,
                  foxglove: FoxgloveConfig | None = None) -> None:
-        """``record``: a directory for every frame and cycle (flight.Recording); ``flight``:
+        """``record``: a directory for every frame and cycle (record/recording.py); ``flight``:
         the flight recorder's directory (None: off), keeping ``flight_seconds``;
         ``announce``: told each flight record's path (``rocoma-can run`` prints it).
         ``config.fleet`` serves the manager on Zenoh (fleet/bridge.py): FleetError when Zenoh
@@ -107,8 +105,9 @@ class Runtime:
         reason in the status report. ``foxglove``: the live view (live/foxglove.py;
         FoxgloveError when it cannot be served)."""
         self.config = config
-        self.recording: Recording | None = None
-        self.flight: FlightRecorder | None = None
+        self.recorder: Recorder | None = None
+        self.recording: RecordingStatus | None = None
+        self.flight: FlightStatus | None = None
         self.fleet: FleetBridge | None = None
         self.foxglove: FoxgloveView | None = None
         self.fleet_error = ""
@@ -178,38 +177,23 @@ class Runtime:
 
     def _recorders(self, record: str | None, flight: str | None, seconds: float,
                    announce: Callable[[str], None] | None) -> SignalTrace | None:
-        """The signal trace, the flight recorder and --record, with a passive handle of
-        every bus feeding their frame listeners (record/flight.py)."""
+        """The flight recorder and --record: rings the loop and the hardware's buses fill,
+        and the writer process that writes them (record/recorder.py)."""
         if record is None and flight is None:
             return None
         config = self.config
-        trace = SignalTrace(self.hardware.state, self.hardware.command, self.manager,
-                            capacity=max(2, int(config.rate * max(seconds, 2.0))))
-        names = [b.label for b in config.buses]
-        listeners: dict[str, list[can.Listener]] = {name: [] for name in names}
+        recorder = self.recorder = Recorder(
+            self.hardware.state, self.hardware.command, self.manager, config.rate,
+            [BusToRecord(b.label, b.channel, b.fd) for b in config.buses], record=record,
+            flight=flight, seconds=seconds, controllers=list(self.manager.adapters()),
+            announce=announce)
+        self.flight, self.recording = recorder.flight, recorder.recording
         # closed after the manager's shutdown, which delivers its last events (the loop's
-        # stop) to them: what they write ends with how it ended
-        after_manager = self._parts.index(self.manager.shutdown) + 1
-        if flight is not None:
-            self.flight = FlightRecorder(trace, flight, seconds, names, announce)
-            self._parts.insert(after_manager, self.flight.close)
-            self.manager.subscribe(self.flight.on_event)
-            for name, tap in self.flight.taps.items():
-                listeners[name].append(tap)
-        if record is not None:
-            self.recording = Recording(trace, record, names)
-            self._parts.insert(after_manager, self.recording.close)
-            self.manager.subscribe(self.recording.on_event)
-            for name, frame_log in self.recording.logs.items():
-                listeners[name].append(frame_log)
-        passive = {}
-        for b in config.buses:
-            extra: dict[str, object] = {"fd": True} if b.fd else {}
-            passive[b.label] = open_bus(b.interface, b.channel, b.bitrate,
-                                        receive_own_messages=False, **extra)
-        taps = Taps(passive, listeners)
-        self._parts.insert(0, taps.close)  # the readers stop before what they feed
-        return trace
+        # stop) to it: what it writes ends with how it ended
+        self._parts.insert(self._parts.index(self.manager.shutdown) + 1, recorder.close)
+        self.manager.subscribe(recorder.on_event)
+        self.hardware.record_frames(recorder.frame_taps)
+        return recorder.trace
 
     def _home(self, drive: str) -> Future[str]:
         """The node's home service: judged on the manager's state now, not the last cycle's

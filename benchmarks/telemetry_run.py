@@ -1,0 +1,215 @@
+"""What telemetry costs the loop: the whole runtime (``rocoma-can run``'s Runtime: the
+hardware, the manager and its CANopen node) with simulated drives on in-process buses,
+held by a PD controller at a steady rate, once per set of telemetry.
+
+    .venv/bin/python benchmarks/telemetry_run.py [--drives 12] [--rate 1000] [--duration 20]
+                                                 [--sets off,flight,record,all] [--repeat 2]
+
+Sets: ``off`` (nothing), ``flight`` (the flight recorder, ``run``'s default), ``record``
+(``--record`` and the flight recorder: the demo's default), ``all`` (record, flight
+recorder, Zenoh bridge on loopback, Foxglove live view on loopback with one viewer
+connected), ``fd`` in a set's name (``off+fd``, ``all+fd``) runs CAN FD buses. Each set
+runs in a fresh process, the sets alternate ``--repeat`` times, and the machine's other
+load is what it is: compare sets of one run, not runs of different days.
+
+The simulator is stepped on the loop's thread after each write (lockstep), as the demo runs
+it: the loop's process does the drives' work too, so these numbers are a pessimistic bound
+for a loop whose drives are real. Reported per set: cycles in the steady run, missed
+cycle slots, period mean / p99 / max, the loop process's CPU per cycle and the writer
+process's (recording off the loop's interpreter: rings.py, writer.py).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from _report import report, stats
+from _rig import missed_cycles
+
+SETS = ("off", "flight", "record", "all")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _cpu_seconds(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return float("nan")
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def one(name: str, drives: int, buses: int | None, rate: float, duration: float) -> dict[str, Any]:
+    """Run one set in this process; its row as a dict."""
+    import logging
+    logging.basicConfig(level=logging.ERROR)
+    from rocoma_can.cli.demo_config import default_buses, demo_config
+    from rocoma_can.drivers.sim.group import SegmentGroup
+    from rocoma_can.drivers.sim.segment import SimulatedSegment
+    from rocoma_can.runtime.config import validate
+    from rocoma_can.runtime.system import Runtime
+    parts = set(name.split("+"))
+    everything = "all" in parts
+    buses = default_buses(drives) if buses is None else buses
+    raw = demo_config(f"bench-{uuid.uuid4().hex[:8]}", drives, rate, buses, "inproc")
+    raw["manager"]["estop_must_be_cleared"] = False
+    if "fd" in parts:
+        for bus in raw["buses"]:
+            bus.update(fd=True, data_bitrate=5_000_000)
+    if everything:
+        raw["zenoh"] = {"prefix": "bench", "listen": [f"tcp/127.0.0.1:{_free_port()}"],
+                        "multicast": False}
+    config = validate(raw, source="benchmark")
+    segments = [SimulatedSegment.open(b.channel, "inproc",
+                                      [d.node_id for d in config.drives_on(b)])
+                for b in config.buses]
+    simulator = SegmentGroup(segments)
+    starts = np.zeros(int(rate * (duration + 60)) + 1000)
+    count = [0]
+
+    def on_cycle(now: float) -> None:
+        k = count[0]
+        if k < len(starts):
+            starts[k] = now
+            count[0] = k + 1
+
+    foxglove = None
+    if everything:
+        from rocoma_can.live.foxglove import FoxgloveConfig
+        foxglove = FoxgloveConfig("127.0.0.1", _free_port())
+    window: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        record = str(Path(tmp) / "rec") if "record" in parts or everything else None
+        flight = str(Path(tmp) / "flight") if parts & {"flight", "record", "all"} else None
+        simulator.start(lockstep=True)
+        try:
+            with Runtime(config, on_cycle=simulator.stepped_before(on_cycle), record=record,
+                         flight=flight, foxglove=foxglove) as rt:
+                viewer = _viewer(foxglove.port) if foxglove is not None else None
+
+                def operate() -> None:
+                    deadline = time.monotonic() + 60
+                    while not rt.hardware.all_ready and time.monotonic() < deadline:
+                        time.sleep(0.05)
+                    rt.manager.switch_controller("pd", timeout=10.0)
+                    time.sleep(1.0)  # settled
+                    writer = rt.recorder._process.pid if rt.recorder is not None else None
+                    window.update(first=count[0], cpu=resource.getrusage(
+                        resource.RUSAGE_SELF), writer=writer,
+                        writer_cpu=_cpu_seconds(writer) if writer else 0.0,
+                        state=rt.manager.state.name)
+                    time.sleep(duration)
+                    window.update(last=count[0], cpu_end=resource.getrusage(
+                        resource.RUSAGE_SELF), writer_cpu_end=_cpu_seconds(writer)
+                        if writer else 0.0, state_end=rt.manager.state.name)
+                    rt.loop.stop("benchmark done")
+
+                worker = threading.Thread(target=operate)
+                worker.start()
+                rt.run(duration=duration + 70, signals=False)
+                worker.join(10.0)
+                if viewer is not None:
+                    viewer.close()
+                errors = (rt.recording.errors if rt.recording is not None else []) + \
+                    (rt.flight.errors if rt.flight is not None else [])
+        finally:
+            simulator.stop()
+    first, last = window["first"], window["last"]
+    period = np.diff(starts[first:last]) * 1e6
+    cycles = last - first
+    cpu = (window["cpu_end"].ru_utime + window["cpu_end"].ru_stime
+           - window["cpu"].ru_utime - window["cpu"].ru_stime)
+    writer = window["writer_cpu_end"] - window["writer_cpu"]
+    return {"set": name, "cycles": cycles,
+            "missed": missed_cycles(starts[first:last], 1.0 / rate),
+            "period_us": stats(period), "loop_process_cpu_us": cpu / cycles * 1e6,
+            "writer_cpu_us": writer / cycles * 1e6, "state": window["state_end"],
+            "errors": errors}
+
+
+def _viewer(port: int) -> Any:
+    """A Foxglove viewer that subscribes to every channel and reads on (a thread)."""
+    from websockets.sync.client import connect
+    ws = connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"])
+
+    def read() -> None:
+        subscriptions = 0
+        try:
+            for message in ws:
+                if isinstance(message, str):
+                    msg = json.loads(message)
+                    if msg.get("op") == "advertise":
+                        channels = msg["channels"]
+                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                            {"id": subscriptions + k, "channelId": c["id"]}
+                            for k, c in enumerate(channels)]}))
+                        subscriptions += len(channels)
+        except Exception:  # noqa: BLE001 - closed at the end
+            pass
+    threading.Thread(target=read, daemon=True).start()
+    return ws
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--drives", type=int, default=12)
+    parser.add_argument("--buses", type=int, default=None, help="default: as the demo")
+    parser.add_argument("--rate", type=float, default=1000.0)
+    parser.add_argument("--duration", type=float, default=20.0, help="s of steady run")
+    parser.add_argument("--sets", default=",".join(SETS))
+    parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--quick", action="store_true", help="--duration 3, rate 200")
+    parser.add_argument("--one", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.quick:
+        args.duration, args.rate, args.drives = 3.0, 200.0, 6
+    if args.one:
+        print(json.dumps(one(args.one, args.drives, args.buses, args.rate, args.duration)))
+        return
+    rows, results = [], []
+    for _ in range(args.repeat):
+        for name in args.sets.split(","):
+            cmd = [sys.executable, __file__, "--one", name, "--drives", str(args.drives),
+                   "--rate", str(args.rate), "--duration", str(args.duration)]
+            if args.buses is not None:
+                cmd += ["--buses", str(args.buses)]
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=args.duration
+                                  + 180)
+            if done.returncode != 0:
+                rows.append([name, "failed", "", "", "", "", "", "",
+                             done.stderr.strip().splitlines()[-1:]])
+                continue
+            r = json.loads(done.stdout.strip().splitlines()[-1])
+            results.append(r)
+            p = r["period_us"]
+            rows.append([name, r["cycles"], r["missed"], f"{p['mean']:.1f}",
+                         f"{p['p99']:.0f}", f"{p['max']:.0f}",
+                         f"{r['loop_process_cpu_us']:.0f}", f"{r['writer_cpu_us']:.0f}",
+                         r["state"] + (f"; {r['errors'][0]}" if r["errors"] else "")])
+    report("telemetry_run", f"The loop at {args.rate:g} Hz, {args.drives} drives, with and "
+           "without telemetry",
+           ["set", "cycles", "missed", "period mean us", "p99 us", "max us",
+            "loop process CPU us/cycle", "writer CPU us/cycle", "end state"],
+           rows, args=args, results={"runs": results},
+           notes=["loop process CPU includes the simulated drives (stepped on the loop's "
+                  "thread); the writer process records (rings.py, writer.py)."])
+
+
+if __name__ == "__main__":
+    main()

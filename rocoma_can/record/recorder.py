@@ -1,0 +1,258 @@
+"""Recording for ``rocoma-can run`` and the demo: the loop's side of it, and the writer
+process it starts (the flight recorder, on by default, and ``--record``).
+
+The loop must not pay for recording: JSON, MCAP, candump text and the disk cost ~20 % of a
+core at 1 kHz with 12 drives, and in the loop's interpreter they took that from the loop.
+So the loop's process only copies, into rings in shared memory (rings.py): each cycle's
+signal row (trace.SignalTrace, ~4 µs) and each frame its buses carried (~0.3 µs a frame:
+the hardware's own reader hands the received ones over, BusPort the sent ones; no second
+socket). Everything else runs in a process of its own (writer.py), niced, on the other core:
+it reads the rings every 50 ms, writes ``--record``'s files and, on an e-stop, a flight
+record from the rings' last ``seconds``.
+
+Manager events reach the writer through a pipe, sent by a thread of this process from a
+bounded queue (full: dropped, counted in ``events_dropped``). The writer answers on another
+pipe: each flight record's path (said through ``announce``, or logged) and each failure (a
+full disk: the first one logged as a warning, all in ``errors``). If the writer dies, the
+loop runs on and the reason is in ``errors``; if this process dies, the writer writes what
+the rings hold and ends.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from ..drivers.joints import JointCommand, JointState
+from ..events import ManagerEvent
+from .can_log import RecordingError
+from .flight import MAX_FRAMES_PER_SECOND
+from .rings import FrameRing, SharedFile, layout
+from .trace import ActiveController, RowLayout, SignalTrace, event_message
+from .writer import Spec
+
+log = logging.getLogger(__name__)
+
+#: what a recording keeps at least, s: how far the writer may fall behind before a ring
+#: overwrites what it has not written
+SLACK = 10.0
+#: how long the writer process may take to start (imports) and to finish (its last
+#: writes, a flight record), s
+START_WAIT = 30.0
+CLOSE_WAIT = 30.0
+#: manager events queued for the writer at most
+EVENT_QUEUE = 4096
+#: the writer's niceness: the loop's process comes first when the cores are busy
+NICE = 5
+
+
+@dataclass
+class FlightStatus:
+    """The flight recorder as the run sees it: its directory, each record written (in
+    order), each failure."""
+    directory: Path
+    dumps: list[Path] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+
+
+@dataclass
+class RecordingStatus:
+    """``--record DIR`` as the run sees it: ``DIR/trace.mcap`` and a log per bus; every
+    failure, the first first (the recording then stopped)."""
+    directory: Path
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def path(self) -> Path:
+        return self.directory / "trace.mcap"
+
+
+@dataclass(frozen=True)
+class BusToRecord:
+    """A bus as its recording names it: its config label, its channel (the candump
+    files'), CAN FD or not (the size of a frame record)."""
+    label: str
+    channel: str
+    fd: bool
+
+
+class Recorder:
+    """The rings, the writer process and the threads that talk to it (see module)."""
+
+    def __init__(self, state: JointState, command: JointCommand, manager: ActiveController,
+                 rate: float, buses: Sequence[BusToRecord], *, record: str | None = None,
+                 flight: str | None = None, seconds: float = 10.0,
+                 controllers: Sequence[str] = (),
+                 announce: Callable[[str], None] | None = None) -> None:
+        if record is None and flight is None:
+            raise ValueError("a recorder records something: record, flight or both")
+        keep = max(seconds if flight is not None else 0.0, SLACK)
+        frames = int(MAX_FRAMES_PER_SECOND * keep)
+        specs = layout([("rows", max(2, int(rate * keep)), RowLayout(state.names).width,
+                         False)] + [(f"{bus.label} {way}", frames, 0, bus.fd)
+                                    for bus in buses for way in ("received", "sent")])
+        self._shared = SharedFile(specs[-1].offset + specs[-1].size)
+        rows = specs[0]
+        self.trace = SignalTrace(state, command, manager, rows.capacity,
+                                 rows=self._shared.array(rows),
+                                 publish=lambda n: self._shared.publish(rows, n),
+                                 known=controllers)
+        #: per bus, in order: (received, sent) rings, for CanopenHardware.record_frames
+        self.frame_taps = [(FrameRing(self._shared, specs[1 + 2 * k], sent=False),
+                            FrameRing(self._shared, specs[2 + 2 * k], sent=True))
+                           for k in range(len(buses))]
+        self.flight = FlightStatus(Path(flight)) if flight is not None else None
+        self.recording = RecordingStatus(Path(record)) if record is not None else None
+        self.events_dropped = 0
+        self._announce = announce
+        self._sent_controllers = dict(self.trace.controllers)
+        self._queue: queue.Queue[str | None] = queue.Queue(maxsize=EVENT_QUEUE)
+        self._ready: queue.Queue[dict[str, Any]] = queue.Queue()
+        self._closed = threading.Event()
+        spec = Spec(self._shared.fd, self._shared.size, rows,
+                    {bus.label: (bus.channel, [specs[1 + 2 * k], specs[2 + 2 * k]])
+                     for k, bus in enumerate(buses)},
+                    list(state.names), dict(self.trace.controllers), record, flight, seconds)
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, text=True, pass_fds=(self._shared.fd,),
+            start_new_session=True,  # a Ctrl-C is the run's to handle: the writer is told
+            preexec_fn=lambda: os.nice(NICE))  # noqa: PLW1509 - no threads in the child yet
+        self._threads: list[threading.Thread] = []
+        try:
+            self._stdin: IO[str] = self._process.stdin  # type: ignore[assignment]
+            self._stdin.write(spec.to_json() + "\n")
+            self._stdin.flush()
+            self._start_thread(self._read_replies, "recorder-replies")
+            try:
+                first = self._ready.get(timeout=START_WAIT)
+            except queue.Empty:
+                raise RecordingError(f"the recording's writer process did not start within "
+                                     f"{START_WAIT:g} s") from None
+            if "failed" in first:
+                raise RecordingError(str(first["failed"]))
+            self._start_thread(self._send, "recorder-events")
+        except BaseException:
+            self._stop_process()
+            raise
+
+    def _start_thread(self, target: Callable[[], None], name: str) -> None:
+        thread = threading.Thread(target=target, name=name, daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def on_event(self, event: ManagerEvent) -> None:
+        """A manager subscriber (its event thread): queued for the writer, never waits."""
+        try:
+            self._queue.put_nowait(json.dumps({"event": event_message(event)}))
+        except queue.Full:
+            self.events_dropped += 1
+
+    def _send(self) -> None:
+        """The events and new controller numbers to the writer, then ``close``."""
+        while True:
+            try:
+                line = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                line = ""
+            lines = []
+            known = self.trace.controllers
+            if len(known) != len(self._sent_controllers):  # one added since the start: rare
+                new = {k: v for k, v in list(known.items()) if k not in self._sent_controllers}
+                self._sent_controllers.update(new)
+                lines.append(json.dumps({"controllers": new}))
+            lines.append(json.dumps({"close": True}) if line is None else line)
+            try:
+                self._stdin.write("".join(f"{text}\n" for text in lines if text))
+                self._stdin.flush()
+                if line is None:
+                    self._stdin.close()
+                    return
+            except (OSError, ValueError):  # the writer is gone: said by _read_replies
+                return
+
+    def _read_replies(self) -> None:
+        stdout = self._process.stdout
+        assert stdout is not None
+        for line in stdout:
+            try:
+                reply = json.loads(line)
+            except ValueError:
+                continue
+            if "ready" in reply or "failed" in reply:
+                self._ready.put(reply)
+            elif "flight_record" in reply:
+                self._flight_record(Path(reply["flight_record"]), str(reply["cause"]))
+            elif "error" in reply:
+                self._error(str(reply["error"]), reply.get("of") == "flight")
+            elif "closed" in reply:
+                self._closed.set()
+        if not self._closed.is_set():
+            code = self._process.poll()
+            self._ready.put({"failed": f"the recording's writer process ended (exit code "
+                                       f"{code})"})
+            self._error(f"the recording's writer process ended (exit code {code})", False)
+            if self.flight is not None:
+                self.flight.errors.append("the flight recorder's writer process ended")
+
+    def _flight_record(self, path: Path, cause: str) -> None:
+        if self.flight is not None:
+            self.flight.dumps.append(path)
+        if self._announce is not None:  # said once: by the announcer, else in the log
+            self._announce(f"flight record ({cause}): {path}")
+        else:
+            log.warning("flight record (%s): %s", cause, path)
+
+    def _error(self, reason: str, of_flight: bool) -> None:
+        if of_flight:
+            if self.flight is not None:
+                self.flight.errors.append(reason)
+            log.error("flight recorder: %s", reason)
+            return
+        status = self.recording
+        if status is None:
+            return
+        status.errors.append(reason)
+        if len(status.errors) == 1:
+            log.warning("recording to %s stopped, the loop runs on: %s", status.directory,
+                        reason)
+        else:
+            log.debug("recording to %s: %s", status.directory, reason)
+
+    def close(self) -> None:
+        """After the loop's last cycle: the writer writes everything (a last flight record
+        after an e-stop), answers and ends; bounded by CLOSE_WAIT, then it is killed."""
+        try:
+            self._queue.put(None, timeout=CLOSE_WAIT)
+        except queue.Full:
+            pass
+        if not self._closed.wait(CLOSE_WAIT) and self._process.poll() is None:
+            self._error(f"the recording's writer process did not finish within "
+                        f"{CLOSE_WAIT:g} s", False)
+        self._stop_process()
+
+    def _stop_process(self) -> None:
+        try:  # (a start that failed: its end of input tells the writer to end)
+            if self._process.stdin is not None:
+                self._process.stdin.close()
+        except (OSError, ValueError):
+            pass
+        try:
+            self._process.wait(5.0)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait(5.0)
+        for thread in self._threads:
+            thread.join(5.0)
+        if self._process.stdout is not None:
+            self._process.stdout.close()
+        self._shared.close()
+

@@ -1,0 +1,147 @@
+"""``--record DIR`` in the writer process: every cycle, manager event and frame, as it happens.
+
+``DIR/trace.mcap`` gets every cycle (/rocoma/cycle) and manager event (/rocoma/event);
+``DIR/<bus>.log`` every frame of the bus, received (``R``) and sent by this manager (``T``),
+in candump -L text (``canplayer`` and ``can.LogReader`` read it). The files are made at
+start, so a directory that cannot be written stops the run before it begins.
+
+The first failure of any of its files (a full disk, mostly) or a ring the writer fell behind
+(the loop's process overwrote records not yet written) stops every file, each closed: a
+recording with a hole is no record of what happened. ``errors`` keeps every reason, the
+first one first; the loop never hears of it.
+"""
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import IO, Any
+
+from .can_log import RecordingError, candump_line
+from .rings import RingReader, frame_fields, in_time_order
+from .trace import McapWriter, RowLayout
+
+
+def slug(text: str) -> str:
+    """A name fit for a file name."""
+    return re.sub(r"[^A-Za-z0-9_]+", "-", text).strip("-")[:60] or "e-stop"
+
+
+class BusLog:
+    """One bus's candump file, fed from its received and sent rings in time order."""
+
+    def __init__(self, path: Path, channel: str, rings: Sequence[RingReader]) -> None:
+        self.path, self.frames = path, 0
+        self.channel = f"can{channel}" if channel.isdigit() else channel  # as python-can
+        self._rings = rings
+        self._next = [0] * len(rings)
+        try:
+            self._file: IO[str] = open(path, "w", encoding="ascii")  # noqa: SIM115 - close()
+        except OSError as exc:
+            raise RecordingError(f"{path}: cannot write: {exc}") from exc
+
+    def write(self) -> None:
+        """What the rings got since the last write; RecordingError on a hole or a failed
+        write."""
+        parts = []
+        for k, ring in enumerate(self._rings):
+            start, records = ring.read(self._next[k])
+            if start > self._next[k]:
+                raise RecordingError(f"{self.path}: {start - self._next[k]} frames lost (the "
+                                     "writer fell a ring behind)")
+            self._next[k] = start + len(records)
+            parts.append(records)
+        channel = self.channel
+        lines = [candump_line(t, channel, cob, flags, data)
+                 for t, cob, flags, data in frame_fields(in_time_order(parts))]
+        if not lines:
+            return
+        try:
+            self._file.write("".join(lines))
+            self._file.flush()  # on disk now: a crash loses at most one poll
+        except (OSError, ValueError) as exc:
+            raise RecordingError(f"{self.path}: writing failed after {self.frames} frames: "
+                                 f"{exc}") from exc
+        self.frames += len(lines)
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class Recording:
+    """trace.mcap and one BusLog per bus (see module)."""
+
+    def __init__(self, directory: Path, layout: RowLayout, rows: RingReader,
+                 buses: Mapping[str, tuple[str, Sequence[RingReader]]]) -> None:
+        self.directory = directory
+        self.path = directory / "trace.mcap"
+        self.errors: list[str] = []
+        self._layout, self._rows, self._next = layout, rows, 0
+        self._logs: list[BusLog] = []
+        self._stream: IO[bytes] | None = None
+        self._writer: McapWriter | None = None
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            for label, (channel, rings) in buses.items():
+                self._logs.append(BusLog(directory / f"{slug(label)}.log", channel, rings))
+            try:
+                self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in stop()
+            except OSError as exc:
+                raise RecordingError(f"{self.path}: cannot write: {exc}") from exc
+            self._writer = McapWriter(self._stream, layout.names)
+        except RecordingError:
+            self._close_files()  # no file left open
+            raise
+        except OSError as exc:  # the directory
+            self._close_files()
+            raise RecordingError(f"{directory}: cannot write: {exc}") from exc
+
+    @property
+    def running(self) -> bool:
+        return self._writer is not None
+
+    def write(self, controllers: Mapping[int, str], events: Iterable[Mapping[str, Any]],
+              offset: float) -> str | None:
+        """Everything new; the first failure's reason (every file then stopped), else None."""
+        writer = self._writer
+        if writer is None:
+            return None
+        start, rows = self._rows.read(self._next)
+        try:
+            if start > self._next:
+                raise RecordingError(f"{self.path}: {start - self._next} cycles lost (the "
+                                     "writer fell a ring behind)")
+            writer.cycles(self._layout, controllers, rows, offset)
+            writer.events(events, offset)
+            self._next = start + len(rows)
+            for bus_log in self._logs:
+                bus_log.write()
+        except (OSError, ValueError) as exc:  # RecordingError too
+            reason = str(exc) if isinstance(exc, RecordingError) else \
+                f"{self.path}: writing failed: {exc}"
+            self.errors.append(reason)
+            self.stop()
+            return reason
+        return None
+
+    def stop(self) -> None:
+        """Every file closed, whatever fails on the way (its reason kept)."""
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            try:
+                writer.finish()
+            except (OSError, ValueError) as exc:  # a full disk: the summary cannot go out
+                self.errors.append(f"{self.path}: closing failed: {exc}")
+        self._close_files()
+
+    def _close_files(self) -> None:
+        for bus_log in self._logs:
+            try:
+                bus_log.close()
+            except OSError as exc:
+                self.errors.append(f"{bus_log.path}: closing failed: {exc}")
+        if self._stream is not None:
+            try:
+                self._stream.close()  # closes the file even when its last flush fails
+            except OSError as exc:
+                self.errors.append(f"{self.path}: closing failed: {exc}")

@@ -1,0 +1,171 @@
+"""The recording's writer process (``python -m rocoma_can.record.writer``; recorder.py
+starts it): every slow part of recording, on an interpreter of its own.
+
+The loop's process hands over through shared memory (rings.py: signal rows, each bus's
+received and sent frames) and a pipe (this process's stdin, one JSON object a line): first
+the set-up (``Spec``), then manager events ``{"event": ...}``, controller numbers
+``{"controllers": {name: number}}`` and ``{"close": true}``. Every ``POLL`` s it writes what
+the rings got (``--record``: recording.py) and the flight records due (flight.py). It
+answers on stdout, one JSON object a line: ``{"ready": true}`` or ``{"failed": reason}`` at
+start, ``{"flight_record": path, "cause": ...}``, ``{"error": reason, "of": "recording" |
+"flight"}``, and last ``{"closed": true}``.
+
+Its stdin ending without ``close`` means the loop's process died (killed, crashed): what
+is in the rings is written, the flight recorder writes a record of the last seconds (cause
+"the manager's process ended without closing"), and it ends.
+"""
+from __future__ import annotations
+
+import json
+import queue
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import IO, Any
+
+from .can_log import RecordingError
+from .flight import FlightRecords
+from .recording import Recording
+from .rings import RingReader, RingSpec, SharedFile
+from .trace import RowLayout
+
+#: how often the rings are written out, s
+POLL = 0.05
+
+
+@dataclass
+class Spec:
+    """What the writer is told at start: the shared file and its rings (``rows``; per bus
+    label, its channel and its received and sent rings), the joints, and what to write."""
+    fd: int
+    size: int
+    rows: RingSpec
+    buses: dict[str, tuple[str, list[RingSpec]]]
+    joints: list[str]
+    controllers: dict[str, int]
+    record: str | None = None
+    flight: str | None = None
+    seconds: float = 10.0
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> Spec:
+        raw = json.loads(text)
+        raw["rows"] = RingSpec(**raw["rows"])
+        raw["buses"] = {label: (channel, [RingSpec(**r) for r in rings])
+                        for label, (channel, rings) in raw["buses"].items()}
+        return cls(**raw)
+
+
+class Writer:
+    """The writer's state: the rings, the recording, the flight records."""
+
+    def __init__(self, spec: Spec, reply: IO[str]) -> None:
+        self._reply = reply
+        self.shared = SharedFile(spec.size, spec.fd)
+        layout = RowLayout(spec.joints)
+        rows = RingReader(self.shared, spec.rows)
+        rings = {label: (channel, [RingReader(self.shared, r) for r in specs])
+                 for label, (channel, specs) in spec.buses.items()}
+        self.controllers = {number: name for name, number in spec.controllers.items()}
+        self.events: list[dict[str, Any]] = []  # for the recording, since its last write
+        self.recording = (Recording(Path(spec.record), layout, rows, rings)
+                          if spec.record is not None else None)
+        self.flight = (FlightRecords(Path(spec.flight), spec.seconds, layout, rows,
+                                     {label: r for label, (_, r) in rings.items()})
+                       if spec.flight is not None else None)
+
+    def say(self, **message: Any) -> None:
+        self._reply.write(json.dumps(message) + "\n")
+        self._reply.flush()
+
+    def command(self, command: Mapping[str, Any]) -> None:
+        if "event" in command:
+            event = command["event"]
+            if self.recording is not None and self.recording.running:
+                self.events.append(event)
+            if self.flight is not None:
+                self.flight.on_event(event)
+        if "controllers" in command:
+            self.controllers.update({number: name for name, number
+                                     in command["controllers"].items()})
+
+    def write(self, closing: bool = False) -> None:
+        if self.recording is not None:
+            events, self.events = self.events, []
+            failed = self.recording.write(self.controllers, events,
+                                          time.time() - time.monotonic())
+            if failed is not None:
+                self.say(error=failed, of="recording")
+        flight = self.flight
+        if flight is not None:
+            if closing and flight.faulted:
+                flight.request("shutdown after an e-stop")
+            if flight.due(time.monotonic(), closing):
+                done = flight.dump(self.controllers)
+                if isinstance(done, str):
+                    self.say(error=done, of="flight")
+                else:
+                    self.say(flight_record=str(done[0]), cause=done[1])
+
+    def close(self) -> None:
+        if self.recording is not None:
+            self.recording.stop()
+            for reason in self.recording.errors[1:]:  # the first was said as it happened
+                self.say(error=reason, of="recording")
+        self.shared.close()
+
+
+def _read_commands(stream: IO[str], commands: queue.Queue[dict[str, Any] | None]) -> None:
+    """stdin, a command a line, into ``commands``; None at its end."""
+    for line in stream:
+        try:
+            commands.put(json.loads(line))
+        except ValueError:
+            continue  # not ours: the pipe is only written by the recorder
+    commands.put(None)
+
+
+def main() -> int:
+    reply = sys.stdout
+    try:
+        spec = Spec.from_json(sys.stdin.readline())
+        writer = Writer(spec, reply)
+    except (RecordingError, OSError, ValueError, TypeError, KeyError, ImportError) as exc:
+        reply.write(json.dumps({"failed": str(exc) if isinstance(exc, RecordingError)
+                                else f"{type(exc).__name__}: {exc}"}) + "\n")
+        reply.flush()
+        return 1
+    writer.say(ready=True)
+    commands: queue.Queue[dict[str, Any] | None] = queue.Queue()
+    threading.Thread(target=_read_commands, args=(sys.stdin, commands), daemon=True,
+                     name="commands").start()
+    next_write = time.monotonic() + POLL
+    while True:
+        try:
+            command = commands.get(timeout=max(0.0, next_write - time.monotonic()))
+        except queue.Empty:
+            command = {}
+        if command is None:  # the loop's process died: its last seconds are a record
+            if writer.flight is not None:
+                writer.flight.request("the manager's process ended without closing")
+            break
+        if command.get("close"):
+            break
+        writer.command(command)
+        if time.monotonic() >= next_write:  # a stream of events does not hold writing up
+            writer.write()
+            next_write = time.monotonic() + POLL
+    writer.write(closing=True)
+    writer.close()
+    writer.say(closed=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,232 @@
+"""Recording off the loop's interpreter (record/rings.py, recorder.py, writer.py): the loop's
+process only copies into shared memory, a writer process writes; what it writes holds every
+cycle and every frame; the loop's part allocates nothing; a writer that dies, or a manager
+process that dies, loses the run nothing it could keep."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from collections import defaultdict
+
+import can
+import pytest
+from fixtures.running import DEMO_RUN, DEMO_WAIT, wait_for
+
+from rocoma_can import ManagerState
+from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, frame_fields, layout
+from rocoma_can.record.trace import RowLayout, SignalTrace, read_messages
+from rocoma_can.runtime import Runtime
+from rocoma_can.runtime.config import validate
+
+RATE = 100.0
+
+
+@pytest.fixture
+def bench(virtual_channel, sim_segment_factory):
+    segment = sim_segment_factory(2)
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["manager"]["estop_must_be_cleared"] = False
+    return validate(cfg), segment
+
+
+def _switch_then_stop(rt: Runtime, run: float) -> threading.Thread:
+    def operate() -> None:
+        wait_for(lambda: rt.manager.switch_blocked() is None, "drives ready", DEMO_WAIT)
+        rt.manager.switch_controller("pd", timeout=DEMO_WAIT)
+        time.sleep(run)
+        rt.loop.stop("test")
+    thread = threading.Thread(target=operate)
+    thread.start()
+    return thread
+
+
+def test_the_recording_holds_every_frame_an_independent_listener_saw(bench, tmp_path,
+                                                                     bus_factory):
+    """Every frame on the bus, received by the hardware or sent by it, is in the bus's
+    candump file, in order per COB-ID, with what the manager sent marked T (its own reader
+    never sees those: they come from BusPort) and what it received R. An independent
+    listener on the bus is the reference; only frames in flight at the ends may differ."""
+    config, _segment = bench
+    listener = bus_factory(receive_own_messages=False)
+    heard: list[can.Message] = []
+    reading = threading.Event()
+
+    def listen() -> None:
+        while not reading.is_set():
+            msg = listener.recv(0.05)
+            if msg is not None:
+                heard.append(msg)
+    thread = threading.Thread(target=listen)
+    thread.start()
+    try:
+        with Runtime(config, record=str(tmp_path / "rec")) as rt:
+            operator = _switch_then_stop(rt, 1.0)
+            rt.run(duration=DEMO_RUN, signals=False)
+            operator.join(DEMO_WAIT)
+            cycles = rt.loop.stats.cycles
+    finally:
+        time.sleep(0.1)
+        reading.set()
+        thread.join(5.0)
+    assert rt.recording is not None and not rt.recording.errors, rt.recording.errors
+    [log_file] = (tmp_path / "rec").glob("*.log")
+    recorded = list(can.LogReader(str(log_file)))
+    by_id: dict[int, list[bytes]] = defaultdict(list)
+    for msg in heard:
+        by_id[msg.arbitration_id].append(bytes(msg.data))
+    ours: dict[int, list[bytes]] = defaultdict(list)
+    for msg in recorded:
+        ours[msg.arbitration_id].append(bytes(msg.data))
+    sent = {0x080, 0x201, 0x202, 0x700 + config.manager.node_id}  # SYNC, RPDOs, heartbeat
+    received = {0x181, 0x182, 0x701, 0x702}                       # TPDOs, drive heartbeats
+    for cob_id in sent | received:
+        assert ours[cob_id], f"no 0x{cob_id:03X} recorded"
+        theirs = by_id[cob_id]
+        # the recording is one stretch of what the listener heard (the drives' heartbeats
+        # began before the manager did) ...
+        assert any(theirs[k:k + len(ours[cob_id])] == ours[cob_id]
+                   for k in range(len(theirs) - len(ours[cob_id]) + 1)), hex(cob_id)
+        # ... and of what the cycle made happen, all but what was on its way at the end
+        if cob_id not in (0x701, 0x702):
+            assert len(theirs) - len(ours[cob_id]) <= 2, hex(cob_id)
+    for msg in recorded:
+        if msg.arbitration_id in sent:
+            assert not msg.is_rx, msg
+        elif msg.arbitration_id in received:
+            assert msg.is_rx, msg
+    syncs = len(ours[0x080])
+    assert syncs >= cycles  # a SYNC every cycle (and the loop's stop cycles')
+    trace = [m for topic, _, m in read_messages(str(tmp_path / "rec" / "trace.mcap"))
+             if topic == "/rocoma/cycle"]
+    assert len(trace) == cycles
+
+
+def test_the_flight_record_has_the_frames_the_hardware_read_and_sent(bench, tmp_path):
+    """No second bus handle: the hardware's own reader and sends feed the flight recorder.
+    The record has both directions, each frame marked."""
+    config, segment = bench
+    from rocoma_can.drivers.bus_port import BusPort
+    opened: list[object] = []
+    original = BusPort.open
+
+    def counting_open(self, cob_ids):  # every bus handle the runtime opens for drives
+        opened.append(self)
+        return original(self, cob_ids)
+    BusPort.open = counting_open  # type: ignore[method-assign]
+    try:
+        with Runtime(config, flight=str(tmp_path / "flight"), flight_seconds=1.0) as rt:
+            def operate() -> None:
+                wait_for(lambda: rt.manager.switch_blocked() is None, "ready", DEMO_WAIT)
+                rt.manager.switch_controller("pd", timeout=DEMO_WAIT)
+                time.sleep(0.5)
+                segment.drives[1].trip_fault()
+                time.sleep(0.3)
+                rt.loop.stop("test")
+            worker = threading.Thread(target=operate)
+            worker.start()
+            rt.run(duration=DEMO_RUN, signals=False)
+            worker.join(DEMO_WAIT)
+    finally:
+        BusPort.open = original  # type: ignore[method-assign]
+    assert len(opened) == 1
+    first = sorted((tmp_path / "flight").iterdir())[0]
+    frames = [m for topic, _, m in read_messages(str(first)) if topic.startswith("/can/")]
+    assert {m["id"] for m in frames if m["sent"]} >= {0x080, 0x201, 0x202}
+    assert {m["id"] for m in frames if not m["sent"]} >= {0x181, 0x182}
+
+
+def test_the_loops_part_allocates_nothing(tmp_path):
+    """A cycle's row and a frame into the shared rings: no memory block left behind, over
+    thousands of calls (the loop's thread must not feed the garbage collector)."""
+    state, command = JointState.zeros(12), JointCommand.zeros(12)
+    rows, frames = layout([("rows", 500, RowLayout(state.names).width, False),
+                           ("bus sent", 500, 0, False)])
+    shared = SharedFile(frames.offset + frames.size)
+
+    class Manager:
+        active_controller_name = "pd"
+    trace = SignalTrace(state, command, Manager(), rows.capacity, rows=shared.array(rows),
+                        publish=lambda n: shared.publish(rows, n), known=["pd"])
+    ring = FrameRing(shared, frames, sent=True)
+    msg = can.Message(arbitration_id=0x201, data=bytearray(8), is_extended_id=False)
+    stamp = time.time()
+    for k in range(1000):  # warm: caches, the first allocation of everything
+        trace.record(k * 1e-3, 1e-4, 0.0, ManagerState.OK)
+        ring.put(msg, stamp)
+    before = sys.getallocatedblocks()
+    for k in range(5000):
+        trace.record(k * 1e-3, 1e-4, 0.0, ManagerState.OK)
+        ring.put(msg, stamp)
+    assert sys.getallocatedblocks() - before < 10
+    assert shared.count(rows) == 6000 and shared.count(frames) == 6000
+    start, records = RingReader(shared, frames).read(0)
+    assert start == 5500 and len(records) == 500  # the ring's last 500
+    assert frame_fields(records[:1]) == [(stamp, 0x201, 64, "0000000000000000")]
+
+
+def test_a_writer_process_that_dies_is_said_and_the_loop_runs_on(bench, tmp_path, caplog):
+    config, _segment = bench
+    caplog.set_level("WARNING")
+    with Runtime(config, record=str(tmp_path / "rec"), flight=str(tmp_path / "flight")) as rt:
+        assert rt.recorder is not None
+        writer = rt.recorder._process
+        def kill() -> None:
+            wait_for(lambda: rt.loop.stats.cycles > 20, "cycles", DEMO_WAIT)
+            writer.kill()
+            wait_for(lambda: rt.recording is not None and rt.recording.errors,
+                     "the writer's death said", DEMO_WAIT)
+            time.sleep(0.3)
+            rt.loop.stop("test")
+        worker = threading.Thread(target=kill)
+        worker.start()
+        summary = rt.run(duration=DEMO_RUN, signals=False)
+        worker.join(DEMO_WAIT)
+    assert rt.loop.stop_reason == "test"
+    assert summary.cycles >= 40  # it ran on after the writer died
+    assert rt.recording.errors[0].startswith("the recording's writer process ended")
+    assert rt.flight is not None and rt.flight.errors
+    assert writer.poll() is not None
+
+
+def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
+    """The writer outlives the manager's process by the time it takes to write what the
+    rings hold: SIGKILL the process running the loop, and the flight record of its last
+    seconds is there, and the writer has ended."""
+    config, _segment = bench
+    channel = config.bus.channel
+    script = textwrap.dedent(f"""
+        import sys, time, threading
+        sys.path.insert(0, {str(os.path.dirname(__file__))!r})
+        from rocoma_can.cli.demo_config import demo_config
+        from rocoma_can.runtime import Runtime
+        from rocoma_can.runtime.config import validate
+        from fixtures.sim import SimulatedSegment
+        seg = SimulatedSegment.open({channel!r} + "-child", "virtual", [1, 2])
+        cfg = demo_config({channel!r} + "-child", drives=2, rate={RATE})
+        rt = Runtime(validate(cfg), flight={str(tmp_path / "flight")!r}, flight_seconds=1.0)
+        print(rt.recorder._process.pid, flush=True)
+        rt.run(duration=60, signals=False)
+    """)
+    child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        writer = int(child.stdout.readline())
+        time.sleep(1.5)  # a second of cycles in the rings
+        child.send_signal(signal.SIGKILL)
+        child.wait(DEMO_WAIT)
+        wait_for(lambda: not os.path.exists(f"/proc/{writer}") or
+                 open(f"/proc/{writer}/stat").read().split()[2] == "Z",
+                 "the writer ends", DEMO_WAIT)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    [record] = list((tmp_path / "flight").iterdir())
+    assert "process-ended-without-closing" in record.name
+    cycles = [m for topic, _, m in read_messages(str(record)) if topic == "/rocoma/cycle"]
+    assert len(cycles) >= 0.5 * RATE
