@@ -19,16 +19,17 @@ from rocoma_can.cli.main import build_parser
 from rocoma_can.live.foxglove import (
     DEFAULT_HOST,
     DEFAULT_PORT,
-    SCHEMAS,
     FoxgloveConfig,
     parse_address,
 )
+from rocoma_can.live.messages import MANAGER_CHANNELS
 from rocoma_can.remote import COMMANDS
 
 pytest.importorskip("foxglove")
 sync_client = pytest.importorskip("websockets.sync.client")
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+TOPICS = [c.topic for c in MANAGER_CHANNELS]
 MESSAGE_DATA, SERVICE_CALL_REQUEST, SERVICE_CALL_RESPONSE = 0x01, 0x02, 0x03
 
 
@@ -115,9 +116,10 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
     with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
         viewer = Viewer(rt.foxglove.port)
         try:
-            viewer.subscribe(*SCHEMAS)
-            assert {t: viewer.channels[t]["schemaName"] for t in SCHEMAS} == {
-                t: s["title"] for t, s in SCHEMAS.items()}
+            viewer.subscribe(*TOPICS)
+            assert {t: viewer.channels[t]["schemaName"] for t in TOPICS} == {
+                c.topic: c.schema_name for c in MANAGER_CHANNELS}
+            assert "/robot_description" not in viewer.channels  # no URDF in the config
             viewer.pump(lambda: {f"/rocoma/{c}" for c in COMMANDS} <= set(viewer.services),
                         "every command service advertised")
             viewer.pump(lambda: viewer.received.get("/joint_states"), "joint states")
@@ -208,7 +210,7 @@ def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_fa
         stalled = Viewer(rt.foxglove.port, sock=raw, max_queue=1)
         healthy = Viewer(rt.foxglove.port)
         try:
-            stalled.subscribe(*SCHEMAS)  # reads the advertisements, then never again
+            stalled.subscribe(*TOPICS)  # reads the advertisements, then never again
             healthy.subscribe("/joint_states")
             healthy.pump(lambda: len(healthy.received.get("/joint_states", [])) >= 100,
                          "a first hundred joint states")
