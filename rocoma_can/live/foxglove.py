@@ -1,4 +1,4 @@
-"""``run --foxglove``: the manager live in Foxglove (or PlotJuggler), on a Foxglove
+"""``run --foxglove``: the manager live in Foxglove, on a Foxglove
 WebSocket served by foxglove-sdk (extra ``foxglove``), loopback by default.
 
 Channels: messages.py's, each JSON with its JSON schema. ``/joint_states``,
