@@ -5,30 +5,35 @@ nothing."""
 from __future__ import annotations
 
 import json
+import math
 import socket
 import struct
 import time
 from contextlib import ExitStack
+from pathlib import Path
 from typing import Any
 
 import pytest
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo_config import demo_config, demo_urdf
 from rocoma_can.cli.main import build_parser
 from rocoma_can.live.foxglove import (
     DEFAULT_HOST,
     DEFAULT_PORT,
-    SCHEMAS,
+    LAYOUT,
     FoxgloveConfig,
     parse_address,
 )
+from rocoma_can.live.messages import MANAGER_CHANNELS, ROBOT
+from rocoma_can.live.urdf import parse_urdf
 from rocoma_can.remote import COMMANDS
 
 pytest.importorskip("foxglove")
 sync_client = pytest.importorskip("websockets.sync.client")
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+TOPICS = [c.topic for c in MANAGER_CHANNELS]
 MESSAGE_DATA, SERVICE_CALL_REQUEST, SERVICE_CALL_RESPONSE = 0x01, 0x02, 0x03
 
 
@@ -115,9 +120,10 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
     with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
         viewer = Viewer(rt.foxglove.port)
         try:
-            viewer.subscribe(*SCHEMAS)
-            assert {t: viewer.channels[t]["schemaName"] for t in SCHEMAS} == {
-                t: s["title"] for t, s in SCHEMAS.items()}
+            viewer.subscribe(*TOPICS)
+            assert {t: viewer.channels[t]["schemaName"] for t in TOPICS} == {
+                c.topic: c.schema_name for c in MANAGER_CHANNELS}
+            assert "/robot_description" not in viewer.channels  # no URDF in the config
             viewer.pump(lambda: {f"/rocoma/{c}" for c in COMMANDS} <= set(viewer.services),
                         "every command service advertised")
             viewer.pump(lambda: viewer.received.get("/joint_states"), "joint states")
@@ -208,7 +214,7 @@ def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_fa
         stalled = Viewer(rt.foxglove.port, sock=raw, max_queue=1)
         healthy = Viewer(rt.foxglove.port)
         try:
-            stalled.subscribe(*SCHEMAS)  # reads the advertisements, then never again
+            stalled.subscribe(*TOPICS)  # reads the advertisements, then never again
             healthy.subscribe("/joint_states")
             healthy.pump(lambda: len(healthy.received.get("/joint_states", [])) >= 100,
                          "a first hundred joint states")
@@ -288,10 +294,14 @@ def test_the_demo_serves_its_robot_live(capsys):
             line for line in lines if "ws://" in line)).group(1))
         viewer = Viewer(port)
         try:
-            viewer.subscribe("/joint_states")
-            viewer.pump(lambda: len(viewer.received.get("/joint_states", [])) >= 10,
-                        "ten joint states from the demo")
+            viewer.subscribe("/joint_states", "/robot_description")
+            viewer.pump(lambda: len(viewer.received.get("/joint_states", [])) >= 10
+                        and viewer.received.get("/robot_description"),
+                        "ten joint states and the robot from the demo")
             seen["names"] = viewer.received["/joint_states"][-1]["name"]
+            seen["movable"] = parse_urdf(viewer.received["/robot_description"][0][
+                "data"].encode(), "sent").movable
+            seen["topics"] = set(viewer.channels)
         finally:
             viewer.close()
     viewer = threading.Thread(target=watch)
@@ -301,3 +311,140 @@ def test_the_demo_serves_its_robot_live(capsys):
     viewer.join(DEMO_WAIT)
     assert report.ok, "\n".join(lines)
     assert seen.get("names") == ["joint1", "joint2"], (seen, lines)
+    assert seen["movable"] == ("joint1", "joint2")  # the demo's arm: a joint per drive
+    said = next(line for line in lines if "ws://" in line)
+    assert said.endswith(f"layout to import in Foxglove: {LAYOUT}") and LAYOUT.is_file()
+    assert _layout_topics() <= seen["topics"]  # the layout shows what the demo serves
+
+
+def _angle_about_z(q: dict[str, float]) -> float:
+    assert abs(q["x"]) < 1e-12 and abs(q["y"]) < 1e-12  # joint1 of the demo arm turns about z
+    return 2 * math.atan2(q["z"], q["w"])
+
+
+def test_the_robot_and_its_transforms_follow_the_joints(virtual_channel, sim_segment_factory,
+                                                        tmp_path):
+    """With urdf: in the config, a viewer gets the URDF as it subscribes (a second one,
+    later, too: a WebSocket keeps nothing for it) and a transform per joint on /tf at the
+    joints' positions: each /tf sample turns joint1 by the position /joint_states sent with
+    the same timestamp, and they change as the pd controller moves the joints."""
+    sim_segment_factory(2)
+    urdf = demo_urdf(["joint1", "joint2"])
+    (tmp_path / "arm.urdf").write_text(urdf)
+    config = {**_config(virtual_channel), "urdf": str(tmp_path / "arm.urdf")}
+    with runtime_running(config, DEMO_RUN, foxglove=_view()) as rt:
+        viewer = Viewer(rt.foxglove.port)
+        late = None
+        try:
+            viewer.subscribe("/robot_description", "/tf", "/joint_states")
+            assert {t: viewer.channels[t]["schemaName"] for t in ("/robot_description", "/tf")
+                    } == {c.topic: c.schema_name for c in ROBOT}
+            viewer.pump(lambda: viewer.received.get("/robot_description"), "the URDF")
+            assert viewer.received["/robot_description"] == [{"data": urdf}]
+            wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
+            assert rt.manager.switch_controller("pd", timeout=DEMO_WAIT) == 0  # to 0.3 rad
+
+            def angles() -> list[tuple[float, float]]:
+                """(joint1's position, its /tf angle) per sample both arrived of."""
+                by_time = {json.dumps(m["timestamp"]): m["position"][0]
+                           for m in viewer.received.get("/joint_states", [])}
+                pairs = []
+                for m in viewer.received.get("/tf", []):
+                    first = m["transforms"][0]
+                    position = by_time.get(json.dumps(first["timestamp"]))
+                    if position is not None:
+                        pairs.append((position, _angle_about_z(first["rotation"])))
+                return pairs
+            viewer.pump(lambda: len(angles()) > 10 and max(p for p, _ in angles())
+                        - min(p for p, _ in angles()) > 0.1, "joint1 moving on /tf")
+            for position, angle in angles():
+                assert angle == pytest.approx(position, abs=1e-9)
+            tf = viewer.received["/tf"][-1]["transforms"]
+            assert [(t["parent_frame_id"], t["child_frame_id"]) for t in tf] == [
+                ("base_link", "joint1_link"), ("joint1_link", "joint2_link")]
+
+            late = Viewer(rt.foxglove.port)
+            late.subscribe("/robot_description")
+            late.pump(lambda: late.received.get("/robot_description"), "the URDF, later")
+            assert late.received["/robot_description"][0] == {"data": urdf}
+        finally:
+            viewer.close()
+            if late is not None:
+                late.close()
+
+
+# --- the layout shipped for the demo (rocoma_can/live/foxglove_layout.json) -------------------
+
+def _layout() -> dict[str, Any]:
+    return json.loads(LAYOUT.read_text())
+
+
+def _panels(node: Any) -> list[str]:
+    """The panel ids of a layout's split tree, left to right."""
+    if isinstance(node, str):
+        return [node]
+    assert set(node) <= {"first", "second", "direction", "splitPercentage"}, node
+    assert node["direction"] in ("row", "column")
+    return _panels(node["first"]) + _panels(node["second"])
+
+
+def _layout_paths() -> list[str]:
+    """Every message path and topic the layout's panels read."""
+    found = []
+    for config in _layout()["configById"].values():
+        found += [p["value"] for p in config.get("paths", [])]
+        found += [config[k] for k in ("topicToRender", "topicPath") if k in config]
+        found += [layer["topic"] for layer in config.get("layers", {}).values()
+                  if layer.get("sourceType") == "topic"]
+    return found
+
+
+def _layout_topics() -> set[str]:
+    return {path.split(".")[0] for path in _layout_paths()}
+
+
+#: the panels it has and how Foxglove names their types
+PANEL_TYPES = {"3D", "Plot", "StateTransitions", "RosOut", "RawMessages"}
+
+
+def test_the_layout_is_one_foxglove_can_import():
+    """A layout as Foxglove exports it: configById, the split tree of the same panels,
+    the 3D panel's URDF layer reading the robot from its topic."""
+    layout = _layout()
+    assert set(layout) == {"configById", "globalVariables", "userNodes", "playbackConfig",
+                           "layout"}
+    ids = list(layout["configById"])
+    assert sorted(_panels(layout["layout"])) == sorted(ids)
+    assert {i.split("!")[0] for i in ids} == PANEL_TYPES and all(i.count("!") == 1
+                                                                 for i in ids)
+    urdf = [layer for layer in layout["configById"]["3D!robot"]["layers"].values()
+            if layer["layerId"] == "foxglove.Urdf"]
+    assert [(u["sourceType"], u["topic"], u["instanceId"]) for u in urdf] == [
+        ("topic", "/robot_description", "robot")]
+    assert layout["configById"]["RosOut!log"]["topicToRender"] == "/rocoma/log"
+
+
+def test_the_layout_reads_only_what_the_view_serves():
+    """Each topic one the view advertises (with a URDF), each field one of its schema."""
+    schemas = {c.topic: c.schema for c in MANAGER_CHANNELS + ROBOT}
+    for path in _layout_paths():
+        topic, _, field = path.partition(".")
+        assert topic in schemas, path
+        if field:
+            assert field.split("[")[0] in schemas[topic]["properties"], path
+    assert {"/joint_states", "/rocoma/manager", "/rocoma/status", "/rocoma/log",
+            "/robot_description"} <= _layout_topics()
+
+
+def test_an_installed_package_has_the_live_view_and_its_layout():
+    """pyproject lists the package and the layout as package data: a wheel without them
+    has no live view (and no run: the runtime imports it)."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11
+    root = Path(__file__).resolve().parents[1]
+    setup = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert "rocoma_can.live" in setup["packages"]
+    shipped = setup["package-data"]["rocoma_can.live"]
+    assert any(LAYOUT.match(pattern) for pattern in shipped)
+    packages = {".".join(p.parent.relative_to(root).parts)
+                for p in (root / "rocoma_can").rglob("__init__.py")}
+    assert packages <= set(setup["packages"])

@@ -41,6 +41,7 @@ from .demo_config import (
     ZENOH_PREFIX,
     default_buses,
     demo_config,
+    demo_urdf,
     emulate,
 )
 
@@ -314,6 +315,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
+    from ..live.urdf import parse_urdf
     from ..runtime.config import validate
     from ..runtime.system import Runtime
     emulated = emulate(eds, drives) if eds else None
@@ -327,6 +329,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     if zenoh_listen is not None:
         raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
     config = validate(raw, source="demo")
+    config.robot = parse_urdf(demo_urdf([d.name for d in config.drives]).encode(), "demo")
     notes = _grouped_notes(config.plans)
     for line in notes.values():
         out(line)

@@ -178,3 +178,32 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
         ],
         "emergency_controllers": [emergency],
     }
+
+
+def demo_urdf(joints: list[str]) -> str:
+    """The demo's robot for Foxglove's 3D panel: a serial arm of cylinders on a base, one
+    revolute joint per drive (named as the drive), about as tall whatever the joint count;
+    the joints turn about z and y in turn, so each drive's motion shows."""
+    length = min(0.3, 1.2 / len(joints))
+    parts = ['<robot name="rocoma_demo_arm">',
+             '<material name="grey"><color rgba="0.5 0.5 0.5 1"/></material>',
+             '<material name="blue"><color rgba="0.2 0.45 0.9 1"/></material>',
+             '<material name="orange"><color rgba="0.95 0.55 0.15 1"/></material>',
+             _cylinder_link("base_link", 0.1, 0.05, "grey")]
+    parent, z = "base_link", 0.05
+    for i, name in enumerate(joints):
+        child = f"{name}_link"
+        parts += [f'<joint name="{name}" type="revolute"><parent link="{parent}"/>'
+                  f'<child link="{child}"/><origin xyz="0 0 {z:g}" rpy="0 0 0"/>'
+                  f'<axis xyz="{"0 0 1" if i % 3 == 0 else "0 1 0"}"/>'
+                  '<limit lower="-3.1416" upper="3.1416" effort="10" velocity="5"/></joint>',
+                  _cylinder_link(child, 0.035, length, ("blue", "orange")[i % 2])]
+        parent, z = child, length
+    return "\n".join([*parts, "</robot>"])
+
+
+def _cylinder_link(name: str, radius: float, length: float, material: str) -> str:
+    """A link drawn as a cylinder standing on its frame's origin."""
+    return (f'<link name="{name}"><visual><origin xyz="0 0 {length / 2:g}"/>'
+            f'<geometry><cylinder radius="{radius:g}" length="{length:g}"/></geometry>'
+            f'<material name="{material}"/></visual></link>')

@@ -1,16 +1,11 @@
-"""``run --foxglove``: the manager live in Foxglove (or PlotJuggler), on a Foxglove
+"""``run --foxglove``: the manager live in Foxglove, on a Foxglove
 WebSocket served by foxglove-sdk (extra ``foxglove``), loopback by default.
 
-Channels (JSON, each with its JSON schema):
-
-* ``/joint_states``: ``{"timestamp", "name", "position", "velocity", "effort"}`` per joint,
-  in SI units (rad, rad/s, Nm), every ``1/rate`` s;
-* ``/rocoma/manager``: state, active controller, e-stop latch and the last stop's cause,
-  the loop's cycle and overrun counts, and this server's own counters (drops), at ``rate``;
-* ``/rocoma/status``: the status report (``status --json``: cycle statistics, each bus's
-  load and errors, the drives) every ``status_period`` s;
-* ``/rocoma/log``: a ``foxglove.Log`` on every manager event (e-stop, state change, switch)
-  and every command called here.
+Channels: messages.py's, each JSON with its JSON schema. ``/joint_states``,
+``/rocoma/manager`` and (with a URDF) ``/tf`` every ``1/rate`` s; ``/rocoma/status`` every
+``status_period`` s; ``/rocoma/log`` on every manager event (e-stop, state change, switch)
+and every command called here; ``/robot_description`` whenever a viewer subscribes to it
+(a WebSocket keeps nothing for a late subscriber, and the 3D panel needs it once).
 
 Services (JSON request and answer, as the Zenoh bridge's, rocoma_can/remote.py):
 ``/rocoma/switch`` (request: ``{"controller": NAME}``), ``/rocoma/estop``,
@@ -28,22 +23,27 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import queue
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 from ..errors import RocomaError
 from ..events import EventKind, ManagerEvent
 from ..remote import COMMANDS, Transport, serve, switch_target
+from . import messages
+from .messages import INFO, WARNING, Channel
 
 if TYPE_CHECKING:
+    from foxglove.websocket import ServerListener
+
     from ..manager import ControllerManager
+    from .urdf import Robot
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,8 @@ EVENT_QUEUE = 256
 #: how long a switch service call waits for the switch's result (the switcher's own
 #: timeouts end it sooner)
 SWITCH_WAIT = 10.0
+#: the demo's layout (docs/foxglove.md): Foxglove's "Import from file"
+LAYOUT = Path(__file__).with_name("foxglove_layout.json")
 
 
 class FoxgloveError(RocomaError):
@@ -97,48 +99,28 @@ class JointSource(Protocol):
     def torque(self) -> Any: ...
 
 
-def _numbers(values: Any) -> list[float | None]:
-    """JSON has no NaN: a joint without feedback shows as null."""
-    return [v if math.isfinite(v) else None for v in values.tolist()]
+class _Subscriptions:
+    """The SDK's server listener: a viewer subscribing to the robot description wants it
+    sent (on the SDK's thread: the sampler sends it)."""
 
+    def __init__(self) -> None:
+        self.description_wanted = threading.Event()
 
-def _schema(title: str, properties: dict[str, Any]) -> dict[str, Any]:
-    return {"title": title, "type": "object", "properties": properties}
-
-
-_NUMBERS = {"type": "array", "items": {"type": ["number", "null"]}}
-_TIMESTAMP = {"type": "object", "properties": {"sec": {"type": "integer"},
-                                               "nsec": {"type": "integer"}}}
-SCHEMAS = {
-    "/joint_states": _schema("rocoma.JointStates", {
-        "timestamp": _TIMESTAMP, "name": {"type": "array", "items": {"type": "string"}},
-        "position": _NUMBERS, "velocity": _NUMBERS, "effort": _NUMBERS}),
-    "/rocoma/manager": _schema("rocoma.Manager", {
-        "state": {"type": "string"}, "controller": {"type": "string"},
-        "latched": {"type": "boolean"}, "cause": {"type": "string"},
-        "cycles": {"type": "integer"}, "overruns": {"type": "integer"},
-        "foxglove": {"type": "object"}}),
-    "/rocoma/status": _schema("rocoma.Status", {}),
-    "/rocoma/log": _schema("foxglove.Log", {
-        "timestamp": _TIMESTAMP, "level": {"type": "integer"}, "message": {"type": "string"},
-        "name": {"type": "string"}, "file": {"type": "string"}, "line": {"type": "integer"}}),
-}
-#: foxglove.Log levels
-INFO, WARNING, ERROR = 2, 3, 4
-
-
-def _stamp(ns: int) -> dict[str, int]:
-    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+    def on_subscribe(self, client: object, channel: Any) -> None:
+        if channel.topic == messages.ROBOT_DESCRIPTION.topic:
+            self.description_wanted.set()
 
 
 class FoxgloveView:
     """Serves one manager on a Foxglove WebSocket (see the module). ``status``: what
-    ``rocoma-can status --json`` prints; ``counts``: the loop's (cycles, overruns)."""
+    ``rocoma-can status --json`` prints; ``counts``: the loop's (cycles, overruns);
+    ``robot``: the config's URDF (None: no 3D robot)."""
 
     def __init__(self, config: FoxgloveConfig, manager: ControllerManager,
                  joints: JointSource, status: Callable[[], dict[str, Any]],
                  counts: Callable[[], tuple[int, int]],
-                 recover: Callable[[], Future[bool]] | None = None) -> None:
+                 recover: Callable[[], Future[bool]] | None = None,
+                 robot: Robot | None = None) -> None:
         try:
             import foxglove
             from foxglove.websocket import Capability
@@ -151,6 +133,7 @@ class FoxgloveView:
         self._status = status
         self._counts = counts
         self._recover = recover
+        self.robot = robot
         self._transport = Transport("Foxglove", "--foxglove-allow-commands",
                                     config.allow_commands)
         self.counters = {"published": 0, "events_dropped": 0, "calls": 0, "refused": 0,
@@ -162,8 +145,11 @@ class FoxgloveView:
         self._stop = threading.Event()
         self._unsubscribe: Callable[[], None] | None = None
         self._context = foxglove.Context()
-        self._channels = {topic: foxglove.Channel(topic, schema=schema, context=self._context)
-                          for topic, schema in SCHEMAS.items()}
+        served = messages.MANAGER_CHANNELS + (messages.ROBOT if robot is not None else ())
+        self.topics = [c.topic for c in served]
+        self._channels = {c.topic: foxglove.Channel(c.topic, schema=c.schema,
+                                                    context=self._context) for c in served}
+        self._subscriptions = _Subscriptions()
         request = foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
             name="rocoma.Request", encoding="jsonschema", data=b""))
         services = [foxglove.Service(f"/rocoma/{name}", schema=foxglove.ServiceSchema(
@@ -174,6 +160,7 @@ class FoxgloveView:
                 name="rocoma-can", host=config.host, port=config.port,
                 capabilities=[Capability.Services], supported_encodings=["json"],
                 services=services, context=self._context,
+                server_listener=cast("ServerListener", self._subscriptions),
                 message_backlog_size=config.backlog)
         except Exception as exc:  # the SDK's RuntimeError: the address taken or unknown
             raise FoxgloveError(f"Foxglove: cannot serve on {config.host}:{config.port}: "
@@ -231,7 +218,7 @@ class FoxgloveView:
                 self._sample()
                 if time.monotonic() >= next_status:
                     next_status = time.monotonic() + self.config.status_period
-                    self._publish("/rocoma/status", self._status())
+                    self._publish(messages.STATUS, self._status())
             except Exception as exc:  # noqa: BLE001 - counted; the view goes on
                 self._count("errors")
                 if self.counters["errors"] in (1, 10, 100, 1000):
@@ -250,25 +237,30 @@ class FoxgloveView:
                              WARNING if event.kind is EventKind.EMERGENCY_STOP else INFO)
         j, m = self._joints, self.manager
         ns = time.time_ns()
-        self._publish("/joint_states", {
-            "timestamp": _stamp(ns), "name": list(j.names), "position": _numbers(j.position),
-            "velocity": _numbers(j.velocity), "effort": _numbers(j.torque)}, ns)
+        position = j.position.tolist()
+        self._publish(messages.JOINT_STATES, messages.joint_states(
+            ns, j.names, position, j.velocity.tolist(), j.torque.tolist()), ns)
         cycles, overruns = self._counts()
-        self._publish("/rocoma/manager", {
-            "state": m.state.name, "controller": m.active_controller_name,
-            "latched": m.estop_latched, "cause": self._cause, "cycles": cycles,
-            "overruns": overruns, "foxglove": self.info()}, ns)
+        self._publish(messages.MANAGER, messages.manager(
+            m.state.name, m.active_controller_name, m.estop_latched, self._cause, cycles,
+            overruns, self.info()), ns)
+        if self.robot is not None:
+            if self._subscriptions.description_wanted.is_set():
+                self._subscriptions.description_wanted.clear()
+                self._publish(messages.ROBOT_DESCRIPTION,
+                              messages.robot_description(self.robot.text), ns)
+            self._publish(messages.TRANSFORMS, messages.frame_transforms(
+                ns, self.robot.transforms(dict(zip(j.names, position)))), ns)
 
-    def _publish(self, topic: str, message: dict[str, Any], ns: int | None = None) -> None:
-        self._channels[topic].log(message, log_time=ns or time.time_ns())
+    def _publish(self, channel: Channel, message: dict[str, Any], ns: int | None = None
+                 ) -> None:
+        self._channels[channel.topic].log(message, log_time=ns or time.time_ns())
         self._count("published")
 
     def log_message(self, text: str, level: int = INFO) -> None:
         """A line in Foxglove's Log panel (any thread)."""
         ns = time.time_ns()
-        self._publish("/rocoma/log", {"timestamp": _stamp(ns), "level": level,
-                                      "message": text, "name": "rocoma-can", "file": "",
-                                      "line": 0}, ns)
+        self._publish(messages.LOG, messages.log(ns, text, level), ns)
 
     # --- services (the SDK's threads) -----------------------------------------------------
     def _handler(self, service: str) -> Callable[[Any], bytes]:
@@ -320,8 +312,9 @@ def _event_text(event: ManagerEvent) -> str:
         f": {event.cause}" if event.cause else "")
 
 
-def describe(view: FoxgloveView, topics: Sequence[str] = tuple(SCHEMAS)) -> str:
-    """The line ``run`` prints: where to connect and what is served."""
+def describe(view: FoxgloveView) -> str:
+    """The line ``run`` prints: where to connect, what is served, the layout's file."""
     return (f"Foxglove live view on ws://{view.config.host}:{view.port} "
-            f"({', '.join(topics)}; switch/clear/recover "
-            f"{'allowed' if view.config.allow_commands else 'refused'})")
+            f"({', '.join(view.topics)}; switch/clear/recover "
+            f"{'allowed' if view.config.allow_commands else 'refused'}); layout to import "
+            f"in Foxglove: {LAYOUT}")

@@ -23,6 +23,8 @@ Layout (every key but ``drives`` and ``controllers`` has a default; docs/configu
     zenoh: {prefix: rocoma/<host>, mode: null, connect: [], listen: [], multicast: null,
             allow_commands: false, deadman: null, required: true}  # optional (fleet/bridge.py);
                                    # null mode/multicast: Zenoh's own (peer, scouting on)
+    urdf: robot.urdf               # optional: the robot Foxglove's 3D panel draws (relative
+                                   # to this file; a joint per drive, by the drive's name)
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
     controllers: [ ... ]           # rocoma_can.plugins format
     emergency_controllers: [ ... ]
@@ -45,6 +47,7 @@ from ..drivers.drive_plan import DrivePlan
 from ..errors import ConfigError
 from ..fleet.bridge import FleetConfig
 from ..fleet.bridge import parse as parse_fleet
+from ..live.urdf import Robot
 from ..manager import TimingSupervision
 from .bus_load import BusLoad
 from .config_check import (
@@ -58,12 +61,13 @@ from .config_check import (
     check_realtime,
     check_supervision,
     check_timing,
+    check_urdf,
     section_at,
     unknown_keys,
 )
 
 _TOP_KEYS = {"bus", "buses", "rate", "manager", "realtime", "supervision", "timing", "drives",
-             "controllers", "emergency_controllers", "zenoh"}
+             "controllers", "emergency_controllers", "zenoh", "urdf"}
 
 
 @dataclass
@@ -95,6 +99,7 @@ class RuntimeConfig:
     fleet: FleetConfig | None = None  # the zenoh: section (None: no Zenoh)
     spin: float | None = None  # s the loop spins before each deadline (None: loop.py's)
     notes: list[str] = field(default_factory=list)  # worth saying, not wrong (check-config)
+    robot: Robot | None = None  # urdf: (the live view's 3D robot)
 
     @property
     def bus(self) -> BusConfig:
@@ -214,6 +219,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         fleet.config_file = str(base / fleet.config_file)  # relative to the YAML file
     controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
     notes = check_controller_sections(controllers, drives, check_controllers, problems)
+    robot, urdf_notes = check_urdf(data.get("urdf"), base, drives, problems)
     loads = check_bus_loads(data, buses, planned, rate, problems)
     if problems:
         raise ConfigError([f"{source}: {p}" for p in problems])
@@ -221,5 +227,6 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     return RuntimeConfig(buses, float(rate), manager, drives,
                          controllers, priority, set(cpus) if cpus else None, supervision,
                          timing, source, loads, plans, fleet,
-                         spin=None if spin_us is None else spin_us * 1e-6, notes=notes)
+                         spin=None if spin_us is None else spin_us * 1e-6,
+                         notes=notes + urdf_notes, robot=robot)
 

@@ -24,6 +24,7 @@ from ..drivers.config import (
 )
 from ..drivers.drive_plan import DrivePlan, plan_drive, plan_drives
 from ..drivers.pdo_layout import cob_id_clashes
+from ..live.urdf import MOVABLE, Robot, UrdfError, read_urdf
 from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
 from .loop import spin_fits
@@ -365,6 +366,38 @@ def check_controller_sections(controllers: dict[str, Any], drives: list[DriveCon
             emergency = controllers["emergency_controllers"] or []
             notes += unused_emergency(loaded, [e["name"] for e in emergency])
     return notes
+
+
+def check_urdf(value: Any, base: Path | None, drives: list[DriveConfig], problems: list[str]
+               ) -> tuple[Robot | None, list[str]]:
+    """``urdf:``, a path relative to the config file: the robot Foxglove's 3D panel draws,
+    and the notes about it. Each drive must name a movable joint of it: a misspelt name
+    would show a joint standing still while the drive moves it. A movable joint no drive
+    moves is a note (a passive or another controller's joint): the view shows it at its
+    origin."""
+    if value is None:
+        return None, []
+    if not isinstance(value, str) or not value:
+        problems.append(f"urdf: expected the path of a URDF file, got {value!r}")
+        return None, []
+    path = Path(value) if base is None or Path(value).is_absolute() else base / value
+    try:
+        robot = read_urdf(path)
+    except UrdfError as exc:
+        problems.append(f"urdf: {exc}")
+        return None, []
+    joints = {j.name: j for j in robot.joints}
+    for d in drives:
+        joint = joints.get(d.name)
+        if joint is None:
+            problems.append(f"urdf: {path} has no joint named {d.name!r} (a drive's name); "
+                            f"its movable joints: {', '.join(robot.movable) or 'none'}")
+        elif joint.kind not in MOVABLE:
+            problems.append(f"urdf: {path}: joint {d.name!r} (a drive's name) is "
+                            f"{joint.kind}: the view would never move it")
+    idle = [name for name in robot.movable if name not in {d.name for d in drives}]
+    return robot, [f"urdf: {path}: no drive moves {', '.join(idle)}: shown at the origin"
+                   ] if idle else []
 
 
 def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]) -> list[str]:

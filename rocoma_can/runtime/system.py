@@ -156,7 +156,8 @@ class Runtime:
                 self.foxglove = FoxgloveView(foxglove, self.manager, self.hardware.state,
                                              self.status,
                                              lambda: (stats.cycles, stats.overruns),
-                                             recover=self.hardware.recover)
+                                             recover=self.hardware.recover,
+                                             robot=config.robot)
                 self._parts.insert(0, self.foxglove.close)
         except BaseException:
             self.close()
