@@ -230,3 +230,50 @@ def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
     assert "process-ended-without-closing" in record.name
     cycles = [m for topic, _, m in read_messages(str(record)) if topic == "/rocoma/cycle"]
     assert len(cycles) >= 0.5 * RATE
+
+
+def test_a_recording_carries_the_live_views_channels_the_layout_reads(bench, tmp_path):
+    """A recording and a flight record open in Foxglove with the live view's layout: every
+    topic the shipped layout reads (the status report aside: the writer never sees it) is
+    in both, with the schema the live view serves, and /tf moves with the joints."""
+    from test_foxglove import _layout_topics
+
+    from rocoma_can.cli.demo_config import demo_urdf
+    from rocoma_can.live import messages
+    from rocoma_can.live.urdf import parse_urdf
+    config, segment = bench
+    config.robot = parse_urdf(demo_urdf([d.name for d in config.drives]).encode(), "demo")
+    with Runtime(config, record=str(tmp_path / "rec"), flight=str(tmp_path / "flight"),
+                 flight_seconds=1.0) as rt:
+        def operate() -> None:
+            wait_for(lambda: rt.manager.switch_blocked() is None, "ready", DEMO_WAIT)
+            rt.manager.switch_controller("trajectory", timeout=DEMO_WAIT)  # it moves
+            time.sleep(1.0)
+            segment.drives[1].trip_fault()
+            time.sleep(0.3)
+            rt.loop.stop("test")
+        worker = threading.Thread(target=operate)
+        worker.start()
+        rt.run(duration=DEMO_RUN, signals=False)
+        worker.join(DEMO_WAIT)
+    wanted = _layout_topics() - {messages.STATUS.topic}
+    flight = sorted((tmp_path / "flight").iterdir())[0]
+    for path in (tmp_path / "rec" / "trace.mcap", flight):
+        got: dict[str, list[dict]] = defaultdict(list)
+        for topic, _, message in read_messages(str(path)):
+            got[topic].append(message)
+        assert wanted <= set(got), (path, wanted - set(got))
+        assert len(got["/robot_description"]) == 1
+        assert got["/robot_description"][0]["data"] == config.robot.text
+        names = got["/joint_states"][-1]["name"]
+        assert names == [d.name for d in config.drives]
+        assert len(got["/joint_states"]) == len(got["/rocoma/cycle"])
+        angles = {json_rotation(t) for m in got["/tf"] for t in m["transforms"]
+                  if t["child_frame_id"] == "joint1_link"}
+        assert len(angles) > 3, angles  # the arm moved
+        assert any("e-stop" in m["message"] for m in got["/rocoma/log"])
+        assert got["/rocoma/manager"][-1]["state"] in ("EMERGENCY", "FAILPROOF")
+
+
+def json_rotation(transform: dict) -> tuple[float, ...]:
+    return tuple(round(transform["rotation"][k], 4) for k in "xyzw")

@@ -4,7 +4,8 @@ After an e-stop the first question is what happened in the seconds before it. Th
 loop's process fills (rings.py) hold the last ``seconds`` (10 by default) of the loop's
 signals and of every frame on every bus, received and sent; this keeps the manager's events
 (each e-stop with its cause, state and controller changes) and, on every e-stop and on a
-shutdown after one, writes all three to ``flight-<time>-<cause>.mcap`` in its directory.
+shutdown after one, writes all three to ``flight-<time>-<cause>.mcap`` in its directory,
+with the live view's channels (live_channels.py).
 
 A storm of e-stops (a held e-stop button repeats its frame; each is a request while
 FAILPROOF too) is a few records, not one file per frame: requests within half a window of
@@ -17,11 +18,14 @@ from __future__ import annotations
 import collections
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..events import STOP_CAUSE, EventKind
+from .live_channels import LiveChannels
 from .recording import slug
 from .rings import RingReader, frame_fields, in_time_order
 from .trace import McapWriter, RowLayout
@@ -38,11 +42,12 @@ class FlightRecords:
     event as trace.event_message makes it; ``due`` says whether to ``dump`` now."""
 
     def __init__(self, directory: Path, seconds: float, layout: RowLayout, rows: RingReader,
-                 buses: Mapping[str, Sequence[RingReader]]) -> None:
+                 buses: Mapping[str, Sequence[RingReader]],
+                 live: Callable[[McapWriter], LiveChannels]) -> None:
         self.directory, self.seconds = directory, seconds
         self.dumps: list[tuple[Path, str]] = []
         self.errors: list[str] = []
-        self._layout, self._rows, self._buses = layout, rows, buses
+        self._layout, self._rows, self._buses, self._live = layout, rows, buses, live
         self._events: collections.deque[dict[str, Any]] = collections.deque(maxlen=MAX_EVENTS)
         self._requests: list[str] = []
         self._dropped = 0  # requests past MAX_EVENTS, merged by count only
@@ -97,10 +102,15 @@ class FlightRecords:
     def _write(self, writer: McapWriter, controllers: Mapping[int, str], now: float,
                now_wall: float) -> None:
         since, since_wall = now - self.seconds, now_wall - self.seconds
-        _, rows = self._rows.read(0)
-        rows = rows[rows[:, 0] >= since]
+        start, rows = self._rows.read(0)
+        kept = rows[:, 0] >= since
+        start, rows = start + int(np.argmax(kept)) if kept.any() else start, rows[kept]
+        events = [e for e in self._events if e["time"] >= since]
+        live = self._live(writer)
         writer.cycles(self._layout, controllers, rows, now_wall - now)  # oldest first
-        writer.events([e for e in self._events if e["time"] >= since], now_wall - now)
+        live.cycles(rows, start, controllers, now_wall - now)
+        writer.events(events, now_wall - now)
+        live.events(events, now_wall - now)
         for label, rings in self._buses.items():
             records = in_time_order([ring.read(0)[1] for ring in rings])
             writer.frames(label, frame_fields(records[records["t"] >= since_wall]))

@@ -29,14 +29,15 @@ import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 from ..drivers.joints import JointCommand, JointState
 from ..events import ManagerEvent
+from ..live.urdf import Robot
 from .can_log import RecordingError
 from .flight import MAX_FRAMES_PER_SECOND
 from .rings import FrameRing, SharedFile, layout
-from .trace import ActiveController, RowLayout, SignalTrace, event_message
+from .trace import RowLayout, SignalTrace, event_message
 from .writer import Spec
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,14 @@ CLOSE_WAIT = 30.0
 EVENT_QUEUE = 4096
 #: the writer's niceness: the loop's process comes first when the cores are busy
 NICE = 5
+
+
+class RecordedManager(Protocol):
+    """What the recorder reads of the manager (besides its events)."""
+    @property
+    def active_controller_name(self) -> str: ...
+    @property
+    def estop_latched(self) -> bool: ...
 
 
 @dataclass
@@ -87,10 +96,10 @@ class BusToRecord:
 class Recorder:
     """The rings, the writer process and the threads that talk to it (see module)."""
 
-    def __init__(self, state: JointState, command: JointCommand, manager: ActiveController,
+    def __init__(self, state: JointState, command: JointCommand, manager: RecordedManager,
                  rate: float, buses: Sequence[BusToRecord], *, record: str | None = None,
                  flight: str | None = None, seconds: float = 10.0,
-                 controllers: Sequence[str] = (),
+                 controllers: Sequence[str] = (), robot: Robot | None = None,
                  announce: Callable[[str], None] | None = None) -> None:
         if record is None and flight is None:
             raise ValueError("a recorder records something: record, flight or both")
@@ -114,13 +123,16 @@ class Recorder:
         self.events_dropped = 0
         self._announce = announce
         self._sent_controllers = dict(self.trace.controllers)
+        self._manager, self._latched = manager, False
         self._queue: queue.Queue[str | None] = queue.Queue(maxsize=EVENT_QUEUE)
         self._ready: queue.Queue[dict[str, Any]] = queue.Queue()
         self._closed = threading.Event()
         spec = Spec(self._shared.fd, self._shared.size, rows,
                     {bus.label: (bus.channel, [specs[1 + 2 * k], specs[2 + 2 * k]])
                      for k, bus in enumerate(buses)},
-                    list(state.names), dict(self.trace.controllers), record, flight, seconds)
+                    list(state.names), dict(self.trace.controllers), record, flight, seconds,
+                    rate, robot.text if robot is not None else None,
+                    robot.source if robot is not None else "")
         self._process = subprocess.Popen(
             [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, text=True, pass_fds=(self._shared.fd,),
@@ -164,6 +176,10 @@ class Recorder:
             except queue.Empty:
                 line = ""
             lines = []
+            latched = self._manager.estop_latched
+            if latched != self._latched:  # a clear is no event: looked at here
+                self._latched = latched
+                lines.append(json.dumps({"latched": latched}))
             known = self.trace.controllers
             if len(known) != len(self._sent_controllers):  # one added since the start: rare
                 new = {k: v for k, v in list(known.items()) if k not in self._sent_controllers}

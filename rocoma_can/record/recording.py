@@ -1,6 +1,7 @@
 """``--record DIR`` in the writer process: every cycle, manager event and frame, as it happens.
 
-``DIR/trace.mcap`` gets every cycle (/rocoma/cycle) and manager event (/rocoma/event);
+``DIR/trace.mcap`` gets every cycle (/rocoma/cycle) and manager event (/rocoma/event), and
+the live view's channels made from them (live_channels.py);
 ``DIR/<bus>.log`` every frame of the bus, received (``R``) and sent by this manager (``T``),
 in candump -L text (``canplayer`` and ``can.LogReader`` read it). The files are made at
 start, so a directory that cannot be written stops the run before it begins.
@@ -13,11 +14,12 @@ first one first; the loop never hears of it.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
 from .can_log import RecordingError, candump_line
+from .live_channels import LiveChannels
 from .rings import RingReader, frame_fields, in_time_order
 from .trace import McapWriter, RowLayout
 
@@ -72,7 +74,8 @@ class Recording:
     """trace.mcap and one BusLog per bus (see module)."""
 
     def __init__(self, directory: Path, layout: RowLayout, rows: RingReader,
-                 buses: Mapping[str, tuple[str, Sequence[RingReader]]]) -> None:
+                 buses: Mapping[str, tuple[str, Sequence[RingReader]]],
+                 live: Callable[[McapWriter], LiveChannels]) -> None:
         self.directory = directory
         self.path = directory / "trace.mcap"
         self.errors: list[str] = []
@@ -89,6 +92,7 @@ class Recording:
             except OSError as exc:
                 raise RecordingError(f"{self.path}: cannot write: {exc}") from exc
             self._writer = McapWriter(self._stream, layout.names)
+            self._live = live(self._writer)
         except RecordingError:
             self._close_files()  # no file left open
             raise
@@ -112,7 +116,9 @@ class Recording:
                 raise RecordingError(f"{self.path}: {start - self._next} cycles lost (the "
                                      "writer fell a ring behind)")
             writer.cycles(self._layout, controllers, rows, offset)
+            self._live.cycles(rows, start, controllers, offset)
             writer.events(events, offset)
+            self._live.events(events, offset)
             self._next = start + len(rows)
             for bus_log in self._logs:
                 bus_log.write()

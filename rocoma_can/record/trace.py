@@ -191,6 +191,19 @@ class McapWriter:
         self._buses: dict[str, int] = {}
         self.messages = 0
 
+    def json_channel(self, topic: str, schema: Mapping[str, Any]) -> int:
+        """A channel of JSON messages under a JSON schema named by its ``title``."""
+        schema_id = self._writer.register_schema(name=str(schema["title"]),
+                                                 encoding="jsonschema",
+                                                 data=json.dumps(schema).encode())
+        return int(self._writer.register_channel(topic=topic, message_encoding="json",
+                                                 schema_id=schema_id))
+
+    def add(self, channel: int, ns: int, message: Mapping[str, Any]) -> None:
+        self._writer.add_message(channel_id=channel, log_time=ns, publish_time=ns,
+                                 data=json.dumps(message, separators=(",", ":")).encode())
+        self.messages += 1
+
     def cycles(self, layout: RowLayout, controllers: Mapping[int, str], rows: np.ndarray,
                offset: float) -> None:
         """Rows as messages; ``offset``: add to a row's monotonic time for wall-clock time."""

@@ -4,7 +4,8 @@ starts it): every slow part of recording, on an interpreter of its own.
 The loop's process hands over through shared memory (rings.py: signal rows, each bus's
 received and sent frames) and a pipe (this process's stdin, one JSON object a line): first
 the set-up (``Spec``), then manager events ``{"event": ...}``, controller numbers
-``{"controllers": {name: number}}`` and ``{"close": true}``. Every ``POLL`` s it writes what
+``{"controllers": {name: number}}``, the e-stop latch ``{"latched": bool}`` and
+``{"close": true}``. Every ``POLL`` s it writes what
 the rings got (``--record``: recording.py) and the flight records due (flight.py). It
 answers on stdout, one JSON object a line: ``{"ready": true}`` or ``{"failed": reason}`` at
 start, ``{"flight_record": path, "cause": ...}``, ``{"error": reason, "of": "recording" |
@@ -26,11 +27,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from ..live.urdf import parse_urdf
 from .can_log import RecordingError
 from .flight import FlightRecords
+from .live_channels import Facts, LiveChannels
 from .recording import Recording
 from .rings import RingReader, RingSpec, SharedFile
-from .trace import RowLayout
+from .trace import McapWriter, RowLayout
 
 #: how often the rings are written out, s
 POLL = 0.05
@@ -49,6 +52,9 @@ class Spec:
     record: str | None = None
     flight: str | None = None
     seconds: float = 10.0
+    rate: float = 100.0
+    urdf: str | None = None   # the robot's URDF text (urdf_source names it)
+    urdf_source: str = ""
 
     def to_json(self) -> str:
         return json.dumps(asdict(self))
@@ -74,10 +80,16 @@ class Writer:
                  for label, (channel, specs) in spec.buses.items()}
         self.controllers = {number: name for name, number in spec.controllers.items()}
         self.events: list[dict[str, Any]] = []  # for the recording, since its last write
-        self.recording = (Recording(Path(spec.record), layout, rows, rings)
+        self.facts = Facts()
+        robot = (parse_urdf(spec.urdf.encode(), spec.urdf_source)
+                 if spec.urdf is not None else None)
+
+        def live(writer: McapWriter) -> LiveChannels:
+            return LiveChannels(writer, layout, 1.0 / spec.rate, robot, self.facts)
+        self.recording = (Recording(Path(spec.record), layout, rows, rings, live)
                           if spec.record is not None else None)
         self.flight = (FlightRecords(Path(spec.flight), spec.seconds, layout, rows,
-                                     {label: r for label, (_, r) in rings.items()})
+                                     {label: r for label, (_, r) in rings.items()}, live)
                        if spec.flight is not None else None)
 
     def say(self, **message: Any) -> None:
@@ -91,6 +103,8 @@ class Writer:
                 self.events.append(event)
             if self.flight is not None:
                 self.flight.on_event(event)
+        if "latched" in command:
+            self.facts.latched = bool(command["latched"])
         if "controllers" in command:
             self.controllers.update({number: name for name, number
                                      in command["controllers"].items()})

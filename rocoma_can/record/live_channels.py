@@ -1,0 +1,94 @@
+"""The live view's channels in the recordings (live/messages.py), made in the writer process
+from the rows and events it writes anyway: a recording or flight record opens in Foxglove
+with the live view's layout (live/foxglove_layout.json).
+
+``/joint_states`` every cycle (the plots); ``/rocoma/manager`` on every manager event and at
+SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics cost ~5 µs a joint);
+``/rocoma/log``, a line per manager event; ``/robot_description`` once, with the first
+cycle. ``/rocoma/status`` stays the live view's: the writer does not see the status report.
+The e-stop latch is what the writer last heard (``Facts``).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..events import EventKind
+from ..live import messages
+from ..live.urdf import Robot
+from .trace import STATE_NAMES, McapWriter, RowLayout
+
+#: /rocoma/manager and /tf samples per second of a recording
+SAMPLE_RATE = 50.0
+
+
+@dataclass
+class Facts:
+    """What the manager's process tells the writer beside the rows: the e-stop latch."""
+    latched: bool = False
+
+
+class LiveChannels:
+    """The channels of one MCAP file (see module); ``period``: the loop's, for overruns."""
+
+    def __init__(self, writer: McapWriter, layout: RowLayout, period: float,
+                 robot: Robot | None, facts: Facts) -> None:
+        self._writer, self._layout, self._period = writer, layout, period
+        self._robot, self._facts = robot, facts
+        channels = messages.MANAGER_CHANNELS + (messages.ROBOT if robot else ())
+        self._id = {c.topic: writer.json_channel(c.topic, c.schema) for c in channels
+                    if c is not messages.STATUS}
+        self._names = layout.names
+        self._cause = ""
+        self._overruns = self._cycles = 0
+        self._next_sample = -math.inf
+        self._described = robot is None
+
+    def cycles(self, rows: np.ndarray, first: int, controllers: Mapping[int, str],
+               offset: float) -> None:
+        """Rows ``first``, ``first + 1``, ... (cycle numbers), ``offset`` as McapWriter's."""
+        add, layout, ids = self._writer.add, self._layout, self._id
+        position, velocity, torque = layout.slices[:3]
+        for k, row in enumerate(rows):
+            values = row.tolist()
+            ns = int((values[0] + offset) * 1e9)
+            if values[3] > self._period:
+                self._overruns += 1
+            if not self._described and self._robot is not None:
+                add(ids[messages.ROBOT_DESCRIPTION.topic], ns,
+                    messages.robot_description(self._robot.text))
+                self._described = True
+            add(ids[messages.JOINT_STATES.topic], ns, messages.joint_states(
+                ns, self._names, values[position], values[velocity], values[torque]))
+            if values[0] >= self._next_sample:
+                self._next_sample = values[0] + 1.0 / SAMPLE_RATE
+                state = STATE_NAMES.get(int(values[4]), str(int(values[4])))
+                self._cycles = first + k + 1
+                self._manager(ns, state, controllers.get(int(values[5]), ""))
+                if self._robot is not None:
+                    positions = dict(zip(self._names, values[position]))
+                    add(ids[messages.TRANSFORMS.topic], ns, messages.frame_transforms(
+                        ns, self._robot.transforms(positions)))
+
+    def events(self, events: Iterable[Mapping[str, Any]], offset: float) -> None:
+        for event in events:
+            ns = int((float(event["time"]) + offset) * 1e9)
+            kind, state, cause = event["kind"], event["state"], event["cause"]
+            if kind == EventKind.EMERGENCY_STOP.value:
+                self._cause = cause
+                text, level = f"e-stop ({state}): {cause}", messages.ERROR
+            elif kind == EventKind.STATE_CHANGED.value:
+                text, level = f"state {state}", messages.WARNING
+            else:
+                text, level = f"controller {event['controller']}", messages.INFO
+            self._writer.add(self._id[messages.LOG.topic], ns, messages.log(ns, text, level))
+            self._manager(ns, state, event["controller"])
+
+    def _manager(self, ns: int, state: str, controller: str) -> None:
+        self._writer.add(self._id[messages.MANAGER.topic], ns, messages.manager(
+            state, controller, self._facts.latched, self._cause, self._cycles,
+            self._overruns))
