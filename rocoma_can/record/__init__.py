@@ -1,8 +1,13 @@
 """What happened, kept: the loop's signals and the bus's frames, written off the loop
 (extras ``record``, ``plot``).
 
-trace    the loop's signals every cycle in a ring allocated once; MCAP files written off it
-flight   the flight recorder (``run``, on by default) and ``run --record``
-can_log  raw CAN frames to candump, ASC or BLF files
+trace          the loop's signals every cycle in a ring allocated once; MCAP writing, reading
+rings          rings in shared memory: what the loop's process hands the writer process
+recorder       the loop's side of recording: the rings, the writer process, its replies
+writer         the writer process (``python -m rocoma_can.record.writer``)
+recording      ``run --record``'s files, in the writer process
+flight         the flight recorder (``run``, on by default), in the writer process
+live_channels  the live view's channels in the recordings
+can_log        raw CAN frames to candump, ASC or BLF files
 plot     one PNG of a trace
 """
