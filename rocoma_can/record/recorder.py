@@ -52,7 +52,7 @@ CLOSE_WAIT = 30.0
 #: manager events queued for the writer at most
 EVENT_QUEUE = 4096
 #: the writer's niceness: the loop's process comes first when the cores are busy
-NICE = 5
+NICE = 19
 
 
 class RecordedManager(Protocol):
