@@ -20,8 +20,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -43,38 +42,16 @@ from .demo_config import (
     demo_config,
     emulate,
 )
+from .demo_report import Report, Said, Step, grouped_notes, plot_run, status_lines, summary
 
 #: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
 #: one record, and the walk-through's come seconds apart
 FLIGHT_SECONDS = 2.0
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
-    from ..drivers.drive_plan import DrivePlan
     from ..drivers.sim.segment import SimulatedSegment
     from ..live.foxglove import FoxgloveConfig
-    from ..runtime.loop import TimingSummary
     from ..runtime.system import Runtime
-
-
-@dataclass
-class Step:
-    name: str
-    ok: bool
-    detail: str
-
-
-@dataclass
-class Report:
-    steps: list[Step] = field(default_factory=list)
-    latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
-    recording: Path | None = None      # the run's trace.mcap (with a candump .log per bus)
-    plot: Path | None = None           # its PNG
-    flight_records: list[Path] = field(default_factory=list)  # one per e-stop (grouped)
-    walk_time: float = 0.0             # s from the walk-through's start to the loop's stop
-
-    @property
-    def ok(self) -> bool:
-        return bool(self.steps) and all(s.ok for s in self.steps)
 
 
 def _only(cob_ids: set[int]) -> list[can.typechecking.CanFilter]:
@@ -327,7 +304,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     if zenoh_listen is not None:
         raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
     config = validate(raw, source="demo")
-    notes = _grouped_notes(config.plans)
+    notes = grouped_notes(config.plans)
     for line in notes.values():
         out(line)
     report = Report()
@@ -359,7 +336,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                             can_filters=_only(set(p.carriers)))
                    for b, p in zip(config.buses, probes)]
     readers: list[BusReader] = []
-    said = _Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
+    said = Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
     hardware_log = logging.getLogger("rocoma_can.drivers.hardware")
     hardware_log.addFilter(said)
     try:
@@ -388,12 +365,12 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             operator = threading.Thread(
                 target=_operator, name="demo-operator",
                 args=(rt, seg, client, watch, probes, report, duration, stop, out))
-            status = threading.Thread(target=_status_lines, name="demo-status",
+            status = threading.Thread(target=status_lines, name="demo-status",
                                       args=(rt, stop, out))
             operator.start()
             status.start()
             try:
-                summary = rt.run(duration=duration * 3 + 20)
+                timing = rt.run(duration=duration * 3 + 20)
             finally:
                 stop.set()
                 operator.join(15.0)
@@ -407,13 +384,13 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                         + (f" on {buses} buses" if buses > 1 else ""))
             report.steps.append(step)
             out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
-            _summary(out, report, summary, rt)
+            summary(out, report, timing, rt)
         if rt.flight is not None:  # closed: the last record is written
             report.flight_records = list(rt.flight.dumps)
             out(f"flight records: {len(report.flight_records)} in {rt.flight.directory}")
         simulator.check()
         if record is not None:
-            _plot(Path(record), report, out)
+            plot_run(Path(record), report, out)
     finally:
         hardware_log.removeFilter(said)
         for r in readers:
@@ -422,81 +399,6 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             b.shutdown()
         simulator.stop()
     return report
-
-
-def _grouped_notes(plans: Mapping[str, DrivePlan]) -> dict[str, str]:
-    """Each drive-plan note once, naming its drives: the demo's drives share one file, so
-    a note per drive would say the same thing as many times as there are drives."""
-    drives: dict[str, list[str]] = {}
-    for name, plan in plans.items():
-        for note in plan.notes:
-            drives.setdefault(note, []).append(name)
-    everyone = list(plans)
-    lines = {}
-    for note, names in drives.items():
-        start = everyone.index(names[0])
-        run = len(names) > 3 and everyone[start:start + len(names)] == names
-        who = f"{names[0]}..{names[-1]}" if run else ", ".join(names)
-        lines[note] = f"  note: {who}: {note}"
-    return lines
-
-
-class _Said(logging.Filter):
-    """Drops a log record that repeats one of these notes (the hardware's line per drive)."""
-
-    def __init__(self, notes: set[str]) -> None:
-        super().__init__()
-        self.notes = notes
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        message = record.getMessage()
-        return not any(message.endswith(": " + note) for note in self.notes)
-
-
-def _plot(directory: Path, report: Report, out: Callable[[str], None]) -> None:
-    """After the run (the recording closed): draw it, say where both are."""
-    from ..record.plot import PlotError, plot
-    report.recording = directory / "trace.mcap"
-    logs = ", ".join(str(p) for p in sorted(directory.glob("*.log")))
-    out(f"recording: {report.recording} (frames: {logs})")
-    try:
-        report.plot = plot(report.recording, directory / "demo.png",
-                           title=f"rocoma-can demo: {len(report.steps)} steps, "
-                                 f"{'passed' if report.ok else 'FAILED'}")
-    except PlotError as exc:
-        out(f"plot: none ({exc})")
-        return
-    out(f"plot: {report.plot}")
-
-
-def _status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None]) -> None:
-    while not stop.wait(1.0):
-        hw, mgr, s = rt.hardware, rt.manager, rt.loop.stats
-        out(f"  [{s.cycles:6d} cycles] {STATE_NAMES[int(mgr.state)]:9s} "
-            f"{mgr.active_controller_name:12s} enabled {int(hw.enabled.sum())}/"
-            f"{len(hw.drives_config)} q0 {hw.state.position[0]:+.3f} rad "
-            f"overruns {s.overruns} tx errors {hw.tx_errors}")
-
-
-def _summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
-             rt: Runtime) -> None:
-    out("")
-    out("summary")
-    out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
-    out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
-    out(f"  {'cycles':28s} {timing.cycles}")
-    out(f"  {'missed cycles (overruns)':28s} {timing.overruns}")
-    out(f"  {'period mean / max':28s} {timing.period_mean * 1e3:.2f} / "
-        f"{timing.period_max * 1e3:.2f} ms")
-    out(f"  {'jitter p99 / max':28s} {timing.jitter_p99 * 1e3:.2f} / "
-        f"{timing.jitter_max * 1e3:.2f} ms")
-    out(f"  {'frames per cycle':28s} {rt.hardware.frames_per_cycle} "
-        f"(PDOs of {len(rt.hardware.drives_config)} drives + SYNC)")
-    out(f"  {'tx errors':28s} {rt.hardware.tx_errors}")
-    for what, took, cycles in report.latencies:
-        out(f"  {'latency ' + what:28s} {took * 1e3:.1f} ms (~{cycles} cycles)")
-    out("demo " + ("passed" if report.ok else "FAILED: " + ", ".join(
-        s.name for s in report.steps if not s.ok)))
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
