@@ -5,6 +5,8 @@ from __future__ import annotations
 
 #: the data lengths a CAN FD frame's DLC can say beyond 8 bytes (ISO 11898-1)
 FD_LENGTHS = (12, 16, 20, 24, 32, 48, 64)
+#: the fastest CAN FD data phase a config may give, bit/s (SIC transceivers run 8-10)
+MAX_DATA_BITRATE = 15_000_000
 
 
 def fd_length(data_bytes: int) -> int:

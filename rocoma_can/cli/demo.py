@@ -26,7 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
-from ..cli_args import positive, seconds
+from ..cli_args import count, positive, seconds
+from ..drivers.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError
 from ..exit_codes import FAILED, OK, USAGE
 from ..node.client import ManagerClient
@@ -34,6 +35,8 @@ from ..node.objects import STATE_NAMES
 from .demo_config import (
     DEFAULT_INTERFACE,
     ESTOP_COB_ID,
+    FD_BITRATE,
+    FD_DATA_BITRATE,
     MANAGER_ID,
     MIN_PAUSE,
     PAUSES,
@@ -51,6 +54,7 @@ FLIGHT_SECONDS = 2.0
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
     from ..drivers.sim.segment import SimulatedSegment
     from ..live.foxglove import FoxgloveConfig
+    from ..runtime.config import RuntimeConfig
     from ..runtime.system import Runtime
 
 
@@ -265,6 +269,25 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         rt.loop.stop("walk-through finished")
 
 
+def _load_line(config: RuntimeConfig) -> str | None:
+    """What the buses carry as the buses they stand for: the load of CAN FD ones (--fd:
+    checked, as for real buses), or, where in-process buses without a bit rate carry what
+    a real classic 1 Mbit/s bus would not, a note that says so (and what fits)."""
+    if config.loads:
+        busiest = max(config.loads.values(), key=lambda planned: planned.load)
+        return (f"rocoma-can demo: the busiest bus: {busiest.explain()} "
+                f"({busiest.frames_per_cycle} frames a cycle)")
+    from ..runtime.bus_load import bus_load
+    for b in config.buses:
+        classic = bus_load([config.plans[d.name].layout for d in config.drives_on(b)],
+                           config.rate, FD_BITRATE)
+        if classic.load > 1.0:
+            return (f"  note: 1 Mbit/s classic buses would not carry this ({b.label}: "
+                    f"{classic.explain()}); the in-process ones do (--fd: CAN FD buses, "
+                    "checked as real ones)")
+    return None
+
+
 def default_record_dir() -> Path:
     """A new directory per run under the state directory's demo/ (commands.state_dir)."""
     from .commands import state_dir
@@ -277,7 +300,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              interface: str = DEFAULT_INTERFACE, eds: str | None = None,
              record: str | Path | None = None, zenoh_listen: str | None = None,
              flight: str | Path | None = None,
-             foxglove: FoxgloveConfig | None = None) -> Report:
+             foxglove: FoxgloveConfig | None = None,
+             data_bitrate: int | None = None, channel: str | None = None) -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
@@ -287,7 +311,12 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     recorder's directory, as ``run`` has it: each e-stop leaves a record there, its path
     said as it is written. Its window is FLIGHT_SECONDS, not run's 10 s: e-stops within
     half a window make one record, and the walk-through's are seconds apart. ``foxglove``:
-    the live view, as ``run --foxglove`` serves it."""
+    the live view, as ``run --foxglove`` serves it. ``data_bitrate``: the buses are CAN FD
+    buses (demo_config's FD_BITRATE and this data bit rate): every frame an FD frame with
+    bit rate switching, the drives' PDOs up to FD_PDO_BYTES, the load checked as for real
+    buses (ConfigError when it does not fit). ``channel``: the in-process channel (several
+    buses: ``channel-0``, ...) another part of this process can listen on; default: a new
+    one per run."""
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
@@ -299,14 +328,18 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         for note in emulated.notes:
             out(f"  note: {note}")
     buses = default_buses(drives) if buses is None else buses
-    channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
-    raw = demo_config(channel, drives, rate, buses, interface, emulated)
+    channel = channel or f"rocoma-demo-{uuid.uuid4().hex[:8]}"
+    fd = data_bitrate is not None
+    raw = demo_config(channel, drives, rate, buses, interface, emulated, data_bitrate)
     if zenoh_listen is not None:
         raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
     config = validate(raw, source="demo")
     notes = grouped_notes(config.plans)
     for line in notes.values():
         out(line)
+    said_load = _load_line(config)
+    if said_load is not None:
+        out(said_load)
     report = Report()
     if (record is not None or flight is not None) and importlib.util.find_spec("mcap") is None:
         out("rocoma-can demo: not recording, no flight records: MCAP needs pip install "
@@ -319,7 +352,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                                       **(emulated.segment if emulated else {}),
                                       **({"axes": {d.node_id: emulated.axes
                                                    for d in config.drives_on(b)}}
-                                         if emulated and emulated.axes > 1 else {}))
+                                         if emulated and emulated.axes > 1 else {}),
+                                      fd=fd)
                 for b in config.buses]
     # one receive thread for every bus where possible, standing by while the loop steps
     # the simulator on its own thread after each write (stepped_before: in on_cycle)
@@ -328,12 +362,13 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     # The client and the probes filter what they read (the interface drops the rest): at
     # 1 kHz every bus carries ~13 frames a cycle, and readers of all of it cost the loop's
     # process more CPU than the drives' simulation.
+    as_fd: dict[str, Any] = {"fd": True} if fd else {}  # SocketCAN: FD frames to FD sockets
     client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False,
-                          can_filters=_only({0x580 + MANAGER_ID}))  # its SDO answers
+                          can_filters=_only({0x580 + MANAGER_ID}), **as_fd)  # SDO answers
     probes = [_TorqueOffProbe(_controlword_carriers(config, b.label)) for b in config.buses]
     # one torque-off probe per bus, each on a bus handle and reader of its own
     probe_buses = [open_bus(interface, b.channel, receive_own_messages=False,
-                            can_filters=_only(set(p.carriers)))
+                            can_filters=_only(set(p.carriers)), **as_fd)
                    for b, p in zip(config.buses, probes)]
     readers: list[BusReader] = []
     said = Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
@@ -350,8 +385,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                      announce=lambda text: out(f"rocoma-can demo: {text}")) \
                 as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
-            on = (f"{interface} bus {config.bus.channel}" if buses == 1
-                  else f"{buses} {interface} buses {channel}-0..{buses - 1}")
+            kind = f"{interface} CAN FD" if fd else interface
+            on = (f"{kind} bus {config.bus.channel}" if buses == 1
+                  else f"{buses} {kind} buses {channel}-0..{buses - 1}")
             out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
                 f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
             if rt.foxglove is not None:
@@ -413,6 +449,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--eds", default=None, metavar="FILE",
                    help="the simulated drives emulate this EDS/DCF: the demo uses the modes "
                         "it supports and says which steps it skips and why")
+    p.add_argument("--fd", action="store_true",
+                   help="CAN FD buses (1 Mbit/s arbitration, --data-bitrate data phase): FD "
+                        "frames both ways, the drives' PDOs up to 64 bytes (one RPDO and one "
+                        "TPDO a cycle), the bus load checked as for real buses")
+    p.add_argument("--data-bitrate", type=count, default=None, metavar="BIT/S",
+                   help=f"the data phase of the --fd buses (default {FD_DATA_BITRATE})")
     p.add_argument("--interface", choices=("inproc", "virtual"), default=DEFAULT_INTERFACE,
                    help="in-process bus: inproc (default; one copy per frame, fit for "
                         "1 kHz) or python-can's virtual (a copy per frame and receiver)")
@@ -443,6 +485,13 @@ def _main(args: argparse.Namespace) -> int:
         print("demo: --drives 2..32, --rate 10..2000 Hz, --duration > 0, --buses 1.."
               "drives/2 (the walk-through faults two drives of the first bus)", flush=True)
         return USAGE
+    if args.data_bitrate is not None and (not args.fd or not FD_BITRATE <= args.data_bitrate
+                                          <= MAX_DATA_BITRATE):
+        print(f"demo: --data-bitrate: the data phase of --fd buses, {FD_BITRATE}.."
+              f"{MAX_DATA_BITRATE} bit/s, got {args.data_bitrate}"
+              + ("" if args.fd else " without --fd"), flush=True)
+        return USAGE
+    data_bitrate = (args.data_bitrate or FD_DATA_BITRATE) if args.fd else None
     record = None if args.no_record else Path(args.record or default_record_dir())
     if record is not None:
         try:
@@ -458,7 +507,7 @@ def _main(args: argparse.Namespace) -> int:
                           out=lambda line: print(line, flush=True), buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen, flight=flight,
-                          foxglove=foxglove_from_args(args))
+                          foxglove=foxglove_from_args(args), data_bitrate=data_bitrate)
     except (ValueError, RocomaError) as exc:
         if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint: "demo: ..."
             for problem in exc.problems:

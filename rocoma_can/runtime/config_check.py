@@ -24,6 +24,7 @@ from ..drivers.config import (
 )
 from ..drivers.drive_plan import DrivePlan, pdo_bytes_problem, plan_drive, plan_drives
 from ..drivers.pdo_layout import cob_id_clashes
+from ..drivers.wire import MAX_DATA_BITRATE
 from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
 from .loop import spin_fits
@@ -121,7 +122,8 @@ def _bus(section: Mapping[str, Any], where: str, problems: list[str],
     if not isinstance(fd, bool):
         problems.append(f"{where}.fd: expected true or false, got {fd!r}")
     rates = {}
-    for key, low, high in (("bitrate", 10_000, 1_000_000), ("data_bitrate", 10_000, 15_000_000)):
+    for key, low, high in (("bitrate", 10_000, 1_000_000),
+                           ("data_bitrate", 10_000, MAX_DATA_BITRATE)):
         value = section.get(key)
         if value is not None and (not _is_int(value) or not low <= value <= high):
             problems.append(f"{where}.{key}: expected an integer {low}..{high} bit/s, "
