@@ -8,7 +8,8 @@ the loop's thread after each write (SegmentGroup.lockstep_pass, as ``rocoma-can 
 it; ``sim_thread=True``: on a receive thread of its own; ``interface="virtual"``, python-can's
 bus, which copies every frame once per receiver, always has a thread per bus), or as
 a separate ``rocoma-can sim`` process over SocketCAN vcan0 (``separate_process=True``; needs
-vcan, i.e. run the benchmark under tools/vcan-run).
+vcan, i.e. run the benchmark under tools/vcan-run). ``fd=True``: CAN FD buses, the drives
+mapping PDOs of up to 64 bytes (one RPDO and one TPDO a cycle), as ``rocoma-can demo --fd``.
 """
 from __future__ import annotations
 
@@ -20,8 +21,10 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
+import can
 import numpy as np
 
+from rocoma_can.cli.demo_config import FD_PDO_BYTES
 from rocoma_can.drivers.bus import open_bus
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
@@ -39,11 +42,12 @@ INCREMENTS_PER_REV = 1 << 20
 RATED_TORQUE_NM = 1.0
 
 
-def drive_configs(n: int, buses: int = 1) -> list[DriveConfig]:
+def drive_configs(n: int, buses: int = 1, pdo_bytes: int = 8) -> list[DriveConfig]:
     """n drives spread over ``buses`` buses named bus0, bus1, ... (node ids from 1 on each)."""
     per_bus = -(-n // buses)
     return [DriveConfig(f"j{i + 1}", i % per_bus + 1, INCREMENTS_PER_REV, RATED_TORQUE_NM,
-                        bus=f"bus{i // per_bus}" if buses > 1 else "") for i in range(n)]
+                        bus=f"bus{i // per_bus}" if buses > 1 else "", pdo_bytes=pdo_bytes)
+            for i in range(n)]
 
 
 def missed_cycles(starts: np.ndarray, period: float) -> int:
@@ -76,8 +80,10 @@ class Rig:
 
     def __init__(self, drives: int, rate: float, *, separate_process: bool = False,
                  channel: str | None = None, buses: int = 1,
-                 interface: str = "inproc", sim_thread: bool = False) -> None:
+                 interface: str = "inproc", sim_thread: bool = False,
+                 fd: bool = False) -> None:
         self.rate = rate
+        self.fd = fd
         self.dt = 1.0 / rate
         self.separate_process = separate_process
         self.interface = "socketcan" if separate_process else interface
@@ -89,7 +95,10 @@ class Rig:
                          else [f"{base}{k}" if separate_process else f"{base}-{k}"
                                for k in range(buses)])
         self.channel = self.channels[0]
-        self.configs = drive_configs(drives, buses)
+        self.configs = drive_configs(drives, buses, pdo_bytes=FD_PDO_BYTES if fd else 8)
+        # an FD bus handle: python-can's virtual says so by its protocol
+        as_fd: dict[str, Any] = ({} if not fd else {"protocol": can.CanProtocol.CAN_FD}
+                                 if self.interface == "virtual" else {"fd": True})
         self.node_ids = sorted({d.node_id for d in self.configs})
         self._closers: list[Callable[[], Any]] = []
         self.group: SegmentGroup | None = None  # the in-process simulator
@@ -100,7 +109,7 @@ class Rig:
             else:  # one receive thread for every segment (drivers/sim/group.py)
                 self.segments = []
                 for ch in self.channels:
-                    segment = SimulatedSegment.open(ch, self.interface, self.node_ids)
+                    segment = SimulatedSegment.open(ch, self.interface, self.node_ids, fd=fd)
                     self._closers.append(segment.stop)  # idempotent
                     self.segments.append(segment)
                 group = SegmentGroup(self.segments)
@@ -110,7 +119,7 @@ class Rig:
                 group.start(lockstep=not sim_thread)
                 self.group = group
             self.segment = self.segments[0]
-            self.buses = [open_bus(self.interface, ch, receive_own_messages=False)
+            self.buses = [open_bus(self.interface, ch, receive_own_messages=False, **as_fd)
                           for ch in self.channels]
             for bus in self.buses:
                 self._closers.append(bus.shutdown)
@@ -123,7 +132,7 @@ class Rig:
             self.manager = manager_for(self.hardware)
             self._closers.append(self.manager.shutdown)
             self.node_bus = open_bus(self.interface, self.channel,
-                                    receive_own_messages=False)
+                                    receive_own_messages=False, **as_fd)
             self._closers.append(self.node_bus.shutdown)
             # as Runtime wires it: e-stop frames are the hardware's, on every bus, in the cycle
             self.node = ManagerNode(self.manager, MANAGER_NODE_ID, self.node_bus,
@@ -136,7 +145,8 @@ class Rig:
     def _start_simulator(self, channel: str) -> None:
         nodes = f"{self.node_ids[0]}-{self.node_ids[-1]}"
         proc = subprocess.Popen([sys.executable, "-m", "rocoma_can", "sim", "--interface",
-                                 "socketcan", "--channel", channel, "--nodes", nodes])
+                                 "socketcan", "--channel", channel, "--nodes", nodes,
+                                 *(["--fd"] if self.fd else [])])
 
         def stop() -> None:
             proc.terminate()

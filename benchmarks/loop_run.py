@@ -1,7 +1,7 @@
 """A steady run of the real control loop with simulated drives: missed cycles, period, jitter.
 
     .venv/bin/python benchmarks/loop_run.py [--drives 12] [--buses 4] [--rate 1000]
-                                            [--duration 60]
+                                            [--duration 60] [--fd]
     tools/vcan-run .venv/bin/python benchmarks/loop_run.py --separate-process --rate 200
 
 The loop is rocoma_can.runtime.ControlLoop (read -> manager.update -> write, sleep then spin
@@ -15,7 +15,9 @@ its own, which shares the GIL and the 2 cores with the loop; ``--interface virtu
 which this machine only has inside user-mode-linux (tools/vcan-run), where every syscall
 is slow: use a rate the VM can sustain there. The JSON records which mode ran. ``--buses N``
 spreads the drives over N buses (one simulated segment each; vcan0 and vcan1 with
---separate-process), one manager over all of them.
+--separate-process), one manager over all of them. ``--fd``: CAN FD buses whose drives map
+PDOs of up to 64 bytes (one RPDO and one TPDO each a cycle, as ``rocoma-can demo --fd``);
+the bus load they would have at 1 Mbit/s arbitration and ``--data-bitrate`` is printed.
 """
 from __future__ import annotations
 
@@ -27,8 +29,11 @@ from _report import report, stats
 from _rig import Rig, Script, StartLog, missed_cycles, run_script
 
 from rocoma_can import ManagerState
+from rocoma_can.cli.demo_config import FD_BITRATE, FD_DATA_BITRATE
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
+from rocoma_can.drivers.pdo_layout import DriveLayout
+from rocoma_can.runtime.bus_load import BusLoad, bus_load
 
 
 def _spin_us(text: str) -> float:
@@ -54,6 +59,10 @@ def main() -> None:
     parser.add_argument("--sim-thread", action="store_true",
                         help="in-process simulator on a thread of its own instead of stepped "
                              "on the loop's thread after each write (lockstep)")
+    parser.add_argument("--fd", action="store_true",
+                        help="CAN FD buses, the drives' PDOs up to 64 bytes")
+    parser.add_argument("--data-bitrate", type=int, default=FD_DATA_BITRATE,
+                        help="the FD data phase the printed bus load assumes, bit/s")
     parser.add_argument("--quick", action="store_true", help="--duration 2")
     args = parser.parse_args()
     if args.spin_us is not None and not args.spin_us * 1e-6 < 1.0 / args.rate:
@@ -67,11 +76,15 @@ def main() -> None:
             else f"in-process {'lockstep' if lockstep else 'thread'}, {args.interface} bus")
     if args.buses > 1:
         mode += f" x{args.buses}"
+    if args.fd:
+        mode += ", CAN FD"
 
     estops: list[str] = []
     with Rig(args.drives, args.rate, separate_process=args.separate_process,
-             buses=args.buses, interface=args.interface, sim_thread=args.sim_thread) as rig:
+             buses=args.buses, interface=args.interface, sim_thread=args.sim_thread,
+             fd=args.fd) as rig:
         rig.add(JointPD("pd", mode="CSP"), emergency=Hold("hold", mode="CSP"))
+        busiest = _busiest_bus(rig, args.rate, args.data_bitrate if args.fd else None)
         rig.manager.subscribe(lambda e: estops.append(e.cause) if e.kind.name ==
                               "EMERGENCY_STOP" else None)
         run_from = []
@@ -100,24 +113,29 @@ def main() -> None:
     j = stats(jitter_us)
     missed = missed_cycles(starts, dt)
     steady_s = float(starts[-1] - starts[0]) if len(starts) > 1 else 0.0
-    rows = [[mode, args.drives, args.buses, f"{args.rate:g}", f"{spin_us:.0f}", f"{steady_s:.1f}",
-             len(starts),
+    rows = [[mode, args.drives, args.buses, f"{args.rate:g}", f"{busiest.load:.0%}",
+             f"{spin_us:.0f}", f"{steady_s:.1f}", len(starts),
              missed, p["median"], p["p99"], p["max"], j["p99"], len(estops), final_state]]
     notes = [f"period and jitter (|period - {dt * 1e6:.0f} us|) over the steady run after "
              "bring-up and enable; missed = cycle slots with no cycle start (a gap of k "
              "periods misses k - 1).",
-             f"ControlLoop summary over its ring: {summary.line()}"]
+             f"ControlLoop summary over its ring: {summary.line()}",
+             f"bus load: the busiest bus as a real one, worst case: {busiest.explain()} "
+             f"({busiest.frames_per_cycle} frames a cycle)"]
     if script.timed_out:
         notes.append(f"TIMED OUT in phase {script.phase}: the numbers are partial.")
     report("loop_run", f"Control loop at {args.rate:g} Hz with {args.drives} simulated drives",
-           ["simulator", "drives", "buses", "Hz", "spin us", "run s", "cycles", "missed",
+           ["simulator", "drives", "buses", "Hz", "bus load", "spin us", "run s", "cycles",
+            "missed",
             "period p50 us",
             "p99 us", "max us", "jitter p99 us", "e-stops", "end state"],
            rows, args=args, notes=notes,
            results={"mode": "separate-process" if args.separate_process else "in-process",
                     "simulator": mode, "interface": None if args.separate_process
                     else args.interface, "drives": args.drives, "buses": args.buses,
-                    "rate_hz": args.rate, "spin_us": spin_us,
+                    "rate_hz": args.rate, "spin_us": spin_us, "fd": args.fd,
+                    "data_bitrate": args.data_bitrate if args.fd else None,
+                    "bus_load": busiest.load, "frames_per_cycle": busiest.frames_per_cycle,
                     "steady_seconds": steady_s, "cycles": len(starts),
                     "missed_cycles": missed, "period_us": p, "jitter_us": j,
                     "estops": len(estops), "estop_causes": estops[:10],
@@ -125,6 +143,16 @@ def main() -> None:
                     "tx_errors": tx_errors, "hardware_cycles": cycles_total,
                     "timed_out": script.timed_out, "phase": script.phase,
                     "loop_summary": summary.__dict__})
+
+
+def _busiest_bus(rig: Rig, rate: float, data_bitrate: int | None) -> BusLoad:
+    """The load of the bus with the most drives, as a 1 Mbit/s bus (CAN FD: with this data
+    phase) would carry it: the in-process buses carry anything."""
+    hw = rig.hardware
+    on: dict[str, list[DriveLayout]] = {}
+    for d, layout in zip(hw.drives_config, hw.layouts):
+        on.setdefault(d.bus, []).append(layout)
+    return bus_load(max(on.values(), key=len), rate, FD_BITRATE, data_bitrate)
 
 
 if __name__ == "__main__":

@@ -243,6 +243,9 @@ class DriveConfig:
     bus: str = ""                           # its bus's name; "" = the first (or only) bus
     axis: int = 1                           # its axis in a multi-axis node (CiA 402-2):
                                             # objects at + (axis - 1) x 0x800
+    pdo_bytes: int = 8                      # the most one of its PDOs carries: 8 (CANopen);
+                                            # up to 64 on a CAN FD bus for a drive that maps
+                                            # longer PDOs (CANopen FD): fewer frames a cycle
     accept_unsupervised: bool = False       # run a drive that ignores losing the manager
     homing_method: int | None = None        # 0x6098 written at bring-up; None: as commissioned
     homing_timeout: float = 60.0            # s a homing may take (rocoma-can home DRIVE)
@@ -299,6 +302,9 @@ class DriveConfig:
         if not _whole(self.axis) or not 1 <= self.axis <= MAX_AXES:
             raise ValueError(f"{where}: axis must be an integer 1..{MAX_AXES} (CiA 402-2), "
                              f"got {self.axis!r}")
+        if not _whole(self.pdo_bytes) or not 8 <= self.pdo_bytes <= 64:
+            raise ValueError(f"{where}: pdo_bytes must be an integer 8..64 (bytes per PDO; "
+                             f"over 8 on a CAN FD bus only), got {self.pdo_bytes!r}")
         if self.guarding not in GUARDING:
             raise ValueError(f"{where}: guarding must be one of {list(GUARDING)}, "
                              f"got {self.guarding!r}")
@@ -392,7 +398,7 @@ def check_drives(drives: list[DriveConfig], manager_node_id: int,
 def node_mismatch(a: DriveConfig, b: DriveConfig) -> str | None:
     """Why two axes of one node cannot be configured as given, or None: what belongs to
     the node (its file, its heartbeat or guarding, its identity) must be said alike for each."""
-    for key in ("eds", "heartbeat_ms", "guarding", "identity"):
+    for key in ("eds", "heartbeat_ms", "guarding", "identity", "pdo_bytes"):
         if getattr(a, key) != getattr(b, key):
             return (f"drive {b.name!r}: node {b.node_id} is also drive {a.name!r} (axis "
                     f"{a.axis}), whose {key} is {getattr(a, key)!r}, not "

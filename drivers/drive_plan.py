@@ -293,6 +293,23 @@ def _tpdo_short(drive: DriveConfig, caps: DriveCapabilities) -> bool:
 
 
 
+def pdo_bytes_problem(drive: DriveConfig, bus: str, fd: bool) -> str | None:
+    """Why the drive's PDOs cannot go on its bus, or None: a classic frame carries 8 bytes."""
+    if drive.pdo_bytes <= 8 or fd:
+        return None
+    return (f"{drive.pdo_bytes} bytes a PDO need a CAN FD bus (fd: true), and bus {bus!r} is "
+            "classic CAN (8 bytes a frame)")
+
+
+def check_pdo_bytes(drives: Sequence[DriveConfig], buses: Sequence[tuple[str, bool]]) -> None:
+    """ValueError for the first drive whose PDOs its bus cannot carry; ``buses``: each
+    drive's bus, its name and whether it is CAN FD."""
+    for drive, (bus, fd) in zip(drives, buses):
+        why = pdo_bytes_problem(drive, bus, fd)
+        if why is not None:
+            raise ValueError(f"drive {drive.name!r}: pdo_bytes: {why}")
+
+
 def pdo_using(cob_id: int, plans: Sequence[DrivePlan]) -> str | None:
     """Which drive's PDO uses ``cob_id`` (an absolute COB-ID from its EDS/DCF), or None."""
     for plan in plans:

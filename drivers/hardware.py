@@ -91,7 +91,7 @@ from .bus_port import Bus, BusPort, SentFrames, named_buses
 from .cia402 import State402
 from .command import Commands
 from .config import DriveConfig, Supervision, check_drives, estop_conflict
-from .drive_plan import pdo_using, plan_drives
+from .drive_plan import check_pdo_bytes, pdo_using, plan_drives
 from .enable import EnableSequence
 from .frames_out import FramesOut
 from .homing import HomingJob, refusal
@@ -164,6 +164,7 @@ class CanopenHardware:
                       for name, arg in buses.items()]
         port_of = {p.name: p for p in self.ports}
         self._port_of = [port_of[d.bus or first] for d in drives]
+        check_pdo_bytes(drives, [(p.name, p.fd) for p in self._port_of])
         names = [d.name for d in drives]
         self.state = JointState.zeros(names)
         self.command = JointCommand.zeros(names)

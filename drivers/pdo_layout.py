@@ -1,11 +1,15 @@
 """PDO layouts computed once at start-up from each drive's configured modes and feedback.
 
-The bus budget (docs/configuration.md: bus load) assumes one RPDO and one TPDO
-of at most 8 bytes per drive per cycle. So the driver maps only the objects the configured
-modes need and packs them first-fit into 8-byte PDOs: a CSP-only drive needs one RPDO
-(controlword + mode + target position = 7 bytes); statusword + position + velocity + torque
-(12 bytes) needs two TPDOs, statusword + position + torque fits one. Each PDO gets a
-precompiled ``struct.Struct``: the cycle never touches canopen's PDO objects.
+The bus budget (docs/configuration.md: bus load) counts every frame a cycle sends, so the
+driver maps only the objects the configured modes need and packs them first-fit into PDOs
+of ``DriveConfig.pdo_bytes`` (8, CANopen's): a CSP-only drive needs one RPDO (controlword +
+mode + target position = 7 bytes); statusword + position + velocity + torque (12 bytes)
+needs two TPDOs, statusword + position + torque fits one. A drive on a CAN FD bus that maps
+longer PDOs (``pdo_bytes`` up to 64) sends one RPDO and one TPDO instead: each frame costs
+its arbitration at the nominal bit rate whatever it carries, so fewer, longer frames fit a
+bus at rates where many short ones do not. Each PDO gets a precompiled ``struct.Struct``,
+padded to the length a CAN FD frame has on the wire (9 bytes go out as 12: wire.fd_length;
+nothing below 9): the cycle never touches canopen's PDO objects.
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ from . import cia301, cia402
 from .capabilities import PDO_NOT_VALID, DriveCapabilities, PdoChannel
 from .config import FEEDBACK, DriveConfig
 from .modes import KIND, DriveMode
+from .wire import fd_length
 
 PDO_BYTES = 8
 PDO_SLOTS = 4
@@ -86,6 +91,7 @@ class Pdo:
 
     @property
     def size(self) -> int:
+        """Bytes of its frame: what is mapped, padded as a CAN FD frame is (``_pdo``)."""
         return self.codec.size
 
     @property
@@ -120,8 +126,12 @@ def first_fit(entries: Iterable[PdoEntry], max_bytes: int = PDO_BYTES,
 
 
 def _pdo(number: int, cob_id: int, entries: Sequence[PdoEntry], fixed: bool = False) -> Pdo:
+    """The codec pads to the frame's length on the wire (``fd_length``: a 9-byte PDO is a
+    12-byte FD frame, and that is what a receiver gets and what the receive check expects)."""
+    mapped = sum(e.size for e in entries)
+    pad = "x" * (fd_length(mapped) - mapped)
     return Pdo(number, cob_id, tuple(entries),
-               struct.Struct("<" + "".join(e.fmt for e in entries)), fixed)
+               struct.Struct("<" + "".join(e.fmt for e in entries) + pad), fixed)
 
 
 @dataclass(frozen=True)
@@ -194,7 +204,7 @@ def _remapped(need: list[PdoEntry], slots: list[tuple[int, int, int]], drive: Dr
         return ()
     slots = [slot for slot in slots if slot[2] > 0]
     try:
-        groups = first_fit(need, PDO_BYTES, [m for _, _, m in slots])
+        groups = first_fit(need, drive.pdo_bytes, [m for _, _, m in slots])
     except ValueError:
         raise ValueError(f"drive {drive.name!r}: {what} needs more PDOs for "
                          f"{', '.join(e.name for e in need)} than the "

@@ -1,7 +1,21 @@
 """What one CAN frame costs on the wire, in bits at the nominal bit rate: the bus-load check
 (runtime/bus_load.py) and the manager node's block-upload pacing (node/server.py) count
-with it."""
+with it, and ``fd_length`` says how long a CAN FD frame's data field is on the wire."""
 from __future__ import annotations
+
+#: the data lengths a CAN FD frame's DLC can say beyond 8 bytes (ISO 11898-1)
+FD_LENGTHS = (12, 16, 20, 24, 32, 48, 64)
+#: the fastest CAN FD data phase a config may give, bit/s (SIC transceivers run 8-10)
+MAX_DATA_BITRATE = 15_000_000
+
+
+def fd_length(data_bytes: int) -> int:
+    """The data field a CAN FD frame of ``data_bytes`` takes: up to 8 bytes as given, then
+    the next length a DLC can say (9 bytes go out as 12). Receivers get the padded length:
+    a PDO codec and the simulated drives pad to it (pdo_layout.py, sim/pdo.py)."""
+    if not 0 <= data_bytes <= FD_LENGTHS[-1]:
+        raise ValueError(f"a CAN FD frame carries 0..64 data bytes, not {data_bytes}")
+    return data_bytes if data_bytes <= 8 else next(n for n in FD_LENGTHS if n >= data_bytes)
 
 
 def frame_bits(data_bytes: int, worst_case: bool = True,
@@ -13,12 +27,14 @@ def frame_bits(data_bytes: int, worst_case: bool = True,
     frame whose data phase (ESI, DLC, data, stuff count, CRC-17 up to 16 bytes or CRC-21,
     the fixed stuff bits and the CRC delimiter) runs at the data bit rate: ``data_ratio`` =
     nominal / data bit rate (1.0 without bit rate switching). Worst case: one stuff bit per
-    four bits where stuffing is dynamic."""
+    four bits where stuffing is dynamic. An FD frame's data is counted at its padded
+    length (``fd_length``)."""
     if data_ratio is None:
         bits = 8 * data_bytes + 47
         if worst_case:
             bits += (34 + 8 * data_bytes - 1) // 4
         return bits
+    data_bytes = fd_length(data_bytes)
     arbitration = 17  # SOF, 11-bit id, RRS, IDE, FDF, res, BRS
     tail = 12         # ACK slot and delimiter, EOF, intermission
     dynamic = 1 + 4 + 8 * data_bytes  # ESI, DLC, data

@@ -57,3 +57,18 @@ def test_benchmark_runs_quick_and_writes_json(name: str, tmp_path: Path) -> None
     assert COMMON <= set(data), sorted(COMMON - set(data))
     assert data["benchmark"] == name and data["rows"]
     assert CASES[name](data["results"]), data["results"]
+
+
+def test_loop_run_on_can_fd_buses_says_their_load(tmp_path: Path) -> None:
+    """--fd: the drives map one RPDO and one TPDO each on CAN FD buses; the JSON says the
+    busiest bus's load as a 1/5 Mbit/s FD bus would carry it."""
+    env = {**os.environ, "ROCOMA_BENCH_RESULTS": str(tmp_path)}
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "loop_run.py"), "--quick", "--fd",
+                           "--drives", "6", "--buses", "2", "--rate", "500"],
+                          cwd=BENCHMARKS.parent, env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    results = json.loads((tmp_path / "loop_run.json").read_text())["results"]
+    assert results["fd"] and results["data_bitrate"] == 5_000_000
+    assert results["frames_per_cycle"] == 3 * 2 + 1 and 0 < results["bus_load"] < 1
+    assert results["simulator"].endswith(", CAN FD") and results["phase"] == "done"

@@ -178,7 +178,7 @@ ONE_MISTAKE = [
       "axis, bus, eds, feedback, gear_ratio, guarding, heartbeat_ms, homing_method, "
       "homing_timeout, identity, "
       "increments_per_rev, limits, max_torque_nm, max_velocity, modes, name, node_id, "
-      "position_max, position_min, rated_torque_nm)"]),
+      "pdo_bytes, position_max, position_min, rated_torque_nm)"]),
     ("a failed drive is still named", lambda cfg: (
         cfg["drives"][1].update(node_id=0), cfg["manager"].update(required_drives=["j2"])),
      ["drives[1]: drive 'j2': node_id must be an integer 1..127, got 0"]),
@@ -456,3 +456,40 @@ def test_can_fd_frames_are_shorter_on_the_wire():
     with pytest.raises(ConfigError) as info:
         validate(cfg)
     assert "1000 Hz fits 3" in info.value.problems[0]
+
+
+def test_longer_pdos_on_can_fd_make_fewer_frames_and_need_an_fd_bus():
+    """pdo_bytes 64 (drives that map CANopen FD PDOs): one RPDO and one TPDO per drive. On
+    a 1/5 Mbit/s FD bus three drives with position, velocity and torque feedback fit at
+    2 kHz that way (8-byte PDOs make 10 frames a cycle, which do not: each frame's
+    arbitration runs at the nominal rate whatever it carries); on a classic bus the key
+    is an error that says why."""
+    cfg = four_buses()
+    cfg["rate"] = 2000
+    cfg["buses"] = [{**b, "fd": True, "data_bitrate": 5_000_000} for b in cfg["buses"]]
+    for d in cfg["drives"]:
+        d.pop("feedback")  # every feedback: 12 bytes, two 8-byte TPDOs
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert "3 drives at 2000 Hz need 20,000 frames/s (102% of the bus" in info.value.problems[0]
+    for d in cfg["drives"]:
+        d["pdo_bytes"] = 64
+    config = validate(cfg)
+    assert all(lo.frames_per_cycle == 7 and lo.load < 1.0 and lo.drives_that_fit == 3
+               for lo in config.loads.values())
+    cfg["buses"][1].update(fd=False, data_bitrate=None)
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert info.value.problems[:3] == [
+        f"<memory>: drives[{k}].pdo_bytes: 64 bytes a PDO need a CAN FD bus (fd: true), and "
+        "bus 'rf' is classic CAN (8 bytes a frame)" for k in (3, 4, 5)]
+
+
+def test_an_in_process_bus_with_a_bitrate_is_checked_as_the_bus_it_stands_for():
+    cfg = good()
+    cfg["bus"] = {"interface": "inproc", "channel": "x", "bitrate": 1_000_000}
+    cfg["rate"] = 5000
+    with pytest.raises(ConfigError, match="rate: bus overload: 2 drives at 5000 Hz"):
+        validate(cfg)
+    cfg["rate"] = 1000
+    assert validate(cfg).loads["x"].load < 1.0

@@ -26,6 +26,7 @@ from rocoma_can.drivers.pdo_layout import (
     layout_for,
 )
 from rocoma_can.drivers.scaling import Scaling
+from rocoma_can.drivers.wire import fd_length, frame_bits
 from rocoma_can.runtime.system import manager_for
 
 
@@ -44,6 +45,7 @@ def drive(name="j0", node_id=1, **kw) -> DriveConfig:
     (dict(feedback=["current"]), "feedback"), (dict(max_torque_nm=0), "max_torque_nm"),
     (dict(position_min=1.0, position_max=0.0), "position_min"),
     (dict(heartbeat_ms=0), "heartbeat_ms"), (dict(eds="/no/such.eds"), "eds"),
+    (dict(pdo_bytes=7), "pdo_bytes"), (dict(pdo_bytes=65), "pdo_bytes"),
 ])
 def test_bad_drive_config_names_the_field(kw, field):
     with pytest.raises(ValueError, match=field):
@@ -92,6 +94,28 @@ def test_layout_frame_counts(modes, feedback, rpdos, tpdos):
     assert layout.tpdos[0].entries[0] == STATUSWORD
     assert [p.cob_id for p in layout.rpdos] == [0x201, 0x301][:rpdos]
     assert [p.cob_id for p in layout.tpdos] == [0x181, 0x281][:tpdos]
+
+
+def test_longer_pdos_make_one_rpdo_and_one_tpdo_padded_to_a_can_fd_length():
+    """pdo_bytes 64 (a drive on a CAN FD bus that maps longer PDOs): everything in one RPDO
+    and one TPDO; a PDO of 13 bytes goes out as a 16-byte FD frame (its codec pads, and
+    the receive check expects that length); 8 bytes and less stay as they are."""
+    layout = layout_for(drive(modes=["csp", "csv", "cst"], pdo_bytes=64))
+    (rpdo,), (tpdo,) = layout.rpdos, layout.tpdos
+    assert rpdo.names == ("controlword", "mode", "target_position", "target_velocity",
+                          "target_torque")
+    assert tpdo.names == ("statusword", "position", "velocity", "torque")
+    assert (sum(e.size for e in rpdo.entries), rpdo.size) == (13, 16)
+    assert (sum(e.size for e in tpdo.entries), tpdo.size) == (12, 12)
+    assert rpdo.codec.pack(0x0F, 8, -1, 2, -3) == \
+        struct.pack("<Hbiih", 0x0F, 8, -1, 2, -3) + bytes(3)
+    assert tpdo.codec.unpack(bytes(range(12)))[0] == 0x0100
+    assert [fd_length(n) for n in (0, 8, 9, 12, 13, 17, 33, 49, 64)] == \
+        [0, 8, 12, 12, 16, 20, 48, 64, 64]
+    assert frame_bits(9, data_ratio=0.2) == frame_bits(12, data_ratio=0.2)
+    with pytest.raises(ValueError, match="0..64 data bytes"):
+        fd_length(65)
+    assert layout_for(drive(modes=["csp"])).rpdos[0].size == 7  # classic: never padded
 
 
 def test_first_fit_fills_earlier_pdos():

@@ -200,6 +200,41 @@ def test_can_fd_buses_carry_fd_frames_both_ways(two_buses):
         assert all(len(f.data) <= 8 for f in ours + theirs)
 
 
+def test_drives_that_map_longer_pdos_send_one_rpdo_and_one_tpdo_a_cycle(two_buses):
+    """pdo_bytes 64 on CAN FD buses (the simulated drives on an FD bus map PDOs as CANopen
+    FD does): each drive's targets in one RPDO (13 bytes, a 16-byte FD frame) and its
+    feedback in one TPDO (12 bytes); bring-up maps them, the drives enable and follow."""
+    rig, segments, recorders = two_buses(fd=True, drive={"pdo_bytes": 64})
+    assert rig.hw.frames_per_cycle == 4 * 2 + 2
+    _hold(rig)
+    mark = {side: r.mark() for side, r in recorders.items()}
+    rig.run(10 * rig.dt)
+    for side, r in recorders.items():
+        r.wait_for(lambda f: f.cob_id == 0x181, VIRTUAL.detect_budget(), since=mark[side])
+        frames = r.frames(since=mark[side])
+        rpdos = [f for f in frames if _rpdo(f.cob_id)]
+        tpdos = [f for f in frames if 0x180 <= f.cob_id < 0x200 or 0x280 <= f.cob_id < 0x300]
+        assert {f.cob_id for f in rpdos} == {0x201, 0x202}  # RPDO2 unused
+        assert {f.cob_id for f in tpdos} == {0x181, 0x182}
+        assert {len(f.data) for f in rpdos} == {16} and {len(f.data) for f in tpdos} == {12}
+        assert all(f.message.is_fd and f.message.bitrate_switch for f in rpdos + tpdos)
+    # enabled: the controlwords went in the long RPDOs, the statuswords came in the TPDOs
+    assert rig.hw.all_enabled and rig.mgr.state is ManagerState.OK
+    for segment in segments.values():  # as bring-up mapped them (sub-index 0: entries)
+        for n in NODES:
+            values = segment.drives[n].objects.values
+            assert (values[(0x1600, 0)], values[(0x1A00, 0)]) == (5, 4)
+
+
+def test_pdos_over_8_bytes_need_a_can_fd_bus(bus_factory, virtual_channel):
+    from rocoma_can.drivers.config import DriveConfig
+    from rocoma_can.drivers.hardware import CanopenHardware
+    with pytest.raises(ValueError, match="drive 'j1': pdo_bytes: 64 bytes a PDO need a CAN "
+                                         "FD bus .*bus 'bus' is classic CAN"):
+        CanopenHardware(bus_factory(virtual_channel), [DriveConfig("j1", 1, 4096, 1.0,
+                                                                   pdo_bytes=64)], 100, 0.01)
+
+
 def test_a_bus_without_drives_still_gets_sync_and_the_manager_heartbeat(virtual_channel,
                                                                         bus_factory):
     """SYNC and the manager heartbeat go out on every configured bus, one without drives

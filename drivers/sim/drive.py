@@ -214,7 +214,7 @@ class SimulatedDrive:
         self.objects = ObjectDictionaryServer(
             object_dictionary, node_id, self._tx, self._after_write,
             for_axes(fallback_values(1 << 20, 1.0) if fallbacks is None else fallbacks, axes),
-            [AxisKeys.of(n) for n in range(1, axes + 1)])
+            [AxisKeys.of(n) for n in range(1, axes + 1)], pdo_bytes=64 if segment.fd else 8)
         self._values = self.objects.values
         self.nmt = NmtSlave(node_id, segment, self._values, self._tx,
                             on_lost=self._heartbeat_lost, on_regained=self._errors_cleared)

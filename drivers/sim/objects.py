@@ -8,7 +8,8 @@ segmented; block upload from drivers/sdo_block_upload.py, block download is refu
 download takes effect: access type, length, the file's LowLimit/HighLimit, supported
 modes, scaling denominators, and the
 CiA 301 rules for changing PDO communication and mapping objects (invalidate first,
-sub-index 0 to 0 first, only mappable objects, at most 64 bits).
+sub-index 0 to 0 first, only mappable objects, at most 64 bits; 64 bytes for a drive on a
+CAN FD bus, which maps PDOs as CANopen FD does).
 
 A node may have up to eight CiA 402 axes (CiA 402-2): axis n's objects 0x6000-0x67FF are
 at index + 0x800 (n - 1), in the same dictionary. Every service reads an axis's objects
@@ -196,15 +197,17 @@ class ObjectDictionaryServer:
     ``on_write(key, value)`` runs after every accepted SDO download, so the drive can make
     the write take effect (a controlword transition, a new heartbeat period, new PDOs).
     ``axes``: the node's axes, whose writes are checked as their own (mode, scaling).
+    ``pdo_bytes``: the longest PDO a mapping may make (8; 64 on a CAN FD bus).
     """
 
     def __init__(self, od: objectdictionary.ObjectDictionary, node_id: int,
                  send: Callable[[int, bytes], None],
                  on_write: Callable[[Key, Any], None],
                  fallbacks: Mapping[Key, Any] | None,
-                 axes: Sequence[AxisKeys]) -> None:
+                 axes: Sequence[AxisKeys], pdo_bytes: int = 8) -> None:
         self.object_dictionary = od  # the name canopen's SdoServer reads
         self._node_id = node_id
+        self._pdo_bits = 8 * pdo_bytes
         self._on_write = on_write
         self._axes = tuple(axes)
         # What the drive does for objects its file lacks or lists without a value (never
@@ -339,7 +342,7 @@ class ObjectDictionaryServer:
                     or length != len(var):
                 raise SdoAbortedError(ABORT_PDO_CANNOT_MAP)
             bits += length
-        if bits > 64:
+        if bits > self._pdo_bits:
             raise SdoAbortedError(ABORT_PDO_LENGTH_EXCEEDED)
 
 

@@ -23,6 +23,7 @@ import can
 
 from .. import cia301 as c301
 from ..cia301 import NmtState
+from ..wire import fd_length
 from .faults import EmcyProducer, InjectedFaults
 from .nmt import NmtSlave
 from .objects import PDO_NOT_VALID, AxisKeys, Key, ObjectDictionaryServer
@@ -106,8 +107,11 @@ class PdoService:
                 values_of = lambda values: (single(values),)  # noqa: E731
         else:
             values_of = lambda values: ()  # noqa: E731
-        layout = struct.Struct(fmt)
         fd = self._seg.fd
+        if fd:  # the frame's length on the wire: a 9-byte mapping goes out (and in) as 12
+            mapped = struct.calcsize(fmt)
+            fmt += "x" * (fd_length(mapped) - mapped)
+        layout = struct.Struct(fmt)
         frame = can.Message(arbitration_id=raw & 0x7FF, data=bytearray(layout.size),
                             is_extended_id=False, is_fd=fd, bitrate_switch=fd)
         return Pdo(number=number, cob_id=raw & 0x7FF, valid=not raw & PDO_NOT_VALID,

@@ -165,6 +165,8 @@ class SimulatedSegment:
         template = next(iter(dictionaries.values()))
         self._fallbacks = fallback_values(increments_per_rev, rated_torque_nm, template)
         self._overrides = dict(overrides or {})
+        # an FD bus: the drives answer in FD frames and map PDOs of up to 64 bytes
+        self._writer = FrameWriter(bus, fd=fd)
         self.drives: dict[int, SimulatedDrive] = {}
         self._fixed_routes: dict[int, Route] = {}
         self._rpdo_routes: dict[int, Route] = {}
@@ -201,7 +203,6 @@ class SimulatedSegment:
         # Every frame that arrived (monotonic) before this has been handled: see the docstring.
         self.received_until = -math.inf
         self._backlog: list[can.Message] = []  # see pump
-        self._writer = FrameWriter(bus, fd=fd)  # an FD bus: the drives answer in FD frames
         self._timers = Timers(self._run_timer)
         self._stopped = threading.Event()
         self._rx_thread = threading.Thread(target=self._receive_loop,

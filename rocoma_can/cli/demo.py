@@ -20,14 +20,14 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import can
 
-from ..cli_args import positive, seconds
+from ..cli_args import count, positive, seconds
+from ..drivers.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError
 from ..exit_codes import FAILED, OK, USAGE
 from ..node.client import ManagerClient
@@ -35,6 +35,8 @@ from ..node.objects import STATE_NAMES
 from .demo_config import (
     DEFAULT_INTERFACE,
     ESTOP_COB_ID,
+    FD_BITRATE,
+    FD_DATA_BITRATE,
     MANAGER_ID,
     MIN_PAUSE,
     PAUSES,
@@ -44,38 +46,17 @@ from .demo_config import (
     demo_urdf,
     emulate,
 )
+from .demo_report import Report, Said, Step, grouped_notes, plot_run, status_lines, summary
 
 #: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
 #: one record, and the walk-through's come seconds apart
 FLIGHT_SECONDS = 2.0
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
-    from ..drivers.drive_plan import DrivePlan
     from ..drivers.sim.segment import SimulatedSegment
     from ..live.foxglove import FoxgloveConfig
-    from ..runtime.loop import TimingSummary
+    from ..runtime.config import RuntimeConfig
     from ..runtime.system import Runtime
-
-
-@dataclass
-class Step:
-    name: str
-    ok: bool
-    detail: str
-
-
-@dataclass
-class Report:
-    steps: list[Step] = field(default_factory=list)
-    latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
-    recording: Path | None = None      # the run's trace.mcap (with a candump .log per bus)
-    plot: Path | None = None           # its PNG
-    flight_records: list[Path] = field(default_factory=list)  # one per e-stop (grouped)
-    walk_time: float = 0.0             # s from the walk-through's start to the loop's stop
-
-    @property
-    def ok(self) -> bool:
-        return bool(self.steps) and all(s.ok for s in self.steps)
 
 
 def _only(cob_ids: set[int]) -> list[can.typechecking.CanFilter]:
@@ -289,6 +270,25 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
         rt.loop.stop("walk-through finished")
 
 
+def _load_line(config: RuntimeConfig) -> str | None:
+    """What the buses carry as the buses they stand for: the load of CAN FD ones (--fd:
+    checked, as for real buses), or, where in-process buses without a bit rate carry what
+    a real classic 1 Mbit/s bus would not, a note that says so (and what fits)."""
+    if config.loads:
+        busiest = max(config.loads.values(), key=lambda planned: planned.load)
+        return (f"rocoma-can demo: the busiest bus: {busiest.explain()} "
+                f"({busiest.frames_per_cycle} frames a cycle)")
+    from ..runtime.bus_load import bus_load
+    for b in config.buses:
+        classic = bus_load([config.plans[d.name].layout for d in config.drives_on(b)],
+                           config.rate, FD_BITRATE)
+        if classic.load > 1.0:
+            return (f"  note: 1 Mbit/s classic buses would not carry this ({b.label}: "
+                    f"{classic.explain()}); the in-process ones do (--fd: CAN FD buses, "
+                    "checked as real ones)")
+    return None
+
+
 def default_record_dir() -> Path:
     """A new directory per run under the state directory's demo/ (commands.state_dir)."""
     from .commands import state_dir
@@ -301,7 +301,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              interface: str = DEFAULT_INTERFACE, eds: str | None = None,
              record: str | Path | None = None, zenoh_listen: str | None = None,
              flight: str | Path | None = None,
-             foxglove: FoxgloveConfig | None = None) -> Report:
+             foxglove: FoxgloveConfig | None = None,
+             data_bitrate: int | None = None, channel: str | None = None) -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
@@ -311,7 +312,12 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     recorder's directory, as ``run`` has it: each e-stop leaves a record there, its path
     said as it is written. Its window is FLIGHT_SECONDS, not run's 10 s: e-stops within
     half a window make one record, and the walk-through's are seconds apart. ``foxglove``:
-    the live view, as ``run --foxglove`` serves it."""
+    the live view, as ``run --foxglove`` serves it. ``data_bitrate``: the buses are CAN FD
+    buses (demo_config's FD_BITRATE and this data bit rate): every frame an FD frame with
+    bit rate switching, the drives' PDOs up to FD_PDO_BYTES, the load checked as for real
+    buses (ConfigError when it does not fit). ``channel``: the in-process channel (several
+    buses: ``channel-0``, ...) another part of this process can listen on; default: a new
+    one per run."""
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..drivers.sim.group import SegmentGroup
     from ..drivers.sim.segment import SimulatedSegment
@@ -324,15 +330,19 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         for note in emulated.notes:
             out(f"  note: {note}")
     buses = default_buses(drives) if buses is None else buses
-    channel = f"rocoma-demo-{uuid.uuid4().hex[:8]}"
-    raw = demo_config(channel, drives, rate, buses, interface, emulated)
+    channel = channel or f"rocoma-demo-{uuid.uuid4().hex[:8]}"
+    fd = data_bitrate is not None
+    raw = demo_config(channel, drives, rate, buses, interface, emulated, data_bitrate)
     if zenoh_listen is not None:
         raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
     config = validate(raw, source="demo")
     config.robot = parse_urdf(demo_urdf([d.name for d in config.drives]).encode(), "demo")
-    notes = _grouped_notes(config.plans)
+    notes = grouped_notes(config.plans)
     for line in notes.values():
         out(line)
+    said_load = _load_line(config)
+    if said_load is not None:
+        out(said_load)
     report = Report()
     if (record is not None or flight is not None) and importlib.util.find_spec("mcap") is None:
         out("rocoma-can demo: not recording, no flight records: MCAP needs pip install "
@@ -345,7 +355,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                                       **(emulated.segment if emulated else {}),
                                       **({"axes": {d.node_id: emulated.axes
                                                    for d in config.drives_on(b)}}
-                                         if emulated and emulated.axes > 1 else {}))
+                                         if emulated and emulated.axes > 1 else {}),
+                                      fd=fd)
                 for b in config.buses]
     # one receive thread for every bus where possible, standing by while the loop steps
     # the simulator on its own thread after each write (stepped_before: in on_cycle)
@@ -354,15 +365,16 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     # The client and the probes filter what they read (the interface drops the rest): at
     # 1 kHz every bus carries ~13 frames a cycle, and readers of all of it cost the loop's
     # process more CPU than the drives' simulation.
+    as_fd: dict[str, Any] = {"fd": True} if fd else {}  # SocketCAN: FD frames to FD sockets
     client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False,
-                          can_filters=_only({0x580 + MANAGER_ID}))  # its SDO answers
+                          can_filters=_only({0x580 + MANAGER_ID}), **as_fd)  # SDO answers
     probes = [_TorqueOffProbe(_controlword_carriers(config, b.label)) for b in config.buses]
     # one torque-off probe per bus, each on a bus handle and reader of its own
     probe_buses = [open_bus(interface, b.channel, receive_own_messages=False,
-                            can_filters=_only(set(p.carriers)))
+                            can_filters=_only(set(p.carriers)), **as_fd)
                    for b, p in zip(config.buses, probes)]
     readers: list[BusReader] = []
-    said = _Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
+    said = Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
     hardware_log = logging.getLogger("rocoma_can.drivers.hardware")
     hardware_log.addFilter(said)
     try:
@@ -376,8 +388,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                      announce=lambda text: out(f"rocoma-can demo: {text}")) \
                 as rt, ManagerClient(client_bus, MANAGER_ID) as client:
             watch.runtime = rt
-            on = (f"{interface} bus {config.bus.channel}" if buses == 1
-                  else f"{buses} {interface} buses {channel}-0..{buses - 1}")
+            kind = f"{interface} CAN FD" if fd else interface
+            on = (f"{kind} bus {config.bus.channel}" if buses == 1
+                  else f"{buses} {kind} buses {channel}-0..{buses - 1}")
             out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
                 f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
             if rt.foxglove is not None:
@@ -391,12 +404,12 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             operator = threading.Thread(
                 target=_operator, name="demo-operator",
                 args=(rt, seg, client, watch, probes, report, duration, stop, out))
-            status = threading.Thread(target=_status_lines, name="demo-status",
+            status = threading.Thread(target=status_lines, name="demo-status",
                                       args=(rt, stop, out))
             operator.start()
             status.start()
             try:
-                summary = rt.run(duration=duration * 3 + 20)
+                timing = rt.run(duration=duration * 3 + 20)
             finally:
                 stop.set()
                 operator.join(15.0)
@@ -410,13 +423,13 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                         + (f" on {buses} buses" if buses > 1 else ""))
             report.steps.append(step)
             out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
-            _summary(out, report, summary, rt)
+            summary(out, report, timing, rt)
         if rt.flight is not None:  # closed: the last record is written
             report.flight_records = list(rt.flight.dumps)
             out(f"flight records: {len(report.flight_records)} in {rt.flight.directory}")
         simulator.check()
         if record is not None:
-            _plot(Path(record), report, out)
+            plot_run(Path(record), report, out)
     finally:
         hardware_log.removeFilter(said)
         for r in readers:
@@ -425,81 +438,6 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             b.shutdown()
         simulator.stop()
     return report
-
-
-def _grouped_notes(plans: Mapping[str, DrivePlan]) -> dict[str, str]:
-    """Each drive-plan note once, naming its drives: the demo's drives share one file, so
-    a note per drive would say the same thing as many times as there are drives."""
-    drives: dict[str, list[str]] = {}
-    for name, plan in plans.items():
-        for note in plan.notes:
-            drives.setdefault(note, []).append(name)
-    everyone = list(plans)
-    lines = {}
-    for note, names in drives.items():
-        start = everyone.index(names[0])
-        run = len(names) > 3 and everyone[start:start + len(names)] == names
-        who = f"{names[0]}..{names[-1]}" if run else ", ".join(names)
-        lines[note] = f"  note: {who}: {note}"
-    return lines
-
-
-class _Said(logging.Filter):
-    """Drops a log record that repeats one of these notes (the hardware's line per drive)."""
-
-    def __init__(self, notes: set[str]) -> None:
-        super().__init__()
-        self.notes = notes
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        message = record.getMessage()
-        return not any(message.endswith(": " + note) for note in self.notes)
-
-
-def _plot(directory: Path, report: Report, out: Callable[[str], None]) -> None:
-    """After the run (the recording closed): draw it, say where both are."""
-    from ..record.plot import PlotError, plot
-    report.recording = directory / "trace.mcap"
-    logs = ", ".join(str(p) for p in sorted(directory.glob("*.log")))
-    out(f"recording: {report.recording} (frames: {logs})")
-    try:
-        report.plot = plot(report.recording, directory / "demo.png",
-                           title=f"rocoma-can demo: {len(report.steps)} steps, "
-                                 f"{'passed' if report.ok else 'FAILED'}")
-    except PlotError as exc:
-        out(f"plot: none ({exc})")
-        return
-    out(f"plot: {report.plot}")
-
-
-def _status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None]) -> None:
-    while not stop.wait(1.0):
-        hw, mgr, s = rt.hardware, rt.manager, rt.loop.stats
-        out(f"  [{s.cycles:6d} cycles] {STATE_NAMES[int(mgr.state)]:9s} "
-            f"{mgr.active_controller_name:12s} enabled {int(hw.enabled.sum())}/"
-            f"{len(hw.drives_config)} q0 {hw.state.position[0]:+.3f} rad "
-            f"overruns {s.overruns} tx errors {hw.tx_errors}")
-
-
-def _summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
-             rt: Runtime) -> None:
-    out("")
-    out("summary")
-    out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
-    out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
-    out(f"  {'cycles':28s} {timing.cycles}")
-    out(f"  {'missed cycles (overruns)':28s} {timing.overruns}")
-    out(f"  {'period mean / max':28s} {timing.period_mean * 1e3:.2f} / "
-        f"{timing.period_max * 1e3:.2f} ms")
-    out(f"  {'jitter p99 / max':28s} {timing.jitter_p99 * 1e3:.2f} / "
-        f"{timing.jitter_max * 1e3:.2f} ms")
-    out(f"  {'frames per cycle':28s} {rt.hardware.frames_per_cycle} "
-        f"(PDOs of {len(rt.hardware.drives_config)} drives + SYNC)")
-    out(f"  {'tx errors':28s} {rt.hardware.tx_errors}")
-    for what, took, cycles in report.latencies:
-        out(f"  {'latency ' + what:28s} {took * 1e3:.1f} ms (~{cycles} cycles)")
-    out("demo " + ("passed" if report.ok else "FAILED: " + ", ".join(
-        s.name for s in report.steps if not s.ok)))
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -514,6 +452,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--eds", default=None, metavar="FILE",
                    help="the simulated drives emulate this EDS/DCF: the demo uses the modes "
                         "it supports and says which steps it skips and why")
+    p.add_argument("--fd", action="store_true",
+                   help="CAN FD buses (1 Mbit/s arbitration, --data-bitrate data phase): FD "
+                        "frames both ways, the drives' PDOs up to 64 bytes (one RPDO and one "
+                        "TPDO a cycle), the bus load checked as for real buses")
+    p.add_argument("--data-bitrate", type=count, default=None, metavar="BIT/S",
+                   help=f"the data phase of the --fd buses (default {FD_DATA_BITRATE})")
     p.add_argument("--interface", choices=("inproc", "virtual"), default=DEFAULT_INTERFACE,
                    help="in-process bus: inproc (default; one copy per frame, fit for "
                         "1 kHz) or python-can's virtual (a copy per frame and receiver)")
@@ -544,6 +488,13 @@ def _main(args: argparse.Namespace) -> int:
         print("demo: --drives 2..32, --rate 10..2000 Hz, --duration > 0, --buses 1.."
               "drives/2 (the walk-through faults two drives of the first bus)", flush=True)
         return USAGE
+    if args.data_bitrate is not None and (not args.fd or not FD_BITRATE <= args.data_bitrate
+                                          <= MAX_DATA_BITRATE):
+        print(f"demo: --data-bitrate: the data phase of --fd buses, {FD_BITRATE}.."
+              f"{MAX_DATA_BITRATE} bit/s, got {args.data_bitrate}"
+              + ("" if args.fd else " without --fd"), flush=True)
+        return USAGE
+    data_bitrate = (args.data_bitrate or FD_DATA_BITRATE) if args.fd else None
     record = None if args.no_record else Path(args.record or default_record_dir())
     if record is not None:
         try:
@@ -559,7 +510,7 @@ def _main(args: argparse.Namespace) -> int:
                           out=lambda line: print(line, flush=True), buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen, flight=flight,
-                          foxglove=foxglove_from_args(args))
+                          foxglove=foxglove_from_args(args), data_bitrate=data_bitrate)
     except (ValueError, RocomaError) as exc:
         if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint: "demo: ..."
             for problem in exc.problems:

@@ -19,6 +19,11 @@ PAUSES = (1.0, 1.0, 0.5, 0.5, 1.0, 0.5)
 MIN_PAUSE = 0.2  # s per share: each step is seen to hold for a while, however short the demo
 #: the demo's drives, as demo_config builds them (emulate measures one against the file)
 DRIVE = {"increments_per_rev": 1048576, "rated_torque_nm": 1.0, "heartbeat_ms": 100}
+#: ``demo --fd``: the bit rates of the CAN FD buses its in-process ones stand for (the
+#: arbitration phase; the data phase at --data-bitrate), and the PDOs its drives map there
+FD_BITRATE = 1_000_000
+FD_DATA_BITRATE = 5_000_000
+FD_PDO_BYTES = 64
 
 
 def default_buses(drives: int) -> int:
@@ -131,11 +136,15 @@ _MODE_NUMBER = {"csp": 8, "ip": 7, "pp": 1, "cst": 10}
 
 
 def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
-                interface: str = "virtual", emulated: Emulated | None = None) -> dict[str, Any]:
+                interface: str = "virtual", emulated: Emulated | None = None,
+                data_bitrate: int | None = None) -> dict[str, Any]:
     """The demo's config: ``buses`` > 1 gives channels ``channel-0`` ... each with its share
     of the drives (node ids from 1 on each bus); ``interface`` is an in-process one
     (python-can's ``virtual``, or ``inproc``, drivers/inproc.py); ``emulated``: drives
-    fitted to a vendor file (``emulate``)."""
+    fitted to a vendor file (``emulate``); ``data_bitrate``: CAN FD buses of FD_BITRATE
+    and this data bit rate, load-checked as such, whose drives map PDOs of up to
+    FD_PDO_BYTES (one RPDO and one TPDO a cycle). Without it the buses have no bit rate:
+    an in-process bus carries any load."""
     joints = [f"joint{i}" for i in range(1, drives + 1)]
     per_bus = -(-drives // buses)
     modes = emulated.modes if emulated else ["csp", "cst"]
@@ -145,11 +154,16 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
     drive = emulated.drive if emulated else {}
     first_node = emulated.first_node if emulated else 1
     axes = emulated.axes if emulated else 1
+    fd: dict[str, Any] = {} if data_bitrate is None else {
+        "bitrate": FD_BITRATE, "fd": True, "data_bitrate": data_bitrate}
+    if data_bitrate is not None:
+        drive = {**drive, "pdo_bytes": FD_PDO_BYTES}
     if buses == 1:
-        bus_section: dict[str, Any] = {"bus": {"interface": interface, "channel": channel}}
+        bus_section: dict[str, Any] = {"bus": {"interface": interface, "channel": channel,
+                                               **fd}}
     else:
         bus_section = {"buses": [{"name": f"bus{k}", "interface": interface,
-                                  "channel": f"{channel}-{k}"} for k in range(buses)]}
+                                  "channel": f"{channel}-{k}", **fd} for k in range(buses)]}
     return {
         **bus_section,
         "rate": rate,

@@ -208,7 +208,8 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     timing = check_timing(section_at(data, "timing", problems), problems)
     named: list[str] = []  # every drive name given, built or not
     planned, clean = check_drives(data.get("drives"), manager.node_id, base, problems,
-                                  [b.label for b in buses], named)
+                                  [b.label for b in buses], named,
+                                  fd={b.label for b in buses if b.fd})
     drives = [d for d, _ in planned]
     plans: dict[str, DrivePlan] = {}
     for d, plan in planned:

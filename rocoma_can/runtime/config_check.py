@@ -8,7 +8,7 @@ run. The ranges live here, the defaults in the dataclasses (config.py, drivers.c
 from __future__ import annotations
 
 import difflib
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -22,8 +22,9 @@ from ..drivers.config import (
     estop_conflict,
     node_mismatch,
 )
-from ..drivers.drive_plan import DrivePlan, plan_drive, plan_drives
+from ..drivers.drive_plan import DrivePlan, pdo_bytes_problem, plan_drive, plan_drives
 from ..drivers.pdo_layout import cob_id_clashes
+from ..drivers.wire import MAX_DATA_BITRATE
 from ..live.urdf import MOVABLE, Robot, UrdfError, read_urdf
 from ..manager import TimingSupervision
 from .bus_load import BusLoad, bus_load
@@ -34,7 +35,8 @@ if TYPE_CHECKING:
     from .config import ManagerNodeConfig  # config.py builds it; these checks fill it in
 
 DEFAULT_BITRATE = 1_000_000  # assumed for the load check when the config gives none
-#: interfaces between threads of one process: no wire, no bit rate, no load to check
+#: interfaces between threads of one process: no wire, no load to check unless the config
+#: gives the bit rate of the bus they stand in for (the demo's CAN FD buses)
 IN_PROCESS = frozenset({"virtual", "inproc"})
 _BUS_KEYS = {"interface", "channel", "bitrate", "name", "fd", "data_bitrate"}
 _MANAGER_KEYS = {"node_id", "bus", "heartbeat_ms", "estop_cob_id", "estop_must_be_cleared",
@@ -121,7 +123,8 @@ def _bus(section: Mapping[str, Any], where: str, problems: list[str],
     if not isinstance(fd, bool):
         problems.append(f"{where}.fd: expected true or false, got {fd!r}")
     rates = {}
-    for key, low, high in (("bitrate", 10_000, 1_000_000), ("data_bitrate", 10_000, 15_000_000)):
+    for key, low, high in (("bitrate", 10_000, 1_000_000),
+                           ("data_bitrate", 10_000, MAX_DATA_BITRATE)):
         value = section.get(key)
         if value is not None and (not _is_int(value) or not low <= value <= high):
             problems.append(f"{where}.{key}: expected an integer {low}..{high} bit/s, "
@@ -228,12 +231,13 @@ def check_timing(section: Mapping[str, Any], problems: list[str]) -> TimingSuper
 
 
 def check_drives(entries: Any, manager_id: int, base: Path | None, problems: list[str],
-                 buses: list[str], named: list[str]
+                 buses: list[str], named: list[str], fd: Collection[str] = ()
             ) -> tuple[list[tuple[DriveConfig, DrivePlan]], list[tuple[DriveConfig, DrivePlan]]]:
     """Each drive built and measured against its file, with its own plan (two drives of
     one name keep theirs); and those of them whose node id was not already reported, which
     the COB-ID check takes (a taken node id is one problem, not also its PDOs' clashes).
-    ``named`` gets every name given, so a drive that failed is not also "no such drive"."""
+    ``named`` gets every name given, so a drive that failed is not also "no such drive";
+    ``fd``: the buses that are CAN FD (the only ones PDOs over 8 bytes go on)."""
     if not isinstance(entries, list) or not entries:
         problems.append(f"drives: expected a non-empty list of drives, got {entries!r}")
         return [], []
@@ -265,6 +269,9 @@ def check_drives(entries: Any, manager_id: int, base: Path | None, problems: lis
             problems.append(f"{where}.bus: no bus named {drive.bus!r} (buses: "
                             f"{', '.join(repr(b) for b in buses)})")
         bus = drive.bus or buses[0]
+        why = pdo_bytes_problem(drive, bus, bus in fd) if bus in buses else None
+        if why is not None:
+            problems.append(f"{where}.pdo_bytes: {why}")
         taken = (bus, drive.node_id, drive.axis) in ids
         if taken:
             on = f" on bus {bus!r}" if len(buses) > 1 else ""
@@ -421,13 +428,13 @@ def _feedback_problems(loaded: list[LoadedController], drives: list[DriveConfig]
 def check_bus_loads(data: Mapping[str, Any], buses: list[BusConfig],
                     planned: list[tuple[DriveConfig, DrivePlan]], rate: float | None,
                     problems: list[str]) -> dict[str, BusLoad]:
-    """Each bus's load per cycle at the rate (in-process buses have no bit rate)."""
+    """Each bus's load per cycle at the rate (an in-process bus only with a bitrate)."""
     drives = [d for d, _ in planned]
     loads: dict[str, BusLoad] = {}
     first = buses[0].label if buses else ""
     for k, b in enumerate(buses):
         on = [d for d in drives if (d.bus or first) == b.label]
-        if not on or rate is None or b.interface in IN_PROCESS:
+        if not on or rate is None or (b.interface in IN_PROCESS and b.bitrate is None):
             continue
         bitrate = b.bitrate or DEFAULT_BITRATE
         data_bitrate = (b.data_bitrate or bitrate) if b.fd else None

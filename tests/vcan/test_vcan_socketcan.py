@@ -72,6 +72,30 @@ def test_can_fd_frames_with_bit_rate_switching_pass_vcan(bus_factory):
                                                                             b"\x05")
 
 
+def test_a_long_fd_pdo_passes_vcan_whole(bus_factory):
+    """A PDO over 8 bytes (pdo_bytes on an FD bus) goes out at its FD length and arrives
+    with that length as its DLC, which is what the receive check compares with the
+    mapping's padded size (pdo_layout: 13 bytes mapped, a 16-byte frame)."""
+    from rocoma_can.drivers.config import DriveConfig
+    from rocoma_can.drivers.frame_io import FrameReader, FrameWriter
+    from rocoma_can.drivers.pdo_layout import layout_for
+    (rpdo,) = layout_for(DriveConfig("j", 1, 4096, 1.0, modes=("csp", "csv", "cst"),
+                                     pdo_bytes=64)).rpdos
+    sender = bus_factory("vcan1", "socketcan", fd=True)
+    receiver = bus_factory("vcan1", "socketcan", fd=True)
+    data = rpdo.codec.pack(0x0F, 8, -5, 6, -7)
+    FrameWriter(sender, fd=True).send(rpdo.cob_id, data)
+    batch: list[can.Message] = []
+    reader = FrameReader(receiver)
+    deadline = time.monotonic() + 5
+    while not batch and time.monotonic() < deadline:
+        batch += reader.read(0.5)
+    (got,) = batch
+    assert (got.arbitration_id, got.is_fd, got.bitrate_switch, got.dlc) == (0x201, True, True,
+                                                                            rpdo.size)
+    assert rpdo.size == 16 and rpdo.codec.unpack(bytes(got.data)) == (0x0F, 8, -5, 6, -7)
+
+
 def test_vcan1_is_a_separate_bus(bus_factory, frame_recorder):
     recorder0 = frame_recorder("vcan0", "socketcan")
     recorder1 = frame_recorder("vcan1", "socketcan")

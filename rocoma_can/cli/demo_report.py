@@ -1,0 +1,114 @@
+"""What ``rocoma-can demo`` says: its steps and report, the drives' notes once each, a
+status line a second while it runs, the summary at the end, and where its recording and
+plot went. Kept apart from the walk-through (demo.py) that produces them."""
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ..node.objects import STATE_NAMES
+
+if TYPE_CHECKING:
+    from ..drivers.drive_plan import DrivePlan
+    from ..runtime.loop import TimingSummary
+    from ..runtime.system import Runtime
+
+
+@dataclass
+class Step:
+    name: str
+    ok: bool
+    detail: str
+
+
+@dataclass
+class Report:
+    steps: list[Step] = field(default_factory=list)
+    latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
+    recording: Path | None = None      # the run's trace.mcap (with a candump .log per bus)
+    plot: Path | None = None           # its PNG
+    flight_records: list[Path] = field(default_factory=list)  # one per e-stop (grouped)
+    walk_time: float = 0.0             # s from the walk-through's start to the loop's stop
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.steps) and all(s.ok for s in self.steps)
+
+
+def grouped_notes(plans: Mapping[str, DrivePlan]) -> dict[str, str]:
+    """Each drive-plan note once, naming its drives: the demo's drives share one file, so
+    a note per drive would say the same thing as many times as there are drives."""
+    drives: dict[str, list[str]] = {}
+    for name, plan in plans.items():
+        for note in plan.notes:
+            drives.setdefault(note, []).append(name)
+    everyone = list(plans)
+    lines = {}
+    for note, names in drives.items():
+        start = everyone.index(names[0])
+        run = len(names) > 3 and everyone[start:start + len(names)] == names
+        who = f"{names[0]}..{names[-1]}" if run else ", ".join(names)
+        lines[note] = f"  note: {who}: {note}"
+    return lines
+
+
+class Said(logging.Filter):
+    """Drops a log record that repeats one of these notes (the hardware's line per drive)."""
+
+    def __init__(self, notes: set[str]) -> None:
+        super().__init__()
+        self.notes = notes
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not any(message.endswith(": " + note) for note in self.notes)
+
+
+def plot_run(directory: Path, report: Report, out: Callable[[str], None]) -> None:
+    """After the run (the recording closed): draw it, say where both are."""
+    from ..record.plot import PlotError, plot
+    report.recording = directory / "trace.mcap"
+    logs = ", ".join(str(p) for p in sorted(directory.glob("*.log")))
+    out(f"recording: {report.recording} (frames: {logs})")
+    try:
+        report.plot = plot(report.recording, directory / "demo.png",
+                           title=f"rocoma-can demo: {len(report.steps)} steps, "
+                                 f"{'passed' if report.ok else 'FAILED'}")
+    except PlotError as exc:
+        out(f"plot: none ({exc})")
+        return
+    out(f"plot: {report.plot}")
+
+
+def status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None]) -> None:
+    while not stop.wait(1.0):
+        hw, mgr, s = rt.hardware, rt.manager, rt.loop.stats
+        out(f"  [{s.cycles:6d} cycles] {STATE_NAMES[int(mgr.state)]:9s} "
+            f"{mgr.active_controller_name:12s} enabled {int(hw.enabled.sum())}/"
+            f"{len(hw.drives_config)} q0 {hw.state.position[0]:+.3f} rad "
+            f"overruns {s.overruns} tx errors {hw.tx_errors}")
+
+
+def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
+             rt: Runtime) -> None:
+    out("")
+    out("summary")
+    out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
+    out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
+    out(f"  {'cycles':28s} {timing.cycles}")
+    out(f"  {'missed cycles (overruns)':28s} {timing.overruns}")
+    out(f"  {'period mean / max':28s} {timing.period_mean * 1e3:.2f} / "
+        f"{timing.period_max * 1e3:.2f} ms")
+    out(f"  {'jitter p99 / max':28s} {timing.jitter_p99 * 1e3:.2f} / "
+        f"{timing.jitter_max * 1e3:.2f} ms")
+    out(f"  {'frames per cycle':28s} {rt.hardware.frames_per_cycle} "
+        f"(PDOs of {len(rt.hardware.drives_config)} drives + SYNC)")
+    out(f"  {'tx errors':28s} {rt.hardware.tx_errors}")
+    for what, took, cycles in report.latencies:
+        out(f"  {'latency ' + what:28s} {took * 1e3:.1f} ms (~{cycles} cycles)")
+    out("demo " + ("passed" if report.ok else "FAILED: " + ", ".join(
+        s.name for s in report.steps if not s.ok)))
