@@ -8,7 +8,8 @@ held by a PD controller at a steady rate, once per set of telemetry.
 Sets: ``off`` (nothing), ``flight`` (the flight recorder, ``run``'s default), ``record``
 (``--record`` and the flight recorder: the demo's default), ``all`` (record, flight
 recorder, Zenoh bridge on loopback, Foxglove live view on loopback with one viewer
-connected), ``fd`` in a set's name (``off+fd``, ``all+fd``) runs CAN FD buses. Each set
+connected), ``+fd`` in a set's name (``off+fd``, ``all+fd``) runs CAN FD buses (1/5 Mbit/s,
+the drives' PDOs up to 64 bytes: ``demo --fd``'s set-up). Each set
 runs in a fresh process, the sets alternate ``--repeat`` times, and the machine's other
 load is what it is: compare sets of one run, not runs of different days.
 
@@ -67,17 +68,15 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
     parts = set(name.split("+"))
     everything = "all" in parts
     buses = default_buses(drives) if buses is None else buses
-    raw = demo_config(f"bench-{uuid.uuid4().hex[:8]}", drives, rate, buses, "inproc")
+    raw = demo_config(f"bench-{uuid.uuid4().hex[:8]}", drives, rate, buses, "inproc",
+                      data_bitrate=5_000_000 if "fd" in parts else None)
     raw["manager"]["estop_must_be_cleared"] = False
-    if "fd" in parts:
-        for bus in raw["buses"]:
-            bus.update(fd=True, data_bitrate=5_000_000)
     if everything:
         raw["zenoh"] = {"prefix": "bench", "listen": [f"tcp/127.0.0.1:{_free_port()}"],
                         "multicast": False}
     config = validate(raw, source="benchmark")
     segments = [SimulatedSegment.open(b.channel, "inproc",
-                                      [d.node_id for d in config.drives_on(b)])
+                                      [d.node_id for d in config.drives_on(b)], fd=b.fd)
                 for b in config.buses]
     simulator = SegmentGroup(segments)
     starts = np.zeros(int(rate * (duration + 60)) + 1000)

@@ -239,6 +239,39 @@ def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_fa
             healthy.close()
 
 
+def test_a_viewer_that_never_reads_has_its_drops_counted_and_shown(
+        virtual_channel, sim_segment_factory, caplog):
+    """Once a stalled viewer's outbox in the SDK is full, messages for it are dropped (the
+    view never waits): counted as viewer_drops, in info() and on /rocoma/manager for the
+    other viewers. A viewer that unsubscribes and leaves makes no callback fail."""
+    sim_segment_factory(2)
+    caplog.set_level("WARNING")
+    with runtime_running(_config(virtual_channel), DEMO_RUN,
+                         foxglove=_view(rate=1000.0, backlog=8)) as rt:
+        raw = socket.socket()
+        raw.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        raw.connect(("127.0.0.1", rt.foxglove.port))
+        stalled = Viewer(rt.foxglove.port, sock=raw, max_queue=1)
+        try:
+            stalled.subscribe(*TOPICS)  # then never reads again
+            wait_for(lambda: rt.foxglove.info()["viewer_drops"] >= 1,
+                     "messages dropped for the stalled viewer", DEMO_RUN)
+            healthy = Viewer(rt.foxglove.port)
+            try:
+                healthy.subscribe("/rocoma/manager")
+                healthy.pump(lambda: healthy.received.get("/rocoma/manager"),
+                             "a manager message")
+                shown = healthy.received["/rocoma/manager"][-1]["foxglove"]
+                assert shown["viewer_drops"] >= 1, shown
+            finally:
+                healthy.close()
+        finally:
+            raw.close()
+            stalled.close()
+    failed = [r.getMessage() for r in caplog.records if "Callback failed" in r.getMessage()]
+    assert failed == []
+
+
 def test_the_address_and_the_flag():
     assert parse_address("") == (DEFAULT_HOST, DEFAULT_PORT)
     assert parse_address("0.0.0.0:9000") == ("0.0.0.0", 9000)

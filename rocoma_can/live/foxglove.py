@@ -15,8 +15,9 @@ switch, clear and recover only with ``allow_commands``.
 The loop never publishes: the view's sampler thread copies from the joint state arrays the
 loop writes in place (each array whole, under the GIL; position and velocity may come from
 neighbouring cycles) and from plain counters, at its own rate. The manager's events reach
-it through a bounded queue (full: dropped, counted). Each client has a bounded backlog in
-the SDK (``backlog`` messages; full: its oldest message is dropped), so a slow or vanished
+it through a bounded queue (full: dropped, counted). Each client has a bounded outbox in
+the SDK (``backlog`` messages; full: messages for it are dropped, never waited for, and
+each time the SDK says so it is counted as ``viewer_drops``), so a slow or vanished
 viewer costs the loop nothing.
 """
 from __future__ import annotations
@@ -68,7 +69,7 @@ class FoxgloveConfig:
     rate: float = 30.0           # Hz: /joint_states and /rocoma/manager
     status_period: float = 0.5   # s between /rocoma/status messages
     allow_commands: bool = False  # switch, clear, recover from Foxglove
-    backlog: int = 256           # messages per client before its oldest are dropped
+    backlog: int = 256           # messages per client before messages to it are dropped
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -110,6 +111,27 @@ class _Subscriptions:
         if channel.topic == messages.ROBOT_DESCRIPTION.topic:
             self.description_wanted.set()
 
+    def on_unsubscribe(self, client: object, channel: Any) -> None:
+        """Nothing to do; the SDK calls it on every unsubscribe and disconnect, and logs
+        an error where a listener lacks it."""
+
+
+#: the SDK's logger for a viewer whose outbox is full: each record is messages dropped
+#: for that viewer (the SDK drops, it never waits)
+LOSSY_LOGGER = "foxglove.websocket.connected_client.send_lossy"
+
+
+class _Drops(logging.Handler):
+    """Counts the SDK's "outbox for client ... full" records (on its threads)."""
+
+    def __init__(self, count: Callable[[str], None]) -> None:
+        super().__init__(logging.INFO)
+        self._count = count
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if "full" in record.getMessage():
+            self._count("viewer_drops")
+
 
 class FoxgloveView:
     """Serves one manager on a Foxglove WebSocket (see the module). ``status``: what
@@ -136,8 +158,8 @@ class FoxgloveView:
         self.robot = robot
         self._transport = Transport("Foxglove", "--foxglove-allow-commands",
                                     config.allow_commands)
-        self.counters = {"published": 0, "events_dropped": 0, "calls": 0, "refused": 0,
-                         "errors": 0}
+        self.counters = {"published": 0, "events_dropped": 0, "viewer_drops": 0, "calls": 0,
+                         "refused": 0, "errors": 0}
         self._count_lock = threading.Lock()  # service calls come on the SDK's threads
         self._events: queue.Queue[ManagerEvent] = queue.Queue(EVENT_QUEUE)
         self._cause = ""
@@ -150,6 +172,12 @@ class FoxgloveView:
         self._channels = {c.topic: foxglove.Channel(c.topic, schema=c.schema,
                                                     context=self._context) for c in served}
         self._subscriptions = _Subscriptions()
+        # the SDK says of a viewer's full outbox at INFO: heard here whatever the log level
+        self._drops = _Drops(self._count)
+        lossy = logging.getLogger(LOSSY_LOGGER)
+        lossy.addHandler(self._drops)
+        if not lossy.isEnabledFor(logging.INFO):
+            lossy.setLevel(logging.INFO)
         request = foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
             name="rocoma.Request", encoding="jsonschema", data=b""))
         services = [foxglove.Service(f"/rocoma/{name}", schema=foxglove.ServiceSchema(
@@ -163,6 +191,7 @@ class FoxgloveView:
                 server_listener=cast("ServerListener", self._subscriptions),
                 message_backlog_size=config.backlog)
         except Exception as exc:  # the SDK's RuntimeError: the address taken or unknown
+            logging.getLogger(LOSSY_LOGGER).removeHandler(self._drops)
             raise FoxgloveError(f"Foxglove: cannot serve on {config.host}:{config.port}: "
                                 f"{exc}") from None
         self._thread = threading.Thread(target=self._run, name="foxglove-view", daemon=True)
@@ -191,6 +220,7 @@ class FoxgloveView:
         if self._thread.is_alive():
             self._thread.join(5.0)
         self.server.stop()
+        logging.getLogger(LOSSY_LOGGER).removeHandler(self._drops)
 
     def info(self) -> dict[str, Any]:
         """What the status report and /rocoma/manager show of the view."""
