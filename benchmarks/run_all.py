@@ -28,6 +28,7 @@ SHORT = {
     "switch_missed_cycles": [],
     "cli_start": [],
     "recording_cost": [],
+    "telemetry_run": ["--duration", "10"],
     "sim_cost": [],
 }
 

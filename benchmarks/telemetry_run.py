@@ -173,11 +173,12 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=20.0, help="s of steady run")
     parser.add_argument("--sets", default=",".join(SETS))
     parser.add_argument("--repeat", type=int, default=1)
-    parser.add_argument("--quick", action="store_true", help="--duration 3, rate 200")
+    parser.add_argument("--quick", action="store_true",
+                        help="sets off,all; 6 drives at 200 Hz for 3 s")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.quick:
-        args.duration, args.rate, args.drives = 3.0, 200.0, 6
+        args.duration, args.rate, args.drives, args.sets = 3.0, 200.0, 6, "off,all"
     if args.one:
         print(json.dumps(one(args.one, args.drives, args.buses, args.rate, args.duration)))
         return

@@ -33,8 +33,12 @@ CASES = {
         {"frames_per_cycle", "ours_us", "canopen_us", "speedup_median", "ns_per_frame",
          "core_share_at_30k_frames_s"} <= set(row) for row in r),
     "recording_cost": lambda r: [row["joints"] for row in r] == [3, 6, 12, 24] and all(
-        {"loop_record_us", "tap_us_per_frame", "writer_us_per_cycle"} <= set(row)
-        for row in r),
+        {"loop_record_us", "loop_frame_us", "writer_row_us", "writer_candump_us",
+         "writer_mcap_frame_us"} <= set(row) for row in r),
+    "telemetry_run": lambda r: [run["set"] for run in r["runs"]] == ["off", "all"] and all(
+        {"cycles", "missed", "period_us", "loop_process_cpu_us", "writer_cpu_us",
+         "errors"} <= set(run) and not run["errors"] and run["cycles"] > 0
+        for run in r["runs"]),
     "sim_cost": lambda r: [row["drives"] for row in r] == [1, 3, 6, 12] and all(
         {"per_sync_us", "per_drive_us", "bench_core_share"} <= set(row) for row in r),
     "cli_start": lambda r: all({"seconds", "modules", "numpy", "exit_code"} <= set(c)
