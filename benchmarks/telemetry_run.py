@@ -7,9 +7,10 @@ held by a PD controller at a steady rate, once per set of telemetry.
 
 Sets: ``off`` (nothing), ``flight`` (the flight recorder, ``run``'s default), ``record``
 (``--record`` and the flight recorder: the demo's default), ``all`` (record, flight
-recorder, Zenoh bridge on loopback, Foxglove live view on loopback with one viewer
-connected), ``+fd`` in a set's name (``off+fd``, ``all+fd``) runs CAN FD buses (1/5 Mbit/s,
-the drives' PDOs up to 64 bytes: ``demo --fd``'s set-up). Each set
+recorder, Zenoh bridge on loopback, Foxglove live view on loopback with one viewer, a
+process of its own, subscribed to everything), ``+fd`` in a set's name (``off+fd``,
+``all+fd``) runs CAN FD buses (1/5 Mbit/s, the drives' PDOs up to 64 bytes: ``demo --fd``'s
+set-up). Each set
 runs in a fresh process, the sets alternate ``--repeat`` times, and the machine's other
 load is what it is: compare sets of one run, not runs of different days.
 
@@ -48,12 +49,22 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _cpu_seconds(pid: int) -> float:
+def _cpu_seconds(pid: int | str) -> float:
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except OSError:
         return float("nan")
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _thread_cpu() -> dict[str, float]:
+    """CPU seconds so far of each Python thread of this process, by name."""
+    found: dict[str, float] = {}
+    for thread in threading.enumerate():
+        if thread.native_id is not None:
+            seconds = _cpu_seconds(f"{os.getpid()}/task/{thread.native_id}")
+            found[thread.name] = found.get(thread.name, 0.0) + seconds
+    return found
 
 
 def one(name: str, drives: int, buses: int | None, rate: float, duration: float) -> dict[str, Any]:
@@ -68,15 +79,16 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
     parts = set(name.split("+"))
     everything = "all" in parts
     buses = default_buses(drives) if buses is None else buses
-    raw = demo_config(f"bench-{uuid.uuid4().hex[:8]}", drives, rate, buses, "inproc",
-                      data_bitrate=5_000_000 if "fd" in parts else None)
+    fd = {"data_bitrate": 5_000_000} if "fd" in parts else {}
+    raw = demo_config(f"bench-{uuid.uuid4().hex[:8]}", drives, rate, buses, "inproc", **fd)
     raw["manager"]["estop_must_be_cleared"] = False
     if everything:
         raw["zenoh"] = {"prefix": "bench", "listen": [f"tcp/127.0.0.1:{_free_port()}"],
                         "multicast": False}
     config = validate(raw, source="benchmark")
     segments = [SimulatedSegment.open(b.channel, "inproc",
-                                      [d.node_id for d in config.drives_on(b)], fd=b.fd)
+                                      [d.node_id for d in config.drives_on(b)],
+                                      **({"fd": True} if b.fd else {}))
                 for b in config.buses]
     simulator = SegmentGroup(segments)
     starts = np.zeros(int(rate * (duration + 60)) + 1000)
@@ -108,13 +120,17 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
                         time.sleep(0.05)
                     rt.manager.switch_controller("pd", timeout=10.0)
                     time.sleep(1.0)  # settled
-                    writer = rt.recorder._process.pid if rt.recorder is not None else None
-                    window.update(first=count[0], cpu=resource.getrusage(
+                    # (getattr: the script also measures commits from before the writer
+                    # process, whose recording ran in the loop's process)
+                    recorder = getattr(rt, "recorder", None)
+                    writer = recorder._process.pid if recorder is not None else None
+                    window.update(threads=_thread_cpu(), first=count[0], cpu=resource.getrusage(
                         resource.RUSAGE_SELF), writer=writer,
                         writer_cpu=_cpu_seconds(writer) if writer else 0.0,
                         state=rt.manager.state.name)
                     time.sleep(duration)
-                    window.update(last=count[0], cpu_end=resource.getrusage(
+                    window.update(threads_end=_thread_cpu(), last=count[0],
+                                  cpu_end=resource.getrusage(
                         resource.RUSAGE_SELF), writer_cpu_end=_cpu_seconds(writer)
                         if writer else 0.0, state_end=rt.manager.state.name)
                     rt.loop.stop("benchmark done")
@@ -124,7 +140,8 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
                 rt.run(duration=duration + 70, signals=False)
                 worker.join(10.0)
                 if viewer is not None:
-                    viewer.close()
+                    viewer.kill()
+                    viewer.wait()
                 errors = (rt.recording.errors if rt.recording is not None else []) + \
                     (rt.flight.errors if rt.flight is not None else [])
         finally:
@@ -135,34 +152,37 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
     cpu = (window["cpu_end"].ru_utime + window["cpu_end"].ru_stime
            - window["cpu"].ru_utime - window["cpu"].ru_stime)
     writer = window["writer_cpu_end"] - window["writer_cpu"]
-    return {"set": name, "cycles": cycles,
+    threads = {t: round((window["threads_end"][t] - window["threads"].get(t, 0.0))
+                        / cycles * 1e6, 1) for t in window["threads_end"]}
+    return {"set": name, "cycles": cycles, "threads_cpu_us": threads,
             "missed": missed_cycles(starts[first:last], 1.0 / rate),
             "period_us": stats(period), "loop_process_cpu_us": cpu / cycles * 1e6,
             "writer_cpu_us": writer / cycles * 1e6, "state": window["state_end"],
             "errors": errors}
 
 
-def _viewer(port: int) -> Any:
-    """A Foxglove viewer that subscribes to every channel and reads on (a thread)."""
-    from websockets.sync.client import connect
-    ws = connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"])
+_VIEWER = """
+import json, sys
+from websockets.sync.client import connect
+with connect(f"ws://127.0.0.1:{sys.argv[1]}", subprotocols=["foxglove.sdk.v1"]) as ws:
+    subscriptions = 0
+    for message in ws:
+        if isinstance(message, str):
+            msg = json.loads(message)
+            if msg.get("op") == "advertise":
+                channels = msg["channels"]
+                ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                    {"id": subscriptions + k, "channelId": c["id"]}
+                    for k, c in enumerate(channels)]}))
+                subscriptions += len(channels)
+"""
 
-    def read() -> None:
-        subscriptions = 0
-        try:
-            for message in ws:
-                if isinstance(message, str):
-                    msg = json.loads(message)
-                    if msg.get("op") == "advertise":
-                        channels = msg["channels"]
-                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                            {"id": subscriptions + k, "channelId": c["id"]}
-                            for k, c in enumerate(channels)]}))
-                        subscriptions += len(channels)
-        except Exception:  # noqa: BLE001 - closed at the end
-            pass
-    threading.Thread(target=read, daemon=True).start()
-    return ws
+
+def _viewer(port: int) -> subprocess.Popen[bytes]:
+    """A Foxglove viewer in a process of its own (its reading costs this one nothing) that
+    subscribes to every channel and reads on."""
+    return subprocess.Popen([sys.executable, "-c", _VIEWER, str(port)],
+                            stderr=subprocess.DEVNULL)
 
 
 def main() -> None:
@@ -182,7 +202,7 @@ def main() -> None:
     if args.one:
         print(json.dumps(one(args.one, args.drives, args.buses, args.rate, args.duration)))
         return
-    rows, results = [], []
+    rows, results, notes = [], [], []
     for _ in range(args.repeat):
         for name in args.sets.split(","):
             cmd = [sys.executable, __file__, "--one", name, "--drives", str(args.drives),
@@ -198,6 +218,9 @@ def main() -> None:
             r = json.loads(done.stdout.strip().splitlines()[-1])
             results.append(r)
             p = r["period_us"]
+            busiest = sorted(r["threads_cpu_us"].items(), key=lambda kv: -kv[1])[:4]
+            notes.append(f"{name}: CPU µs per cycle of its busiest threads: " + ", ".join(
+                f"{t} {us:g}" for t, us in busiest))
             rows.append([name, r["cycles"], r["missed"], f"{p['mean']:.1f}",
                          f"{p['p99']:.0f}", f"{p['max']:.0f}",
                          f"{r['loop_process_cpu_us']:.0f}", f"{r['writer_cpu_us']:.0f}",
@@ -208,7 +231,7 @@ def main() -> None:
             "loop process CPU us/cycle", "writer CPU us/cycle", "end state"],
            rows, args=args, results={"runs": results},
            notes=["loop process CPU includes the simulated drives (stepped on the loop's "
-                  "thread); the writer process records (rings.py, writer.py)."])
+                  "thread); the writer process records (rings.py, writer.py).", *notes])
 
 
 if __name__ == "__main__":
