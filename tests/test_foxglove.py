@@ -272,6 +272,28 @@ def test_a_viewer_that_never_reads_has_its_drops_counted_and_shown(
     assert failed == []
 
 
+def test_nothing_is_built_for_channels_nobody_watches(virtual_channel, sim_segment_factory):
+    """The view shares the loop's interpreter: with no viewer it publishes nothing (no
+    status report built, no transforms computed); a viewer's subscription starts exactly
+    the channels it asked for."""
+    sim_segment_factory(2)
+    with runtime_running(_config(virtual_channel), DEMO_RUN,
+                         foxglove=_view(rate=200.0)) as rt:
+        wait_for(lambda: rt.loop.stats.cycles >= 100, "100 cycles", DEMO_WAIT)
+        rt.manager.emergency_stop("nobody watches")  # an event: a log line for nobody
+        time.sleep(0.2)
+        assert rt.foxglove.info()["published"] == 0
+        viewer = Viewer(rt.foxglove.port)
+        try:
+            viewer.subscribe("/joint_states")
+            viewer.pump(lambda: len(viewer.received.get("/joint_states", [])) >= 5,
+                        "joint states")
+            assert set(viewer.received) == {"/joint_states"}
+            assert rt.foxglove.info()["published"] >= 5
+        finally:
+            viewer.close()
+
+
 def test_the_address_and_the_flag():
     assert parse_address("") == (DEFAULT_HOST, DEFAULT_PORT)
     assert parse_address("0.0.0.0:9000") == ("0.0.0.0", 9000)

@@ -248,7 +248,8 @@ class FoxgloveView:
                 self._sample()
                 if time.monotonic() >= next_status:
                     next_status = time.monotonic() + self.config.status_period
-                    self._publish(messages.STATUS, self._status())
+                    if self._watched(messages.STATUS):  # the report is the costly one
+                        self._publish(messages.STATUS, self._status())
             except Exception as exc:  # noqa: BLE001 - counted; the view goes on
                 self._count("errors")
                 if self.counters["errors"] in (1, 10, 100, 1000):
@@ -268,19 +269,27 @@ class FoxgloveView:
         j, m = self._joints, self.manager
         ns = time.time_ns()
         position = j.position.tolist()
-        self._publish(messages.JOINT_STATES, messages.joint_states(
-            ns, j.names, position, j.velocity.tolist(), j.torque.tolist()), ns)
-        cycles, overruns = self._counts()
-        self._publish(messages.MANAGER, messages.manager(
-            m.state.name, m.active_controller_name, m.estop_latched, self._cause, cycles,
-            overruns, self.info()), ns)
+        if self._watched(messages.JOINT_STATES):
+            self._publish(messages.JOINT_STATES, messages.joint_states(
+                ns, j.names, position, j.velocity.tolist(), j.torque.tolist()), ns)
+        if self._watched(messages.MANAGER):
+            cycles, overruns = self._counts()
+            self._publish(messages.MANAGER, messages.manager(
+                m.state.name, m.active_controller_name, m.estop_latched, self._cause, cycles,
+                overruns, self.info()), ns)
         if self.robot is not None:
             if self._subscriptions.description_wanted.is_set():
                 self._subscriptions.description_wanted.clear()
                 self._publish(messages.ROBOT_DESCRIPTION,
                               messages.robot_description(self.robot.text), ns)
-            self._publish(messages.TRANSFORMS, messages.frame_transforms(
-                ns, self.robot.transforms(dict(zip(j.names, position)))), ns)
+            if self._watched(messages.TRANSFORMS):
+                self._publish(messages.TRANSFORMS, messages.frame_transforms(
+                    ns, self.robot.transforms(dict(zip(j.names, position)))), ns)
+
+    def _watched(self, channel: Channel) -> bool:
+        """Some viewer subscribes to it: a message nobody gets is not built (the view
+        shares the loop's interpreter)."""
+        return bool(self._channels[channel.topic].has_sinks())
 
     def _publish(self, channel: Channel, message: dict[str, Any], ns: int | None = None
                  ) -> None:
@@ -289,8 +298,9 @@ class FoxgloveView:
 
     def log_message(self, text: str, level: int = INFO) -> None:
         """A line in Foxglove's Log panel (any thread)."""
-        ns = time.time_ns()
-        self._publish(messages.LOG, messages.log(ns, text, level), ns)
+        if self._watched(messages.LOG):
+            ns = time.time_ns()
+            self._publish(messages.LOG, messages.log(ns, text, level), ns)
 
     # --- services (the SDK's threads) -----------------------------------------------------
     def _handler(self, service: str) -> Callable[[Any], bytes]:
