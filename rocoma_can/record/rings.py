@@ -12,7 +12,9 @@ under one lock), any number of readers, no lock: a reader copies what it has not
 reads the count again and drops what the producer overwrote meanwhile (``RingReader.read``).
 On x86-64 and ARM64 the count's store is not seen before the record's (release order on
 x86; CPython's calls between them order it on ARM in practice), and a torn record can only
-be one overwritten during the copy, which the second count read drops.
+be one overwritten during the copy, which the second count read drops, or the one in the
+slot the producer writes before it stores the count, which is never read: a ring of
+``capacity`` records is read as its last ``capacity - 1``.
 """
 from __future__ import annotations
 
@@ -177,15 +179,18 @@ class RingReader:
 
     def read(self, since: int) -> tuple[int, np.ndarray]:
         """A copy of the records from number ``since`` on: (the first one's number,
-        records). What the producer overwrote before or during the copy is left out."""
+        records). What the producer overwrote before or during the copy is left out, and
+        so is the record in the slot it writes next (number ``count - capacity``: the
+        producer writes there before it stores the count), so a full ring reads as its
+        last ``capacity - 1`` records."""
         cap, arr = self.spec.capacity, self._array
         end = self.count()
-        start = max(since, end - cap, 0)
+        start = max(since, end - cap + 1, 0)
         if start >= end:
             return end, arr[:0].copy()
         k0, k1 = start % cap, end % cap
         out = arr[k0:k1].copy() if k0 < k1 else np.concatenate((arr[k0:], arr[:k1]))
-        first_safe = self.count() - cap  # overwritten while copying: dropped
+        first_safe = self.count() - cap + 1  # overwritten while copying: dropped
         if first_safe > start:
             out = out[first_safe - start:]
             start = first_safe
