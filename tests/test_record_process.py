@@ -78,6 +78,8 @@ def test_the_recording_holds_every_frame_an_independent_listener_saw(bench, tmp_
     assert rt.recording is not None and not rt.recording.errors, rt.recording.errors
     [log_file] = (tmp_path / "rec").glob("*.log")
     recorded = list(can.LogReader(str(log_file)))
+    stamps = [msg.timestamp for msg in recorded]
+    assert stamps == sorted(stamps)  # canplayer replays in file order
     by_id: dict[int, list[bytes]] = defaultdict(list)
     for msg in heard:
         by_id[msg.arbitration_id].append(bytes(msg.data))

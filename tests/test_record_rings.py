@@ -2,12 +2,17 @@
 never gets a record the producer is overwriting, and never a record under another number."""
 from __future__ import annotations
 
+import io
+import os
+import time
+
 import can
 
 from rocoma_can import ManagerState
 from rocoma_can.drivers.joints import JointCommand, JointState
 from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, layout
 from rocoma_can.record.trace import RowLayout, SignalTrace
+from rocoma_can.record.writer import Spec, Writer
 
 CAPACITY = 4
 
@@ -49,3 +54,29 @@ def test_a_frame_being_written_is_not_read_under_the_number_it_overwrites():
     records["t"][0], records["id"][0] = float(CAPACITY), CAPACITY
     start, got = reader.read(0)
     assert got["id"].tolist() == list(range(start, start + len(got)))
+
+
+def test_a_bus_log_is_in_time_order_when_a_frame_reaches_its_ring_late(tmp_path):
+    """A frame can reach its ring after a later one was written: a received one the bus's
+    reader hands over late, one another thread sent (SDO, NMT) that the cycle moves in at
+    its end. The writer's poll in between must not put it after the later one in the
+    candump file (canplayer replays in file order)."""
+    state = JointState.zeros(1)
+    specs = layout([("rows", 16, RowLayout(state.names).width, False),
+                    ("bus received", 16, 0, False), ("bus sent", 16, 0, False)])
+    shared = SharedFile(specs[-1].offset + specs[-1].size)
+    received, sent = FrameRing(shared, specs[1], sent=False), FrameRing(shared, specs[2], sent=True)
+    spec = Spec(os.dup(shared.fd), shared.size, specs[0], {"bus": ("vcan0", specs[1:])},
+                list(state.names), {}, record=str(tmp_path / "rec"), rate=100.0)
+    writer = Writer(spec, io.StringIO())
+    now = time.time()
+    sent.put(can.Message(arbitration_id=0x080, is_extended_id=False), now)  # a SYNC
+    writer.write()  # a poll
+    # an SDO answer that came before the SYNC, handed over by the bus's reader after it
+    received.put(can.Message(arbitration_id=0x581, data=bytes(8), is_extended_id=False),
+                 now - 0.005)
+    writer.write(closing=True)
+    writer.close()
+    shared.close()
+    frames = list(can.LogReader(str(tmp_path / "rec" / "bus.log")))
+    assert [(m.arbitration_id, m.is_rx) for m in frames] == [(0x581, True), (0x080, False)]

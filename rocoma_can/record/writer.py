@@ -18,6 +18,7 @@ is in the rings is written, the flight recorder writes a record of the last seco
 from __future__ import annotations
 
 import json
+import math
 import queue
 import sys
 import threading
@@ -37,6 +38,9 @@ from .trace import McapWriter, RowLayout
 
 #: how often the rings are written out, s
 POLL = 0.05
+#: how long a frame stays out of its bus's log at least, s (recording.BusLog): frames
+#: reach the rings up to a cycle late (two at a low rate) or as late as the bus's reader
+HOLD = 0.25
 
 
 @dataclass
@@ -88,6 +92,7 @@ class Writer:
             return LiveChannels(writer, layout, 1.0 / spec.rate, robot, self.facts)
         self.recording = (Recording(Path(spec.record), layout, rows, rings, live)
                           if spec.record is not None else None)
+        self._hold = max(HOLD, 2.0 / spec.rate)
         self.flight = (FlightRecords(Path(spec.flight), spec.seconds, layout, rows,
                                      {label: r for label, (_, r) in rings.items()}, live)
                        if spec.flight is not None else None)
@@ -112,8 +117,9 @@ class Writer:
     def write(self, closing: bool = False) -> None:
         if self.recording is not None:
             events, self.events = self.events, []
-            failed = self.recording.write(self.controllers, events,
-                                          time.time() - time.monotonic())
+            now = time.time()
+            failed = self.recording.write(self.controllers, events, now - time.monotonic(),
+                                          math.inf if closing else now - self._hold)
             if failed is not None:
                 self.say(error=failed, of="recording")
         flight = self.flight
