@@ -133,11 +133,16 @@ class Recorder:
                     list(state.names), dict(self.trace.controllers), record, flight, seconds,
                     rate, robot.text if robot is not None else None,
                     robot.source if robot is not None else "")
-        self._process = subprocess.Popen(
-            [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, text=True, pass_fds=(self._shared.fd,),
-            start_new_session=True,  # a Ctrl-C is the run's to handle: the writer is told
-            preexec_fn=lambda: os.nice(NICE))  # noqa: PLW1509 - no threads in the child yet
+        try:
+            self._process = subprocess.Popen(
+                [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE, text=True, pass_fds=(self._shared.fd,),
+                start_new_session=True,  # a Ctrl-C is the run's to handle: the writer is told
+                preexec_fn=lambda: os.nice(NICE))  # noqa: PLW1509 - no threads in the child yet
+        except (OSError, subprocess.SubprocessError) as exc:
+            self._shared.close()
+            raise RecordingError(f"cannot start the recording's writer process "
+                                 f"({sys.executable}): {exc}") from exc
         self._threads: list[threading.Thread] = []
         try:
             self._stdin: IO[str] = self._process.stdin  # type: ignore[assignment]

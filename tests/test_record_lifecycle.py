@@ -1,0 +1,90 @@
+"""The recorder's writer process, its threads and its shared memory over a recorder's life
+(record/recorder.py): a start that fails leaves nothing behind and says why in one line; a
+writer that dies is said, and does not hold the run's close up; every close ends them all."""
+from __future__ import annotations
+
+import gc
+import os
+import sys
+import threading
+from pathlib import Path
+
+from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.record import recorder as recorder_module
+from rocoma_can.record.can_log import RecordingError
+from rocoma_can.record.recorder import BusToRecord, Recorder
+
+RATE = 100.0
+
+
+class _Manager:
+    active_controller_name = "pd"
+    estop_latched = False
+
+
+def _recorder(tmp_path: Path, **kwargs: object) -> Recorder:
+    state, command = JointState.zeros(2), JointCommand.zeros(2)
+    kwargs.setdefault("flight", str(tmp_path / "flight"))
+    return Recorder(state, command, _Manager(), RATE, [BusToRecord("arm", "vcan0", False)],
+                    controllers=["pd"], **kwargs)  # type: ignore[arg-type]
+
+
+def _fds() -> set[str]:
+    """This process's open files, by what they are (a memfd, a pipe, ...); what earlier
+    recorders left to the garbage collector (a closed recorder's memory is freed with the
+    last array over it) collected first."""
+    gc.collect()
+    names = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            names.add(f"{fd} {os.readlink(f'/proc/self/fd/{fd}')}")
+        except OSError:  # the listing's own
+            pass
+    return names
+
+
+def _recorder_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith("recorder-")]
+
+
+def _failed_start(tmp_path: Path, **kwargs: object) -> str:
+    """Why a recorder could not start; what it built is let go (garbage collected), so
+    what stays open is what it left open."""
+    try:
+        _recorder(tmp_path, **kwargs)
+    except RecordingError as exc:
+        message = str(exc)
+    else:
+        raise AssertionError("the recorder started")
+    gc.collect()
+    return message
+
+
+def test_a_writer_that_cannot_be_started_leaves_nothing_open(tmp_path, monkeypatch):
+    before = _fds()
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "no-python"))
+    message = _failed_start(tmp_path)
+    assert "writer process" in message and "no-python" in message and "\n" not in message
+    assert _fds() == before
+    assert _recorder_threads() == []
+
+
+def test_a_writer_that_never_answers_is_ended(tmp_path, monkeypatch):
+    silent = tmp_path / "silent-python"
+    silent.write_text("#!/bin/sh\nexec sleep 1000\n")
+    silent.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(silent))
+    monkeypatch.setattr(recorder_module, "START_WAIT", 0.5)
+    before = _fds()
+    assert "did not start within 0.5 s" in _failed_start(tmp_path)
+    assert _fds() == before
+    assert _recorder_threads() == []
+
+
+def test_a_recording_that_cannot_start_leaves_nothing_open(tmp_path):
+    (tmp_path / "file").write_text("")
+    before = _fds()
+    message = _failed_start(tmp_path, record=str(tmp_path / "file" / "rec"))
+    assert "cannot write" in message and "\n" not in message
+    assert _fds() == before
+    assert _recorder_threads() == []
