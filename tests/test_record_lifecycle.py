@@ -4,12 +4,19 @@ writer that dies is said, and does not hold the run's close up; every close ends
 from __future__ import annotations
 
 import gc
+import logging
 import os
+import signal
 import sys
 import threading
 from pathlib import Path
 
+from fixtures.budgets import within
+from fixtures.running import DEMO_WAIT, wait_for
+
+from rocoma_can import ManagerState
 from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.events import EventKind, ManagerEvent
 from rocoma_can.record import recorder as recorder_module
 from rocoma_can.record.can_log import RecordingError
 from rocoma_can.record.recorder import BusToRecord, Recorder
@@ -45,6 +52,38 @@ def _fds() -> set[str]:
 
 def _recorder_threads() -> list[str]:
     return [t.name for t in threading.enumerate() if t.name.startswith("recorder-")]
+
+
+def test_a_dead_writer_holds_the_close_up_no_longer_than_its_death_takes(tmp_path,
+                                                                         monkeypatch):
+    """The writer's death is seen when its output ends: the close after it has nothing to
+    wait for (it waited CLOSE_WAIT for an answer that could never come, with the buses
+    still open)."""
+    monkeypatch.setattr(recorder_module, "CLOSE_WAIT", 100 * DEMO_WAIT)
+    rec = _recorder(tmp_path)
+    rec._process.kill()
+    assert rec.flight is not None
+    wait_for(lambda: rec.flight.errors, "the writer's death said", DEMO_WAIT)
+    closing = threading.Thread(target=rec.close, daemon=True)
+    closing.start()
+    closing.join(within(1.0))
+    assert not closing.is_alive(), "close waited for a dead writer"
+    assert _recorder_threads() == []
+
+
+def test_a_flight_recorders_dead_writer_is_said(tmp_path, caplog):
+    """With the flight recorder alone (``run``'s default) the run must hear that no flight
+    record will be written any more."""
+    caplog.set_level(logging.WARNING)
+    rec = _recorder(tmp_path)
+    try:
+        rec._process.kill()
+        assert rec.flight is not None
+        wait_for(lambda: rec.flight.errors, "the writer's death noted", DEMO_WAIT)
+        wait_for(lambda: any("writer process ended" in r.getMessage() for r in caplog.records),
+                 "the writer's death in the log", within(0.1))
+    finally:
+        rec.close()
 
 
 def _failed_start(tmp_path: Path, **kwargs: object) -> str:
@@ -88,3 +127,26 @@ def test_a_recording_that_cannot_start_leaves_nothing_open(tmp_path):
     assert "cannot write" in message and "\n" not in message
     assert _fds() == before
     assert _recorder_threads() == []
+
+
+def test_a_writer_that_stops_reading_is_ended_by_the_close(tmp_path, monkeypatch):
+    """A writer that reads no more (stopped, swapped out) while the events pile up: the
+    recorder's sender blocks on the full pipe, and the close still ends the writer (it
+    waited on that sender's write for ever)."""
+    monkeypatch.setattr(recorder_module, "CLOSE_WAIT", 0.5)
+    rec = _recorder(tmp_path)
+    writer = rec._process
+    os.kill(writer.pid, signal.SIGSTOP)
+    try:
+        for k in range(2000):  # ~300 kB of events: more than a pipe holds
+            rec.on_event(ManagerEvent(EventKind.STATE_CHANGED, ManagerState.OK, "pd",
+                                      cause=f"event {k}"))
+        closing = threading.Thread(target=rec.close, daemon=True)
+        closing.start()
+        closing.join(within(1.0 + 5.0))  # CLOSE_WAIT, then the writer's end: 5 s
+        assert not closing.is_alive(), "the close hangs on a writer that reads no more"
+        assert writer.poll() is not None
+    finally:
+        if writer.poll() is None:
+            writer.kill()
+            writer.wait(DEMO_WAIT)
