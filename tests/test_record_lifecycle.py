@@ -150,3 +150,18 @@ def test_a_writer_that_stops_reading_is_ended_by_the_close(tmp_path, monkeypatch
         if writer.poll() is None:
             writer.kill()
             writer.wait(DEMO_WAIT)
+
+
+def test_a_recorder_without_mcap_is_refused_at_start(tmp_path, monkeypatch):
+    """The MCAP writer is an optional extra: a writer process that cannot import it is
+    refused at start with what to install (it started, and died at the first e-stop with a
+    traceback, leaving an empty flight-*.mcap and no flight recorder for the rest of the
+    run)."""
+    shadow = tmp_path / "no-mcap" / "mcap"  # as an interpreter without the extra finds it
+    shadow.mkdir(parents=True)
+    (shadow / "__init__.py").write_text(
+        "raise ModuleNotFoundError(\"No module named 'mcap'\", name='mcap')\n")
+    monkeypatch.setenv("PYTHONPATH", str(shadow.parent))
+    message = _failed_start(tmp_path)
+    assert "rocoma-can[record]" in message and "\n" not in message, message
+    assert not (tmp_path / "flight").exists() or not list((tmp_path / "flight").iterdir())

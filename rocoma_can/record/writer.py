@@ -77,6 +77,7 @@ class Writer:
 
     def __init__(self, spec: Spec, reply: IO[str]) -> None:
         self._reply = reply
+        _check_mcap()
         self.shared = SharedFile(spec.size, spec.fd)
         layout = RowLayout(spec.joints)
         rows = RingReader(self.shared, spec.rows)
@@ -139,6 +140,17 @@ class Writer:
             for reason in self.recording.errors[1:]:  # the first was said as it happened
                 self.say(error=reason, of="recording")
         self.shared.close()
+
+
+def _check_mcap() -> None:
+    """Every file written here is MCAP (an optional extra): refused at start, not at the
+    first e-stop."""
+    try:
+        import mcap.writer  # noqa: F401
+    except ImportError as exc:
+        raise RecordingError(f"recording and the flight recorder write MCAP, and "
+                             f"{sys.executable} cannot import it ({exc}): pip install "
+                             "'rocoma-can[record]'") from exc
 
 
 def _read_commands(stream: IO[str], commands: queue.Queue[dict[str, Any] | None]) -> None:
