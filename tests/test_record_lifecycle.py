@@ -9,8 +9,10 @@ import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
+import can
 from fixtures.budgets import within
 from fixtures.running import DEMO_WAIT, wait_for
 
@@ -20,6 +22,7 @@ from rocoma_can.events import EventKind, ManagerEvent
 from rocoma_can.record import recorder as recorder_module
 from rocoma_can.record.can_log import RecordingError
 from rocoma_can.record.recorder import BusToRecord, Recorder
+from rocoma_can.record.trace import read_messages
 
 RATE = 100.0
 
@@ -165,3 +168,30 @@ def test_a_recorder_without_mcap_is_refused_at_start(tmp_path, monkeypatch):
     message = _failed_start(tmp_path)
     assert "rocoma-can[record]" in message and "\n" not in message, message
     assert not (tmp_path / "flight").exists() or not list((tmp_path / "flight").iterdir())
+
+
+def test_a_writer_killed_while_writing_a_flight_record_leaves_no_cut_file(tmp_path):
+    """A flight record is there whole or not at all: the writer killed in the middle of one
+    (the close's CLOSE_WAIT ran out on a long window, the kernel's OOM killer) must not
+    leave a flight-*.mcap cut short beside the good ones."""
+    rec = _recorder(tmp_path)
+    writer = rec._process
+    try:
+        received, sent = rec.frame_taps[0]
+        msg = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
+        now, frames = time.time(), received.spec.capacity - 1
+        for k in range(frames):  # the last seconds of a busy bus: a second's work to write
+            received.put(msg, now - 5.0 + 5.0 * k / frames)
+            sent.put(msg, now - 5.0 + 5.0 * k / frames)
+        rec.on_event(ManagerEvent(EventKind.EMERGENCY_STOP, ManagerState.EMERGENCY, "pd",
+                                  cause="test"))
+        flight = tmp_path / "flight"
+        wait_for(lambda: flight.exists() and any(flight.glob("flight-*.mcap")),
+                 "a flight record begun", DEMO_WAIT)
+        writer.kill()
+        writer.wait(DEMO_WAIT)
+        for record in flight.glob("flight-*.mcap"):
+            assert sum(1 for topic, _, _ in read_messages(str(record))
+                       if topic == "/can/arm") == 2 * frames
+    finally:
+        rec.close()
