@@ -195,3 +195,28 @@ def test_a_writer_killed_while_writing_a_flight_record_leaves_no_cut_file(tmp_pa
                        if topic == "/can/arm") == 2 * frames
     finally:
         rec.close()
+
+
+def test_a_frame_stamped_by_an_adapters_own_clock_is_in_the_flight_record(tmp_path):
+    """Some interfaces stamp received frames from the adapter's power-on, not the wall
+    clock (frame_io.MAX_FRAME_AGE): such a frame is recorded as arrived when it was handed
+    over, as the hardware takes it, not dropped from the record as 55 years old."""
+    rec = _recorder(tmp_path)
+    try:
+        received, _sent = rec.frame_taps[0]
+        before = time.time()
+        for k in range(3):  # what the bus's reader hands the recording, as it reads it
+            received.on_message_received(can.Message(
+                timestamp=120.0 + k, arbitration_id=0x181, data=bytes([k]),
+                is_extended_id=False))
+        rec.on_event(ManagerEvent(EventKind.EMERGENCY_STOP, ManagerState.EMERGENCY, "pd",
+                                  cause="test"))
+        assert rec.flight is not None
+        wait_for(lambda: rec.flight.dumps, "the flight record", DEMO_WAIT)
+    finally:
+        rec.close()
+    record = rec.flight.dumps[0]  # (the e-stop's; the close writes another)
+    frames = [(log_time, m) for topic, log_time, m in read_messages(str(record))
+              if topic == "/can/arm"]
+    assert [m["data"] for _, m in frames] == ["00", "01", "02"]
+    assert all(log_time >= before * 1e9 for log_time, _ in frames)

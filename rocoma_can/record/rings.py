@@ -21,11 +21,14 @@ from __future__ import annotations
 import mmap
 import os
 import struct
+import time
 from dataclasses import dataclass
 from typing import Any
 
 import can
 import numpy as np
+
+from ..drivers.frame_io import MAX_FRAME_AGE
 
 #: bytes before each ring's records: its count, on a cache line of its own
 HEADER = 64
@@ -129,7 +132,12 @@ class FrameRing(can.Listener):
         self.count = 0
 
     def on_message_received(self, msg: can.Message) -> None:
-        self.put(msg, msg.timestamp)
+        """A received frame with its arrival stamp, or "now" where it has none that is
+        plausible: some interfaces count from the adapter's power-on (a frame recorded 55
+        years ago: out of every flight record, first in the candump log); the hardware
+        takes such frames as arrived now too (frame_io.to_monotonic)."""
+        stamp, now = msg.timestamp, time.time()
+        self.put(msg, stamp if now - MAX_FRAME_AGE < stamp <= now else now)
 
     def put(self, msg: can.Message, stamp: float) -> None:
         """``msg`` with ``stamp`` (time.time()): a frame sent here has no stamp of its own
