@@ -197,12 +197,12 @@ def test_a_writer_process_that_dies_is_said_and_the_loop_runs_on(bench, tmp_path
     assert writer.poll() is not None
 
 
-def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
-    """The writer outlives the manager's process by the time it takes to write what the
-    rings hold: SIGKILL the process running the loop, and the flight record of its last
-    seconds is there, and the writer has ended."""
+def _kill_a_manager_process(bench, tmp_path, record: bool) -> None:
+    """Run a manager in a process of its own for a second and SIGKILL it; wait for its
+    writer to end."""
     config, _segment = bench
     channel = config.bus.channel
+    recording = f", record={str(tmp_path / 'rec')!r}" if record else ""
     script = textwrap.dedent(f"""
         import sys, time, threading
         sys.path.insert(0, {str(os.path.dirname(__file__))!r})
@@ -212,7 +212,8 @@ def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
         from fixtures.sim import SimulatedSegment
         seg = SimulatedSegment.open({channel!r} + "-child", "virtual", [1, 2])
         cfg = demo_config({channel!r} + "-child", drives=2, rate={RATE})
-        rt = Runtime(validate(cfg), flight={str(tmp_path / "flight")!r}, flight_seconds=1.0)
+        rt = Runtime(validate(cfg), flight={str(tmp_path / "flight")!r}, flight_seconds=1.0
+                     {recording})
         print(rt.recorder._process.pid, flush=True)
         rt.run(duration=60, signals=False)
     """)
@@ -228,9 +229,28 @@ def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
     finally:
         if child.poll() is None:
             child.kill()
+
+
+def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
+    """The writer outlives the manager's process by the time it takes to write what the
+    rings hold: SIGKILL the process running the loop, and the flight record of its last
+    seconds is there, and the writer has ended."""
+    _kill_a_manager_process(bench, tmp_path, record=False)
     [record] = list((tmp_path / "flight").iterdir())
     assert "process-ended-without-closing" in record.name
     cycles = [m for topic, _, m in read_messages(str(record)) if topic == "/rocoma/cycle"]
+    assert len(cycles) >= 0.5 * RATE
+
+
+def test_a_killed_manager_process_leaves_its_recording_whole(bench, tmp_path):
+    """With --record too: the recording is closed whole (its MCAP summary written) after
+    the flight record, although nobody reads the writer's answers any more (the writer
+    died of the broken pipe before it closed the recording)."""
+    _kill_a_manager_process(bench, tmp_path, record=True)
+    [record] = list((tmp_path / "flight").iterdir())
+    assert "process-ended-without-closing" in record.name
+    cycles = [m for topic, _, m in read_messages(str(tmp_path / "rec" / "trace.mcap"))
+              if topic == "/rocoma/cycle"]
     assert len(cycles) >= 0.5 * RATE
 
 

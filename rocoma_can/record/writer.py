@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import queue
 import sys
 import threading
@@ -76,7 +77,7 @@ class Writer:
     """The writer's state: the rings, the recording, the flight records."""
 
     def __init__(self, spec: Spec, reply: IO[str]) -> None:
-        self._reply = reply
+        self._reply, self._gone = reply, False
         _check_mcap()
         self.shared = SharedFile(spec.size, spec.fd)
         layout = RowLayout(spec.joints)
@@ -99,8 +100,21 @@ class Writer:
                        if spec.flight is not None else None)
 
     def say(self, **message: Any) -> None:
-        self._reply.write(json.dumps(message) + "\n")
-        self._reply.flush()
+        """An answer to the loop's process; none once it is gone (killed: what is left to
+        write, the recording's close above all, is still done)."""
+        if self._gone:
+            return
+        try:
+            self._reply.write(json.dumps(message) + "\n")
+            self._reply.flush()
+        except OSError:  # a broken pipe: nobody reads any more
+            self._gone = True
+            try:  # what is still buffered goes nowhere, not into an error at exit
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, self._reply.fileno())
+                os.close(devnull)
+            except (OSError, ValueError):
+                pass
 
     def command(self, command: Mapping[str, Any]) -> None:
         if "event" in command:
