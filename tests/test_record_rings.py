@@ -10,7 +10,7 @@ import can
 
 from rocoma_can import ManagerState
 from rocoma_can.drivers.joints import JointCommand, JointState
-from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, layout
+from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, frame_fields, layout
 from rocoma_can.record.trace import RowLayout, SignalTrace
 from rocoma_can.record.writer import Spec, Writer
 
@@ -80,3 +80,17 @@ def test_a_bus_log_is_in_time_order_when_a_frame_reaches_its_ring_late(tmp_path)
     shared.close()
     frames = list(can.LogReader(str(tmp_path / "rec" / "bus.log")))
     assert [(m.arbitration_id, m.is_rx) for m in frames] == [(0x581, True), (0x080, False)]
+
+
+def test_a_frame_longer_than_its_rings_records_keeps_to_its_record():
+    """An in-process bus hands a classic bus's reader what any sender sent, CAN FD frames
+    too: a classic ring keeps 8 bytes of such a frame, and its payload must not run into the
+    next record's."""
+    [spec] = layout([("bus received", CAPACITY, 0, False)])
+    shared = SharedFile(spec.size)
+    ring = FrameRing(shared, spec, sent=False)
+    ring.put(can.Message(arbitration_id=0x181, data=b"\x11" * 12, is_fd=True,
+                         is_extended_id=False), 1.0)
+    ring.put(can.Message(arbitration_id=0x182, data=b"\x22" * 8, is_extended_id=False), 2.0)
+    _, records = RingReader(shared, spec).read(0)
+    assert [data for _, _, _, data in frame_fields(records)] == ["11" * 8, "22" * 8]

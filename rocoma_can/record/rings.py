@@ -161,12 +161,15 @@ def frame_fields(records: np.ndarray) -> list[tuple[float, int, int, str]]:
     whole arrays (a frame's fields one by one cost ~4 µs; this ~0.3 µs)."""
     if not len(records):
         return []
-    width = records.dtype["data"].shape[0] * 2
+    size = records.dtype["data"].shape[0]
+    width = size * 2
     hexes = records["data"].tobytes().hex().upper()
+    # a frame longer than a record (an FD frame an in-process bus handed a classic bus's
+    # reader) keeps what the record holds
     return [(t, cob, flags, hexes[k * width:k * width + 2 * dlc])
             for k, (t, cob, flags, dlc) in enumerate(zip(
                 records["t"].tolist(), records["id"].tolist(), records["flags"].tolist(),
-                records["dlc"].tolist()))]
+                np.minimum(records["dlc"], size).tolist()))]
 
 
 def in_time_order(parts: list[np.ndarray]) -> np.ndarray:
