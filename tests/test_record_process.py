@@ -299,3 +299,29 @@ def test_a_recording_carries_the_live_views_channels_the_layout_reads(bench, tmp
 
 def json_rotation(transform: dict) -> tuple[float, ...]:
     return tuple(round(transform["rotation"][k], 4) for k in "xyzw")
+
+
+def test_a_stop_signal_to_every_process_of_the_service_leaves_the_writer_to_its_close(
+        bench, tmp_path):
+    """systemd stops a service by sending SIGTERM to every process of it (its cgroup), the
+    writer too: the loop's process stops on it, torque-off first, and closes the writer,
+    which must still be there to write the run's end (it died at once: a recording cut
+    short, no record of a shutdown after an e-stop)."""
+    config, _segment = bench
+    with Runtime(config, record=str(tmp_path / "rec")) as rt:
+        assert rt.recorder is not None
+        writer = rt.recorder._process
+
+        def stop() -> None:
+            wait_for(lambda: rt.loop.stats.cycles > 20, "cycles", DEMO_WAIT)
+            writer.send_signal(signal.SIGTERM)
+            rt.loop.on_signal(signal.SIGTERM, None)  # the loop's process got its own
+        worker = threading.Thread(target=stop)
+        worker.start()
+        rt.run(duration=DEMO_RUN, signals=False)
+        worker.join(DEMO_WAIT)
+    assert rt.loop.stop_reason == "signal SIGTERM"
+    assert rt.recording is not None and not rt.recording.errors, rt.recording.errors
+    cycles = [m for topic, _, m in read_messages(str(tmp_path / "rec" / "trace.mcap"))
+              if topic == "/rocoma/cycle"]
+    assert len(cycles) == rt.loop.stats.cycles

@@ -11,7 +11,8 @@ answers on stdout, one JSON object a line: ``{"ready": true}`` or ``{"failed": r
 start, ``{"flight_record": path, "cause": ...}``, ``{"error": reason, "of": "recording" |
 "flight"}``, and last ``{"closed": true}``.
 
-Its stdin ending without ``close`` means the loop's process died (killed, crashed): what
+It ignores SIGTERM and SIGINT (the loop's process closes it). Its stdin ending without
+``close`` means the loop's process died (killed, crashed): what
 is in the rings is written, the flight recorder writes a record of the last seconds (cause
 "the manager's process ended without closing"), and it ends.
 """
@@ -21,6 +22,7 @@ import json
 import math
 import os
 import queue
+import signal
 import sys
 import threading
 import time
@@ -178,6 +180,11 @@ def _read_commands(stream: IO[str], commands: queue.Queue[dict[str, Any] | None]
 
 
 def main() -> int:
+    # A stop signal is the loop's process's to act on: it closes this writer after its
+    # torque-off. systemd stops a service by signalling every process of it, this one too,
+    # which must live to write the run's end (and ends with its input in any case).
+    for stop in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(stop, signal.SIG_IGN)
     reply = sys.stdout
     try:
         spec = Spec.from_json(sys.stdin.readline())
