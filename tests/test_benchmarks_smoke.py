@@ -33,7 +33,8 @@ CASES = {
         {"frames_per_cycle", "ours_us", "canopen_us", "speedup_median", "ns_per_frame",
          "core_share_at_30k_frames_s"} <= set(row) for row in r),
     "recording_cost": lambda r: [row["joints"] for row in r] == [3, 6, 12, 24] and all(
-        {"loop_record_us", "tap_us_per_frame", "writer_us_per_cycle"} <= set(row)
+        {"loop_record_us", "loop_frame_us", "writer_row_us", "writer_candump_us",
+         "writer_mcap_frame_us"} <= set(row)
         for row in r),
     "sim_cost": lambda r: [row["drives"] for row in r] == [1, 3, 6, 12] and all(
         {"per_sync_us", "per_drive_us", "bench_core_share"} <= set(row) for row in r),
