@@ -90,7 +90,7 @@ def time_writer(joints: int, cycles: int) -> tuple[float, float, float]:
     per_line = (time.perf_counter_ns() - t0) / 1000.0 / len(lines)
     t0 = time.perf_counter_ns()
     writer.frames("can0", frame_fields(reader.read(0)[1]))
-    per_message = (time.perf_counter_ns() - t0) / 1000.0 / frames
+    per_message = (time.perf_counter_ns() - t0) / 1000.0 / len(lines)
     writer.finish()
     return per_cycle, per_line, per_message
 

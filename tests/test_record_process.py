@@ -78,6 +78,8 @@ def test_the_recording_holds_every_frame_an_independent_listener_saw(bench, tmp_
     assert rt.recording is not None and not rt.recording.errors, rt.recording.errors
     [log_file] = (tmp_path / "rec").glob("*.log")
     recorded = list(can.LogReader(str(log_file)))
+    stamps = [msg.timestamp for msg in recorded]
+    assert stamps == sorted(stamps)  # canplayer replays in file order
     by_id: dict[int, list[bytes]] = defaultdict(list)
     for msg in heard:
         by_id[msg.arbitration_id].append(bytes(msg.data))
@@ -167,7 +169,7 @@ def test_the_loops_part_allocates_nothing(tmp_path):
     assert sys.getallocatedblocks() - before < 10
     assert shared.count(rows) == 6000 and shared.count(frames) == 6000
     start, records = RingReader(shared, frames).read(0)
-    assert start == 5500 and len(records) == 500  # the ring's last 500
+    assert start == 5501 and len(records) == 499  # the ring's last 499 (its next slot: not)
     assert frame_fields(records[:1]) == [(stamp, 0x201, 64, "0000000000000000")]
 
 
@@ -195,12 +197,12 @@ def test_a_writer_process_that_dies_is_said_and_the_loop_runs_on(bench, tmp_path
     assert writer.poll() is not None
 
 
-def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
-    """The writer outlives the manager's process by the time it takes to write what the
-    rings hold: SIGKILL the process running the loop, and the flight record of its last
-    seconds is there, and the writer has ended."""
+def _kill_a_manager_process(bench, tmp_path, record: bool) -> None:
+    """Run a manager in a process of its own for a second and SIGKILL it; wait for its
+    writer to end."""
     config, _segment = bench
     channel = config.bus.channel
+    recording = f", record={str(tmp_path / 'rec')!r}" if record else ""
     script = textwrap.dedent(f"""
         import sys, time, threading
         sys.path.insert(0, {str(os.path.dirname(__file__))!r})
@@ -210,7 +212,8 @@ def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
         from fixtures.sim import SimulatedSegment
         seg = SimulatedSegment.open({channel!r} + "-child", "virtual", [1, 2])
         cfg = demo_config({channel!r} + "-child", drives=2, rate={RATE})
-        rt = Runtime(validate(cfg), flight={str(tmp_path / "flight")!r}, flight_seconds=1.0)
+        rt = Runtime(validate(cfg), flight={str(tmp_path / "flight")!r}, flight_seconds=1.0
+                     {recording})
         print(rt.recorder._process.pid, flush=True)
         rt.run(duration=60, signals=False)
     """)
@@ -226,9 +229,28 @@ def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
     finally:
         if child.poll() is None:
             child.kill()
+
+
+def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
+    """The writer outlives the manager's process by the time it takes to write what the
+    rings hold: SIGKILL the process running the loop, and the flight record of its last
+    seconds is there, and the writer has ended."""
+    _kill_a_manager_process(bench, tmp_path, record=False)
     [record] = list((tmp_path / "flight").iterdir())
     assert "process-ended-without-closing" in record.name
     cycles = [m for topic, _, m in read_messages(str(record)) if topic == "/rocoma/cycle"]
+    assert len(cycles) >= 0.5 * RATE
+
+
+def test_a_killed_manager_process_leaves_its_recording_whole(bench, tmp_path):
+    """With --record too: the recording is closed whole (its MCAP summary written) after
+    the flight record, although nobody reads the writer's answers any more (the writer
+    died of the broken pipe before it closed the recording)."""
+    _kill_a_manager_process(bench, tmp_path, record=True)
+    [record] = list((tmp_path / "flight").iterdir())
+    assert "process-ended-without-closing" in record.name
+    cycles = [m for topic, _, m in read_messages(str(tmp_path / "rec" / "trace.mcap"))
+              if topic == "/rocoma/cycle"]
     assert len(cycles) >= 0.5 * RATE
 
 
@@ -277,3 +299,29 @@ def test_a_recording_carries_the_live_views_channels_the_layout_reads(bench, tmp
 
 def json_rotation(transform: dict) -> tuple[float, ...]:
     return tuple(round(transform["rotation"][k], 4) for k in "xyzw")
+
+
+def test_a_stop_signal_to_every_process_of_the_service_leaves_the_writer_to_its_close(
+        bench, tmp_path):
+    """systemd stops a service by sending SIGTERM to every process of it (its cgroup), the
+    writer too: the loop's process stops on it, torque-off first, and closes the writer,
+    which must still be there to write the run's end (it died at once: a recording cut
+    short, no record of a shutdown after an e-stop)."""
+    config, _segment = bench
+    with Runtime(config, record=str(tmp_path / "rec")) as rt:
+        assert rt.recorder is not None
+        writer = rt.recorder._process
+
+        def stop() -> None:
+            wait_for(lambda: rt.loop.stats.cycles > 20, "cycles", DEMO_WAIT)
+            writer.send_signal(signal.SIGTERM)
+            rt.loop.on_signal(signal.SIGTERM, None)  # the loop's process got its own
+        worker = threading.Thread(target=stop)
+        worker.start()
+        rt.run(duration=DEMO_RUN, signals=False)
+        worker.join(DEMO_WAIT)
+    assert rt.loop.stop_reason == "signal SIGTERM"
+    assert rt.recording is not None and not rt.recording.errors, rt.recording.errors
+    cycles = [m for topic, _, m in read_messages(str(tmp_path / "rec" / "trace.mcap"))
+              if topic == "/rocoma/cycle"]
+    assert len(cycles) == rt.loop.stats.cycles

@@ -526,9 +526,9 @@ def test_the_flight_recorder_leaves_no_file_where_it_cannot_write(config, small_
             time.sleep(0.05)
         errors = list(rt.flight.errors)
     said = (r"\[Errno 28\] No space left on device" if kind == "full"
-            else r"\[Errno 30\] Read-only file system: '\1'")
-    assert errors and re.fullmatch(rf"flight record ({re.escape(str(flight))}/flight-\S+"
-                                   rf"-test\.mcap): {said}", errors[0]), errors
+            else r"\[Errno 30\] Read-only file system")
+    assert errors and re.fullmatch(rf"flight record {re.escape(str(flight))}/flight-\S+"
+                                   rf"-test\.mcap: {said}", errors[0]), errors
     assert summary.cycles >= 0.5 * RATE  # the loop ran its second
     left = sorted(p.name for p in mount.rglob("*"))
     assert left == (["filler", "flight"] if kind == "full" else []), left  # no flight-*.mcap

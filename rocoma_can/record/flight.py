@@ -11,12 +11,15 @@ A storm of e-stops (a held e-stop button repeats its frame; each is a request wh
 FAILPROOF too) is a few records, not one file per frame: requests within half a window of
 the last record wait for it to pass and go out together (the next file still overlaps the
 last). Closing writes at once. A directory that cannot be written, or a full disk, leaves
-no file and a reason in ``errors``.
+no file and a reason in ``errors``. A record is written under a hidden name
+(``.flight-....mcap.part``) and named when whole: a writer killed while writing (the close's
+wait ran out, the OOM killer) leaves no record cut short.
 """
 from __future__ import annotations
 
 import collections
 import math
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -82,18 +85,22 @@ class FlightRecords:
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now_wall))
         path = self.directory / (f"flight-{stamp}-{int(now_wall * 1000) % 1000:03d}-"
                                  f"{slug(cause)}.mcap")
+        part = path.with_name(f".{path.name}.part")  # named a record once it is whole
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            with open(path, "wb") as stream:
+            with open(part, "wb") as stream:
                 self._write(McapWriter(stream, self._layout.names), controllers, now,
                             now_wall)
+            os.replace(part, path)
         except (OSError, ValueError) as exc:  # unwritable directory, full disk: said, never
             # raised; a file begun and cut short is no record, and takes room the next needs
             try:
-                path.unlink(missing_ok=True)
+                part.unlink(missing_ok=True)
             except OSError:
                 pass
-            reason = f"flight record {path}: {exc}"
+            said = (f"[Errno {exc.errno}] {exc.strerror}"  # (its file name: the hidden one)
+                    if isinstance(exc, OSError) and exc.strerror else str(exc))
+            reason = f"flight record {path}: {said}"
             self.errors.append(reason)
             return reason
         self.dumps.append((path, cause))

@@ -14,8 +14,9 @@ Manager events reach the writer through a pipe, sent by a thread of this process
 bounded queue (full: dropped, counted in ``events_dropped``). The writer answers on another
 pipe: each flight record's path (said through ``announce``, or logged) and each failure (a
 full disk: the first one logged as a warning, all in ``errors``). If the writer dies, the
-loop runs on and the reason is in ``errors``; if this process dies, the writer writes what
-the rings hold and ends.
+loop runs on, the reason is logged and in the recording's and the flight recorder's
+``errors``, and the close does not wait for it; if this process dies, the writer writes
+what the rings hold and ends.
 """
 from __future__ import annotations
 
@@ -126,19 +127,26 @@ class Recorder:
         self._manager, self._latched = manager, False
         self._queue: queue.Queue[str | None] = queue.Queue(maxsize=EVENT_QUEUE)
         self._ready: queue.Queue[dict[str, Any]] = queue.Queue()
-        self._closed = threading.Event()
+        self._closing = threading.Event()  # close(): the sender ends with the queue
+        self._ended = threading.Event()    # the writer's output ended: it said all it will
         spec = Spec(self._shared.fd, self._shared.size, rows,
                     {bus.label: (bus.channel, [specs[1 + 2 * k], specs[2 + 2 * k]])
                      for k, bus in enumerate(buses)},
                     list(state.names), dict(self.trace.controllers), record, flight, seconds,
                     rate, robot.text if robot is not None else None,
                     robot.source if robot is not None else "")
-        self._process = subprocess.Popen(
-            [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, text=True, pass_fds=(self._shared.fd,),
-            start_new_session=True,  # a Ctrl-C is the run's to handle: the writer is told
-            preexec_fn=lambda: os.nice(NICE))  # noqa: PLW1509 - no threads in the child yet
+        try:
+            self._process = subprocess.Popen(
+                [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE, text=True, pass_fds=(self._shared.fd,),
+                start_new_session=True,  # a Ctrl-C is the run's to handle: the writer is told
+                preexec_fn=lambda: os.nice(NICE))  # noqa: PLW1509 - no threads in the child yet
+        except (OSError, subprocess.SubprocessError) as exc:
+            self._shared.close()
+            raise RecordingError(f"cannot start the recording's writer process "
+                                 f"({sys.executable}): {exc}") from exc
         self._threads: list[threading.Thread] = []
+        self._sender: threading.Thread | None = None
         try:
             self._stdin: IO[str] = self._process.stdin  # type: ignore[assignment]
             self._stdin.write(spec.to_json() + "\n")
@@ -151,15 +159,16 @@ class Recorder:
                                      f"{START_WAIT:g} s") from None
             if "failed" in first:
                 raise RecordingError(str(first["failed"]))
-            self._start_thread(self._send, "recorder-events")
+            self._sender = self._start_thread(self._send, "recorder-events")
         except BaseException:
             self._stop_process()
             raise
 
-    def _start_thread(self, target: Callable[[], None], name: str) -> None:
+    def _start_thread(self, target: Callable[[], None], name: str) -> threading.Thread:
         thread = threading.Thread(target=target, name=name, daemon=True)
         thread.start()
         self._threads.append(thread)
+        return thread
 
     def on_event(self, event: ManagerEvent) -> None:
         """A manager subscriber (its event thread): queued for the writer, never waits."""
@@ -173,8 +182,8 @@ class Recorder:
         while True:
             try:
                 line = self._queue.get(timeout=0.2)
-            except queue.Empty:
-                line = ""
+            except queue.Empty:  # (a close that found the queue full: now it is empty)
+                line = None if self._closing.is_set() else ""
             lines = []
             latched = self._manager.estop_latched
             if latched != self._latched:  # a clear is no event: looked at here
@@ -198,26 +207,40 @@ class Recorder:
     def _read_replies(self) -> None:
         stdout = self._process.stdout
         assert stdout is not None
-        for line in stdout:
-            try:
-                reply = json.loads(line)
-            except ValueError:
-                continue
-            if "ready" in reply or "failed" in reply:
-                self._ready.put(reply)
-            elif "flight_record" in reply:
-                self._flight_record(Path(reply["flight_record"]), str(reply["cause"]))
-            elif "error" in reply:
-                self._error(str(reply["error"]), reply.get("of") == "flight")
-            elif "closed" in reply:
-                self._closed.set()
-        if not self._closed.is_set():
-            code = self._process.poll()
-            self._ready.put({"failed": f"the recording's writer process ended (exit code "
-                                       f"{code})"})
-            self._error(f"the recording's writer process ended (exit code {code})", False)
-            if self.flight is not None:
-                self.flight.errors.append("the flight recorder's writer process ended")
+        started = closed = False
+        try:
+            for line in stdout:
+                try:
+                    reply = json.loads(line)
+                except ValueError:
+                    continue
+                if "ready" in reply or "failed" in reply:
+                    started = "ready" in reply
+                    self._ready.put(reply)
+                elif "flight_record" in reply:
+                    self._flight_record(Path(reply["flight_record"]), str(reply["cause"]))
+                elif "error" in reply:
+                    self._error(str(reply["error"]), reply.get("of") == "flight")
+                elif "closed" in reply:
+                    closed = True
+            if not closed:
+                try:
+                    code: int | None = self._process.wait(1.0)
+                except subprocess.TimeoutExpired:
+                    code = None
+                reason = f"the recording's writer process ended (exit code {code})"
+                if started:  # (a start that failed raises it)
+                    self._lost(reason)
+                self._ready.put({"failed": reason})
+        finally:
+            self._ended.set()
+
+    def _lost(self, reason: str) -> None:
+        """The writer is gone or stuck: said for the recording and the flight recorder."""
+        if self.recording is not None:
+            self._error(reason, False)
+        if self.flight is not None:
+            self._error(f"{reason}: no flight records from now on", True)
 
     def _flight_record(self, path: Path, cause: str) -> None:
         if self.flight is not None:
@@ -245,30 +268,41 @@ class Recorder:
 
     def close(self) -> None:
         """After the loop's last cycle: the writer writes everything (a last flight record
-        after an e-stop), answers and ends; bounded by CLOSE_WAIT, then it is killed."""
+        after an e-stop), answers and ends; bounded by CLOSE_WAIT, then it is killed. A
+        writer that died has nothing more to say: no wait."""
+        self._closing.set()
         try:
-            self._queue.put(None, timeout=CLOSE_WAIT)
-        except queue.Full:
+            self._queue.put_nowait(None)
+        except queue.Full:  # the sender ends once it has sent what is queued
             pass
-        if not self._closed.wait(CLOSE_WAIT) and self._process.poll() is None:
-            self._error(f"the recording's writer process did not finish within "
-                        f"{CLOSE_WAIT:g} s", False)
+        if not self._ended.wait(CLOSE_WAIT):
+            self._lost(f"the recording's writer process did not finish within "
+                       f"{CLOSE_WAIT:g} s")
         self._stop_process()
 
     def _stop_process(self) -> None:
+        stdin = self._process.stdin
+        sender = self._sender
+        if sender is None or not sender.is_alive():  # (a sender blocked on a full pipe
+            _close_quietly(stdin)                    # holds it: it ends with the writer)
         try:  # (a start that failed: its end of input tells the writer to end)
-            if self._process.stdin is not None:
-                self._process.stdin.close()
-        except (OSError, ValueError):
-            pass
-        try:
             self._process.wait(5.0)
         except subprocess.TimeoutExpired:
             self._process.kill()
             self._process.wait(5.0)
         for thread in self._threads:
             thread.join(5.0)
-        if self._process.stdout is not None:
-            self._process.stdout.close()
+        _close_quietly(stdin)
+        _close_quietly(self._process.stdout)
         self._shared.close()
+
+
+def _close_quietly(stream: IO[str] | None) -> None:
+    """A pipe to or from the writer, closed whatever the writer did (gone: its unsent
+    input fails)."""
+    try:
+        if stream is not None:
+            stream.close()
+    except (OSError, ValueError):
+        pass
 

@@ -18,6 +18,8 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
+
 from .can_log import RecordingError, candump_line
 from .live_channels import LiveChannels
 from .rings import RingReader, frame_fields, in_time_order
@@ -30,22 +32,30 @@ def slug(text: str) -> str:
 
 
 class BusLog:
-    """One bus's candump file, fed from its received and sent rings in time order."""
+    """One bus's candump file, fed from its received and sent rings in time order.
+
+    A frame can reach its ring after later ones were written: a received one the bus's
+    reader hands over late, one another thread sent (SDO, NMT, the hang watchdog) that the
+    cycle moves in at its end (BusPort.end_of_write). So each write takes only the frames
+    stamped before ``until`` (a while ago) and holds the rest for the next, in order with
+    what comes meanwhile."""
 
     def __init__(self, path: Path, channel: str, rings: Sequence[RingReader]) -> None:
         self.path, self.frames = path, 0
         self.channel = f"can{channel}" if channel.isdigit() else channel  # as python-can
         self._rings = rings
         self._next = [0] * len(rings)
+        self._held = np.empty(0, rings[0].spec.dtype) if rings else None
         try:
             self._file: IO[str] = open(path, "w", encoding="ascii")  # noqa: SIM115 - close()
         except OSError as exc:
             raise RecordingError(f"{path}: cannot write: {exc}") from exc
 
-    def write(self) -> None:
-        """What the rings got since the last write; RecordingError on a hole or a failed
+    def write(self, until: float) -> None:
+        """What the rings got since the last write and was stamped before ``until``
+        (wall clock; ``math.inf``: all of it); RecordingError on a hole or a failed
         write."""
-        parts = []
+        parts = [] if self._held is None else [self._held]
         for k, ring in enumerate(self._rings):
             start, records = ring.read(self._next[k])
             if start > self._next[k]:
@@ -53,14 +63,19 @@ class BusLog:
                                      "writer fell a ring behind)")
             self._next[k] = start + len(records)
             parts.append(records)
+        if not parts:
+            return
+        records = in_time_order(parts)
+        cut = int(np.searchsorted(records["t"], until, side="left"))
+        self._held = records[cut:]
         channel = self.channel
         lines = [candump_line(t, channel, cob, flags, data)
-                 for t, cob, flags, data in frame_fields(in_time_order(parts))]
+                 for t, cob, flags, data in frame_fields(records[:cut])]
         if not lines:
             return
         try:
             self._file.write("".join(lines))
-            self._file.flush()  # on disk now: a crash loses at most one poll
+            self._file.flush()  # on disk now: a crash loses at most what is held
         except (OSError, ValueError) as exc:
             raise RecordingError(f"{self.path}: writing failed after {self.frames} frames: "
                                  f"{exc}") from exc
@@ -105,8 +120,9 @@ class Recording:
         return self._writer is not None
 
     def write(self, controllers: Mapping[int, str], events: Iterable[Mapping[str, Any]],
-              offset: float) -> str | None:
-        """Everything new; the first failure's reason (every file then stopped), else None."""
+              offset: float, until: float) -> str | None:
+        """Everything new (the frames stamped before ``until``: BusLog); the first
+        failure's reason (every file then stopped), else None."""
         writer = self._writer
         if writer is None:
             return None
@@ -121,7 +137,7 @@ class Recording:
             self._live.events(events, offset)
             self._next = start + len(rows)
             for bus_log in self._logs:
-                bus_log.write()
+                bus_log.write(until)
         except (OSError, ValueError) as exc:  # RecordingError too
             reason = str(exc) if isinstance(exc, RecordingError) else \
                 f"{self.path}: writing failed: {exc}"

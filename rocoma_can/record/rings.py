@@ -12,18 +12,23 @@ under one lock), any number of readers, no lock: a reader copies what it has not
 reads the count again and drops what the producer overwrote meanwhile (``RingReader.read``).
 On x86-64 and ARM64 the count's store is not seen before the record's (release order on
 x86; CPython's calls between them order it on ARM in practice), and a torn record can only
-be one overwritten during the copy, which the second count read drops.
+be one overwritten during the copy, which the second count read drops, or the one in the
+slot the producer writes before it stores the count, which is never read: a ring of
+``capacity`` records is read as its last ``capacity - 1``.
 """
 from __future__ import annotations
 
 import mmap
 import os
 import struct
+import time
 from dataclasses import dataclass
 from typing import Any
 
 import can
 import numpy as np
+
+from ..drivers.frame_io import MAX_FRAME_AGE
 
 #: bytes before each ring's records: its count, on a cache line of its own
 HEADER = 64
@@ -127,7 +132,12 @@ class FrameRing(can.Listener):
         self.count = 0
 
     def on_message_received(self, msg: can.Message) -> None:
-        self.put(msg, msg.timestamp)
+        """A received frame with its arrival stamp, or "now" where it has none that is
+        plausible: some interfaces count from the adapter's power-on (a frame recorded 55
+        years ago: out of every flight record, first in the candump log); the hardware
+        takes such frames as arrived now too (frame_io.to_monotonic)."""
+        stamp, now = msg.timestamp, time.time()
+        self.put(msg, stamp if now - MAX_FRAME_AGE < stamp <= now else now)
 
     def put(self, msg: can.Message, stamp: float) -> None:
         """``msg`` with ``stamp`` (time.time()): a frame sent here has no stamp of its own
@@ -151,12 +161,15 @@ def frame_fields(records: np.ndarray) -> list[tuple[float, int, int, str]]:
     whole arrays (a frame's fields one by one cost ~4 µs; this ~0.3 µs)."""
     if not len(records):
         return []
-    width = records.dtype["data"].shape[0] * 2
+    size = records.dtype["data"].shape[0]
+    width = size * 2
     hexes = records["data"].tobytes().hex().upper()
+    # a frame longer than a record (an FD frame an in-process bus handed a classic bus's
+    # reader) keeps what the record holds
     return [(t, cob, flags, hexes[k * width:k * width + 2 * dlc])
             for k, (t, cob, flags, dlc) in enumerate(zip(
                 records["t"].tolist(), records["id"].tolist(), records["flags"].tolist(),
-                records["dlc"].tolist()))]
+                np.minimum(records["dlc"], size).tolist()))]
 
 
 def in_time_order(parts: list[np.ndarray]) -> np.ndarray:
@@ -177,15 +190,18 @@ class RingReader:
 
     def read(self, since: int) -> tuple[int, np.ndarray]:
         """A copy of the records from number ``since`` on: (the first one's number,
-        records). What the producer overwrote before or during the copy is left out."""
+        records). What the producer overwrote before or during the copy is left out, and
+        so is the record in the slot it writes next (number ``count - capacity``: the
+        producer writes there before it stores the count), so a full ring reads as its
+        last ``capacity - 1`` records."""
         cap, arr = self.spec.capacity, self._array
         end = self.count()
-        start = max(since, end - cap, 0)
+        start = max(since, end - cap + 1, 0)
         if start >= end:
             return end, arr[:0].copy()
         k0, k1 = start % cap, end % cap
         out = arr[k0:k1].copy() if k0 < k1 else np.concatenate((arr[k0:], arr[:k1]))
-        first_safe = self.count() - cap  # overwritten while copying: dropped
+        first_safe = self.count() - cap + 1  # overwritten while copying: dropped
         if first_safe > start:
             out = out[first_safe - start:]
             start = first_safe

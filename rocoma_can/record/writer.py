@@ -11,14 +11,18 @@ answers on stdout, one JSON object a line: ``{"ready": true}`` or ``{"failed": r
 start, ``{"flight_record": path, "cause": ...}``, ``{"error": reason, "of": "recording" |
 "flight"}``, and last ``{"closed": true}``.
 
-Its stdin ending without ``close`` means the loop's process died (killed, crashed): what
+It ignores SIGTERM and SIGINT (the loop's process closes it). Its stdin ending without
+``close`` means the loop's process died (killed, crashed): what
 is in the rings is written, the flight recorder writes a record of the last seconds (cause
 "the manager's process ended without closing"), and it ends.
 """
 from __future__ import annotations
 
 import json
+import math
+import os
 import queue
+import signal
 import sys
 import threading
 import time
@@ -37,6 +41,9 @@ from .trace import McapWriter, RowLayout
 
 #: how often the rings are written out, s
 POLL = 0.05
+#: how long a frame stays out of its bus's log at least, s (recording.BusLog): frames
+#: reach the rings up to a cycle late (two at a low rate) or as late as the bus's reader
+HOLD = 0.25
 
 
 @dataclass
@@ -72,7 +79,8 @@ class Writer:
     """The writer's state: the rings, the recording, the flight records."""
 
     def __init__(self, spec: Spec, reply: IO[str]) -> None:
-        self._reply = reply
+        self._reply, self._gone = reply, False
+        _check_mcap()
         self.shared = SharedFile(spec.size, spec.fd)
         layout = RowLayout(spec.joints)
         rows = RingReader(self.shared, spec.rows)
@@ -88,13 +96,27 @@ class Writer:
             return LiveChannels(writer, layout, 1.0 / spec.rate, robot, self.facts)
         self.recording = (Recording(Path(spec.record), layout, rows, rings, live)
                           if spec.record is not None else None)
+        self._hold = max(HOLD, 2.0 / spec.rate)
         self.flight = (FlightRecords(Path(spec.flight), spec.seconds, layout, rows,
                                      {label: r for label, (_, r) in rings.items()}, live)
                        if spec.flight is not None else None)
 
     def say(self, **message: Any) -> None:
-        self._reply.write(json.dumps(message) + "\n")
-        self._reply.flush()
+        """An answer to the loop's process; none once it is gone (killed: what is left to
+        write, the recording's close above all, is still done)."""
+        if self._gone:
+            return
+        try:
+            self._reply.write(json.dumps(message) + "\n")
+            self._reply.flush()
+        except OSError:  # a broken pipe: nobody reads any more
+            self._gone = True
+            try:  # what is still buffered goes nowhere, not into an error at exit
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, self._reply.fileno())
+                os.close(devnull)
+            except (OSError, ValueError):
+                pass
 
     def command(self, command: Mapping[str, Any]) -> None:
         if "event" in command:
@@ -112,8 +134,9 @@ class Writer:
     def write(self, closing: bool = False) -> None:
         if self.recording is not None:
             events, self.events = self.events, []
-            failed = self.recording.write(self.controllers, events,
-                                          time.time() - time.monotonic())
+            now = time.time()
+            failed = self.recording.write(self.controllers, events, now - time.monotonic(),
+                                          math.inf if closing else now - self._hold)
             if failed is not None:
                 self.say(error=failed, of="recording")
         flight = self.flight
@@ -135,6 +158,17 @@ class Writer:
         self.shared.close()
 
 
+def _check_mcap() -> None:
+    """Every file written here is MCAP (an optional extra): refused at start, not at the
+    first e-stop."""
+    try:
+        import mcap.writer  # noqa: F401
+    except ImportError as exc:
+        raise RecordingError(f"recording and the flight recorder write MCAP, and "
+                             f"{sys.executable} cannot import it ({exc}): pip install "
+                             "'rocoma-can[record]'") from exc
+
+
 def _read_commands(stream: IO[str], commands: queue.Queue[dict[str, Any] | None]) -> None:
     """stdin, a command a line, into ``commands``; None at its end."""
     for line in stream:
@@ -146,6 +180,11 @@ def _read_commands(stream: IO[str], commands: queue.Queue[dict[str, Any] | None]
 
 
 def main() -> int:
+    # A stop signal is the loop's process's to act on: it closes this writer after its
+    # torque-off. systemd stops a service by signalling every process of it, this one too,
+    # which must live to write the run's end (and ends with its input in any case).
+    for stop in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(stop, signal.SIG_IGN)
     reply = sys.stdout
     try:
         spec = Spec.from_json(sys.stdin.readline())

@@ -1,0 +1,96 @@
+"""The rings in shared memory (record/rings.py) read while the producer writes: a reader
+never gets a record the producer is overwriting, and never a record under another number."""
+from __future__ import annotations
+
+import io
+import os
+import time
+
+import can
+
+from rocoma_can import ManagerState
+from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, frame_fields, layout
+from rocoma_can.record.trace import RowLayout, SignalTrace
+from rocoma_can.record.writer import Spec, Writer
+
+CAPACITY = 4
+
+
+class _Manager:
+    active_controller_name = "pd"
+
+
+def test_a_row_being_written_is_not_read_under_the_number_it_overwrites():
+    """The producer writes a row into its slot, then stores the count: a reader between the
+    two sees the old count, and the slot of the oldest row it counts holds the new row."""
+    state, command = JointState.zeros(2), JointCommand.zeros(2)
+    [rows] = layout([("rows", CAPACITY, RowLayout(state.names).width, False)])
+    shared = SharedFile(rows.size)
+    reader = RingReader(shared, rows)
+    seen: list[tuple[int, list[float]]] = []
+
+    def publish(count: int) -> None:  # the row is written, its count not yet stored
+        start, got = reader.read(0)
+        seen.append((start, got[:, 0].tolist()))
+        shared.publish(rows, count)
+    trace = SignalTrace(state, command, _Manager(), CAPACITY, rows=shared.array(rows),
+                        publish=publish, known=["pd"])
+    for number in range(3 * CAPACITY):
+        trace.record(float(number), 1e-3, 0.0, ManagerState.OK)
+    for start, stamps in seen:  # row number n was recorded at t = n
+        assert stamps == [float(n) for n in range(start, start + len(stamps))], (start, stamps)
+
+
+def test_a_frame_being_written_is_not_read_under_the_number_it_overwrites():
+    [spec] = layout([("bus received", CAPACITY, 0, False)])
+    shared = SharedFile(spec.size)
+    ring, reader = FrameRing(shared, spec, sent=False), RingReader(shared, spec)
+    records = shared.array(spec)
+    for number in range(CAPACITY):
+        ring.put(can.Message(arbitration_id=number, is_extended_id=False), float(number))
+    # the producer's next record is in its slot, its count not yet stored: what a reader
+    # in the writer process can find at any moment of a busy bus
+    records["t"][0], records["id"][0] = float(CAPACITY), CAPACITY
+    start, got = reader.read(0)
+    assert got["id"].tolist() == list(range(start, start + len(got)))
+
+
+def test_a_bus_log_is_in_time_order_when_a_frame_reaches_its_ring_late(tmp_path):
+    """A frame can reach its ring after a later one was written: a received one the bus's
+    reader hands over late, one another thread sent (SDO, NMT) that the cycle moves in at
+    its end. The writer's poll in between must not put it after the later one in the
+    candump file (canplayer replays in file order)."""
+    state = JointState.zeros(1)
+    specs = layout([("rows", 16, RowLayout(state.names).width, False),
+                    ("bus received", 16, 0, False), ("bus sent", 16, 0, False)])
+    shared = SharedFile(specs[-1].offset + specs[-1].size)
+    received, sent = FrameRing(shared, specs[1], sent=False), FrameRing(shared, specs[2], sent=True)
+    spec = Spec(os.dup(shared.fd), shared.size, specs[0], {"bus": ("vcan0", specs[1:])},
+                list(state.names), {}, record=str(tmp_path / "rec"), rate=100.0)
+    writer = Writer(spec, io.StringIO())
+    now = time.time()
+    sent.put(can.Message(arbitration_id=0x080, is_extended_id=False), now)  # a SYNC
+    writer.write()  # a poll
+    # an SDO answer that came before the SYNC, handed over by the bus's reader after it
+    received.put(can.Message(arbitration_id=0x581, data=bytes(8), is_extended_id=False),
+                 now - 0.005)
+    writer.write(closing=True)
+    writer.close()
+    shared.close()
+    frames = list(can.LogReader(str(tmp_path / "rec" / "bus.log")))
+    assert [(m.arbitration_id, m.is_rx) for m in frames] == [(0x581, True), (0x080, False)]
+
+
+def test_a_frame_longer_than_its_rings_records_keeps_to_its_record():
+    """An in-process bus hands a classic bus's reader what any sender sent, CAN FD frames
+    too: a classic ring keeps 8 bytes of such a frame, and its payload must not run into the
+    next record's."""
+    [spec] = layout([("bus received", CAPACITY, 0, False)])
+    shared = SharedFile(spec.size)
+    ring = FrameRing(shared, spec, sent=False)
+    ring.put(can.Message(arbitration_id=0x181, data=b"\x11" * 12, is_fd=True,
+                         is_extended_id=False), 1.0)
+    ring.put(can.Message(arbitration_id=0x182, data=b"\x22" * 8, is_extended_id=False), 2.0)
+    _, records = RingReader(shared, spec).read(0)
+    assert [data for _, _, _, data in frame_fields(records)] == ["11" * 8, "22" * 8]
