@@ -14,46 +14,29 @@ import time
 from collections import defaultdict
 
 import can
-import pytest
-from fixtures.running import DEMO_RUN, DEMO_WAIT, wait_for
+from fixtures.running import (
+    BENCH_RATE,
+    DEMO_RUN,
+    DEMO_WAIT,
+    run_operated,
+    switch_and_stop,
+    wait_for,
+)
 
 from rocoma_can import ManagerState
-from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.drivers.joints import JointCommand, JointState
 from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, frame_fields, layout
 from rocoma_can.record.trace import RowLayout, SignalTrace, read_messages
 from rocoma_can.runtime import Runtime
-from rocoma_can.runtime.config import validate
-
-RATE = 100.0
 
 
-@pytest.fixture
-def bench(virtual_channel, sim_segment_factory):
-    segment = sim_segment_factory(2)
-    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
-    cfg["manager"]["estop_must_be_cleared"] = False
-    return validate(cfg), segment
-
-
-def _switch_then_stop(rt: Runtime, run: float) -> threading.Thread:
-    def operate() -> None:
-        wait_for(lambda: rt.manager.switch_blocked() is None, "drives ready", DEMO_WAIT)
-        rt.manager.switch_controller("pd", timeout=DEMO_WAIT)
-        time.sleep(run)
-        rt.loop.stop("test")
-    thread = threading.Thread(target=operate)
-    thread.start()
-    return thread
-
-
-def test_the_recording_holds_every_frame_an_independent_listener_saw(bench, tmp_path,
+def test_the_recording_holds_every_frame_an_independent_listener_saw(demo_bench, tmp_path,
                                                                      bus_factory):
     """Every frame on the bus, received by the hardware or sent by it, is in the bus's
     candump file, in order per COB-ID, with what the manager sent marked T (its own reader
     never sees those: they come from BusPort) and what it received R. An independent
     listener on the bus is the reference; only frames in flight at the ends may differ."""
-    config, _segment = bench
+    config, _segment = demo_bench
     listener = bus_factory(receive_own_messages=False)
     heard: list[can.Message] = []
     reading = threading.Event()
@@ -67,9 +50,7 @@ def test_the_recording_holds_every_frame_an_independent_listener_saw(bench, tmp_
     thread.start()
     try:
         with Runtime(config, record=str(tmp_path / "rec")) as rt:
-            operator = _switch_then_stop(rt, 1.0)
-            rt.run(duration=DEMO_RUN, signals=False)
-            operator.join(DEMO_WAIT)
+            run_operated(rt, switch_and_stop(rt, 1.0))
             cycles = rt.loop.stats.cycles
     finally:
         time.sleep(0.1)
@@ -110,10 +91,10 @@ def test_the_recording_holds_every_frame_an_independent_listener_saw(bench, tmp_
     assert len(trace) == cycles
 
 
-def test_the_flight_record_has_the_frames_the_hardware_read_and_sent(bench, tmp_path):
+def test_the_flight_record_has_the_frames_the_hardware_read_and_sent(demo_bench, tmp_path):
     """No second bus handle: the hardware's own reader and sends feed the flight recorder.
     The record has both directions, each frame marked."""
-    config, segment = bench
+    config, segment = demo_bench
     from rocoma_can.drivers.bus_port import BusPort
     opened: list[object] = []
     original = BusPort.open
@@ -124,17 +105,7 @@ def test_the_flight_record_has_the_frames_the_hardware_read_and_sent(bench, tmp_
     BusPort.open = counting_open  # type: ignore[method-assign]
     try:
         with Runtime(config, flight=str(tmp_path / "flight"), flight_seconds=1.0) as rt:
-            def operate() -> None:
-                wait_for(lambda: rt.manager.switch_blocked() is None, "ready", DEMO_WAIT)
-                rt.manager.switch_controller("pd", timeout=DEMO_WAIT)
-                time.sleep(0.5)
-                segment.drives[1].trip_fault()
-                time.sleep(0.3)
-                rt.loop.stop("test")
-            worker = threading.Thread(target=operate)
-            worker.start()
-            rt.run(duration=DEMO_RUN, signals=False)
-            worker.join(DEMO_WAIT)
+            run_operated(rt, switch_and_stop(rt, 0.5, fault=segment.drives[1].trip_fault))
     finally:
         BusPort.open = original  # type: ignore[method-assign]
     assert len(opened) == 1
@@ -173,8 +144,8 @@ def test_the_loops_part_allocates_nothing(tmp_path):
     assert frame_fields(records[:1]) == [(stamp, 0x201, 64, "0000000000000000")]
 
 
-def test_a_writer_process_that_dies_is_said_and_the_loop_runs_on(bench, tmp_path, caplog):
-    config, _segment = bench
+def test_a_writer_process_that_dies_is_said_and_the_loop_runs_on(demo_bench, tmp_path, caplog):
+    config, _segment = demo_bench
     caplog.set_level("WARNING")
     with Runtime(config, record=str(tmp_path / "rec"), flight=str(tmp_path / "flight")) as rt:
         assert rt.recorder is not None
@@ -197,10 +168,10 @@ def test_a_writer_process_that_dies_is_said_and_the_loop_runs_on(bench, tmp_path
     assert writer.poll() is not None
 
 
-def _kill_a_manager_process(bench, tmp_path, record: bool) -> None:
+def _kill_a_manager_process(demo_bench, tmp_path, record: bool) -> None:
     """Run a manager in a process of its own for a second and SIGKILL it; wait for its
     writer to end."""
-    config, _segment = bench
+    config, _segment = demo_bench
     channel = config.bus.channel
     recording = f", record={str(tmp_path / 'rec')!r}" if record else ""
     script = textwrap.dedent(f"""
@@ -211,7 +182,7 @@ def _kill_a_manager_process(bench, tmp_path, record: bool) -> None:
         from rocoma_can.runtime.config import validate
         from fixtures.sim import SimulatedSegment
         seg = SimulatedSegment.open({channel!r} + "-child", "virtual", [1, 2])
-        cfg = demo_config({channel!r} + "-child", drives=2, rate={RATE})
+        cfg = demo_config({channel!r} + "-child", drives=2, rate={BENCH_RATE})
         rt = Runtime(validate(cfg), flight={str(tmp_path / "flight")!r}, flight_seconds=1.0
                      {recording})
         print(rt.recorder._process.pid, flush=True)
@@ -231,30 +202,30 @@ def _kill_a_manager_process(bench, tmp_path, record: bool) -> None:
             child.kill()
 
 
-def test_a_killed_manager_process_still_leaves_a_flight_record(bench, tmp_path):
+def test_a_killed_manager_process_still_leaves_a_flight_record(demo_bench, tmp_path):
     """The writer outlives the manager's process by the time it takes to write what the
     rings hold: SIGKILL the process running the loop, and the flight record of its last
     seconds is there, and the writer has ended."""
-    _kill_a_manager_process(bench, tmp_path, record=False)
+    _kill_a_manager_process(demo_bench, tmp_path, record=False)
     [record] = list((tmp_path / "flight").iterdir())
     assert "process-ended-without-closing" in record.name
     cycles = [m for topic, _, m in read_messages(str(record)) if topic == "/rocoma/cycle"]
-    assert len(cycles) >= 0.5 * RATE
+    assert len(cycles) >= 0.5 * BENCH_RATE
 
 
-def test_a_killed_manager_process_leaves_its_recording_whole(bench, tmp_path):
+def test_a_killed_manager_process_leaves_its_recording_whole(demo_bench, tmp_path):
     """With --record too: the recording is closed whole (its MCAP summary written) after
     the flight record, although nobody reads the writer's answers any more (the writer
     died of the broken pipe before it closed the recording)."""
-    _kill_a_manager_process(bench, tmp_path, record=True)
+    _kill_a_manager_process(demo_bench, tmp_path, record=True)
     [record] = list((tmp_path / "flight").iterdir())
     assert "process-ended-without-closing" in record.name
     cycles = [m for topic, _, m in read_messages(str(tmp_path / "rec" / "trace.mcap"))
               if topic == "/rocoma/cycle"]
-    assert len(cycles) >= 0.5 * RATE
+    assert len(cycles) >= 0.5 * BENCH_RATE
 
 
-def test_a_recording_carries_the_live_views_channels_the_layout_reads(bench, tmp_path):
+def test_a_recording_carries_the_live_views_channels_the_layout_reads(demo_bench, tmp_path):
     """A recording and a flight record open in Foxglove with the live view's layout: every
     topic the shipped layout reads (the status report aside: the writer never sees it) is
     in both, with the schema the live view serves, and /tf moves with the joints."""
@@ -263,21 +234,12 @@ def test_a_recording_carries_the_live_views_channels_the_layout_reads(bench, tmp
     from rocoma_can.cli.demo_config import demo_urdf
     from rocoma_can.live import messages
     from rocoma_can.live.urdf import parse_urdf
-    config, segment = bench
+    config, segment = demo_bench
     config.robot = parse_urdf(demo_urdf([d.name for d in config.drives]).encode(), "demo")
     with Runtime(config, record=str(tmp_path / "rec"), flight=str(tmp_path / "flight"),
                  flight_seconds=1.0) as rt:
-        def operate() -> None:
-            wait_for(lambda: rt.manager.switch_blocked() is None, "ready", DEMO_WAIT)
-            rt.manager.switch_controller("trajectory", timeout=DEMO_WAIT)  # it moves
-            time.sleep(1.0)
-            segment.drives[1].trip_fault()
-            time.sleep(0.3)
-            rt.loop.stop("test")
-        worker = threading.Thread(target=operate)
-        worker.start()
-        rt.run(duration=DEMO_RUN, signals=False)
-        worker.join(DEMO_WAIT)
+        run_operated(rt, switch_and_stop(rt, 1.0, "trajectory",  # trajectory: it moves
+                                         segment.drives[1].trip_fault))
     wanted = _layout_topics() - {messages.STATUS.topic}
     flight = sorted((tmp_path / "flight").iterdir())[0]
     for path in (tmp_path / "rec" / "trace.mcap", flight):
@@ -302,12 +264,12 @@ def json_rotation(transform: dict) -> tuple[float, ...]:
 
 
 def test_a_stop_signal_to_every_process_of_the_service_leaves_the_writer_to_its_close(
-        bench, tmp_path):
+        demo_bench, tmp_path):
     """systemd stops a service by sending SIGTERM to every process of it (its cgroup), the
     writer too: the loop's process stops on it, torque-off first, and closes the writer,
     which must still be there to write the run's end (it died at once: a recording cut
     short, no record of a shutdown after an e-stop)."""
-    config, _segment = bench
+    config, _segment = demo_bench
     with Runtime(config, record=str(tmp_path / "rec")) as rt:
         assert rt.recorder is not None
         writer = rt.recorder._process

@@ -18,16 +18,15 @@ import can
 import numpy as np
 import pytest
 import yaml
-from fixtures.running import DEMO_RUN, DEMO_WAIT
+from fixtures.running import BENCH_RATE, DEMO_RUN, DEMO_WAIT, run_operated, switch_and_stop
 
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.record.recording import slug as _slug
 from rocoma_can.record.trace import read_messages
 from rocoma_can.runtime import Runtime
-from rocoma_can.runtime.config import validate
 
-RATE = 100.0
+RATE = BENCH_RATE
 
 
 @pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
@@ -80,42 +79,17 @@ def test_record_refuses_an_unknown_format_or_missing_directory(tmp_path, capsys)
 
 
 @pytest.fixture
-def bench(virtual_channel, sim_segment_factory):
-    segment = sim_segment_factory(2)
-    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
-    cfg["manager"]["estop_must_be_cleared"] = False
-    return validate(cfg), segment
+def config(demo_bench):
+    return demo_bench[0]
 
 
-@pytest.fixture
-def config(bench):
-    return bench[0]
-
-
-def _operate(rt: Runtime, segment_fault, then: float) -> threading.Thread:
-    """Switch to pd, run ``then`` s, fault drive 1, run a little, stop the loop."""
-    def operate() -> None:
-        deadline = time.monotonic() + DEMO_WAIT
-        while rt.manager.switch_blocked() is not None and time.monotonic() < deadline:
-            time.sleep(0.01)
-        rt.manager.switch_controller("pd", timeout=DEMO_WAIT)
-        time.sleep(then)
-        segment_fault()
-        time.sleep(0.5)
-        rt.loop.stop("test")
-    thread = threading.Thread(target=operate)
-    thread.start()
-    return thread
-
-
-def test_an_estop_dumps_the_last_seconds_of_signals_and_frames(bench, tmp_path):
-    config, segment = bench
+def test_an_estop_dumps_the_last_seconds_of_signals_and_frames(demo_bench, tmp_path):
+    config, segment = demo_bench
     announced: list[str] = []
     with Runtime(config, flight=str(tmp_path / "flight"), flight_seconds=1.0,
                  announce=announced.append) as rt:
-        worker = _operate(rt, segment.drives[1].trip_fault, then=1.5)
-        rt.run(duration=DEMO_RUN, signals=False)
-        worker.join(DEMO_WAIT)
+        run_operated(rt, switch_and_stop(rt, 1.5, fault=segment.drives[1].trip_fault,
+                                         settle=0.5))
         assert rt.flight is not None
     dumps = sorted((tmp_path / "flight").iterdir())
     assert len(dumps) == 2, dumps  # the e-stop, and the shutdown after it
@@ -225,17 +199,16 @@ def test_export_never_overwrites_its_own_input(tmp_path, capsys, args, monkeypat
     assert source.read_bytes() == b"the only copy"
 
 
-def test_plot_draws_state_band_positions_torques_period_and_each_estop(bench, tmp_path,
+def test_plot_draws_state_band_positions_torques_period_and_each_estop(demo_bench, tmp_path,
                                                                        capsys):
     """The figure's axes, not its pixels: the five panels, a position and a target line per
     joint, the controllers on the band, a line at the e-stop with its cause listed."""
     from rocoma_can.record.plot import PANELS, figure, load
-    config, segment = bench
+    config, segment = demo_bench
     out = tmp_path / "rec"
     with Runtime(config, record=str(out)) as rt:
-        worker = _operate(rt, segment.drives[1].trip_fault, then=1.0)
-        rt.run(duration=DEMO_RUN, signals=False)
-        worker.join(DEMO_WAIT)
+        run_operated(rt, switch_and_stop(rt, 1.0, fault=segment.drives[1].trip_fault,
+                                         settle=0.5))
     trace = load(out / "trace.mcap")
     causes = [cause for _, cause in trace.estops]
     assert len(causes) == 2 and "(node 1)" in causes[0] and causes[1] == "loop stopping: test"
@@ -462,11 +435,11 @@ def writer_threads() -> list[str]:
     return threads + children.stdout.split()
 
 
-def test_run_record_on_a_disk_that_fills_up(bench, tmp_path, capfd, caplog):
+def test_run_record_on_a_disk_that_fills_up(demo_bench, tmp_path, capfd, caplog):
     """The candump file fills the disk during the run (the trace's chunks wait in memory):
     every writer stops and closes its file at once, one warning, the loop runs its time;
     run says it stopped as usual and exits 1 (the recording has a hole)."""
-    config, _segment = bench
+    config, _segment = demo_bench
     path = tmp_path / "robot.yaml"
     cfg = demo_config(config.bus.channel, drives=2, rate=RATE)
     cfg["manager"]["estop_must_be_cleared"] = False
