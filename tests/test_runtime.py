@@ -187,3 +187,25 @@ def test_a_runtime_on_two_buses_takes_the_estop_frame_from_either(
         assert result["state"] is ManagerState.EMERGENCY
         assert rt.hardware.estop_frames == 1 and not rt.node.estop_frames
         assert [p.name for p in rt.hardware.ports] == ["a", "b"]
+
+
+def test_a_ctrl_c_while_one_part_closes_still_closes_the_rest(demo_bench, tmp_path):
+    """An impatient second Ctrl-C lands in one part's close (the recorder waiting for its
+    writer): the parts after it (the hardware: its bus reader and workers, the node's bus)
+    are still closed, the writer process has ended, and the interrupt goes on up."""
+    config, _segment = demo_bench
+    rt = Runtime(config, flight=str(tmp_path / "flight"))
+    rt.run(duration=0.3, signals=False)
+    recorder = rt.recorder
+    assert recorder is not None
+    original = recorder.close
+
+    def interrupted() -> None:
+        original()
+        raise KeyboardInterrupt
+    rt._parts[rt._parts.index(recorder.close)] = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        rt.close()
+    assert all(port.canopen is None for port in rt.hardware.ports)  # the hardware closed
+    assert recorder._process.poll() is not None
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("can-reader")]

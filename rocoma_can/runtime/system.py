@@ -250,13 +250,20 @@ class Runtime:
                 restore()
 
     def close(self) -> None:
-        """Node, manager threads, hardware (joins its bus reader), then the node's bus."""
+        """Node, manager threads, hardware (joins its bus reader), then the node's bus.
+        A Ctrl-C during one part (an impatient second one) still closes the others, then
+        goes on up."""
         parts, self._parts = self._parts, []
+        interrupted: BaseException | None = None
         for close in parts:
             try:
                 close()
             except Exception:  # one part's failure must not leave the others running
                 log.exception("closing %r failed", close)
+            except BaseException as exc:  # KeyboardInterrupt, SystemExit: after the rest
+                interrupted = interrupted or exc
+        if interrupted is not None:
+            raise interrupted
 
     def __enter__(self) -> Runtime:
         return self
