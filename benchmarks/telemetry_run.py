@@ -6,7 +6,8 @@ held by a PD controller at a steady rate, once per set of telemetry.
                                                  [--sets off,flight,record,all] [--repeat 2]
 
 Sets: ``off`` (nothing), ``flight`` (the flight recorder, ``run``'s default), ``record``
-(``--record`` and the flight recorder: the demo's default), ``all`` (record, flight
+(``--record`` and the flight recorder: the demo's default), ``foxglove`` and ``zenoh``
+(each alone on top of ``record``), ``all`` (record, flight
 recorder, Zenoh bridge on loopback, Foxglove live view on loopback with one viewer, a
 process of its own, subscribed to everything), ``+fd`` in a set's name (``off+fd``,
 ``all+fd``) runs CAN FD buses (1/5 Mbit/s, the drives' PDOs up to 64 bytes: ``demo --fd``'s
@@ -77,12 +78,15 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
     from rocoma_can.runtime.config import validate
     from rocoma_can.runtime.system import Runtime
     parts = set(name.split("+"))
-    everything = "all" in parts
+    if "all" in parts:
+        parts |= {"foxglove", "zenoh"}
+    if parts & {"foxglove", "zenoh"}:  # each on top of what the demo records
+        parts.add("record")
     buses = default_buses(drives) if buses is None else buses
     fd = {"data_bitrate": 5_000_000} if "fd" in parts else {}
     raw = demo_config(f"bench-{uuid.uuid4().hex[:8]}", drives, rate, buses, "inproc", **fd)
     raw["manager"]["estop_must_be_cleared"] = False
-    if everything:
+    if "zenoh" in parts:
         raw["zenoh"] = {"prefix": "bench", "listen": [f"tcp/127.0.0.1:{_free_port()}"],
                         "multicast": False}
     config = validate(raw, source="benchmark")
@@ -101,13 +105,13 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
             count[0] = k + 1
 
     foxglove = None
-    if everything:
+    if "foxglove" in parts:
         from rocoma_can.live.foxglove import FoxgloveConfig
         foxglove = FoxgloveConfig("127.0.0.1", _free_port())
     window: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        record = str(Path(tmp) / "rec") if "record" in parts or everything else None
-        flight = str(Path(tmp) / "flight") if parts & {"flight", "record", "all"} else None
+        record = str(Path(tmp) / "rec") if "record" in parts else None
+        flight = str(Path(tmp) / "flight") if parts & {"flight", "record"} else None
         simulator.start(lockstep=True)
         try:
             with Runtime(config, on_cycle=simulator.stepped_before(on_cycle), record=record,
