@@ -177,10 +177,12 @@ def test_an_allowed_switch_switches(virtual_channel, sim_segment_factory):
         viewer = Viewer(rt.foxglove.port)
         try:
             wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
+            # subscribed first: the server takes a client's messages in order, so the log
+            # channel has this viewer by the time the switch (and its event) happens
+            viewer.subscribe("/rocoma/log")
             assert viewer.call("/rocoma/switch", {"controller": "pd"}) == {
                 "result": "SWITCHED"}
             assert rt.manager.active_controller_name == "pd"
-            viewer.subscribe("/rocoma/log")
             viewer.pump(lambda: any("switched to pd" in m["message"]
                                     for m in viewer.received.get("/rocoma/log", [])),
                         "the switch in the log")
