@@ -189,7 +189,6 @@ class McapWriter:
                                                      message_encoding="json",
                                                      schema_id=events)
         self._buses: dict[str, int] = {}
-        self.messages = 0
 
     def json_channel(self, topic: str, schema: Mapping[str, Any]) -> int:
         """A channel of JSON messages under a JSON schema named by its ``title``."""
@@ -202,7 +201,6 @@ class McapWriter:
     def add(self, channel: int, ns: int, message: Mapping[str, Any]) -> None:
         self._writer.add_message(channel_id=channel, log_time=ns, publish_time=ns,
                                  data=json.dumps(message, separators=(",", ":")).encode())
-        self.messages += 1
 
     def cycles(self, layout: RowLayout, controllers: Mapping[int, str], rows: np.ndarray,
                offset: float) -> None:
@@ -213,7 +211,6 @@ class McapWriter:
             add(channel_id=channel, log_time=ns, publish_time=ns,
                 data=json.dumps(layout.message(row, controllers),
                                 separators=(",", ":")).encode())
-            self.messages += 1
 
     def events(self, events: Iterable[Mapping[str, Any]], offset: float) -> None:
         """Manager events as ``event_message`` makes them (their monotonic ``time`` +
@@ -223,7 +220,6 @@ class McapWriter:
             message = {key: event[key] for key in ("kind", "state", "controller", "cause")}
             self._writer.add_message(channel_id=self._events, log_time=ns, publish_time=ns,
                                      data=json.dumps(message, separators=(",", ":")).encode())
-            self.messages += 1
 
     def frames(self, bus: str, frames: Iterable[tuple[float, int, int, str]]) -> None:
         """A bus's frames as rings.frame_fields gives them, on /can/<bus>."""
@@ -237,7 +233,6 @@ class McapWriter:
             add(channel_id=channel, log_time=ns, publish_time=ns,
                 data=(f'{{"id":{cob_id},"data":"{data.lower()}","dlc":{len(data) // 2}'
                       f'{tails[flags & 127]}}}').encode())
-            self.messages += 1
 
     def finish(self) -> None:
         self._writer.finish()  # type: ignore[no-untyped-call]  # mcap 1.6: unannotated
