@@ -127,7 +127,7 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
                     # (getattr: the script also measures commits from before the writer
                     # process, whose recording ran in the loop's process)
                     recorder = getattr(rt, "recorder", None)
-                    writer = recorder._process.pid if recorder is not None else None
+                    writer = recorder.pid if recorder is not None else None
                     window.update(threads=_thread_cpu(), first=count[0], cpu=resource.getrusage(
                         resource.RUSAGE_SELF), writer=writer,
                         writer_cpu=_cpu_seconds(writer) if writer else 0.0,

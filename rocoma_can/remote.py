@@ -94,6 +94,12 @@ def switch_target(manager: ControllerManager, raw: bytes, transport: Transport,
     return name, {}
 
 
+def refused(answer: dict[str, Any]) -> bool:
+    """A command's answer says no (a service's ``ok`` false, a switch's ERROR or
+    NOT_FOUND)."""
+    return answer.get("ok") is False or answer.get("result") in ("ERROR", "NOT_FOUND")
+
+
 def shown(name: str) -> str:
     """``name`` quoted for an answer, cut to SHOWN_NAME characters with its length."""
     if len(name) <= SHOWN_NAME:

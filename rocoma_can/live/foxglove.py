@@ -12,45 +12,43 @@ Services (JSON request and answer, as the Zenoh bridge's, rocoma_can/remote.py):
 ``/rocoma/failproof``, ``/rocoma/clear``, ``/rocoma/recover``. A stop is obeyed from anyone;
 switch, clear and recover only with ``allow_commands``.
 
-The loop never publishes: the view's sampler thread copies from the joint state arrays the
-loop writes in place (each array whole, under the GIL; position and velocity may come from
-neighbouring cycles) and from plain counters, at its own rate. The manager's events reach
-it through a bounded queue (full: dropped, counted). Each client has a bounded outbox in
-the SDK (``backlog`` messages; full: messages for it are dropped, never waited for, and
-each time the SDK says so it is counted as ``viewer_drops``), so a slow or vanished
-viewer costs the loop nothing.
+The server runs in the recording's writer process (server.py; record/recorder.py starts
+it), fed by the rows the loop copies into shared memory for the recording anyway: building,
+encoding and sending messages never takes the loop's interpreter lock. This module is the
+loop's process's side (``FoxgloveView``): it answers the server's service calls on the
+manager, and while a viewer subscribes to ``/rocoma/status`` it builds the status report
+every ``status_period`` s and sends it over. Each viewer has a bounded outbox in the SDK
+(``backlog`` messages; full: messages for it are dropped, never waited for, and counted
+as ``viewer_drops``), so a slow or vanished viewer costs the loop nothing.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
-import queue
 import threading
-import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, cast
+from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
-from ..events import EventKind, ManagerEvent
-from ..remote import COMMANDS, Transport, serve, switch_target
+from ..remote import Transport, refused, serve, switch_target
 from . import messages
-from .messages import INFO, WARNING, Channel
 
 if TYPE_CHECKING:
-    from foxglove.websocket import ServerListener
-
     from ..manager import ControllerManager
     from .urdf import Robot
 
 log = logging.getLogger(__name__)
 
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8765
-#: events waiting for the sampler; more are dropped and counted
-EVENT_QUEUE = 256
+#: switch calls waiting for their result at most; more are refused
+SWITCH_CALLS = 4
+#: how often the status feeder looks whether a viewer wants the report, s
+STATUS_IDLE = 0.5
 #: how long a switch service call waits for the switch's result (the switcher's own
 #: timeouts end it sooner)
 SWITCH_WAIT = 10.0
@@ -88,123 +86,62 @@ def parse_address(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
-class JointSource(Protocol):
-    """What the view reads of the joints (drivers.joints.JointState, written in place)."""
-    names: tuple[str, ...]
-
-    @property
-    def position(self) -> Any: ...
-    @property
-    def velocity(self) -> Any: ...
-    @property
-    def torque(self) -> Any: ...
-
-
-class _Subscriptions:
-    """The SDK's server listener: a viewer subscribing to the robot description wants it
-    sent (on the SDK's thread: the sampler sends it)."""
-
-    def __init__(self) -> None:
-        self.description_wanted = threading.Event()
-
-    def on_subscribe(self, client: object, channel: Any) -> None:
-        if channel.topic == messages.ROBOT_DESCRIPTION.topic:
-            self.description_wanted.set()
-
-    def on_unsubscribe(self, client: object, channel: Any) -> None:
-        """Nothing to do; the SDK calls it on every unsubscribe and disconnect, and logs
-        an error where a listener lacks it."""
-
-
-#: the SDK's logger for a viewer whose outbox is full: each record is messages dropped
-#: for that viewer (the SDK drops, it never waits)
-LOSSY_LOGGER = "foxglove.websocket.connected_client.send_lossy"
-
-
-class _Drops(logging.Handler):
-    """Counts the SDK's "outbox for client ... full" records (on its threads)."""
-
-    def __init__(self, count: Callable[[str], None]) -> None:
-        super().__init__(logging.INFO)
-        self._count = count
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if "full" in record.getMessage():
-            self._count("viewer_drops")
-
-
 class FoxgloveView:
-    """Serves one manager on a Foxglove WebSocket (see the module). ``status``: what
-    ``rocoma-can status --json`` prints; ``counts``: the loop's (cycles, overruns);
-    ``robot``: the config's URDF (None: no 3D robot)."""
+    """The live view in the loop's process (see module). ``status``: what ``rocoma-can
+    status --json`` prints; ``robot``: the config's URDF (None: no 3D robot). The
+    Recorder hands it the server's messages (``on_reply``) and says where it serves
+    (``served``)."""
 
     def __init__(self, config: FoxgloveConfig, manager: ControllerManager,
-                 joints: JointSource, status: Callable[[], dict[str, Any]],
-                 counts: Callable[[], tuple[int, int]],
+                 status: Callable[[], dict[str, Any]],
                  recover: Callable[[], Future[bool]] | None = None,
                  robot: Robot | None = None) -> None:
-        try:
-            import foxglove
-            from foxglove.websocket import Capability
-        except ImportError:
+        if importlib.util.find_spec("foxglove") is None:
             raise FoxgloveError("--foxglove needs foxglove-sdk: pip install "
-                                "'rocoma-can[foxglove]'") from None
+                                "'rocoma-can[foxglove]'")
         self.config = config
         self.manager = manager
-        self._joints = joints
         self._status = status
-        self._counts = counts
         self._recover = recover
         self.robot = robot
         self._transport = Transport("Foxglove", "--foxglove-allow-commands",
                                     config.allow_commands)
-        self.counters = {"published": 0, "events_dropped": 0, "viewer_drops": 0, "calls": 0,
-                         "refused": 0, "errors": 0}
-        self._count_lock = threading.Lock()  # service calls come on the SDK's threads
-        self._events: queue.Queue[ManagerEvent] = queue.Queue(EVENT_QUEUE)
-        self._cause = ""
-        self._running = False
-        self._stop = threading.Event()
-        self._unsubscribe: Callable[[], None] | None = None
-        self._context = foxglove.Context()
         served = messages.MANAGER_CHANNELS + (messages.ROBOT if robot is not None else ())
         self.topics = [c.topic for c in served]
-        self._channels = {c.topic: foxglove.Channel(c.topic, schema=c.schema,
-                                                    context=self._context) for c in served}
-        self._subscriptions = _Subscriptions()
-        # the SDK says of a viewer's full outbox at INFO: heard here whatever the log level
-        self._drops = _Drops(self._count)
-        lossy = logging.getLogger(LOSSY_LOGGER)
-        lossy.addHandler(self._drops)
-        if not lossy.isEnabledFor(logging.INFO):
-            lossy.setLevel(logging.INFO)
-        request = foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
-            name="rocoma.Request", encoding="jsonschema", data=b""))
-        services = [foxglove.Service(f"/rocoma/{name}", schema=foxglove.ServiceSchema(
-            f"rocoma.{name}", request=request), handler=self._handler(name))
-            for name in COMMANDS]
-        try:
-            self.server = foxglove.start_server(
-                name="rocoma-can", host=config.host, port=config.port,
-                capabilities=[Capability.Services], supported_encodings=["json"],
-                services=services, context=self._context,
-                server_listener=cast("ServerListener", self._subscriptions),
-                message_backlog_size=config.backlog)
-        except Exception as exc:  # the SDK's RuntimeError: the address taken or unknown
-            logging.getLogger(LOSSY_LOGGER).removeHandler(self._drops)
-            raise FoxgloveError(f"Foxglove: cannot serve on {config.host}:{config.port}: "
-                                f"{exc}") from None
-        self._thread = threading.Thread(target=self._run, name="foxglove-view", daemon=True)
+        #: the calls answered here, the status reports built; the server's counters (``published``,
+        #: ``viewer_drops``, ...) as it last sent them
+        self.counters = {"calls": 0, "refused": 0, "call_errors": 0, "status_reports": 0}
+        self.served_counters: dict[str, int] = {}
+        self._count_lock = threading.Lock()
+        self._port: int | None = None
+        self._send: Callable[[dict[str, Any]], bool] | None = None
+        self._running = False
+        self._status_wanted = threading.Event()
+        self._stop = threading.Event()
+        self._switching = threading.BoundedSemaphore(SWITCH_CALLS)
+        self._threads: list[threading.Thread] = []
+        self._feeder = threading.Thread(target=self._feed_status, name="foxglove-status",
+                                        daemon=True)
+
+    def settings(self) -> dict[str, Any]:
+        """What the server in the writer process is told."""
+        c = self.config
+        return {"host": c.host, "port": c.port, "rate": c.rate, "backlog": c.backlog}
+
+    def served(self, port: int, send: Callable[[dict[str, Any]], bool]) -> None:
+        """The server listens on ``port``; ``send`` hands it a message (never waits)."""
+        self._port, self._send = port, send
 
     @property
     def port(self) -> int:
         """The port served (``port: 0`` picks a free one)."""
-        return self.server.port
+        if self._port is None:
+            raise RuntimeError("the live view is not served yet")
+        return self._port
 
     def start(self) -> FoxgloveView:
-        self._unsubscribe = self.manager.subscribe(self._on_event)
         self._running = True
-        self._thread.start()
+        self._feeder.start()
         return self
 
     def loop_stopped(self) -> None:
@@ -212,116 +149,72 @@ class FoxgloveView:
         self._running = False
 
     def close(self) -> None:
-        if self._unsubscribe is not None:
-            self._unsubscribe()
-            self._unsubscribe = None
         self._running = False
         self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(5.0)
-        self.server.stop()
-        logging.getLogger(LOSSY_LOGGER).removeHandler(self._drops)
+        for thread in [self._feeder, *self._threads]:
+            if thread.is_alive():
+                thread.join(SWITCH_WAIT + 1.0)
 
     def info(self) -> dict[str, Any]:
         """What the status report and /rocoma/manager show of the view."""
         with self._count_lock:
-            return {"address": f"{self.config.host}:{self.port}",
-                    "allow_commands": self.config.allow_commands, **self.counters}
+            counts = {**self.served_counters, **self.counters}
+        return {"address": f"{self.config.host}:{self._port}",
+                "allow_commands": self.config.allow_commands, **counts}
 
     def _count(self, what: str) -> None:
         with self._count_lock:
             self.counters[what] += 1
 
-    # --- the manager's event thread -------------------------------------------------------
-    def _on_event(self, event: ManagerEvent) -> None:
+    # --- the server's messages (the Recorder's replies thread) -----------------------------
+    def on_reply(self, reply: dict[str, Any]) -> None:
+        if "call" in reply:
+            self._call(reply)
+        elif "view" in reply:
+            with self._count_lock:
+                self.served_counters = dict(reply["view"])
+        elif "status_wanted" in reply:
+            (self._status_wanted.set if reply["status_wanted"]
+             else self._status_wanted.clear)()
+
+    def _call(self, reply: dict[str, Any]) -> None:
+        """A stop, clear or recover is answered here at once; a switch, which waits for
+        its result, on a thread of its own (a few at most: the manager runs one switch
+        at a time)."""
+        number, service = reply["call"], str(reply["service"])
         try:
-            self._events.put_nowait(event)
-        except queue.Full:  # the sampler is behind: the manager's events must not wait
-            self._count("events_dropped")
+            payload = bytes.fromhex(str(reply["payload"]))
+        except ValueError:
+            payload = b""
+        if service != "switch":
+            self._answer(number, lambda: serve(self.manager, service, self._transport,
+                                               self._running, self._recover))
+        elif not self._switching.acquire(blocking=False):
+            self._answer(number, lambda: {"result": "ERROR", "error": (
+                f"{SWITCH_CALLS} switch calls already wait for their result")})
+        else:
+            thread = threading.Thread(target=self._switch_call, args=(number, payload),
+                                      name="foxglove-switch", daemon=True)
+            self._threads = [t for t in self._threads if t.is_alive()] + [thread]
+            thread.start()
 
-    # --- the sampler thread -----------------------------------------------------------------
-    def _run(self) -> None:
-        period = 1.0 / self.config.rate
-        next_status = time.monotonic()
-        while not self._stop.wait(period):
-            try:
-                self._sample()
-                if time.monotonic() >= next_status:
-                    next_status = time.monotonic() + self.config.status_period
-                    if self._watched(messages.STATUS):  # the report is the costly one
-                        self._publish(messages.STATUS, self._status())
-            except Exception as exc:  # noqa: BLE001 - counted; the view goes on
-                self._count("errors")
-                if self.counters["errors"] in (1, 10, 100, 1000):
-                    log.warning("foxglove: publishing failed (%d so far): %s",
-                                self.counters["errors"], exc)
+    def _switch_call(self, number: int, payload: bytes) -> None:
+        try:
+            self._answer(number, lambda: self._switch(payload))
+        finally:
+            self._switching.release()
 
-    def _sample(self) -> None:
-        while True:
-            try:
-                event = self._events.get_nowait()
-            except queue.Empty:
-                break
-            if event.kind is EventKind.EMERGENCY_STOP:
-                self._cause = event.cause
-            self.log_message(_event_text(event),
-                             WARNING if event.kind is EventKind.EMERGENCY_STOP else INFO)
-        j, m = self._joints, self.manager
-        ns = time.time_ns()
-        position = j.position.tolist()
-        if self._watched(messages.JOINT_STATES):
-            self._publish(messages.JOINT_STATES, messages.joint_states(
-                ns, j.names, position, j.velocity.tolist(), j.torque.tolist()), ns)
-        if self._watched(messages.MANAGER):
-            cycles, overruns = self._counts()
-            self._publish(messages.MANAGER, messages.manager(
-                m.state.name, m.active_controller_name, m.estop_latched, self._cause, cycles,
-                overruns, self.info()), ns)
-        if self.robot is not None:
-            if self._subscriptions.description_wanted.is_set():
-                self._subscriptions.description_wanted.clear()
-                self._publish(messages.ROBOT_DESCRIPTION,
-                              messages.robot_description(self.robot.text), ns)
-            if self._watched(messages.TRANSFORMS):
-                self._publish(messages.TRANSFORMS, messages.frame_transforms(
-                    ns, self.robot.transforms(dict(zip(j.names, position)))), ns)
-
-    def _watched(self, channel: Channel) -> bool:
-        """Some viewer subscribes to it: a message nobody gets is not built (the view
-        shares the loop's interpreter)."""
-        return bool(self._channels[channel.topic].has_sinks())
-
-    def _publish(self, channel: Channel, message: dict[str, Any], ns: int | None = None
-                 ) -> None:
-        self._channels[channel.topic].log(message, log_time=ns or time.time_ns())
-        self._count("published")
-
-    def log_message(self, text: str, level: int = INFO) -> None:
-        """A line in Foxglove's Log panel (any thread)."""
-        if self._watched(messages.LOG):
-            ns = time.time_ns()
-            self._publish(messages.LOG, messages.log(ns, text, level), ns)
-
-    # --- services (the SDK's threads) -----------------------------------------------------
-    def _handler(self, service: str) -> Callable[[Any], bytes]:
-        def handle(request: Any) -> bytes:
-            self._count("calls")
-            try:
-                answer = (self._switch(request.payload) if service == "switch"
-                          else serve(self.manager, service, self._transport, self._running,
-                                     self._recover))
-            except Exception as exc:  # noqa: BLE001 - a call must get an answer
-                self._count("errors")
-                answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
-            refused = answer.get("ok") is False or answer.get("result") in ("ERROR",
-                                                                             "NOT_FOUND")
-            if refused:
-                self._count("refused")
-            self.log_message(f"{service} from Foxglove: "
-                             + (f"refused: {answer.get('error', '')}" if refused else "done"),
-                             WARNING if refused else INFO)
-            return json.dumps(answer).encode()
-        return handle
+    def _answer(self, number: int, work: Callable[[], dict[str, Any]]) -> None:
+        self._count("calls")
+        try:
+            answer = work()
+        except Exception as exc:  # noqa: BLE001 - a call must get an answer
+            self._count("call_errors")
+            answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        if refused(answer):
+            self._count("refused")
+        if self._send is not None:
+            self._send({"answer": number, "reply": answer})
 
     def _switch(self, payload: bytes) -> dict[str, Any]:
         """``{"controller": NAME}`` (or the bare name) -> the switch's result."""
@@ -342,14 +235,20 @@ class FoxgloveView:
         return {"result": result.name,
                 **({"error": self.manager.last_refusal} if result.name == "ERROR" else {})}
 
-
-def _event_text(event: ManagerEvent) -> str:
-    if event.kind is EventKind.EMERGENCY_STOP:
-        return f"e-stop ({event.state.name}): {event.cause or 'no cause given'}"
-    if event.kind is EventKind.ACTIVE_CONTROLLER_CHANGED:
-        return f"switched to {event.active_controller} ({event.state.name})"
-    return f"state {event.state.name}, controller {event.active_controller}" + (
-        f": {event.cause}" if event.cause else "")
+    # --- the status feeder thread: works only while a viewer watches the report -----------
+    def _feed_status(self) -> None:
+        while not self._stop.is_set():
+            if not self._status_wanted.wait(STATUS_IDLE):
+                continue
+            send = self._send
+            if send is not None:
+                try:
+                    send({"status": self._status()})
+                    self._count("status_reports")
+                except Exception as exc:  # noqa: BLE001 - the view goes on without it
+                    self._count("call_errors")
+                    log.warning("foxglove: the status report failed: %s", exc)
+            self._stop.wait(self.config.status_period)
 
 
 def describe(view: FoxgloveView) -> str:

@@ -29,8 +29,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-#: foxglove.Log levels
-INFO, WARNING, ERROR = 2, 3, 4
+#: foxglove.Log levels (an e-stop is a WARNING: the manager did what it must)
+INFO, WARNING = 2, 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,6 +106,18 @@ def manager(state: str, controller: str, latched: bool, cause: str, cycles: int,
 def log(ns: int, text: str, level: int = INFO) -> dict[str, Any]:
     return {"timestamp": stamp(ns), "level": level, "message": text, "name": "rocoma-can",
             "file": "", "line": 0}
+
+
+def event_log(event: Mapping[str, Any]) -> tuple[str, int]:
+    """A manager event (as record/trace.event_message gives it: ``kind``, ``state``,
+    ``controller``, ``cause``) as a log line and its level."""
+    kind, state, cause = event["kind"], event["state"], event["cause"]
+    if kind == "emergency_stop":
+        return f"e-stop ({state}): {cause or 'no cause given'}", WARNING
+    if kind == "active_controller_changed":
+        return f"switched to {event['controller']} ({state})", INFO
+    return f"state {state}, controller {event['controller']}" + (
+        f": {cause}" if cause else ""), INFO
 
 
 def robot_description(urdf: str) -> dict[str, Any]:

@@ -4,7 +4,8 @@
 trace          the loop's signals every cycle in a ring allocated once; MCAP writing, reading
 rings          rings in shared memory: what the loop's process hands the writer process
 recorder       the loop's side of recording: the rings, the writer process, its replies
-writer         the writer process (``python -m rocoma_can.record.writer``)
+writer         the writer process (``python -m rocoma_can.record.writer``), which also
+               serves the Foxglove live view (live/server.py)
 recording      ``run --record``'s files, in the writer process
 flight         the flight recorder (``run``, on by default), in the writer process
 live_channels  the live view's channels in the recordings

@@ -5,7 +5,8 @@ with the live view's layout (live/foxglove_layout.json).
 ``/joint_states`` every cycle (the plots); ``/rocoma/manager`` on every manager event and at
 SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics cost ~5 µs a joint);
 ``/rocoma/log``, a line per manager event; ``/robot_description`` once, with the first
-cycle. ``/rocoma/status`` stays the live view's: the writer does not see the status report.
+cycle. ``/rocoma/status`` stays the live view's: the loop's process builds the status report only
+while a viewer watches it.
 The e-stop latch is what the writer last heard (``Facts``).
 """
 from __future__ import annotations
@@ -77,16 +78,11 @@ class LiveChannels:
     def events(self, events: Iterable[Mapping[str, Any]], offset: float) -> None:
         for event in events:
             ns = int((float(event["time"]) + offset) * 1e9)
-            kind, state, cause = event["kind"], event["state"], event["cause"]
-            if kind == EventKind.EMERGENCY_STOP.value:
-                self._cause = cause
-                text, level = f"e-stop ({state}): {cause}", messages.ERROR
-            elif kind == EventKind.STATE_CHANGED.value:
-                text, level = f"state {state}", messages.WARNING
-            else:
-                text, level = f"controller {event['controller']}", messages.INFO
-            self._writer.add(self._id[messages.LOG.topic], ns, messages.log(ns, text, level))
-            self._manager(ns, state, event["controller"])
+            if event["kind"] == EventKind.EMERGENCY_STOP.value:
+                self._cause = event["cause"]
+            self._writer.add(self._id[messages.LOG.topic], ns,
+                             messages.log(ns, *messages.event_log(event)))
+            self._manager(ns, event["state"], event["controller"])
 
     def _manager(self, ns: int, state: str, controller: str) -> None:
         self._writer.add(self._id[messages.MANAGER.topic], ns, messages.manager(

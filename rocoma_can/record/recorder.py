@@ -1,5 +1,6 @@
-"""Recording for ``rocoma-can run`` and the demo: the loop's side of it, and the writer
-process it starts (the flight recorder, on by default, and ``--record``).
+"""Recording and the live view for ``rocoma-can run`` and the demo: the loop's side of
+them, and the writer process it starts (the flight recorder, on by default, ``--record``
+and ``--foxglove``'s server).
 
 The loop must not pay for recording: JSON, MCAP, candump text and the disk cost ~20 % of a
 core at 1 kHz with 12 drives, and in the loop's interpreter they took that from the loop.
@@ -8,7 +9,9 @@ signal row (trace.SignalTrace, ~4 µs) and each frame its buses carried (~0.3 µ
 the hardware's own reader hands the received ones over, BusPort the sent ones; no second
 socket). Everything else runs in a process of its own (writer.py), niced, on the other core:
 it reads the rings every 50 ms, writes ``--record``'s files and, on an e-stop, a flight
-record from the rings' last ``seconds``.
+record from the rings' last ``seconds``, and serves the live view (live/server.py) from the
+same rows: only the answers to its service calls and, while a viewer watches it, the
+status report are made in this process (live/foxglove.py's FoxgloveView).
 
 Manager events reach the writer through a pipe, sent by a thread of this process from a
 bounded queue (full: dropped, counted in ``events_dropped``). The writer answers on another
@@ -34,6 +37,7 @@ from typing import IO, Any, Protocol
 
 from ..drivers.joints import JointCommand, JointState
 from ..events import ManagerEvent
+from ..live.foxglove import FoxgloveError
 from ..live.urdf import Robot
 from .can_log import RecordingError
 from .flight import MAX_FRAMES_PER_SECOND
@@ -54,6 +58,13 @@ CLOSE_WAIT = 30.0
 EVENT_QUEUE = 4096
 #: the writer's niceness: the loop's process comes first when the cores are busy
 NICE = 19
+
+
+class LiveView(Protocol):
+    """The live view's side in this process (live/foxglove.py's FoxgloveView)."""
+    def settings(self) -> dict[str, Any]: ...
+    def served(self, port: int, send: Callable[[dict[str, Any]], bool]) -> None: ...
+    def on_reply(self, reply: dict[str, Any]) -> None: ...
 
 
 class RecordedManager(Protocol):
@@ -95,15 +106,21 @@ class BusToRecord:
 
 
 class Recorder:
-    """The rings, the writer process and the threads that talk to it (see module)."""
+    """The rings, the writer process and the threads that talk to it (see module).
+    ``view``: the live view the writer process serves (None: none); without ``record``
+    and ``flight`` no frame is kept (``frame_taps`` is empty)."""
 
     def __init__(self, state: JointState, command: JointCommand, manager: RecordedManager,
                  rate: float, buses: Sequence[BusToRecord], *, record: str | None = None,
                  flight: str | None = None, seconds: float = 10.0,
                  controllers: Sequence[str] = (), robot: Robot | None = None,
-                 announce: Callable[[str], None] | None = None) -> None:
+                 announce: Callable[[str], None] | None = None,
+                 view: LiveView | None = None) -> None:
+        if record is None and flight is None and view is None:
+            raise ValueError("a recorder records or serves something: record, flight, "
+                             "view")
         if record is None and flight is None:
-            raise ValueError("a recorder records something: record, flight or both")
+            buses = ()  # the live view reads rows only
         keep = max(seconds if flight is not None else 0.0, SLACK)
         frames = int(MAX_FRAMES_PER_SECOND * keep)
         specs = layout([("rows", max(2, int(rate * keep)), RowLayout(state.names).width,
@@ -123,6 +140,7 @@ class Recorder:
         self.recording = RecordingStatus(Path(record)) if record is not None else None
         self.events_dropped = 0
         self._announce = announce
+        self._view = view
         self._sent_controllers = dict(self.trace.controllers)
         self._manager, self._latched = manager, False
         self._queue: queue.Queue[str | None] = queue.Queue(maxsize=EVENT_QUEUE)
@@ -134,7 +152,8 @@ class Recorder:
                      for k, bus in enumerate(buses)},
                     list(state.names), dict(self.trace.controllers), record, flight, seconds,
                     rate, robot.text if robot is not None else None,
-                    robot.source if robot is not None else "")
+                    robot.source if robot is not None else "",
+                    view.settings() if view is not None else None)
         try:
             self._process = subprocess.Popen(
                 [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,
@@ -158,11 +177,20 @@ class Recorder:
                 raise RecordingError(f"the recording's writer process did not start within "
                                      f"{START_WAIT:g} s") from None
             if "failed" in first:
+                if first.get("of") == "foxglove":
+                    raise FoxgloveError(str(first["failed"]))
                 raise RecordingError(str(first["failed"]))
             self._sender = self._start_thread(self._send, "recorder-events")
+            if view is not None:
+                view.served(int(first["foxglove_port"]), self.send)
         except BaseException:
             self._stop_process()
             raise
+
+    @property
+    def pid(self) -> int:
+        """The writer process's (ps, top: its CPU is what recording and the view cost)."""
+        return int(self._process.pid)
 
     def _start_thread(self, target: Callable[[], None], name: str) -> threading.Thread:
         thread = threading.Thread(target=target, name=name, daemon=True)
@@ -172,10 +200,17 @@ class Recorder:
 
     def on_event(self, event: ManagerEvent) -> None:
         """A manager subscriber (its event thread): queued for the writer, never waits."""
+        self.send({"event": event_message(event)})
+
+    def send(self, message: dict[str, Any]) -> bool:
+        """``message`` queued for the writer (any thread, never waits); False: the queue
+        is full and it is dropped (counted in ``events_dropped``)."""
         try:
-            self._queue.put_nowait(json.dumps({"event": event_message(event)}))
+            self._queue.put_nowait(json.dumps(message))
         except queue.Full:
             self.events_dropped += 1
+            return False
+        return True
 
     def _send(self) -> None:
         """The events and new controller numbers to the writer, then ``close``."""
@@ -223,6 +258,8 @@ class Recorder:
                     self._error(str(reply["error"]), reply.get("of") == "flight")
                 elif "closed" in reply:
                     closed = True
+                elif self._view is not None:
+                    self._view.on_reply(reply)
             if not closed:
                 try:
                     code: int | None = self._process.wait(1.0)
@@ -241,6 +278,8 @@ class Recorder:
             self._error(reason, False)
         if self.flight is not None:
             self._error(f"{reason}: no flight records from now on", True)
+        if self._view is not None:
+            log.error("the Foxglove live view is gone: %s", reason)
 
     def _flight_record(self, path: Path, cause: str) -> None:
         if self.flight is not None:

@@ -1,15 +1,21 @@
 """The recording's writer process (``python -m rocoma_can.record.writer``; recorder.py
-starts it): every slow part of recording, on an interpreter of its own.
+starts it): every slow part of recording and of the live view, on an interpreter of its
+own.
 
 The loop's process hands over through shared memory (rings.py: signal rows, each bus's
 received and sent frames) and a pipe (this process's stdin, one JSON object a line): first
 the set-up (``Spec``), then manager events ``{"event": ...}``, controller numbers
-``{"controllers": {name: number}}``, the e-stop latch ``{"latched": bool}`` and
-``{"close": true}``. Every ``POLL`` s it writes what
-the rings got (``--record``: recording.py) and the flight records due (flight.py). It
-answers on stdout, one JSON object a line: ``{"ready": true}`` or ``{"failed": reason}`` at
+``{"controllers": {name: number}}``, the e-stop latch ``{"latched": bool}``, for the live
+view the answer to a service call ``{"answer": id, "reply": {...}}`` and the status report
+``{"status": {...}}``, and ``{"close": true}``. Every ``POLL`` s it writes what the rings got
+(``--record``: recording.py) and the flight records due (flight.py); the live view
+(live/server.py) publishes on its own threads. It answers on stdout, one JSON object a
+line: ``{"ready": true, "foxglove_port": port}`` or ``{"failed": reason, "of": ...}`` at
 start, ``{"flight_record": path, "cause": ...}``, ``{"error": reason, "of": "recording" |
-"flight"}``, and last ``{"closed": true}``.
+"flight"}``, the live view's ``{"call": id, "service": name, "payload": hex}``,
+``{"view": counters}`` and ``{"status_wanted": bool}``, and last ``{"closed": true}``.
+Answers, the status report and the live view's events are taken as they come in (the
+commands' thread), not after a long write.
 
 It ignores SIGTERM and SIGINT (the loop's process closes it). Its stdin ending without
 ``close`` means the loop's process died (killed, crashed): what
@@ -18,7 +24,9 @@ is in the rings is written, the flight recorder writes a record of the last seco
 """
 from __future__ import annotations
 
+import itertools
 import json
+import logging
 import math
 import os
 import queue
@@ -27,10 +35,12 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
+from concurrent.futures import Future
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from ..live.server import FoxgloveServer, ServeError
 from ..live.urdf import parse_urdf
 from .can_log import RecordingError
 from .flight import FlightRecords
@@ -62,6 +72,7 @@ class Spec:
     rate: float = 100.0
     urdf: str | None = None   # the robot's URDF text (urdf_source names it)
     urdf_source: str = ""
+    foxglove: dict[str, Any] | None = None  # the live view's server (host, port, ...)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self))
@@ -76,11 +87,15 @@ class Spec:
 
 
 class Writer:
-    """The writer's state: the rings, the recording, the flight records."""
+    """The writer's state: the rings, the recording, the flight records, the live view."""
 
     def __init__(self, spec: Spec, reply: IO[str]) -> None:
         self._reply, self._gone = reply, False
-        _check_mcap()
+        self._reply_lock = threading.Lock()  # the live view's threads answer too
+        self._calls: dict[int, Future[dict[str, Any]]] = {}
+        self._call_ids = itertools.count(1)
+        if spec.record is not None or spec.flight is not None:
+            _check_mcap()
         self.shared = SharedFile(spec.size, spec.fd)
         layout = RowLayout(spec.joints)
         rows = RingReader(self.shared, spec.rows)
@@ -100,6 +115,12 @@ class Writer:
         self.flight = (FlightRecords(Path(spec.flight), spec.seconds, layout, rows,
                                      {label: r for label, (_, r) in rings.items()}, live)
                        if spec.flight is not None else None)
+        self.view: FoxgloveServer | None = None
+        if spec.foxglove is not None:
+            self.view = FoxgloveServer(spec.foxglove, RingReader(self.shared, spec.rows),
+                                       layout, 1.0 / spec.rate, robot, self.call,
+                                       lambda message: self.say(**message))
+            self.view.controllers.update(self.controllers)
 
     def say(self, **message: Any) -> None:
         """An answer to the loop's process; none once it is gone (killed: what is left to
@@ -107,8 +128,9 @@ class Writer:
         if self._gone:
             return
         try:
-            self._reply.write(json.dumps(message) + "\n")
-            self._reply.flush()
+            with self._reply_lock:
+                self._reply.write(json.dumps(message) + "\n")
+                self._reply.flush()
         except OSError:  # a broken pipe: nobody reads any more
             self._gone = True
             try:  # what is still buffered goes nowhere, not into an error at exit
@@ -117,6 +139,48 @@ class Writer:
                 os.close(devnull)
             except (OSError, ValueError):
                 pass
+
+    def call(self, service: str, payload: bytes) -> Future[dict[str, Any]]:
+        """A live view's service call, handed to the loop's process: its answer comes
+        back as ``answer`` (``take``)."""
+        future: Future[dict[str, Any]] = Future()
+        if self._gone:
+            future.set_result({"ok": False, "error": "the manager's process is gone"})
+            return future
+        number = next(self._call_ids)
+        self._calls[number] = future
+        future.add_done_callback(lambda _: self._calls.pop(number, None))
+        self.say(call=number, service=service, payload=payload.hex())
+        return future
+
+    def take(self, command: Mapping[str, Any]) -> bool:
+        """The commands' thread: what the live view takes at once (an answer, the status
+        report, an event, the latch, new controllers); True when it is the view's only."""
+        view = self.view
+        if "answer" in command:
+            future = self._calls.get(int(command["answer"]))
+            if future is not None and not future.done():
+                future.set_result(dict(command.get("reply") or {}))
+            return True
+        if "status" in command:
+            if view is not None:
+                view.on_status(command["status"])
+            return True
+        if view is not None:
+            if "event" in command:
+                view.on_event(command["event"])
+            if "latched" in command:
+                view.latched = bool(command["latched"])
+            if "controllers" in command:
+                view.controllers.update({number: name for name, number
+                                         in command["controllers"].items()})
+        return False
+
+    def unanswered(self) -> None:
+        """The loop's process is gone: no call waits for it any more."""
+        for future in list(self._calls.values()):
+            if not future.done():
+                future.set_result({"ok": False, "error": "the manager's process ended"})
 
     def command(self, command: Mapping[str, Any]) -> None:
         if "event" in command:
@@ -151,6 +215,8 @@ class Writer:
                     self.say(flight_record=str(done[0]), cause=done[1])
 
     def close(self) -> None:
+        if self.view is not None:
+            self.view.close()
         if self.recording is not None:
             self.recording.stop()
             for reason in self.recording.errors[1:]:  # the first was said as it happened
@@ -169,13 +235,18 @@ def _check_mcap() -> None:
                              "'rocoma-can[record]'") from exc
 
 
-def _read_commands(stream: IO[str], commands: queue.Queue[dict[str, Any] | None]) -> None:
-    """stdin, a command a line, into ``commands``; None at its end."""
+def _read_commands(stream: IO[str], writer: Writer,
+                   commands: queue.Queue[dict[str, Any] | None]) -> None:
+    """stdin, a command a line: what the live view takes at once to it, the rest into
+    ``commands``; None at its end."""
     for line in stream:
         try:
-            commands.put(json.loads(line))
+            command = json.loads(line)
         except ValueError:
             continue  # not ours: the pipe is only written by the recorder
+        if not writer.take(command):
+            commands.put(command)
+    writer.unanswered()
     commands.put(None)
 
 
@@ -185,18 +256,28 @@ def main() -> int:
     # which must live to write the run's end (and ends with its input in any case).
     for stop in (signal.SIGTERM, signal.SIGINT):
         signal.signal(stop, signal.SIG_IGN)
+    # what goes wrong here (the live view's SDK: a viewer gone mid-message) is said on the
+    # run's stderr, saying whose it is; the SDK's INFO records (counted) stay unsaid
+    said = logging.StreamHandler(sys.stderr)
+    said.setLevel(logging.WARNING)
+    said.setFormatter(logging.Formatter("rocoma-can writer process: %(name)s: %(message)s"))
+    logging.getLogger().addHandler(said)
     reply = sys.stdout
     try:
         spec = Spec.from_json(sys.stdin.readline())
         writer = Writer(spec, reply)
+    except ServeError as exc:
+        reply.write(json.dumps({"failed": str(exc), "of": "foxglove"}) + "\n")
+        reply.flush()
+        return 1
     except (RecordingError, OSError, ValueError, TypeError, KeyError, ImportError) as exc:
         reply.write(json.dumps({"failed": str(exc) if isinstance(exc, RecordingError)
                                 else f"{type(exc).__name__}: {exc}"}) + "\n")
         reply.flush()
         return 1
-    writer.say(ready=True)
+    writer.say(ready=True, foxglove_port=writer.view.port if writer.view else None)
     commands: queue.Queue[dict[str, Any] | None] = queue.Queue()
-    threading.Thread(target=_read_commands, args=(sys.stdin, commands), daemon=True,
+    threading.Thread(target=_read_commands, args=(sys.stdin, writer, commands), daemon=True,
                      name="commands").start()
     next_write = time.monotonic() + POLL
     while True:

@@ -145,20 +145,17 @@ class Runtime:
                                     estop_in_cycle=hardware.set_estop_cob_id,
                                     bitrate=bus.bitrate)
             self._parts.insert(0, self.node.close)
+            if foxglove is not None:  # served by the writer process (_recorders)
+                self.foxglove = FoxgloveView(foxglove, self.manager, self.status,
+                                             recover=self.hardware.recover,
+                                             robot=config.robot)
+                self._parts.insert(0, self.foxglove.close)
             trace = self._recorders(record, flight, flight_seconds, announce)
             self.loop = ControlLoop(self.hardware, self.manager, config.rate,
                                     priority=config.priority, cpus=config.cpus,
                                     on_cycle=on_cycle, trace=trace, spin=config.spin)
             if config.fleet is not None:  # its queries read the loop's statistics
                 self._bridge(config.fleet)
-            if foxglove is not None:
-                stats = self.loop.stats
-                self.foxglove = FoxgloveView(foxglove, self.manager, self.hardware.state,
-                                             self.status,
-                                             lambda: (stats.cycles, stats.overruns),
-                                             recover=self.hardware.recover,
-                                             robot=config.robot)
-                self._parts.insert(0, self.foxglove.close)
         except BaseException:
             self.close()
             raise
@@ -178,22 +175,24 @@ class Runtime:
 
     def _recorders(self, record: str | None, flight: str | None, seconds: float,
                    announce: Callable[[str], None] | None) -> SignalTrace | None:
-        """The flight recorder and --record: rings the loop and the hardware's buses fill,
-        and the writer process that writes them (record/recorder.py)."""
-        if record is None and flight is None:
+        """The flight recorder, --record and the live view: rings the loop and the
+        hardware's buses fill, and the writer process that writes and serves them
+        (record/recorder.py)."""
+        if record is None and flight is None and self.foxglove is None:
             return None
         config = self.config
         recorder = self.recorder = Recorder(
             self.hardware.state, self.hardware.command, self.manager, config.rate,
             [BusToRecord(b.label, b.channel, b.fd) for b in config.buses], record=record,
             flight=flight, seconds=seconds, controllers=list(self.manager.adapters()),
-            robot=config.robot, announce=announce)
+            robot=config.robot, announce=announce, view=self.foxglove)
         self.flight, self.recording = recorder.flight, recorder.recording
         # closed after the manager's shutdown, which delivers its last events (the loop's
         # stop) to it: what it writes ends with how it ended
         self._parts.insert(self._parts.index(self.manager.shutdown) + 1, recorder.close)
         self.manager.subscribe(recorder.on_event)
-        self.hardware.record_frames(recorder.frame_taps)
+        if recorder.frame_taps:
+            self.hardware.record_frames(recorder.frame_taps)
         return recorder.trace
 
     def _home(self, drive: str) -> Future[str]:
