@@ -7,10 +7,20 @@ import os
 import time
 
 import can
+import pytest
 
 from rocoma_can import ManagerState
 from rocoma_can.drivers.joints import JointCommand, JointState
-from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, frame_fields, layout
+from rocoma_can.record.can_log import RecordingError
+from rocoma_can.record.rings import (
+    MEMORY_SHARE,
+    FrameRing,
+    RingReader,
+    SharedFile,
+    frame_fields,
+    layout,
+    memory_available,
+)
 from rocoma_can.record.trace import RowLayout, SignalTrace
 from rocoma_can.record.writer import Spec, Writer
 
@@ -94,3 +104,33 @@ def test_a_frame_longer_than_its_rings_records_keeps_to_its_record():
     ring.put(can.Message(arbitration_id=0x182, data=b"\x22" * 8, is_extended_id=False), 2.0)
     _, records = RingReader(shared, spec).read(0)
     assert [data for _, _, _, data in frame_fields(records)] == ["11" * 8, "22" * 8]
+
+
+def _resident_kb(name: str) -> int:
+    """Resident kB of this process's mappings of the memfd ``name`` (/proc/self/smaps)."""
+    resident, inside = 0, False
+    for line in open("/proc/self/smaps"):
+        if line[0] in "0123456789abcdef" and "-" in line.split()[0]:
+            inside = f"/memfd:{name}" in line
+        elif inside and line.startswith("Rss:"):
+            resident += int(line.split()[1])
+    return resident
+
+
+def test_the_rings_memory_is_all_taken_at_start():
+    """Every page is present from the start: the loop never takes a page fault on a ring's
+    first lap, nor dies of a page the machine can no longer give."""
+    before = _resident_kb("rocoma-can-record")
+    shared = SharedFile(8 << 20)
+    try:
+        assert _resident_kb("rocoma-can-record") - before >= 8 << 10
+    finally:
+        shared.close()
+
+
+def test_rings_larger_than_the_memory_allows_are_refused_at_once():
+    available = memory_available()
+    assert available is not None  # Linux says it
+    with pytest.raises(RecordingError, match=r"the recording's rings need \d+ MB of "
+                                             r"memory, and \d+ MB are available"):
+        SharedFile(int(available * MEMORY_SHARE) + (1 << 20))

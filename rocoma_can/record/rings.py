@@ -29,6 +29,7 @@ import can
 import numpy as np
 
 from ..drivers.frame_io import MAX_FRAME_AGE
+from .can_log import RecordingError
 
 #: bytes before each ring's records: its count, on a cache line of its own
 HEADER = 64
@@ -77,15 +78,28 @@ def layout(rings: list[tuple[str, int, int, bool]]) -> list[RingSpec]:
 class SharedFile:
     """The anonymous shared file every ring lies in (``fd`` is handed to the writer process,
     which maps it too; the memory is freed when the last process closes it, so a killed
-    process leaves nothing behind)."""
+    process leaves nothing behind).
+
+    Its memory is taken whole at start-up and mapped with every page present: a page first
+    touched mid-run would cost the cycle a page fault, and one the machine cannot give any
+    more would kill the loop's process (SIGBUS) mid-motion. A size over MEMORY_SHARE of
+    the memory available is refused at once, saying how much it needs (RecordingError)."""
 
     def __init__(self, size: int, fd: int | None = None) -> None:
         self.size = max(size, mmap.PAGESIZE)
+        if fd is None:
+            _check_memory(self.size)
         self.fd = os.memfd_create("rocoma-can-record", 0) if fd is None else fd
         try:
             if fd is None:
-                os.ftruncate(self.fd, self.size)  # sparse: pages are allocated as touched
-            self.map = mmap.mmap(self.fd, self.size)
+                os.ftruncate(self.fd, self.size)
+                try:
+                    os.posix_fallocate(self.fd, 0, self.size)
+                except OSError as exc:
+                    raise RecordingError(f"cannot take {self.size / 1e6:.0f} MB of memory "
+                                         f"for the recording's rings: {exc.strerror}") from exc
+            self.map = mmap.mmap(self.fd, self.size,
+                                 flags=mmap.MAP_SHARED | mmap.MAP_POPULATE)
         except BaseException:
             os.close(self.fd)
             raise
@@ -110,6 +124,32 @@ class SharedFile:
         except BufferError:  # an array or view still looks at it: freed with the last
             pass
         os.close(self.fd)
+
+
+#: the share of the memory available the rings may take at most
+MEMORY_SHARE = 0.5
+
+
+def _check_memory(size: int) -> None:
+    available = memory_available()
+    if available is not None and size > MEMORY_SHARE * available:
+        raise RecordingError(
+            f"the recording's rings need {size / 1e6:.0f} MB of memory, and "
+            f"{available / 1e6:.0f} MB are available (they may take half): the flight "
+            "recorder keeps --flight-seconds of every signal and frame, so a shorter window "
+            "(or fewer buses, a lower rate) needs less")
+
+
+def memory_available() -> int | None:
+    """Bytes the kernel says it can give without swapping (/proc/meminfo); None if unsaid."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 class FrameRing(can.Listener):
