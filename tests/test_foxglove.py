@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import socket
 import struct
 import time
@@ -327,6 +328,31 @@ def test_nothing_is_built_for_channels_nobody_watches(virtual_channel, sim_segme
             assert rt.foxglove.info()["status_reports"] >= 1
         finally:
             viewer.close()
+
+
+def test_a_view_whose_process_dies_is_said_and_the_loop_runs_on(virtual_channel,
+                                                                  sim_segment_factory,
+                                                                  caplog):
+    """The writer process serves the view: killed, the view is gone (said once, no
+    connection taken any more) and the loop keeps its cycles; the close waits for
+    nothing."""
+    sim_segment_factory(2)
+    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
+        port = rt.foxglove.port
+        viewer = Viewer(port)
+        viewer.subscribe("/joint_states")
+        viewer.pump(lambda: viewer.received.get("/joint_states"), "joint states")
+        assert rt.recorder is not None
+        os.kill(rt.recorder.pid, signal.SIGKILL)
+        wait_for(lambda: any("the Foxglove live view is gone" in r.getMessage()
+                             for r in caplog.records), "the view's end said", DEMO_WAIT)
+        cycles = rt.loop.stats.cycles
+        wait_for(lambda: rt.loop.stats.cycles >= cycles + 50, "50 more cycles", DEMO_WAIT)
+        with pytest.raises(OSError):
+            socket.create_connection(("127.0.0.1", port), timeout=DEMO_WAIT).close()
+        viewer.close()
+    said = [r for r in caplog.records if "the Foxglove live view is gone" in r.getMessage()]
+    assert len(said) == 1
 
 
 def test_the_address_and_the_flag():

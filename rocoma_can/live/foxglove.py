@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
-from ..remote import Transport, refused, serve, switch_target
+from ..remote import NOT_RUNNING, Transport, refused, serve, switch_target
 from . import messages
 
 if TYPE_CHECKING:
@@ -189,6 +189,8 @@ class FoxgloveView:
         if service != "switch":
             self._answer(number, lambda: serve(self.manager, service, self._transport,
                                                self._running, self._recover))
+        elif self._stop.is_set():  # closed: no thread any more
+            self._answer(number, lambda: {"result": "ERROR", "error": NOT_RUNNING})
         elif not self._switching.acquire(blocking=False):
             self._answer(number, lambda: {"result": "ERROR", "error": (
                 f"{SWITCH_CALLS} switch calls already wait for their result")})

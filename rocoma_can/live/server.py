@@ -266,10 +266,13 @@ class FoxgloveServer:
     def _handler(self, service: str) -> Callable[[Any], bytes]:
         def handle(request: Any) -> bytes:
             try:
-                answer = self._call(service, bytes(request.payload)).result(ANSWER_WAIT)
-            except FutureTimeout:
-                answer = {"ok": False, "error": f"the manager's process did not answer "
-                                                f"within {ANSWER_WAIT:g} s"}
+                future = self._call(service, bytes(request.payload))
+                try:
+                    answer = future.result(ANSWER_WAIT)
+                except FutureTimeout:
+                    future.cancel()  # a late answer finds nobody waiting
+                    answer = {"ok": False, "error": f"the manager's process did not answer "
+                                                    f"within {ANSWER_WAIT:g} s"}
             except Exception as exc:  # noqa: BLE001 - a call must get an answer
                 answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
             no = refused(answer)
