@@ -9,7 +9,8 @@ Sets: ``off`` (nothing), ``flight`` (the flight recorder, ``run``'s default), ``
 (``--record`` and the flight recorder: the demo's default), ``foxglove`` and ``zenoh``
 (each alone on top of ``record``), ``all`` (record, flight
 recorder, Zenoh bridge on loopback, Foxglove live view on loopback with one viewer, a
-process of its own, subscribed to everything), ``+fd`` in a set's name (``off+fd``,
+process of its own, subscribed to everything; ``--viewer-nice 19`` runs it niced, as a
+viewer on another machine would cost the robot's nothing), ``+fd`` in a set's name (``off+fd``,
 ``all+fd``) runs CAN FD buses (1/5 Mbit/s, the drives' PDOs up to 64 bytes: ``demo --fd``'s
 set-up). Each set
 runs in a fresh process, the sets alternate ``--repeat`` times, and the machine's other
@@ -68,7 +69,8 @@ def _thread_cpu() -> dict[str, float]:
     return found
 
 
-def one(name: str, drives: int, buses: int | None, rate: float, duration: float) -> dict[str, Any]:
+def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
+        viewer_nice: int = 0) -> dict[str, Any]:
     """Run one set in this process; its row as a dict."""
     import logging
     logging.basicConfig(level=logging.ERROR)
@@ -116,7 +118,8 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float)
         try:
             with Runtime(config, on_cycle=simulator.stepped_before(on_cycle), record=record,
                          flight=flight, foxglove=foxglove) as rt:
-                viewer = _viewer(foxglove.port) if foxglove is not None else None
+                viewer = (_viewer(foxglove.port, viewer_nice) if foxglove is not None
+                          else None)
 
                 def operate() -> None:
                     deadline = time.monotonic() + 60
@@ -182,11 +185,12 @@ with connect(f"ws://127.0.0.1:{sys.argv[1]}", subprotocols=["foxglove.sdk.v1"]) 
 """
 
 
-def _viewer(port: int) -> subprocess.Popen[bytes]:
-    """A Foxglove viewer in a process of its own (its reading costs this one nothing) that
-    subscribes to every channel and reads on."""
+def _viewer(port: int, nice: int) -> subprocess.Popen[bytes]:
+    """A Foxglove viewer in a process of its own (its reading takes none of the loop's
+    interpreter, only the machine's CPU: at ``nice``) that subscribes to every channel and
+    reads on."""
     return subprocess.Popen([sys.executable, "-c", _VIEWER, str(port)],
-                            stderr=subprocess.DEVNULL)
+                            stderr=subprocess.DEVNULL, preexec_fn=lambda: os.nice(nice))
 
 
 def main() -> None:
@@ -197,6 +201,9 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=20.0, help="s of steady run")
     parser.add_argument("--sets", default=",".join(SETS))
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--viewer-nice", type=int, default=0, metavar="N",
+                        help="the viewer process's niceness (19: as if it ran elsewhere, "
+                             "taking only what the robot's machine does not need)")
     parser.add_argument("--quick", action="store_true",
                         help="sets off,all; 6 drives at 200 Hz for 3 s")
     parser.add_argument("--one", help=argparse.SUPPRESS)
@@ -204,13 +211,15 @@ def main() -> None:
     if args.quick:
         args.duration, args.rate, args.drives, args.sets = 3.0, 200.0, 6, "off,all"
     if args.one:
-        print(json.dumps(one(args.one, args.drives, args.buses, args.rate, args.duration)))
+        print(json.dumps(one(args.one, args.drives, args.buses, args.rate, args.duration,
+                             args.viewer_nice)))
         return
     rows, results, notes = [], [], []
     for _ in range(args.repeat):
         for name in args.sets.split(","):
             cmd = [sys.executable, __file__, "--one", name, "--drives", str(args.drives),
-                   "--rate", str(args.rate), "--duration", str(args.duration)]
+                   "--rate", str(args.rate), "--duration", str(args.duration),
+                   "--viewer-nice", str(args.viewer_nice)]
             if args.buses is not None:
                 cmd += ["--buses", str(args.buses)]
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=args.duration
