@@ -334,18 +334,22 @@ def test_a_view_whose_process_dies_is_said_and_the_loop_runs_on(virtual_channel,
                                                                   sim_segment_factory,
                                                                   caplog):
     """The writer process serves the view: killed, the view is gone (said once, no
-    connection taken any more) and the loop keeps its cycles; the close waits for
-    nothing."""
+    connection taken any more, no status report built for it) and the loop keeps its
+    cycles; the close waits for nothing."""
     sim_segment_factory(2)
     with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
         port = rt.foxglove.port
         viewer = Viewer(port)
-        viewer.subscribe("/joint_states")
-        viewer.pump(lambda: viewer.received.get("/joint_states"), "joint states")
+        viewer.subscribe("/joint_states", "/rocoma/status")
+        viewer.pump(lambda: viewer.received.get("/rocoma/status"), "a status report")
         assert rt.recorder is not None
         os.kill(rt.recorder.pid, signal.SIGKILL)
         wait_for(lambda: any("the Foxglove live view is gone" in r.getMessage()
                              for r in caplog.records), "the view's end said", DEMO_WAIT)
+        # the report a viewer was watching is no longer built in the loop's process
+        built = rt.foxglove.info()["status_reports"]
+        time.sleep(3 * rt.foxglove.config.status_period)
+        assert rt.foxglove.info()["status_reports"] == built
         cycles = rt.loop.stats.cycles
         wait_for(lambda: rt.loop.stats.cycles >= cycles + 50, "50 more cycles", DEMO_WAIT)
         with pytest.raises(OSError):

@@ -3,8 +3,11 @@ never gets a record the producer is overwriting, and never a record under anothe
 from __future__ import annotations
 
 import io
+import json
 import os
+import queue
 import time
+from typing import Any
 
 import can
 import pytest
@@ -22,7 +25,7 @@ from rocoma_can.record.rings import (
     memory_available,
 )
 from rocoma_can.record.trace import RowLayout, SignalTrace
-from rocoma_can.record.writer import Spec, Writer
+from rocoma_can.record.writer import Spec, Writer, _read_commands
 
 CAPACITY = 4
 
@@ -134,3 +137,35 @@ def test_rings_larger_than_the_memory_allows_are_refused_at_once():
     with pytest.raises(RecordingError, match=r"the recording's rings need \d+ MB of "
                                              r"memory, and \d+ MB are available"):
         SharedFile(int(available * MEMORY_SHARE) + (1 << 20))
+
+
+def test_a_late_answer_to_a_call_that_timed_out_is_dropped_and_the_writer_hears_on():
+    """The live view's call that nobody answered in time is cancelled; its answer, coming
+    late, finds nobody. A command the writer cannot take is skipped, and the ones after it
+    are heard (its commands' end would leave it deaf to the close and to every later
+    e-stop). Once the loop's process answers no more, a call is answered at once."""
+    state = JointState.zeros(2)
+    [rows] = layout([("rows", 16, RowLayout(state.names).width, False)])
+    shared = SharedFile(rows.size)
+    said = io.StringIO()
+    writer = Writer(Spec(os.dup(shared.fd), shared.size, rows, {}, list(state.names), {},
+                         rate=100.0), said)
+    try:
+        late = writer.call("estop", b"{}")
+        assert json.loads(said.getvalue().splitlines()[-1]) == {
+            "call": 1, "service": "estop", "payload": b"{}".hex()}
+        late.cancel()  # the SDK's handler gave up waiting
+        assert writer.take({"answer": 1, "reply": {"ok": True}}) is True
+        answered = writer.call("estop", b"")
+        commands: queue.Queue[dict[str, Any] | None] = queue.Queue()
+        _read_commands(io.StringIO('{"answer": "not a number"}\n'
+                                   '{"answer": 2, "reply": {"ok": true, "state": "FAILPROOF"}}\n'
+                                   '{"latched": true}\n'), writer, commands)
+        assert answered.result(0) == {"ok": True, "state": "FAILPROOF"}
+        assert [commands.get_nowait(), commands.get_nowait()] == [{"latched": True}, None]
+        # the commands' end above said the loop's process answers no more
+        assert writer.call("estop", b"").result(0)["ok"] is False  # at once, nobody asked
+        assert len(said.getvalue().splitlines()) == 2
+    finally:
+        writer.close()
+        shared.close()

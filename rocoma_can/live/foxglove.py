@@ -115,6 +115,8 @@ class FoxgloveView:
         self._count_lock = threading.Lock()
         self._port: int | None = None
         self._send: Callable[[dict[str, Any]], bool] | None = None
+        self._early: list[dict[str, Any]] = []  # answers before served(): sent by it
+        self._gone = False
         self._running = False
         self._status_wanted = threading.Event()
         self._stop = threading.Event()
@@ -129,8 +131,19 @@ class FoxgloveView:
         return {"host": c.host, "port": c.port, "rate": c.rate, "backlog": c.backlog}
 
     def served(self, port: int, send: Callable[[dict[str, Any]], bool]) -> None:
-        """The server listens on ``port``; ``send`` hands it a message (never waits)."""
-        self._port, self._send = port, send
+        """The server listens on ``port``; ``send`` hands it a message (never waits).
+        A call it took before this was said is answered now."""
+        with self._count_lock:
+            self._port, self._send = port, send
+            early, self._early = self._early, []
+        for message in early:
+            send(message)
+
+    def gone(self) -> None:
+        """The server's process is gone: nothing is built or sent for it any more."""
+        with self._count_lock:
+            self._gone, self._send = True, None
+        self._status_wanted.clear()
 
     @property
     def port(self) -> int:
@@ -215,8 +228,13 @@ class FoxgloveView:
             answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
         if refused(answer):
             self._count("refused")
-        if self._send is not None:
-            self._send({"answer": number, "reply": answer})
+        message = {"answer": number, "reply": answer}
+        with self._count_lock:
+            send = self._send
+            if send is None and not self._gone:
+                self._early.append(message)
+        if send is not None:
+            send(message)
 
     def _switch(self, payload: bytes) -> dict[str, Any]:
         """``{"controller": NAME}`` (or the bare name) -> the switch's result."""
@@ -243,7 +261,7 @@ class FoxgloveView:
             if not self._status_wanted.wait(STATUS_IDLE):
                 continue
             send = self._send
-            if send is not None:
+            if send is not None and not self._gone:
                 try:
                     send({"status": self._status()})
                     self._count("status_reports")

@@ -7,8 +7,9 @@ record/rings.py: joint states, manager state, active controller, cycle timing), 
 events, controller names and e-stop latch the loop's process sends through the pipe, and
 the status report, which that process builds only while a viewer subscribes to
 ``/rocoma/status`` (``status_wanted``). Every ``1/rate`` s a sampler thread publishes
-``/joint_states``, ``/rocoma/manager`` and (with a URDF) ``/tf`` from the newest row, and
-a log line per event, each only to channels a viewer subscribes to.
+``/joint_states``, ``/rocoma/manager`` and (with a URDF) ``/tf`` from the newest row (a row
+once; while no new row comes, ``/rocoma/manager`` alone, with the latch and cause as they
+are), and a log line per event, each only to channels a viewer subscribes to.
 
 A service call is handed to the loop's process (``call``: it runs it under remote.py's
 rules there and answers) and waited for, on the SDK's thread, up to ANSWER_WAIT. Each
@@ -109,6 +110,7 @@ class FoxgloveServer:
         self.latched = False
         self._cause = ""
         self._seen = -1          # the next row's number the sampler has not read
+        self._last: list[float] | None = None  # the newest row read
         self._cycles = self._overruns = 0
         self.counters = {"published": 0, "events_dropped": 0, "viewer_drops": 0,
                          "errors": 0}
@@ -215,16 +217,22 @@ class FoxgloveServer:
         if self._seen < 0:  # the first sample: the newest row
             self._seen = max(self._rows.count() - 1, 0)
         first, rows = self._rows.read(self._seen)
-        if not len(rows):
+        fresh = bool(len(rows))
+        if fresh:
+            self._cycles = self._seen = first + len(rows)
+            self._overruns += int((rows[:, 3] > self._period).sum())
+            self._last = rows[-1].tolist()
+        values = self._last
+        if values is None:  # no cycle yet: nothing known to show
             return
-        self._cycles = self._seen = first + len(rows)
-        self._overruns += int((rows[:, 3] > self._period).sum())
-        values = rows[-1].tolist()
-        # a row's stamp is the loop's monotonic clock (one clock for every process)
-        ns = int((values[0] + time.time() - time.monotonic()) * 1e9)
+        # a row's stamp is the loop's monotonic clock (one clock for every process); with
+        # no new row (the loop not cycling: bring-up, after its stop) the manager's
+        # message goes on, stamped now, for the latch and the cause it carries
+        ns = (int((values[0] + time.time() - time.monotonic()) * 1e9) if fresh
+              else time.time_ns())
         layout = self._layout
         position, velocity, torque = (values[s] for s in layout.slices[:3])
-        if self._watched(messages.JOINT_STATES):
+        if fresh and self._watched(messages.JOINT_STATES):
             self._publish(messages.JOINT_STATES, messages.joint_states(
                 ns, layout.names, position, velocity, torque), ns)
         if self._watched(messages.MANAGER):
@@ -239,7 +247,7 @@ class FoxgloveServer:
                 self._subscriptions.description_wanted.clear()
                 self._publish(messages.ROBOT_DESCRIPTION,
                               messages.robot_description(self.robot.text), ns)
-            if self._watched(messages.TRANSFORMS):
+            if fresh and self._watched(messages.TRANSFORMS):
                 self._publish(messages.TRANSFORMS, messages.frame_transforms(
                     ns, self.robot.transforms(dict(zip(layout.names, position)))), ns)
 

@@ -13,8 +13,9 @@ record from the rings' last ``seconds``, and serves the live view (live/server.p
 same rows: only the answers to its service calls and, while a viewer watches it, the
 status report are made in this process (live/foxglove.py's FoxgloveView).
 
-Manager events reach the writer through a pipe, sent by a thread of this process from a
-bounded queue (full: dropped, counted in ``events_dropped``). The writer answers on another
+Manager events (and the live view's answers and status reports) reach the writer through a
+pipe, sent by a thread of this process from a bounded queue (full: dropped, counted in
+``events_dropped``). The writer answers on another
 pipe: each flight record's path (said through ``announce``, or logged) and each failure (a
 full disk: the first one logged as a warning, all in ``errors``). If the writer dies, the
 loop runs on, the reason is logged and in the recording's and the flight recorder's
@@ -65,6 +66,7 @@ class LiveView(Protocol):
     def settings(self) -> dict[str, Any]: ...
     def served(self, port: int, send: Callable[[dict[str, Any]], bool]) -> None: ...
     def on_reply(self, reply: dict[str, Any]) -> None: ...
+    def gone(self) -> None: ...
 
 
 class RecordedManager(Protocol):
@@ -279,6 +281,7 @@ class Recorder:
         if self.flight is not None:
             self._error(f"{reason}: no flight records from now on", True)
         if self._view is not None:
+            self._view.gone()
             log.error("the Foxglove live view is gone: %s", reason)
 
     def _flight_record(self, path: Path, cause: str) -> None:

@@ -23,6 +23,7 @@ import os
 import struct
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import can
@@ -135,21 +136,62 @@ def _check_memory(size: int) -> None:
     if available is not None and size > MEMORY_SHARE * available:
         raise RecordingError(
             f"the recording's rings need {size / 1e6:.0f} MB of memory, and "
-            f"{available / 1e6:.0f} MB are available (they may take half): the flight "
-            "recorder keeps --flight-seconds of every signal and frame, so a shorter window "
-            "(or fewer buses, a lower rate) needs less")
+            f"{available / 1e6:.0f} MB are available (they may take half): they keep 10 s, "
+            "or the flight recorder's --flight-seconds, of every signal and frame, so a "
+            "shorter window (or fewer buses, a lower rate) needs less")
 
 
 def memory_available() -> int | None:
-    """Bytes the kernel says it can give without swapping (/proc/meminfo); None if unsaid."""
+    """Bytes this process can still take without swapping or being killed: the kernel's
+    MemAvailable, or less where its cgroup (v2: a container, a systemd unit's MemoryMax)
+    allows less. None if neither says."""
+    found = []
     try:
         with open("/proc/meminfo") as meminfo:
             for line in meminfo:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    found.append(int(line.split()[1]) * 1024)
     except (OSError, ValueError, IndexError):
         pass
-    return None
+    room = _cgroup_room()
+    if room is not None:
+        found.append(room)
+    return min(found) if found else None
+
+
+def _cgroup_room() -> int | None:
+    """What this process's memory cgroup and those above it still allow (the limit less
+    the usage, the least of them; cgroup v2's memory.max, v1's memory.limit_in_bytes);
+    None where no limit is set."""
+    try:
+        with open("/proc/self/cgroup") as cgroups:
+            lines = [line.strip().split(":", 2) for line in cgroups]
+    except OSError:
+        return None
+    rooms = []
+    for fields in lines:
+        if len(fields) != 3:
+            continue
+        _, controllers, path = fields
+        if controllers == "":
+            root, files = Path("/sys/fs/cgroup"), ("memory.max", "memory.current")
+        elif "memory" in controllers.split(","):
+            root = Path("/sys/fs/cgroup/memory")
+            files = ("memory.limit_in_bytes", "memory.usage_in_bytes")
+        else:
+            continue
+        folder = root / path.lstrip("/")
+        while folder.is_relative_to(root):
+            try:
+                limit = (folder / files[0]).read_text().strip()
+                if limit != "max" and int(limit) < 1 << 60:  # v1 says "none" as ~2**63
+                    rooms.append(int(limit) - int((folder / files[1]).read_text()))
+            except (OSError, ValueError):
+                pass
+            if folder == root:
+                break
+            folder = folder.parent
+    return min(rooms) if rooms else None
 
 
 class FrameRing(can.Listener):

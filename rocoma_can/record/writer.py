@@ -35,7 +35,7 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -48,6 +48,8 @@ from .live_channels import Facts, LiveChannels
 from .recording import Recording
 from .rings import RingReader, RingSpec, SharedFile
 from .trace import McapWriter, RowLayout
+
+log = logging.getLogger(__name__)
 
 #: how often the rings are written out, s
 POLL = 0.05
@@ -93,6 +95,8 @@ class Writer:
         self._reply, self._gone = reply, False
         self._reply_lock = threading.Lock()  # the live view's threads answer too
         self._calls: dict[int, Future[dict[str, Any]]] = {}
+        self._calls_lock = threading.Lock()
+        self._calls_closed = False  # the loop's process answers no more
         self._call_ids = itertools.count(1)
         if spec.record is not None or spec.flight is not None:
             _check_mcap()
@@ -106,6 +110,12 @@ class Writer:
         self.facts = Facts()
         robot = (parse_urdf(spec.urdf.encode(), spec.urdf_source)
                  if spec.urdf is not None else None)
+        self.view: FoxgloveServer | None = None
+        if spec.foxglove is not None:  # first: an address taken leaves no files behind
+            self.view = FoxgloveServer(spec.foxglove, RingReader(self.shared, spec.rows),
+                                       layout, 1.0 / spec.rate, robot, self.call,
+                                       lambda message: self.say(**message))
+            self.view.controllers.update(self.controllers)
 
         def live(writer: McapWriter) -> LiveChannels:
             return LiveChannels(writer, layout, 1.0 / spec.rate, robot, self.facts)
@@ -115,12 +125,6 @@ class Writer:
         self.flight = (FlightRecords(Path(spec.flight), spec.seconds, layout, rows,
                                      {label: r for label, (_, r) in rings.items()}, live)
                        if spec.flight is not None else None)
-        self.view: FoxgloveServer | None = None
-        if spec.foxglove is not None:
-            self.view = FoxgloveServer(spec.foxglove, RingReader(self.shared, spec.rows),
-                                       layout, 1.0 / spec.rate, robot, self.call,
-                                       lambda message: self.say(**message))
-            self.view.controllers.update(self.controllers)
 
     def say(self, **message: Any) -> None:
         """An answer to the loop's process; none once it is gone (killed: what is left to
@@ -144,11 +148,12 @@ class Writer:
         """A live view's service call, handed to the loop's process: its answer comes
         back as ``answer`` (``take``)."""
         future: Future[dict[str, Any]] = Future()
-        if self._gone:
-            future.set_result({"ok": False, "error": "the manager's process is gone"})
-            return future
-        number = next(self._call_ids)
-        self._calls[number] = future
+        with self._calls_lock:
+            if self._gone or self._calls_closed:
+                future.set_result(GONE)
+                return future
+            number = next(self._call_ids)
+            self._calls[number] = future
         future.add_done_callback(lambda _: self._calls.pop(number, None))
         self.say(call=number, service=service, payload=payload.hex())
         return future
@@ -159,8 +164,8 @@ class Writer:
         view = self.view
         if "answer" in command:
             future = self._calls.get(int(command["answer"]))
-            if future is not None and not future.done():
-                future.set_result(dict(command.get("reply") or {}))
+            if future is not None:
+                _settle(future, dict(command.get("reply") or {}))
             return True
         if "status" in command:
             if view is not None:
@@ -177,10 +182,13 @@ class Writer:
         return False
 
     def unanswered(self) -> None:
-        """The loop's process is gone: no call waits for it any more."""
-        for future in list(self._calls.values()):
-            if not future.done():
-                future.set_result({"ok": False, "error": "the manager's process ended"})
+        """The loop's process answers no more (its input ended): no call waits for it,
+        and a new one is answered at once."""
+        with self._calls_lock:
+            self._calls_closed = True
+            waiting = list(self._calls.values())
+        for future in waiting:
+            _settle(future, GONE)
 
     def command(self, command: Mapping[str, Any]) -> None:
         if "event" in command:
@@ -224,6 +232,18 @@ class Writer:
         self.shared.close()
 
 
+#: the answer to a live view's call once the loop's process answers no more
+GONE = {"ok": False, "error": "the manager's process is gone or closing"}
+
+
+def _settle(future: Future[dict[str, Any]], answer: dict[str, Any]) -> None:
+    """``answer`` for a call, unless it timed out meanwhile (cancelled)."""
+    try:
+        future.set_result(answer)
+    except InvalidStateError:  # answered or cancelled: nobody waits for this one
+        pass
+
+
 def _check_mcap() -> None:
     """Every file written here is MCAP (an optional extra): refused at start, not at the
     first e-stop."""
@@ -239,15 +259,17 @@ def _read_commands(stream: IO[str], writer: Writer,
                    commands: queue.Queue[dict[str, Any] | None]) -> None:
     """stdin, a command a line: what the live view takes at once to it, the rest into
     ``commands``; None at its end."""
-    for line in stream:
-        try:
-            command = json.loads(line)
-        except ValueError:
-            continue  # not ours: the pipe is only written by the recorder
-        if not writer.take(command):
-            commands.put(command)
-    writer.unanswered()
-    commands.put(None)
+    try:
+        for line in stream:
+            try:
+                command = json.loads(line)
+                if not writer.take(command):
+                    commands.put(command)
+            except Exception as exc:  # noqa: BLE001 - one bad line must not deafen the writer
+                log.warning("a command it could not take (%s): %.200s", exc, line)
+    finally:
+        writer.unanswered()
+        commands.put(None)
 
 
 def main() -> int:
@@ -295,6 +317,9 @@ def main() -> int:
         if time.monotonic() >= next_write:  # a stream of events does not hold writing up
             writer.write()
             next_write = time.monotonic() + POLL
+    if writer.view is not None:  # no call is taken while the last writes run
+        writer.view.close()
+        writer.view = None
     writer.write(closing=True)
     writer.close()
     writer.say(closed=True)
