@@ -359,6 +359,38 @@ def test_a_view_whose_process_dies_is_said_and_the_loop_runs_on(virtual_channel,
     assert len(said) == 1
 
 
+def test_the_manager_channel_goes_on_when_the_loop_stops(virtual_channel,
+                                                         sim_segment_factory):
+    """No new cycle, no new joint states; /rocoma/manager goes on at the view's rate, so a
+    latch cleared after the loop's stop is seen."""
+    sim_segment_factory(2)
+    cfg = _config(virtual_channel)
+    cfg["manager"]["estop_must_be_cleared"] = True  # the manager starts latched
+    with runtime_running(cfg, DEMO_RUN, foxglove=_view(rate=50.0)) as rt:
+        viewer = Viewer(rt.foxglove.port)
+        try:
+            viewer.subscribe("/rocoma/manager", "/joint_states")
+            viewer.pump(lambda: any(m["latched"] for m in
+                                    viewer.received.get("/rocoma/manager", [])),
+                        "the latch on /rocoma/manager")
+            rt.loop.stop("test")
+
+            def stopped() -> bool:
+                before = rt.loop.stats.cycles
+                time.sleep(0.1)  # ten periods at the test's 100 Hz
+                return rt.loop.stats.cycles == before
+            wait_for(stopped, "the loop's stop", DEMO_WAIT)
+            cycles = rt.loop.stats.cycles
+            assert rt.manager.clear_emergency_stop()
+            joints = len(viewer.received["/joint_states"])
+            viewer.pump(lambda: not viewer.received["/rocoma/manager"][-1]["latched"],
+                        "the cleared latch after the loop's stop")
+            assert viewer.received["/rocoma/manager"][-1]["cycles"] <= cycles
+            assert len(viewer.received["/joint_states"]) <= joints + 1
+        finally:
+            viewer.close()
+
+
 def test_the_address_and_the_flag():
     assert parse_address("") == (DEFAULT_HOST, DEFAULT_PORT)
     assert parse_address("0.0.0.0:9000") == ("0.0.0.0", 9000)
