@@ -112,7 +112,7 @@ class FoxgloveView:
         #: ``viewer_drops``, ...) as it last sent them
         self.counters = {"calls": 0, "refused": 0, "call_errors": 0, "status_reports": 0}
         self.served_counters: dict[str, int] = {}
-        self._count_lock = threading.Lock()
+        self._lock = threading.Lock()  # counters, port, sender: replies, switch, status threads
         self._port: int | None = None
         self._send: Callable[[dict[str, Any]], bool] | None = None
         self._early: list[dict[str, Any]] = []  # answers before served(): sent by it
@@ -133,7 +133,7 @@ class FoxgloveView:
     def served(self, port: int, send: Callable[[dict[str, Any]], bool]) -> None:
         """The server listens on ``port``; ``send`` hands it a message (never waits).
         A call it took before this was said is answered now."""
-        with self._count_lock:
+        with self._lock:
             self._port, self._send = port, send
             early, self._early = self._early, []
         for message in early:
@@ -141,7 +141,7 @@ class FoxgloveView:
 
     def gone(self) -> None:
         """The server's process is gone: nothing is built or sent for it any more."""
-        with self._count_lock:
+        with self._lock:
             self._gone, self._send = True, None
         self._status_wanted.clear()
 
@@ -170,13 +170,13 @@ class FoxgloveView:
 
     def info(self) -> dict[str, Any]:
         """What the status report and /rocoma/manager show of the view."""
-        with self._count_lock:
+        with self._lock:
             counts = {**self.served_counters, **self.counters}
         return {"address": f"{self.config.host}:{self._port}",
                 "allow_commands": self.config.allow_commands, **counts}
 
     def _count(self, what: str) -> None:
-        with self._count_lock:
+        with self._lock:
             self.counters[what] += 1
 
     # --- the server's messages (the Recorder's replies thread) -----------------------------
@@ -184,7 +184,7 @@ class FoxgloveView:
         if "call" in reply:
             self._call(reply)
         elif "view" in reply:
-            with self._count_lock:
+            with self._lock:
                 self.served_counters = dict(reply["view"])
         elif "status_wanted" in reply:
             (self._status_wanted.set if reply["status_wanted"]
@@ -229,7 +229,7 @@ class FoxgloveView:
         if refused(answer):
             self._count("refused")
         message = {"answer": number, "reply": answer}
-        with self._count_lock:
+        with self._lock:
             send = self._send
             if send is None and not self._gone:
                 self._early.append(message)

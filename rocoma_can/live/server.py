@@ -29,7 +29,7 @@ from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any, cast
 
-from ..record.trace import STATE_NAMES
+from ..record.trace import state_name
 from ..remote import COMMANDS, refused
 from . import messages
 from .foxglove import SWITCH_WAIT
@@ -238,10 +238,9 @@ class FoxgloveServer:
         if self._watched(messages.MANAGER):
             with self._count_lock:
                 counts = dict(self.counters)
-            state = STATE_NAMES.get(int(values[4]), str(int(values[4])))
             self._publish(messages.MANAGER, messages.manager(
-                state, self.controllers.get(int(values[5]), ""), self.latched, self._cause,
-                self._cycles, self._overruns, counts), ns)
+                state_name(values[4]), self.controllers.get(int(values[5]), ""),
+                self.latched, self._cause, self._cycles, self._overruns, counts), ns)
         if self.robot is not None:
             if self._subscriptions.description_wanted.is_set():
                 self._subscriptions.description_wanted.clear()

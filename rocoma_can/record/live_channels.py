@@ -21,7 +21,7 @@ import numpy as np
 from ..events import EventKind
 from ..live import messages
 from ..live.urdf import Robot
-from .trace import STATE_NAMES, McapWriter, RowLayout
+from .trace import McapWriter, RowLayout, state_name
 
 #: /rocoma/manager and /tf samples per second of a recording
 SAMPLE_RATE = 50.0
@@ -67,7 +67,7 @@ class LiveChannels:
                 ns, self._names, values[position], values[velocity], values[torque]))
             if values[0] >= self._next_sample:
                 self._next_sample = values[0] + 1.0 / SAMPLE_RATE
-                state = STATE_NAMES.get(int(values[4]), str(int(values[4])))
+                state = state_name(values[4])
                 self._cycles = first + k + 1
                 self._manager(ns, state, controllers.get(int(values[5]), ""))
                 if self._robot is not None:

@@ -261,7 +261,10 @@ class Recorder:
                 elif "closed" in reply:
                     closed = True
                 elif self._view is not None:
-                    self._view.on_reply(reply)
+                    try:
+                        self._view.on_reply(reply)
+                    except Exception:  # one bad reply must not end this thread's reading
+                        log.exception("the live view could not take %.200s", line)
             if not closed:
                 try:
                     code: int | None = self._process.wait(1.0)

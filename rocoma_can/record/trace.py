@@ -35,6 +35,11 @@ SCALARS = ("t", "period", "work", "late", "state", "controller")
 STATE_NAMES = {int(s): s.name for s in ManagerState}
 
 
+def state_name(code: float) -> str:
+    """A row's manager state (its number) by name; an unknown number as itself."""
+    return STATE_NAMES.get(int(code), str(int(code)))
+
+
 class ActiveController(Protocol):
     @property
     def active_controller_name(self) -> str: ...
@@ -56,9 +61,8 @@ class RowLayout:
     def message(self, row: np.ndarray, controllers: Mapping[int, str]) -> dict[str, Any]:
         """One row as the /rocoma/cycle message (``controllers``: number -> name)."""
         values = row.tolist()  # plain floats at once: ~5x faster than element by element
-        state = int(values[4])
         msg: dict[str, Any] = {"t": values[0], "period": values[1], "work": values[2],
-                               "late": values[3], "state": STATE_NAMES.get(state, str(state)),
+                               "late": values[3], "state": state_name(values[4]),
                                "controller": controllers.get(int(values[5]), "")}
         for field, where in zip(JOINT_FIELDS, self.slices):
             msg[field] = ([int(v) for v in values[where]] if field in _INTEGER_FIELDS
