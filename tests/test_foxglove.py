@@ -206,9 +206,17 @@ def test_an_allowed_switch_switches(virtual_channel, sim_segment_factory):
             # subscribed first: the server takes a client's messages in order, so the log
             # channel has this viewer by the time the switch (and its event) happens
             viewer.subscribe("/rocoma/log")
+            # a request no controller name needs is refused by the server, never parsed
+            # in the loop's process (no call reaches it)
+            answer = viewer.call("/rocoma/switch", {"controller": "x" * 2000})
+            assert answer["result"] == "NOT_FOUND" and "bytes" in answer["error"]
+            assert rt.foxglove.info()["calls"] == 0
             assert viewer.call("/rocoma/switch", {"controller": "pd"}) == {
                 "result": "SWITCHED"}
             assert rt.manager.active_controller_name == "pd"
+            # a stop is obeyed whatever it carries, however much
+            assert viewer.call("/rocoma/estop", {"junk": "y" * 100_000})["ok"] is True
+            wait_for(lambda: rt.manager.state.name != "OK", "the e-stop", DEMO_WAIT)
             viewer.pump(lambda: any("switched to pd" in m["message"]
                                     for m in viewer.received.get("/rocoma/log", [])),
                         "the switch in the log")

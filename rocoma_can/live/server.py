@@ -45,6 +45,8 @@ if TYPE_CHECKING:
 #: how long a service call waits for the loop's process to answer (a switch there waits up
 #: to SWITCH_WAIT for its result)
 ANSWER_WAIT = SWITCH_WAIT + 5.0
+#: the longest switch request handed to the loop's process, bytes ({"controller": NAME})
+MAX_SWITCH_REQUEST = 1024
 #: events waiting for the sampler; more are dropped and counted
 EVENT_QUEUE = 256
 #: how often the counters go to the loop's process at most, s (its status report shows them)
@@ -272,19 +274,31 @@ class FoxgloveServer:
     # --- services (the SDK's threads) -----------------------------------------------------
     def _handler(self, service: str) -> Callable[[Any], bytes]:
         def handle(request: Any) -> bytes:
-            try:
-                future = self._call(service, bytes(request.payload))
-                try:
-                    answer = future.result(ANSWER_WAIT)
-                except FutureTimeout:
-                    future.cancel()  # a late answer finds nobody waiting
-                    answer = {"ok": False, "error": f"the manager's process did not answer "
-                                                    f"within {ANSWER_WAIT:g} s"}
-            except Exception as exc:  # noqa: BLE001 - a call must get an answer
-                answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+            answer = self._ask(service, request.payload)
             no = refused(answer)
             self.log_message(f"{service} from Foxglove: "
                              + (f"refused: {answer.get('error', '')}" if no else "done"),
                              WARNING if no else INFO)
             return json.dumps(answer).encode()
         return handle
+
+    def _ask(self, service: str, payload: bytes) -> dict[str, Any]:
+        """The loop's process's answer to a call. Only a switch's payload is read there
+        (a stop must not depend on it); one longer than MAX_SWITCH_REQUEST is refused here,
+        never parsed in the loop's interpreter."""
+        if service != "switch":
+            payload = b""
+        elif len(payload) > MAX_SWITCH_REQUEST:
+            return {"result": "NOT_FOUND", "error": (
+                f"no controller: the request is {len(payload)} bytes, a switch request "
+                f"takes at most {MAX_SWITCH_REQUEST}")}
+        try:
+            future = self._call(service, bytes(payload))
+            try:
+                return future.result(ANSWER_WAIT)
+            except FutureTimeout:
+                future.cancel()  # a late answer finds nobody waiting
+                return {"ok": False, "error": f"the manager's process did not answer "
+                                              f"within {ANSWER_WAIT:g} s"}
+        except Exception as exc:  # noqa: BLE001 - a call must get an answer
+            return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
