@@ -11,6 +11,7 @@ tuples       controller tuples (several controllers as one)
 workers      worker threads owned by a controller
 events       notifications and logging, delivered off the cycle
 plugins      controllers by name from configuration (entry points)
+overrun      when a control cycle overran: one rule for statistics, recordings, view
 remote       the rules for commands from afar (Zenoh, Foxglove): stops always, the rest when
              allowed
 errors       RocomaError, the one root of the errors raised on purpose

@@ -162,6 +162,31 @@ def test_record_writes_every_cycle_and_every_frame_and_exports_csv(config, tmp_p
     assert len(rows) == cycles and "position[joint2]" in rows[0]  # the joints by name
 
 
+def test_a_cycle_that_works_past_its_period_is_an_overrun_everywhere(config, tmp_path):
+    """Five cycles that start on time and work 1.5 periods: each ends after the next
+    cycle's deadline, so each is an overrun, for the loop's statistics and in the
+    recording's /rocoma/manager alike (one rule, rocoma_can/overrun.py). The loop starts
+    the next cycle at once (no burst), so that one is not late by its new deadline: a count
+    of late starts alone saw none of them."""
+    out = tmp_path / "rec"
+    slow: list[float] = []
+    with Runtime(config, record=str(out)) as rt:
+        period = rt.loop.period
+
+        def on_cycle(now: float) -> None:
+            if len(slow) < 5 and rt.loop.stats.cycles % 10 == 9:
+                slow.append(now)
+                time.sleep(1.5 * period)
+        rt.loop.on_cycle = on_cycle
+        rt.run(duration=60 * period, signals=False)
+        overruns = rt.loop.stats.overruns
+    assert len(slow) == 5
+    assert overruns >= 5
+    shown = [m["overruns"] for topic, _, m in read_messages(str(out / "trace.mcap"))
+             if topic == "/rocoma/manager"]
+    assert 5 <= shown[-1] <= overruns  # (sampled: a late overrun may follow the last one)
+
+
 def test_an_unwritable_flight_directory_is_said_and_the_loop_runs_on(config, tmp_path):
     blocked = tmp_path / "file"
     blocked.write_text("not a directory")

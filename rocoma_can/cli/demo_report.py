@@ -100,7 +100,7 @@ def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
     out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
     out(f"  {'cycles':28s} {timing.cycles}")
-    out(f"  {'missed cycles (overruns)':28s} {timing.overruns}")
+    out(f"  {'overruns (past their period)':28s} {timing.overruns}")
     out(f"  {'period mean / max':28s} {timing.period_mean * 1e3:.2f} / "
         f"{timing.period_max * 1e3:.2f} ms")
     out(f"  {'jitter p99 / max':28s} {timing.jitter_p99 * 1e3:.2f} / "

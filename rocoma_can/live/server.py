@@ -29,6 +29,7 @@ from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any, cast
 
+from ..overrun import overran
 from ..record.trace import state_name
 from ..remote import COMMANDS, refused
 from . import messages
@@ -222,7 +223,7 @@ class FoxgloveServer:
         fresh = bool(len(rows))
         if fresh:
             self._cycles = self._seen = first + len(rows)
-            self._overruns += int((rows[:, 3] > self._period).sum())
+            self._overruns += int(overran(rows[:, 2], rows[:, 3], self._period).sum())
             self._last = rows[-1].tolist()
         values = self._last
         if values is None:  # no cycle yet: nothing known to show

@@ -21,6 +21,7 @@ import numpy as np
 from ..events import EventKind
 from ..live import messages
 from ..live.urdf import Robot
+from ..overrun import overran
 from .trace import McapWriter, RowLayout, state_name
 
 #: /rocoma/manager and /tf samples per second of a recording
@@ -57,7 +58,7 @@ class LiveChannels:
         for k, row in enumerate(rows):
             values = row.tolist()
             ns = int((values[0] + offset) * 1e9)
-            if values[3] > self._period:
+            if overran(values[2], values[3], self._period):
                 self._overruns += 1
             if not self._described and self._robot is not None:
                 add(ids[messages.ROBOT_DESCRIPTION.topic], ns,

@@ -36,6 +36,7 @@ import numpy as np
 
 from ..drivers.stop_requests import StopTarget
 from ..events import STOP_CAUSE, ManagerState
+from ..overrun import overran
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +70,7 @@ def spin_fits(spin: float, rate: float) -> bool:
 @dataclass(frozen=True)
 class TimingSummary:
     cycles: int
-    overruns: int             # cycles that started later than one period after their deadline
+    overruns: int             # cycles that ended after the next cycle's deadline (overran)
     period_mean: float        # s, over the ring
     period_max: float
     jitter_max: float         # s, |start - deadline|, over the ring
@@ -101,7 +102,7 @@ class CycleStats:
         late = start - deadline
         self._late[k] = late
         self._work[k] = work
-        if late > self.period:
+        if overran(work, late, self.period):
             self.overruns += 1
         self.cycles += 1
 
