@@ -23,6 +23,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 from _report import report, stats
@@ -55,7 +60,10 @@ def main() -> None:
                         help="in-process bus of the default mode")
     parser.add_argument("--spin-us", type=_spin_us, default=None,
                         help="the loop's busy-wait before each deadline, µs (default: the "
-                             "loop's, 500 or half a period; 0 sleeps to the deadline)")
+                             "loop's, 100 or half a period; 0 sleeps to the deadline)")
+    parser.add_argument("--nice-hogs", type=int, default=0, metavar="N",
+                        help="N CPU hogs at nice 19 beside the run (background work the "
+                             "loop should not notice)")
     parser.add_argument("--sim-thread", action="store_true",
                         help="in-process simulator on a thread of its own instead of stepped "
                              "on the loop's thread after each write (lockstep)")
@@ -78,9 +86,12 @@ def main() -> None:
         mode += f" x{args.buses}"
     if args.fd:
         mode += ", CAN FD"
+    if args.nice_hogs:
+        mode += f", {args.nice_hogs} nice-19 hogs"
 
     estops: list[str] = []
-    with Rig(args.drives, args.rate, separate_process=args.separate_process,
+    with _nice_hogs(args.nice_hogs), Rig(args.drives, args.rate,
+                                         separate_process=args.separate_process,
              buses=args.buses, interface=args.interface, sim_thread=args.sim_thread,
              fd=args.fd) as rig:
         rig.add(JointPD("pd", mode="CSP"), emergency=Hold("hold", mode="CSP"))
@@ -143,6 +154,19 @@ def main() -> None:
                     "tx_errors": tx_errors, "hardware_cycles": cycles_total,
                     "timed_out": script.timed_out, "phase": script.phase,
                     "loop_summary": summary.__dict__})
+
+
+@contextmanager
+def _nice_hogs(n: int) -> Iterator[None]:
+    """``n`` processes spinning at nice 19 for the run, then killed."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"],
+                             preexec_fn=lambda: os.nice(19)) for _ in range(n)]
+    try:
+        yield
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
 
 
 def _busiest_bus(rig: Rig, rate: float, data_bitrate: int | None) -> BusLoad:

@@ -77,8 +77,8 @@ def test_the_loop_spins_what_the_config_says(virtual_channel, sim_segment_factor
     sim_segment_factory(2)
     cfg = demo_config(virtual_channel, drives=2, rate=100.0)
     assert validate(cfg).spin is None
-    assert ControlLoop(None, None, 100.0).spin == 0.0005
-    assert ControlLoop(None, None, 4000.0).spin == 0.000125
+    assert ControlLoop(None, None, 100.0).spin == 0.0001
+    assert ControlLoop(None, None, 10000.0).spin == 0.00005
     with pytest.raises(ValueError, match="spin"):
         ControlLoop(None, None, 100.0, spin=0.01)
     cfg["realtime"] = {"spin_us": 200}

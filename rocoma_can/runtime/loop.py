@@ -4,11 +4,12 @@ Each cycle is ``run_cycle``, the one place that writes its order: ``hardware.rea
 whose findings (faults, e-stop frames, a finished recovery) are applied to the manager ->
 ``manager.update()`` -> ``hardware.write(state, switch_count)`` -> ``manager.post_cycle()``
 (the threads the update has work for are woken only once the cycle's frames are out).
-Timing: sleep until shortly before the deadline, then spin to it (``time.sleep`` alone
-overshoots by the scheduler's slack). While the loop runs, Python's GIL hand-over interval
-is a tenth of the period (at most its 5 ms default; restored afterwards), so a thread
-running Python code cannot hold the loop off for several periods, and the spin releases the
-GIL at each turn to the bus readers and an in-process simulator. The garbage collector is
+Timing: sleep until shortly before the deadline, then busy-wait to it (``time.sleep`` alone
+wakes late by the thread's timer slack and the scheduler's wake-up latency). While the loop
+runs, Python's GIL hand-over interval is a tenth of the period (at most its 5 ms default;
+restored afterwards), so a thread running Python code cannot hold the loop off for several
+periods; the sleep leaves the GIL and the CPU to the bus readers and an in-process
+simulator. The garbage collector is
 frozen after start-up and disabled; a generation-0 collection runs between cycles only when
 the cycle left slack, so a collection never lands inside a cycle. Statistics go to a
 preallocated numpy ring.
@@ -40,19 +41,18 @@ from ..overrun import overran
 
 log = logging.getLogger(__name__)
 
-#: Seconds before each deadline where the loop stops sleeping and spins (config
+#: Seconds before each deadline where the loop stops sleeping and busy-waits (config
 #: ``realtime.spin_us``; by default this or half a period, whichever is shorter): a sleep
-#: wakes late by up to a scheduler tick, a spin does not.
-#: Each turn of the spin is an ``os.sched_yield()``: it releases the GIL, so a thread of the
-#: same process that waits for it (an in-process simulator, the bus readers) runs on
-#: through the spin, and it gives the CPU to a thread that waits for one (a ``sleep(0)``
-#: returns at once and left a bus reader runnable on the spinning core for milliseconds);
-#: a spin in Python alone would hold the GIL but for forced hand-overs, every switch
-#: interval, and give such a thread about half of that time. That half decided the
-#: 12-drive, 4-bus in-process bench at 500 Hz: the simulator answered late, and TPDO
-#: supervision tripped (benchmarks/README.md). Taking the GIL back at the deadline waits at
-#: most one switch interval, as a forced hand-over did. 0 sleeps to the deadline.
-DEFAULT_SPIN = 0.0005
+#: wakes late by the thread's timer slack (50 µs by default) and the scheduler's wake-up
+#: latency, the spin takes that up. The spin never yields: a turn of ``os.sched_yield()``
+#: hands the core to any task that can run there, a nice-19 one included, and that task
+#: keeps it until the next scheduler tick (4 ms at HZ=250). With two nice-19 CPU hogs
+#: beside it, the 2 kHz bench then missed 1,200-14,600 of 30,000 cycles, against 420-700
+#: when it slept (benchmarks/README.md; quiet, the two did not differ). A spin this short
+#: holds the GIL for at most one hand-over interval; the sleep before it frees the GIL and
+#: the CPU for everything else, and a thread that sleeps is woken ahead of one that
+#: never stopped running. 0 sleeps to the deadline.
+DEFAULT_SPIN = 0.0001
 
 #: The GIL hand-over interval while the loop runs, as a fraction of the period (Python's
 #: default is 5 ms): a thread running Python code keeps the GIL for up to this long, so at
@@ -300,13 +300,12 @@ class ControlLoop:
         return stats.summary()
 
     def _wait_until(self, deadline: float) -> None:
-        clock = time.monotonic
-        remaining = deadline - clock() - self.spin
+        clock, stop, spin = time.monotonic, self._stop, self.spin
+        remaining = deadline - clock() - spin
         if remaining > 0:
-            self._stop.wait(remaining)
-        yield_cpu = os.sched_yield
-        while clock() < deadline and not self._stop.is_set() and self._signalled is None:
-            yield_cpu()  # hands the GIL and the CPU to a thread that waits (DEFAULT_SPIN)
+            stop.wait(remaining)
+        while clock() < deadline and not stop.is_set() and self._signalled is None:
+            pass  # the wake-up's lateness, on the CPU (DEFAULT_SPIN says why no yield)
 
     def _torque_off(self) -> None:
         """Failproof stop, then cycles that send the torque-off frames (bounded count)."""
