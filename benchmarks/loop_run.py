@@ -60,7 +60,7 @@ def main() -> None:
                         help="in-process bus of the default mode")
     parser.add_argument("--spin-us", type=_spin_us, default=None,
                         help="the loop's busy-wait before each deadline, µs (default: the "
-                             "loop's, 100 or half a period; 0 sleeps to the deadline)")
+                             "loop's, 500 or half a period; 0 sleeps to the deadline)")
     parser.add_argument("--nice-hogs", type=int, default=0, metavar="N",
                         help="N CPU hogs at nice 19 beside the run (background work the "
                              "loop should not notice)")

@@ -19,8 +19,9 @@ load is what it is: compare sets of one run, not runs of different days.
 The simulator is stepped on the loop's thread after each write (lockstep), as the demo runs
 it: the loop's process does the drives' work too, so these numbers are a pessimistic bound
 for a loop whose drives are real. Reported per set: cycles in the steady run, missed
-cycle slots, period mean / p99 / max, the loop process's CPU per cycle and the writer
-process's (recording off the loop's interpreter: rings.py, writer.py).
+cycle slots, overruns (the loop's own count), period mean / p99 / max, the loop process's
+CPU per cycle and the writer process's (recording off the loop's interpreter: rings.py,
+writer.py).
 """
 from __future__ import annotations
 
@@ -134,12 +135,13 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
                     window.update(threads=_thread_cpu(), first=count[0], cpu=resource.getrusage(
                         resource.RUSAGE_SELF), writer=writer,
                         writer_cpu=_cpu_seconds(writer) if writer else 0.0,
-                        state=rt.manager.state.name)
+                        state=rt.manager.state.name, overruns=rt.loop.stats.overruns)
                     time.sleep(duration)
                     window.update(threads_end=_thread_cpu(), last=count[0],
                                   cpu_end=resource.getrusage(
                         resource.RUSAGE_SELF), writer_cpu_end=_cpu_seconds(writer)
-                        if writer else 0.0, state_end=rt.manager.state.name)
+                        if writer else 0.0, state_end=rt.manager.state.name,
+                        overruns_end=rt.loop.stats.overruns)
                     rt.loop.stop("benchmark done")
 
                 worker = threading.Thread(target=operate)
@@ -163,6 +165,7 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
                         / cycles * 1e6, 1) for t in window["threads_end"]}
     return {"set": name, "cycles": cycles, "threads_cpu_us": threads,
             "missed": missed_cycles(starts[first:last], 1.0 / rate),
+            "overruns": window["overruns_end"] - window["overruns"],
             "period_us": stats(period), "loop_process_cpu_us": cpu / cycles * 1e6,
             "writer_cpu_us": writer / cycles * 1e6, "state": window["state_end"],
             "errors": errors}
@@ -225,7 +228,7 @@ def main() -> None:
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=args.duration
                                   + 180)
             if done.returncode != 0:
-                rows.append([name, "failed", "", "", "", "", "", "",
+                rows.append([name, "failed", "", "", "", "", "", "", "",
                              done.stderr.strip().splitlines()[-1:]])
                 continue
             r = json.loads(done.stdout.strip().splitlines()[-1])
@@ -234,16 +237,19 @@ def main() -> None:
             busiest = sorted(r["threads_cpu_us"].items(), key=lambda kv: -kv[1])[:4]
             notes.append(f"{name}: CPU µs per cycle of its busiest threads: " + ", ".join(
                 f"{t} {us:g}" for t, us in busiest))
-            rows.append([name, r["cycles"], r["missed"], f"{p['mean']:.1f}",
+            rows.append([name, r["cycles"], r["missed"], r["overruns"], f"{p['mean']:.1f}",
                          f"{p['p99']:.0f}", f"{p['max']:.0f}",
                          f"{r['loop_process_cpu_us']:.0f}", f"{r['writer_cpu_us']:.0f}",
                          r["state"] + (f"; {r['errors'][0]}" if r["errors"] else "")])
     report("telemetry_run", f"The loop at {args.rate:g} Hz, {args.drives} drives, with and "
            "without telemetry",
-           ["set", "cycles", "missed", "period mean us", "p99 us", "max us",
+           ["set", "cycles", "missed", "overruns", "period mean us", "p99 us", "max us",
             "loop process CPU us/cycle", "writer CPU us/cycle", "end state"],
            rows, args=args, results={"runs": results},
-           notes=["loop process CPU includes the simulated drives (stepped on the loop's "
+           notes=["missed: cycle slots with no cycle start (a gap of k periods misses k - 1); "
+                  "overruns: cycles that ended after the next one's deadline (the loop's "
+                  "own count, rocoma_can/overrun.py).",
+                  "loop process CPU includes the simulated drives (stepped on the loop's "
                   "thread); the writer process records (rings.py, writer.py).", *notes])
 
 

@@ -4,12 +4,12 @@ Each cycle is ``run_cycle``, the one place that writes its order: ``hardware.rea
 whose findings (faults, e-stop frames, a finished recovery) are applied to the manager ->
 ``manager.update()`` -> ``hardware.write(state, switch_count)`` -> ``manager.post_cycle()``
 (the threads the update has work for are woken only once the cycle's frames are out).
-Timing: sleep until shortly before the deadline, then busy-wait to it (``time.sleep`` alone
-wakes late by the thread's timer slack and the scheduler's wake-up latency). While the loop
-runs, Python's GIL hand-over interval is a tenth of the period (at most its 5 ms default;
-restored afterwards), so a thread running Python code cannot hold the loop off for several
-periods; the sleep leaves the GIL and the CPU to the bus readers and an in-process
-simulator. The garbage collector is
+Timing: sleep until shortly before the deadline, then spin to it (``time.sleep`` alone
+overshoots by the scheduler's slack). While the loop runs, Python's GIL hand-over interval
+is a tenth of the period (at most its 5 ms default; restored afterwards), so a thread
+running Python code cannot hold the loop off for several periods, and the spin releases the
+GIL at each turn to the bus readers and an in-process simulator, until a turn costs a
+cycle (YIELD_LATE). The garbage collector is
 frozen after start-up and disabled; a generation-0 collection runs between cycles only when
 the cycle left slack, so a collection never lands inside a cycle. Statistics go to a
 preallocated numpy ring.
@@ -41,18 +41,27 @@ from ..overrun import overran
 
 log = logging.getLogger(__name__)
 
-#: Seconds before each deadline where the loop stops sleeping and busy-waits (config
+#: Seconds before each deadline where the loop stops sleeping and spins (config
 #: ``realtime.spin_us``; by default this or half a period, whichever is shorter): a sleep
-#: wakes late by the thread's timer slack (50 µs by default) and the scheduler's wake-up
-#: latency, the spin takes that up. The spin never yields: a turn of ``os.sched_yield()``
-#: hands the core to any task that can run there, a nice-19 one included, and that task
-#: keeps it until the next scheduler tick (4 ms at HZ=250). With two nice-19 CPU hogs
-#: beside it, the 2 kHz bench then missed 1,200-14,600 of 30,000 cycles, against 420-700
-#: when it slept (benchmarks/README.md; quiet, the two did not differ). A spin this short
-#: holds the GIL for at most one hand-over interval; the sleep before it frees the GIL and
-#: the CPU for everything else, and a thread that sleeps is woken ahead of one that
-#: never stopped running. 0 sleeps to the deadline.
-DEFAULT_SPIN = 0.0001
+#: wakes late by the thread's timer slack and the scheduler's wake-up latency (more in a
+#: virtual machine, whose idle CPU the host must wake), a spin does not. Each turn of the
+#: spin is an ``os.sched_yield()``: it hands the GIL and the CPU to the process's threads
+#: that wait for them (bus readers, an in-process simulator, the timers), so they run in
+#: the loop's slack rather than at its next deadline. 0 sleeps to the deadline.
+DEFAULT_SPIN = 0.0005
+
+#: A yield hands the core to any task that can run there, a nice-19 one too, and that
+#: task keeps it until the scheduler's next tick (4 ms at HZ=250): a yield after which the
+#: loop woke this share of a period or more past its deadline has cost it a cycle (a
+#: shorter lateness is left alone: the process's own threads, or a moment of the host).
+#: The spin then stops yielding for ``YIELD_PAUSE`` s: it sleeps to ``PLAIN_SPIN`` before
+#: the deadline and spins on the CPU, as a thread that slept is woken ahead of one that
+#: kept running. With two nice-19 CPU hogs beside it, the 12-drive 2 kHz bench missed
+#: 1,200-14,600 of 30,000 cycles yielding every turn, 250-700 sleeping; quiet, yielding
+#: missed 4-25 and sleeping 48-185 (benchmarks/README.md).
+YIELD_LATE = 1.0
+YIELD_PAUSE = 5.0
+PLAIN_SPIN = 0.0001
 
 #: The GIL hand-over interval while the loop runs, as a fraction of the period (Python's
 #: default is 5 ms): a thread running Python code keeps the GIL for up to this long, so at
@@ -223,6 +232,9 @@ class ControlLoop:
         self.stats = CycleStats(self.period, stats_size)
         self.stop_reason = ""
         self._stop = threading.Event()
+        self._plain_until = -math.inf  # the spin yields from then on (YIELD_LATE)
+        #: times a yield cost the loop its deadline and the spin stopped yielding a while
+        self.yield_pauses = 0
         self._signalled: str | None = None  # set by the signal handler, taken by the loop
         self.last_state = ManagerState.FAILPROOF  # the manager's start state
 
@@ -300,12 +312,30 @@ class ControlLoop:
         return stats.summary()
 
     def _wait_until(self, deadline: float) -> None:
-        clock, stop, spin = time.monotonic, self._stop, self.spin
+        clock, stop = time.monotonic, self._stop
+        yielding = clock() >= self._plain_until
+        spin = self.spin if yielding else min(self.spin, PLAIN_SPIN)
         remaining = deadline - clock() - spin
         if remaining > 0:
             stop.wait(remaining)
+        if not yielding:
+            while clock() < deadline and not stop.is_set() and self._signalled is None:
+                pass  # on the CPU: a yield lately cost a cycle (YIELD_LATE)
+            return
+        late = deadline + YIELD_LATE * self.period
+        yield_cpu = os.sched_yield
         while clock() < deadline and not stop.is_set() and self._signalled is None:
-            pass  # the wake-up's lateness, on the CPU (DEFAULT_SPIN says why no yield)
+            yield_cpu()  # the GIL and the CPU to a thread that waits (DEFAULT_SPIN)
+            now = clock()
+            if now > late:  # another task had the core: no yields for a while
+                self._plain_until = now + YIELD_PAUSE
+                self.yield_pauses += 1
+                if self.yield_pauses == 1:  # (once: in the slack, not in a cycle)
+                    log.info("another task took the control loop's CPU for a period "
+                                "or more: its spin stops yielding for %g s each time; "
+                                "realtime.cpus or .priority keep the CPU for the loop",
+                                YIELD_PAUSE)
+                return
 
     def _torque_off(self) -> None:
         """Failproof stop, then cycles that send the torque-off frames (bounded count)."""
