@@ -17,6 +17,7 @@ from fixtures.running import DEMO_RUN, DEMO_WAIT
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
+from rocoma_can.runtime.loop import DEFAULT_SPIN, PLAIN_SPIN, runs_fifo
 
 
 @pytest.fixture
@@ -107,6 +108,7 @@ def test_a_yield_that_costs_a_cycle_stops_the_spin_yielding(virtual_channel,
     cfg["realtime"] = {"cpus": [cpu]}
     hog = subprocess.Popen([sys.executable, "-c", "while 1: pass"],
                            preexec_fn=lambda: (os.sched_setaffinity(0, {cpu}), os.nice(19)))
+    lent = os.sched_getaffinity(0)
     try:
         with Runtime(validate(cfg)) as rt:
             summary = rt.run(duration=2.0, signals=False)
@@ -115,6 +117,32 @@ def test_a_yield_that_costs_a_cycle_stops_the_spin_yielding(virtual_channel,
         hog.wait()
     assert summary.cycles > 0
     assert rt.loop.yield_pauses >= 1
+    assert os.sched_getaffinity(0) == lent  # the caller's thread given back as it was lent
+
+
+def test_a_sched_fifo_loop_spins_short_and_gives_its_thread_back(virtual_channel,
+                                                              sim_segment_factory):
+    """realtime.priority: the loop runs SCHED_FIFO where permitted and then spins
+    PLAIN_SPIN, not half a period (a long spin ends in the kernel's real-time throttling);
+    refused, it warns and keeps the default spin. Either way its thread's policy is put
+    back when the loop returns."""
+    sim_segment_factory(2)
+    cfg = demo_config(virtual_channel, drives=2, rate=500.0)
+    cfg["realtime"] = {"priority": 10}
+    seen: list[tuple[bool, float]] = []
+    after: list[int] = []
+    with Runtime(validate(cfg)) as rt:
+        rt.loop.on_cycle = lambda now: seen.append((runs_fifo(), rt.loop.spin))
+
+        def run() -> None:
+            rt.run(duration=0.3, signals=False)
+            after.append(os.sched_getscheduler(0))
+        thread = threading.Thread(target=run)
+        thread.start()
+        thread.join(DEMO_WAIT)
+    assert seen and after == [os.SCHED_OTHER]
+    fifo, spin = seen[-1]
+    assert spin == (PLAIN_SPIN if fifo else min(DEFAULT_SPIN, 0.5 / 500.0))
 
 
 def test_cycle_stats_ring():

@@ -47,7 +47,12 @@ log = logging.getLogger(__name__)
 #: virtual machine, whose idle CPU the host must wake), a spin does not. Each turn of the
 #: spin is an ``os.sched_yield()``: it hands the GIL and the CPU to the process's threads
 #: that wait for them (bus readers, an in-process simulator, the timers), so they run in
-#: the loop's slack rather than at its next deadline. 0 sleeps to the deadline.
+#: the loop's slack rather than at its next deadline. 0 sleeps to the deadline. A loop
+#: that runs SCHED_FIFO (``realtime.priority``) spins ``PLAIN_SPIN`` unless told: it is
+#: woken at once, and a long spin is CPU that the kernel's real-time throttling (95 % of
+#: each second by default) takes back in one stall of up to 50 ms (2 kHz, 12 drives,
+#: SCHED_FIFO: a 250 µs spin missed 219-1,334 of ~30,000 cycles, max gap 46-49 ms; 100 µs
+#: missed 14, max 1.1 ms).
 DEFAULT_SPIN = 0.0005
 
 #: A yield hands the core to any task that can run there, a nice-19 one too, and that
@@ -151,6 +156,32 @@ def set_realtime(priority: int | None, cpus: set[int] | None) -> list[str]:
     return warnings
 
 
+def scheduling_restorer() -> Callable[[], None]:
+    """A function that gives the calling thread back its CPU affinity and scheduling policy
+    as they are now: the loop's caller gets its thread back as it lent it."""
+    try:
+        cpus, policy, param = (os.sched_getaffinity(0), os.sched_getscheduler(0),
+                               os.sched_getparam(0))
+    except (OSError, AttributeError):  # (no such calls on this platform: nothing was set)
+        return lambda: None
+
+    def restore() -> None:
+        try:
+            os.sched_setscheduler(0, policy, param)
+            os.sched_setaffinity(0, cpus)
+        except OSError as exc:
+            log.warning("the loop's thread keeps its real-time settings: %s", exc)
+    return restore
+
+
+def runs_fifo() -> bool:
+    """Whether the calling thread runs SCHED_FIFO."""
+    try:
+        return os.sched_getscheduler(0) == os.SCHED_FIFO
+    except (OSError, AttributeError):
+        return False
+
+
 class CycleManager(StopTarget, Protocol):
     """What the loop needs of a manager (rocoma_can.ControllerManager)."""
 
@@ -215,6 +246,7 @@ class ControlLoop:
                  spin: float | None = None) -> None:
         if not rate > 0:
             raise ValueError(f"rate must be > 0 Hz, got {rate!r}")
+        self._spin_default = spin is None
         if spin is None:
             spin = min(DEFAULT_SPIN, 0.5 / rate)
         if not spin_fits(spin, rate):
@@ -265,7 +297,11 @@ class ControlLoop:
         return restore
 
     def run(self, duration: float | None = None) -> TimingSummary:
+        restore_scheduling = scheduling_restorer() if self.priority or self.cpus \
+            else None
         set_realtime(self.priority, self.cpus)
+        if self._spin_default and runs_fifo():
+            self.spin = min(self.spin, PLAIN_SPIN)  # (DEFAULT_SPIN: real-time throttling)
         switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(min(switch_interval, max(SWITCH_MIN, min(
             SWITCH_MAX, SWITCH_FRACTION * self.period))))
@@ -309,6 +345,8 @@ class ControlLoop:
                 gc.enable()
             gc.unfreeze()
             sys.setswitchinterval(switch_interval)
+            if restore_scheduling is not None:
+                restore_scheduling()
         return stats.summary()
 
     def _wait_until(self, deadline: float) -> None:
