@@ -1,6 +1,6 @@
 """When a control cycle overran: one rule for the loop's statistics (runtime/loop.py), the
 recordings' ``/rocoma/manager`` (record/live_channels.py) and the live view's
-(live/server.py), so the three never count differently.
+(live/server.py): one rule, wherever it is counted (each from its own first row).
 
 A cycle overran when it ended after the next cycle's deadline: its lateness (start minus
 deadline) and its work (start to the end of ``on_cycle``) together took more than a period.

@@ -17,7 +17,7 @@ from fixtures.running import DEMO_RUN, DEMO_WAIT
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
-from rocoma_can.runtime.loop import DEFAULT_SPIN, PLAIN_SPIN, runs_fifo
+from rocoma_can.runtime.loop import DEFAULT_SPIN, PLAIN_SPIN, YIELD_PAUSE, runs_realtime
 
 
 @pytest.fixture
@@ -99,15 +99,17 @@ def test_a_yield_that_costs_a_cycle_stops_the_spin_yielding(virtual_channel,
     """The spin yields the CPU to the process's threads; a yield also hands the core to a
     nice-19 task until the scheduler's next tick, a period or more at 2 kHz. A CPU hog at
     nice 19 pinned to the loop's CPU (realtime.cpus): the loop sees a yield come back a
-    period late and spins on the CPU for YIELD_PAUSE (what that buys is measured in
-    benchmarks/loop_run.py --nice-hogs; a count of cycles would depend on the machine)."""
+    period late and stops yielding for YIELD_PAUSE, longer than this run, so it pauses
+    exactly once (what that buys is measured in benchmarks/loop_run.py --nice-hogs; a
+    count of cycles would depend on the machine). The caller's thread is given back its
+    CPU affinity."""
     sim_segment_factory(2)
     cfg = demo_config(virtual_channel, drives=2, rate=2000.0)
     cfg["manager"]["estop_must_be_cleared"] = False
     cpu = min(os.sched_getaffinity(0))
     cfg["realtime"] = {"cpus": [cpu]}
-    hog = subprocess.Popen([sys.executable, "-c", "while 1: pass"],
-                           preexec_fn=lambda: (os.sched_setaffinity(0, {cpu}), os.nice(19)))
+    hog = subprocess.Popen([sys.executable, "-c", f"import os\nos.sched_setaffinity(0, "
+                            f"{{{cpu}}})\nos.nice(19)\nwhile 1: pass"])
     lent = os.sched_getaffinity(0)
     try:
         with Runtime(validate(cfg)) as rt:
@@ -115,33 +117,51 @@ def test_a_yield_that_costs_a_cycle_stops_the_spin_yielding(virtual_channel,
     finally:
         hog.kill()
         hog.wait()
-    assert summary.cycles > 0
-    assert rt.loop.yield_pauses >= 1
-    assert os.sched_getaffinity(0) == lent  # the caller's thread given back as it was lent
+    assert 2.0 < YIELD_PAUSE and summary.cycles > 0
+    assert rt.loop.yield_pauses == 1
+    assert os.sched_getaffinity(0) == lent
+
+
+def _fifo_permitted() -> bool:
+    """Whether this process may make a thread SCHED_FIFO (tried on a thread of its own)."""
+    permitted: list[bool] = []
+
+    def probe() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            permitted.append(True)
+        except OSError:
+            permitted.append(False)
+    thread = threading.Thread(target=probe)
+    thread.start()
+    thread.join()
+    return permitted[0]
 
 
 def test_a_sched_fifo_loop_spins_short_and_gives_its_thread_back(virtual_channel,
                                                               sim_segment_factory):
-    """realtime.priority: the loop runs SCHED_FIFO where permitted and then spins
-    PLAIN_SPIN, not half a period (a long spin ends in the kernel's real-time throttling);
-    refused, it warns and keeps the default spin. Either way its thread's policy is put
-    back when the loop returns."""
+    """realtime.priority: the loop runs SCHED_FIFO where this process may (checked apart)
+    and then spins PLAIN_SPIN, not half a period (a long spin ends in the kernel's
+    real-time throttling); refused, it warns and keeps the default spin. Either way its
+    thread's policy is put back when the loop returns."""
     sim_segment_factory(2)
     cfg = demo_config(virtual_channel, drives=2, rate=500.0)
     cfg["realtime"] = {"priority": 10}
     seen: list[tuple[bool, float]] = []
-    after: list[int] = []
+    policies: list[int] = []
     with Runtime(validate(cfg)) as rt:
-        rt.loop.on_cycle = lambda now: seen.append((runs_fifo(), rt.loop.spin))
+        rt.loop.on_cycle = lambda now: seen.append((runs_realtime(), rt.loop.spin))
 
         def run() -> None:
+            policies.append(os.sched_getscheduler(0))
             rt.run(duration=0.3, signals=False)
-            after.append(os.sched_getscheduler(0))
+            policies.append(os.sched_getscheduler(0))
         thread = threading.Thread(target=run)
         thread.start()
         thread.join(DEMO_WAIT)
-    assert seen and after == [os.SCHED_OTHER]
+    assert seen and len(policies) == 2 and policies[0] == policies[1]
     fifo, spin = seen[-1]
+    assert fifo == _fifo_permitted()
     assert spin == (PLAIN_SPIN if fifo else min(DEFAULT_SPIN, 0.5 / 500.0))
 
 

@@ -13,7 +13,7 @@ Layout (every key but ``drives`` and ``controllers`` has a default; docs/configu
       status_period: 0.1           # s, state TPDO repeat period
       required_drives: null        # drives a switch needs ready (null = all; [] = none)
     realtime: {priority: null, cpus: null,   # SCHED_FIFO priority, CPU list
-               spin_us: null}   # busy-wait before each deadline; null: 500 or half a period
+               spin_us: null}   # spin before each deadline; null: 500, half a period, 100 if RT
     supervision: {tpdo_timeout_cycles: 5, heartbeat_timeout_factor: 2.5,
                   consumer_factor: 2.0, sdo_timeout: 0.5,   # drivers.config.Supervision
                   boot_wait: 1.0, start_timeout: 2.0, reset_timeout: 1.0,

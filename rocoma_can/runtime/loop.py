@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 #: spin is an ``os.sched_yield()``: it hands the GIL and the CPU to the process's threads
 #: that wait for them (bus readers, an in-process simulator, the timers), so they run in
 #: the loop's slack rather than at its next deadline. 0 sleeps to the deadline. A loop
-#: that runs SCHED_FIFO (``realtime.priority``) spins ``PLAIN_SPIN`` unless told: it is
+#: that runs SCHED_FIFO (``realtime.priority``) or SCHED_RR spins ``PLAIN_SPIN`` unless told: it is
 #: woken at once, and a long spin is CPU that the kernel's real-time throttling (95 % of
 #: each second by default) takes back in one stall of up to 50 ms (2 kHz, 12 drives,
 #: SCHED_FIFO: a 250 µs spin missed 219-1,334 of ~30,000 cycles, max gap 46-49 ms; 100 µs
@@ -59,11 +59,12 @@ DEFAULT_SPIN = 0.0005
 #: task keeps it until the scheduler's next tick (4 ms at HZ=250): a yield after which the
 #: loop woke this share of a period or more past its deadline has cost it a cycle (a
 #: shorter lateness is left alone: the process's own threads, or a moment of the host).
-#: The spin then stops yielding for ``YIELD_PAUSE`` s: it sleeps to ``PLAIN_SPIN`` before
-#: the deadline and spins on the CPU, as a thread that slept is woken ahead of one that
-#: kept running. With two nice-19 CPU hogs beside it, the 12-drive 2 kHz bench missed
-#: 1,200-14,600 of 30,000 cycles yielding every turn, 250-700 sleeping; quiet, yielding
-#: missed 4-25 and sleeping 48-185 (benchmarks/README.md).
+#: The spin then stops yielding for ``YIELD_PAUSE`` s: it sleeps to ``PLAIN_SPIN`` (or the
+#: spin, if shorter) before the deadline and spins on the CPU, as a thread that slept is
+#: woken ahead of one that kept running. ``loop_run.py --drives 12 --buses 4 --rate 2000
+#: --fd`` beside two nice-19 CPU hogs missed 6,451 of 23,680 cycles yielding every turn,
+#: 254-480 of ~30,000 always sleeping and 595-873 so; quiet, 4-25 yielding, 30-185
+#: sleeping, 12-27 so (benchmarks/README.md).
 YIELD_LATE = 1.0
 YIELD_PAUSE = 5.0
 PLAIN_SPIN = 0.0001
@@ -168,16 +169,19 @@ def scheduling_restorer() -> Callable[[], None]:
     def restore() -> None:
         try:
             os.sched_setscheduler(0, policy, param)
+        except OSError as exc:
+            log.warning("the loop's thread keeps its real-time scheduling policy: %s", exc)
+        try:
             os.sched_setaffinity(0, cpus)
         except OSError as exc:
-            log.warning("the loop's thread keeps its real-time settings: %s", exc)
+            log.warning("the loop's thread keeps its CPU affinity: %s", exc)
     return restore
 
 
-def runs_fifo() -> bool:
-    """Whether the calling thread runs SCHED_FIFO."""
+def runs_realtime() -> bool:
+    """Whether the calling thread runs a real-time policy (SCHED_FIFO, SCHED_RR)."""
     try:
-        return os.sched_getscheduler(0) == os.SCHED_FIFO
+        return os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR)
     except (OSError, AttributeError):
         return False
 
@@ -300,8 +304,9 @@ class ControlLoop:
         restore_scheduling = scheduling_restorer() if self.priority or self.cpus \
             else None
         set_realtime(self.priority, self.cpus)
-        if self._spin_default and runs_fifo():
-            self.spin = min(self.spin, PLAIN_SPIN)  # (DEFAULT_SPIN: real-time throttling)
+        if self._spin_default:  # (per run: DEFAULT_SPIN says why real-time spins short)
+            self.spin = min(PLAIN_SPIN if runs_realtime() else DEFAULT_SPIN,
+                            0.5 * self.period)
         switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(min(switch_interval, max(SWITCH_MIN, min(
             SWITCH_MAX, SWITCH_FRACTION * self.period))))
@@ -340,13 +345,15 @@ class ControlLoop:
                     gc.collect(0)
                 self._wait_until(deadline)
         finally:
-            self._torque_off()
-            if gc_was_enabled:
-                gc.enable()
-            gc.unfreeze()
-            sys.setswitchinterval(switch_interval)
-            if restore_scheduling is not None:
-                restore_scheduling()
+            try:
+                self._torque_off()
+            finally:  # (a KeyboardInterrupt in the torque-off's sleeps too)
+                if gc_was_enabled:
+                    gc.enable()
+                gc.unfreeze()
+                sys.setswitchinterval(switch_interval)
+                if restore_scheduling is not None:
+                    restore_scheduling()
         return stats.summary()
 
     def _wait_until(self, deadline: float) -> None:
@@ -368,11 +375,6 @@ class ControlLoop:
             if now > late:  # another task had the core: no yields for a while
                 self._plain_until = now + YIELD_PAUSE
                 self.yield_pauses += 1
-                if self.yield_pauses == 1:  # (once: in the slack, not in a cycle)
-                    log.info("another task took the control loop's CPU for a period "
-                                "or more: its spin stops yielding for %g s each time; "
-                                "realtime.cpus or .priority keep the CPU for the loop",
-                                YIELD_PAUSE)
                 return
 
     def _torque_off(self) -> None:
