@@ -17,6 +17,7 @@ from fixtures.running import DEMO_RUN, DEMO_WAIT
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
+from rocoma_can.runtime.host import try_sched_fifo
 from rocoma_can.runtime.loop import DEFAULT_SPIN, PLAIN_SPIN, YIELD_PAUSE, runs_realtime
 
 
@@ -122,22 +123,6 @@ def test_a_yield_that_costs_a_cycle_stops_the_spin_yielding(virtual_channel,
     assert os.sched_getaffinity(0) == lent
 
 
-def _fifo_permitted() -> bool:
-    """Whether this process may make a thread SCHED_FIFO (tried on a thread of its own)."""
-    permitted: list[bool] = []
-
-    def probe() -> None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-            permitted.append(True)
-        except OSError:
-            permitted.append(False)
-    thread = threading.Thread(target=probe)
-    thread.start()
-    thread.join()
-    return permitted[0]
-
-
 def test_a_sched_fifo_loop_spins_short_and_gives_its_thread_back(virtual_channel,
                                                               sim_segment_factory):
     """realtime.priority: the loop runs SCHED_FIFO where this process may (checked apart)
@@ -161,7 +146,7 @@ def test_a_sched_fifo_loop_spins_short_and_gives_its_thread_back(virtual_channel
         thread.join(DEMO_WAIT)
     assert seen and len(policies) == 2 and policies[0] == policies[1]
     fifo, spin = seen[-1]
-    assert fifo == _fifo_permitted()
+    assert fifo == (try_sched_fifo(10) is None)
     assert spin == (PLAIN_SPIN if fifo else min(DEFAULT_SPIN, 0.5 / 500.0))
 
 

@@ -77,6 +77,12 @@ SWITCH_FRACTION = 0.1
 SWITCH_MIN, SWITCH_MAX = 5e-5, 5e-3
 
 
+def default_spin(period: float, realtime: bool = False) -> float:
+    """The spin when the config gives none (DEFAULT_SPIN; PLAIN_SPIN under a real-time
+    policy), at most half a ``period``."""
+    return min(PLAIN_SPIN if realtime else DEFAULT_SPIN, 0.5 * period)
+
+
 def spin_fits(spin: float, rate: float) -> bool:
     """The one rule for a spin (s) at a loop rate (Hz): 0 <= spin < one period."""
     return 0 <= spin < 1.0 / rate
@@ -252,7 +258,7 @@ class ControlLoop:
             raise ValueError(f"rate must be > 0 Hz, got {rate!r}")
         self._spin_default = spin is None
         if spin is None:
-            spin = min(DEFAULT_SPIN, 0.5 / rate)
+            spin = default_spin(1.0 / rate)
         if not spin_fits(spin, rate):
             raise ValueError(f"spin must be 0 <= spin < one period ({1e6 / rate:.1f} µs), "
                              f"got {spin * 1e6:g} µs")
@@ -305,8 +311,7 @@ class ControlLoop:
             else None
         set_realtime(self.priority, self.cpus)
         if self._spin_default:  # (per run: DEFAULT_SPIN says why real-time spins short)
-            self.spin = min(PLAIN_SPIN if runs_realtime() else DEFAULT_SPIN,
-                            0.5 * self.period)
+            self.spin = default_spin(self.period, runs_realtime())
         switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(min(switch_interval, max(SWITCH_MIN, min(
             SWITCH_MAX, SWITCH_FRACTION * self.period))))
@@ -363,14 +368,11 @@ class ControlLoop:
         remaining = deadline - clock() - spin
         if remaining > 0:
             stop.wait(remaining)
-        if not yielding:
-            while clock() < deadline and not stop.is_set() and self._signalled is None:
-                pass  # on the CPU: a yield lately cost a cycle (YIELD_LATE)
-            return
         late = deadline + YIELD_LATE * self.period
-        yield_cpu = os.sched_yield
         while clock() < deadline and not stop.is_set() and self._signalled is None:
-            yield_cpu()  # the GIL and the CPU to a thread that waits (DEFAULT_SPIN)
+            if not yielding:
+                continue  # on the CPU: a yield lately cost a cycle (YIELD_LATE)
+            os.sched_yield()  # the GIL and the CPU to a thread that waits (DEFAULT_SPIN)
             now = clock()
             if now > late:  # another task had the core: no yields for a while
                 self._plain_until = now + YIELD_PAUSE
