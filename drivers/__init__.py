@@ -12,7 +12,8 @@ measured against its EDS/DCF), identity (0x1018: the drive bring-up requires), l
 device_file (the tolerant EDS/DCF reader), pdo_layout, modes, scaling, joints
 (JointState, JointCommand), config (DriveConfig, BusConfig). CANopen and the wire: cia301,
 cia402, bus (python-can bus, canopen Network, reader threads), bus_port (one bus of the
-hardware), frame_io, inproc (the in-process bus), sdo_block_upload (server side), wire
+hardware), frame_io, inproc (the in-process bus), inproc_link (joins two processes'
+inproc channels), sdo_block_upload (server side), wire
 (frame bits).
 First contact: scan (every node on a bus, by SDO reads only), lss (CiA 305: node ids for
 nodes without one), can_link (a SocketCAN link as sysfs and iproute2 report it).

@@ -91,6 +91,10 @@ class InProcessBus(BusABC):
         copy.is_rx = True
         copy.bitrate_switch = msg.bitrate_switch
         copy.error_state_indicator = msg.error_state_indicator
+        self._broadcast(copy)
+
+    def _broadcast(self, copy: Message) -> None:
+        """Hand ``copy`` (this send's own, read-only from here on) to every other endpoint."""
         held = self._held and self._holder == threading.get_ident()
         for peer in self._peers:  # replaced on join/leave, never changed in place
             if (peer is not self or self.receive_own_messages) \

@@ -55,3 +55,9 @@ class ParamError(RocomaError, ValueError):
 class WrongDevice(RocomaError, RuntimeError):
     """The device at a drive's node id is not the one its config (or its EDS/DCF) names:
     its identity object (0x1018) differs. Bring-up refuses it before writing anything."""
+
+
+class SimulatorFailed(RocomaError, RuntimeError):
+    """The demo's simulated drives in a process of their own failed: the process could not
+    start, died, or reported a drive's failure (the message says which, with its last
+    words)."""

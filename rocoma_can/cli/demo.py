@@ -1,13 +1,14 @@
-"""``rocoma-can demo``: the whole system in one process on an in-process CAN bus.
+"""``rocoma-can demo``: the whole system on in-process CAN buses.
 
-Simulated CiA 402 drives, the control loop with the manager and its CANopen node, and an
-"operator" that talks to the manager only the way another CAN node would (SDO and raw
-frames). The walk-through: bring-up, clear, switch to pd, switch to trajectory (bumpless,
-by swap state), a drive fault -> emergency controller (damp), a second fault -> failproof
-torque-off, recovery of the drives, a switch back to pd, an e-stop by a raw CAN frame, and
-the SIGTERM-like stop of the loop, which ends in torque-off frames. Each step checks what it
-should; the exit code is 0 only when every step did. The command records the run (every
-frame, every cycle, every manager event) and plots it, and prints where both went.
+Simulated CiA 402 drives (in a process of their own or stepped by the loop: demo_sim.py),
+the control loop with the manager and its CANopen node, and an "operator" that talks to the
+manager only the way another CAN node would (SDO and raw frames). The walk-through:
+bring-up, clear, switch to pd, switch to trajectory (bumpless, by swap state), a drive
+fault -> emergency controller (damp), a second fault -> failproof torque-off, recovery of
+the drives, a switch back to pd, an e-stop by a raw CAN frame, and the SIGTERM-like stop of
+the loop, which ends in torque-off frames. Each step checks what it should; the exit code
+is 0 only when every step did. The command records the run (every frame, every cycle, every
+manager event) and plots it, and prints where both went.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ import can
 
 from ..cli_args import count, positive, seconds
 from ..drivers.wire import MAX_DATA_BITRATE
-from ..errors import ConfigError, RocomaError
+from ..errors import ConfigError, RocomaError, SimulatorFailed
 from ..exit_codes import FAILED, OK, USAGE
 from ..node.client import ManagerClient
 from ..node.objects import STATE_NAMES
@@ -47,13 +48,20 @@ from .demo_config import (
     emulate,
 )
 from .demo_report import Report, Said, Step, grouped_notes, plot_run, status_lines, summary
+from .demo_sim import (
+    PROCESS_CPUS,
+    SIM_CHOICES,
+    DemoSimulator,
+    InProcessSim,
+    SimProcess,
+    choose,
+)
 
 #: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
 #: one record, and the walk-through's come seconds apart
 FLIGHT_SECONDS = 2.0
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
-    from ..drivers.sim.segment import SimulatedSegment
     from ..live.foxglove import FoxgloveConfig
     from ..runtime.config import RuntimeConfig
     from ..runtime.system import Runtime
@@ -152,7 +160,7 @@ def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) 
     return predicate()
 
 
-def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: _Watch,
+def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Watch,
               probes: list[_TorqueOffProbe], report: Report, duration: float,
               stop: threading.Event,
               say: Callable[[str], None]) -> None:
@@ -214,17 +222,17 @@ def _operator(rt: Runtime, seg: SimulatedSegment, client: ManagerClient, watch: 
 
         def fault(node: int, becomes: str, target: int) -> bool:
             """Trip a drive's fault; whether the manager reached ``target`` in time."""
-            mark, t0 = len(watch.changes), time.monotonic()
-            seg.drives[node].trip_fault()
+            mark = len(watch.changes)
+            t0 = sim.trip_fault(node)
             return reached(f"drive {node} fault -> {becomes}", t0, mark, {target}, 2.0)
 
-        node = seg.node_ids[min(2, len(seg.node_ids) - 2)]  # not the last: that one is next
+        node = sim.node_ids[min(2, len(sim.node_ids) - 2)]  # not the last: that one is next
         ok = fault(node, "EMERGENCY", 1)
         step(f"fault on drive {node} -> emergency controller", ok,
              f"state {STATE_NAMES[state()]}, active {mgr.active_controller_name}")
         hold()
 
-        node2 = seg.node_ids[-1]
+        node2 = sim.node_ids[-1]
         if node2 == node:
             step("second fault -> failproof torque-off", True,
                  "skipped: one drive, and it is faulted already")
@@ -302,7 +310,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              record: str | Path | None = None, zenoh_listen: str | None = None,
              flight: str | Path | None = None,
              foxglove: FoxgloveConfig | None = None,
-             data_bitrate: int | None = None, channel: str | None = None) -> Report:
+             data_bitrate: int | None = None, channel: str | None = None,
+             sim: str = "auto") -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
@@ -317,10 +326,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     bit rate switching, the drives' PDOs up to FD_PDO_BYTES, the load checked as for real
     buses (ConfigError when it does not fit). ``channel``: the in-process channel (several
     buses: ``channel-0``, ...) another part of this process can listen on; default: a new
-    one per run."""
+    one per run. ``sim``: where the simulated drives run, ``process`` (one of their own),
+    ``loop`` (stepped by the loop's thread) or ``auto`` (demo_sim.choose)."""
     from ..drivers.bus import BusReader, open_bus, readers_for
-    from ..drivers.sim.group import SegmentGroup
-    from ..drivers.sim.segment import SimulatedSegment
     from ..live.urdf import parse_urdf
     from ..runtime.config import validate
     from ..runtime.system import Runtime
@@ -350,38 +358,36 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         record = flight = None
     watch = _Watch()
     stop = threading.Event()
-    segments = [SimulatedSegment.open(b.channel, interface,
-                                      [d.node_id for d in config.drives_on(b)],
-                                      **(emulated.segment if emulated else {}),
-                                      **({"axes": {d.node_id: emulated.axes
-                                                   for d in config.drives_on(b)}}
-                                         if emulated and emulated.axes > 1 else {}),
-                                      fd=fd)
-                for b in config.buses]
-    # one receive thread for every bus where possible, standing by while the loop steps
-    # the simulator on its own thread after each write (stepped_before: in on_cycle)
-    simulator = SegmentGroup(segments)
-    seg = segments[0]  # the operator's faults go to drives on the first bus
-    # The client and the probes filter what they read (the interface drops the rest): at
-    # 1 kHz every bus carries ~13 frames a cycle, and readers of all of it cost the loop's
-    # process more CPU than the drives' simulation.
+    sim_buses = [(b.channel, [d.node_id for d in config.drives_on(b)]) for b in config.buses]
     as_fd: dict[str, Any] = {"fd": True} if fd else {}  # SocketCAN: FD frames to FD sockets
-    client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False,
-                          can_filters=_only({0x580 + MANAGER_ID}), **as_fd)  # SDO answers
     probes = [_TorqueOffProbe(_controlword_carriers(config, b.label)) for b in config.buses]
-    # one torque-off probe per bus, each on a bus handle and reader of its own
-    probe_buses = [open_bus(interface, b.channel, receive_own_messages=False,
-                            can_filters=_only(set(p.carriers)), **as_fd)
-                   for b, p in zip(config.buses, probes)]
+    simulator: DemoSimulator | None = None
+    buses_open: list[can.BusABC] = []
     readers: list[BusReader] = []
     said = Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
     hardware_log = logging.getLogger("rocoma_can.drivers.hardware")
     hardware_log.addFilter(said)
     try:
-        simulator.start(lockstep=True)
-        readers = readers_for([(b, (p,)) for b, p in zip(probe_buses, probes)],
+        # the drives in a process of their own, as a robot's compute in theirs
+        # (demo_sim.py); python-can's virtual bus joins no other process
+        if choose(sim, interface) == "loop":
+            in_process = InProcessSim(sim_buses, interface, emulated, fd)
+            simulator, on_cycle = in_process, in_process.on_cycle(watch)
+        else:
+            simulator, on_cycle = SimProcess(sim_buses, eds, drives, fd), watch
+        # The client and the probes filter what they read (the interface drops the rest):
+        # at 1 kHz every bus carries ~13 frames a cycle, and readers of all of it cost the
+        # loop's process more CPU than the drives' simulation.
+        client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False,
+                              can_filters=_only({0x580 + MANAGER_ID}), **as_fd)  # SDO answers
+        buses_open.append(client_bus)
+        # one torque-off probe per bus, each on a bus handle and reader of its own
+        for b, p in zip(config.buses, probes):
+            buses_open.append(open_bus(interface, b.channel, receive_own_messages=False,
+                                       can_filters=_only(set(p.carriers)), **as_fd))
+        readers = readers_for([(b, (p,)) for b, p in zip(buses_open[1:], probes)],
                               name="demo-probes")
-        with Runtime(config, on_cycle=simulator.stepped_before(watch),
+        with Runtime(config, on_cycle=on_cycle,
                      record=None if record is None else str(record),
                      flight=None if flight is None else str(flight),
                      flight_seconds=FLIGHT_SECONDS, foxglove=foxglove,
@@ -393,6 +399,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                   else f"{buses} {kind} buses {channel}-0..{buses - 1}")
             out(f"rocoma-can demo: {drives} simulated drives, {rate:g} Hz, manager node "
                 f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
+            out(f"rocoma-can demo: the simulated drives run {simulator.where}")
             if rt.foxglove is not None:
                 from ..live.foxglove import describe
                 out(f"rocoma-can demo: {describe(rt.foxglove)}")
@@ -403,7 +410,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                     "with estop)")
             operator = threading.Thread(
                 target=_operator, name="demo-operator",
-                args=(rt, seg, client, watch, probes, report, duration, stop, out))
+                args=(rt, simulator, client, watch, probes, report, duration, stop, out))
             status = threading.Thread(target=status_lines, name="demo-status",
                                       args=(rt, stop, out))
             operator.start()
@@ -427,16 +434,21 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         if rt.flight is not None:  # closed: the last record is written
             report.flight_records = list(rt.flight.dumps)
             out(f"flight records: {len(report.flight_records)} in {rt.flight.directory}")
-        simulator.check()
+        try:
+            simulator.check()
+        except RuntimeError as exc:  # a drive's bug, or the drives' process died
+            report.steps.append(Step("simulated drives", False, str(exc)))
+            out(f"FAILED simulated drives: {exc}")
         if record is not None:
             plot_run(Path(record), report, out)
     finally:
         hardware_log.removeFilter(said)
         for r in readers:
             r.stop()
-        for b in (client_bus, *probe_buses):
-            b.shutdown()
-        simulator.stop()
+        for opened in buses_open:
+            opened.shutdown()
+        if simulator is not None:
+            simulator.stop()
     return report
 
 
@@ -461,6 +473,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--interface", choices=("inproc", "virtual"), default=DEFAULT_INTERFACE,
                    help="in-process bus: inproc (default; one copy per frame, fit for "
                         "1 kHz) or python-can's virtual (a copy per frame and receiver)")
+    p.add_argument("--sim", choices=SIM_CHOICES, default="auto",
+                   help="where the simulated drives run: process (their own, so the loop pays "
+                        "only for their frames, as with real drives; inproc buses), loop "
+                        "(stepped by the loop after each write) or auto (default: process on "
+                        f"a host with {PROCESS_CPUS}+ CPUs, else loop)")
     p.add_argument("--duration", type=seconds, default=16.0,
                    help="the walk-through's length, s, from bring-up to the loop's stop: its "
                         "pauses stretch to end it then (default 16; steps slower than their "
@@ -494,6 +511,11 @@ def _main(args: argparse.Namespace) -> int:
               f"{MAX_DATA_BITRATE} bit/s, got {args.data_bitrate}"
               + ("" if args.fd else " without --fd"), flush=True)
         return USAGE
+    try:
+        choose(args.sim, args.interface)
+    except ValueError as exc:
+        print(f"demo: {exc}", flush=True)
+        return USAGE
     data_bitrate = (args.data_bitrate or FD_DATA_BITRATE) if args.fd else None
     record = None if args.no_record else Path(args.record or default_record_dir())
     if record is not None:
@@ -510,7 +532,11 @@ def _main(args: argparse.Namespace) -> int:
                           out=lambda line: print(line, flush=True), buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen, flight=flight,
-                          foxglove=foxglove_from_args(args), data_bitrate=data_bitrate)
+                          foxglove=foxglove_from_args(args), data_bitrate=data_bitrate,
+                          sim=args.sim)
+    except SimulatorFailed as exc:  # its drives' process did not start
+        print(f"demo: {exc}", flush=True)
+        return FAILED
     except (ValueError, RocomaError) as exc:
         if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint: "demo: ..."
             for problem in exc.problems:

@@ -1,0 +1,327 @@
+"""The demo's simulated drives, in a process of their own or in the loop's (``choose``).
+
+In its own process (``SimProcess``) the simulator costs the control loop what real drives
+would: the frames. The child (``python -m rocoma_can.cli.demo_sim``, started here) opens a
+segment of drives per bus on its own in-process channels, serves them with one receive
+thread (drivers/sim/group.py) and joins the channels to the demo's over a socket pair
+(drivers/inproc_link.py). The operator's fault injections and the final check go over the
+child's stdin and stdout, one JSON line each way; the child ends when its stdin closes
+(the demo ended or died) or on ``stop``.
+
+In the loop's process (``InProcessSim``) the loop's thread steps the simulator after each
+write (lockstep; group.py says why that beats a thread of its own in a shared interpreter).
+Either way the demo sees one ``DemoSimulator``.
+
+``--sim auto`` (the default) takes the process where the host has a core for each busy
+process (the loop's, the recording's writer and the drives'), else the loop. Measured on 2
+cores, 12 drives on 4 buses at 1 kHz: without recording the drives' process halved the
+loop's overruns, but with recording on, three busy processes on two cores made them 1-3x
+those of the lockstep simulator (benchmarks/README.md).
+"""
+from __future__ import annotations
+
+import json
+import os
+import queue
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import IO, TYPE_CHECKING, Any, Protocol
+
+from ..errors import SimulatorFailed
+
+if TYPE_CHECKING:
+    from ..drivers.sim.group import SegmentGroup
+    from ..drivers.sim.segment import SimulatedSegment
+    from .demo_config import Emulated
+
+#: s the child may take to import, open its buses and power its drives on
+START_TIMEOUT = 30.0
+#: s a request to the child may take to be answered
+REPLY_TIMEOUT = 5.0
+#: s the child's link waits for frames before it looks for its end again
+LINK_IDLE = 0.1
+#: s the child has to end after ``stop`` before it is killed
+STOP_TIMEOUT = 5.0
+
+#: ``--sim`` choices: where the drives run
+SIM_CHOICES = ("auto", "process", "loop")
+#: CPUs ``auto`` wants for the process: the loop's, the writer's and the drives' own
+PROCESS_CPUS = 3
+
+#: (channel, node ids of the drives on it) per bus, in the buses' order
+Buses = Sequence[tuple[str, Sequence[int]]]
+
+
+class DemoSimulator(Protocol):
+    """What the demo's operator and its end need from the simulated drives."""
+    @property
+    def node_ids(self) -> Sequence[int]:
+        """Node ids of the drives on the first bus (the operator's faults go there)."""
+        ...
+
+    @property
+    def where(self) -> str:
+        """Where the drives run, for the demo to say."""
+        ...
+
+    def trip_fault(self, node: int) -> float:
+        """Trip drive ``node``'s fault (first bus); the monotonic time it was tripped."""
+        ...
+
+    def check(self) -> None:
+        """Raise when the simulation failed (a drive raised, the process died)."""
+        ...
+
+    def stop(self) -> None: ...
+
+
+def choose(sim: str, interface: str) -> str:
+    """``process`` or ``loop`` for a ``--sim`` choice; ValueError for a process on an
+    interface no link joins (python-can's ``virtual``)."""
+    if sim not in SIM_CHOICES:
+        raise ValueError(f"--sim must be one of {', '.join(SIM_CHOICES)}, got {sim!r}")
+    if sim == "auto":
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
+            else os.cpu_count() or 1
+        return "process" if interface == "inproc" and cpus >= PROCESS_CPUS else "loop"
+    if sim == "process" and interface != "inproc":
+        raise ValueError(f"--sim process needs --interface inproc: the {interface} bus joins "
+                         "no other process")
+    return sim
+
+
+def open_segments(buses: Buses, interface: str, emulated: Emulated | None,
+                  fd: bool) -> list[SimulatedSegment]:
+    """One segment per bus, its drives emulating ``emulated``'s file (or the generic drive)."""
+    from ..drivers.sim.segment import SimulatedSegment
+    segments: list[SimulatedSegment] = []
+    try:
+        for channel, nodes in buses:
+            extra: dict[str, Any] = dict(emulated.segment) if emulated else {}
+            if emulated and emulated.axes > 1:
+                extra["axes"] = {node: emulated.axes for node in nodes}
+            segments.append(SimulatedSegment.open(channel, interface, list(nodes), fd=fd,
+                                                  **extra))
+    except BaseException:
+        for segment in segments:
+            segment.stop()
+        raise
+    return segments
+
+
+class InProcessSim:
+    """The drives in the loop's process, stepped in lockstep (``on_cycle``)."""
+
+    def __init__(self, buses: Buses, interface: str, emulated: Emulated | None,
+                 fd: bool) -> None:
+        from ..drivers.sim.group import SegmentGroup
+        self.segments = open_segments(buses, interface, emulated, fd)
+        self.node_ids = self.segments[0].node_ids
+        self.where = "in this process, stepped by the loop after each write"
+        self.group: SegmentGroup = SegmentGroup(self.segments).start(lockstep=True)
+
+    def on_cycle(self, after: Callable[[float], None]) -> Callable[[float], None]:
+        return self.group.stepped_before(after)
+
+    def trip_fault(self, node: int) -> float:
+        tripped = time.monotonic()
+        self.segments[0].drives[node].trip_fault()
+        return tripped
+
+    def check(self) -> None:
+        self.group.check()
+
+    def stop(self) -> None:
+        self.group.stop()
+
+
+class SimProcess:
+    """The drives in a child process, their buses linked to this process's ``buses``."""
+
+    def __init__(self, buses: Buses, eds: str | None, drives: int, fd: bool) -> None:
+        from ..drivers.inproc_link import InProcessLink
+        self.node_ids = list(buses[0][1])
+        self.stderr: list[str] = []  # the child's, kept for check()
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self._sock = ours
+        self.link = InProcessLink(ours, [c for c, _ in buses], fd=fd, name="demo-sim-link")
+        spec = {"buses": [[c, list(n)] for c, n in buses], "eds": eds, "drives": drives,
+                "fd": fd}
+        try:
+            self.link.start()
+            self._child = subprocess.Popen(
+                [sys.executable, "-m", __name__, "--link-fd", str(theirs.fileno()),
+                 json.dumps(spec)],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                text=True, pass_fds=(theirs.fileno(),))
+        except BaseException:
+            self.link.close()
+            ours.close()
+            raise
+        finally:
+            theirs.close()
+        self._replies: queue.Queue[dict[str, Any] | None] = queue.Queue()
+        assert self._child.stdout is not None and self._child.stderr is not None
+        self._threads = [threading.Thread(target=self._read_replies, args=(self._child.stdout,),
+                                          name="demo-sim-replies", daemon=True),
+                         threading.Thread(target=self._read_stderr, args=(self._child.stderr,),
+                                          name="demo-sim-stderr", daemon=True)]
+        for t in self._threads:
+            t.start()
+        self.where = f"in a process of their own (pid {self._child.pid})"
+        try:
+            self._reply(START_TIMEOUT, "start")
+        except BaseException:
+            self.stop()
+            raise
+
+    def trip_fault(self, node: int) -> float:
+        return float(self._request({"op": "trip_fault", "node": node})["tripped"])
+
+    def check(self) -> None:
+        if self._child.poll() is None:
+            self._request({"op": "check"})
+        elif self._child.returncode != 0:
+            raise SimulatorFailed(self._ended())
+
+    def stop(self) -> None:
+        """End the child (killed after STOP_TIMEOUT), then the link; idempotent."""
+        try:
+            if self._child.poll() is None and self._child.stdin is not None:
+                try:
+                    self._child.stdin.write(json.dumps({"op": "stop"}) + "\n")
+                    self._child.stdin.flush()
+                    self._child.stdin.close()
+                except OSError:  # it ended meanwhile
+                    pass
+                try:
+                    self._child.wait(STOP_TIMEOUT)
+                except subprocess.TimeoutExpired:
+                    self._child.kill()
+                    self._child.wait(STOP_TIMEOUT)
+        finally:
+            self.link.close()
+            self._sock.close()
+            for t in self._threads:
+                t.join(1.0)
+
+    def _request(self, request: dict[str, Any]) -> dict[str, Any]:
+        what = str(request["op"])
+        assert self._child.stdin is not None
+        try:
+            self._child.stdin.write(json.dumps(request) + "\n")
+            self._child.stdin.flush()
+        except OSError:
+            raise SimulatorFailed(self._ended()) from None
+        return self._reply(REPLY_TIMEOUT, what)
+
+    def _reply(self, timeout: float, what: str) -> dict[str, Any]:
+        try:
+            reply = self._replies.get(timeout=timeout)
+        except queue.Empty:
+            raise SimulatorFailed(f"simulator process: no answer to {what} in {timeout:g} s") \
+                from None
+        if reply is None:
+            raise SimulatorFailed(self._ended())
+        if not reply.get("ok"):
+            raise SimulatorFailed(f"simulator process: {what} failed: {reply.get('error')}")
+        return reply
+
+    def _ended(self) -> str:
+        try:
+            code = self._child.wait(1.0)
+        except subprocess.TimeoutExpired:
+            code = None
+        last = "; ".join(self.stderr[-3:])
+        return (f"simulator process ended (exit code {code})" + (f": {last}" if last else ""))
+
+    def _read_replies(self, stream: IO[str]) -> None:
+        for line in stream:
+            try:
+                self._replies.put(json.loads(line))
+            except ValueError:
+                self.stderr.append(line.rstrip())
+        self._replies.put(None)
+
+    def _read_stderr(self, stream: IO[str]) -> None:
+        for line in stream:
+            self.stderr.append(line.rstrip())
+            sys.stderr.write(f"rocoma-can demo (simulator): {line}")
+
+
+def _serve(group: SegmentGroup, segments: Sequence[SimulatedSegment],
+           done: threading.Event) -> None:
+    """The child's requests, one JSON line each on stdin, until ``stop`` or its end."""
+    def answer(reply: dict[str, Any]) -> None:
+        sys.stdout.write(json.dumps(reply) + "\n")
+        sys.stdout.flush()
+
+    try:
+        answer({"ok": True})  # started
+        for line in sys.stdin:
+            try:
+                request = json.loads(line)
+                op = request["op"]
+                if op == "stop":
+                    return
+                if op == "trip_fault":
+                    tripped = time.monotonic()
+                    segments[0].drives[int(request["node"])].trip_fault()
+                    answer({"ok": True, "tripped": tripped})
+                elif op == "check":
+                    group.check()
+                    answer({"ok": True})
+                else:
+                    answer({"ok": False, "error": f"unknown request {op!r}"})
+            except Exception as exc:  # noqa: BLE001 - the demo reports it
+                answer({"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+    finally:
+        done.set()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The child: ``--link-fd FD SPEC`` (SPEC: the JSON SimProcess writes)."""
+    import argparse
+
+    from ..drivers.inproc_link import InProcessLink
+    from ..drivers.sim.group import SegmentGroup
+    from .demo_config import emulate
+    p = argparse.ArgumentParser(prog=f"python -m {__name__}")
+    p.add_argument("--link-fd", type=int, required=True)
+    p.add_argument("spec")
+    args = p.parse_args(argv)
+    spec = json.loads(args.spec)
+    buses = [(str(c), [int(n) for n in nodes]) for c, nodes in spec["buses"]]
+    fd = bool(spec["fd"])
+    emulated = emulate(spec["eds"], int(spec["drives"])) if spec["eds"] else None
+    sock = socket.socket(fileno=args.link_fd)
+    done = threading.Event()
+    # the link first: the drives' boot-up frames must reach the demo
+    link = InProcessLink(sock, [c for c, _ in buses], fd=fd, on_close=done.set)
+    try:
+        segments = open_segments(buses, "inproc", emulated, fd)
+        # This thread reads the link and, at once, steps the drives that got frames
+        # (lockstep_pass, as the demo's loop steps them in its own process): no hand-over
+        # to a receive thread between a SYNC's arrival and its answer. The group's thread
+        # and timers take over only when no frame came for a while (the loop stopped).
+        group = SegmentGroup(segments).start(lockstep=True)
+        try:
+            threading.Thread(target=_serve, args=(group, segments, done), name="sim-requests",
+                             daemon=True).start()
+            while not done.is_set():
+                if link.receive(LINK_IDLE):
+                    group.lockstep_pass()
+        finally:
+            group.stop()
+    finally:
+        link.close()
+        sock.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
