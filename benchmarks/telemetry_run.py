@@ -12,16 +12,19 @@ recorder, Zenoh bridge on loopback, Foxglove live view on loopback with one view
 process of its own, subscribed to everything; ``--viewer-nice 19`` runs it niced, as a
 viewer on another machine would cost the robot's nothing), ``+fd`` in a set's name (``off+fd``,
 ``all+fd``) runs CAN FD buses (1/5 Mbit/s, the drives' PDOs up to 64 bytes: ``demo --fd``'s
-set-up). Each set
+set-up), ``+proc`` (``off+proc``, ``record+fd+proc``) runs the simulated drives in a
+process of their own (``demo --sim process``: the loop's process pays only for their
+frames, as with real drives). Each set
 runs in a fresh process, the sets alternate ``--repeat`` times, and the machine's other
 load is what it is: compare sets of one run, not runs of different days.
 
-The simulator is stepped on the loop's thread after each write (lockstep), as the demo runs
-it: the loop's process does the drives' work too, so these numbers are a pessimistic bound
-for a loop whose drives are real. Reported per set: cycles in the steady run, missed
-cycle slots, overruns (the loop's own count), period mean / p99 / max, the loop process's
-CPU per cycle and the writer process's (recording off the loop's interpreter: rings.py,
-writer.py).
+Without ``+proc`` the simulator is stepped on the loop's thread after each write
+(lockstep, the demo's ``--sim loop``): the loop's process does the drives' work too, so
+these numbers are a pessimistic bound for a loop whose drives are real; with it, the
+drives' process is a third busy process on the machine. Reported per set: cycles in the
+steady run, missed cycle slots, overruns (the loop's own count), period mean / p99 / max,
+the CPU per cycle of the loop's process, of the writer process (recording off the loop's
+interpreter: rings.py, writer.py) and of the drives' process (+proc).
 """
 from __future__ import annotations
 
@@ -76,8 +79,7 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
     import logging
     logging.basicConfig(level=logging.ERROR)
     from rocoma_can.cli.demo_config import default_buses, demo_config
-    from rocoma_can.drivers.sim.group import SegmentGroup
-    from rocoma_can.drivers.sim.segment import SimulatedSegment
+    from rocoma_can.cli.demo_sim import InProcessSim, SimProcess
     from rocoma_can.runtime.config import validate
     from rocoma_can.runtime.system import Runtime
     parts = set(name.split("+"))
@@ -93,11 +95,10 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
         raw["zenoh"] = {"prefix": "bench", "listen": [f"tcp/127.0.0.1:{_free_port()}"],
                         "multicast": False}
     config = validate(raw, source="benchmark")
-    segments = [SimulatedSegment.open(b.channel, "inproc",
-                                      [d.node_id for d in config.drives_on(b)],
-                                      **({"fd": True} if b.fd else {}))
-                for b in config.buses]
-    simulator = SegmentGroup(segments)
+    sim_buses = [(b.channel, [d.node_id for d in config.drives_on(b)]) for b in config.buses]
+    simulator: InProcessSim | SimProcess = (
+        SimProcess(sim_buses, None, drives, "fd" in parts) if "proc" in parts
+        else InProcessSim(sim_buses, "inproc", None, "fd" in parts))
     starts = np.zeros(int(rate * (duration + 60)) + 1000)
     count = [0]
 
@@ -115,9 +116,10 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
     with tempfile.TemporaryDirectory() as tmp:
         record = str(Path(tmp) / "rec") if "record" in parts else None
         flight = str(Path(tmp) / "flight") if parts & {"flight", "record"} else None
-        simulator.start(lockstep=True)
         try:
-            with Runtime(config, on_cycle=simulator.stepped_before(on_cycle), record=record,
+            with Runtime(config, record=record, on_cycle=(
+                    simulator.on_cycle(on_cycle) if isinstance(simulator, InProcessSim)
+                    else on_cycle),
                          flight=flight, foxglove=foxglove) as rt:
                 viewer = (_viewer(foxglove.port, viewer_nice) if foxglove is not None
                           else None)
@@ -135,13 +137,15 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
                     window.update(threads=_thread_cpu(), first=count[0], cpu=resource.getrusage(
                         resource.RUSAGE_SELF), writer=writer,
                         writer_cpu=_cpu_seconds(writer) if writer else 0.0,
-                        state=rt.manager.state.name, overruns=rt.loop.stats.overruns)
+                        state=rt.manager.state.name, overruns=rt.loop.stats.overruns,
+                        sim_cpu=_cpu_seconds(simulator.pid) if simulator.pid else 0.0)
                     time.sleep(duration)
                     window.update(threads_end=_thread_cpu(), last=count[0],
                                   cpu_end=resource.getrusage(
                         resource.RUSAGE_SELF), writer_cpu_end=_cpu_seconds(writer)
                         if writer else 0.0, state_end=rt.manager.state.name,
-                        overruns_end=rt.loop.stats.overruns)
+                        overruns_end=rt.loop.stats.overruns,
+                        sim_cpu_end=_cpu_seconds(simulator.pid) if simulator.pid else 0.0)
                     rt.loop.stop("benchmark done")
 
                 worker = threading.Thread(target=operate)
@@ -167,7 +171,9 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
             "missed": missed_cycles(starts[first:last], 1.0 / rate),
             "overruns": window["overruns_end"] - window["overruns"],
             "period_us": stats(period), "loop_process_cpu_us": cpu / cycles * 1e6,
-            "writer_cpu_us": writer / cycles * 1e6, "state": window["state_end"],
+            "writer_cpu_us": writer / cycles * 1e6,
+            "sim_process_cpu_us": (window["sim_cpu_end"] - window["sim_cpu"]) / cycles * 1e6,
+            "state": window["state_end"],
             "errors": errors}
 
 
@@ -228,7 +234,7 @@ def main() -> None:
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=args.duration
                                   + 180)
             if done.returncode != 0:
-                rows.append([name, "failed", "", "", "", "", "", "", "",
+                rows.append([name, "failed", "", "", "", "", "", "", "", "",
                              done.stderr.strip().splitlines()[-1:]])
                 continue
             r = json.loads(done.stdout.strip().splitlines()[-1])
@@ -240,17 +246,20 @@ def main() -> None:
             rows.append([name, r["cycles"], r["missed"], r["overruns"], f"{p['mean']:.1f}",
                          f"{p['p99']:.0f}", f"{p['max']:.0f}",
                          f"{r['loop_process_cpu_us']:.0f}", f"{r['writer_cpu_us']:.0f}",
+                         f"{r['sim_process_cpu_us']:.0f}" if "proc" in name else "-",
                          r["state"] + (f"; {r['errors'][0]}" if r["errors"] else "")])
     report("telemetry_run", f"The loop at {args.rate:g} Hz, {args.drives} drives, with and "
            "without telemetry",
            ["set", "cycles", "missed", "overruns", "period mean us", "p99 us", "max us",
-            "loop process CPU us/cycle", "writer CPU us/cycle", "end state"],
+            "loop process CPU us/cycle", "writer CPU us/cycle", "drives' process CPU us/cycle",
+            "end state"],
            rows, args=args, results={"runs": results},
            notes=["missed: cycle slots with no cycle start (a gap of k periods misses k - 1); "
                   "overruns: cycles that ended after the next one's deadline (the loop's "
                   "own count, rocoma_can/overrun.py).",
                   "loop process CPU includes the simulated drives (stepped on the loop's "
-                  "thread); the writer process records (rings.py, writer.py).", *notes])
+                  "thread) unless the set has +proc (their own process); the writer process "
+                  "records (rings.py, writer.py).", *notes])
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import can
 import pytest
 
 from rocoma_can.cli.demo import run_demo
-from rocoma_can.cli.demo_sim import SimProcess, choose
+from rocoma_can.cli.demo_sim import SimProcess
 from rocoma_can.cli.main import main
 from rocoma_can.exit_codes import USAGE
 
@@ -104,21 +104,14 @@ def test_the_demo_passes_with_its_drives_in_a_process_of_their_own_or_in_the_loo
             assert int(said[0].group(1)) != os.getpid()
 
 
-def test_auto_takes_the_process_only_with_a_core_for_each_busy_process(monkeypatch):
-    """The loop's, the recording writer's and the drives' (demo_sim.PROCESS_CPUS)."""
-    for cpus, expected in ((1, "loop"), (2, "loop"), (3, "process"), (8, "process")):
-        monkeypatch.setattr(os, "sched_getaffinity", lambda pid, n=cpus: set(range(n)))
-        assert choose("auto", "inproc") == expected
-        assert choose("auto", "virtual") == "loop"  # no link joins python-can's bus
-    assert choose("process", "inproc") == "process" and choose("loop", "inproc") == "loop"
-    with pytest.raises(ValueError, match="--sim process needs --interface inproc"):
-        choose("process", "virtual")
-
-
-def test_the_cli_refuses_a_process_on_a_bus_no_link_joins(capsys):
+def test_a_process_on_a_bus_no_link_joins_is_refused(capsys):
     assert main(["demo", "--sim", "process", "--interface", "virtual"]) == USAGE
     assert "demo: --sim process needs --interface inproc: the virtual bus joins no other " \
         "process" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="--sim process needs --interface inproc"):
+        run_demo(drives=2, sim="process", interface="virtual", out=lambda line: None)
+    with pytest.raises(ValueError, match="--sim must be one of loop, process, got 'thread'"):
+        run_demo(drives=2, sim="thread", out=lambda line: None)
 
 
 def test_a_demo_whose_drives_process_dies_fails_and_says_so(monkeypatch):

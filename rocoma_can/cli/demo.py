@@ -49,12 +49,11 @@ from .demo_config import (
 )
 from .demo_report import Report, Said, Step, grouped_notes, plot_run, status_lines, summary
 from .demo_sim import (
-    PROCESS_CPUS,
     SIM_CHOICES,
     DemoSimulator,
     InProcessSim,
     SimProcess,
-    choose,
+    check_choice,
 )
 
 #: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
@@ -311,7 +310,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              flight: str | Path | None = None,
              foxglove: FoxgloveConfig | None = None,
              data_bitrate: int | None = None, channel: str | None = None,
-             sim: str = "auto") -> Report:
+             sim: str = "loop") -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
@@ -326,8 +325,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     bit rate switching, the drives' PDOs up to FD_PDO_BYTES, the load checked as for real
     buses (ConfigError when it does not fit). ``channel``: the in-process channel (several
     buses: ``channel-0``, ...) another part of this process can listen on; default: a new
-    one per run. ``sim``: where the simulated drives run, ``process`` (one of their own),
-    ``loop`` (stepped by the loop's thread) or ``auto`` (demo_sim.choose)."""
+    one per run. ``sim``: where the simulated drives run, ``loop`` (stepped by the loop's
+    thread after each write) or ``process`` (one of their own; demo_sim.py)."""
     from ..drivers.bus import BusReader, open_bus, readers_for
     from ..live.urdf import parse_urdf
     from ..runtime.config import validate
@@ -370,7 +369,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     try:
         # the drives in a process of their own, as a robot's compute in theirs
         # (demo_sim.py); python-can's virtual bus joins no other process
-        if choose(sim, interface) == "loop":
+        check_choice(sim, interface)
+        if sim == "loop":
             in_process = InProcessSim(sim_buses, interface, emulated, fd)
             simulator, on_cycle = in_process, in_process.on_cycle(watch)
         else:
@@ -473,11 +473,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--interface", choices=("inproc", "virtual"), default=DEFAULT_INTERFACE,
                    help="in-process bus: inproc (default; one copy per frame, fit for "
                         "1 kHz) or python-can's virtual (a copy per frame and receiver)")
-    p.add_argument("--sim", choices=SIM_CHOICES, default="auto",
-                   help="where the simulated drives run: process (their own, so the loop pays "
-                        "only for their frames, as with real drives; inproc buses), loop "
-                        "(stepped by the loop after each write) or auto (default: process on "
-                        f"a host with {PROCESS_CPUS}+ CPUs, else loop)")
+    p.add_argument("--sim", choices=SIM_CHOICES, default="loop",
+                   help="where the simulated drives run: loop (default: stepped by the loop "
+                        "after each write) or process (their own, so the loop pays only for "
+                        "their frames, as with real drives: for a host with a core for each "
+                        "busy process; inproc buses)")
     p.add_argument("--duration", type=seconds, default=16.0,
                    help="the walk-through's length, s, from bring-up to the loop's stop: its "
                         "pauses stretch to end it then (default 16; steps slower than their "
@@ -512,7 +512,7 @@ def _main(args: argparse.Namespace) -> int:
               + ("" if args.fd else " without --fd"), flush=True)
         return USAGE
     try:
-        choose(args.sim, args.interface)
+        check_choice(args.sim, args.interface)
     except ValueError as exc:
         print(f"demo: {exc}", flush=True)
         return USAGE

@@ -12,16 +12,15 @@ In the loop's process (``InProcessSim``) the loop's thread steps the simulator a
 write (lockstep; group.py says why that beats a thread of its own in a shared interpreter).
 Either way the demo sees one ``DemoSimulator``.
 
-``--sim auto`` (the default) takes the process where the host has a core for each busy
-process (the loop's, the recording's writer and the drives'), else the loop. Measured on 2
-cores, 12 drives on 4 buses at 1 kHz: without recording the drives' process halved the
-loop's overruns, but with recording on, three busy processes on two cores made them 1-3x
-those of the lockstep simulator (benchmarks/README.md).
+``--sim loop`` is the default: measured on 2 cores, 12 drives on 4 buses at 1 kHz, the
+drives' process halved the loop's work per cycle (and, in the demo without recording, its
+overruns), but it is a third busy process (~0.4 of a core): with recording on, the loop,
+the writer and the drives on two cores overran 1-3x as often as with the lockstep
+simulator (benchmarks/README.md). ``--sim process`` is for a host with a core for each.
 """
 from __future__ import annotations
 
 import json
-import os
 import queue
 import socket
 import subprocess
@@ -48,9 +47,7 @@ LINK_IDLE = 0.1
 STOP_TIMEOUT = 5.0
 
 #: ``--sim`` choices: where the drives run
-SIM_CHOICES = ("auto", "process", "loop")
-#: CPUs ``auto`` wants for the process: the loop's, the writer's and the drives' own
-PROCESS_CPUS = 3
+SIM_CHOICES = ("loop", "process")
 
 #: (channel, node ids of the drives on it) per bus, in the buses' order
 Buses = Sequence[tuple[str, Sequence[int]]]
@@ -79,19 +76,14 @@ class DemoSimulator(Protocol):
     def stop(self) -> None: ...
 
 
-def choose(sim: str, interface: str) -> str:
-    """``process`` or ``loop`` for a ``--sim`` choice; ValueError for a process on an
-    interface no link joins (python-can's ``virtual``)."""
+def check_choice(sim: str, interface: str) -> None:
+    """ValueError for a ``--sim`` that is not one, or a process on an interface no link
+    joins (python-can's ``virtual``)."""
     if sim not in SIM_CHOICES:
         raise ValueError(f"--sim must be one of {', '.join(SIM_CHOICES)}, got {sim!r}")
-    if sim == "auto":
-        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
-            else os.cpu_count() or 1
-        return "process" if interface == "inproc" and cpus >= PROCESS_CPUS else "loop"
     if sim == "process" and interface != "inproc":
         raise ValueError(f"--sim process needs --interface inproc: the {interface} bus joins "
                          "no other process")
-    return sim
 
 
 def open_segments(buses: Buses, interface: str, emulated: Emulated | None,
@@ -122,6 +114,7 @@ class InProcessSim:
         self.segments = open_segments(buses, interface, emulated, fd)
         self.node_ids = self.segments[0].node_ids
         self.where = "in this process, stepped by the loop after each write"
+        self.pid: int | None = None  # (no process of their own)
         self.group: SegmentGroup = SegmentGroup(self.segments).start(lockstep=True)
 
     def on_cycle(self, after: Callable[[float], None]) -> Callable[[float], None]:
@@ -172,7 +165,8 @@ class SimProcess:
                                           name="demo-sim-stderr", daemon=True)]
         for t in self._threads:
             t.start()
-        self.where = f"in a process of their own (pid {self._child.pid})"
+        self.pid: int | None = self._child.pid
+        self.where = f"in a process of their own (pid {self.pid})"
         try:
             self._reply(START_TIMEOUT, "start")
         except BaseException:
