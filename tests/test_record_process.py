@@ -287,3 +287,17 @@ def test_a_stop_signal_to_every_process_of_the_service_leaves_the_writer_to_its_
     cycles = [m for topic, _, m in read_messages(str(tmp_path / "rec" / "trace.mcap"))
               if topic == "/rocoma/cycle"]
     assert len(cycles) == rt.loop.stats.cycles
+
+
+def test_the_writer_keeps_off_the_cpus_the_loop_is_pinned_to(demo_bench, tmp_path):
+    """realtime.cpus pins the loop's thread; the writer process (which would inherit the
+    caller's affinity) runs on the other CPUs, or on all of them when there are no others."""
+    config, _segment = demo_bench
+    allowed = os.sched_getaffinity(0)
+    config.cpus = {min(allowed)}
+    with Runtime(config, flight=str(tmp_path / "flight")) as rt:
+        assert rt.recorder is not None
+        writer = rt.recorder._process.pid
+        assert os.sched_getaffinity(writer) == (allowed - config.cpus or allowed)
+        assert os.sched_getaffinity(0) == allowed  # the caller's own is not changed
+

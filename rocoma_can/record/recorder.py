@@ -7,7 +7,8 @@ core at 1 kHz with 12 drives, and in the loop's interpreter they took that from 
 So the loop's process only copies, into rings in shared memory (rings.py): each cycle's
 signal row (trace.SignalTrace, ~4 µs) and each frame its buses carried (~0.3 µs a frame:
 the hardware's own reader hands the received ones over, BusPort the sent ones; no second
-socket). Everything else runs in a process of its own (writer.py), niced, on the other core:
+socket). Everything else runs in a process of its own (writer.py), niced, on the other core
+(never on CPUs the loop is pinned to, ``loop_cpus``: realtime.cpus, while there are others):
 it reads the rings every 50 ms, writes ``--record``'s files and, on an e-stop, a flight
 record from the rings' last ``seconds``, and serves the live view (live/server.py) from the
 same rows: only the answers to its service calls and, while a viewer watches it, the
@@ -31,7 +32,7 @@ import queue
 import subprocess
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Protocol
@@ -117,7 +118,7 @@ class Recorder:
                  flight: str | None = None, seconds: float = 10.0,
                  controllers: Sequence[str] = (), robot: Robot | None = None,
                  announce: Callable[[str], None] | None = None,
-                 view: LiveView | None = None) -> None:
+                 view: LiveView | None = None, loop_cpus: Collection[int] = ()) -> None:
         if record is None and flight is None and view is None:
             raise ValueError("a recorder records or serves something: record, flight, "
                              "view")
@@ -155,7 +156,7 @@ class Recorder:
                     list(state.names), dict(self.trace.controllers), record, flight, seconds,
                     rate, robot.text if robot is not None else None,
                     robot.source if robot is not None else "",
-                    view.settings() if view is not None else None)
+                    view.settings() if view is not None else None, sorted(loop_cpus))
         try:
             self._process = subprocess.Popen(
                 [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,

@@ -36,7 +36,7 @@ import threading
 import time
 from collections.abc import Mapping
 from concurrent.futures import Future, InvalidStateError
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
@@ -75,6 +75,7 @@ class Spec:
     urdf: str | None = None   # the robot's URDF text (urdf_source names it)
     urdf_source: str = ""
     foxglove: dict[str, Any] | None = None  # the live view's server (host, port, ...)
+    loop_cpus: list[int] = field(default_factory=list)  # realtime.cpus: kept off them
 
     def to_json(self) -> str:
         return json.dumps(asdict(self))
@@ -272,6 +273,17 @@ def _read_commands(stream: IO[str], writer: Writer,
         commands.put(None)
 
 
+def keep_off(loop_cpus: list[int]) -> None:
+    """This process (before it starts a thread: threads inherit it) off the CPUs the loop
+    is pinned to (``realtime.cpus``), while others are left to it. A pinned loop's CPU is
+    often isolated (isolcpus), where the scheduler puts nothing of its own accord, but a
+    child inherits its parent's affinity, and the parent may be pinned there whole."""
+    if loop_cpus and hasattr(os, "sched_setaffinity"):
+        others = os.sched_getaffinity(0) - set(loop_cpus)
+        if others:
+            os.sched_setaffinity(0, others)
+
+
 def main() -> int:
     # A stop signal is the loop's process's to act on: it closes this writer after its
     # torque-off. systemd stops a service by signalling every process of it, this one too,
@@ -287,6 +299,7 @@ def main() -> int:
     reply = sys.stdout
     try:
         spec = Spec.from_json(sys.stdin.readline())
+        keep_off(spec.loop_cpus)
         writer = Writer(spec, reply)
     except ServeError as exc:
         reply.write(json.dumps({"failed": str(exc), "of": "foxglove"}) + "\n")

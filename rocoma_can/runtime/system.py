@@ -185,7 +185,8 @@ class Runtime:
             self.hardware.state, self.hardware.command, self.manager, config.rate,
             [BusToRecord(b.label, b.channel, b.fd) for b in config.buses], record=record,
             flight=flight, seconds=seconds, controllers=list(self.manager.adapters()),
-            robot=config.robot, announce=announce, view=self.foxglove)
+            robot=config.robot, announce=announce, view=self.foxglove,
+            loop_cpus=config.cpus or ())
         self.flight, self.recording = recorder.flight, recorder.recording
         # closed after the manager's shutdown, which delivers its last events (the loop's
         # stop) to it: what it writes ends with how it ended
