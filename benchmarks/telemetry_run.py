@@ -96,9 +96,6 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
                         "multicast": False}
     config = validate(raw, source="benchmark")
     sim_buses = [(b.channel, [d.node_id for d in config.drives_on(b)]) for b in config.buses]
-    simulator: InProcessSim | SimProcess = (
-        SimProcess(sim_buses, None, drives, "fd" in parts) if "proc" in parts
-        else InProcessSim(sim_buses, "inproc", None, "fd" in parts))
     starts = np.zeros(int(rate * (duration + 60)) + 1000)
     count = [0]
 
@@ -116,6 +113,9 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
     with tempfile.TemporaryDirectory() as tmp:
         record = str(Path(tmp) / "rec") if "record" in parts else None
         flight = str(Path(tmp) / "flight") if parts & {"flight", "record"} else None
+        simulator: InProcessSim | SimProcess = (
+            SimProcess(sim_buses, None, drives, "fd" in parts) if "proc" in parts
+            else InProcessSim(sim_buses, "inproc", None, "fd" in parts))
         try:
             with Runtime(config, record=record, on_cycle=(
                     simulator.on_cycle(on_cycle) if isinstance(simulator, InProcessSim)

@@ -45,6 +45,28 @@ DEFAULT_RX_QUEUE_SIZE = 65536
 _new_message = Message.__new__
 
 
+def received(timestamp: float, arbitration_id: int, is_extended_id: bool,
+             is_remote_frame: bool, is_error_frame: bool, channel: str, dlc: int,
+             data: bytearray, is_fd: bool, bitrate_switch: bool,
+             error_state_indicator: bool) -> Message:
+    """A received frame, built field by field: ``Message()`` checks and converts, ~4x the
+    cost, and every frame given here passed its checks when it was sent."""
+    msg = _new_message(Message)
+    msg.timestamp = timestamp
+    msg.arbitration_id = arbitration_id
+    msg.is_extended_id = is_extended_id
+    msg.is_remote_frame = is_remote_frame
+    msg.is_error_frame = is_error_frame
+    msg.channel = channel
+    msg.dlc = dlc
+    msg.data = data
+    msg.is_fd = is_fd
+    msg.is_rx = True
+    msg.bitrate_switch = bitrate_switch
+    msg.error_state_indicator = error_state_indicator
+    return msg
+
+
 class InProcessBus(BusABC):
     """One endpoint on an in-process channel; see the module docstring."""
 
@@ -78,20 +100,10 @@ class InProcessBus(BusABC):
         """Deliver a copy of ``msg`` to every other bus on the channel; never blocks."""
         if not self._open:
             raise can.CanOperationError(f"{self.channel_info}: the bus is shut down")
-        copy = _new_message(Message)  # Message() checks and converts: ~4x the cost
-        copy.timestamp = time.time()
-        copy.arbitration_id = msg.arbitration_id
-        copy.is_extended_id = msg.is_extended_id
-        copy.is_remote_frame = msg.is_remote_frame
-        copy.is_error_frame = msg.is_error_frame
-        copy.channel = self.channel_id
-        copy.dlc = msg.dlc
-        copy.data = bytearray(msg.data)
-        copy.is_fd = msg.is_fd
-        copy.is_rx = True
-        copy.bitrate_switch = msg.bitrate_switch
-        copy.error_state_indicator = msg.error_state_indicator
-        self._broadcast(copy)
+        self._broadcast(received(time.time(), msg.arbitration_id, msg.is_extended_id,
+                                 msg.is_remote_frame, msg.is_error_frame, self.channel_id,
+                                 msg.dlc, bytearray(msg.data), msg.is_fd,
+                                 msg.bitrate_switch, msg.error_state_indicator))
 
     def _broadcast(self, copy: Message) -> None:
         """Hand ``copy`` (this send's own, read-only from here on) to every other endpoint."""

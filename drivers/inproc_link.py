@@ -41,7 +41,7 @@ from collections.abc import Callable, Sequence
 
 from can import Message
 
-from .inproc import InProcessBus
+from .inproc import InProcessBus, received
 
 #: channel index, identifier, flags (FLAG_*), DLC, data length; the data follows
 FRAME = struct.Struct("=BIBBB")
@@ -50,11 +50,11 @@ FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_FD, FLAG_BRS, FLAG_ESI = 1, 2, 4, 8
 MAX_DATAGRAM = 1 << 16
 #: a datagram in the making is written once this long (the next frame could not fit)
 FLUSH_AT = MAX_DATAGRAM - FRAME.size - 64
-#: bytes the kernel may hold for the other process before a write is dropped (Linux caps
-#: it at net.core.wmem_max: 4 MiB here, ~2 s of a 12-drive bench at 1 kHz)
+#: bytes the kernel may hold for the other process before a write is dropped, asked for;
+#: Linux caps it at net.core.wmem_max (212,992 bytes on a stock kernel: ~0.3 s of a
+#: 12-drive bench at 1 kHz; 4 MiB on the machine this was measured on, ~2 s)
 SEND_BUFFER = 4 << 20
 _SEND_FLAGS = socket.MSG_DONTWAIT | getattr(socket, "MSG_NOSIGNAL", 0)
-_new_message = Message.__new__
 
 
 class _LinkEnd(InProcessBus):
@@ -93,11 +93,18 @@ class InProcessLink:
                  name: str = "inproc-link") -> None:
         if not 0 < len(channels) <= 256:
             raise ValueError(f"a link joins 1 to 256 channels, got {len(channels)}")
+        if len(set(map(str, channels))) != len(channels):
+            raise ValueError(f"a link joins each channel once, got {list(channels)}")
         self._sock = sock
         self.channels = tuple(str(c) for c in channels)
         self.on_close = on_close
         self.tx_datagrams = self.tx_dropped = self.rx_frames = self.rx_bad = 0
         self.closed = threading.Event()
+        # blocking, without a timeout: with one, CPython waits on a full socket even with
+        # MSG_DONTWAIT (a sender would block), and ends a receive thread's read by raising
+        sock.settimeout(None)
+        self._poll = select.poll()
+        self._poll.register(sock, select.POLLIN)
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
         except OSError:  # a platform that refuses: its default buffer
@@ -159,9 +166,9 @@ class InProcessLink:
         waiting; the number handed over (0 when the link has closed: see ``closed``)."""
         if self.closed.is_set():
             return 0
-        try:
-            ready, _, _ = select.select((self._sock,), (), (), timeout)
-        except (OSError, ValueError):  # closed meanwhile
+        try:  # (poll: select refuses descriptors past 1023)
+            ready = self._poll.poll(max(0, round(timeout * 1000)))
+        except OSError:  # closed meanwhile
             self._end()
             return 0
         count = 0
@@ -217,22 +224,12 @@ class InProcessLink:
                     self.rx_bad += 1
                     return
                 end = ends[index]
-                msg = _new_message(Message)
-                msg.timestamp = stamp
-                msg.arbitration_id = cob_id
-                msg.is_extended_id = bool(flags & FLAG_EXTENDED)
-                msg.is_remote_frame = bool(flags & FLAG_REMOTE)
-                msg.is_error_frame = bool(flags & FLAG_ERROR)
-                msg.channel = end.channel_id
-                msg.dlc = dlc
-                msg.data = buf[at:at + length]
-                msg.is_fd = bool(flags & FLAG_FD)
-                msg.is_rx = True
-                msg.bitrate_switch = bool(flags & FLAG_BRS)
-                msg.error_state_indicator = bool(flags & FLAG_ESI)
+                end._broadcast(received(
+                    stamp, cob_id, bool(flags & FLAG_EXTENDED), bool(flags & FLAG_REMOTE),
+                    bool(flags & FLAG_ERROR), end.channel_id, dlc, buf[at:at + length],
+                    bool(flags & FLAG_FD), bool(flags & FLAG_BRS), bool(flags & FLAG_ESI)))
                 at += length
                 self.rx_frames += 1
-                end._broadcast(msg)
         finally:
             for end in ends:
                 end.release_wakeups()

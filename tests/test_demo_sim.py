@@ -14,6 +14,7 @@ import pytest
 from rocoma_can.cli.demo import run_demo
 from rocoma_can.cli.demo_sim import SimProcess
 from rocoma_can.cli.main import main
+from rocoma_can.errors import SimulatorFailed
 from rocoma_can.exit_codes import USAGE
 
 WAIT = 10.0  # s: a bound for the child's frames, never expected to be reached
@@ -115,8 +116,10 @@ def test_a_process_on_a_bus_no_link_joins_is_refused(capsys):
 
 
 def test_a_demo_whose_drives_process_dies_fails_and_says_so(monkeypatch):
-    """The drives' process killed mid-run: the manager loses the drives (their silence is
-    what it sees), the loop still ends in torque-off, and the demo fails, saying why."""
+    """The drives' process killed mid-run: the operator's next fault injection fails, the
+    walk-through ends, the loop's stop still sends every drive its torque-off frames, and
+    the demo fails, saying why (the drives' silence is for the manager's supervision to
+    see: test_driver_bus_supervision)."""
     started: list[SimProcess] = []
     real_init = SimProcess.__init__
 
@@ -134,3 +137,30 @@ def test_a_demo_whose_drives_process_dies_fails_and_says_so(monkeypatch):
     assert not report.ok
     text = "\n".join(seen)
     assert "FAILED simulated drives: simulator process ended (exit code -9)" in text, text
+    assert "FAILED operator: SimulatorFailed: simulator process ended (exit code -9)" in text
+    stop = next(s for s in report.steps if s.name == "loop stop -> torque-off frames")
+    assert stop.ok, stop.detail
+
+
+def test_a_simulator_process_that_ends_early_fails_the_check_whatever_its_code(channels):
+    """Ended before the demo stopped it, with exit code 0 too (its link gone, say): the
+    drives were gone, so the check says so."""
+    sim = SimProcess([(channels[0], [1])], None, 1, False)
+    try:
+        sim.link.close()  # the child's link ends: it ends, by itself, with code 0
+        sim._child.wait(WAIT)
+        assert sim._child.returncode == 0
+        with pytest.raises(SimulatorFailed, match=r"simulator process ended \(exit code 0\)"):
+            sim.check()
+    finally:
+        sim.stop()
+
+
+def test_a_late_answer_is_not_taken_for_the_next_requests(channels):
+    sim = SimProcess([(channels[0], [1])], None, 1, False)
+    try:
+        sim._replies.put({"ok": True, "id": 99})  # as if a request timed out before it came
+        assert sim.trip_fault(1) > 0  # its own answer, with "tripped"
+        sim.check()
+    finally:
+        sim.stop()

@@ -19,6 +19,7 @@ import pytest
 from rocoma_can.drivers.inproc_link import FRAME, InProcessLink
 
 WAIT = 2.0  # s for a frame to cross: a bound, never expected to be reached
+TIMEOUT = 20.0  # s: a socket timeout a send would wait out if the link kept it
 
 
 def _open(channel: str) -> can.BusABC:
@@ -184,6 +185,34 @@ def test_the_other_end_closing_ends_the_link_and_says_so():
         sa.close()
 
 
+def test_a_socket_with_a_timeout_is_made_blocking_so_a_send_never_waits():
+    """A default timeout set anywhere in the process would make CPython wait on a full
+    socket despite MSG_DONTWAIT, and end a receive thread's read by raising."""
+    tag = uuid.uuid4().hex[:8]
+    previous = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(TIMEOUT)
+    try:
+        sa, sb = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    finally:
+        socket.setdefaulttimeout(previous)
+    la = InProcessLink(sa, [f"t-{tag}"])
+    tx = _open(f"t-{tag}")
+    try:
+        assert sa.gettimeout() is None
+        frame = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
+        while la.tx_dropped == 0:  # fills the socket; each send returns at once
+            tx.send(frame)
+        t0 = time.monotonic()
+        tx.send(frame)
+        assert la.tx_dropped == 2
+        assert time.monotonic() - t0 < TIMEOUT / 2  # not the timeout's wait
+    finally:
+        tx.shutdown()
+        la.close()
+        sa.close()
+        sb.close()
+
+
 def test_receive_on_the_callers_thread_waits_at_most_its_timeout_then_takes_all_waiting():
     tag = uuid.uuid4().hex[:8]
     sa, sb = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -229,11 +258,14 @@ def test_a_datagram_that_is_not_one_is_counted_and_the_link_goes_on():
         sb.close()
 
 
-def test_a_link_joins_one_to_256_channels():
+def test_a_link_joins_one_to_256_channels_each_once():
     sa, sb = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     try:
         with pytest.raises(ValueError, match="1 to 256 channels, got 0"):
             InProcessLink(sa, [])
+        # twice: what one end hands over the other would send back across
+        with pytest.raises(ValueError, match=r"each channel once, got \['x', 'y', 'x'\]"):
+            InProcessLink(sa, ["x", "y", "x"])
     finally:
         sa.close()
         sb.close()

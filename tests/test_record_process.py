@@ -290,14 +290,21 @@ def test_a_stop_signal_to_every_process_of_the_service_leaves_the_writer_to_its_
 
 
 def test_the_writer_keeps_off_the_cpus_the_loop_is_pinned_to(demo_bench, tmp_path):
-    """realtime.cpus pins the loop's thread; the writer process (which would inherit the
-    caller's affinity) runs on the other CPUs, or on all of them when there are no others."""
+    """realtime.cpus pins the loop's thread; the writer process runs on the other CPUs,
+    every thread of it, even when it was started from a thread pinned whole to the loop's
+    CPU (it inherits that); with no other CPU it stays where it is."""
     config, _segment = demo_bench
     allowed = os.sched_getaffinity(0)
     config.cpus = {min(allowed)}
-    with Runtime(config, flight=str(tmp_path / "flight")) as rt:
-        assert rt.recorder is not None
-        writer = rt.recorder._process.pid
-        assert os.sched_getaffinity(writer) == (allowed - config.cpus or allowed)
-        assert os.sched_getaffinity(0) == allowed  # the caller's own is not changed
+    os.sched_setaffinity(0, config.cpus)  # this thread: the process pinned whole
+    try:
+        with Runtime(config, flight=str(tmp_path / "flight")) as rt:
+            assert rt.recorder is not None
+            writer = rt.recorder._process.pid
+            tasks = os.listdir(f"/proc/{writer}/task")  # (numpy's threads among them)
+            expected = allowed - config.cpus or config.cpus
+            assert {t: os.sched_getaffinity(int(t)) for t in tasks} == \
+                {t: expected for t in tasks}
+    finally:
+        os.sched_setaffinity(0, allowed)
 

@@ -367,8 +367,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     hardware_log = logging.getLogger("rocoma_can.drivers.hardware")
     hardware_log.addFilter(said)
     try:
-        # the drives in a process of their own, as a robot's compute in theirs
-        # (demo_sim.py); python-can's virtual bus joins no other process
+        # the drives stepped by the loop, or in a process of their own (demo_sim.py: as a
+        # robot's compute in theirs; python-can's virtual bus joins no other process)
         check_choice(sim, interface)
         if sim == "loop":
             in_process = InProcessSim(sim_buses, interface, emulated, fd)

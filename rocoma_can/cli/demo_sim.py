@@ -1,12 +1,13 @@
-"""The demo's simulated drives, in a process of their own or in the loop's (``choose``).
+"""The demo's simulated drives, in the loop's process (the default) or in one of their own.
 
 In its own process (``SimProcess``) the simulator costs the control loop what real drives
 would: the frames. The child (``python -m rocoma_can.cli.demo_sim``, started here) opens a
-segment of drives per bus on its own in-process channels, serves them with one receive
-thread (drivers/sim/group.py) and joins the channels to the demo's over a socket pair
-(drivers/inproc_link.py). The operator's fault injections and the final check go over the
-child's stdin and stdout, one JSON line each way; the child ends when its stdin closes
-(the demo ended or died) or on ``stop``.
+segment of drives per bus on its own in-process channels, joins the channels to the demo's
+over a socket pair (drivers/inproc_link.py), and on its main thread reads the link and
+steps the drives that got frames at once (drivers/sim/group.py's lockstep pass). The
+operator's fault injections and the final check go over the child's stdin and stdout, one
+JSON line each way, matched by id; the child ends on ``stop``, when its stdin closes or its
+link ends (the demo ended or died), never on a signal meant for the demo.
 
 In the loop's process (``InProcessSim``) the loop's thread steps the simulator after each
 write (lockstep; group.py says why that beats a thread of its own in a shared interpreter).
@@ -20,8 +21,10 @@ simulator (benchmarks/README.md). ``--sim process`` is for a host with a core fo
 """
 from __future__ import annotations
 
+import itertools
 import json
 import queue
+import signal
 import socket
 import subprocess
 import sys
@@ -138,26 +141,35 @@ class SimProcess:
     def __init__(self, buses: Buses, eds: str | None, drives: int, fd: bool) -> None:
         from ..drivers.inproc_link import InProcessLink
         self.node_ids = list(buses[0][1])
-        self.stderr: list[str] = []  # the child's, kept for check()
-        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        self._sock = ours
-        self.link = InProcessLink(ours, [c for c, _ in buses], fd=fd, name="demo-sim-link")
+        self.stderr: list[str] = []  # the child's, kept for what check() says
+        self._replies: queue.Queue[dict[str, Any] | None] = queue.Queue()
+        self._ids = itertools.count(1)
+        self._gone = False  # the child's answers ended (it ended or died)
+        self._stopping = False
+        self._threads: list[threading.Thread] = []
         spec = {"buses": [[c, list(n)] for c, n in buses], "eds": eds, "drives": drives,
                 "fd": fd}
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self._sock = ours
         try:
-            self.link.start()
-            self._child = subprocess.Popen(
-                [sys.executable, "-m", __name__, "--link-fd", str(theirs.fileno()),
-                 json.dumps(spec)],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                text=True, pass_fds=(theirs.fileno(),))
+            self.link = InProcessLink(ours, [c for c, _ in buses], fd=fd,
+                                      name="demo-sim-link").start()
+            try:
+                # a session of its own: a Ctrl-C is the demo's to act on (its loop ends in
+                # torque-off while the drives still answer), and the demo stops the child
+                self._child = subprocess.Popen(
+                    [sys.executable, "-m", __name__, "--link-fd", str(theirs.fileno()),
+                     json.dumps(spec)],
+                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                    text=True, pass_fds=(theirs.fileno(),), start_new_session=True)
+            except BaseException:
+                self.link.close()
+                raise
         except BaseException:
-            self.link.close()
             ours.close()
             raise
         finally:
             theirs.close()
-        self._replies: queue.Queue[dict[str, Any] | None] = queue.Queue()
         assert self._child.stdout is not None and self._child.stderr is not None
         self._threads = [threading.Thread(target=self._read_replies, args=(self._child.stdout,),
                                           name="demo-sim-replies", daemon=True),
@@ -168,59 +180,74 @@ class SimProcess:
         self.pid: int | None = self._child.pid
         self.where = f"in a process of their own (pid {self.pid})"
         try:
-            self._reply(START_TIMEOUT, "start")
+            self._reply(0, START_TIMEOUT, "start")
         except BaseException:
             self.stop()
             raise
 
     def trip_fault(self, node: int) -> float:
-        return float(self._request({"op": "trip_fault", "node": node})["tripped"])
+        return float(self._request("trip_fault", node=node)["tripped"])
 
     def check(self) -> None:
-        if self._child.poll() is None:
-            self._request({"op": "check"})
-        elif self._child.returncode != 0:
+        if self._child.poll() is not None:  # it ended before the demo stopped it
             raise SimulatorFailed(self._ended())
+        self._request("check")
 
     def stop(self) -> None:
         """End the child (killed after STOP_TIMEOUT), then the link; idempotent."""
+        self._stopping = True
+        child = self._child if hasattr(self, "_child") else None
         try:
-            if self._child.poll() is None and self._child.stdin is not None:
+            if child is not None and child.poll() is None:
+                self._send({"op": "stop", "id": 0})
                 try:
-                    self._child.stdin.write(json.dumps({"op": "stop"}) + "\n")
-                    self._child.stdin.flush()
-                    self._child.stdin.close()
-                except OSError:  # it ended meanwhile
-                    pass
-                try:
-                    self._child.wait(STOP_TIMEOUT)
+                    child.wait(STOP_TIMEOUT)
                 except subprocess.TimeoutExpired:
-                    self._child.kill()
-                    self._child.wait(STOP_TIMEOUT)
+                    child.kill()
+                    child.wait(STOP_TIMEOUT)
         finally:
             self.link.close()
             self._sock.close()
             for t in self._threads:
                 t.join(1.0)
+            if child is not None:
+                for stream in (child.stdin, child.stdout, child.stderr):
+                    try:
+                        if stream is not None:
+                            stream.close()
+                    except OSError:  # unflushed lines to a child that died
+                        pass
 
-    def _request(self, request: dict[str, Any]) -> dict[str, Any]:
-        what = str(request["op"])
-        assert self._child.stdin is not None
+    def _send(self, request: dict[str, Any]) -> bool:
+        stdin = self._child.stdin
         try:
-            self._child.stdin.write(json.dumps(request) + "\n")
-            self._child.stdin.flush()
-        except OSError:
-            raise SimulatorFailed(self._ended()) from None
-        return self._reply(REPLY_TIMEOUT, what)
+            assert stdin is not None
+            stdin.write(json.dumps(request) + "\n")
+            stdin.flush()
+            return True
+        except (OSError, ValueError):  # it ended (a broken pipe), or stdin closed
+            return False
 
-    def _reply(self, timeout: float, what: str) -> dict[str, Any]:
-        try:
-            reply = self._replies.get(timeout=timeout)
-        except queue.Empty:
-            raise SimulatorFailed(f"simulator process: no answer to {what} in {timeout:g} s") \
-                from None
-        if reply is None:
+    def _request(self, op: str, **args: Any) -> dict[str, Any]:
+        ident = next(self._ids)
+        if self._gone or not self._send({"op": op, "id": ident, **args}):
             raise SimulatorFailed(self._ended())
+        return self._reply(ident, REPLY_TIMEOUT, op)
+
+    def _reply(self, ident: int, timeout: float, what: str) -> dict[str, Any]:
+        """The answer to request ``ident``: one that came late to an earlier request (after
+        its timeout) is passed over."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                reply = self._replies.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise SimulatorFailed(f"simulator process: no answer to {what} in "
+                                      f"{timeout:g} s") from None
+            if reply is None:
+                raise SimulatorFailed(self._ended())
+            if reply.get("id") == ident:
+                break
         if not reply.get("ok"):
             raise SimulatorFailed(f"simulator process: {what} failed: {reply.get('error')}")
         return reply
@@ -234,17 +261,24 @@ class SimProcess:
         return (f"simulator process ended (exit code {code})" + (f": {last}" if last else ""))
 
     def _read_replies(self, stream: IO[str]) -> None:
-        for line in stream:
-            try:
-                self._replies.put(json.loads(line))
-            except ValueError:
-                self.stderr.append(line.rstrip())
+        try:
+            for line in stream:
+                try:
+                    self._replies.put(json.loads(line))
+                except ValueError:
+                    self.stderr.append(line.rstrip())
+        except (OSError, ValueError):  # closed by stop()
+            pass
+        self._gone = True
         self._replies.put(None)
 
     def _read_stderr(self, stream: IO[str]) -> None:
-        for line in stream:
-            self.stderr.append(line.rstrip())
-            sys.stderr.write(f"rocoma-can demo (simulator): {line}")
+        try:
+            for line in stream:
+                self.stderr.append(line.rstrip())
+                sys.stderr.write(f"rocoma-can demo (simulator): {line}")
+        except (OSError, ValueError):  # closed by stop()
+            pass
 
 
 def _serve(group: SegmentGroup, segments: Sequence[SimulatedSegment],
@@ -255,24 +289,25 @@ def _serve(group: SegmentGroup, segments: Sequence[SimulatedSegment],
         sys.stdout.flush()
 
     try:
-        answer({"ok": True})  # started
+        answer({"ok": True, "id": 0})  # started
         for line in sys.stdin:
+            ident = None
             try:
                 request = json.loads(line)
-                op = request["op"]
+                op, ident = request["op"], request.get("id")
                 if op == "stop":
                     return
                 if op == "trip_fault":
                     tripped = time.monotonic()
                     segments[0].drives[int(request["node"])].trip_fault()
-                    answer({"ok": True, "tripped": tripped})
+                    answer({"ok": True, "id": ident, "tripped": tripped})
                 elif op == "check":
                     group.check()
-                    answer({"ok": True})
+                    answer({"ok": True, "id": ident})
                 else:
-                    answer({"ok": False, "error": f"unknown request {op!r}"})
+                    answer({"ok": False, "id": ident, "error": f"unknown request {op!r}"})
             except Exception as exc:  # noqa: BLE001 - the demo reports it
-                answer({"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+                answer({"ok": False, "id": ident, "error": f"{type(exc).__name__}: {exc}"})
     finally:
         done.set()
 
@@ -284,6 +319,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ..drivers.inproc_link import InProcessLink
     from ..drivers.sim.group import SegmentGroup
     from .demo_config import emulate
+    # The demo ends this process (stop, its stdin's end, the link's); a stop signal to
+    # every process of a service is the demo's to act on, while the drives answer its
+    # loop's torque-off frames.
+    for stop in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(stop, signal.SIG_IGN)
     p = argparse.ArgumentParser(prog=f"python -m {__name__}")
     p.add_argument("--link-fd", type=int, required=True)
     p.add_argument("spec")

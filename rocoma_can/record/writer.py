@@ -274,14 +274,19 @@ def _read_commands(stream: IO[str], writer: Writer,
 
 
 def keep_off(loop_cpus: list[int]) -> None:
-    """This process (before it starts a thread: threads inherit it) off the CPUs the loop
-    is pinned to (``realtime.cpus``), while others are left to it. A pinned loop's CPU is
-    often isolated (isolcpus), where the scheduler puts nothing of its own accord, but a
-    child inherits its parent's affinity, and the parent may be pinned there whole."""
-    if loop_cpus and hasattr(os, "sched_setaffinity"):
-        others = os.sched_getaffinity(0) - set(loop_cpus)
-        if others:
-            os.sched_setaffinity(0, others)
+    """Every thread of this process (numpy's import starts some) off the CPUs the loop is
+    pinned to (``realtime.cpus``), onto the machine's others: a child inherits its parent's
+    affinity, and the parent may be pinned whole to the loop's (often isolated) CPU. The
+    kernel keeps the set within this process's cpuset; with no CPU left, it stays put."""
+    if not loop_cpus or not hasattr(os, "sched_setaffinity"):
+        return
+    others = set(range(os.cpu_count() or 1)) - set(loop_cpus)
+    for task in (os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task")
+                 else ["0"]):
+        try:
+            os.sched_setaffinity(int(task), others)
+        except OSError:  # none of them in this cpuset, or the thread just ended
+            pass
 
 
 def main() -> int:
