@@ -41,6 +41,23 @@ def pair() -> Iterator[tuple[list[str], list[str], InProcessLink, InProcessLink]
     sb.close()
 
 
+@pytest.fixture
+def unstarted() -> Iterator[tuple[InProcessLink, InProcessLink, can.BusABC, can.BusABC]]:
+    """(la, lb, a bus on la's channel, a bus on lb's): one channel each side, and neither
+    link reads by itself (the caller's ``receive`` does)."""
+    tag = uuid.uuid4().hex[:8]
+    sa, sb = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    la, lb = InProcessLink(sa, [f"a-{tag}"]), InProcessLink(sb, [f"b-{tag}"])
+    tx, rx = _open(f"a-{tag}"), _open(f"b-{tag}")
+    yield la, lb, tx, rx
+    for bus in (tx, rx):
+        bus.shutdown()
+    la.close()
+    lb.close()
+    sa.close()
+    sb.close()
+
+
 def test_every_field_of_a_frame_crosses_to_the_channel_at_the_same_position(pair):
     a, b, _, lb = pair
     tx, rx0, rx1 = _open(a[1]), _open(b[0]), _open(b[1])
@@ -137,36 +154,23 @@ def test_each_threads_frames_arrive_in_the_order_it_sent_them(pair):
             bus.shutdown()
 
 
-def test_a_full_socket_drops_and_counts_and_a_send_never_waits():
+def test_a_full_socket_drops_and_counts_and_a_send_never_waits(unstarted):
     """The other side reads nothing (a stalled process): sends go on, each at once; what
     the socket cannot take is counted, and what it took arrives once it is read."""
-    tag = uuid.uuid4().hex[:8]
-    sa, sb = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    la = InProcessLink(sa, [f"full-{tag}"])  # no receive thread: nothing reads sb
-    lb = InProcessLink(sb, [f"far-{tag}"])  # never started: nothing reads sa either
-    tx = _open(f"full-{tag}")
-    rx = _open(f"far-{tag}")
-    try:
-        frame = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
-        sends = 0
-        while la.tx_dropped == 0 and sends < 1_000_000:
-            tx.send(frame)
-            sends += 1
-        assert la.tx_dropped == 1 and la.tx_datagrams == sends - 1
-        for _ in range(10):
-            tx.send(frame)
-        assert la.tx_dropped == 11
-        assert lb.receive(WAIT) == sends - 1  # what was taken is handed over
-        assert rx.recv(0.0) is not None
-        tx.send(frame)  # room again
-        assert la.tx_dropped == 11 and lb.receive(WAIT) == 1
-    finally:
-        tx.shutdown()
-        rx.shutdown()
-        la.close()
-        lb.close()
-        sa.close()
-        sb.close()
+    la, lb, tx, rx = unstarted
+    frame = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
+    sends = 0
+    while la.tx_dropped == 0 and sends < 1_000_000:
+        tx.send(frame)
+        sends += 1
+    assert la.tx_dropped == 1 and la.tx_datagrams == sends - 1
+    for _ in range(10):
+        tx.send(frame)
+    assert la.tx_dropped == 11
+    assert lb.receive(WAIT) == sends - 1  # what was taken is handed over
+    assert rx.recv(0.0) is not None
+    tx.send(frame)  # room again
+    assert la.tx_dropped == 11 and lb.receive(WAIT) == 1
 
 
 def test_the_other_end_closing_ends_the_link_and_says_so():
@@ -213,27 +217,16 @@ def test_a_socket_with_a_timeout_is_made_blocking_so_a_send_never_waits():
         sb.close()
 
 
-def test_receive_on_the_callers_thread_waits_at_most_its_timeout_then_takes_all_waiting():
-    tag = uuid.uuid4().hex[:8]
-    sa, sb = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    la = InProcessLink(sa, [f"src-{tag}"])
-    lb = InProcessLink(sb, [f"dst-{tag}"])
-    tx, rx = _open(f"src-{tag}"), _open(f"dst-{tag}")
-    try:
-        t0 = time.monotonic()
-        assert lb.receive(0.05) == 0
-        assert time.monotonic() - t0 >= 0.05
-        for n in range(3):  # three sends, three datagrams
-            tx.send(can.Message(arbitration_id=0x300 + n, data=b"", is_extended_id=False))
-        assert lb.receive(WAIT) == 3
-        assert [rx.recv(0.0).arbitration_id for _ in range(3)] == [0x300, 0x301, 0x302]
-    finally:
-        tx.shutdown()
-        rx.shutdown()
-        la.close()
-        lb.close()
-        sa.close()
-        sb.close()
+def test_receive_on_the_callers_thread_waits_at_most_its_timeout_then_takes_all_waiting(
+        unstarted):
+    _, lb, tx, rx = unstarted
+    t0 = time.monotonic()
+    assert lb.receive(0.05) == 0
+    assert time.monotonic() - t0 >= 0.05
+    for n in range(3):  # three sends, three datagrams
+        tx.send(can.Message(arbitration_id=0x300 + n, data=b"", is_extended_id=False))
+    assert lb.receive(WAIT) == 3
+    assert [rx.recv(0.0).arbitration_id for _ in range(3)] == [0x300, 0x301, 0x302]
 
 
 def test_a_datagram_that_is_not_one_is_counted_and_the_link_goes_on():
