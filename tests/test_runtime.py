@@ -65,6 +65,16 @@ def test_duration_stops_the_loop(runtime):
     assert 0 < summary.cycles <= 0.3 * 100 + 2
 
 
+def test_a_run_ends_with_every_cycles_timing_beyond_its_ring(runtime):
+    runtime.loop.stats = CycleStats(runtime.loop.period, size=4)
+    starts: list[float] = []
+    runtime.loop.on_cycle = starts.append
+    summary = runtime.run(duration=0.3, signals=False)
+    assert summary.cycles == len(starts) > 4
+    assert summary.period_mean == pytest.approx((starts[-1] - starts[0]) / (len(starts) - 1))
+    assert summary.period_max == pytest.approx(max(b - a for a, b in zip(starts, starts[1:])))
+
+
 def test_the_gil_is_handed_over_often_while_the_loop_runs(runtime):
     """A tenth of the period (1 ms at 100 Hz) instead of Python's 5 ms, and restored."""
     import sys
@@ -161,6 +171,25 @@ def test_cycle_stats_ring():
     assert s.jitter_max == pytest.approx(0.001)  # the late cycle fell out of the ring
     assert s.period_mean == pytest.approx(0.01)
     assert s.work_max == pytest.approx(0.0005)  # (k == 7 fell out too)
+    whole = stats.summary(whole=True)  # what a run ends with: every cycle's
+    assert (whole.cycles, whole.overruns) == (20, 2)
+    assert whole.jitter_max == pytest.approx(0.02)
+    assert whole.period_max == pytest.approx(0.029)  # k 4 -> 5, the late start
+    assert whole.period_mean == pytest.approx(0.01)  # 19 periods from k 0 to k 19
+    assert whole.work_max == pytest.approx(0.0095)
+    assert whole.jitter_p99 == s.jitter_p99  # the ring's
+
+
+def test_a_run_ends_with_the_whole_runs_timing_not_its_last_ring():
+    """A 16 s demo at 1 kHz is four rings of 4096 cycles: its summary's mean and maxima
+    must be the run's, not its last four seconds'."""
+    stats = CycleStats(period=0.001, size=4)
+    starts = [0.0, 0.001, 0.005, 0.006, 0.007, 0.008, 0.009, 0.010]  # a 4 ms gap, early
+    for start in starts:
+        stats.record(start=start, deadline=start, work=0.0001)
+    whole, ring = stats.summary(whole=True), stats.summary()
+    assert whole.period_max == pytest.approx(0.004) and ring.period_max == pytest.approx(0.001)
+    assert whole.period_mean == pytest.approx(0.010 / 7)
 
 
 def test_rate_must_be_positive():

@@ -90,12 +90,15 @@ def spin_fits(spin: float, rate: float) -> bool:
 
 @dataclass(frozen=True)
 class TimingSummary:
+    """Cycle timing over the whole run (``CycleStats.summary(whole=True)``: what a run ends
+    with) or over its last cycles (the ring: what a status report shows); the p99 is always
+    the ring's."""
     cycles: int
     overruns: int             # cycles that ended after the next cycle's deadline (overran)
-    period_mean: float        # s, over the ring
+    period_mean: float        # s
     period_max: float
-    jitter_max: float         # s, |start - deadline|, over the ring
-    jitter_p99: float
+    jitter_max: float         # s, |start - deadline|
+    jitter_p99: float         # s, over the ring
     work_max: float           # s, time spent inside read/update/write
 
     def line(self) -> str:
@@ -106,7 +109,8 @@ class TimingSummary:
 
 
 class CycleStats:
-    """Per-cycle start times, lateness and work time in a ring allocated once."""
+    """Per-cycle start times, lateness and work time in a ring allocated once, and the
+    whole run's first and last start and maxima (a demo's 16 s at 1 kHz are four rings)."""
 
     def __init__(self, period: float, size: int = 4096) -> None:
         self.period = period
@@ -116,6 +120,8 @@ class CycleStats:
         self._size = size
         self.cycles = 0
         self.overruns = 0
+        self._first = self._last = math.nan  # the run's first and latest cycle start
+        self._period_max = self._late_max = self._work_max = 0.0
 
     def record(self, start: float, deadline: float, work: float) -> None:
         k = self.cycles % self._size
@@ -125,9 +131,20 @@ class CycleStats:
         self._work[k] = work
         if overran(work, late, self.period):
             self.overruns += 1
+        if self.cycles:
+            if start - self._last > self._period_max:
+                self._period_max = start - self._last
+        else:
+            self._first = start
+        self._last = start
+        if abs(late) > self._late_max:
+            self._late_max = abs(late)
+        if work > self._work_max:
+            self._work_max = work
         self.cycles += 1
 
-    def summary(self) -> TimingSummary:
+    def summary(self, whole: bool = False) -> TimingSummary:
+        """Over the ring's cycles, or (``whole``) the whole run's (the p99 is the ring's)."""
         n = min(self.cycles, self._size)
         if n == 0:
             return TimingSummary(0, 0, math.nan, math.nan, math.nan, math.nan, math.nan)
@@ -136,11 +153,18 @@ class CycleStats:
         # slot k, the oldest, may be overwritten meanwhile; it is left out.
         starts = np.concatenate((self._start[k + 1:n], self._start[:k])) if n == self._size \
             else self._start[:n]
-        periods = np.diff(starts) if n > 1 else np.array([self.period])
         late = np.abs(self._late[:n])
+        p99 = float(np.percentile(late, 99))
+        if whole:
+            mean = (self._last - self._first) / (self.cycles - 1) if self.cycles > 1 \
+                else self.period
+            return TimingSummary(self.cycles, self.overruns, mean,
+                                 self._period_max if self.cycles > 1 else self.period,
+                                 self._late_max, p99, self._work_max)
+        periods = np.diff(starts) if n > 1 else np.array([self.period])
         return TimingSummary(self.cycles, self.overruns, float(periods.mean()),
-                             float(periods.max()), float(late.max()),
-                             float(np.percentile(late, 99)), float(self._work[:n].max()))
+                             float(periods.max()), float(late.max()), p99,
+                             float(self._work[:n].max()))
 
 
 def set_realtime(priority: int | None, cpus: set[int] | None) -> list[str]:
@@ -359,7 +383,7 @@ class ControlLoop:
                 sys.setswitchinterval(switch_interval)
                 if restore_scheduling is not None:
                     restore_scheduling()
-        return stats.summary()
+        return stats.summary(whole=True)
 
     def _wait_until(self, deadline: float) -> None:
         clock, stop = time.monotonic, self._stop
