@@ -15,6 +15,7 @@ import pytest
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.live import cycle_text
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
 from rocoma_can.runtime.host import try_sched_fifo
@@ -125,11 +126,14 @@ def test_a_yield_that_costs_a_cycle_stops_the_spin_yielding(virtual_channel,
     try:
         with Runtime(validate(cfg)) as rt:
             summary = rt.run(duration=2.0, signals=False)
+            status = rt.status_report().as_dict()["cycle"]
     finally:
         hog.kill()
         hog.wait()
     assert 2.0 < YIELD_PAUSE and summary.cycles > 0
     assert rt.loop.yield_pauses == 1
+    assert status["spin_pauses"] == 1  # what status --json says
+    assert cycle_text(status).endswith(", spin pauses 1 (a yield cost a period)")
     assert os.sched_getaffinity(0) == lent
 
 

@@ -101,6 +101,9 @@ def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
     out(f"  {'cycles':28s} {timing.cycles}")
     out(f"  {'overruns (past their period)':28s} {timing.overruns}")
+    if rt.loop.yield_pauses:
+        out(f"  {'spin pauses':28s} {rt.loop.yield_pauses} (a yield cost the loop a period; "
+            "it spun on the CPU for 5 s after each)")
     out(f"  {'period mean / max':28s} {timing.period_mean * 1e3:.2f} / "
         f"{timing.period_max * 1e3:.2f} ms")
     out(f"  {'jitter p99 / max':28s} {timing.jitter_p99 * 1e3:.2f} / "

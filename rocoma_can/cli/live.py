@@ -179,7 +179,9 @@ def cycle_text(cycle: dict[str, Any]) -> str:
         return "n/a" if value is None else f"{value:.2f} ms"
     return (f"{cycle['cycles']} cycles at {cycle['rate']:g} Hz, overruns {cycle['overruns']}, "
             f"period mean {ms('period_mean_ms')} max {ms('period_max_ms')}, jitter p99 "
-            f"{ms('jitter_p99_ms')}, work max {ms('work_max_ms')}")
+            f"{ms('jitter_p99_ms')}, work max {ms('work_max_ms')}"
+            + (f", spin pauses {cycle['spin_pauses']} (a yield cost a period)"
+               if cycle.get("spin_pauses") else ""))
 
 
 def _value(value: float | None) -> str:

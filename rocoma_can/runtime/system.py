@@ -39,6 +39,8 @@ class CycleReport:
     period_max_ms: float | None
     jitter_p99_ms: float | None
     work_max_ms: float | None
+    #: times a yield of the loop's spin cost it a period and it stopped yielding a while
+    spin_pauses: int = 0
 
 
 @dataclass(frozen=True)
@@ -209,12 +211,14 @@ class Runtime:
         loads = {name: round(planned.bits_per_cycle * rate / planned.bitrate, 4)
                  for name, planned in self.config.loads.items()}
         t = self.loop.stats.summary()
-        ms = [round(v * 1e3, 3) if math.isfinite(v) else None
-              for v in (t.period_mean, t.period_max, t.jitter_p99, t.work_max)]
+        mean, peak, p99, work = (round(v * 1e3, 3) if math.isfinite(v) else None
+                                 for v in (t.period_mean, t.period_max, t.jitter_p99,
+                                           t.work_max))
         zenoh = (self.fleet.info() if self.fleet is not None
                  else {"error": self.fleet_error} if self.fleet_error else None)
         return RuntimeStatus(self.hardware.status_report(), loads,
-                             CycleReport(rate, t.cycles, t.overruns, *ms), zenoh)
+                             CycleReport(rate, t.cycles, t.overruns, mean, peak, p99, work,
+                                         self.loop.yield_pauses), zenoh)
 
     def status(self) -> dict[str, Any]:
         """What ``rocoma-can status --json`` prints, built here rather than read over SDO
