@@ -155,12 +155,6 @@ class InProcessLink:
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(2.0)
 
-    def __enter__(self) -> InProcessLink:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def receive(self, timeout: float) -> int:
         """Wait up to ``timeout`` s for a datagram, then hand over it and every other one
         waiting; the number handed over (0 when the link has closed: see ``closed``)."""

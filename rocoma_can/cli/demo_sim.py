@@ -109,7 +109,8 @@ def open_segments(buses: Buses, interface: str, emulated: Emulated | None,
 
 
 class InProcessSim:
-    """The drives in the loop's process, stepped in lockstep (``on_cycle``)."""
+    """The drives in this process, stepped in lockstep by a caller's thread: the loop's
+    (``on_cycle``), or the drives' own process's link reader (``main``)."""
 
     def __init__(self, buses: Buses, interface: str, emulated: Emulated | None,
                  fd: bool) -> None:
@@ -281,8 +282,7 @@ class SimProcess:
             pass
 
 
-def _serve(group: SegmentGroup, segments: Sequence[SimulatedSegment],
-           done: threading.Event) -> None:
+def _serve(sim: InProcessSim, done: threading.Event) -> None:
     """The child's requests, one JSON line each on stdin, until ``stop`` or its end."""
     def answer(reply: dict[str, Any]) -> None:
         sys.stdout.write(json.dumps(reply) + "\n")
@@ -298,11 +298,10 @@ def _serve(group: SegmentGroup, segments: Sequence[SimulatedSegment],
                 if op == "stop":
                     return
                 if op == "trip_fault":
-                    tripped = time.monotonic()
-                    segments[0].drives[int(request["node"])].trip_fault()
-                    answer({"ok": True, "id": ident, "tripped": tripped})
+                    answer({"ok": True, "id": ident,
+                            "tripped": sim.trip_fault(int(request["node"]))})
                 elif op == "check":
-                    group.check()
+                    sim.check()
                     answer({"ok": True, "id": ident})
                 else:
                     answer({"ok": False, "id": ident, "error": f"unknown request {op!r}"})
@@ -317,7 +316,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     import argparse
 
     from ..drivers.inproc_link import InProcessLink
-    from ..drivers.sim.group import SegmentGroup
     from .demo_config import emulate
     # The demo ends this process (stop, its stdin's end, the link's); a stop signal to
     # every process of a service is the demo's to act on, while the drives answer its
@@ -337,20 +335,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     # the link first: the drives' boot-up frames must reach the demo
     link = InProcessLink(sock, [c for c, _ in buses], fd=fd, on_close=done.set)
     try:
-        segments = open_segments(buses, "inproc", emulated, fd)
         # This thread reads the link and, at once, steps the drives that got frames
         # (lockstep_pass, as the demo's loop steps them in its own process): no hand-over
         # to a receive thread between a SYNC's arrival and its answer. The group's thread
         # and timers take over only when no frame came for a while (the loop stopped).
-        group = SegmentGroup(segments).start(lockstep=True)
+        sim = InProcessSim(buses, "inproc", emulated, fd)
         try:
-            threading.Thread(target=_serve, args=(group, segments, done), name="sim-requests",
+            threading.Thread(target=_serve, args=(sim, done), name="sim-requests",
                              daemon=True).start()
             while not done.is_set():
                 if link.receive(LINK_IDLE):
-                    group.lockstep_pass()
+                    sim.group.lockstep_pass()
         finally:
-            group.stop()
+            sim.stop()
     finally:
         link.close()
         sock.close()
