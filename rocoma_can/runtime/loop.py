@@ -132,15 +132,12 @@ class CycleStats:
         if overran(work, late, self.period):
             self.overruns += 1
         if self.cycles:
-            if start - self._last > self._period_max:
-                self._period_max = start - self._last
+            self._period_max = max(self._period_max, start - self._last)
         else:
             self._first = start
         self._last = start
-        if abs(late) > self._late_max:
-            self._late_max = abs(late)
-        if work > self._work_max:
-            self._work_max = work
+        self._late_max = max(self._late_max, abs(late))
+        self._work_max = max(self._work_max, work)
         self.cycles += 1
 
     def summary(self, whole: bool = False) -> TimingSummary:
@@ -148,11 +145,6 @@ class CycleStats:
         n = min(self.cycles, self._size)
         if n == 0:
             return TimingSummary(0, 0, math.nan, math.nan, math.nan, math.nan, math.nan)
-        k = self.cycles % self._size
-        # Read from other threads (status reports) while the loop writes: with a full ring,
-        # slot k, the oldest, may be overwritten meanwhile; it is left out.
-        starts = np.concatenate((self._start[k + 1:n], self._start[:k])) if n == self._size \
-            else self._start[:n]
         late = np.abs(self._late[:n])
         p99 = float(np.percentile(late, 99))
         if whole:
@@ -161,6 +153,11 @@ class CycleStats:
             return TimingSummary(self.cycles, self.overruns, mean,
                                  self._period_max if self.cycles > 1 else self.period,
                                  self._late_max, p99, self._work_max)
+        k = self.cycles % self._size
+        # Read from other threads (status reports) while the loop writes: with a full ring,
+        # slot k, the oldest, may be overwritten meanwhile; it is left out.
+        starts = np.concatenate((self._start[k + 1:n], self._start[:k])) if n == self._size \
+            else self._start[:n]
         periods = np.diff(starts) if n > 1 else np.array([self.period])
         return TimingSummary(self.cycles, self.overruns, float(periods.mean()),
                              float(periods.max()), float(late.max()), p99,
