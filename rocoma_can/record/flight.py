@@ -18,6 +18,7 @@ wait ran out, the OOM killer) leaves no record cut short.
 from __future__ import annotations
 
 import collections
+import itertools
 import math
 import os
 import time
@@ -30,7 +31,7 @@ import numpy as np
 from ..events import STOP_CAUSE, EventKind
 from .live_channels import LiveChannels
 from .recording import slug
-from .rings import RingReader, frame_fields, in_time_order
+from .rings import RingReader, frame_chunks, in_time_order
 from .trace import McapWriter, RowLayout
 
 #: frames kept per second, bus and direction at most (a saturated 1 Mbit/s bus carries
@@ -46,8 +47,10 @@ class FlightRecords:
 
     def __init__(self, directory: Path, seconds: float, layout: RowLayout, rows: RingReader,
                  buses: Mapping[str, Sequence[RingReader]],
-                 live: Callable[[McapWriter], LiveChannels]) -> None:
+                 live: Callable[[McapWriter], LiveChannels],
+                 pace: Callable[[], None]) -> None:
         self.directory, self.seconds = directory, seconds
+        self._pace = pace  # a record is ~1 s of work: paced throughout (pacing.py)
         self.dumps: list[tuple[Path, str]] = []
         self.errors: list[str] = []
         self._layout, self._rows, self._buses, self._live = layout, rows, buses, live
@@ -89,8 +92,8 @@ class FlightRecords:
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
             with open(part, "wb") as stream:
-                self._write(McapWriter(stream, self._layout.names), controllers, now,
-                            now_wall)
+                self._write(McapWriter(stream, self._layout.names, self._pace),
+                            controllers, now, now_wall)
             os.replace(part, path)
         except (OSError, ValueError) as exc:  # unwritable directory, full disk: said, never
             # raised; a file begun and cut short is no record, and takes room the next needs
@@ -120,5 +123,6 @@ class FlightRecords:
         live.events(events, now_wall - now)
         for label, rings in self._buses.items():
             records = in_time_order([ring.read(0)[1] for ring in rings])
-            writer.frames(label, frame_fields(records[records["t"] >= since_wall]))
+            writer.frames(label, itertools.chain.from_iterable(
+                frame_chunks(records[records["t"] >= since_wall])))
         writer.finish()

@@ -22,7 +22,7 @@ import numpy as np
 
 from .can_log import RecordingError, candump_line
 from .live_channels import LiveChannels
-from .rings import RingReader, frame_fields, in_time_order
+from .rings import RingReader, frame_chunks, in_time_order
 from .trace import McapWriter, RowLayout
 
 
@@ -40,8 +40,10 @@ class BusLog:
     stamped before ``until`` (a while ago) and holds the rest for the next, in order with
     what comes meanwhile."""
 
-    def __init__(self, path: Path, channel: str, rings: Sequence[RingReader]) -> None:
+    def __init__(self, path: Path, channel: str, rings: Sequence[RingReader],
+                 pace: Callable[[], None]) -> None:
         self.path, self.frames = path, 0
+        self._pace = pace  # between chunks of lines (pacing.py)
         self.channel = f"can{channel}" if channel.isdigit() else channel  # as python-can
         self._rings = rings
         self._next = [0] * len(rings)
@@ -68,18 +70,19 @@ class BusLog:
         records = in_time_order(parts)
         cut = int(np.searchsorted(records["t"], until, side="left"))
         self._held = records[cut:]
-        channel = self.channel
-        lines = [candump_line(t, channel, cob, flags, data)
-                 for t, cob, flags, data in frame_fields(records[:cut])]
-        if not lines:
+        if not cut:
             return
+        channel, pace = self.channel, self._pace
         try:
-            self._file.write("".join(lines))
+            for fields in frame_chunks(records[:cut]):
+                self._file.write("".join([candump_line(t, channel, cob, flags, data)
+                                          for t, cob, flags, data in fields]))
+                pace()
             self._file.flush()  # on disk now: a crash loses at most what is held
         except (OSError, ValueError) as exc:
             raise RecordingError(f"{self.path}: writing failed after {self.frames} frames: "
                                  f"{exc}") from exc
-        self.frames += len(lines)
+        self.frames += cut
 
     def close(self) -> None:
         self._file.close()
@@ -90,7 +93,8 @@ class Recording:
 
     def __init__(self, directory: Path, layout: RowLayout, rows: RingReader,
                  buses: Mapping[str, tuple[str, Sequence[RingReader]]],
-                 live: Callable[[McapWriter], LiveChannels]) -> None:
+                 live: Callable[[McapWriter], LiveChannels],
+                 pace: Callable[[], None]) -> None:
         self.directory = directory
         self.path = directory / "trace.mcap"
         self.errors: list[str] = []
@@ -101,12 +105,13 @@ class Recording:
         try:
             directory.mkdir(parents=True, exist_ok=True)
             for label, (channel, rings) in buses.items():
-                self._logs.append(BusLog(directory / f"{slug(label)}.log", channel, rings))
+                self._logs.append(BusLog(directory / f"{slug(label)}.log", channel, rings,
+                                         pace))
             try:
                 self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in stop()
             except OSError as exc:
                 raise RecordingError(f"{self.path}: cannot write: {exc}") from exc
-            self._writer = McapWriter(self._stream, layout.names)
+            self._writer = McapWriter(self._stream, layout.names, pace)
             self._live = live(self._writer)
         except RecordingError:
             self._close_files()  # no file left open

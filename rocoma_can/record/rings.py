@@ -22,6 +22,7 @@ import mmap
 import os
 import struct
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -238,6 +239,10 @@ class FrameRing(can.Listener):
         pass
 
 
+#: frame records ``frame_chunks`` converts at once (~40 µs; their candump lines ~0.2 ms)
+CHUNK = 128
+
+
 def frame_fields(records: np.ndarray) -> list[tuple[float, int, int, str]]:
     """Frame records as (stamp, COB-ID, flags, payload in upper-case hex), converted in
     whole arrays (a frame's fields one by one cost ~4 µs; this ~0.3 µs)."""
@@ -252,6 +257,13 @@ def frame_fields(records: np.ndarray) -> list[tuple[float, int, int, str]]:
             for k, (t, cob, flags, dlc) in enumerate(zip(
                 records["t"].tolist(), records["id"].tolist(), records["flags"].tolist(),
                 np.minimum(records["dlc"], size).tolist()))]
+
+
+def frame_chunks(records: np.ndarray) -> Iterator[list[tuple[float, int, int, str]]]:
+    """``frame_fields`` of ``records``, ``CHUNK`` at a time: a writer paces between
+    (pacing.py), and a flight record's 10 s of frames are not one 50 ms conversion."""
+    for first in range(0, len(records), CHUNK):
+        yield frame_fields(records[first:first + CHUNK])
 
 
 def in_time_order(parts: list[np.ndarray]) -> np.ndarray:

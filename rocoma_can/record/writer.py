@@ -8,12 +8,14 @@ the set-up (``Spec``), then manager events ``{"event": ...}``, controller number
 ``{"controllers": {name: number}}``, the e-stop latch ``{"latched": bool}``, for the live
 view the answer to a service call ``{"answer": id, "reply": {...}}`` and the status report
 ``{"status": {...}}``, and ``{"close": true}``. Every ``POLL`` s it writes what the rings got
-(``--record``: recording.py) and the flight records due (flight.py); the live view
-(live/server.py) publishes on its own threads. It answers on stdout, one JSON object a
-line: ``{"ready": true, "foxglove_port": port}`` or ``{"failed": reason, "of": ...}`` at
-start, ``{"flight_record": path, "cause": ...}``, ``{"error": reason, "of": "recording" |
-"flight"}``, the live view's ``{"call": id, "service": name, "payload": hex}``,
-``{"view": counters}`` and ``{"status_wanted": bool}``, and last ``{"closed": true}``.
+(``--record``: recording.py) and the flight records due (flight.py), yielding its CPU every
+fifth of a millisecond of that work (pacing.py: a loop woken on its CPU waits for no
+writing burst); the live view (live/server.py) publishes on its own threads. It answers
+on stdout, one JSON object a line: ``{"ready": true, "foxglove_port": port}`` or
+``{"failed": reason, "of": ...}`` at start, ``{"flight_record": path, "cause": ...}``,
+``{"error": reason, "of": "recording" | "flight"}``, the live view's ``{"call": id,
+"service": name, "payload": hex}``, ``{"view": counters}`` and ``{"status_wanted": bool}``,
+and last ``{"closed": true}``.
 Answers, the status report and the live view's events are taken as they come in (the
 commands' thread), not after a long write.
 
@@ -45,6 +47,7 @@ from ..live.urdf import parse_urdf
 from .can_log import RecordingError
 from .flight import FlightRecords
 from .live_channels import Facts, LiveChannels
+from .pacing import Pacer
 from .recording import Recording
 from .rings import RingReader, RingSpec, SharedFile
 from .trace import McapWriter, RowLayout
@@ -120,11 +123,13 @@ class Writer:
 
         def live(writer: McapWriter) -> LiveChannels:
             return LiveChannels(writer, layout, 1.0 / spec.rate, robot, self.facts)
-        self.recording = (Recording(Path(spec.record), layout, rows, rings, live)
+        self.pace = Pacer()  # every file's writing gives way to the loop (pacing.py)
+        self.recording = (Recording(Path(spec.record), layout, rows, rings, live, self.pace)
                           if spec.record is not None else None)
         self._hold = max(HOLD, 2.0 / spec.rate)
         self.flight = (FlightRecords(Path(spec.flight), spec.seconds, layout, rows,
-                                     {label: r for label, (_, r) in rings.items()}, live)
+                                     {label: r for label, (_, r) in rings.items()}, live,
+                                     self.pace)
                        if spec.flight is not None else None)
 
     def say(self, **message: Any) -> None:

@@ -1,0 +1,84 @@
+"""The writer process gives way to the loop (record/pacing.py): it yields its CPU every
+piece of work, through a recording's poll and a flight record's ~1 s dump alike, so a loop
+woken on its CPU waits for one piece, not for the writer's slice."""
+from __future__ import annotations
+
+import io
+import os
+import time
+
+import can
+
+from rocoma_can import ManagerState
+from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.record.pacing import Pacer
+from rocoma_can.record.rings import CHUNK, FrameRing, SharedFile, layout
+from rocoma_can.record.trace import PACED_FRAMES, RowLayout, SignalTrace
+from rocoma_can.record.writer import Spec, Writer
+
+ROWS, FRAMES = 300, 3000
+
+
+class _Manager:
+    active_controller_name = "pd"
+
+
+def test_a_pacer_yields_once_a_piece_of_work_has_passed():
+    every_call, never = Pacer(piece=0.0), Pacer(piece=3600.0)
+    for _ in range(5):
+        every_call()
+        never()
+    assert (every_call.yields, never.yields) == (5, 0)
+    pacer = Pacer(piece=0.005)
+    pacer()
+    assert pacer.yields == 0  # less than a piece since it was made
+    begun = time.perf_counter()
+    while time.perf_counter() - begun < 0.005:  # a piece of work
+        pass
+    pacer()
+    pacer()  # the piece starts again at the yield
+    assert pacer.yields == 1
+
+
+def test_a_recordings_poll_and_a_flight_record_give_way_throughout(tmp_path):
+    """Every row and chunk of frames of a poll, and every row and few dozen frames of a
+    flight record, passes a yield point: with a piece of 0 each is a yield."""
+    state, command = JointState.zeros(2), JointCommand.zeros(2)
+    specs = layout([("rows", 2 * ROWS, RowLayout(state.names).width, False),
+                    ("bus received", 2 * FRAMES, 0, False), ("bus sent", 2 * FRAMES, 0, False)])
+    shared = SharedFile(specs[-1].offset + specs[-1].size)
+    trace = SignalTrace(state, command, _Manager(), specs[0].capacity,
+                        rows=shared.array(specs[0]),
+                        publish=lambda n: shared.publish(specs[0], n), known=["pd"])
+    received = FrameRing(shared, specs[1], sent=False)
+    sent = FrameRing(shared, specs[2], sent=True)
+    now, wall = time.monotonic(), time.time()
+    for k in range(FRAMES):  # 1 s old: past the hold a poll leaves frames in
+        ring, cob_id = (sent, 0x201) if k % 2 else (received, 0x181)
+        ring.put(can.Message(arbitration_id=cob_id, data=bytes(8), is_extended_id=False),
+                 wall - 1.0 + k * 1e-5)
+    spec = Spec(os.dup(shared.fd), shared.size, specs[0], {"bus": ("vcan0", specs[1:])},
+                list(state.names), {"pd": 0}, record=str(tmp_path / "rec"),
+                flight=str(tmp_path / "flight"), rate=1000.0)
+    writer = Writer(spec, io.StringIO())
+    try:
+        writer.pace.piece = 0.0
+        writer.write()  # a poll of frames only: the candump file's chunks
+        assert writer.pace.yields >= FRAMES // CHUNK
+        for k in range(ROWS):  # the last 0.3 s at 1 kHz
+            trace.record(now - (ROWS - k) * 1e-3, 1e-4, 0.0, ManagerState.OK)
+        polled = writer.pace.yields
+        writer.write()  # a poll of rows only: trace.mcap's messages
+        assert writer.pace.yields - polled >= ROWS
+        assert not list((tmp_path / "flight").glob("*.mcap"))  # none asked for
+        assert writer.flight is not None
+        writer.flight.request("test")
+        polled = writer.pace.yields
+        writer.write()
+        assert len(list((tmp_path / "flight").glob("*.mcap"))) == 1
+        assert writer.pace.yields - polled >= ROWS + FRAMES // PACED_FRAMES
+    finally:
+        writer.close()
+        shared.close()
+    frames = list(can.LogReader(str(tmp_path / "rec" / "bus.log")))
+    assert len(frames) == FRAMES  # paced, and whole
