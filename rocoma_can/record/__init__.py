@@ -6,8 +6,8 @@ rings          rings in shared memory: what the loop's process hands the writer 
 recorder       the loop's side of recording: the rings, the writer process, its replies
 writer         the writer process (``python -m rocoma_can.record.writer``), which also
                serves the Foxglove live view (live/server.py)
-pacing         the writer process yields its CPU every piece of work: the loop never waits
-               for a writing burst
+pacing         the writer process yields its CPU every 0.2 ms of work: a loop queued on its
+               CPU waits for one piece, not a writing burst
 recording      ``run --record``'s files, in the writer process
 flight         the flight recorder (``run``, on by default), in the writer process
 live_channels  the live view's channels in the recordings

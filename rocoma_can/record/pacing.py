@@ -1,45 +1,57 @@
-"""The writer process gives its CPU away every ``PIECE`` of work, so the loop never waits
-for a writing burst.
+"""The writer process gives its CPU away every ``PIECE`` of its work, so a loop queued on its
+CPU waits for one piece, not for a writing burst.
 
 The writer works in bursts: every 50 ms (writer.POLL) it turns what the rings got into JSON,
 MCAP and candump text (~10 ms of CPU for 12 drives on 4 buses at 1 kHz), and on an e-stop it
-writes a flight record (~1 s). Its niceness does not stop such a burst from delaying the
-loop: when the loop's timer fires on the CPU the writer runs on, a kernel without wake-up
-preemption (PREEMPT_NONE, the common server build), or an EEVDF scheduler that lets the
-running task finish its slice (RUN_TO_PARITY), leaves the loop waiting in that CPU's queue
-until the writer's slice or the next tick ends (3-4 ms at HZ=250), even with the other CPU
-idle. Traced on a 2-core VM at 1 kHz: most of the loop's missed cycles with recording on
-were such waits behind the writer; the writer as SCHED_IDLE or SCHED_BATCH did not change
-it.
+writes a flight record (1-3 s of CPU). Its niceness does not keep such a burst from
+delaying the loop. Traced on a 2-core VM (kernel 6.18, HZ=250) at 1 kHz: the loop, woken by
+its timer on the CPU the writer was running on, was left queued there until the writer's
+slice or the next tick ended, 2.4-3.8 ms later, while the other CPU idled: the scheduler did
+not preempt the writer on that wake-up (the trace shows no need-resched set) whether the
+writer ran at nice 19, SCHED_IDLE or SCHED_BATCH. Those waits were most of the loop's
+missed cycles with recording on. A loop with ``realtime.priority`` (SCHED_FIFO) preempts
+any such task at once; this is for the loop at normal priority, the default.
 
-A ``sched_yield`` every ``PIECE`` of the writer's work ends its slice there: a loop queued
-on its CPU runs next, so it waits for at most one piece. With nothing queued the yield
-returns at once (~1 µs: a few hundred per second while the writer works).
+A ``sched_yield`` ends the writer's turn: a task queued on its CPU runs next. Work is
+counted in the thread's CPU time, so time the writer spent preempted or asleep is no reason
+to yield again (under contention that would cut its share further, towards falling a ring
+behind); the CPU clock (a system call, ~1 µs) is read only once a piece of wall time has
+passed (``perf_counter``, ~0.1 µs). With nothing queued a yield returns at once (~1 µs, a
+few hundred a second while the writer works). What stays whole is what happens in one
+call: a numpy sort or copy of a flight record's 10 s, an MCAP chunk's compression.
 """
 from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 
-#: the writer's work between two yields at most, s: well inside a 1 kHz cycle's slack
+#: the writer's work between two yields, s: well inside a 1 kHz cycle's slack
 PIECE = 0.0002
 
 
 class Pacer:
-    """``pace()`` in the writer's loops: a yield when ``piece`` seconds of work have passed
-    since the last one (see module). ``yields`` counts them."""
+    """``pace()`` in the writer's loops: a yield once ``piece`` seconds of the thread's CPU
+    time have passed since the last one (see module). ``yields`` counts them; the clocks
+    are the wall's and the thread's work's."""
 
-    def __init__(self, piece: float = PIECE) -> None:
+    def __init__(self, piece: float = PIECE, wall: Callable[[], float] = time.perf_counter,
+                 work: Callable[[], float] = time.thread_time) -> None:
         self.piece = piece
         self.yields = 0
-        self._since = time.perf_counter()
+        self._wall, self._work = wall, work
+        self._checked, self._worked = wall(), work()
 
     def __call__(self) -> None:
-        now = time.perf_counter()
-        if now - self._since >= self.piece:
-            os.sched_yield()
-            self.yields += 1
-            self._since = time.perf_counter()
+        now = self._wall()
+        if now - self._checked < self.piece:
+            return
+        self._checked = now
+        if self._work() - self._worked < self.piece:  # preempted or asleep meanwhile
+            return
+        os.sched_yield()
+        self.yields += 1
+        self._checked, self._worked = self._wall(), self._work()
 
 
 def unpaced() -> None:

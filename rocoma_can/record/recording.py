@@ -77,12 +77,12 @@ class BusLog:
             for fields in frame_chunks(records[:cut]):
                 self._file.write("".join([candump_line(t, channel, cob, flags, data)
                                           for t, cob, flags, data in fields]))
+                self.frames += len(fields)
                 pace()
             self._file.flush()  # on disk now: a crash loses at most what is held
         except (OSError, ValueError) as exc:
             raise RecordingError(f"{self.path}: writing failed after {self.frames} frames: "
                                  f"{exc}") from exc
-        self.frames += cut
 
     def close(self) -> None:
         self._file.close()

@@ -9,7 +9,7 @@ the set-up (``Spec``), then manager events ``{"event": ...}``, controller number
 view the answer to a service call ``{"answer": id, "reply": {...}}`` and the status report
 ``{"status": {...}}``, and ``{"close": true}``. Every ``POLL`` s it writes what the rings got
 (``--record``: recording.py) and the flight records due (flight.py), yielding its CPU every
-fifth of a millisecond of that work (pacing.py: a loop woken on its CPU waits for no
+0.2 ms of that work (pacing.py: a loop queued on its CPU waits for one piece, not a
 writing burst); the live view (live/server.py) publishes on its own threads. It answers
 on stdout, one JSON object a line: ``{"ready": true, "foxglove_port": port}`` or
 ``{"failed": reason, "of": ...}`` at start, ``{"flight_record": path, "cause": ...}``,
