@@ -32,7 +32,7 @@ from ..drivers.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError, SimulatorFailed
 from ..exit_codes import FAILED, OK, USAGE
 from ..node.client import ManagerClient
-from ..node.objects import STATE_NAMES
+from ..node.objects import ESTOP_CAUSE, STATE_NAMES
 from .demo_config import (
     DEFAULT_INTERFACE,
     ESTOP_COB_ID,
@@ -47,6 +47,7 @@ from .demo_config import (
     demo_urdf,
     emulate,
 )
+from .demo_probe import TorqueOffProbes
 from .demo_report import Report, Said, Step, grouped_notes, plot_run, status_lines, summary
 from .demo_sim import (
     SIM_CHOICES,
@@ -69,41 +70,6 @@ if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import
 def _only(cob_ids: set[int]) -> list[can.typechecking.CanFilter]:
     """Filters that pass these 11-bit COB-IDs only."""
     return [{"can_id": c, "can_mask": 0x7FF, "extended": False} for c in sorted(cob_ids)]
-
-
-class _TorqueOffProbe(can.Listener):
-    """On the operator's bus (its reader thread): once armed, which drives got an RPDO with
-    controlword 0x0000 (disable voltage), i.e. the torque-off frames of the loop's stop.
-    ``carriers``: per drive, the COB-ID of the RPDO with its controlword and where in the
-    frame it sits (RPDO1 at 0 for the generic drive; a fixed mapping may differ)."""
-
-    def __init__(self, carriers: dict[int, tuple[str, int]]) -> None:
-        self.carriers = carriers  # COB-ID -> (drive, byte offset of the controlword)
-        self.armed = False
-        self.seen: set[str] = set()
-
-    def on_message_received(self, msg: can.Message) -> None:
-        carrier = self.carriers.get(msg.arbitration_id)
-        if self.armed and carrier is not None:
-            drive, at = carrier
-            if msg.dlc >= at + 2 and msg.data[at] == msg.data[at + 1] == 0:
-                self.seen.add(drive)
-
-
-def _controlword_carriers(config: Any, bus: str) -> dict[int, tuple[str, int]]:
-    """For the drives on ``bus``: COB-ID -> (drive name, offset) of the first RPDO of each
-    drive's layout that carries its controlword."""
-    carriers = {}
-    first = config.buses[0].label
-    for drive in config.drives:
-        if (drive.bus or first) != bus:
-            continue
-        for pdo in config.plans[drive.name].layout.rpdos:
-            if "controlword" in pdo.names:
-                at = sum(e.size for e in pdo.entries[:pdo.names.index("controlword")])
-                carriers[pdo.cob_id] = (drive.name, at)
-                break
-    return carriers
 
 
 class _Watch:
@@ -160,7 +126,7 @@ def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) 
 
 
 def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Watch,
-              probes: list[_TorqueOffProbe], report: Report, duration: float,
+              probes: TorqueOffProbes, report: Report, duration: float,
               stop: threading.Event,
               say: Callable[[str], None]) -> None:
     hw, mgr = rt.hardware, rt.manager
@@ -260,19 +226,18 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
                                     is_extended_id=False))
         ok = reached(f"CAN e-stop frame 0x{ESTOP_COB_ID:03X} -> EMERGENCY", t0, mark, {1}, 2.0)
         step(f"e-stop by a raw CAN frame on 0x{ESTOP_COB_ID:03X}", ok,
-             f"state {STATE_NAMES[state()]}, cause {client.status()['estop_cause']!r}")
+             f"state {STATE_NAMES[state()]}, cause {client.read_text(ESTOP_CAUSE)!r}")
         hold()
     except Exception as exc:  # an SDO failure is a failed step, and the demo ends
         why = ""
         try:  # a refused switch says why (0x2103); a fault, with its cause, in the status
             why = f"; refusal: {client.read_text(0x2103)!r}; state {STATE_NAMES[state()]}, " \
-                  f"cause {client.status()['estop_cause']!r}"
+                  f"cause {client.read_text(ESTOP_CAUSE)!r}"
         except Exception:  # noqa: BLE001 - the report is best effort
             pass
         step("operator", False, f"{type(exc).__name__}: {exc}{why}")
     finally:
-        for probe in probes:
-            probe.armed = True
+        probes.arm()  # its buses open: the stop's torque-off frames wait in their queues
         report.walk_time = time.monotonic() - pace.start
         rt.loop.stop("walk-through finished")
 
@@ -327,7 +292,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     buses: ``channel-0``, ...) another part of this process can listen on; default: a new
     one per run. ``sim``: where the simulated drives run, ``loop`` (stepped by the loop's
     thread after each write) or ``process`` (one of their own; demo_sim.py)."""
-    from ..drivers.bus import BusReader, open_bus, readers_for
+    from ..drivers.bus import open_bus
     from ..live.urdf import parse_urdf
     from ..runtime.config import validate
     from ..runtime.system import Runtime
@@ -359,10 +324,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     stop = threading.Event()
     sim_buses = [(b.channel, [d.node_id for d in config.drives_on(b)]) for b in config.buses]
     as_fd: dict[str, Any] = {"fd": True} if fd else {}  # SocketCAN: FD frames to FD sockets
-    probes = [_TorqueOffProbe(_controlword_carriers(config, b.label)) for b in config.buses]
+    probes = TorqueOffProbes(config, lambda bus, cob_ids: open_bus(
+        interface, bus, receive_own_messages=False, can_filters=_only(cob_ids), **as_fd))
     simulator: DemoSimulator | None = None
     buses_open: list[can.BusABC] = []
-    readers: list[BusReader] = []
     said = Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
     hardware_log = logging.getLogger("rocoma_can.drivers.hardware")
     hardware_log.addFilter(said)
@@ -375,18 +340,13 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             simulator, on_cycle = in_process, in_process.on_cycle(watch)
         else:
             simulator, on_cycle = SimProcess(sim_buses, eds, drives, fd), watch
-        # The client and the probes filter what they read (the interface drops the rest):
-        # at 1 kHz every bus carries ~13 frames a cycle, and readers of all of it cost the
-        # loop's process more CPU than the drives' simulation.
+        # The client and the probes (demo_probe.py: from the walk-through's end) filter
+        # what they read (the interface drops the rest): at 1 kHz every bus carries ~13
+        # frames a cycle, and readers of all of it cost the loop's process more CPU than the
+        # drives' simulation.
         client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False,
                               can_filters=_only({0x580 + MANAGER_ID}), **as_fd)  # SDO answers
         buses_open.append(client_bus)
-        # one torque-off probe per bus, each on a bus handle and reader of its own
-        for b, p in zip(config.buses, probes):
-            buses_open.append(open_bus(interface, b.channel, receive_own_messages=False,
-                                       can_filters=_only(set(p.carriers)), **as_fd))
-        readers = readers_for([(b, (p,)) for b, p in zip(buses_open[1:], probes)],
-                              name="demo-probes")
         with Runtime(config, on_cycle=on_cycle,
                      record=None if record is None else str(record),
                      flight=None if flight is None else str(flight),
@@ -422,12 +382,13 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                 operator.join(15.0)
                 status.join(2.0)
             time.sleep(0.1)  # the probes run on their buses' reader threads
-            got = sum(len(p.seen) for p in probes)
+            got = probes.seen()
             seen = int(rt.loop.last_state) == 0 and got == drives
             step = Step("loop stop -> torque-off frames", seen,
                         f"{rt.loop.stop_reason}; controlword 0x0000 seen from "
                         f"{got}/{drives} drives' RPDOs"
-                        + (f" on {buses} buses" if buses > 1 else ""))
+                        + (f" on {buses} buses" if buses > 1 else "")
+                        + (f"; {probes.error}" if probes.error else ""))
             report.steps.append(step)
             out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
             summary(out, report, timing, rt)
@@ -443,8 +404,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             plot_run(Path(record), report, out)
     finally:
         hardware_log.removeFilter(said)
-        for r in readers:
-            r.stop()
+        probes.close()
         for opened in buses_open:
             opened.shutdown()
         if simulator is not None:
