@@ -230,14 +230,15 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
         hold()
     except Exception as exc:  # an SDO failure is a failed step, and the demo ends
         why = ""
-        try:  # a refused switch says why (0x2103); a fault, with its cause, in the status
+        try:  # a refused switch says why (0x2103); a fault, its cause (0x2124)
             why = f"; refusal: {client.read_text(0x2103)!r}; state {STATE_NAMES[state()]}, " \
                   f"cause {client.read_text(ESTOP_CAUSE)!r}"
         except Exception:  # noqa: BLE001 - the report is best effort
             pass
         step("operator", False, f"{type(exc).__name__}: {exc}{why}")
     finally:
-        probes.arm()  # its buses open: the stop's torque-off frames wait in their queues
+        # the probes' buses open: the stop's torque-off frames wait in their queues
+        probes.arm(rt.loop.stop_reason or None)
         report.walk_time = time.monotonic() - pace.start
         rt.loop.stop("walk-through finished")
 

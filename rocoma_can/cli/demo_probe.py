@@ -2,13 +2,16 @@
 controlword 0x0000), seen from outside the manager, on bus handles of the demo's own.
 
 The handles and their reader open when the walk-through ends (``arm``), just before the
-loop's stop: open all along, they took every cycle's controlword RPDOs (12 a cycle for 12
-drives at 1 kHz) on a thread of the loop's process whose turns with the GIL were the largest
-share of the loop's waits in the demo's slowest cycles (traced). A frame sent once ``arm``
-has returned waits in its handle's queue for the reader, so none of the stop's is missed.
+operator stops the loop: open all along, they took every cycle's controlword RPDOs (12 a
+cycle for 12 drives at 1 kHz) on a thread of the loop's process whose turns with the GIL
+were the largest share of the loop's waits in the demo's slowest cycles (traced). A frame
+sent once ``arm`` has returned waits in its handle's queue for the reader, so the
+operator's stop loses none. A loop that stopped before (a signal, its time limit) sent its
+torque-off unseen: ``arm`` then opens nothing and says so in ``error``.
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -56,7 +59,8 @@ def controlword_carriers(config: RuntimeConfig, bus: str) -> dict[int, tuple[str
 class TorqueOffProbes:
     """A probe per bus of ``config``; ``open_bus(channel, filters)`` opens a handle that
     passes only ``filters``' COB-IDs. ``arm`` never raises (it runs before the loop's stop,
-    which must come): what failed is ``error``."""
+    which must come): what failed is ``error``. Once closed (the demo's end, which may come
+    before a stuck operator arms), ``arm`` opens nothing; a second ``arm`` neither."""
 
     def __init__(self, config: RuntimeConfig,
                  open_bus: Callable[[str, set[int]], can.BusABC]) -> None:
@@ -67,26 +71,40 @@ class TorqueOffProbes:
         self._open = open_bus
         self._buses: list[can.BusABC] = []
         self._readers: list[BusReader] = []
+        self._lock = threading.Lock()  # arm (the operator's thread) against close
+        self._done = False  # armed or closed
 
-    def arm(self) -> None:
-        from ..drivers.bus import readers_for
-        try:
-            for channel, probe in zip(self._channels, self.probes):
-                self._buses.append(self._open(channel, set(probe.carriers)))
-            self._readers = readers_for([(bus, (probe,)) for bus, probe
-                                         in zip(self._buses, self.probes)],
-                                        name="demo-probes")
-        except Exception as exc:  # noqa: BLE001 - the check fails, saying why; the stop comes
-            self.error = f"the probes' buses did not open: {type(exc).__name__}: {exc}"
+    def arm(self, stopped: str | None = None) -> None:
+        """Open the handles and their reader; ``stopped``: why the loop already stopped, if
+        it did (nothing is opened: its torque-off went out unseen)."""
+        with self._lock:
+            if self._done:
+                return
+            self._done = True
+            if stopped is not None:
+                self.error = f"the loop stopped ({stopped}) before the probes opened"
+                return
+            try:
+                from ..drivers.bus import readers_for
+                for channel, probe in zip(self._channels, self.probes):
+                    self._buses.append(self._open(channel, set(probe.carriers)))
+                self._readers = readers_for([(bus, (probe,)) for bus, probe
+                                             in zip(self._buses, self.probes)],
+                                            name="demo-probes")
+            except Exception as exc:  # noqa: BLE001 - the check fails saying why; the stop
+                # comes in any case
+                self.error = f"the probes' buses did not open: {type(exc).__name__}: {exc}"
 
     def seen(self) -> int:
         """Drives whose torque-off the probes saw."""
         return sum(len(probe.seen) for probe in self.probes)
 
     def close(self) -> None:
-        for reader in self._readers:
-            reader.stop()
-        for bus in self._buses:
-            bus.shutdown()
-        self._readers, self._buses = [], []
+        with self._lock:
+            self._done = True
+            for reader in self._readers:
+                reader.stop()
+            for bus in self._buses:
+                bus.shutdown()
+            self._readers, self._buses = [], []
 
