@@ -328,7 +328,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     probes = TorqueOffProbes(config, lambda bus, cob_ids: open_bus(
         interface, bus, receive_own_messages=False, can_filters=_only(cob_ids), **as_fd))
     simulator: DemoSimulator | None = None
-    buses_open: list[can.BusABC] = []
+    client_bus: can.BusABC | None = None
     said = Said(set(notes))  # the hardware logs each drive's notes: said above, grouped
     hardware_log = logging.getLogger("rocoma_can.drivers.hardware")
     hardware_log.addFilter(said)
@@ -347,7 +347,6 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
         # drives' simulation.
         client_bus = open_bus(interface, config.node_bus.channel, receive_own_messages=False,
                               can_filters=_only({0x580 + MANAGER_ID}), **as_fd)  # SDO answers
-        buses_open.append(client_bus)
         with Runtime(config, on_cycle=on_cycle,
                      record=None if record is None else str(record),
                      flight=None if flight is None else str(flight),
@@ -406,8 +405,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     finally:
         hardware_log.removeFilter(said)
         probes.close()
-        for opened in buses_open:
-            opened.shutdown()
+        if client_bus is not None:
+            client_bus.shutdown()
         if simulator is not None:
             simulator.stop()
     return report

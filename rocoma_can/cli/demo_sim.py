@@ -146,8 +146,6 @@ class SimProcess:
         self._replies: queue.Queue[dict[str, Any] | None] = queue.Queue()
         self._ids = itertools.count(1)
         self._gone = False  # the child's answers ended (it ended or died)
-        self._stopping = False
-        self._threads: list[threading.Thread] = []
         spec = {"buses": [[c, list(n)] for c, n in buses], "eds": eds, "drives": drives,
                 "fd": fd}
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -196,10 +194,9 @@ class SimProcess:
 
     def stop(self) -> None:
         """End the child (killed after STOP_TIMEOUT), then the link; idempotent."""
-        self._stopping = True
-        child = self._child if hasattr(self, "_child") else None
+        child = self._child
         try:
-            if child is not None and child.poll() is None:
+            if child.poll() is None:
                 self._send({"op": "stop", "id": 0})
                 try:
                     child.wait(STOP_TIMEOUT)
@@ -211,13 +208,12 @@ class SimProcess:
             self._sock.close()
             for t in self._threads:
                 t.join(1.0)
-            if child is not None:
-                for stream in (child.stdin, child.stdout, child.stderr):
-                    try:
-                        if stream is not None:
-                            stream.close()
-                    except OSError:  # unflushed lines to a child that died
-                        pass
+            for stream in (child.stdin, child.stdout, child.stderr):
+                try:
+                    if stream is not None:
+                        stream.close()
+                except OSError:  # unflushed lines to a child that died
+                    pass
 
     def _send(self, request: dict[str, Any]) -> bool:
         stdin = self._child.stdin
