@@ -186,6 +186,30 @@ def test_transmission_type_n_sends_every_nth_sync(sim_bench):
     assert rec.count((0x181, 0x281), since=mark) == 1  # none while PRE-OPERATIONAL
 
 
+def test_remapping_one_pdo_leaves_the_others_state_alone(sim_bench):
+    """A PDO object written by SDO compiles that PDO again, not all eight: TPDO2 (every
+    3rd SYNC) keeps its count and a received synchronous RPDO still waits for its SYNC
+    while TPDO1 is remapped, entry by entry, in OPERATIONAL."""
+    bench = sim_bench(1)
+    node, drive, rec = bench.node(1), bench.drive(), bench.recorder
+    node.sdo[0x1801][2].raw = 3
+    node.sdo[0x1400][2].raw = 1
+    bench.nmt(NmtCommand.START)
+    bench.sync(2)
+    rec.wait_for_count(2, bench.stall, 0x181)
+    assert rec.count(0x281) == 0
+    bench.send(0x201, struct.pack("<HbH", 0x06, int(Mode.CST), 0))
+    _remap_tpdo1(node, 0x6064, 0x6041)
+    assert drive.state402 == State402.SWITCH_ON_DISABLED  # the RPDO waits for the SYNC
+    mark = rec.mark()
+    bench.sync(1)
+    frame = rec.wait_for_count(1, bench.stall, 0x181, since=mark)[0]
+    rec.wait_for_count(1, bench.stall, 0x281, since=mark)  # the 3rd SYNC since START
+    assert struct.unpack("<iH", frame.data)[0] == drive.position_increments
+    assert drive.state402 == State402.READY_TO_SWITCH_ON
+    assert drive.mode_display == Mode.CST
+
+
 def test_event_driven_tpdo_on_state_change(sim_bench):
     bench = sim_bench(1)
     node, rec = bench.node(1), bench.recorder

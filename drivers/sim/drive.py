@@ -520,7 +520,7 @@ class SimulatedDrive:
         elif index == c301.PREDEFINED_ERROR_FIELD:
             self.emcy.clear_history()
         elif 0x1400 <= index <= 0x1A03:
-            self.pdos.build()
+            self.pdos.rebuild(index)
 
     # ------------------------------------------------------------------ SYNC cycle
     def _answers_sync(self, on_sync: bool) -> bool:

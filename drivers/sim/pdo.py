@@ -72,22 +72,51 @@ class PdoService:
         self._send_frame = send_frame
         self._controlword_of = {keys.controlword: on_cw for keys, on_cw in axes}
         self._axis_of_mode = {keys.mode: keys for keys, _ in axes}
-        self._tpdos: list[Pdo] = []
+        self._rx: dict[int, Pdo] = {}  # PDO number (0-3) -> compiled
+        self._tx: dict[int, Pdo] = {}
         self._rpdos: list[Pdo] = []
         self._event_tpdos: list[Pdo] = []
         self._sync_tpdos: list[Pdo] = []  # valid, transmission type 0-240
 
     def build(self) -> None:
         """Compile every PDO from the OD and tell the segment which RPDOs to route here."""
-        present = self._values.__contains__  # a drive may have fewer than four of each
-        self._rpdos = [self._compile(0x1400 + n, 0x1600 + n, n) for n in range(4)
-                       if present((0x1400 + n, 1)) and present((0x1600 + n, 0))]
-        self._tpdos = [self._compile(0x1800 + n, 0x1A00 + n, n) for n in range(4)
-                       if present((0x1800 + n, 1)) and present((0x1A00 + n, 0))]
-        self._event_tpdos = [p for p in self._tpdos if p.valid and p.trans_type >= 254]
-        self._sync_tpdos = [p for p in self._tpdos if p.valid and p.trans_type <= 240]
-        self._seg.set_rpdo_routes(self._node_id, {
-            p.cob_id: partial(self.on_rpdo, p) for p in self._rpdos if p.valid})
+        self._rx = {n: self._compile(0x1400 + n, 0x1600 + n, n) for n in range(4)
+                    if self._configured(0x1400 + n)}
+        self._tx = {n: self._compile(0x1800 + n, 0x1A00 + n, n) for n in range(4)
+                    if self._configured(0x1800 + n)}
+        self._derive(routes=True)
+
+    def rebuild(self, index: int) -> None:
+        """PDO object ``index`` (0x1400-0x1A03) was written: compile that one PDO again.
+        A master maps a PDO entry by entry, an SDO each; compiling all eight each time cost
+        a lockstep simulator's loop pass ~60 µs per write during bring-up. The other PDOs
+        keep their state (a TPDO's SYNC count, an RPDO waiting for the next SYNC)."""
+        number = index & 0xFF
+        if number >= 4:
+            return  # no such PDO here (the simulated drive has four of each)
+        receive = index < 0x1800
+        comm = (0x1400 if receive else 0x1800) + number
+        table = self._rx if receive else self._tx
+        if self._configured(comm):
+            table[number] = self._compile(comm, comm + 0x200, number)
+        else:
+            table.pop(number, None)
+        self._derive(routes=receive)
+
+    def _configured(self, comm: int) -> bool:
+        """The PDO's communication and mapping objects exist (a drive may have fewer than
+        four of each)."""
+        return (comm, 1) in self._values and (comm + 0x200, 0) in self._values
+
+    def _derive(self, routes: bool) -> None:
+        """The lists the cycle walks, in PDO order; the segment's RPDO routes if asked."""
+        self._rpdos = [self._rx[n] for n in sorted(self._rx)]
+        tpdos = [self._tx[n] for n in sorted(self._tx)]
+        self._event_tpdos = [p for p in tpdos if p.valid and p.trans_type >= 254]
+        self._sync_tpdos = [p for p in tpdos if p.valid and p.trans_type <= 240]
+        if routes:
+            self._seg.set_rpdo_routes(self._node_id, {
+                p.cob_id: partial(self.on_rpdo, p) for p in self._rpdos if p.valid})
 
     def _compile(self, comm: int, mapping: int, number: int) -> Pdo:
         raw = self._values[(comm, 1)]
