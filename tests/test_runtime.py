@@ -169,7 +169,7 @@ def test_cycle_stats_ring():
     for k in range(20):
         late = 0.02 if k == 5 else 0.001
         work = 0.0095 if k == 7 else 0.0005  # on time, but it ends 0.5 ms past its period
-        stats.record(start=k * 0.01 + late, deadline=k * 0.01, work=work)
+        stats.record(start=k * 0.01 + late, deadline=k * 0.01, work=work, cpu=work)
     s = stats.summary()
     assert (s.cycles, s.overruns) == (20, 2)
     assert s.jitter_max == pytest.approx(0.001)  # the late cycle fell out of the ring
@@ -184,13 +184,73 @@ def test_cycle_stats_ring():
     assert whole.jitter_p99 == s.jitter_p99  # the ring's
 
 
+def test_an_overrun_is_waiting_when_it_was_off_the_cpu_longer_than_on_it():
+    """An overrun off the CPU longer than on it (a late start, or work preempted or
+    waiting for the GIL) is counted as waiting; one of mostly CPU work (a heavy cycle, a
+    CPU running slow) is not; a cycle within its period is neither."""
+    stats = CycleStats(period=0.01, size=8)
+    cycles = [  # (late, work, cpu) in periods
+        (0.0, 1.5, 0.1),   # work slept or waited for the GIL: waiting
+        (0.9, 0.2, 0.2),   # woken 0.9 periods late: waiting
+        (0.0, 1.5, 1.4),   # its own CPU work: not waiting
+        (0.0, 1.2, 0.7),   # both, more on the CPU: not waiting
+        (0.0, 0.9, 0.1),   # waited, but ended in time: no overrun
+    ]
+    for k, (late, work, cpu) in enumerate(cycles):
+        deadline = k * 0.1
+        stats.record(start=deadline + late * 0.01, deadline=deadline, work=work * 0.01,
+                     cpu=cpu * 0.01)
+    for summary in (stats.summary(), stats.summary(whole=True)):
+        assert (summary.overruns, summary.overruns_waiting) == (4, 2)
+    assert "overruns 4 (2 waiting)" in stats.summary().line()
+
+
+def test_the_loop_times_each_cycles_cpu_on_its_own_thread(runtime):
+    """The loop's real clocks: a cycle that sleeps 3 periods in on_cycle has little CPU
+    time and is a waiting overrun; one that computes for 3 periods of its thread's CPU time
+    has at least that, however busy the machine (a wall clock in place of the thread's CPU
+    clock, or none, fails one of the two)."""
+    period = runtime.loop.period
+    seen: dict[int, tuple[float, float, float]] = {}  # cycle -> (late, work, cpu)
+
+    class Observed(CycleStats):
+        def record(self, start: float, deadline: float, work: float, cpu: float) -> None:
+            seen[self.cycles] = (start - deadline, work, cpu)
+            super().record(start, deadline, work, cpu)
+    runtime.loop.stats = Observed(period)
+
+    def on_cycle(now: float) -> None:
+        k = runtime.loop.stats.cycles
+        if k in (5, 15):
+            time.sleep(3 * period)
+        elif k in (10, 20):
+            until = time.thread_time() + 3 * period
+            while time.thread_time() < until:
+                pass
+    runtime.loop.on_cycle = on_cycle
+    summary = runtime.run(duration=30 * period, signals=False)
+    for k in (5, 15):
+        late, work, cpu = seen[k]
+        assert work >= 3 * period and cpu < period, seen[k]
+    for k in (10, 20):
+        assert seen[k][2] >= 3 * period, seen[k]
+    overran = [(late, work, cpu) for late, work, cpu in seen.values()
+               if late + work > period]
+    assert summary.overruns == len(overran) >= 4
+    assert summary.overruns_waiting == sum(late + work > 2 * cpu for late, work, cpu in overran)
+    assert summary.overruns_waiting >= 2  # the sleepers
+    status = runtime.status_report().as_dict()["cycle"]
+    assert (status["overruns"], status["overruns_waiting"]) == (summary.overruns,
+                                                                summary.overruns_waiting)
+
+
 def test_a_run_ends_with_the_whole_runs_timing_not_its_last_ring():
     """A 16 s demo at 1 kHz is four rings of 4096 cycles: its summary's mean and maxima
     must be the run's, not its last four seconds'."""
     stats = CycleStats(period=0.001, size=4)
     starts = [0.0, 0.001, 0.005, 0.006, 0.007, 0.008, 0.009, 0.010]  # a 4 ms gap, early
     for start in starts:
-        stats.record(start=start, deadline=start, work=0.0001)
+        stats.record(start=start, deadline=start, work=0.0001, cpu=0.0001)
     whole, ring = stats.summary(whole=True), stats.summary()
     assert whole.period_max == pytest.approx(0.004) and ring.period_max == pytest.approx(0.001)
     assert whole.period_mean == pytest.approx(0.010 / 7)

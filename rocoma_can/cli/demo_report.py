@@ -100,7 +100,10 @@ def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
     out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
     out(f"  {'cycles':28s} {timing.cycles}")
-    out(f"  {'overruns (past their period)':28s} {timing.overruns}")
+    waiting = timing.overruns_waiting
+    out(f"  {'overruns (past their period)':28s} {timing.overruns}"
+        + (f" ({timing.overruns - waiting} on the CPU, {waiting} waiting off it)"
+           if timing.overruns else ""))
     if rt.loop.yield_pauses:
         out(f"  {'spin pauses':28s} {rt.loop.yield_pauses} (a yield cost the loop a period; "
             "it spun on the CPU for 5 s after each)")

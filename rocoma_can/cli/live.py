@@ -177,7 +177,9 @@ def cycle_text(cycle: dict[str, Any]) -> str:
     def ms(key: str) -> str:
         value = cycle.get(key)
         return "n/a" if value is None else f"{value:.2f} ms"
-    return (f"{cycle['cycles']} cycles at {cycle['rate']:g} Hz, overruns {cycle['overruns']}, "
+    waiting = cycle.get("overruns_waiting")  # (None: a manager from before it was counted)
+    return (f"{cycle['cycles']} cycles at {cycle['rate']:g} Hz, overruns {cycle['overruns']}"
+            + (f" ({waiting} waiting)" if waiting is not None else "") + ", "
             f"period mean {ms('period_mean_ms')} max {ms('period_max_ms')}, jitter p99 "
             f"{ms('jitter_p99_ms')}, work max {ms('work_max_ms')}"
             + (f", spin pauses {cycle['spin_pauses']} (a yield cost a period)"

@@ -35,6 +35,7 @@ class CycleReport:
     rate: float
     cycles: int
     overruns: int
+    overruns_waiting: int       # of those, off the CPU longer than on it (CycleStats.record)
     period_mean_ms: float | None
     period_max_ms: float | None
     jitter_p99_ms: float | None
@@ -217,8 +218,9 @@ class Runtime:
         zenoh = (self.fleet.info() if self.fleet is not None
                  else {"error": self.fleet_error} if self.fleet_error else None)
         return RuntimeStatus(self.hardware.status_report(), loads,
-                             CycleReport(rate, t.cycles, t.overruns, mean, peak, p99, work,
-                                         self.loop.yield_pauses), zenoh)
+                             CycleReport(rate, t.cycles, t.overruns, t.overruns_waiting,
+                                         mean, peak, p99, work, self.loop.yield_pauses),
+                             zenoh)
 
     def status(self) -> dict[str, Any]:
         """What ``rocoma-can status --json`` prints, built here rather than read over SDO
