@@ -42,10 +42,10 @@ from collections.abc import Callable, Sequence
 from can import Message
 
 from .inproc import InProcessBus, received
+from .wire import BRS, ERROR, ESI, EXTENDED, FD, REMOTE
 
-#: channel index, identifier, flags (FLAG_*), DLC, data length; the data follows
+#: channel index, identifier, flags (wire.py), DLC, data length; the data follows
 FRAME = struct.Struct("=BIBBB")
-FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_FD, FLAG_BRS, FLAG_ESI = 1, 2, 4, 8, 16, 32
 #: the largest datagram read: a burst of ~900 CAN FD frames of 64 bytes
 MAX_DATAGRAM = 1 << 16
 #: a datagram in the making is written once this long (the next frame could not fit)
@@ -219,9 +219,9 @@ class InProcessLink:
                     return
                 end = ends[index]
                 end._broadcast(received(
-                    stamp, cob_id, bool(flags & FLAG_EXTENDED), bool(flags & FLAG_REMOTE),
-                    bool(flags & FLAG_ERROR), end.channel_id, dlc, buf[at:at + length],
-                    bool(flags & FLAG_FD), bool(flags & FLAG_BRS), bool(flags & FLAG_ESI)))
+                    stamp, cob_id, bool(flags & EXTENDED), bool(flags & REMOTE),
+                    bool(flags & ERROR), end.channel_id, dlc, buf[at:at + length],
+                    bool(flags & FD), bool(flags & BRS), bool(flags & ESI)))
                 at += length
                 self.rx_frames += 1
         finally:

@@ -1,7 +1,14 @@
 """What one CAN frame costs on the wire, in bits at the nominal bit rate: the bus-load check
 (runtime/bus_load.py) and the manager node's block-upload pacing (node/server.py) count
-with it, and ``fd_length`` says how long a CAN FD frame's data field is on the wire."""
+with it, and ``fd_length`` says how long a CAN FD frame's data field is on the wire; and a
+frame's flags in one byte, as the recording and the in-process link keep them."""
 from __future__ import annotations
+
+#: A frame's flags in one byte, as the recording's frame records (record/rings.py, read by
+#: record/can_log.py) and the in-process link's datagrams (inproc_link.py) keep them. Each
+#: encodes inline, ``is_extended_id | is_remote_frame << 1 | ... | error_state_indicator
+#: << 5`` (a function call would add ~80 ns a frame on the loop's thread).
+EXTENDED, REMOTE, ERROR, FD, BRS, ESI = 1, 2, 4, 8, 16, 32
 
 #: the data lengths a CAN FD frame's DLC can say beyond 8 bytes (ISO 11898-1)
 FD_LENGTHS = (12, 16, 20, 24, 32, 48, 64)

@@ -14,7 +14,7 @@ import pytest
 
 from rocoma_can import ManagerState
 from rocoma_can.drivers.joints import JointCommand, JointState
-from rocoma_can.record.can_log import RecordingError
+from rocoma_can.record.can_log import RecordingError, candump_line
 from rocoma_can.record.rings import (
     MEMORY_SHARE,
     FrameRing,
@@ -107,6 +107,33 @@ def test_a_frame_longer_than_its_rings_records_keeps_to_its_record():
     ring.put(can.Message(arbitration_id=0x182, data=b"\x22" * 8, is_extended_id=False), 2.0)
     _, records = RingReader(shared, spec).read(0)
     assert [data for _, _, _, data in frame_fields(records)] == ["11" * 8, "22" * 8]
+
+
+def test_a_frames_flags_survive_the_ring_and_its_candump_line(tmp_path):
+    """The ring encodes a frame's flags inline, the candump line reads them by
+    drivers/wire.py's names: python-can's own log reader must get every flag back."""
+    [spec] = layout([("bus sent", CAPACITY, 0, True)])
+    shared = SharedFile(spec.size)
+    ring = FrameRing(shared, spec, sent=True)
+    sent = [
+        can.Message(arbitration_id=0x201, data=bytes(range(12)), is_extended_id=False,
+                    is_fd=True, bitrate_switch=True, error_state_indicator=True),
+        can.Message(arbitration_id=0x1ABCDEF, is_remote_frame=True, dlc=0),
+        can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False,
+                    is_fd=True),
+    ]
+    for k, msg in enumerate(sent):
+        ring.put(msg, 1.0 + k)
+    _, records = RingReader(shared, spec).read(0)
+    log = tmp_path / "bus.log"
+    log.write_text("".join(candump_line(t, "can0", cob, flags, data)
+                           for t, cob, flags, data in frame_fields(records)))
+    got = list(can.LogReader(str(log)))
+    for g, s in zip(got, sent, strict=True):
+        assert (g.arbitration_id, g.is_extended_id, g.is_remote_frame, g.is_fd,
+                g.bitrate_switch, g.error_state_indicator, bytes(g.data), g.is_rx) == (
+            s.arbitration_id, s.is_extended_id, s.is_remote_frame, s.is_fd,
+            s.bitrate_switch, s.error_state_indicator, bytes(s.data), False)
 
 
 def _resident_kb(name: str) -> int:

@@ -22,6 +22,11 @@ import can
 from can.util import channel2int
 
 from ..drivers.bus import BusReader
+from ..drivers.wire import BRS, ERROR, ESI, EXTENDED, FD, REMOTE
+
+#: a frame record's flags (rings.py): drivers/wire.py's, and this for a frame the hardware
+#: sent (``T`` in a candump line, else ``R``)
+SENT = 64
 
 SUFFIXES = (".log", ".asc", ".blf")
 #: Frames held for the writer at most (~30 s of four saturated buses): a writer that cannot
@@ -39,17 +44,16 @@ _ERROR_ID = 0x20000000 | 0x00000080
 
 def candump_line(stamp: float, channel: str, cob_id: int, flags: int, data: str) -> str:
     """One frame as a ``candump -L`` line, as python-can's writer makes it (``can.LogReader``
-    and ``canplayer`` read it); ``flags`` as rings.py keeps them (1 extended, 2 remote,
-    4 error, 8 FD, 16 bit rate switch, 32 error state, 64 sent: ``T``, else ``R``); ``data``
-    the payload in upper-case hex."""
-    if flags & 4:
+    and ``canplayer`` read it); ``flags`` as rings.py keeps them (drivers/wire.py's, and
+    ``SENT``: ``T``, else ``R``); ``data`` the payload in upper-case hex."""
+    if flags & ERROR:
         return f"({stamp:f}) {channel} {_ERROR_ID:08X}#{data}\n"
-    head = f"({stamp:f}) {channel} {cob_id:08X}#" if flags & 1 else \
+    head = f"({stamp:f}) {channel} {cob_id:08X}#" if flags & EXTENDED else \
         f"({stamp:f}) {channel} {cob_id:03X}#"
-    eol = " T\n" if flags & 64 else " R\n"
-    if flags & 2:
+    eol = " T\n" if flags & SENT else " R\n"
+    if flags & REMOTE:
         return f"{head}R{eol}"
-    fd = f"#{(flags >> 4 & 1) | (flags >> 5 & 1) << 1:X}" if flags & 8 else ""
+    fd = f"#{bool(flags & BRS) | bool(flags & ESI) << 1:X}" if flags & FD else ""
     return f"{head}{fd}{data}{eol}"
 
 

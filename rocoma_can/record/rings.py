@@ -31,14 +31,12 @@ import can
 import numpy as np
 
 from ..drivers.frame_io import MAX_FRAME_AGE
-from .can_log import RecordingError
+from .can_log import SENT, RecordingError
 
 #: bytes before each ring's records: its count, on a cache line of its own
 HEADER = 64
 _COUNT = struct.Struct("<Q")
 
-#: frame flags, as a record keeps them
-EXTENDED, REMOTE, ERROR, FD, BRS, ESI, SENT = 1, 2, 4, 8, 16, 32, 64
 
 
 def frame_dtype(fd: bool) -> np.dtype[Any]:
