@@ -49,7 +49,7 @@ def time_record(joints: int, repeat: int) -> list[float]:
     clock = time.perf_counter_ns
     for k in range(repeat):
         t0 = clock()
-        trace.record(k * 0.001, 1e-4, 0.0, ManagerState.OK)
+        trace.record(k * 0.001, 1e-4, 0.0, ManagerState.OK, 1e-4)
         samples.append((clock() - t0) / 1000.0)
     return samples
 
@@ -74,7 +74,7 @@ def time_writer(joints: int, cycles: int) -> tuple[float, float, float]:
     """µs per cycle (rows to MCAP), per frame (candump line), per frame (MCAP message)."""
     trace, rows = _shared_trace(joints, cycles + 1)
     for k in range(cycles):
-        trace.record(k * 0.001, 1e-4, 0.0, ManagerState.OK)
+        trace.record(k * 0.001, 1e-4, 0.0, ManagerState.OK, 1e-4)
     writer = McapWriter(io.BytesIO(), trace.names)
     t0 = time.perf_counter_ns()
     writer.cycles(trace.layout, {0: "pd"}, rows.read(0)[1], 0.0)

@@ -164,6 +164,8 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
             viewer.pump(lambda: any(m["state"] == "OK" and m["controller"] == "pd"
                                     for m in viewer.received.get("/rocoma/manager", [])),
                         "the manager in OK on /rocoma/manager")
+            shown = viewer.received["/rocoma/manager"][-1]
+            assert 0 <= shown["overruns_waiting"] <= shown["overruns"] <= shown["cycles"]
 
             answer = viewer.call("/rocoma/estop", {"anything": "ignored"})
             assert answer["ok"] is True  # taken: the next cycle acts on it

@@ -131,11 +131,11 @@ def test_the_loops_part_allocates_nothing(tmp_path):
     msg = can.Message(arbitration_id=0x201, data=bytearray(8), is_extended_id=False)
     stamp = time.time()
     for k in range(1000):  # warm: caches, the first allocation of everything
-        trace.record(k * 1e-3, 1e-4, 0.0, ManagerState.OK)
+        trace.record(k * 1e-3, 1e-4, 0.0, ManagerState.OK, 1e-4)
         ring.put(msg, stamp)
     before = sys.getallocatedblocks()
     for k in range(5000):
-        trace.record(k * 1e-3, 1e-4, 0.0, ManagerState.OK)
+        trace.record(k * 1e-3, 1e-4, 0.0, ManagerState.OK, 1e-4)
         ring.put(msg, stamp)
     assert sys.getallocatedblocks() - before < 10
     assert shared.count(rows) == 6000 and shared.count(frames) == 6000

@@ -50,7 +50,7 @@ def test_a_row_being_written_is_not_read_under_the_number_it_overwrites():
     trace = SignalTrace(state, command, _Manager(), CAPACITY, rows=shared.array(rows),
                         publish=publish, known=["pd"])
     for number in range(3 * CAPACITY):
-        trace.record(float(number), 1e-3, 0.0, ManagerState.OK)
+        trace.record(float(number), 1e-3, 0.0, ManagerState.OK, 1e-3)
     for start, stamps in seen:  # row number n was recorded at t = n
         assert stamps == [float(n) for n in range(start, start + len(stamps))], (start, stamps)
 

@@ -165,9 +165,10 @@ def test_record_writes_every_cycle_and_every_frame_and_exports_csv(config, tmp_p
 def test_a_cycle_that_works_past_its_period_is_an_overrun_everywhere(config, tmp_path):
     """Five cycles that start on time and work 1.5 periods: each ends after the next
     cycle's deadline, so each is an overrun, for the loop's statistics and in the
-    recording's /rocoma/manager alike (one rule, rocoma_can/overrun.py). The loop starts
-    the next cycle at once (no burst), so that one is not late by its new deadline: a count
-    of late starts alone saw none of them."""
+    recording's /rocoma/manager alike (one rule, rocoma_can/overrun.py); asleep, they were
+    off the CPU: overruns that waited, each row's ``cpu`` a small part of its ``work``. The
+    loop starts the next cycle at once (no burst), so that one is not late by its new
+    deadline: a count of late starts alone saw none of them."""
     out = tmp_path / "rec"
     slow: list[float] = []
     with Runtime(config, record=str(out)) as rt:
@@ -182,9 +183,14 @@ def test_a_cycle_that_works_past_its_period_is_an_overrun_everywhere(config, tmp
         overruns = rt.loop.stats.overruns
     assert len(slow) == 5
     assert overruns >= 5
-    shown = [m["overruns"] for topic, _, m in read_messages(str(out / "trace.mcap"))
-             if topic == "/rocoma/manager"]
-    assert 5 <= shown[-1] <= overruns  # (sampled: a late overrun may follow the last one)
+    messages = list(read_messages(str(out / "trace.mcap")))
+    shown = [m for topic, _, m in messages if topic == "/rocoma/manager"]
+    assert 5 <= shown[-1]["overruns"] <= overruns  # (sampled: a later overrun may follow)
+    # the sleeps were off the CPU: those overruns waited, and the rows say why
+    assert 5 <= shown[-1]["overruns_waiting"] <= shown[-1]["overruns"]
+    rows = {m["t"]: m for topic, _, m in messages if topic == "/rocoma/cycle"}
+    for t in slow:
+        assert rows[t]["work"] >= 1.5 * period > 3 * rows[t]["cpu"] > 0, rows[t]
 
 
 def test_an_unwritable_flight_directory_is_said_and_the_loop_runs_on(config, tmp_path):

@@ -134,9 +134,10 @@ def _write_csv(source: Path, stream: Any) -> int:
         if rows == 0:
             joints = len(msg["position"])  # every row alike: read_trace checked them
             names = joint_names(str(source), joints) or [str(j) for j in range(joints)]
-            writer.writerow(["log_time_ns", *SCALARS,
+            scalars = [k for k in SCALARS if k in msg]  # (a trace from before ``cpu``)
+            writer.writerow(["log_time_ns", *scalars,
                              *(f"{f}[{name}]" for f in JOINT_FIELDS for name in names)])
-        writer.writerow([log_time, *(msg[k] for k in SCALARS),
+        writer.writerow([log_time, *(msg.get(k, "") for k in scalars),
                          *(v for f in JOINT_FIELDS for v in msg[f])])
         rows += 1
     return rows

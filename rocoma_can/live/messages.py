@@ -10,7 +10,8 @@ Channels, every one JSON with its JSON schema:
   ``position`` (rad), ``velocity`` (rad/s), ``effort`` (Nm); ``null`` for a joint without
   feedback (JSON has no NaN);
 * ``/rocoma/manager`` (``rocoma.Manager``): ``state``, ``controller``, ``latched`` (the
-  e-stop latch), ``cause`` (the last e-stop's), the loop's ``cycles`` and ``overruns``, and
+  e-stop latch), ``cause`` (the last e-stop's), the loop's ``cycles``, ``overruns`` and
+  ``overruns_waiting`` (rocoma_can/overrun.py), and
   the live view's own counters (``foxglove``, live only);
 * ``/rocoma/status`` (``rocoma.Status``): the status report as ``status --json`` prints it
   (cycle statistics, each bus's load and errors, the drives);
@@ -61,6 +62,7 @@ MANAGER = Channel("/rocoma/manager", _schema("rocoma.Manager", {
     "state": {"type": "string"}, "controller": {"type": "string"},
     "latched": {"type": "boolean"}, "cause": {"type": "string"},
     "cycles": {"type": "integer"}, "overruns": {"type": "integer"},
+    "overruns_waiting": {"type": "integer"},
     "foxglove": {"type": "object"}}))
 STATUS = Channel("/rocoma/status", _schema("rocoma.Status", {}))
 LOG = Channel("/rocoma/log", _schema("foxglove.Log", {
@@ -96,10 +98,12 @@ def joint_states(ns: int, names: Sequence[str], position: Iterable[float],
 
 
 def manager(state: str, controller: str, latched: bool, cause: str, cycles: int,
-            overruns: int, view: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """``view``: the live view's own counters (a recording has none)."""
+            overruns: tuple[int, int], view: Mapping[str, Any] | None = None
+            ) -> dict[str, Any]:
+    """``overruns``: the loop's, and those of them that waited (rocoma_can/overrun.py);
+    ``view``: the live view's own counters (a recording has none)."""
     message = {"state": state, "controller": controller, "latched": latched, "cause": cause,
-               "cycles": cycles, "overruns": overruns}
+               "cycles": cycles, "overruns": overruns[0], "overruns_waiting": overruns[1]}
     return message if view is None else {**message, "foxglove": dict(view)}
 
 

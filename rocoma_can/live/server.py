@@ -29,7 +29,7 @@ from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any, cast
 
-from ..overrun import overran
+from ..overrun import overran, waited
 from ..record.trace import state_name
 from ..remote import COMMANDS, refused
 from . import messages
@@ -114,7 +114,7 @@ class FoxgloveServer:
         self._cause = ""
         self._seen = -1          # the next row's number the sampler has not read
         self._last: list[float] | None = None  # the newest row read
-        self._cycles = self._overruns = 0
+        self._cycles = self._overruns = self._waiting = 0
         self.counters = {"published": 0, "events_dropped": 0, "viewer_drops": 0,
                          "errors": 0}
         self._reported: dict[str, int] = {}
@@ -223,7 +223,9 @@ class FoxgloveServer:
         fresh = bool(len(rows))
         if fresh:
             self._cycles = self._seen = first + len(rows)
-            self._overruns += int(overran(rows[:, 2], rows[:, 3], self._period).sum())
+            over = overran(rows[:, 2], rows[:, 3], self._period)
+            self._overruns += int(over.sum())
+            self._waiting += int((over & waited(rows[:, 2], rows[:, 3], rows[:, 6])).sum())
             self._last = rows[-1].tolist()
         values = self._last
         if values is None:  # no cycle yet: nothing known to show
@@ -243,7 +245,8 @@ class FoxgloveServer:
                 counts = dict(self.counters)
             self._publish(messages.MANAGER, messages.manager(
                 state_name(values[4]), self.controllers.get(int(values[5]), ""),
-                self.latched, self._cause, self._cycles, self._overruns, counts), ns)
+                self.latched, self._cause, self._cycles, (self._overruns, self._waiting),
+                counts), ns)
         if self.robot is not None:
             if self._subscriptions.description_wanted.is_set():
                 self._subscriptions.description_wanted.clear()

@@ -21,7 +21,7 @@ import numpy as np
 from ..events import EventKind
 from ..live import messages
 from ..live.urdf import Robot
-from ..overrun import overran
+from ..overrun import overran, waited
 from .trace import McapWriter, RowLayout, state_name
 
 #: /rocoma/manager and /tf samples per second of a recording
@@ -46,7 +46,7 @@ class LiveChannels:
                     if c is not messages.STATUS}
         self._names = layout.names
         self._cause = ""
-        self._overruns = self._cycles = 0
+        self._overruns = self._waiting = self._cycles = 0
         self._next_sample = -math.inf
         self._described = robot is None
 
@@ -60,6 +60,7 @@ class LiveChannels:
             ns = int((values[0] + offset) * 1e9)
             if overran(values[2], values[3], self._period):
                 self._overruns += 1
+                self._waiting += waited(values[2], values[3], values[6])
             if not self._described and self._robot is not None:
                 add(ids[messages.ROBOT_DESCRIPTION.topic], ns,
                     messages.robot_description(self._robot.text))
@@ -88,4 +89,4 @@ class LiveChannels:
     def _manager(self, ns: int, state: str, controller: str) -> None:
         self._writer.add(self._id[messages.MANAGER.topic], ns, messages.manager(
             state, controller, self._facts.latched, self._cause, self._cycles,
-            self._overruns))
+            (self._overruns, self._waiting)))

@@ -8,7 +8,8 @@ turns rows (and CAN frames) into MCAP messages, JSON-encoded with a JSON schema,
 Foxglove and PlotJuggler open the file as it is.
 
 Channels: ``/rocoma/cycle`` (one message per cycle: ``t``, ``period``, ``work``, ``late``,
-``state``, ``controller``, then per joint arrays ``position``, ``velocity``, ``torque``,
+``state``, ``controller``, ``cpu`` (the loop thread's CPU time in ``work``), then per joint
+arrays ``position``, ``velocity``, ``torque``,
 ``command_mode``, ``command_position``, ``command_velocity``, ``command_torque``,
 ``statusword``, ``cia402_state``, ``error_code``), ``/rocoma/event`` (one message per
 manager event: ``kind`` emergency_stop / state_changed / active_controller_changed,
@@ -32,7 +33,7 @@ from .pacing import unpaced
 JOINT_FIELDS = ("position", "velocity", "torque", "command_mode", "command_position",
                 "command_velocity", "command_torque", "statusword", "cia402_state",
                 "error_code")
-SCALARS = ("t", "period", "work", "late", "state", "controller")
+SCALARS = ("t", "period", "work", "late", "state", "controller", "cpu")
 #: /can/<bus> messages between two ``pace`` calls (~4 µs each; a row's message takes ~30)
 PACED_FRAMES = 32
 #: an MCAP chunk's bytes: each is compressed (zstd) in one call between two ``pace`` calls,
@@ -69,7 +70,8 @@ class RowLayout:
         values = row.tolist()  # plain floats at once: ~5x faster than element by element
         msg: dict[str, Any] = {"t": values[0], "period": values[1], "work": values[2],
                                "late": values[3], "state": state_name(values[4]),
-                               "controller": controllers.get(int(values[5]), "")}
+                               "controller": controllers.get(int(values[5]), ""),
+                               "cpu": values[6]}
         for field, where in zip(JOINT_FIELDS, self.slices):
             msg[field] = ([int(v) for v in values[where]] if field in _INTEGER_FIELDS
                           else values[where])
@@ -108,8 +110,10 @@ class SignalTrace:
         self.controllers: dict[str, int] = {name: k for k, name in enumerate(known)}
         self._previous = float("nan")
 
-    def record(self, now: float, work: float, late: float, state: ManagerState) -> None:
-        """The loop thread, after each cycle: one row, no allocation."""
+    def record(self, now: float, work: float, late: float, state: ManagerState,
+               cpu: float) -> None:
+        """The loop thread, after each cycle: one row, no allocation. ``cpu``: the loop
+        thread's CPU time in ``work``."""
         row = self._rows[self.count % self.capacity]
         row[0] = now
         row[1] = now - self._previous
@@ -121,6 +125,7 @@ class SignalTrace:
         if number is None:  # a controller seen for the first time: rare
             number = self.controllers[name] = len(self.controllers)
         row[5] = number
+        row[6] = cpu
         # every joint block in one call: the blocks lie in the row in the sources' order
         np.concatenate(self._sources, out=row[self._joint_columns])
         self._previous = now
@@ -141,7 +146,8 @@ def cycle_schema(joints: Sequence[str]) -> dict[str, Any]:
     number = {"type": "number"}
     array = {"type": "array", "items": number, "description": "joints: " + ", ".join(joints)}
     props: dict[str, Any] = {"t": number, "period": number, "work": number, "late": number,
-                             "state": {"type": "string"}, "controller": {"type": "string"}}
+                             "state": {"type": "string"}, "controller": {"type": "string"},
+                             "cpu": number}
     props.update({f: array for f in JOINT_FIELDS})
     return {"type": "object", "title": "rocoma_can.Cycle", "properties": props}
 

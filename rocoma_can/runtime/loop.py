@@ -37,7 +37,7 @@ import numpy as np
 
 from ..drivers.stop_requests import StopTarget
 from ..events import STOP_CAUSE, ManagerState
-from ..overrun import overran
+from ..overrun import overran, waited
 
 log = logging.getLogger(__name__)
 
@@ -128,11 +128,8 @@ class CycleStats:
 
     def record(self, start: float, deadline: float, work: float, cpu: float) -> None:
         """One cycle: its start, the deadline it had, its work (s, start to end) and the
-        loop thread's CPU time in that work. An overrun is *waiting* when the cycle spent
-        more of its time off the CPU (its late start; its work preempted, or waiting for
-        the GIL, a lock or I/O) than on it: scheduling, another thread or process, is the
-        cause. The others are mostly CPU work: a cycle too heavy for the period, or a CPU
-        that ran slow (a virtual machine's host)."""
+        loop thread's CPU time in that work: overruns, and those that waited
+        (rocoma_can/overrun.py)."""
         k = self.cycles % self._size
         self._start[k] = start
         late = start - deadline
@@ -140,7 +137,7 @@ class CycleStats:
         self._work[k] = work
         if overran(work, late, self.period):
             self.overruns += 1
-            if late + work > 2.0 * cpu:  # off the CPU longer than on it
+            if waited(work, late, cpu):
                 self.overruns_waiting += 1
         if self.cycles:  # (compare and store: half the time of max() on this hot path)
             gap = start - self._last
@@ -277,7 +274,8 @@ class CycleTrace(Protocol):
     """What records every cycle's signals (trace.SignalTrace): called on the loop thread
     after the cycle, it must only copy into memory allocated beforehand."""
 
-    def record(self, now: float, work: float, late: float, state: ManagerState) -> None: ...
+    def record(self, now: float, work: float, late: float, state: ManagerState,
+               cpu: float) -> None: ...
 
 
 class ControlLoop:
@@ -378,9 +376,10 @@ class ControlLoop:
                 if on_cycle is not None:
                     on_cycle(now)
                 done = clock()
-                stats.record(now, deadline, done - now, cpu_clock() - cpu)
+                cpu = cpu_clock() - cpu
+                stats.record(now, deadline, done - now, cpu)
                 if trace is not None:
-                    trace.record(now, done - now, now - deadline, state)
+                    trace.record(now, done - now, now - deadline, state, cpu)
                 deadline += period
                 if done > deadline:  # overrun: start again from now, do not burst
                     deadline = done
