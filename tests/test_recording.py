@@ -4,6 +4,7 @@ CSV, and an unwritable place that is an error said clearly, never a stop of the 
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import os
 import re
@@ -141,6 +142,22 @@ def test_a_normal_stop_dumps_nothing(config, tmp_path):
     assert not (tmp_path / "flight").exists() or not list((tmp_path / "flight").iterdir())
 
 
+def strict_json_messages(path) -> int:
+    """Every message of an MCAP file parsed as strict JSON (NaN and Infinity are not JSON:
+    Foxglove and PlotJuggler refuse them); their count."""
+    from mcap.reader import make_reader
+
+    def refuse(token: str) -> None:
+        raise AssertionError(f"{path}: {token} is not JSON")
+    count = 0
+    with open(path, "rb") as stream:
+        for _, channel, message in make_reader(stream).iter_messages():
+            assert channel.message_encoding == "json"
+            json.loads(message.data, parse_constant=refuse)
+            count += 1
+    return count
+
+
 def test_record_writes_every_cycle_and_every_frame_and_exports_csv(config, tmp_path, capsys):
     out = tmp_path / "rec"
     with Runtime(config, record=str(out)) as rt:
@@ -150,6 +167,8 @@ def test_record_writes_every_cycle_and_every_frame_and_exports_csv(config, tmp_p
     trace = [m for topic, _, m in read_messages(str(out / "trace.mcap"))
              if topic == "/rocoma/cycle"]
     assert len(trace) == cycles  # every cycle, the loop's own stop cycles aside
+    assert trace[0]["period"] is None and trace[1]["period"] > 0  # no period before the first
+    assert strict_json_messages(out / "trace.mcap") > cycles  # Foxglove's parser: no NaN
     events = [m for topic, _, m in read_messages(str(out / "trace.mcap"))
               if topic == "/rocoma/event"]
     assert [e["cause"] for e in events if e["kind"] == "emergency_stop"] \
@@ -323,9 +342,10 @@ FOREIGN = {  # name: (cycles, events, encoding, why)
                         "/rocoma/cycle message 1 is an array ([1, 2, 3]), not an object"),
     "strings-for-numbers": ([{**cycle(0), "position": ["0.1", "0.2"]}], [], "json",
                             "/rocoma/cycle message 1: 'position' holds text ('0.1'), not a "
-                            "number"),
+                            "number or null"),
     "string-period": ([{**cycle(0), "period": "10ms"}], [], "json",
-                      "/rocoma/cycle message 1: 'period' is text ('10ms'), not a number"),
+                      "/rocoma/cycle message 1: 'period' is text ('10ms'), not a number "
+                      "or null"),
     "joint-counts-differ": ([cycle(0), cycle(1, joints=3)], [], "json",
                             "/rocoma/cycle message 2: 'position' has 3 joints, the trace 2"),
     "array-not-list": ([{**cycle(0), "torque": {"hip": 1.0}}], [], "json",
