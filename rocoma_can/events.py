@@ -32,6 +32,7 @@ class EventKind(enum.Enum):
     STATE_CHANGED = "state_changed"
     ACTIVE_CONTROLLER_CHANGED = "active_controller_changed"
     EMERGENCY_STOP = "emergency_stop"
+    RECOVERY = "recovery"  # of the drives: started, done or failed (its cause says)
 
 
 @dataclass(frozen=True)

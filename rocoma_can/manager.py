@@ -480,6 +480,12 @@ class ControllerManager:
     def available_controllers(self) -> list[str]:
         return sorted(self._pairs)
 
+    def notify_recovery(self, cause: str) -> None:
+        """Tell the subscribers of a recovery of the drives (``cause``: "started", "done:
+        ...", "failed: ..."): the hardware recovers them, the manager only hears of it. From
+        any thread, the cycle's included: it only queues the event."""
+        self._emit(EventKind.RECOVERY, cause)
+
     def subscribe(self, callback: Subscriber) -> Callable[[], None]:
         """Call ``callback(event)`` on the event thread; returns the unsubscribe function."""
         return self._events.subscribe(callback)

@@ -88,6 +88,17 @@ def test_demo_records_its_run_and_plots_it(tmp_path):
     causes = [cause for _, cause in load(report.recording).estops]
     assert any("CAN e-stop from 0x0A0" in c for c in causes), causes  # the walk-through's
     assert len(list(tmp_path.glob("*.log"))) == 1  # the bus's frames, candump
+    # the walk-through's recovery (SDO 0x2113), as an event and a log line: started, then
+    # done, and the latch cleared in between
+    from rocoma_can.record.trace import read_messages
+    messages = list(read_messages(str(report.recording)))
+    told = [m["cause"].split(":")[0] for topic, _, m in messages
+            if topic == "/rocoma/event" and m["kind"] == "recovery"]
+    assert told == ["started", "done"], told
+    logged = [m["message"] for topic, _, m in messages if topic == "/rocoma/log"]
+    started = next(k for k, line in enumerate(logged) if line.startswith("recovery started"))
+    done = next(k for k, line in enumerate(logged) if line.startswith("recovery done"))
+    assert any("emergency stop cleared" in line for line in logged[started:done]), logged
 
 
 def test_demo_cli_says_when_it_cannot_record(tmp_path, capsys):

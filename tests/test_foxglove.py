@@ -27,7 +27,7 @@ from rocoma_can.live.foxglove import (
     FoxgloveConfig,
     parse_address,
 )
-from rocoma_can.live.messages import MANAGER_CHANNELS, ROBOT
+from rocoma_can.live.messages import INFO, MANAGER_CHANNELS, ROBOT, WARNING, event_log
 from rocoma_can.live.urdf import parse_urdf
 from rocoma_can.remote import COMMANDS
 
@@ -136,6 +136,17 @@ def _listener_pids(port: int) -> set[int]:
         if links & inodes:
             holders.add(int(proc.name))
     return holders
+
+
+def test_a_recovery_is_a_log_line_as_it_starts_and_ends():
+    """The log line of each recovery event; a failed one is a warning."""
+    def line(cause: str) -> tuple[str, int]:
+        return event_log({"kind": "recovery", "state": "FAILPROOF", "controller": "torque_off",
+                          "cause": cause})
+    assert line("started") == ("recovery started (FAILPROOF)", INFO)
+    assert line("done: every drive is back")[1] == INFO
+    assert line("failed: not every drive came back") == (
+        "recovery failed: not every drive came back (FAILPROOF)", WARNING)
 
 
 def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory):

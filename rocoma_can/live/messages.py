@@ -120,6 +120,8 @@ def event_log(event: Mapping[str, Any]) -> tuple[str, int]:
         return f"e-stop ({state}): {cause or 'no cause given'}", WARNING
     if kind == "active_controller_changed":
         return f"switched to {event['controller']} ({state})", INFO
+    if kind == "recovery":
+        return f"recovery {cause} ({state})", WARNING if cause.startswith("failed") else INFO
     return f"state {state}, controller {event['controller']}" + (
         f": {cause}" if cause else ""), INFO
 

@@ -12,8 +12,8 @@ Channels: ``/rocoma/cycle`` (one message per cycle: ``t``, ``period``, ``work``,
 arrays ``position``, ``velocity``, ``torque``,
 ``command_mode``, ``command_position``, ``command_velocity``, ``command_torque``,
 ``statusword``, ``cia402_state``, ``error_code``), ``/rocoma/event`` (one message per
-manager event: ``kind`` emergency_stop / state_changed / active_controller_changed,
-``state``, ``controller``, ``cause``) and ``/can/<bus>`` (one message per frame: ``id``,
+manager event: ``kind`` emergency_stop / state_changed / active_controller_changed /
+recovery, ``state``, ``controller``, ``cause``) and ``/can/<bus>`` (one message per frame: ``id``,
 ``data`` as hex, ``dlc``, ``extended``, ``remote``, ``error``, ``fd``, ``sent``: sent by
 this manager, not received).
 """
@@ -166,7 +166,8 @@ FRAME_SCHEMA = {"type": "object", "title": "rocoma_can.CanFrame", "properties": 
 
 EVENT_SCHEMA = {"type": "object", "title": "rocoma_can.ManagerEvent", "properties": {
     "kind": {"type": "string",
-             "description": "emergency_stop, state_changed or active_controller_changed"},
+             "description": "emergency_stop, state_changed, active_controller_changed or "
+                            "recovery"},
     "state": {"type": "string"}, "controller": {"type": "string"},
     "cause": {"type": "string", "description": "an e-stop's cause"}}}
 

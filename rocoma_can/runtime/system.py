@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -114,6 +115,8 @@ class Runtime:
         self.fleet: FleetBridge | None = None
         self.foxglove: FoxgloveView | None = None
         self.fleet_error = ""
+        self._recovery_lock = threading.Lock()
+        self._recovery_told: Future[bool] | None = None
         m = config.manager
         self.hardware = CanopenHardware({b.label: b for b in config.buses}, config.drives,
                                         m.node_id, config.dt,
@@ -142,7 +145,7 @@ class Runtime:
             self._parts.append(self._node_bus.shutdown)
             self.node = ManagerNode(self.manager, m.node_id, self._node_bus,
                                     estop_cob_id=m.estop_cob_id, status_period=m.status_period,
-                                    recover=hardware.recover, home=self._home,
+                                    recover=self._recover, home=self._home,
                                     heartbeat_ms=m.heartbeat_ms,
                                     drive_status=self.status_report,
                                     estop_in_cycle=hardware.set_estop_cob_id,
@@ -150,8 +153,7 @@ class Runtime:
             self._parts.insert(0, self.node.close)
             if foxglove is not None:  # served by the writer process (_recorders)
                 self.foxglove = FoxgloveView(foxglove, self.manager, self.status,
-                                             recover=self.hardware.recover,
-                                             robot=config.robot)
+                                             recover=self._recover, robot=config.robot)
                 self._parts.insert(0, self.foxglove.close)
             trace = self._recorders(record, flight, flight_seconds, announce)
             self.loop = ControlLoop(self.hardware, self.manager, config.rate,
@@ -166,7 +168,7 @@ class Runtime:
     def _bridge(self, fleet: FleetConfig) -> None:
         try:
             self.fleet = FleetBridge(fleet, self.manager, self.status,
-                                     recover=self.hardware.recover,
+                                     recover=self._recover,
                                      cycles=lambda: self.loop.stats.cycles)
         except FleetError as exc:
             if fleet.required:
@@ -198,6 +200,26 @@ class Runtime:
         if recorder.frame_taps:
             self.hardware.record_frames(recorder.frame_taps)
         return recorder.trace
+
+    def _recover(self) -> Future[bool]:
+        """The drives' recovery (hardware.recover) for the node, Zenoh and Foxglove alike,
+        each one told to the manager's subscribers as it starts and as it ends (the
+        recording's /rocoma/event, the log lines live and recorded). A request while one
+        runs joins it, told once."""
+        with self._recovery_lock:  # (callers' threads only; the cycle never takes it)
+            future = self.hardware.recover()
+            if future is self._recovery_told:
+                return future
+            self._recovery_told = future
+        self.manager.notify_recovery("started")
+        future.add_done_callback(self._recovery_ended)
+        return future
+
+    def _recovery_ended(self, future: Future[bool]) -> None:
+        """Resolved on the cycle thread (or by the hardware's close): one queued event."""
+        self.manager.notify_recovery(
+            "done: every drive is back, the e-stop latch is cleared" if future.result()
+            else "failed: not every drive came back in time (status says which)")
 
     def _home(self, drive: str) -> Future[str]:
         """The node's home service: judged on the manager's state now, not the last cycle's
