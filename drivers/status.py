@@ -4,7 +4,6 @@ guard's reason. Everything here only reads (from any thread); JSON is made by th
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -62,7 +61,10 @@ class HardwareStatus:
     drives: list[DriveStatus]
 
     def as_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """JSON-able, by hand: ``dataclasses.asdict`` deep-copies every field recursively,
+        ~1 ms for 12 drives, in the loop's process (every field here is a plain value)."""
+        return {**vars(self), "buses": [dict(vars(b)) for b in self.buses],
+                "drives": [dict(vars(d)) for d in self.drives]}
 
 
 def _reported(value: float, mapped: bool) -> float | None:

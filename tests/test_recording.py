@@ -23,6 +23,7 @@ from fixtures.running import BENCH_RATE, DEMO_RUN, DEMO_WAIT, run_operated, swit
 
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
+from rocoma_can.record.recorder import STATUS_PERIOD
 from rocoma_can.record.recording import slug as _slug
 from rocoma_can.record.trace import read_messages
 from rocoma_can.runtime import Runtime
@@ -134,6 +135,32 @@ def test_an_estop_storm_is_a_few_flight_records_not_one_per_estop(config, tmp_pa
     dumps = sorted((tmp_path / "flight").iterdir())
     assert 2 <= len(dumps) <= 3, dumps  # first, (the rest together,) shutdown
     assert any("more" in d.name for d in dumps), dumps  # the storm, merged
+
+
+def test_the_status_report_goes_into_the_recording_and_the_flight_record(demo_bench,
+                                                                         tmp_path):
+    """/rocoma/status (the live view's status panel: cycle statistics, each bus's load and
+    errors, the drives) is in the files too, once every STATUS_PERIOD: the recording has
+    each report once, a flight record those of its window."""
+    config, segment = demo_bench
+    with Runtime(config, record=str(tmp_path / "rec"), flight=str(tmp_path / "flight"),
+                 flight_seconds=3 * STATUS_PERIOD) as rt:
+        run_operated(rt, switch_and_stop(rt, 2.5 * STATUS_PERIOD,
+                                         fault=segment.drives[1].trip_fault, settle=0.5))
+    recorded = [(t, m) for topic, t, m in read_messages(str(tmp_path / "rec" / "trace.mcap"))
+                if topic == "/rocoma/status"]
+    assert len(recorded) >= 2, recorded  # the run lasted 2.5 periods and more
+    assert len({t for t, _ in recorded}) == len(recorded)  # each once
+    for _, report in recorded:
+        assert {"cycle", "buses", "drives"} <= set(report)
+        assert [d["name"] for d in report["drives"]] == ["joint1", "joint2"]
+        assert report["cycle"]["cycles"] > 0
+    first = sorted((tmp_path / "flight").iterdir())[0]  # the fault's
+    messages = list(read_messages(str(first)))
+    cycles = [t for topic, t, _ in messages if topic == "/rocoma/cycle"]
+    kept = [t for topic, t, _ in messages if topic == "/rocoma/status"]
+    assert kept and all(cycles[0] - 1e9 * STATUS_PERIOD <= t <= cycles[-1] + 1e9 * STATUS_PERIOD
+                        for t in kept)
 
 
 def test_a_normal_stop_dumps_nothing(config, tmp_path):

@@ -27,6 +27,7 @@ import importlib.util
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
@@ -263,7 +264,7 @@ class FoxgloveView:
             send = self._send
             if send is not None and not self._gone:
                 try:
-                    send({"status": self._status()})
+                    send({"status": self._status(), "time": time.monotonic()})
                     self._count("status_reports")
                 except Exception as exc:  # noqa: BLE001 - the view goes on without it
                     self._count("call_errors")

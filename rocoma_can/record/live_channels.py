@@ -5,15 +5,16 @@ with the live view's layout (live/foxglove_layout.json).
 ``/joint_states`` every cycle (the plots); ``/rocoma/manager`` on every manager event and at
 SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics cost ~5 µs a joint);
 ``/rocoma/log``, a line per manager event; ``/robot_description`` once, with the first
-cycle. ``/rocoma/status`` stays the live view's: the loop's process builds the status report only
-while a viewer watches it.
-The e-stop latch is what the writer last heard (``Facts``).
+cycle; ``/rocoma/status``, the status reports the loop's process sent (once a second while
+it records, recorder.py, and as often as a viewer of the live view asks), each once per
+file. The e-stop latch and the status reports are what the writer last heard (``Facts``).
 """
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -26,12 +27,17 @@ from .trace import McapWriter, RowLayout, state_name
 
 #: /rocoma/manager and /tf samples per second of a recording
 SAMPLE_RATE = 50.0
+#: status reports the writer keeps for a flight record's window (~3 a second at most)
+STATUSES_KEPT = 64
 
 
 @dataclass
 class Facts:
-    """What the manager's process tells the writer beside the rows: the e-stop latch."""
+    """What the manager's process tells the writer beside the rows: the e-stop latch, and
+    the latest status reports with their time (the loop's monotonic clock)."""
     latched: bool = False
+    statuses: deque[tuple[float, dict[str, Any]]] = field(
+        default_factory=lambda: deque(maxlen=STATUSES_KEPT))
 
 
 class LiveChannels:
@@ -42,8 +48,8 @@ class LiveChannels:
         self._writer, self._layout, self._period = writer, layout, period
         self._robot, self._facts = robot, facts
         channels = messages.MANAGER_CHANNELS + (messages.ROBOT if robot else ())
-        self._id = {c.topic: writer.json_channel(c.topic, c.schema) for c in channels
-                    if c is not messages.STATUS}
+        self._id = {c.topic: writer.json_channel(c.topic, c.schema) for c in channels}
+        self._status_until = -math.inf  # the newest status report written
         self._names = layout.names
         self._cause = ""
         self._overruns = self._waiting = self._cycles = 0
@@ -85,6 +91,15 @@ class LiveChannels:
             self._writer.add(self._id[messages.LOG.topic], ns,
                              messages.log(ns, *messages.event_log(event)))
             self._manager(ns, event["state"], event["controller"])
+
+    def statuses(self, offset: float, since: float = -math.inf) -> None:
+        """The status reports heard since the last written (and not before ``since``, the
+        loop's clock), ``offset`` as McapWriter's."""
+        channel, after = self._id[messages.STATUS.topic], max(self._status_until, since)
+        for at, report in list(self._facts.statuses):  # (a copy: the commands' thread adds)
+            if at > after:
+                self._writer.add(channel, int((at + offset) * 1e9), report)
+                self._status_until = at
 
     def _manager(self, ns: int, state: str, controller: str) -> None:
         self._writer.add(self._id[messages.MANAGER.topic], ns, messages.manager(

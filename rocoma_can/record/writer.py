@@ -6,8 +6,9 @@ The loop's process hands over through shared memory (rings.py: signal rows, each
 received and sent frames) and a pipe (this process's stdin, one JSON object a line): first
 the set-up (``Spec``), then manager events ``{"event": ...}``, controller numbers
 ``{"controllers": {name: number}}``, the e-stop latch ``{"latched": bool}``, for the live
-view the answer to a service call ``{"answer": id, "reply": {...}}`` and the status report
-``{"status": {...}}``, and ``{"close": true}``. Every ``POLL`` s it writes what the rings got
+view the answer to a service call ``{"answer": id, "reply": {...}}``, the status report
+``{"status": {...}, "time": t}`` (for the view, and into the files' /rocoma/status), and
+``{"close": true}``. Every ``POLL`` s it writes what the rings got
 (``--record``: recording.py) and the flight records due (flight.py), yielding its CPU every
 0.2 ms of that work (pacing.py: a loop queued on its CPU waits for one piece, not a
 writing burst); the live view (live/server.py) publishes on its own threads. It answers
@@ -173,9 +174,12 @@ class Writer:
             if future is not None:
                 _settle(future, dict(command.get("reply") or {}))
             return True
-        if "status" in command:
+        if "status" in command:  # for the view, and for the files' /rocoma/status
             if view is not None:
                 view.on_status(command["status"])
+            if self.recording is not None or self.flight is not None:
+                self.facts.statuses.append((float(command.get("time", time.monotonic())),
+                                            command["status"]))
             return True
         if view is not None:
             if "event" in command:

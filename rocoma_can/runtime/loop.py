@@ -159,7 +159,7 @@ class CycleStats:
         if n == 0:
             return TimingSummary(0, 0, 0, math.nan, math.nan, math.nan, math.nan, math.nan)
         late = np.abs(self._late[:n])
-        p99 = float(np.percentile(late, 99))
+        p99 = _p99(late)
         if whole:
             mean = (self._last - self._first) / (self.cycles - 1) if self.cycles > 1 \
                 else self.period
@@ -176,6 +176,17 @@ class CycleStats:
                              float(periods.mean()),
                              float(periods.max()), float(late.max()), p99,
                              float(self._work[:n].max()))
+
+
+def _p99(values: np.ndarray) -> float:
+    """``np.percentile(values, 99)`` (linear) by one partition: a quarter of its time, and
+    none of its first call's import of numpy.ma (~10 ms in the loop's process, whose
+    statistics a status report reads while the loop runs)."""
+    at = 0.99 * (len(values) - 1)
+    low = int(at)
+    high = min(low + 1, len(values) - 1)
+    part = np.partition(values, (low, high))
+    return float(part[low] + (part[high] - part[low]) * (at - low))
 
 
 def set_realtime(priority: int | None, cpus: set[int] | None) -> list[str]:

@@ -3,7 +3,6 @@ the manager with its controllers (built here: nothing in drivers/ builds a manag
 manager's CANopen node, and the loop."""
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import threading
@@ -58,7 +57,7 @@ class RuntimeStatus:
         report = self.hardware.as_dict()
         for bus in report["buses"]:
             bus["load"] = self.loads.get(bus["name"])
-        report["cycle"] = dataclasses.asdict(self.cycle)
+        report["cycle"] = dict(vars(self.cycle))  # (plain values: no deep copy)
         if self.zenoh is not None:
             report["zenoh"] = self.zenoh
         return report
@@ -155,10 +154,11 @@ class Runtime:
                 self.foxglove = FoxgloveView(foxglove, self.manager, self.status,
                                              recover=self._recover, robot=config.robot)
                 self._parts.insert(0, self.foxglove.close)
-            trace = self._recorders(record, flight, flight_seconds, announce)
             self.loop = ControlLoop(self.hardware, self.manager, config.rate,
                                     priority=config.priority, cpus=config.cpus,
-                                    on_cycle=on_cycle, trace=trace, spin=config.spin)
+                                    on_cycle=on_cycle, spin=config.spin)
+            # after the loop: the recorder's status reports read its statistics
+            self.loop.trace = self._recorders(record, flight, flight_seconds, announce)
             if config.fleet is not None:  # its queries read the loop's statistics
                 self._bridge(config.fleet)
         except BaseException:
@@ -197,6 +197,7 @@ class Runtime:
         # stop) to it: what it writes ends with how it ended
         self._parts.insert(self._parts.index(self.manager.shutdown) + 1, recorder.close)
         self.manager.subscribe(recorder.on_event)
+        recorder.status_source = self.status
         if recorder.frame_taps:
             self.hardware.record_frames(recorder.frame_taps)
         return recorder.trace
