@@ -29,6 +29,7 @@ from rocoma_can.live.foxglove import (
 )
 from rocoma_can.live.messages import INFO, MANAGER_CHANNELS, ROBOT, WARNING, event_log
 from rocoma_can.live.urdf import parse_urdf
+from rocoma_can.record.trace import read_messages
 from rocoma_can.remote import COMMANDS
 
 pytest.importorskip("foxglove")
@@ -192,9 +193,10 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
 
 
 def test_switch_is_refused_unless_allowed_and_failproof_is_not(virtual_channel,
-                                                               sim_segment_factory):
+                                                               sim_segment_factory, tmp_path):
     sim_segment_factory(2)
-    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
+    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view(),
+                         record=str(tmp_path)) as rt:
         viewer = Viewer(rt.foxglove.port)
         try:
             wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
@@ -207,6 +209,29 @@ def test_switch_is_refused_unless_allowed_and_failproof_is_not(virtual_channel,
             assert rt.foxglove.info()["refused"] == 2
         finally:
             viewer.close()
+    # the calls' lines are in the recording's log as the live view showed them
+    logged = [m["message"] for topic, _, m in read_messages(str(tmp_path / "trace.mcap"))
+              if topic == "/rocoma/log" and "from Foxglove" in m["message"]]
+    assert [line.split(":")[0] for line in logged] == [
+        "switch from Foxglove", "clear from Foxglove", "failproof from Foxglove"], logged
+    assert "refused" in logged[0] and logged[2].endswith(": done")
+
+
+def test_a_viewer_gone_without_closing_is_counted_not_said(virtual_channel,
+                                                          sim_segment_factory, capfd):
+    """A viewer whose connection is reset (its tab closed, its machine gone) is a viewer's
+    right: counted as viewers_gone, not an error line from the SDK on the run's
+    terminal."""
+    sim_segment_factory(2)
+    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
+        viewer = Viewer(rt.foxglove.port)
+        viewer.pump(lambda: len(viewer.channels) >= len(TOPICS), "the channels advertised")
+        sock = viewer.ws.socket
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        sock.close()  # a reset, no closing handshake
+        wait_for(lambda: rt.foxglove.info().get("viewers_gone", 0) >= 1, "the viewer gone",
+                 DEMO_WAIT)
+    assert "reset by peer" not in capfd.readouterr().err
 
 
 def test_an_allowed_switch_switches(virtual_channel, sim_segment_factory):

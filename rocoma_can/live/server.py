@@ -55,6 +55,9 @@ COUNTS_PERIOD = 0.1
 #: the SDK's logger for a viewer whose outbox is full: each record is messages dropped
 #: for that viewer (the SDK drops, it never waits)
 LOSSY_LOGGER = "foxglove.websocket.connected_client.send_lossy"
+#: the SDK's logger for a viewer's connection: an ERROR record for every viewer that goes
+#: without closing (its tab closed, its machine gone), which is a viewer's right
+POLLER_LOGGER = "foxglove.websocket.connected_client.poller"
 
 
 class ServeError(Exception):
@@ -89,16 +92,33 @@ class _Drops(logging.Handler):
             self._count("viewer_drops")
 
 
+class _Gone(logging.Filter):
+    """Counts a viewer that went without closing ("Connection reset by peer") instead of
+    the SDK's ERROR line on the run's terminal; any other record passes."""
+
+    def __init__(self, count: Callable[[str], None]) -> None:
+        super().__init__()
+        self._count = count
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "reset by peer" in record.getMessage():
+            self._count("viewers_gone")
+            return False
+        return True
+
+
 class FoxgloveServer:
     """The live view's server (see module). ``settings``: host, port, rate, backlog (as
     foxglove.FoxgloveConfig); ``period``: the loop's, for overruns; ``call(service,
     payload)`` hands a service call to the loop's process and returns the Future of its
-    answer; ``report(message)`` tells that process something (counters, status wanted)."""
+    answer; ``report(message)`` tells that process something (counters, status wanted);
+    ``noted(text, level)``: each service call's log line, for the recordings."""
 
     def __init__(self, settings: Mapping[str, Any], rows: RingReader, layout: RowLayout,
                  period: float, robot: Robot | None,
                  call: Callable[[str, bytes], Future[dict[str, Any]]],
-                 report: Callable[[dict[str, Any]], None]) -> None:
+                 report: Callable[[dict[str, Any]], None],
+                 noted: Callable[[str, int], None] | None = None) -> None:
         try:
             import foxglove
             from foxglove.websocket import Capability
@@ -108,7 +128,7 @@ class FoxgloveServer:
         self._rows, self._layout, self._period = rows, layout, period
         self._rate = float(settings["rate"])
         self.robot = robot
-        self._call, self._report = call, report
+        self._call, self._report, self._noted = call, report, noted
         self.controllers: dict[int, str] = {}
         self.latched = False
         self._cause = ""
@@ -116,7 +136,7 @@ class FoxgloveServer:
         self._last: list[float] | None = None  # the newest row read
         self._cycles = self._overruns = self._waiting = 0
         self.counters = {"published": 0, "events_dropped": 0, "viewer_drops": 0,
-                         "errors": 0}
+                         "viewers_gone": 0, "errors": 0}
         self._reported: dict[str, int] = {}
         self._status_wanted = False
         self._count_lock = threading.Lock()  # the SDK's threads count too
@@ -133,6 +153,8 @@ class FoxgloveServer:
         lossy = logging.getLogger(LOSSY_LOGGER)
         lossy.addHandler(self._drops)
         lossy.setLevel(logging.INFO)
+        self._gone = _Gone(self._count)
+        logging.getLogger(POLLER_LOGGER).addFilter(self._gone)
         request = foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
             name="rocoma.Request", encoding="jsonschema", data=b""))
         services = [foxglove.Service(f"/rocoma/{name}", schema=foxglove.ServiceSchema(
@@ -162,6 +184,7 @@ class FoxgloveServer:
         self._thread.join(5.0)
         self.server.stop()
         logging.getLogger(LOSSY_LOGGER).removeHandler(self._drops)
+        logging.getLogger(POLLER_LOGGER).removeFilter(self._gone)
 
     # --- what the loop's process sends (the writer's command thread) -----------------------
     def on_event(self, event: dict[str, Any]) -> None:
@@ -280,9 +303,11 @@ class FoxgloveServer:
         def handle(request: Any) -> bytes:
             answer = self._ask(service, request.payload)
             no = refused(answer)
-            self.log_message(f"{service} from Foxglove: "
-                             + (f"refused: {answer.get('error', '')}" if no else "done"),
-                             WARNING if no else INFO)
+            text = f"{service} from Foxglove: " + (
+                f"refused: {answer.get('error', '')}" if no else "done")
+            self.log_message(text, WARNING if no else INFO)
+            if self._noted is not None:
+                self._noted(text, WARNING if no else INFO)
             return json.dumps(answer).encode()
         return handle
 

@@ -121,7 +121,7 @@ class FlightRecords:
         live.cycles(rows, start, controllers, now_wall - now)
         writer.events(events, now_wall - now)
         live.events(events, now_wall - now)
-        live.statuses(now_wall - now, since)
+        live.heard(now_wall - now, since)
         for label, rings in self._buses.items():
             parts = [ring.read(0)[1] for ring in rings]  # the window's frames, then sorted:
             # a ring holds 10,000 frames a second, more than the window on a calmer bus

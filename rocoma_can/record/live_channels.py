@@ -7,7 +7,8 @@ SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics cost ~5 µ
 ``/rocoma/log``, a line per manager event; ``/robot_description`` once, with the first
 cycle; ``/rocoma/status``, the status reports the loop's process sent (once a second while
 it records, recorder.py, and as often as a viewer of the live view asks), each once per
-file. The e-stop latch and the status reports are what the writer last heard (``Facts``).
+file, and the live view's service-call lines on ``/rocoma/log``. The e-stop latch, the
+status reports and those lines are what the writer last heard (``Facts``).
 """
 from __future__ import annotations
 
@@ -34,9 +35,13 @@ STATUSES_KEPT = 64
 @dataclass
 class Facts:
     """What the manager's process tells the writer beside the rows: the e-stop latch, and
-    the latest status reports with their time (the loop's monotonic clock)."""
+    the latest status reports and the live view's service-call lines, each with its time
+    (the monotonic clock, one for every process)."""
     latched: bool = False
     statuses: deque[tuple[float, dict[str, Any]]] = field(
+        default_factory=lambda: deque(maxlen=STATUSES_KEPT))
+    #: the live view's service-call lines: (time, text, level)
+    logs: deque[tuple[float, str, int]] = field(
         default_factory=lambda: deque(maxlen=STATUSES_KEPT))
 
 
@@ -49,7 +54,7 @@ class LiveChannels:
         self._robot, self._facts = robot, facts
         channels = messages.MANAGER_CHANNELS + (messages.ROBOT if robot else ())
         self._id = {c.topic: writer.json_channel(c.topic, c.schema) for c in channels}
-        self._status_until = -math.inf  # the newest status report written
+        self._status_until = self._log_until = -math.inf  # the newest of each written
         self._names = layout.names
         self._cause = ""
         self._overruns = self._waiting = self._cycles = 0
@@ -92,14 +97,22 @@ class LiveChannels:
                              messages.log(ns, *messages.event_log(event)))
             self._manager(ns, event["state"], event["controller"])
 
-    def statuses(self, offset: float, since: float = -math.inf) -> None:
-        """The status reports heard since the last written (and not before ``since``, the
-        loop's clock), ``offset`` as McapWriter's."""
-        channel, after = self._id[messages.STATUS.topic], max(self._status_until, since)
-        for at, report in list(self._facts.statuses):  # (a copy: the commands' thread adds)
+    def heard(self, offset: float, since: float = -math.inf) -> None:
+        """What the writer heard beside rows and events (``Facts``: status reports, the
+        live view's service-call lines) since the last written, and not before ``since``
+        (the monotonic clock); ``offset`` as McapWriter's."""
+        add = self._writer.add
+        status, after = self._id[messages.STATUS.topic], max(self._status_until, since)
+        for at, report in list(self._facts.statuses):  # (copies: other threads add)
             if at > after:
-                self._writer.add(channel, int((at + offset) * 1e9), report)
+                add(status, int((at + offset) * 1e9), report)
                 self._status_until = at
+        log, after = self._id[messages.LOG.topic], max(self._log_until, since)
+        for at, text, level in list(self._facts.logs):
+            if at > after:
+                ns = int((at + offset) * 1e9)
+                add(log, ns, messages.log(ns, text, level))
+                self._log_until = at
 
     def _manager(self, ns: int, state: str, controller: str) -> None:
         self._writer.add(self._id[messages.MANAGER.topic], ns, messages.manager(

@@ -140,7 +140,7 @@ class Recording:
             self._live.cycles(rows, start, controllers, offset)
             writer.events(events, offset)
             self._live.events(events, offset)
-            self._live.statuses(offset)
+            self._live.heard(offset)
             self._next = start + len(rows)
             for bus_log in self._logs:
                 bus_log.write(until)

@@ -103,7 +103,8 @@ class Writer:
         self._calls_lock = threading.Lock()
         self._calls_closed = False  # the loop's process answers no more
         self._call_ids = itertools.count(1)
-        if spec.record is not None or spec.flight is not None:
+        self._files = spec.record is not None or spec.flight is not None
+        if self._files:
             _check_mcap()
         self.shared = SharedFile(spec.size, spec.fd)
         layout = RowLayout(spec.joints)
@@ -119,7 +120,7 @@ class Writer:
         if spec.foxglove is not None:  # first: an address taken leaves no files behind
             self.view = FoxgloveServer(spec.foxglove, RingReader(self.shared, spec.rows),
                                        layout, 1.0 / spec.rate, robot, self.call,
-                                       lambda message: self.say(**message))
+                                       lambda message: self.say(**message), self._noted)
             self.view.controllers.update(self.controllers)
 
         def live(writer: McapWriter) -> LiveChannels:
@@ -132,6 +133,11 @@ class Writer:
                                      {label: r for label, (_, r) in rings.items()}, live,
                                      self.pace)
                        if spec.flight is not None else None)
+
+    def _noted(self, text: str, level: int) -> None:
+        """A live view's service-call line, for the files' /rocoma/log (the SDK's thread)."""
+        if self._files:
+            self.facts.logs.append((time.monotonic(), text, level))
 
     def say(self, **message: Any) -> None:
         """An answer to the loop's process; none once it is gone (killed: what is left to
@@ -177,7 +183,7 @@ class Writer:
         if "status" in command:  # for the view, and for the files' /rocoma/status
             if view is not None:
                 view.on_status(command["status"])
-            if self.recording is not None or self.flight is not None:
+            if self._files:
                 self.facts.statuses.append((float(command.get("time", time.monotonic())),
                                             command["status"]))
             return True
