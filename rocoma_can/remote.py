@@ -4,10 +4,13 @@ one set of rules, so no transport can be laxer than another.
 A stop (e-stop, failproof) is obeyed from anyone and never reads what the caller sent: a
 stop must not depend on a payload. Switch, clear and recover need the transport's
 ``allow_commands`` and a running loop. Every answer is a JSON-ready dict:
-``{"ok", "state", "error"?}`` for the services, ``{"result", "error"?}`` for a switch.
+``{"ok", "state", "error"?}`` for the services, ``{"result", "error"?}`` for a switch. A
+stop's ``state`` is the one after it: the loop acts on a stop at its next update, and the
+answer waits for that, STOP_WAIT at most (``"pending": true`` when it had to go without).
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -21,6 +24,11 @@ STOPS = ("estop", "failproof")
 #: every command service (``status`` and the like are each transport's own)
 COMMANDS = ("switch", "estop", "failproof", "clear", "recover")
 NOT_RUNNING = "the manager's loop is not running"
+#: s a stop's answer waits at most for the loop to act on it (two updates: two periods,
+#: unless the loop is starved or stalled; then the answer goes, ``pending``)
+STOP_WAIT = 1.0
+#: s between two looks at the manager's state meanwhile
+STOP_POLL = 0.001
 #: a switch's controller name is echoed back at most this long: a payload of any size may
 #: come in
 SHOWN_NAME = 64
@@ -49,9 +57,11 @@ def serve(manager: ControllerManager, service: str, transport: Transport, runnin
         return {"ok": False, "state": m.state.name, "error": NOT_RUNNING}
     if service == "estop":
         m.emergency_stop(cause=f"{transport.name} e-stop")
-    elif service == "failproof":
+        return _stopped(m, m.cycle_count, running)
+    if service == "failproof":
         m.failproof_stop(cause=f"{transport.name} failproof stop")
-    elif service == "clear":
+        return _stopped(m, m.cycle_count, running)
+    if service == "clear":
         if not m.clear_emergency_stop():
             return {"ok": False, "state": m.state.name,
                     "error": "the e-stop latch was not cleared (see the manager log)"}
@@ -64,6 +74,18 @@ def serve(manager: ControllerManager, service: str, transport: Transport, runnin
     else:
         return {"ok": False, "state": m.state.name, "error": f"no service {service!r}"}
     return {"ok": True, "state": m.state.name}
+
+
+def _stopped(manager: ControllerManager, updates: int, running: bool) -> dict[str, Any]:
+    """A stop's answer, with the state once the loop has acted on it: ``updates`` was the
+    manager's update count just after the request, so the update after the one under way
+    then applied it (an e-stop in EMERGENCY goes on to FAILPROOF, one without an emergency
+    controller too)."""
+    deadline = time.monotonic() + (STOP_WAIT if running else 0.0)
+    while manager.cycle_count < updates + 2 and time.monotonic() < deadline:
+        time.sleep(STOP_POLL)
+    applied = manager.cycle_count >= updates + 2
+    return {"ok": True, "state": manager.state.name, **({} if applied else {"pending": True})}
 
 
 def switch_target(manager: ControllerManager, raw: bytes, transport: Transport,

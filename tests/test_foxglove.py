@@ -180,7 +180,7 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
             assert 0 <= shown["overruns_waiting"] <= shown["overruns"] <= shown["cycles"]
 
             answer = viewer.call("/rocoma/estop", {"anything": "ignored"})
-            assert answer["ok"] is True  # taken: the next cycle acts on it
+            assert answer == {"ok": True, "state": "EMERGENCY"}  # acted on, then answered
             viewer.pump(lambda: any(m["state"] == "EMERGENCY" and m["cause"]
                                     == "Foxglove e-stop"
                                     for m in viewer.received.get("/rocoma/manager", [])),
@@ -205,7 +205,7 @@ def test_switch_is_refused_unless_allowed_and_failproof_is_not(virtual_channel,
             assert "--foxglove-allow-commands: false" in answer["error"]
             assert viewer.call("/rocoma/clear")["ok"] is False
             assert rt.manager.active_controller_name != "pd"
-            assert viewer.call("/rocoma/failproof")["ok"] is True
+            assert viewer.call("/rocoma/failproof") == {"ok": True, "state": "FAILPROOF"}
             assert rt.foxglove.info()["refused"] == 2
         finally:
             viewer.close()

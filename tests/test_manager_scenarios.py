@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import pytest
 from fixtures.manager_probes import (
@@ -21,6 +22,7 @@ from fixtures.manager_probes import (
 )
 
 from rocoma_can import ControllerManager, EventKind, ManagerState, ManagerTimeouts, SwitchResult
+from rocoma_can.remote import Transport, serve
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
 
@@ -454,3 +456,34 @@ def test_an_event_from_another_thread_queues_behind_the_cycles():
         assert kinds.index(EventKind.EMERGENCY_STOP) < cleared, seen
     finally:
         assert mgr.shutdown()
+
+
+def test_a_remote_stops_answer_says_the_state_after_it_or_that_it_is_pending():
+    """remote.serve (Zenoh, Foxglove): a stop is answered once the manager's updates have
+    acted on it, with the state after it; a loop that does not update (not running here)
+    gets an answer at once, saying the stop is pending."""
+    journal = Journal(update_thread=threading.get_ident())
+    transport = Transport("test", "test.allow_commands", allow_commands=False)
+    with ControllerManager(FailproofProbe("failproof", journal), dt=0.001, timing=None,
+                           command=CommandLog()) as mgr:
+        journal.manager = mgr
+        assert mgr.add_controller(Probe("a", journal), emergency=EmergencyProbe("e", journal))
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        assert mgr.update() is OK
+        assert serve(mgr, "estop", transport, running=False, recover=None) == {
+            "ok": True, "state": "OK", "pending": True}
+        assert mgr.update() is EMERGENCY  # the loop's next update acts on it
+        updating = threading.Event()
+
+        def loop() -> None:  # the loop, as far as the stop's answer can tell
+            while not updating.is_set():
+                mgr.update()
+                time.sleep(0.001)
+        thread = threading.Thread(target=loop)
+        thread.start()
+        try:
+            assert serve(mgr, "estop", transport, running=True, recover=None) == {
+                "ok": True, "state": "FAILPROOF"}  # EMERGENCY -> FAILPROOF, then answered
+        finally:
+            updating.set()
+            thread.join()
