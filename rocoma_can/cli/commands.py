@@ -108,6 +108,11 @@ def recording_available() -> bool:
 def _run(args: argparse.Namespace) -> int:
     from ..runtime.config import load
     from ..runtime.system import Runtime
+    try:  # the options first: nothing is read or started for a command line that is wrong
+        foxglove = foxglove_from_args(args)
+    except ValueError as exc:
+        _err(str(exc))
+        return USAGE
     try:
         config = load(args.config, rate=args.rate)
     except ConfigError as exc:
@@ -131,7 +136,7 @@ def _run(args: argparse.Namespace) -> int:
         runtime = Runtime(config, record=args.record, flight=flight,
                           flight_seconds=args.flight_seconds,
                           announce=lambda text: print(f"rocoma-can: {text}", flush=True),
-                          foxglove=foxglove_from_args(args))
+                          foxglove=foxglove)
     except (OSError, ValueError, FleetError, FoxgloveError) as exc:
         _err(str(exc) + no_socketcan_hint(exc))
         return USAGE
@@ -193,19 +198,27 @@ def add_foxglove_options(p: argparse.ArgumentParser) -> None:
                    const=_foxglove_address(""), metavar="HOST:PORT",
                    help="serve the live view on a Foxglove WebSocket (127.0.0.1:8765; "
                         "0.0.0.0 serves every interface)")
-    g.add_argument("--foxglove-rate", type=positive, default=FoxgloveConfig.rate,
-                   metavar="HZ", help="joint states and manager state per second (30)")
+    g.add_argument("--foxglove-rate", type=positive, default=None, metavar="HZ",
+                   help=f"joint states and manager state per second ({FoxgloveConfig.rate:g})")
     g.add_argument("--foxglove-allow-commands", action="store_true",
                    help="accept switch, clear and recover from Foxglove (stops always are)")
 
 
 def foxglove_from_args(args: argparse.Namespace) -> FoxgloveConfig | None:
-    """--foxglove and its options (None: no live view)."""
+    """--foxglove and its options (None: no live view); ValueError for an option of it
+    given without it, which would be ignored without a word."""
     if args.foxglove is None:
+        given = [option for option, value in (("--foxglove-rate", args.foxglove_rate),
+                                              ("--foxglove-allow-commands",
+                                               args.foxglove_allow_commands or None))
+                 if value is not None]
+        if given:
+            raise ValueError(f"{' and '.join(given)} without --foxglove: there is no live "
+                             "view for it")
         return None
     host, port = args.foxglove
-    return FoxgloveConfig(host, port, rate=args.foxglove_rate,
-                          allow_commands=args.foxglove_allow_commands)
+    rate = FoxgloveConfig.rate if args.foxglove_rate is None else args.foxglove_rate
+    return FoxgloveConfig(host, port, rate=rate, allow_commands=args.foxglove_allow_commands)
 
 
 def _foxglove_address(text: str) -> tuple[str, int]:

@@ -477,6 +477,12 @@ def _main(args: argparse.Namespace) -> int:
         print(f"demo: {exc}", flush=True)
         return USAGE
     data_bitrate = (args.data_bitrate or FD_DATA_BITRATE) if args.fd else None
+    from .commands import default_flight_dir, foxglove_from_args
+    try:
+        foxglove = foxglove_from_args(args)
+    except ValueError as exc:
+        print(f"demo: {exc}", flush=True)
+        return USAGE
     record = None if args.no_record else Path(args.record or default_record_dir())
     if record is not None:
         try:
@@ -484,7 +490,6 @@ def _main(args: argparse.Namespace) -> int:
         except OSError as exc:
             print(f"demo: --record {record}: cannot create the directory: {exc}", flush=True)
             return USAGE
-    from .commands import default_flight_dir, foxglove_from_args
     flight = None if args.no_flight else Path(
         args.flight_dir or (record / "flight" if record is not None else default_flight_dir()))
     try:
@@ -492,7 +497,7 @@ def _main(args: argparse.Namespace) -> int:
                           out=lambda line: print(line, flush=True), buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen, flight=flight,
-                          foxglove=foxglove_from_args(args), data_bitrate=data_bitrate,
+                          foxglove=foxglove, data_bitrate=data_bitrate,
                           sim=args.sim)
     except SimulatorFailed as exc:  # its drives' process did not start
         print(f"demo: {exc}", flush=True)

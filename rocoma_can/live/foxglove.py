@@ -274,7 +274,11 @@ class FoxgloveView:
 
 def describe(view: FoxgloveView) -> str:
     """The line ``run`` prints: where to connect, what is served, the layout's file."""
-    return (f"Foxglove live view on ws://{view.config.host}:{view.port} "
+    host = view.config.host
+    every = host in ("", "0.0.0.0", "::")  # serves every interface: said
+    return (f"Foxglove live view on ws://{f'[{host}]' if ':' in host else host}:{view.port} "
             f"({', '.join(view.topics)}; switch/clear/recover "
             f"{'allowed' if view.config.allow_commands else 'refused'}); layout to import "
-            f"in Foxglove: {LAYOUT}")
+            f"in Foxglove: {LAYOUT}"
+            + ("; on every interface: whoever reaches this machine can watch the robot and "
+               "stop it" if every else ""))
