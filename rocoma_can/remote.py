@@ -10,6 +10,7 @@ answer waits for that, STOP_WAIT at most (``"pending": true`` when it had to go 
 """
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -27,8 +28,10 @@ NOT_RUNNING = "the manager's loop is not running"
 #: s a stop's answer waits at most for the loop to act on it (two updates: two periods,
 #: unless the loop is starved or stalled; then the answer goes, ``pending``)
 STOP_WAIT = 1.0
-#: s between two looks at the manager's state meanwhile
+#: s between two looks at the manager's update count meanwhile
 STOP_POLL = 0.001
+#: stop answers waiting at once per transport (StopAnswers)
+STOP_CALLS = 4
 #: a switch's controller name is echoed back at most this long: a payload of any size may
 #: come in
 SHOWN_NAME = 64
@@ -55,12 +58,8 @@ def serve(manager: ControllerManager, service: str, transport: Transport, runnin
         return {"ok": False, "state": m.state.name, "error": transport.not_allowed(service)}
     if service not in STOPS and not running:
         return {"ok": False, "state": m.state.name, "error": NOT_RUNNING}
-    if service == "estop":
-        m.emergency_stop(cause=f"{transport.name} e-stop")
-        return _stopped(m, m.cycle_count, running)
-    if service == "failproof":
-        m.failproof_stop(cause=f"{transport.name} failproof stop")
-        return _stopped(m, m.cycle_count, running)
+    if service in STOPS:
+        return stopped(m, stop(m, service, transport), running)
     if service == "clear":
         if not m.clear_emergency_stop():
             return {"ok": False, "state": m.state.name,
@@ -76,16 +75,53 @@ def serve(manager: ControllerManager, service: str, transport: Transport, runnin
     return {"ok": True, "state": m.state.name}
 
 
-def _stopped(manager: ControllerManager, updates: int, running: bool) -> dict[str, Any]:
+def stop(manager: ControllerManager, service: str, transport: Transport) -> int:
+    """The stop ``service`` (estop, failproof) requested, at once; the manager's update
+    count just after, for ``stopped``."""
+    if service == "estop":
+        manager.emergency_stop(cause=f"{transport.name} e-stop")
+    else:
+        manager.failproof_stop(cause=f"{transport.name} failproof stop")
+    return manager.cycle_count
+
+
+def stopped(manager: ControllerManager, updates: int, running: bool) -> dict[str, Any]:
     """A stop's answer, with the state once the loop has acted on it: ``updates`` was the
-    manager's update count just after the request, so the update after the one under way
-    then applied it (an e-stop in EMERGENCY goes on to FAILPROOF, one without an emergency
-    controller too)."""
+    manager's update count just after the request (``stop``); an update increments it as
+    it begins and then applies what is queued, so by ``updates + 2`` one that began after
+    the request has ended (an e-stop in EMERGENCY goes on to FAILPROOF, one without an
+    emergency controller too). Waits up to STOP_WAIT, only while the loop ``running``."""
     deadline = time.monotonic() + (STOP_WAIT if running else 0.0)
     while manager.cycle_count < updates + 2 and time.monotonic() < deadline:
         time.sleep(STOP_POLL)
     applied = manager.cycle_count >= updates + 2
     return {"ok": True, "state": manager.state.name, **({} if applied else {"pending": True})}
+
+
+class StopAnswers:
+    """A transport's stop calls: each stop is requested at once on the caller's thread,
+    and its answer (``stopped``) waits on a short-lived thread of its own, STOP_CALLS at
+    most at once (more are answered at once, ``pending``): the transport's thread (Zenoh's,
+    the recorder's replies) never waits for the loop."""
+
+    def __init__(self, manager: ControllerManager, name: str) -> None:
+        self._manager, self._name = manager, name
+        self._slots = threading.BoundedSemaphore(STOP_CALLS)
+
+    def answer(self, service: str, transport: Transport, running: bool,
+               reply: Callable[[dict[str, Any]], None]) -> None:
+        m = self._manager
+        updates = stop(m, service, transport)
+        if not self._slots.acquire(blocking=False):
+            reply(stopped(m, updates, running=False))
+            return
+
+        def wait() -> None:
+            try:
+                reply(stopped(m, updates, running))
+            finally:
+                self._slots.release()
+        threading.Thread(target=wait, name=f"{self._name}-stop", daemon=True).start()
 
 
 def switch_target(manager: ControllerManager, raw: bytes, transport: Transport,

@@ -22,7 +22,7 @@ from fixtures.manager_probes import (
 )
 
 from rocoma_can import ControllerManager, EventKind, ManagerState, ManagerTimeouts, SwitchResult
-from rocoma_can.remote import Transport, serve
+from rocoma_can.remote import STOP_CALLS, StopAnswers, Transport, serve
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
 
@@ -487,3 +487,31 @@ def test_a_remote_stops_answer_says_the_state_after_it_or_that_it_is_pending():
         finally:
             updating.set()
             thread.join()
+
+
+def test_stop_answers_never_hold_the_transports_thread():
+    """StopAnswers (Zenoh's and Foxglove's stop calls): the stop is requested at once, the
+    caller's thread goes on at once, and the answer comes once the manager's updates have
+    acted on it; beyond STOP_CALLS waiting answers, one is given at once, pending."""
+    journal = Journal(update_thread=threading.get_ident())
+    transport = Transport("test", "test.allow_commands", allow_commands=False)
+    with ControllerManager(FailproofProbe("failproof", journal), dt=0.001, timing=None,
+                           command=CommandLog()) as mgr:
+        journal.manager = mgr
+        assert mgr.add_controller(Probe("a", journal), emergency=EmergencyProbe("e", journal))
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        assert mgr.update() is OK
+        stops = StopAnswers(mgr, "test")
+        answers: list[dict] = []
+        for _ in range(STOP_CALLS):  # the loop does not update: each waits
+            stops.answer("estop", transport, True, answers.append)
+        assert answers == []  # nobody waited here
+        stops.answer("estop", transport, True, answers.append)  # no slot: at once, pending
+        assert answers == [{"ok": True, "state": "OK", "pending": True}]
+        assert mgr.update() is FAILPROOF  # the queued e-stops, in one update: OK ->
+        assert answers[1:] == []          # EMERGENCY -> FAILPROOF; the answers wait for
+        mgr.update()                      # the update after it to have begun
+        deadline = time.monotonic() + WAIT
+        while len(answers) < STOP_CALLS + 1 and time.monotonic() < deadline:
+            time.sleep(0.001)
+        assert answers[1:] == [{"ok": True, "state": "FAILPROOF"}] * STOP_CALLS

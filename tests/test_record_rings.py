@@ -196,3 +196,35 @@ def test_a_late_answer_to_a_call_that_timed_out_is_dropped_and_the_writer_hears_
     finally:
         writer.close()
         shared.close()
+
+
+def test_what_the_writer_heard_goes_into_a_file_once_in_the_order_heard(tmp_path):
+    """Status reports and service-call lines (Facts) reach a file each once, whatever their
+    stamps' order (the recorder's own report can be stamped after a viewer's that it is
+    sent before) and however the file's writes fall between them; a flight record takes
+    those of its window."""
+    from rocoma_can.record.live_channels import Facts, LiveChannels
+    from rocoma_can.record.trace import McapWriter, RowLayout, read_messages
+    facts = Facts(keep=8)
+    path = tmp_path / "heard.mcap"
+    with open(path, "wb") as stream:
+        writer = McapWriter(stream, ["j"])
+        live = LiveChannels(writer, RowLayout(["j"]), 0.001, None, facts)
+        facts.statuses.add(2.0, {"report": "later stamp, heard first"})
+        facts.statuses.add(1.0, {"report": "earlier stamp, heard second"})
+        facts.logs.add(1.5, ("switch from Foxglove: done", 2))
+        live.heard(offset=0.0)
+        facts.statuses.add(3.0, {"report": "third"})
+        live.heard(offset=0.0)
+        live.heard(offset=0.0)  # nothing new
+        facts.statuses.add(4.0, {"report": "before the window"})
+        facts.statuses.add(9.0, {"report": "in the window"})
+        live.heard(offset=0.0, since=5.0)
+        writer.finish()
+    messages = list(read_messages(str(path)))
+    reports = [m["report"] for topic, _, m in messages if topic == "/rocoma/status"]
+    assert sorted(reports) == sorted(["later stamp, heard first",
+                                      "earlier stamp, heard second", "third",
+                                      "in the window"])
+    assert [m["message"] for topic, _, m in messages if topic == "/rocoma/log"] == [
+        "switch from Foxglove: done"]

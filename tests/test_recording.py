@@ -19,7 +19,14 @@ import can
 import numpy as np
 import pytest
 import yaml
-from fixtures.running import BENCH_RATE, DEMO_RUN, DEMO_WAIT, run_operated, switch_and_stop
+from fixtures.running import (
+    BENCH_RATE,
+    DEMO_RUN,
+    DEMO_WAIT,
+    run_operated,
+    switch_and_stop,
+    wait_for,
+)
 
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
@@ -161,6 +168,31 @@ def test_the_status_report_goes_into_the_recording_and_the_flight_record(demo_be
     kept = [t for topic, t, _ in messages if topic == "/rocoma/status"]
     assert kept and all(cycles[0] - 1e9 * STATUS_PERIOD <= t <= cycles[-1] + 1e9 * STATUS_PERIOD
                         for t in kept)
+
+
+def test_a_recovery_the_stop_cuts_short_is_told_in_the_recording(demo_bench, bus_factory,
+                                                                   tmp_path):
+    """A recovery asked over SDO (0x2113) that cannot end (a drive fell silent) and is
+    still running when the run stops: the recording says it started and that the stop
+    ended it, not that drives failed to come back."""
+    from rocoma_can.node.client import ManagerClient
+    from rocoma_can.node.objects import RECOVER
+    config, segment = demo_bench
+    with Runtime(config, record=str(tmp_path)) as rt:
+        def operate() -> None:
+            wait_for(lambda: rt.manager.switch_blocked() is None, "drives ready", DEMO_WAIT)
+            segment.drives[2].set_silent()
+            wait_for(lambda: rt.hardware.supervisor.latched[1] is not None,
+                     "the silent drive's fault", DEMO_WAIT)
+            with ManagerClient(bus_factory(), config.manager.node_id, timeout=DEMO_WAIT) \
+                    as client:
+                client.write(RECOVER, 1)
+            time.sleep(0.2)  # under way, and it cannot end: the drive stays silent
+            rt.loop.stop("test")
+        run_operated(rt, operate)
+    told = [m["cause"] for topic, _, m in read_messages(str(tmp_path / "trace.mcap"))
+            if topic == "/rocoma/event" and m["kind"] == "recovery"]
+    assert told == ["started", "failed: the run stopped before it ended"], told
 
 
 def test_a_normal_stop_dumps_nothing(config, tmp_path):

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
 from ..events import ManagerEvent
-from ..remote import Transport, serve, switch_target
+from ..remote import STOPS, StopAnswers, Transport, serve, switch_target
 
 if TYPE_CHECKING:
     import zenoh
@@ -230,6 +230,7 @@ class FleetBridge:
         self._events: queue.SimpleQueue[ManagerEvent | None] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._running = False
+        self._stops = StopAnswers(manager, "zenoh")
         self._token: Any = None
         self._declared: list[Any] = []
         self._unsubscribe: Callable[[], None] | None = None
@@ -360,6 +361,10 @@ class FleetBridge:
                 return
             # Only switch reads its payload: a stop acts whatever it carries (bytes, nothing,
             # megabytes), and status, clear and recover take none.
+            if service in STOPS:  # at once; answered when the loop has acted on it
+                self._stops.answer(service, self._transport(), self._running,
+                                   lambda reply: self._reply(query, key, reply))
+                return
             try:
                 reply = self._serve(service)
             except Exception as exc:  # noqa: BLE001 - a query must get an answer

@@ -36,7 +36,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
-from ..remote import NOT_RUNNING, Transport, refused, serve, switch_target
+from ..remote import (
+    NOT_RUNNING,
+    STOPS,
+    StopAnswers,
+    Transport,
+    refused,
+    serve,
+    switch_target,
+)
 from . import messages
 
 if TYPE_CHECKING:
@@ -122,6 +130,7 @@ class FoxgloveView:
         self._status_wanted = threading.Event()
         self._stop = threading.Event()
         self._switching = threading.BoundedSemaphore(SWITCH_CALLS)
+        self._stops = StopAnswers(manager, "foxglove")
         self._threads: list[threading.Thread] = []
         self._feeder = threading.Thread(target=self._feed_status, name="foxglove-status",
                                         daemon=True)
@@ -192,15 +201,19 @@ class FoxgloveView:
              else self._status_wanted.clear)()
 
     def _call(self, reply: dict[str, Any]) -> None:
-        """A stop, clear or recover is answered here at once; a switch, which waits for
-        its result, on a thread of its own (a few at most: the manager runs one switch
-        at a time)."""
+        """A stop is requested here at once and answered once the loop has acted on it
+        (remote.StopAnswers); a clear or a recover is answered here at once; a switch,
+        which waits for its result, on a thread of its own (a few at most: the manager
+        runs one switch at a time)."""
         number, service = reply["call"], str(reply["service"])
         try:
             payload = bytes.fromhex(str(reply["payload"]))
         except ValueError:
             payload = b""
-        if service != "switch":
+        if service in STOPS:
+            self._stops.answer(service, self._transport, self._running,
+                               lambda answer: self._answer(number, lambda: answer))
+        elif service != "switch":
             self._answer(number, lambda: serve(self.manager, service, self._transport,
                                                self._running, self._recover))
         elif self._stop.is_set():  # closed: no thread any more
@@ -281,4 +294,5 @@ def describe(view: FoxgloveView) -> str:
             f"{'allowed' if view.config.allow_commands else 'refused'}); layout to import "
             f"in Foxglove: {LAYOUT}"
             + ("; on every interface: whoever reaches this machine can watch the robot and "
-               "stop it" if every else ""))
+               + ("command it" if view.config.allow_commands else "stop it")
+               if every else ""))

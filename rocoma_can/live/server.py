@@ -170,6 +170,7 @@ class FoxgloveServer:
                 message_backlog_size=int(settings["backlog"]))
         except Exception as exc:  # the SDK's RuntimeError: the address taken or unknown
             lossy.removeHandler(self._drops)
+            logging.getLogger(POLLER_LOGGER).removeFilter(self._gone)
             raise ServeError(f"Foxglove: cannot serve on {host}:{port}: {exc}") from None
         self._thread = threading.Thread(target=self._run, name="foxglove-view", daemon=True)
         self._thread.start()

@@ -12,11 +12,13 @@ status reports and those lines are what the writer last heard (``Facts``).
 """
 from __future__ import annotations
 
+import itertools
 import math
+import threading
 from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -26,23 +28,45 @@ from ..live.urdf import Robot
 from ..overrun import overran, waited
 from .trace import McapWriter, RowLayout, state_name
 
+T = TypeVar("T")
+
 #: /rocoma/manager and /tf samples per second of a recording
 SAMPLE_RATE = 50.0
-#: status reports the writer keeps for a flight record's window (~3 a second at most)
-STATUSES_KEPT = 64
+#: status reports (and service-call lines) a second at most: the recording's one, the live
+#: view's two; a Heard keeps a flight record's window of them
+HEARD_PER_SECOND = 4
+
+
+class Heard(Generic[T]):
+    """The last ``keep`` things heard, each numbered as it came and stamped (the monotonic
+    clock, one for every process). Any thread adds; a file takes what came after the last
+    number it wrote, so none is written twice or passed over."""
+
+    def __init__(self, keep: int) -> None:
+        self._items: deque[tuple[int, float, T]] = deque(maxlen=keep)
+        self._numbers = itertools.count()
+        self._lock = threading.Lock()  # (the writer's threads: number and place together)
+
+    def add(self, at: float, item: T) -> None:
+        with self._lock:
+            self._items.append((next(self._numbers), at, item))
+
+    def after(self, number: int) -> list[tuple[int, float, T]]:
+        with self._lock:
+            return [entry for entry in self._items if entry[0] > number]
 
 
 @dataclass
 class Facts:
-    """What the manager's process tells the writer beside the rows: the e-stop latch, and
-    the latest status reports and the live view's service-call lines, each with its time
-    (the monotonic clock, one for every process)."""
+    """What the manager's process tells the writer beside the rows: the e-stop latch, the
+    status reports, and the live view's service-call lines (text, level)."""
+    keep: int = 64  # of each kind: a flight record's window at HEARD_PER_SECOND
     latched: bool = False
-    statuses: deque[tuple[float, dict[str, Any]]] = field(
-        default_factory=lambda: deque(maxlen=STATUSES_KEPT))
-    #: the live view's service-call lines: (time, text, level)
-    logs: deque[tuple[float, str, int]] = field(
-        default_factory=lambda: deque(maxlen=STATUSES_KEPT))
+    statuses: Heard[dict[str, Any]] = field(init=False)
+    logs: Heard[tuple[str, int]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.statuses, self.logs = Heard(self.keep), Heard(self.keep)
 
 
 class LiveChannels:
@@ -54,7 +78,7 @@ class LiveChannels:
         self._robot, self._facts = robot, facts
         channels = messages.MANAGER_CHANNELS + (messages.ROBOT if robot else ())
         self._id = {c.topic: writer.json_channel(c.topic, c.schema) for c in channels}
-        self._status_until = self._log_until = -math.inf  # the newest of each written
+        self._status_seen = self._log_seen = -1  # the number of the last of each taken
         self._names = layout.names
         self._cause = ""
         self._overruns = self._waiting = self._cycles = 0
@@ -102,17 +126,17 @@ class LiveChannels:
         live view's service-call lines) since the last written, and not before ``since``
         (the monotonic clock); ``offset`` as McapWriter's."""
         add = self._writer.add
-        status, after = self._id[messages.STATUS.topic], max(self._status_until, since)
-        for at, report in list(self._facts.statuses):  # (copies: other threads add)
-            if at > after:
+        status = self._id[messages.STATUS.topic]
+        for number, at, report in self._facts.statuses.after(self._status_seen):
+            self._status_seen = number
+            if at >= since:
                 add(status, int((at + offset) * 1e9), report)
-                self._status_until = at
-        log, after = self._id[messages.LOG.topic], max(self._log_until, since)
-        for at, text, level in list(self._facts.logs):
-            if at > after:
+        log = self._id[messages.LOG.topic]
+        for number, at, (text, level) in self._facts.logs.after(self._log_seen):
+            self._log_seen = number
+            if at >= since:
                 ns = int((at + offset) * 1e9)
                 add(log, ns, messages.log(ns, text, level))
-                self._log_until = at
 
     def _manager(self, ns: int, state: str, controller: str) -> None:
         self._writer.add(self._id[messages.MANAGER.topic], ns, messages.manager(

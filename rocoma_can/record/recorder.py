@@ -243,11 +243,11 @@ class Recorder:
                 new = {k: v for k, v in list(known.items()) if k not in self._sent_controllers}
                 self._sent_controllers.update(new)
                 lines.append(json.dumps({"controllers": new}))
+            lines.append(json.dumps({"close": True}) if line is None else line)
             now = time.monotonic()
-            if now >= next_status and line is not None:
+            if now >= next_status and line is not None:  # after what came before it
                 next_status = now + STATUS_PERIOD
                 lines.append(self._status_line(now))
-            lines.append(json.dumps({"close": True}) if line is None else line)
             try:
                 self._stdin.write("".join(f"{text}\n" for text in lines if text))
                 self._stdin.flush()

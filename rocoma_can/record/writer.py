@@ -47,7 +47,7 @@ from ..live.server import FoxgloveServer, ServeError
 from ..live.urdf import parse_urdf
 from .can_log import RecordingError
 from .flight import FlightRecords
-from .live_channels import Facts, LiveChannels
+from .live_channels import HEARD_PER_SECOND, Facts, LiveChannels
 from .pacing import Pacer
 from .recording import Recording
 from .rings import RingReader, RingSpec, SharedFile
@@ -113,7 +113,7 @@ class Writer:
                  for label, (channel, specs) in spec.buses.items()}
         self.controllers = {number: name for name, number in spec.controllers.items()}
         self.events: list[dict[str, Any]] = []  # for the recording, since its last write
-        self.facts = Facts()
+        self.facts = Facts(keep=max(64, int(HEARD_PER_SECOND * spec.seconds) + 8))
         robot = (parse_urdf(spec.urdf.encode(), spec.urdf_source)
                  if spec.urdf is not None else None)
         self.view: FoxgloveServer | None = None
@@ -137,7 +137,7 @@ class Writer:
     def _noted(self, text: str, level: int) -> None:
         """A live view's service-call line, for the files' /rocoma/log (the SDK's thread)."""
         if self._files:
-            self.facts.logs.append((time.monotonic(), text, level))
+            self.facts.logs.add(time.monotonic(), (text, level))
 
     def say(self, **message: Any) -> None:
         """An answer to the loop's process; none once it is gone (killed: what is left to
@@ -184,8 +184,8 @@ class Writer:
             if view is not None:
                 view.on_status(command["status"])
             if self._files:
-                self.facts.statuses.append((float(command.get("time", time.monotonic())),
-                                            command["status"]))
+                self.facts.statuses.add(float(command.get("time", time.monotonic())),
+                                        command["status"])
             return True
         if view is not None:
             if "event" in command:

@@ -116,6 +116,7 @@ class Runtime:
         self.fleet_error = ""
         self._recovery_lock = threading.Lock()
         self._recovery_told: Future[bool] | None = None
+        self._recovery_cut: Future[bool] | None = None
         m = config.manager
         self.hardware = CanopenHardware({b.label: b for b in config.buses}, config.drives,
                                         m.node_id, config.dt,
@@ -218,9 +219,21 @@ class Runtime:
 
     def _recovery_ended(self, future: Future[bool]) -> None:
         """Resolved on the cycle thread (or by the hardware's close): one queued event."""
+        if future is self._recovery_cut:  # told by close(), while the manager listened
+            return
         self.manager.notify_recovery(
             "done: every drive is back, the e-stop latch is cleared" if future.result()
             else "failed: not every drive came back in time (status says which)")
+
+    def _cut_recovery(self) -> None:
+        """A recovery still running as the runtime closes: told now, while the manager and
+        the recording still take events (the hardware's close, last, ends it)."""
+        with self._recovery_lock:
+            future = self._recovery_told
+            if future is None or future.done():
+                return
+            self._recovery_cut = future
+        self.manager.notify_recovery("failed: the run stopped before it ended")
 
     def _home(self, drive: str) -> Future[str]:
         """The node's home service: judged on the manager's state now, not the last cycle's
@@ -282,6 +295,7 @@ class Runtime:
         """Node, manager threads, hardware (joins its bus reader), then the node's bus.
         A Ctrl-C during one part (an impatient second one) still closes the others, then
         goes on up."""
+        self._cut_recovery()  # (none before the runtime was whole: nothing to tell)
         parts, self._parts = self._parts, []
         interrupted: BaseException | None = None
         for close in parts:
