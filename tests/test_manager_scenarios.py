@@ -8,6 +8,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 from fixtures.manager_probes import (
@@ -458,19 +460,29 @@ def test_an_event_from_another_thread_queues_behind_the_cycles():
         assert mgr.shutdown()
 
 
-def test_a_remote_stops_answer_says_the_state_after_it_or_that_it_is_pending():
-    """remote.serve (Zenoh, Foxglove): a stop is answered once the manager's updates have
-    acted on it, with the state after it; a loop that does not update (not running here)
-    gets an answer at once, saying the stop is pending."""
+#: a remote caller without commands (stops are anyone's)
+TRANSPORT = Transport("test", "test.allow_commands", allow_commands=False)
+
+
+@contextmanager
+def _running_a() -> Iterator[ControllerManager]:
+    """A manager with controller "a" (emergency "e") switched to and updated once: OK."""
     journal = Journal(update_thread=threading.get_ident())
-    transport = Transport("test", "test.allow_commands", allow_commands=False)
     with ControllerManager(FailproofProbe("failproof", journal), dt=0.001, timing=None,
                            command=CommandLog()) as mgr:
         journal.manager = mgr
         assert mgr.add_controller(Probe("a", journal), emergency=EmergencyProbe("e", journal))
         assert mgr.switch_controller("a") == SwitchResult.SWITCHED
         assert mgr.update() is OK
-        assert serve(mgr, "estop", transport, running=False, recover=None) == {
+        yield mgr
+
+
+def test_a_remote_stops_answer_says_the_state_after_it_or_that_it_is_pending():
+    """remote.serve (Zenoh, Foxglove): a stop is answered once the manager's updates have
+    acted on it, with the state after it; a loop that does not update (not running here)
+    gets an answer at once, saying the stop is pending."""
+    with _running_a() as mgr:
+        assert serve(mgr, "estop", TRANSPORT, running=False, recover=None) == {
             "ok": True, "state": "OK", "pending": True}
         assert mgr.update() is EMERGENCY  # the loop's next update acts on it
         updating = threading.Event()
@@ -482,7 +494,7 @@ def test_a_remote_stops_answer_says_the_state_after_it_or_that_it_is_pending():
         thread = threading.Thread(target=loop)
         thread.start()
         try:
-            assert serve(mgr, "estop", transport, running=True, recover=None) == {
+            assert serve(mgr, "estop", TRANSPORT, running=True, recover=None) == {
                 "ok": True, "state": "FAILPROOF"}  # EMERGENCY -> FAILPROOF, then answered
         finally:
             updating.set()
@@ -493,20 +505,13 @@ def test_stop_answers_never_hold_the_transports_thread():
     """StopAnswers (Zenoh's and Foxglove's stop calls): the stop is requested at once, the
     caller's thread goes on at once, and the answer comes once the manager's updates have
     acted on it; beyond STOP_CALLS waiting answers, one is given at once, pending."""
-    journal = Journal(update_thread=threading.get_ident())
-    transport = Transport("test", "test.allow_commands", allow_commands=False)
-    with ControllerManager(FailproofProbe("failproof", journal), dt=0.001, timing=None,
-                           command=CommandLog()) as mgr:
-        journal.manager = mgr
-        assert mgr.add_controller(Probe("a", journal), emergency=EmergencyProbe("e", journal))
-        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
-        assert mgr.update() is OK
+    with _running_a() as mgr:
         stops = StopAnswers(mgr, "test")
         answers: list[dict] = []
         for _ in range(STOP_CALLS):  # the loop does not update: each waits
-            stops.answer("estop", transport, True, answers.append)
+            stops.answer("estop", TRANSPORT, True, answers.append)
         assert answers == []  # nobody waited here
-        stops.answer("estop", transport, True, answers.append)  # no slot: at once, pending
+        stops.answer("estop", TRANSPORT, True, answers.append)  # no slot: at once, pending
         assert answers == [{"ok": True, "state": "OK", "pending": True}]
         assert mgr.update() is FAILPROOF  # the queued e-stops, in one update: OK ->
         assert answers[1:] == []          # EMERGENCY -> FAILPROOF; the answers wait for
