@@ -366,3 +366,14 @@ def test_a_ctrl_c_while_one_part_closes_still_closes_the_rest(demo_bench, tmp_pa
     assert all(port.canopen is None for port in rt.hardware.ports)  # the hardware closed
     assert recorder._process.poll() is not None
     assert not [t.name for t in threading.enumerate() if t.name.startswith("can-reader")]
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 100, 4096])
+def test_the_p99_is_numpys_without_numpys_cost(n):
+    """adapters.p99 (the loop's jitter p99, a controller call's p99): np.percentile's
+    linear 99th percentile by one partition."""
+    import numpy as np
+
+    from rocoma_can.adapters import p99
+    values = np.random.default_rng(n).random(n)
+    assert p99(values) == pytest.approx(float(np.percentile(values, 99)), rel=1e-12, abs=0)

@@ -35,6 +35,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ..adapters import p99
 from ..drivers.stop_requests import StopTarget
 from ..events import STOP_CAUSE, ManagerState
 from ..overrun import overran, waited
@@ -159,13 +160,13 @@ class CycleStats:
         if n == 0:
             return TimingSummary(0, 0, 0, math.nan, math.nan, math.nan, math.nan, math.nan)
         late = np.abs(self._late[:n])
-        p99 = _p99(late)
+        late_p99 = p99(late)
         if whole:
             mean = (self._last - self._first) / (self.cycles - 1) if self.cycles > 1 \
                 else self.period
             return TimingSummary(self.cycles, self.overruns, self.overruns_waiting, mean,
                                  self._period_max if self.cycles > 1 else self.period,
-                                 self._late_max, p99, self._work_max)
+                                 self._late_max, late_p99, self._work_max)
         k = self.cycles % self._size
         # Read from other threads (status reports) while the loop writes: with a full ring,
         # slot k, the oldest, may be overwritten meanwhile; it is left out.
@@ -174,19 +175,8 @@ class CycleStats:
         periods = np.diff(starts) if n > 1 else np.array([self.period])
         return TimingSummary(self.cycles, self.overruns, self.overruns_waiting,
                              float(periods.mean()),
-                             float(periods.max()), float(late.max()), p99,
+                             float(periods.max()), float(late.max()), late_p99,
                              float(self._work[:n].max()))
-
-
-def _p99(values: np.ndarray) -> float:
-    """``np.percentile(values, 99)`` (linear) by one partition: a quarter of its time, and
-    none of its first call's import of numpy.ma (~10 ms in the loop's process, whose
-    statistics a status report reads while the loop runs)."""
-    at = 0.99 * (len(values) - 1)
-    low = int(at)
-    high = min(low + 1, len(values) - 1)
-    part = np.partition(values, (low, high))
-    return float(part[low] + (part[high] - part[low]) * (at - low))
 
 
 def set_realtime(priority: int | None, cpus: set[int] | None) -> list[str]:
