@@ -5,8 +5,8 @@ with the live view's layout (live/foxglove_layout.json).
 ``/joint_states`` every cycle (the plots); ``/rocoma/manager`` on every manager event and at
 SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics cost ~5 µs a joint);
 ``/rocoma/log``, a line per manager event; ``/robot_description`` once, with the first
-cycle; ``/rocoma/status``, the status reports the loop's process sent (once a second while
-it records, recorder.py, and as often as a viewer of the live view asks), each once per
+cycle; ``/rocoma/status``, the status reports the loop's process sent (every STATUS_PERIOD
+while it records, recorder.py, and as often as a viewer of the live view asks), each once per
 file, and the live view's service-call lines on ``/rocoma/log``. The e-stop latch, the
 status reports and those lines are what the writer last heard (``Facts``).
 """
@@ -32,8 +32,8 @@ T = TypeVar("T")
 
 #: /rocoma/manager and /tf samples per second of a recording
 SAMPLE_RATE = 50.0
-#: status reports (and service-call lines) a second at most: the recording's one, the live
-#: view's two; a Heard keeps a flight record's window of them
+#: status reports (and service-call lines) a second, an upper bound: the recording's one
+#: every STATUS_PERIOD, the live view's two; a Heard keeps a flight record's window of them
 HEARD_PER_SECOND = 4
 
 

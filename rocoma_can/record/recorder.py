@@ -60,8 +60,10 @@ CLOSE_WAIT = 30.0
 #: manager events queued for the writer at most
 EVENT_QUEUE = 4096
 #: s between the status reports that go into the recording and the flight records
-#: (``status_source``: ~0.4 ms of this process's CPU each, 12 drives)
-STATUS_PERIOD = 1.0
+#: (``status_source``: ~0.4 ms of this process's interpreter each, 12 drives; measured in
+#: the demo at 1 kHz, one report in five made a cycle overrun; the per-cycle statistics
+#: are in every /rocoma/cycle row anyway)
+STATUS_PERIOD = 2.0
 #: the writer's niceness: the loop's process comes first when the cores are busy
 NICE = 19
 
