@@ -121,7 +121,11 @@ class StopAnswers:
                 reply(stopped(m, updates, running))
             finally:
                 self._slots.release()
-        threading.Thread(target=wait, name=f"{self._name}-stop", daemon=True).start()
+        try:
+            threading.Thread(target=wait, name=f"{self._name}-stop", daemon=True).start()
+        except RuntimeError:  # no thread to be had: the stop stands, answered at once
+            self._slots.release()
+            reply(stopped(m, updates, running=False))
 
 
 def switch_target(manager: ControllerManager, raw: bytes, transport: Transport,

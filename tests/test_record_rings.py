@@ -205,7 +205,7 @@ def test_what_the_writer_heard_goes_into_a_file_once_in_the_order_heard(tmp_path
     those of its window."""
     from rocoma_can.record.live_channels import Facts, LiveChannels
     from rocoma_can.record.trace import McapWriter, RowLayout, read_messages
-    facts = Facts(keep=8)
+    facts = Facts(window=1.0)
     path = tmp_path / "heard.mcap"
     with open(path, "wb") as stream:
         writer = McapWriter(stream, ["j"])

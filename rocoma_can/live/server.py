@@ -306,9 +306,10 @@ class FoxgloveServer:
             no = refused(answer)
             text = f"{service} from Foxglove: " + (
                 f"refused: {answer.get('error', '')}" if no else "done")
-            self.log_message(text, WARNING if no else INFO)
+            level = WARNING if no else INFO
+            self.log_message(text, level)
             if self._noted is not None:
-                self._noted(text, WARNING if no else INFO)
+                self._noted(text, level)
             return json.dumps(answer).encode()
         return handle
 

@@ -60,13 +60,14 @@ class Heard(Generic[T]):
 class Facts:
     """What the manager's process tells the writer beside the rows: the e-stop latch, the
     status reports, and the live view's service-call lines (text, level)."""
-    keep: int = 64  # of each kind: a flight record's window at HEARD_PER_SECOND
+    window: float = 10.0  # s: the flight record's, whose reports and lines are kept
     latched: bool = False
     statuses: Heard[dict[str, Any]] = field(init=False)
     logs: Heard[tuple[str, int]] = field(init=False)
 
     def __post_init__(self) -> None:
-        self.statuses, self.logs = Heard(self.keep), Heard(self.keep)
+        keep = max(64, int(HEARD_PER_SECOND * self.window) + 8)
+        self.statuses, self.logs = Heard(keep), Heard(keep)
 
 
 class LiveChannels:

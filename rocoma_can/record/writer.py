@@ -47,7 +47,7 @@ from ..live.server import FoxgloveServer, ServeError
 from ..live.urdf import parse_urdf
 from .can_log import RecordingError
 from .flight import FlightRecords
-from .live_channels import HEARD_PER_SECOND, Facts, LiveChannels
+from .live_channels import Facts, LiveChannels
 from .pacing import Pacer
 from .recording import Recording
 from .rings import RingReader, RingSpec, SharedFile
@@ -113,7 +113,7 @@ class Writer:
                  for label, (channel, specs) in spec.buses.items()}
         self.controllers = {number: name for name, number in spec.controllers.items()}
         self.events: list[dict[str, Any]] = []  # for the recording, since its last write
-        self.facts = Facts(keep=max(64, int(HEARD_PER_SECOND * spec.seconds) + 8))
+        self.facts = Facts(window=spec.seconds)
         robot = (parse_urdf(spec.urdf.encode(), spec.urdf_source)
                  if spec.urdf is not None else None)
         self.view: FoxgloveServer | None = None
