@@ -11,7 +11,8 @@ loop's process matters. The loop's process only copies into rings in shared memo
 * frame: ``FrameRing.put``, per frame the hardware received or sent (on the loop's thread
   or its bus reader's), µs per frame;
 * writer: per cycle, the rows' JSON into MCAP (``McapWriter.cycles``), and per frame, the
-  candump line and the MCAP frame message (a flight record), in the writer process.
+  candump line and the MCAP frame message, in the writer process (``--record`` writes
+  both; a flight record the MCAP ones).
 """
 from __future__ import annotations
 
@@ -121,8 +122,9 @@ def main() -> None:
             "writer: per frame (MCAP)"], rows, args=args, results=results,
            notes=["loop: what the loop's process does (SignalTrace.record into shared "
                   "memory, FrameRing.put per frame received or sent), no allocation. writer: "
-                  "the writer process, on its own interpreter (--record writes rows and "
-                  "candump lines; a flight record rows and MCAP frame messages)."])
+                  "the writer process, on its own interpreter (--record writes rows, candump "
+                  "lines and MCAP frame messages; a flight record rows and MCAP frame "
+                  "messages)."])
     assert np.isfinite(rows[0][1])
 
 

@@ -232,8 +232,18 @@ def test_record_writes_every_cycle_and_every_frame_and_exports_csv(config, tmp_p
               if topic == "/rocoma/event"]
     assert [e["cause"] for e in events if e["kind"] == "emergency_stop"] \
         == ["loop stopping: duration reached"], events
-    frames = list(can.LogReader(str(next(out.glob("*.log")))))  # the bus, by name
+    (log,) = out.glob("*.log")  # the bus, by name
+    frames = list(can.LogReader(str(log)))
     assert any(f.arbitration_id == 0x080 for f in frames)  # the loop's SYNCs
+    assert any(f.is_rx for f in frames) and any(not f.is_rx for f in frames)
+    # the trace holds the same frames, on /can/<bus> as a flight record has them
+    (label,) = [bus.label for bus in config.buses]
+    traced = [(t, m) for topic, t, m in read_messages(str(out / "trace.mcap"))
+              if topic == f"/can/{label}"]
+    assert sorted((f.arbitration_id, bytes(f.data).hex(), not f.is_rx) for f in frames) == \
+        sorted((m["id"], m["data"], m["sent"]) for _, m in traced)
+    stamps = np.array(sorted(t / 1e9 for t, _ in traced))  # the log's to the µs
+    assert np.abs(stamps - sorted(f.timestamp for f in frames)).max() < 1.5e-6
     assert main(["export", str(out / "trace.mcap"), "--csv", str(tmp_path / "t.csv")]) == 0
     with open(tmp_path / "t.csv") as stream:
         rows = list(csv.DictReader(stream))

@@ -73,7 +73,7 @@ def plot_run(directory: Path, report: Report, out: Callable[[str], None]) -> Non
     from ..record.plot import PlotError, plot
     report.recording = directory / "trace.mcap"
     logs = ", ".join(str(p) for p in sorted(directory.glob("*.log")))
-    out(f"recording: {report.recording} (frames: {logs})")
+    out(f"recording: {report.recording} (every cycle and frame; candump logs: {logs})")
     try:
         report.plot = plot(report.recording, directory / "demo.png",
                            title=f"rocoma-can demo: {len(report.steps)} steps, "

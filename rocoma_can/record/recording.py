@@ -1,10 +1,11 @@
 """``--record DIR`` in the writer process: every cycle, manager event and frame, as it happens.
 
-``DIR/trace.mcap`` gets every cycle (/rocoma/cycle) and manager event (/rocoma/event), and
-the live view's channels made from them (live_channels.py);
-``DIR/<bus>.log`` every frame of the bus, received (``R``) and sent by this manager (``T``),
-in candump -L text (``canplayer`` and ``can.LogReader`` read it). The files are made at
-start, so a directory that cannot be written stops the run before it begins.
+``DIR/trace.mcap`` gets every cycle (/rocoma/cycle), manager event (/rocoma/event) and frame
+(/can/<bus>, as a flight record has them), and the live view's channels made from them
+(live_channels.py); ``DIR/<bus>.log`` every frame of the bus again, received (``R``) and
+sent by this manager (``T``), in candump -L text (``canplayer`` and ``can.LogReader`` replay
+it). The files are made at start, so a directory that cannot be written stops the run before
+it begins.
 
 The first failure of any of its files (a full disk, mostly) or a ring the writer fell behind
 (the loop's process overwrote records not yet written) stops every file, each closed: a
@@ -13,6 +14,7 @@ first one first; the loop never hears of it.
 """
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -22,7 +24,7 @@ import numpy as np
 
 from .can_log import RecordingError, candump_line
 from .live_channels import LiveChannels
-from .rings import RingReader, frame_chunks, in_time_order
+from .rings import Fields, RingReader, frame_chunks, in_time_order
 from .trace import McapWriter, RowLayout
 
 
@@ -40,9 +42,9 @@ class BusLog:
     stamped before ``until`` (a while ago) and holds the rest for the next, in order with
     what comes meanwhile."""
 
-    def __init__(self, path: Path, channel: str, rings: Sequence[RingReader],
+    def __init__(self, path: Path, label: str, channel: str, rings: Sequence[RingReader],
                  pace: Callable[[], None]) -> None:
-        self.path, self.frames = path, 0
+        self.path, self.label, self.frames = path, label, 0
         self._pace = pace  # between chunks of lines (pacing.py)
         self.channel = f"can{channel}" if channel.isdigit() else channel  # as python-can
         self._rings = rings
@@ -53,10 +55,10 @@ class BusLog:
         except OSError as exc:
             raise RecordingError(f"{path}: cannot write: {exc}") from exc
 
-    def write(self, until: float) -> None:
+    def write(self, until: float, also: Callable[[Sequence[Fields]], None]) -> None:
         """What the rings got since the last write and was stamped before ``until``
-        (wall clock; ``math.inf``: all of it); RecordingError on a hole or a failed
-        write."""
+        (wall clock; ``math.inf``: all of it), into the log and, in the same order, to
+        ``also`` (the trace); RecordingError on a hole or a failed write."""
         parts = [] if self._held is None else [self._held]
         for k, ring in enumerate(self._rings):
             start, records = ring.read(self._next[k])
@@ -77,6 +79,7 @@ class BusLog:
             for fields in frame_chunks(records[:cut]):
                 self._file.write("".join([candump_line(t, channel, cob, flags, data)
                                           for t, cob, flags, data in fields]))
+                also(fields)
                 self.frames += len(fields)
                 pace()
             self._file.flush()  # on disk now: a crash loses at most what is held
@@ -105,8 +108,8 @@ class Recording:
         try:
             directory.mkdir(parents=True, exist_ok=True)
             for label, (channel, rings) in buses.items():
-                self._logs.append(BusLog(directory / f"{slug(label)}.log", channel, rings,
-                                         pace))
+                self._logs.append(BusLog(directory / f"{slug(label)}.log", label, channel,
+                                         rings, pace))
             try:
                 self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in stop()
             except OSError as exc:
@@ -143,7 +146,7 @@ class Recording:
             self._live.heard(offset)
             self._next = start + len(rows)
             for bus_log in self._logs:
-                bus_log.write(until)
+                bus_log.write(until, functools.partial(writer.frames, bus_log.label))
         except (OSError, ValueError) as exc:  # RecordingError too
             reason = str(exc) if isinstance(exc, RecordingError) else \
                 f"{self.path}: writing failed: {exc}"
