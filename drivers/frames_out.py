@@ -16,7 +16,8 @@ frame is counted; refused cycle after cycle, a bus fault. What goes out (hardwar
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from operator import itemgetter
 
 import can
 
@@ -38,9 +39,9 @@ class FramesOut:
         self._torque_off = [self._encode(i, 0) for i in n]
         self._fault_reset = [self._encode(i, int(cia402.Controlword.FAULT_RESET)) for i in n]
         self._probe = [self._encode(i, int(cia402.Controlword.SHUTDOWN)) for i in n]
-        # per RPDO: (frame, codec.pack_into, where its entries are in (cw, mode, targets...))
+        # per RPDO: (frame, codec.pack_into, its entries picked from (cw, mode, targets...))
         self._rpdo = [[(port_of[i].frame(p.cob_id, p.size), p.codec.pack_into,
-                        p.positions_in(lay.rpdo_fields)) for p in lay.rpdos]
+                        _picker(p.positions_in(lay.rpdo_fields))) for p in lay.rpdos]
                       for i, lay in enumerate(layouts)]
         self._constants = [lay.rpdo_constants for lay in layouts]
         self._period, self.next_heartbeat = heartbeat_period, -math.inf  # -inf: next cycle
@@ -50,8 +51,7 @@ class FramesOut:
         values = (controlword, self._default_mode[i], 0, 0, 0, *lay.rpdo_constants)
         frames = [self._port_of[i].frame(pdo.cob_id, pdo.size) for pdo in lay.rpdos]
         for msg, pdo in zip(frames, lay.rpdos):
-            where = pdo.positions_in(lay.rpdo_fields)
-            pdo.codec.pack_into(msg.data, 0, *(values[k] for k in where))
+            pdo.codec.pack_into(msg.data, 0, *_picker(pdo.positions_in(lay.rpdo_fields))(values))
         return frames
 
     def torque_off(self, bringup: Sequence[DriveBringup]) -> None:
@@ -81,8 +81,8 @@ class FramesOut:
         fixed mapping's other objects as its file gives them."""
         values += self._constants[i]
         send = self._send[i]
-        for msg, pack_into, where in self._rpdo[i]:
-            pack_into(msg.data, 0, *[values[k] for k in where])
+        for msg, pack_into, pick in self._rpdo[i]:
+            pack_into(msg.data, 0, *pick(values))
             send(msg)
 
     def sync_and_heartbeat(self, now: float) -> None:
@@ -97,3 +97,14 @@ class FramesOut:
                 port.send(port.heartbeat)
             due = self.next_heartbeat + self._period
             self.next_heartbeat = due if due > now else now + self._period
+
+
+def _picker(where: Sequence[int]) -> Callable[[tuple[int, ...]], tuple[int, ...]]:
+    """A function picking the entries at ``where`` as a tuple (itemgetter: ~4 µs a cycle
+    less for 12 drives than a comprehension per frame)."""
+    if len(where) == 1:
+        (k,) = where
+        return lambda values: (values[k],)
+    if not where:
+        return lambda values: ()
+    return itemgetter(*where)

@@ -40,6 +40,9 @@ EMCY_NAMES = {
     cia301.EMCY_STO: "STO input active",
 }
 
+#: the lower of the two faulted CiA 402 states, as a plain int (numpy compares it cheaper)
+_FAULTED = int(cia402.State402.FAULT_REACTION_ACTIVE)
+
 
 def emcy_text(code: int) -> str:
     return f"EMCY 0x{code:04X} ({EMCY_NAMES.get(code, 'error')})"
@@ -164,32 +167,34 @@ class Supervisor:
         simulated drives' consumers keep the same rule).
 
         Drives already latched are not checked again (one event per drive). The common case,
-        nothing wrong, costs a few whole-array reductions; the per-drive loops run only when
-        one of them says something is."""
+        nothing wrong, costs a few reductions (Python's on ``tolist()``: for a dozen drives
+        ~4x cheaper than numpy's, whose scalar compared with an IntEnum alone cost ~4 µs);
+        the per-drive loops run only when one of them says something is."""
         watch = self.watch
-        if not watch.any():
+        if True not in watch.tolist():
             return
         missing = self.missing
         np.add(missing, 1, out=missing)
         np.copyto(missing, 0, where=tpdos_complete)
-        if self.heartbeat_deadline.min() < now:
+        if min(self.heartbeat_deadline.tolist()) < now:
             heard = now if heard_until is None else heard_until
             for i in np.flatnonzero(watch & (self.heartbeat_deadline < heard)):
                 self.fault(int(i), f"{self._signal[i]} lost (none for "
                                    f"{self.heartbeat_timeout[i]:.3f} s)", now)
                 self.heartbeat_deadline[i] = math.inf  # one event per loss
-        if missing.max() >= self.tpdo_timeout_cycles:
+        if max(missing.tolist()) >= self.tpdo_timeout_cycles:
             for i in np.flatnonzero(watch & (missing >= self.tpdo_timeout_cycles)):
                 self.fault(int(i), f"TPDOs missing for {self.tpdo_timeout_cycles} cycles", now)
+        seen = states.tolist()
         # FAULT_REACTION_ACTIVE (6) and FAULT (7) are the two highest State402 values
-        if states.max() >= cia402.State402.FAULT_REACTION_ACTIVE:
-            for i in np.flatnonzero(watch & (states >= cia402.State402.FAULT_REACTION_ACTIVE)):
+        if max(seen) >= _FAULTED:
+            for i in np.flatnonzero(watch & (states >= _FAULTED)):
                 code = int(error_codes[i])
                 self.fault(int(i), "statusword fault bit"
                            + (f", {emcy_text(code)}" if code else ""), now, code)
         # UNKNOWN (-1): a statusword that is no CiA 402 state is garbled or broken firmware;
         # taken as an enable step it would only be reported when the enable timed out
-        if states.min() < 0:
+        if min(seen) < 0:
             for i in np.flatnonzero(watch & (states < 0)):
                 self.fault(int(i), "statusword matches no CiA 402 state (garbled?)", now)
 
