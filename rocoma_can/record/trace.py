@@ -280,14 +280,16 @@ _CYCLE_SCALARS: dict[str, tuple[type, ...]] = {
     "late": (int, float), "state": (str,), "controller": (str,)}
 
 
-def read_messages(path: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """(topic, log time ns, decoded message) of every JSON message in an MCAP file, in
-    order. Other programs' channels in other encodings are passed over; ours in another
-    encoding, or not JSON, raise TraceError. The MCAP reader's own failures (a truncated or
-    foreign file) come through as they are."""
+def read_messages(path: str, topics: Iterable[str] | None = None
+                  ) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(topic, log time ns, decoded message) of every JSON message in an MCAP file (on
+    ``topics``, None: all), in order. Other programs' channels in other encodings are passed
+    over; ours in another encoding, or not JSON, raise TraceError. The MCAP reader's own
+    failures (a truncated or foreign file) come through as they are."""
     from mcap.reader import make_reader
     with open(path, "rb") as stream:
-        for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
+        for _schema, channel, message in make_reader(stream).iter_messages(
+                topics=None if topics is None else list(topics), log_time_order=True):
             ours = channel.topic in (CYCLE_TOPIC, EVENT_TOPIC)
             if channel.message_encoding != "json":
                 if ours:
@@ -305,13 +307,14 @@ def read_messages(path: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
 
 
 def read_trace(path: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """read_messages with every cycle and event checked (check_cycle, check_event): what
-    ``plot`` and ``export`` read. Any failure to read the file (none there, a foreign,
+    """The cycles and events of read_messages, each checked (check_cycle, check_event): what
+    ``plot`` and ``export`` read (a recording's frames and the live view's channels are not
+    decoded: most of a trace's messages). Any failure to read the file (none there, a foreign,
     truncated or garbage file) is a TraceError; ImportError stays itself (mcap missing)."""
     cycles = events = 0
     joints: int | None = None
     try:
-        for topic, log_time, msg in read_messages(path):
+        for topic, log_time, msg in read_messages(path, (CYCLE_TOPIC, EVENT_TOPIC)):
             if topic == CYCLE_TOPIC:
                 cycles += 1
                 joints = check_cycle(msg, cycles, joints)
