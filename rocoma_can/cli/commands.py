@@ -427,8 +427,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--duration", type=seconds, default=None, help="stop after this many s")
     p.add_argument("--rate", type=float, default=None, help="override the loop rate, Hz")
     p.add_argument("--record", default=None, metavar="DIR",
-                   help="write every frame (DIR/<bus>.log, candump) and every cycle "
-                        "(DIR/trace.mcap) as they happen")
+                   help="write every cycle, event and frame (DIR/trace.mcap) and every "
+                        "frame again as candump (DIR/<bus>.log) as they happen")
     p.add_argument("--flight-dir", default=str(default_flight_dir()), metavar="DIR",
                    help="where the flight recorder writes (default %(default)s)")
     p.add_argument("--flight-seconds", type=flight_seconds, default=10.0, metavar="S",
