@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import math
 import os
 import signal
 import sys
@@ -13,6 +14,7 @@ import time
 from pathlib import Path
 
 import can
+import pytest
 from fixtures.budgets import within
 from fixtures.running import DEMO_WAIT, wait_for
 
@@ -21,7 +23,10 @@ from rocoma_can.drivers.joints import JointCommand, JointState
 from rocoma_can.events import EventKind, ManagerEvent
 from rocoma_can.record import recorder as recorder_module
 from rocoma_can.record.can_log import RecordingError
+from rocoma_can.record.pacing import unpaced
 from rocoma_can.record.recorder import BusToRecord, Recorder
+from rocoma_can.record.recording import BusLog
+from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, layout
 from rocoma_can.record.trace import read_messages
 
 RATE = 100.0
@@ -220,3 +225,31 @@ def test_a_frame_stamped_by_an_adapters_own_clock_is_in_the_flight_record(tmp_pa
               if topic == "/can/arm"]
     assert [m["data"] for _, m in frames] == ["00", "01", "02"]
     assert all(log_time >= before * 1e9 for log_time, _ in frames)
+
+
+def test_a_trace_that_fails_on_frames_is_named_and_the_log_keeps_its_count(tmp_path):
+    """Frames are most of a trace's bytes, so on a full disk the trace often fails as a
+    chunk of frames goes in, after the bus's log took the same chunk's lines: the reason
+    names the trace (not the log), and the log counts the lines it holds."""
+    specs = layout([("bus received", 512, 0, False)])
+    shared = SharedFile(specs[0].offset + specs[0].size)
+    try:
+        ring = FrameRing(shared, specs[0], sent=False)
+        wall = time.time()
+        for k in range(3):
+            ring.put(can.Message(arbitration_id=0x181, data=bytes([k]), is_extended_id=False),
+                     wall - 1.0 + k * 1e-3)
+        bus_log = BusLog(tmp_path / "arm.log", "arm", "vcan0",
+                         [RingReader(shared, specs[0])], unpaced)
+        full = RecordingError(f"{tmp_path}/trace.mcap: writing failed: [Errno 28] No space "
+                              "left on device")
+
+        def trace(fields: object) -> None:
+            raise full
+        with pytest.raises(RecordingError) as raised:
+            bus_log.write(math.inf, trace)
+        bus_log.close()
+    finally:
+        shared.close()
+    assert raised.value is full
+    assert bus_log.frames == 3 == len(list(can.LogReader(str(tmp_path / "arm.log"))))

@@ -556,9 +556,10 @@ def writer_threads() -> list[str]:
 
 
 def test_run_record_on_a_disk_that_fills_up(demo_bench, tmp_path, capfd, caplog):
-    """The candump file fills the disk during the run (the trace's chunks wait in memory):
-    every writer stops and closes its file at once, one warning, the loop runs its time;
-    run says it stopped as usual and exits 1 (the recording has a hole)."""
+    """A file fills the disk during the run (a candump log, or trace.mcap as its chunks of
+    frames go out): every writer stops and closes its file at once, one warning naming the
+    file that failed, the loop runs its time; run says it stopped as usual and exits 1 (the
+    recording has a hole)."""
     config, _segment = demo_bench
     path = tmp_path / "robot.yaml"
     cfg = demo_config(config.bus.channel, drives=2, rate=RATE)
@@ -577,8 +578,9 @@ def test_run_record_on_a_disk_that_fills_up(demo_bench, tmp_path, capfd, caplog)
             [r.getMessage() for r in said]
         message = said[0].getMessage()
         assert re.fullmatch(rf"recording to {re.escape(str(record))} stopped, the loop runs "
-                            rf"on: {re.escape(str(record))}/\S+: writing failed(?: after \d+ "
-                            r"frames)?: \[Errno 28\] No space left on device", message), message
+                            rf"on: {re.escape(str(record))}/(?:\S+\.log: writing failed after "
+                            r"\d+ frames|trace\.mcap: writing failed): \[Errno 28\] No space "
+                            r"left on device", message), message
         assert open_files_under(mount) == [] and writer_threads() == []
 
 

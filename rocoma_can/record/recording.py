@@ -58,7 +58,8 @@ class BusLog:
     def write(self, until: float, also: Callable[[Sequence[Fields]], None]) -> None:
         """What the rings got since the last write and was stamped before ``until``
         (wall clock; ``math.inf``: all of it), into the log and, in the same order, to
-        ``also`` (the trace); RecordingError on a hole or a failed write."""
+        ``also`` (the trace: a RecordingError of its own names its file); RecordingError on
+        a hole or a failed write."""
         parts = [] if self._held is None else [self._held]
         for k, ring in enumerate(self._rings):
             start, records = ring.read(self._next[k])
@@ -79,10 +80,12 @@ class BusLog:
             for fields in frame_chunks(records[:cut]):
                 self._file.write("".join([candump_line(t, channel, cob, flags, data)
                                           for t, cob, flags, data in fields]))
-                also(fields)
                 self.frames += len(fields)
+                also(fields)
                 pace()
             self._file.flush()  # on disk now: a crash loses at most what is held
+        except RecordingError:
+            raise
         except (OSError, ValueError) as exc:
             raise RecordingError(f"{self.path}: writing failed after {self.frames} frames: "
                                  f"{exc}") from exc
@@ -146,7 +149,7 @@ class Recording:
             self._live.heard(offset)
             self._next = start + len(rows)
             for bus_log in self._logs:
-                bus_log.write(until, functools.partial(writer.frames, bus_log.label))
+                bus_log.write(until, functools.partial(self._frames, writer, bus_log.label))
         except (OSError, ValueError) as exc:  # RecordingError too
             reason = str(exc) if isinstance(exc, RecordingError) else \
                 f"{self.path}: writing failed: {exc}"
@@ -154,6 +157,13 @@ class Recording:
             self.stop()
             return reason
         return None
+
+    def _frames(self, writer: McapWriter, label: str, fields: Sequence[Fields]) -> None:
+        """A bus's frames into the trace; a failure names the trace, not the bus's log."""
+        try:
+            writer.frames(label, fields)
+        except (OSError, ValueError) as exc:
+            raise RecordingError(f"{self.path}: writing failed: {exc}") from exc
 
     def stop(self) -> None:
         """Every file closed, whatever fails on the way (its reason kept)."""

@@ -280,7 +280,7 @@ _CYCLE_SCALARS: dict[str, tuple[type, ...]] = {
     "late": (int, float), "state": (str,), "controller": (str,)}
 
 
-def read_messages(path: str, topics: Iterable[str] | None = None
+def read_messages(path: str, topics: str | Iterable[str] | None = None
                   ) -> Iterator[tuple[str, int, dict[str, Any]]]:
     """(topic, log time ns, decoded message) of every JSON message in an MCAP file (on
     ``topics``, None: all), in order. Other programs' channels in other encodings are passed
@@ -289,7 +289,7 @@ def read_messages(path: str, topics: Iterable[str] | None = None
     from mcap.reader import make_reader
     with open(path, "rb") as stream:
         for _schema, channel, message in make_reader(stream).iter_messages(
-                topics=None if topics is None else list(topics), log_time_order=True):
+                topics=[topics] if isinstance(topics, str) else topics, log_time_order=True):
             ours = channel.topic in (CYCLE_TOPIC, EVENT_TOPIC)
             if channel.message_encoding != "json":
                 if ours:
