@@ -29,6 +29,7 @@ SHORT = {
     "cli_start": [],
     "recording_cost": [],
     "telemetry_run": ["--duration", "10"],
+    "demo_run": ["--repeat", "1"],
     "sim_cost": [],
 }
 

@@ -39,6 +39,11 @@ CASES = {
         {"cycles", "missed", "period_us", "loop_process_cpu_us", "writer_cpu_us",
          "errors"} <= set(run) and not run["errors"] and run["cycles"] > 0
         for run in r["runs"]),
+    "demo_run": lambda r: [run["recording"] for run in r["runs"]] == [True, False] and all(
+        {"cycles", "overruns", "on_cpu", "waiting", "period_mean_ms"} <= set(run)
+        and run["cycles"] > 0 and run["on_cpu"] + run["waiting"] == run["overruns"]
+        for run in r["runs"]) and sum(r["runs"][0]["by_state"].values())
+    == r["runs"][0]["overruns"],
     "sim_cost": lambda r: [row["drives"] for row in r] == [1, 3, 6, 12] and all(
         {"per_sync_us", "per_drive_us", "bench_core_share"} <= set(row) for row in r),
     "cli_start": lambda r: all({"seconds", "modules", "numpy", "exit_code"} <= set(c)
