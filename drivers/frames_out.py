@@ -16,8 +16,7 @@ frame is counted; refused cycle after cycle, a bus fault. What goes out (hardwar
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from operator import itemgetter
+from collections.abc import Sequence
 
 import can
 
@@ -25,6 +24,7 @@ from . import cia402
 from .bringup import DriveBringup
 from .bus_port import BusPort
 from .pdo_layout import DriveLayout
+from .wire import picker
 
 
 class FramesOut:
@@ -41,7 +41,7 @@ class FramesOut:
         self._probe = [self._encode(i, int(cia402.Controlword.SHUTDOWN)) for i in n]
         # per RPDO: (frame, codec.pack_into, its entries picked from (cw, mode, targets...))
         self._rpdo = [[(port_of[i].frame(p.cob_id, p.size), p.codec.pack_into,
-                        _picker(p.positions_in(lay.rpdo_fields))) for p in lay.rpdos]
+                        picker(p.positions_in(lay.rpdo_fields))) for p in lay.rpdos]
                       for i, lay in enumerate(layouts)]
         self._constants = [lay.rpdo_constants for lay in layouts]
         self._period, self.next_heartbeat = heartbeat_period, -math.inf  # -inf: next cycle
@@ -51,7 +51,7 @@ class FramesOut:
         values = (controlword, self._default_mode[i], 0, 0, 0, *lay.rpdo_constants)
         frames = [self._port_of[i].frame(pdo.cob_id, pdo.size) for pdo in lay.rpdos]
         for msg, pdo in zip(frames, lay.rpdos):
-            pdo.codec.pack_into(msg.data, 0, *_picker(pdo.positions_in(lay.rpdo_fields))(values))
+            pdo.codec.pack_into(msg.data, 0, *picker(pdo.positions_in(lay.rpdo_fields))(values))
         return frames
 
     def torque_off(self, bringup: Sequence[DriveBringup]) -> None:
@@ -98,13 +98,3 @@ class FramesOut:
             due = self.next_heartbeat + self._period
             self.next_heartbeat = due if due > now else now + self._period
 
-
-def _picker(where: Sequence[int]) -> Callable[[tuple[int, ...]], tuple[int, ...]]:
-    """A function picking the entries at ``where`` as a tuple (itemgetter: ~4 µs a cycle
-    less for 12 drives than a comprehension per frame)."""
-    if len(where) == 1:
-        (k,) = where
-        return lambda values: (values[k],)
-    if not where:
-        return lambda values: ()
-    return itemgetter(*where)

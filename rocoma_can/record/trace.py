@@ -21,13 +21,16 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from typing import Any, BinaryIO, Protocol
+from typing import TYPE_CHECKING, Any, BinaryIO, Protocol
 
 import numpy as np
 
 from ..drivers.joints import JointCommand, JointState
 from ..events import ManagerEvent, ManagerState
 from .pacing import unpaced
+
+if TYPE_CHECKING:
+    from .rings import Fields
 
 #: per-joint blocks of a row, in order: (name, where it comes from)
 JOINT_FIELDS = ("position", "velocity", "torque", "command_mode", "command_position",
@@ -248,7 +251,7 @@ class McapWriter:
             self._writer.add_message(channel_id=self._events, log_time=ns, publish_time=ns,
                                      data=json.dumps(message, separators=(",", ":")).encode())
 
-    def frames(self, bus: str, frames: Iterable[tuple[float, int, int, str]]) -> None:
+    def frames(self, bus: str, frames: Iterable[Fields]) -> None:
         """A bus's frames as rings.frame_fields gives them, on /can/<bus>."""
         channel = self._buses.get(bus)
         if channel is None:
