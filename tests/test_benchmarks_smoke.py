@@ -39,11 +39,17 @@ CASES = {
         {"cycles", "missed", "period_us", "loop_process_cpu_us", "writer_cpu_us",
          "errors"} <= set(run) and not run["errors"] and run["cycles"] > 0
         for run in r["runs"]),
-    "demo_run": lambda r: [run["recording"] for run in r["runs"]] == [True, False] and all(
+    "demo_run": lambda r: [run["recording"] for run in r["runs"]] == [True, False, None]
+    and all(
         {"cycles", "overruns", "on_cpu", "waiting", "period_mean_ms"} <= set(run)
         and run["cycles"] > 0 and run["on_cpu"] + run["waiting"] == run["overruns"]
         for run in r["runs"]) and sum(r["runs"][0]["by_state"].values())
     == r["runs"][0]["overruns"],
+    "host_floor": lambda r: [(run["rate"], run["footprint_kib"], run["work_us"])
+                             for run in r["runs"]] == [(1000.0, 0, 300.0), (1000.0, 4096, 300.0)]
+    and all(
+        {"cycles", "overruns", "waiting", "cpu_median_us", "period_mean_ms"} <= set(run)
+        and run["cycles"] > 0 and run["waiting"] <= run["overruns"] for run in r["runs"]),
     "sim_cost": lambda r: [row["drives"] for row in r] == [1, 3, 6, 12] and all(
         {"per_sync_us", "per_drive_us", "bench_core_share"} <= set(row) for row in r),
     "cli_start": lambda r: all({"seconds", "modules", "numpy", "exit_code"} <= set(c)
