@@ -7,9 +7,10 @@
 (recording on: mean period <= 1.01 ms, overruns < 0.1 %). Each round runs the demo twice, in
 fresh processes: as it comes (recording, flight records, plot) and with ``--no-record
 --no-flight``; then, in this process, the bare loop (host_floor.py) for as many cycles,
-each only as much Python work as the recorded run's median cycle, in the CPU's cache: what
-the host's scheduling and CPU allowed that much work in that minute, a floor under the
-demo's counts (``bare`` says why not a memory-bound work). From the demo's summary:
+each only as much Python work as the recorded run's median cycle took of the loop thread's
+CPU, in the CPU's cache: what the host's scheduling and CPU allowed that much work in that
+minute, to read the demo's counts against (not a bound: the host changes from one minute to
+the next; ``bare`` says why not a memory-bound work). From the demo's summary:
 cycles, overruns (on the CPU / waiting off it, the loop's own split:
 rocoma_can/overrun.py), period mean and max. From a recorded run's trace:
 the manager state each overrun happened in, since they differ in what they cost: in
@@ -62,13 +63,14 @@ def _summary(out: str) -> dict[str, Any]:
 
 
 def _states(trace: Path, rate: float) -> tuple[dict[str, int], float]:
-    """How many of a trace's overruns happened in each manager state, and the median work
-    of its cycles (s)."""
+    """How many of a trace's overruns happened in each manager state, and the median of
+    its cycles' CPU time on the loop's thread (s)."""
     rows = [m for _, _, m in read_messages(str(trace), CYCLE_TOPIC)]
     work = np.array([r["work"] for r in rows])
     late = np.array([r["late"] for r in rows])
     where = Counter(rows[i]["state"] for i in np.flatnonzero(overran(work, late, 1.0 / rate)))
-    return {state: where.get(state, 0) for state in STATES}, float(np.median(work))
+    return ({state: where.get(state, 0) for state in STATES},
+            float(np.median([r["cpu"] for r in rows])))
 
 
 def one(recording: bool, args: argparse.Namespace) -> dict[str, Any]:
@@ -83,22 +85,24 @@ def one(recording: bool, args: argparse.Namespace) -> dict[str, Any]:
                              f"{done.stdout[-2000:]}{done.stderr[-2000:]}")
         result = {"recording": recording, **_summary(done.stdout)}
         if recording:
-            result["by_state"], result["work_median_s"] = _states(Path(tmp) / "trace.mcap",
-                                                                  args.rate)
+            result["by_state"], result["cpu_median_s"] = _states(Path(tmp) / "trace.mcap",
+                                                                 args.rate)
         return result
 
 
-def bare(work: float, cycles: int, args: argparse.Namespace) -> dict[str, Any]:
-    """The host's floor beside the round (host_floor.py): the same loop, as many cycles,
-    each nothing but as much Python work as the demo's median cycle, in the CPU's
-    first-level cache (footprint 0): what the host's scheduling and CPU allow. Work over a
-    few MiB, as host_floor.py's other footprint, overran far more often than the demo did
-    in the same minutes (4-21 % against 0.3-0.4 %): too memory-bound to stand for it."""
-    r = host_floor.one(args.rate, work * 1e6, 0, cycles / args.rate)
+def bare(cpu: float, cycles: int, args: argparse.Namespace) -> dict[str, Any]:
+    """The host beside the round (host_floor.py): the same loop, as many cycles, each
+    nothing but as much Python work as the recorded run's median cycle took of the loop
+    thread's CPU, in the CPU's first-level cache (footprint 0): what the host's scheduling
+    and CPU allowed that much work in that minute. Work over a few MiB, host_floor.py's
+    other footprint, overran far more often than the demo in the same minutes (4.0, 0.6 and
+    21 % against 0.3-0.4 % in one hour's three rounds): too memory-bound to stand for it."""
+    r = host_floor.one(args.rate, cpu * 1e6, 0, cycles / args.rate)
     return {"recording": None, "cycles": r["cycles"], "overruns": r["overruns"],
             "on_cpu": r["overruns"] - r["waiting"], "waiting": r["waiting"],
             "period_mean_ms": r["period_mean_ms"], "period_max_ms": r["period_max_ms"],
-            "work_us": r["work_us"]}
+            "work_us": r["work_us"], "cpu_median_us": r["cpu_median_us"],
+            "visits": r["visits"]}
 
 
 def main() -> None:
@@ -114,7 +118,7 @@ def main() -> None:
     runs, rows = [], []
     for _ in range(args.repeat):
         on, off = one(True, args), one(False, args)
-        floor = bare(on["work_median_s"], on["cycles"], args)
+        floor = bare(on["cpu_median_s"], on["cycles"], args)
         for label, r in (("on", on), ("off", off),
                          (f"bare loop, {floor['work_us']:.0f} µs CPU", floor)):
             runs.append(r)
@@ -133,9 +137,9 @@ def main() -> None:
            notes=["overruns: cycles that ended after the next one's deadline; on the CPU / "
                   "waiting: the loop's split (rocoma_can/overrun.py). In FAILPROOF the "
                   "drives are off (bring-up; after the second fault). bare loop: the same "
-                  "loop for as many cycles, each only the recorded run's median work in "
-                  "the CPU's cache (host_floor.py): what this host's scheduling and CPU "
-                  "allowed that much work in that minute."])
+                  "loop for as many cycles, each only the recorded run's median CPU time of "
+                  "work, in the CPU's cache (host_floor.py): what this host's scheduling "
+                  "and CPU allowed that much work in that minute."])
 
 
 if __name__ == "__main__":

@@ -212,6 +212,22 @@ def test_json_is_a_list_of_checks_and_the_exit_code_follows_the_failures():
     assert done.returncode == (1 if any(c["status"] == "fail" for c in checks) else 0)
 
 
+def test_timing_runs_the_bare_loop_at_the_rate_and_reports_both_footprints():
+    done = doctor("--timing", "0.4", "--rate", "200", "--json")
+    checks = {c["name"]: c for c in json.loads(done.stdout)}
+    cache, memory = checks["timing: work in the cache"], checks["timing: work over 4 MiB"]
+    for check in (cache, memory):
+        assert check["status"] in ("ok", "warn")
+        # 40 % of a 5 ms period, at the asked rate, ~0.2 s each: ~40 cycles
+        assert check["found"].startswith("200 Hz, 2000 µs of Python work a cycle: ")
+        cycles = int(check["found"].split(" overruns in ")[1].split(" cycles")[0])
+        assert 10 <= cycles <= 60
+        assert bool(check["fix"]) == (check["status"] == "warn")
+    assert memory["found"].endswith("x)")  # its speed's spread
+    assert "timing: work in the cache" not in {c["name"] for c in json.loads(
+        doctor("--json").stdout)}  # measured only when asked
+
+
 def test_the_text_output_ends_with_the_verdict():
     done = doctor()
     lines = done.stdout.splitlines()
@@ -223,6 +239,10 @@ def test_the_text_output_ends_with_the_verdict():
     (("x.yaml", "--channel", "can0"), "not both"),
     (("--interface", "socketcan"), "--interface needs --channel"),
     (("--interface", "pcan", "--channel", "PCAN_USBBUS1"), "SocketCAN links only"),
+    (("--timing", "0"), "0 < SECONDS"),
+    (("--timing", "601"), "0 < SECONDS"),
+    (("--rate", "500"), "with --timing"),
+    (("--timing", "1", "--rate", "0"), "a rate > 0 Hz"),
 ])
 def test_usage_errors_exit_2(args, says):
     done = doctor(*args)

@@ -1,6 +1,8 @@
 """``rocoma-can doctor [CONFIG]``: is this host ready for the configuration, as a checklist
 with the fix for each miss. It only reads (sysfs, iproute2, rlimits, one SCHED_FIFO probe
-on a thread that ends at once); every fix is printed, never run.
+on a thread that ends at once); every fix is printed, never run. ``--timing`` also runs the
+bare control loop (runtime/host_timing.py) for a few seconds at the rate: whether this host
+keeps a loop's speed, which no setting read from /sys tells.
 
 Exit codes: 0 nothing blocks the configuration (warnings allowed), 1 something does (a
 link missing, down, at another bit rate or bus-off; a realtime priority that is refused),
@@ -22,6 +24,11 @@ if TYPE_CHECKING:  # the checks load on use: ``rocoma-can --help`` stays quick
     from ..runtime.host import Check
 
 _MARK = {"ok": "ok", "warn": "WARN", "fail": "FAIL", "n/a": "n/a"}
+#: --timing: seconds when given without a number, the rate without CONFIG or --rate, and
+#: the longest run accepted
+DEFAULT_TIMING_SECONDS = 10.0
+DEFAULT_TIMING_RATE = 1000.0
+MAX_TIMING_SECONDS = 600.0
 
 
 def _err(text: str) -> None:
@@ -41,6 +48,20 @@ def _link_checks(channels: Sequence[tuple[str, BusConfig | None]]) -> list[Check
 
 def gather(args: argparse.Namespace) -> tuple[str, list[Check]]:
     """(what was checked against, the checks). ConfigError: a config that does not load."""
+    subject, checks, run = _read_checks(args)
+    if args.timing is not None:
+        from ..runtime.host_timing import timing_checks
+        rate, priority, cpus = run
+        checks += timing_checks(args.rate or rate, args.timing, priority, cpus)
+    return subject, checks
+
+
+#: how the config runs its loop: rate, realtime.priority, realtime.cpus
+_LoopRun = tuple[float, "int | None", "set[int] | None"]
+
+
+def _read_checks(args: argparse.Namespace) -> tuple[str, list[Check], _LoopRun]:
+    """(subject, the checks that only read, how a timing check runs the loop)."""
     from ..drivers.can_link import can_interfaces
     from ..runtime.host import Check, realtime_checks
     if args.config:
@@ -53,7 +74,8 @@ def gather(args: argparse.Namespace) -> tuple[str, list[Check]]:
             else:
                 checks.append(Check(f"bus {bus.label}", "n/a", f"interface {bus.interface!r}: "
                                     "doctor reads SocketCAN links only"))
-        return args.config, checks + realtime_checks(config.priority, config.cpus, True)
+        return (args.config, checks + realtime_checks(config.priority, config.cpus, True),
+                (config.rate, config.priority, config.cpus))
     if args.channel:
         checks = _link_checks([(args.channel, None)])
         subject = f"{args.channel} (no config: bit rates shown, not compared)"
@@ -71,7 +93,7 @@ def gather(args: argparse.Namespace) -> tuple[str, list[Check]]:
     checks.append(Check("configuration", "n/a", "no CONFIG: the bit rates, CAN FD and "
                         "realtime.priority/cpus it asks for were not judged",
                         "rocoma-can doctor CONFIG"))
-    return subject, checks
+    return subject, checks, (DEFAULT_TIMING_RATE, None, None)
 
 
 def _print(subject: str, checks: Sequence[Check]) -> None:
@@ -97,6 +119,12 @@ def _doctor(args: argparse.Namespace) -> int:
     if args.interface not in (None, "socketcan"):
         _err(f"doctor: --interface {args.interface!r}: doctor reads SocketCAN links only")
         return USAGE
+    if args.timing is not None and not 0 < args.timing <= MAX_TIMING_SECONDS:
+        _err(f"doctor: --timing {args.timing:g}: give 0 < SECONDS <= {MAX_TIMING_SECONDS:g}")
+        return USAGE
+    if args.rate is not None and not (args.rate > 0 and args.timing is not None):
+        _err(f"doctor: --rate {args.rate:g}: give a rate > 0 Hz, with --timing")
+        return USAGE
     try:
         subject, checks = gather(args)
     except ConfigError as exc:
@@ -117,7 +145,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="A checklist of the host, read only: each configured SocketCAN link "
                     "(exists, up, bit rate and CAN FD as configured, ERROR-ACTIVE, error "
                     "counters, txqueuelen, restart-ms), the PREEMPT_RT kernel, SCHED_FIFO "
-                    "at realtime.priority, mlockall, the CPU governor and isolated CPUs. "
+                    "at realtime.priority, mlockall, the CPU governor and isolated CPUs; "
+                    "with --timing, the bare control loop measured for a few seconds. "
                     "Without CONFIG: every CAN link of the host, or --channel. Exit 0: "
                     "nothing blocks the config (warnings allowed); 1: something does; 2: "
                     "usage, or a config that does not load.")
@@ -127,4 +156,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="without CONFIG: python-can interface of --channel (socketcan)")
     p.add_argument("--json", action="store_true",
                    help="a JSON list of {name, status, found, fix}")
+    p.add_argument("--timing", type=float, nargs="?", const=DEFAULT_TIMING_SECONDS,
+                   default=None, metavar="SECONDS",
+                   help="also run the bare control loop for SECONDS (default "
+                        f"{DEFAULT_TIMING_SECONDS:g}) at the config's rate, with 40 %% of the "
+                        "period as Python work, in the CPU's cache and over 4 MiB: does this "
+                        "host keep a loop's speed (warns above 0.1 %% overruns, or a work "
+                        "whose slowest cycles take over twice its median)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+                   help="--timing's rate instead of the config's "
+                        f"({DEFAULT_TIMING_RATE:g} without CONFIG)")
     p.set_defaults(func=_doctor)

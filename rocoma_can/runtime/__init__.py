@@ -2,7 +2,8 @@
 checks, one per section), bus_load (what the config puts on each bus), loop (run_cycle, the
 cycle's order in one place; one thread, fixed rate, a safe way out), system (hardware,
 manager, node, recorders and fleet bridge wired), host and can_checks (what ``doctor``
-judges: the host for a 1 kHz loop, each CAN link against its bus). Public names are
+judges: the host for a 1 kHz loop, each CAN link against its bus), host_timing (``doctor
+--timing``: the bare loop measured, does this host keep a loop's speed). Public names are
 imported on first use (``_lazy.py``)."""
 from __future__ import annotations
 

@@ -1,0 +1,202 @@
+"""Does this host run a control loop at a steady speed: the loop (``ControlLoop``, as
+``run`` uses it) with a cycle that is nothing but a fixed amount of Python work, no CAN, no
+other thread (``rocoma-can doctor --timing``; benchmarks/host_floor.py tabulates it).
+
+Whatever such a loop counts as overruns is the host's, and a loop whose real cycle does as
+much work meets the same host. Two kinds of host trouble are told apart. Work that
+stays in the CPU's cache sees the scheduler (the loop woken late, another task on its CPU)
+and a CPU that runs slow. Work that reads a few MiB of objects in no particular order, as a
+Python program's objects lie, also sees the memory the host's other tenants share: on a
+shared virtual machine its speed can change by up to 2.5x from one run to the next (no steal
+time shows it), and a loop with 40 % of its period as work then overruns for seconds at a
+time. Software cannot fix that; a robot's computer needs cores of its own, or a loop that
+leaves that much headroom.
+"""
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..events import ManagerState
+from .host import Check
+from .loop import ControlLoop, CycleEvent
+
+#: bytes one walked object takes, its slot in the list and the allocator's share included
+#: (tracemalloc, CPython 3.11: a pair of an int and a float)
+OBJECT_BYTES = 120
+#: the footprint of the memory-bound work: past a core's second-level cache (0.5-2 MiB),
+#: within a server's shared third-level cache (which a virtual machine's neighbours share)
+MEMORY_FOOTPRINT = 4 << 20
+#: the work a cycle, as a share of the period: the demo's loop with its simulated drives
+#: works ~40 % of a 1 kHz period
+WORK_SHARE = 0.4
+#: doctor's verdicts: overruns above this share of the cycles, or a work whose slowest
+#: cycles (p99.9) took more than this many times its median, warn
+OVERRUN_SHARE = 0.001
+SPREAD = 2.0
+
+
+class WorkHardware:
+    """A hardware layer with nothing to read and a fixed amount of Python work in its write:
+    ``visits`` items read from a list of ``footprint`` bytes of small objects, shuffled
+    (their order unrelated to where they lie), each cycle on from where the last stopped.
+    Footprint 0 is one object: the work stays in the first-level cache."""
+
+    def __init__(self, footprint: int) -> None:
+        objects = [(k, float(k)) for k in range(max(1, footprint // OBJECT_BYTES))]
+        random.Random(1).shuffle(objects)
+        self.objects, self.visits, self.total, self._at = objects, 0, 0, 0
+
+    def size(self, work_us: float) -> None:
+        """``visits`` for ``work_us`` of thread CPU as the host runs this work now (the
+        median of 200 passes over these very objects; the fastest pass would size it on a
+        moment the host rarely gives)."""
+        self.visits, passes = 2000, []
+        for _ in range(200):
+            start = time.thread_time()
+            self.write(ManagerState.OK)
+            passes.append(time.thread_time() - start)
+        self.visits = round(work_us * 2000 / (float(np.median(passes)) * 1e6))
+
+    def read(self, now: float) -> Sequence[CycleEvent]:
+        return ()
+
+    def write(self, manager_state: ManagerState, switch_count: int | None = None) -> None:
+        objects, at = self.objects, self._at
+        n = len(objects)
+        total = 0
+        for k in range(at, at + self.visits):
+            total += objects[k % n][0]
+        self.total, self._at = total, (at + self.visits) % n
+
+
+class AlwaysOk:
+    """A manager that is always OK; the loop's stop calls failproof_stop: nothing to do."""
+
+    switch_count = 0
+
+    def update(self) -> ManagerState:
+        return ManagerState.OK
+
+    def post_cycle(self) -> None:
+        pass
+
+    def emergency_stop(self, cause: str = "") -> None:
+        pass
+
+    def failproof_stop(self, cause: str = "") -> None:
+        pass
+
+    def clear_emergency_stop(self) -> bool:
+        return True
+
+
+class CpuTrace:
+    """Each cycle's thread CPU time, in an array allocated before the run."""
+
+    def __init__(self, cycles: int) -> None:
+        self.cpu = np.zeros(cycles)
+        self.n = 0
+
+    def record(self, now: float, work: float, late: float, state: ManagerState,
+               cpu: float) -> None:
+        if self.n < len(self.cpu):
+            self.cpu[self.n] = cpu
+            self.n += 1
+
+
+@dataclass(frozen=True)
+class BareRun:
+    """One run of the bare loop: its cycles and overruns (rocoma_can/overrun.py), how many
+    of those waited off the CPU, and what the same work took, cycle by cycle."""
+    rate: float
+    work_us: float
+    footprint: int
+    visits: int
+    priority: int | None
+    cpus: list[int] | None
+    cycles: int
+    overruns: int
+    waiting: int
+    cpu_median_us: float
+    cpu_p999_us: float
+    period_mean_ms: float
+    period_max_ms: float
+
+    @property
+    def share(self) -> float:
+        return self.overruns / max(self.cycles, 1)
+
+    @property
+    def spread(self) -> float:
+        """The slowest cycles' CPU (p99.9) over the median's: 1 on a steady host."""
+        return self.cpu_p999_us / max(self.cpu_median_us, 1e-9)
+
+
+def bare_loop(rate: float, work_us: float, footprint: int, duration: float,
+              priority: int | None = None, cpus: Collection[int] | None = None) -> BareRun:
+    """The loop at ``rate`` for ``duration`` s, each cycle ``work_us`` of work (sized now)
+    over ``footprint`` bytes, at SCHED_FIFO ``priority`` on ``cpus`` if given (as
+    ``realtime:`` runs the real loop); it leaves nothing running and the calling thread as
+    it was (ControlLoop restores what it set)."""
+    trace = CpuTrace(int(rate * duration) + 16)
+    hardware = WorkHardware(footprint)
+    hardware.size(work_us)
+    pinned = set(cpus) if cpus else None
+    summary = ControlLoop(hardware, AlwaysOk(), rate, priority=priority, cpus=pinned,
+                          trace=trace).run(duration=duration)
+    cpu = trace.cpu[:trace.n] * 1e6 if trace.n else np.zeros(1)
+    return BareRun(rate, work_us, footprint, hardware.visits, priority,
+                   sorted(pinned) if pinned else None,
+                   summary.cycles, summary.overruns,
+                   summary.overruns_waiting, float(np.median(cpu)),
+                   float(np.percentile(cpu, 99.9)), summary.period_mean * 1e3,
+                   summary.period_max * 1e3)
+
+
+def timing_checks(rate: float, seconds: float, priority: int | None = None,
+                  cpus: Collection[int] | None = None) -> list[Check]:
+    """doctor's two measured checks at ``rate`` (and the config's ``realtime:``): the bare
+    loop with WORK_SHARE of the period as work in the cache, then over MEMORY_FOOTPRINT,
+    ``seconds`` / 2 each."""
+    work = WORK_SHARE * 1e6 / rate
+    cache = bare_loop(rate, work, 0, seconds / 2, priority, cpus)
+    memory = bare_loop(rate, work, MEMORY_FOOTPRINT, seconds / 2, priority, cpus)
+    return [_cache_check(cache), _memory_check(memory)]
+
+
+def _said(run: BareRun) -> str:
+    how = "".join((f" at SCHED_FIFO {run.priority}" if run.priority else "",
+                   f" on CPUs {run.cpus}" if run.cpus else ""))
+    return (f"{run.rate:g} Hz{how}, {run.work_us:.0f} µs of Python work a cycle: {run.overruns} "
+            f"overruns in {run.cycles} cycles ({100 * run.share:.2f} %, {run.waiting} waiting "
+            f"off the CPU); the work's CPU median {run.cpu_median_us:.0f} µs, p99.9 "
+            f"{run.cpu_p999_us:.0f} µs")
+
+
+def _cache_check(run: BareRun) -> Check:
+    name = "timing: work in the cache"
+    if run.share <= OVERRUN_SHARE:
+        return Check(name, "ok", _said(run))
+    mostly_waiting = run.waiting * 2 >= run.overruns
+    fix = ("the loop waited for its CPU: realtime.priority (SCHED_FIFO) and a CPU of its own "
+           "(realtime.cpus, isolcpus); on a virtual machine, dedicated host cores"
+           if mostly_waiting else
+           "the CPU itself ran slow: a fixed CPU clock (governor performance), no other busy "
+           "work on the loop's core; on a virtual machine, dedicated host cores")
+    return Check(name, "warn", _said(run), fix)
+
+
+def _memory_check(run: BareRun) -> Check:
+    name = f"timing: work over {run.footprint >> 20} MiB"
+    said = f"{_said(run)} ({run.spread:.1f}x)"
+    if run.share <= OVERRUN_SHARE and run.spread <= SPREAD:
+        return Check(name, "ok", said)
+    return Check(name, "warn", said,
+                 "this host's memory speed does not hold (other tenants of a virtual "
+                 "machine's host, or other busy work here): give the loop cores and memory of "
+                 "its own, or leave it that much headroom (a lower rate, fewer drives a loop)")
