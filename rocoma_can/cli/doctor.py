@@ -16,6 +16,7 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
+from ..cli_args import positive, seconds
 from ..errors import ConfigError
 from ..exit_codes import FAILED, OK, USAGE
 
@@ -24,11 +25,15 @@ if TYPE_CHECKING:  # the checks load on use: ``rocoma-can --help`` stays quick
     from ..runtime.host import Check
 
 _MARK = {"ok": "ok", "warn": "WARN", "fail": "FAIL", "n/a": "n/a"}
-#: --timing: seconds when given without a number, the rate without CONFIG or --rate, and
-#: the longest run accepted
+#: --timing: seconds when given without a number (more where the rate needs them for
+#: host_timing.MIN_CYCLES a check), the rate without CONFIG or --rate, the longest run
+#: accepted (at a configured SCHED_FIFO priority the bare loop takes its CPU as the real
+#: loop would, the whole time if the host is slow), and the rates a config may have
 DEFAULT_TIMING_SECONDS = 10.0
 DEFAULT_TIMING_RATE = 1000.0
-MAX_TIMING_SECONDS = 600.0
+MAX_TIMING_SECONDS = 120.0
+MAX_RATE = 10_000.0
+AUTO = 0.0  # --timing without SECONDS (not a string: argparse would convert it)
 
 
 def _err(text: str) -> None:
@@ -48,16 +53,29 @@ def _link_checks(channels: Sequence[tuple[str, BusConfig | None]]) -> list[Check
 
 def gather(args: argparse.Namespace) -> tuple[str, list[Check]]:
     """(what was checked against, the checks). ConfigError: a config that does not load."""
-    subject, checks, run = _read_checks(args)
+    subject, checks, (rate, priority, cpus, spin) = _read_checks(args)
     if args.timing is not None:
         from ..runtime.host_timing import timing_checks
-        rate, priority, cpus = run
-        checks += timing_checks(args.rate or rate, args.timing, priority, cpus)
+        rate = args.rate or rate
+        checks += timing_checks(rate, timing_seconds(args.timing, rate), priority, cpus, spin)
     return subject, checks
 
 
-#: how the config runs its loop: rate, realtime.priority, realtime.cpus
-_LoopRun = tuple[float, "int | None", "set[int] | None"]
+def timing_seconds(asked: float, rate: float) -> float:
+    """--timing's SECONDS (``AUTO``: the default, or enough for MIN_CYCLES a check);
+    ValueError saying what would do when they give a check fewer than MIN_CYCLES."""
+    from ..runtime.host_timing import MIN_CYCLES
+    need = 2 * MIN_CYCLES / rate  # (two checks)
+    run = max(DEFAULT_TIMING_SECONDS, need) if asked == AUTO else asked
+    if run < need or run > MAX_TIMING_SECONDS:
+        raise ValueError(f"--timing {run:g} s at {rate:g} Hz: each of its two checks "
+                         f"needs {MIN_CYCLES} cycles, at least {need:g} s, and it runs "
+                         f"{MAX_TIMING_SECONDS:g} s at most")
+    return run
+
+
+#: how the config runs its loop: rate, realtime.priority, realtime.cpus, its spin (s)
+_LoopRun = tuple[float, "int | None", "set[int] | None", "float | None"]
 
 
 def _read_checks(args: argparse.Namespace) -> tuple[str, list[Check], _LoopRun]:
@@ -75,7 +93,7 @@ def _read_checks(args: argparse.Namespace) -> tuple[str, list[Check], _LoopRun]:
                 checks.append(Check(f"bus {bus.label}", "n/a", f"interface {bus.interface!r}: "
                                     "doctor reads SocketCAN links only"))
         return (args.config, checks + realtime_checks(config.priority, config.cpus, True),
-                (config.rate, config.priority, config.cpus))
+                (config.rate, config.priority, config.cpus, config.spin))
     if args.channel:
         checks = _link_checks([(args.channel, None)])
         subject = f"{args.channel} (no config: bit rates shown, not compared)"
@@ -93,7 +111,7 @@ def _read_checks(args: argparse.Namespace) -> tuple[str, list[Check], _LoopRun]:
     checks.append(Check("configuration", "n/a", "no CONFIG: the bit rates, CAN FD and "
                         "realtime.priority/cpus it asks for were not judged",
                         "rocoma-can doctor CONFIG"))
-    return subject, checks, (DEFAULT_TIMING_RATE, None, None)
+    return subject, checks, (DEFAULT_TIMING_RATE, None, None, None)
 
 
 def _print(subject: str, checks: Sequence[Check]) -> None:
@@ -119,17 +137,24 @@ def _doctor(args: argparse.Namespace) -> int:
     if args.interface not in (None, "socketcan"):
         _err(f"doctor: --interface {args.interface!r}: doctor reads SocketCAN links only")
         return USAGE
-    if args.timing is not None and not 0 < args.timing <= MAX_TIMING_SECONDS:
-        _err(f"doctor: --timing {args.timing:g}: give 0 < SECONDS <= {MAX_TIMING_SECONDS:g}")
+    if args.rate is not None and not (0 < args.rate <= MAX_RATE and args.timing is not None):
+        _err(f"doctor: --rate {args.rate:g}: give 0 < HZ <= {MAX_RATE:g}, with --timing")
         return USAGE
-    if args.rate is not None and not (args.rate > 0 and args.timing is not None):
-        _err(f"doctor: --rate {args.rate:g}: give a rate > 0 Hz, with --timing")
-        return USAGE
+    if args.timing is not None:
+        try:
+            timing_seconds(args.timing, args.rate or DEFAULT_TIMING_RATE)
+        except ValueError as exc:
+            if args.config is None or args.rate is not None:  # (else: the config's rate)
+                _err(f"doctor: {exc}")
+                return USAGE
     try:
         subject, checks = gather(args)
     except ConfigError as exc:
         for problem in exc.problems:
             _err(problem)
+        return USAGE
+    except ValueError as exc:  # --timing against the config's rate
+        _err(f"doctor: {exc}")
         return USAGE
     if args.json:
         print(json.dumps([c.as_dict() for c in checks], indent=2), flush=True)
@@ -156,14 +181,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="without CONFIG: python-can interface of --channel (socketcan)")
     p.add_argument("--json", action="store_true",
                    help="a JSON list of {name, status, found, fix}")
-    p.add_argument("--timing", type=float, nargs="?", const=DEFAULT_TIMING_SECONDS,
+    p.add_argument("--timing", type=seconds, nargs="?", const=AUTO,
                    default=None, metavar="SECONDS",
                    help="also run the bare control loop for SECONDS (default "
-                        f"{DEFAULT_TIMING_SECONDS:g}) at the config's rate, with 40 %% of the "
-                        "period as Python work, in the CPU's cache and over 4 MiB: does this "
-                        "host keep a loop's speed (warns above 0.1 %% overruns, or a work "
-                        "whose slowest cycles take over twice its median)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+                        f"{DEFAULT_TIMING_SECONDS:g}, or what 1000 cycles a check take at a "
+                        f"low rate; at most {MAX_TIMING_SECONDS:g}) at the config's rate, "
+                        "priority and CPUs, with 40 %% of the period as Python work, in the "
+                        "CPU's cache and over 4 MiB: does this host keep a loop's speed "
+                        "(warns above 0.1 %% overruns, or a work whose slowest cycles take "
+                        "over twice its median)")
+    p.add_argument("--rate", type=positive, default=None, metavar="HZ",
                    help="--timing's rate instead of the config's "
                         f"({DEFAULT_TIMING_RATE:g} without CONFIG)")
     p.set_defaults(func=_doctor)

@@ -6,14 +6,15 @@ Whatever such a loop counts as overruns is the host's, and a loop whose real cyc
 much work meets the same host. Two kinds of host trouble are told apart. Work that
 stays in the CPU's cache sees the scheduler (the loop woken late, another task on its CPU)
 and a CPU that runs slow. Work that reads a few MiB of objects in no particular order, as a
-Python program's objects lie, also sees the memory the host's other tenants share: on a
-shared virtual machine its speed can change by up to 2.5x from one run to the next (no steal
-time shows it), and a loop with 40 % of its period as work then overruns for seconds at a
-time. Software cannot fix that; a robot's computer needs cores of its own, or a loop that
-leaves that much headroom.
+Python program's objects lie, also sees the caches and memory the host's other work
+shares: on a shared virtual machine the same work's median took 1.5x longer in one run than
+in one a minute before (no steal time shows it), and a loop with 40 % of its period as work
+then overruns for seconds at a time. Software cannot fix that; a robot's computer needs
+cores of its own, or a loop that leaves that much headroom.
 """
 from __future__ import annotations
 
+import os
 import random
 import time
 from collections.abc import Collection, Sequence
@@ -23,7 +24,7 @@ import numpy as np
 
 from ..events import ManagerState
 from .host import Check
-from .loop import ControlLoop, CycleEvent
+from .loop import ControlLoop, CycleEvent, runs_realtime
 
 #: bytes one walked object takes, its slot in the list and the allocator's share included
 #: (tracemalloc, CPython 3.11: a pair of an int and a float)
@@ -35,9 +36,11 @@ MEMORY_FOOTPRINT = 4 << 20
 #: works ~40 % of a 1 kHz period
 WORK_SHARE = 0.4
 #: doctor's verdicts: overruns above this share of the cycles, or a work whose slowest
-#: cycles (p99.9) took more than this many times its median, warn
+#: cycles (p99.9) took more than this many times its median, warn; a check has at least
+#: MIN_CYCLES (fewer cannot tell 0.1 % from chance)
 OVERRUN_SHARE = 0.001
 SPREAD = 2.0
+MIN_CYCLES = 1000
 
 
 class WorkHardware:
@@ -50,6 +53,9 @@ class WorkHardware:
         objects = [(k, float(k)) for k in range(max(1, footprint // OBJECT_BYTES))]
         random.Random(1).shuffle(objects)
         self.objects, self.visits, self.total, self._at = objects, 0, 0, 0
+        #: how the loop's thread ran, seen at its first cycle: a real-time policy, its CPUs
+        self.realtime: bool | None = None
+        self.cpus: set[int] = set()
 
     def size(self, work_us: float) -> None:
         """``visits`` for ``work_us`` of thread CPU as the host runs this work now (the
@@ -61,11 +67,14 @@ class WorkHardware:
             self.write(ManagerState.OK)
             passes.append(time.thread_time() - start)
         self.visits = round(work_us * 2000 / (float(np.median(passes)) * 1e6))
+        self.realtime = None  # (seen again at the loop's first cycle)
 
     def read(self, now: float) -> Sequence[CycleEvent]:
         return ()
 
     def write(self, manager_state: ManagerState, switch_count: int | None = None) -> None:
+        if self.realtime is None:
+            self.realtime, self.cpus = runs_realtime(), os.sched_getaffinity(0)
         objects, at = self.objects, self._at
         n = len(objects)
         total = 0
@@ -138,20 +147,22 @@ class BareRun:
 
 
 def bare_loop(rate: float, work_us: float, footprint: int, duration: float,
-              priority: int | None = None, cpus: Collection[int] | None = None) -> BareRun:
+              priority: int | None = None, cpus: Collection[int] | None = None,
+              spin: float | None = None) -> BareRun:
     """The loop at ``rate`` for ``duration`` s, each cycle ``work_us`` of work (sized now)
-    over ``footprint`` bytes, at SCHED_FIFO ``priority`` on ``cpus`` if given (as
-    ``realtime:`` runs the real loop); it leaves nothing running and the calling thread as
-    it was (ControlLoop restores what it set)."""
+    over ``footprint`` bytes, at SCHED_FIFO ``priority`` on ``cpus`` with ``spin`` if given
+    (as ``realtime:`` runs the real loop; the run says what took effect); it leaves nothing
+    running and the calling thread as it was (ControlLoop restores what it set)."""
     trace = CpuTrace(int(rate * duration) + 16)
     hardware = WorkHardware(footprint)
     hardware.size(work_us)
     pinned = set(cpus) if cpus else None
     summary = ControlLoop(hardware, AlwaysOk(), rate, priority=priority, cpus=pinned,
-                          trace=trace).run(duration=duration)
+                          trace=trace, spin=spin).run(duration=duration)
     cpu = trace.cpu[:trace.n] * 1e6 if trace.n else np.zeros(1)
-    return BareRun(rate, work_us, footprint, hardware.visits, priority,
-                   sorted(pinned) if pinned else None,
+    return BareRun(rate, work_us, footprint, hardware.visits,
+                   priority if priority and hardware.realtime else None,
+                   sorted(hardware.cpus) if pinned else None,
                    summary.cycles, summary.overruns,
                    summary.overruns_waiting, float(np.median(cpu)),
                    float(np.percentile(cpu, 99.9)), summary.period_mean * 1e3,
@@ -159,18 +170,20 @@ def bare_loop(rate: float, work_us: float, footprint: int, duration: float,
 
 
 def timing_checks(rate: float, seconds: float, priority: int | None = None,
-                  cpus: Collection[int] | None = None) -> list[Check]:
+                  cpus: Collection[int] | None = None,
+                  spin: float | None = None) -> list[Check]:
     """doctor's two measured checks at ``rate`` (and the config's ``realtime:``): the bare
     loop with WORK_SHARE of the period as work in the cache, then over MEMORY_FOOTPRINT,
-    ``seconds`` / 2 each."""
+    ``seconds`` / 2 each (the caller sees to MIN_CYCLES)."""
     work = WORK_SHARE * 1e6 / rate
-    cache = bare_loop(rate, work, 0, seconds / 2, priority, cpus)
-    memory = bare_loop(rate, work, MEMORY_FOOTPRINT, seconds / 2, priority, cpus)
-    return [_cache_check(cache), _memory_check(memory)]
+    cache = bare_loop(rate, work, 0, seconds / 2, priority, cpus, spin)
+    memory = bare_loop(rate, work, MEMORY_FOOTPRINT, seconds / 2, priority, cpus, spin)
+    return [_cache_check(cache, priority), _memory_check(memory, priority)]
 
 
-def _said(run: BareRun) -> str:
-    how = "".join((f" at SCHED_FIFO {run.priority}" if run.priority else "",
+def _said(run: BareRun, priority: int | None) -> str:
+    how = "".join((f" at SCHED_FIFO {run.priority}" if run.priority else
+                   f" at normal priority (SCHED_FIFO {priority} refused)" if priority else "",
                    f" on CPUs {run.cpus}" if run.cpus else ""))
     return (f"{run.rate:g} Hz{how}, {run.work_us:.0f} µs of Python work a cycle: {run.overruns} "
             f"overruns in {run.cycles} cycles ({100 * run.share:.2f} %, {run.waiting} waiting "
@@ -178,22 +191,22 @@ def _said(run: BareRun) -> str:
             f"{run.cpu_p999_us:.0f} µs")
 
 
-def _cache_check(run: BareRun) -> Check:
+def _cache_check(run: BareRun, priority: int | None = None) -> Check:
     name = "timing: work in the cache"
     if run.share <= OVERRUN_SHARE:
-        return Check(name, "ok", _said(run))
+        return Check(name, "ok", _said(run, priority))
     mostly_waiting = run.waiting * 2 >= run.overruns
     fix = ("the loop waited for its CPU: realtime.priority (SCHED_FIFO) and a CPU of its own "
            "(realtime.cpus, isolcpus); on a virtual machine, dedicated host cores"
            if mostly_waiting else
            "the CPU itself ran slow: a fixed CPU clock (governor performance), no other busy "
            "work on the loop's core; on a virtual machine, dedicated host cores")
-    return Check(name, "warn", _said(run), fix)
+    return Check(name, "warn", _said(run, priority), fix)
 
 
-def _memory_check(run: BareRun) -> Check:
+def _memory_check(run: BareRun, priority: int | None = None) -> Check:
     name = f"timing: work over {run.footprint >> 20} MiB"
-    said = f"{_said(run)} ({run.spread:.1f}x)"
+    said = f"{_said(run, priority)} ({run.spread:.1f}x)"
     if run.share <= OVERRUN_SHARE and run.spread <= SPREAD:
         return Check(name, "ok", said)
     return Check(name, "warn", said,
