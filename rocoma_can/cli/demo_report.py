@@ -93,6 +93,19 @@ def status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None])
             f"overruns {s.overruns} tx errors {hw.tx_errors}")
 
 
+#: overruns above this share of the cycles point at ``doctor --timing`` (issue 36's target)
+HOST_HINT_SHARE = 0.001
+
+
+def host_hint(timing: TimingSummary) -> str | None:
+    """For a run with more overruns than HOST_HINT_SHARE: how to tell the host's share of
+    them (a shared virtual machine's speed alone can cost a loop that much), else None."""
+    if timing.overruns <= HOST_HINT_SHARE * timing.cycles:
+        return None
+    return (f"over {100 * HOST_HINT_SHARE:g} % of the cycles: `rocoma-can doctor --timing` "
+            "measures what this host allows a loop")
+
+
 def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
              rt: Runtime) -> None:
     out("")
@@ -104,6 +117,9 @@ def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out(f"  {'overruns (past their period)':28s} {timing.overruns}"
         + (f" ({timing.overruns - waiting} on the CPU, {waiting} waiting off it)"
            if timing.overruns else ""))
+    hint = host_hint(timing)
+    if hint is not None:
+        out(f"  {'':28s} {hint}")
     if rt.loop.yield_pauses:
         out(f"  {'spin pauses':28s} {rt.loop.yield_pauses} (a yield cost the loop a period; "
             "it spun on the CPU for 5 s after each)")
