@@ -8,10 +8,10 @@ a fixed amount of Python work, no CAN, no threads, no other process of ours.
 The bare loop of ``rocoma_can/runtime/host_timing.py`` (what ``rocoma-can doctor --timing``
 runs): ``ControlLoop`` as ``run`` and ``demo`` use it (its wait, its spin, its collector and
 switch-interval settings) drives a stand-in hardware whose write does W µs of Python work
-(sized at start on the host's median pass) and a stand-in manager that always says OK.
-Whatever overruns it counts is the host's: the hypervisor's and kernel's interruptions,
-other tenants, a CPU or a memory that is slow for a while. A loop whose cycle does W µs of
-real work meets the same host, so the demo's and telemetry_run.py's counts
+(sized at start as the loop runs it: ``WorkHardware.size``) and a stand-in manager that
+always says OK. Whatever overruns it counts is the host's: the hypervisor's and kernel's
+interruptions, other tenants, a CPU or a memory that is slow for a while. A loop whose
+cycle does W µs of real work meets the same host, so the demo's and telemetry_run.py's counts
 are read against this table at their own work (the demo's loop: ~390-440 µs a cycle at
 1 kHz, its drives simulated on its thread).
 
@@ -20,7 +20,7 @@ lie (as a Python program's objects are). At footprint 0 it stays in the CPU's fi
 cache and sees only the scheduler and a slow CPU; at 4 MiB, past the core's second-level
 cache, it also sees the memory other programs on the host share. On the 2-core VM these
 benchmarks run on the two differ: 300-400 µs at 1 kHz overran 0-12 times in 8,000 cycles
-at footprint 0, and 0-3,289 at 4 MiB, whose median differed by up to 1.5x from one run to
+at footprint 0, and 0-867 at 4 MiB, whose median differed by up to 1.5x from one run to
 the next (benchmarks/README.md).
 
 Per rate, footprint and work: cycles, overruns (the loop's own count,
@@ -78,8 +78,8 @@ def main() -> None:
             "waiting", "CPU median µs", "CPU p99.9 µs", "period mean ms"],
            rows, args=args, results={"runs": runs},
            notes=["work: Python reads of small objects spread over the footprint, sized "
-                  "on the host's median pass at start; the CPU columns are what the same "
-                  "work took, cycle by cycle. No CAN, no other thread: every overrun here is the "
+                  "at start as the loop runs it; the CPU columns are what the same work "
+                  "took, cycle by cycle. No CAN, no other thread: every overrun here is the "
                   "host's, and a loop with as much real work over as much memory meets "
                   "the same host."])
 

@@ -7,8 +7,8 @@ much work meets the same host. Two kinds of host trouble are told apart. Work th
 stays in the CPU's cache sees the scheduler (the loop woken late, another task on its CPU)
 and a CPU that runs slow. Work that reads a few MiB of objects in no particular order, as a
 Python program's objects lie, also sees the caches and memory the host's other work
-shares: on a shared virtual machine the same work's median took 1.5x longer in one run than
-in one a minute before (no steal time shows it), and a loop with 40 % of its period as work
+shares: on a shared virtual machine the same work's median took up to 1.5x longer in one
+run than in one a minute before (no steal time shows it), and a loop with 40 % of its period as work
 then overruns for seconds at a time. Software cannot fix that; a robot's computer needs
 cores of its own, or a loop that leaves that much headroom.
 """
@@ -57,17 +57,29 @@ class WorkHardware:
         self.realtime: bool | None = None
         self.cpus: set[int] = set()
 
-    def size(self, work_us: float) -> None:
-        """``visits`` for ``work_us`` of thread CPU as the host runs this work now (the
-        median of 200 passes over these very objects; the fastest pass would size it on a
-        moment the host rarely gives)."""
-        self.visits, passes = 2000, []
-        for _ in range(200):
+    def size(self, work_us: float, period: float) -> None:
+        """``visits`` for ``work_us`` of thread CPU as the loop will run this work now: a
+        first size from 200 passes back to back, then the median of 50 passes of that size
+        each after the rest of a ``period`` asleep, as the loop's cycles come (between
+        them other work takes the caches: sized back to back only, the work over 4 MiB
+        took 1.6-2.5x its size in the loop). Medians: the fastest pass would size it on a
+        moment the host rarely gives."""
+        self.visits = 2000
+        self.visits = round(work_us * 2000 / (self._median_pass(200, 0.0) * 1e6))
+        pause = max(0.0, period - work_us * 1e-6)
+        self.visits = round(self.visits * work_us / (self._median_pass(50, pause) * 1e6))
+        self.realtime = None  # (seen again at the loop's first cycle)
+
+    def _median_pass(self, passes: int, pause: float) -> float:
+        """The median thread CPU time (s) of ``passes`` writes, ``pause`` s apart."""
+        took = []
+        for _ in range(passes):
+            if pause:
+                time.sleep(pause)
             start = time.thread_time()
             self.write(ManagerState.OK)
-            passes.append(time.thread_time() - start)
-        self.visits = round(work_us * 2000 / (float(np.median(passes)) * 1e6))
-        self.realtime = None  # (seen again at the loop's first cycle)
+            took.append(time.thread_time() - start)
+        return max(float(np.median(took)), 1e-9)
 
     def read(self, now: float) -> Sequence[CycleEvent]:
         return ()
@@ -155,7 +167,7 @@ def bare_loop(rate: float, work_us: float, footprint: int, duration: float,
     running and the calling thread as it was (ControlLoop restores what it set)."""
     trace = CpuTrace(int(rate * duration) + 16)
     hardware = WorkHardware(footprint)
-    hardware.size(work_us)
+    hardware.size(work_us, 1.0 / rate)
     pinned = set(cpus) if cpus else None
     summary = ControlLoop(hardware, AlwaysOk(), rate, priority=priority, cpus=pinned,
                           trace=trace, spin=spin).run(duration=duration)
