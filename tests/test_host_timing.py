@@ -43,7 +43,7 @@ def test_the_calling_thread_is_left_as_it_was():
             os.sched_getscheduler(0), os.sched_getaffinity(0)) == before
     # SCHED_FIFO where this process may take it (root, CAP_SYS_NICE), said either way
     assert run.priority in (1, None)
-    found = _cache_check(run, 1).found
+    found = _cache_check(run).found
     assert " at SCHED_FIFO 1 " in found or "(SCHED_FIFO 1 refused)" in found
 
 
@@ -60,8 +60,8 @@ def test_the_work_walks_on_through_every_object():
 
 def _run(overruns: int, waiting: int, median: float = 400.0, p999: float = 600.0,
          footprint: int = 0) -> BareRun:
-    return BareRun(1000.0, 400.0, footprint, 5000, None, None, 10_000, overruns, waiting,
-                   median, p999, 1.0, 1.2)
+    return BareRun(1000.0, 400.0, footprint, 5000, None, False, None, 10_000, overruns,
+                   waiting, median, p999, 1.0, 1.2)
 
 
 def test_a_steady_host_passes_both_checks():

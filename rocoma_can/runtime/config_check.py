@@ -137,10 +137,15 @@ def _bus(section: Mapping[str, Any], where: str, problems: list[str],
     return BusConfig(interface, channel, rates["bitrate"], name, fd, rates["data_bitrate"])
 
 
+#: the fastest loop a config may ask for, Hz
+MAX_RATE = 10_000
+
+
 def check_rate(data: Mapping[str, Any], problems: list[str]) -> float | None:
     rate = data.get("rate", 500)
-    if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not 0 < rate <= 10_000:
-        problems.append(f"rate: expected a loop rate in Hz, 0 < rate <= 10000, got {rate!r}")
+    if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not 0 < rate <= MAX_RATE:
+        problems.append(f"rate: expected a loop rate in Hz, 0 < rate <= {MAX_RATE}, got "
+                        f"{rate!r}")
         return None
     return float(rate)
 

@@ -138,8 +138,9 @@ class BareRun:
     work_us: float
     footprint: int
     visits: int
-    priority: int | None
-    cpus: list[int] | None
+    priority: int | None          # the SCHED_FIFO priority asked for
+    realtime: bool                # the loop's thread ran a real-time policy
+    cpus: list[int] | None        # the CPUs it ran on, when pinned
     cycles: int
     overruns: int
     waiting: int
@@ -172,9 +173,8 @@ def bare_loop(rate: float, work_us: float, footprint: int, duration: float,
     summary = ControlLoop(hardware, AlwaysOk(), rate, priority=priority, cpus=pinned,
                           trace=trace, spin=spin).run(duration=duration)
     cpu = trace.cpu[:trace.n] * 1e6 if trace.n else np.zeros(1)
-    return BareRun(rate, work_us, footprint, hardware.visits,
-                   priority if priority and hardware.realtime else None,
-                   sorted(hardware.cpus) if pinned else None,
+    return BareRun(rate, work_us, footprint, hardware.visits, priority,
+                   bool(hardware.realtime), sorted(hardware.cpus) if pinned else None,
                    summary.cycles, summary.overruns,
                    summary.overruns_waiting, float(np.median(cpu)),
                    float(np.percentile(cpu, 99.9)), summary.period_mean * 1e3,
@@ -190,35 +190,35 @@ def timing_checks(rate: float, seconds: float, priority: int | None = None,
     work = WORK_SHARE * 1e6 / rate
     cache = bare_loop(rate, work, 0, seconds / 2, priority, cpus, spin)
     memory = bare_loop(rate, work, MEMORY_FOOTPRINT, seconds / 2, priority, cpus, spin)
-    return [_cache_check(cache, priority), _memory_check(memory, priority)]
+    return [_cache_check(cache), _memory_check(memory)]
 
 
-def _said(run: BareRun, priority: int | None) -> str:
-    how = "".join((f" at SCHED_FIFO {run.priority}" if run.priority else
-                   f" at normal priority (SCHED_FIFO {priority} refused)" if priority else "",
-                   f" on CPUs {run.cpus}" if run.cpus else ""))
+def _said(run: BareRun) -> str:
+    how = "".join((f" at SCHED_FIFO {run.priority}" if run.priority and run.realtime else
+                   f" at normal priority (SCHED_FIFO {run.priority} refused)" if run.priority
+                   else "", f" on CPUs {run.cpus}" if run.cpus else ""))
     return (f"{run.rate:g} Hz{how}, {run.work_us:.0f} µs of Python work a cycle: {run.overruns} "
             f"overruns in {run.cycles} cycles ({100 * run.share:.2f} %, {run.waiting} waiting "
             f"off the CPU); the work's CPU median {run.cpu_median_us:.0f} µs, p99.9 "
             f"{run.cpu_p999_us:.0f} µs")
 
 
-def _cache_check(run: BareRun, priority: int | None = None) -> Check:
+def _cache_check(run: BareRun) -> Check:
     name = "timing: work in the cache"
     if run.share <= OVERRUN_SHARE:
-        return Check(name, "ok", _said(run, priority))
+        return Check(name, "ok", _said(run))
     mostly_waiting = run.waiting * 2 >= run.overruns
     fix = ("the loop waited for its CPU: realtime.priority (SCHED_FIFO) and a CPU of its own "
            "(realtime.cpus, isolcpus); on a virtual machine, dedicated host cores"
            if mostly_waiting else
            "the CPU itself ran slow: a fixed CPU clock (governor performance), no other busy "
            "work on the loop's core; on a virtual machine, dedicated host cores")
-    return Check(name, "warn", _said(run, priority), fix)
+    return Check(name, "warn", _said(run), fix)
 
 
-def _memory_check(run: BareRun, priority: int | None = None) -> Check:
+def _memory_check(run: BareRun) -> Check:
     name = f"timing: work over {run.footprint >> 20} MiB"
-    said = f"{_said(run, priority)} ({run.spread:.1f}x)"
+    said = f"{_said(run)} ({run.spread:.1f}x)"
     if run.share <= OVERRUN_SHARE and run.spread <= SPREAD:
         return Check(name, "ok", said)
     return Check(name, "warn", said,
