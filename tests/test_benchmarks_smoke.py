@@ -34,7 +34,8 @@ CASES = {
          "core_share_at_30k_frames_s"} <= set(row) for row in r),
     "recording_cost": lambda r: [row["joints"] for row in r] == [3, 6, 12, 24] and all(
         {"loop_record_us", "loop_frame_us", "writer_row_us", "writer_candump_us",
-         "writer_mcap_frame_us"} <= set(row) for row in r),
+         "writer_mcap_frame_us"} <= set(row) and row["writer_flight_record_s"] > 0
+        for row in r),
     "telemetry_run": lambda r: [run["set"] for run in r["runs"]] == ["off", "all"] and all(
         {"cycles", "missed", "period_us", "loop_process_cpu_us", "writer_cpu_us",
          "errors"} <= set(run) and not run["errors"] and run["cycles"] > 0

@@ -2,6 +2,7 @@
 (extras ``record``, ``plot``).
 
 trace          the loop's signals every cycle in a ring allocated once; MCAP writing, reading
+mcap_file      MCAP files written in bulk: a message is one pack and two appends
 rings          rings in shared memory: what the loop's process hands the writer process
 recorder       the loop's side of recording: the rings, the writer process, its replies
 writer         the writer process (``python -m rocoma_can.record.writer``), which also

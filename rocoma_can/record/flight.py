@@ -18,7 +18,6 @@ wait ran out, the OOM killer) leaves no record cut short.
 from __future__ import annotations
 
 import collections
-import itertools
 import math
 import os
 import time
@@ -50,7 +49,7 @@ class FlightRecords:
                  live: Callable[[McapWriter], LiveChannels],
                  pace: Callable[[], None]) -> None:
         self.directory, self.seconds = directory, seconds
-        self._pace = pace  # a record is 1-3 s of work: paced throughout (pacing.py)
+        self._pace = pace  # a record is ~1 s of work: paced throughout (pacing.py)
         self.dumps: list[tuple[Path, str]] = []
         self.errors: list[str] = []
         self._layout, self._rows, self._buses, self._live = layout, rows, buses, live
@@ -126,5 +125,6 @@ class FlightRecords:
             parts = [ring.read(0)[1] for ring in rings]  # the window's frames, then sorted:
             # a ring holds 10,000 frames a second, more than the window on a calmer bus
             records = in_time_order([part[part["t"] >= since_wall] for part in parts])
-            writer.frames(label, itertools.chain.from_iterable(frame_chunks(records)))
+            for chunk in frame_chunks(records):
+                writer.frames(label, chunk)
         writer.finish()

@@ -2,15 +2,16 @@
 CPU waits for one piece, not for a writing burst.
 
 The writer works in bursts: every 50 ms (writer.POLL) it turns what the rings got into JSON,
-MCAP and candump text (~10 ms of CPU for 12 drives on 4 buses at 1 kHz), and on an e-stop it
-writes a flight record (1-3 s of CPU). Its niceness does not keep such a burst from
-delaying the loop. Traced on a 2-core VM (kernel 6.18, HZ=250) at 1 kHz: the loop, woken by
-its timer on the CPU the writer was running on, was left queued there until the writer's
-slice or the next tick ended, 2.4-3.8 ms later, while the other CPU idled: the scheduler did
-not preempt the writer on that wake-up (the trace shows no need-resched set) whether the
-writer ran at nice 19, SCHED_IDLE or SCHED_BATCH. Those waits were most of the loop's
-missed cycles with recording on. A loop with ``realtime.priority`` (SCHED_FIFO) preempts
-any such task at once; this is for the loop at normal priority, the default.
+MCAP and candump text (~15 ms of CPU for 12 drives on 4 buses at 1 kHz, every frame in the
+trace), and on an e-stop it writes a flight record (~1 s of CPU). Its niceness does not keep
+such a burst from delaying the loop. Traced on a 2-core VM (kernel 6.18, HZ=250) at 1 kHz:
+the loop, woken by its timer on the CPU the writer was running on, was left queued there
+until the writer's slice or the next tick ended, 2.4-3.8 ms later, while the other CPU
+idled: the scheduler did not preempt the writer on that wake-up (the trace shows no
+need-resched set) whether the writer ran at nice 19, SCHED_IDLE or SCHED_BATCH. Those waits were
+most of the loop's missed cycles with recording on. A loop with ``realtime.priority``
+(SCHED_FIFO) preempts any such task at once; this is for the loop at normal priority, the
+default.
 
 A ``sched_yield`` ends the writer's turn: a task queued on its CPU runs next. Work is
 counted in the thread's CPU time, so time the writer spent preempted or asleep is no reason

@@ -5,7 +5,8 @@ timing, the manager's state and active controller, and every joint's feedback an
 into one preallocated row (a dozen numpy copies, no allocation), in memory the recording's
 writer process shares (rings.py). Everything else happens in that process: ``McapWriter``
 turns rows (and CAN frames) into MCAP messages, JSON-encoded with a JSON schema, so
-Foxglove and PlotJuggler open the file as it is.
+Foxglove and PlotJuggler open the file as it is; mcap_file.py writes the file, the ``mcap``
+package reads it (``read_messages``).
 
 Channels: ``/rocoma/cycle`` (one message per cycle: ``t``, ``period``, ``work``, ``late``,
 ``state``, ``controller``, ``cpu`` (the loop thread's CPU time in ``work``), then per joint
@@ -27,6 +28,7 @@ import numpy as np
 
 from ..drivers.joints import JointCommand, JointState
 from ..events import ManagerEvent, ManagerState
+from .mcap_file import McapFile
 from .pacing import unpaced
 
 if TYPE_CHECKING:
@@ -37,10 +39,10 @@ JOINT_FIELDS = ("position", "velocity", "torque", "command_mode", "command_posit
                 "command_velocity", "command_torque", "statusword", "cia402_state",
                 "error_code")
 SCALARS = ("t", "period", "work", "late", "state", "controller", "cpu")
-#: /can/<bus> messages between two ``pace`` calls (~4 µs each; a row's message takes ~30)
+#: /can/<bus> messages between two ``pace`` calls (~1-2 µs each; a row's message takes ~30)
 PACED_FRAMES = 32
 #: an MCAP chunk's bytes: each is compressed (zstd) in one call between two ``pace`` calls,
-#: ~0.4 ms for 128 KiB where mcap's default 1 MiB took ~3 ms
+#: ~0.4 ms for 128 KiB where a 1 MiB chunk took ~3 ms
 CHUNK_SIZE = 128 * 1024
 STATE_NAMES = {int(s): s.name for s in ManagerState}
 
@@ -198,76 +200,59 @@ class McapWriter:
 
     def __init__(self, stream: BinaryIO, joints: Sequence[str],
                  pace: Callable[[], None] = unpaced) -> None:
-        from mcap.writer import Writer  # optional: only where a file is written
         self._pace = pace  # called between messages (pacing.py: the writer process's)
-        self._writer = Writer(stream, chunk_size=CHUNK_SIZE)
-        self._writer.start(profile="", library="rocoma-can")
-        cycle = self._writer.register_schema(name="rocoma_can.Cycle", encoding="jsonschema",
-                                             data=json.dumps(cycle_schema(joints)).encode())
-        self._cycle = self._writer.register_channel(topic="/rocoma/cycle",
-                                                    message_encoding="json", schema_id=cycle)
-        self._frame_schema = self._writer.register_schema(
-            name="rocoma_can.CanFrame", encoding="jsonschema",
-            data=json.dumps(FRAME_SCHEMA).encode())
-        events = self._writer.register_schema(name="rocoma_can.ManagerEvent",
-                                              encoding="jsonschema",
-                                              data=json.dumps(EVENT_SCHEMA).encode())
-        self._events = self._writer.register_channel(topic="/rocoma/event",
-                                                     message_encoding="json",
-                                                     schema_id=events)
+        self._file = McapFile(stream, chunk_size=CHUNK_SIZE)
+        self._cycle = self.json_channel(CYCLE_TOPIC, cycle_schema(joints))
+        self._frame_schema = self._file.schema("rocoma_can.CanFrame", "jsonschema",
+                                               json.dumps(FRAME_SCHEMA).encode())
+        self._events = self.json_channel(EVENT_TOPIC, EVENT_SCHEMA)
         self._buses: dict[str, int] = {}
 
     def json_channel(self, topic: str, schema: Mapping[str, Any]) -> int:
         """A channel of JSON messages under a JSON schema named by its ``title``."""
-        schema_id = self._writer.register_schema(name=str(schema["title"]),
-                                                 encoding="jsonschema",
-                                                 data=json.dumps(schema).encode())
-        return int(self._writer.register_channel(topic=topic, message_encoding="json",
-                                                 schema_id=schema_id))
+        schema_id = self._file.schema(str(schema["title"]), "jsonschema",
+                                      json.dumps(schema).encode())
+        return self._file.channel(topic, "json", schema_id)
 
     def add(self, channel: int, ns: int, message: Mapping[str, Any]) -> None:
         self._pace()
-        self._writer.add_message(channel_id=channel, log_time=ns, publish_time=ns,
-                                 data=json.dumps(message, separators=(",", ":")).encode())
+        self._file.add(channel, ns, json.dumps(message, separators=(",", ":")).encode())
 
     def cycles(self, layout: RowLayout, controllers: Mapping[int, str], rows: np.ndarray,
                offset: float) -> None:
         """Rows as messages; ``offset``: add to a row's monotonic time for wall-clock time."""
-        channel, add, pace = self._cycle, self._writer.add_message, self._pace
+        channel, add, pace = self._cycle, self._file.add, self._pace
         for row in rows:
             pace()
-            ns = int((row[0] + offset) * 1e9)
-            add(channel_id=channel, log_time=ns, publish_time=ns,
-                data=json.dumps(layout.message(row, controllers),
-                                separators=(",", ":")).encode())
+            add(channel, int((row[0] + offset) * 1e9),
+                json.dumps(layout.message(row, controllers), separators=(",", ":")).encode())
 
     def events(self, events: Iterable[Mapping[str, Any]], offset: float) -> None:
         """Manager events as ``event_message`` makes them (their monotonic ``time`` +
         ``offset``: wall-clock time)."""
         for event in events:
             self._pace()
-            ns = int((float(event["time"]) + offset) * 1e9)
             message = {key: event[key] for key in ("kind", "state", "controller", "cause")}
-            self._writer.add_message(channel_id=self._events, log_time=ns, publish_time=ns,
-                                     data=json.dumps(message, separators=(",", ":")).encode())
+            self._file.add(self._events, int((float(event["time"]) + offset) * 1e9),
+                           json.dumps(message, separators=(",", ":")).encode())
 
-    def frames(self, bus: str, frames: Iterable[Fields]) -> None:
-        """A bus's frames as rings.frame_fields gives them, on /can/<bus>."""
+    def frames(self, bus: str, frames: Sequence[Fields]) -> None:
+        """A bus's frames as rings.frame_fields gives them, on /can/<bus>: one message
+        each, written PACED_FRAMES at a time."""
         channel = self._buses.get(bus)
         if channel is None:
-            channel = self._buses[bus] = self._writer.register_channel(
-                topic=f"/can/{bus}", message_encoding="json", schema_id=self._frame_schema)
-        add, tails, pace = self._writer.add_message, _FRAME_TAILS, self._pace
-        for k, (t, cob_id, flags, data) in enumerate(frames):
-            if not k % PACED_FRAMES:
-                pace()
-            ns = int(t * 1e9)
-            add(channel_id=channel, log_time=ns, publish_time=ns,
-                data=(f'{{"id":{cob_id},"data":"{data.lower()}","dlc":{len(data) // 2}'
-                      f'{tails[flags & 127]}}}').encode())
+            channel = self._buses[bus] = self._file.channel(f"/can/{bus}", "json",
+                                                            self._frame_schema)
+        tails, add_many = _FRAME_TAILS, self._file.add_many
+        for first in range(0, len(frames), PACED_FRAMES):
+            self._pace()
+            part = frames[first:first + PACED_FRAMES]
+            add_many(channel, [int(t * 1e9) for t, _, _, _ in part],
+                     [(f'{{"id":{cob_id},"data":"{data.lower()}","dlc":{len(data) // 2}'
+                       f'{tails[flags & 127]}}}').encode() for _, cob_id, flags, data in part])
 
     def finish(self) -> None:
-        self._writer.finish()  # type: ignore[no-untyped-call]  # mcap 1.6: unannotated
+        self._file.finish()
 
 
 class TraceError(ValueError):

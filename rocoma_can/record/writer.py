@@ -264,7 +264,8 @@ def _check_mcap() -> None:
     """Every file written here is MCAP (an optional extra): refused at start, not at the
     first e-stop."""
     try:
-        import mcap.writer  # noqa: F401
+        import mcap.reader  # noqa: F401
+        import zstandard  # noqa: F401  # (mcap_file.py's chunks)
     except ImportError as exc:
         raise RecordingError(f"recording and the flight recorder write MCAP, and "
                              f"{sys.executable} cannot import it ({exc}): pip install "
