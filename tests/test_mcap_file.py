@@ -128,6 +128,8 @@ def test_a_full_disk_is_said_at_the_write_that_does_not_fit() -> None:
             f.add(channel, T0 + k, b'{"k":1}')
     assert raised.value.errno == errno.ENOSPC
     assert k < 200  # at the chunk that did not fit, not at the end
+    with pytest.raises(ValueError, match="earlier write .* failed"):
+        f.finish()  # offsets after a cut write would point anywhere: no summary on them
 
 
 def test_a_message_on_a_channel_never_registered_is_refused() -> None:
@@ -159,3 +161,53 @@ def test_messages_after_the_footer_or_without_their_times_are_refused() -> None:
     f.finish()
     with pytest.raises(ValueError, match="finished"):
         f.add(channel, T0, b"{}")
+
+
+def test_a_call_that_raises_adds_none_of_its_messages(tmp_path: Path) -> None:
+    path = tmp_path / "m.mcap"
+    with path.open("wb") as stream:
+        f = McapFile(stream)
+        channel = f.channel("/a", "json", 0)
+        f.add_many(channel, [T0, T0 + 1], [b"1", b"2"])
+        with pytest.raises(TypeError):
+            f.add_many(channel, [T0 + 2, T0 + 3], [b"3", "not bytes"])  # type: ignore[list-item]
+        with pytest.raises(ValueError, match="0..2"):
+            f.add_many(channel, [T0 + 4, -1], [b"5", b"6"])
+        f.add(channel, T0 + 7, b"8")
+        f.finish()
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        got = [(m.log_time - T0, m.sequence, m.data)
+               for _, _, m in reader.iter_messages(log_time_order=True)]
+        stats = reader.get_summary().statistics
+    assert got == [(0, 0, b"1"), (1, 1, b"2"), (7, 2, b"8")]  # numbered per channel
+    assert stats is not None and stats.message_count == 3
+    assert (stats.message_start_time, stats.message_end_time) == (T0, T0 + 7)
+
+
+def test_channels_without_messages_make_no_chunk_of_time_zero(tmp_path: Path) -> None:
+    """A viewer's timeline spans every chunk index's times: one of 0-0 would start it in
+    1970. Channels registered after the last message (a bus with no frame yet) and a file
+    with no message at all are still read, their channels in the summary."""
+    path = tmp_path / "m.mcap"
+    with path.open("wb") as stream:
+        f = McapFile(stream, chunk_size=64)
+        a = f.channel("/a", "json", 0)
+        f.add(a, T0, b"{}")
+        f.channel("/late", "json", 0)
+        f.finish()
+    empty = tmp_path / "empty.mcap"
+    with empty.open("wb") as stream:
+        McapWriter(stream, ["j1"]).finish()
+    for file, count in ((path, 1), (empty, 0)):
+        with file.open("rb") as stream:
+            reader = make_reader(stream)
+            summary = reader.get_summary()
+            assert summary is not None
+            assert all(ci.message_start_time >= T0 for ci in summary.chunk_indexes)
+            assert sum(1 for _ in reader.iter_messages()) == count
+        with file.open("rb") as stream:
+            topics = {r.topic for r in StreamReader(stream, validate_crcs=True).records
+                      if type(r).__name__ == "Channel"}
+        assert ("/late" in topics) == (file == path)
+    assert "/rocoma/cycle" in {c.topic for c in summary.channels.values()}  # (the empty one)

@@ -76,6 +76,7 @@ class McapFile:
         self._index: dict[int, array[int]] = {}  # per channel: time, offset, time, ...
         self._chunk_first = self._chunk_last = -1
         self._finished = False
+        self._failed: BaseException | None = None  # a write that failed: no more writes
         self._write(MAGIC + _record(HEADER, _string(profile) + _string(library)))
 
     def schema(self, name: str, encoding: str, data: bytes) -> int:
@@ -106,25 +107,38 @@ class McapFile:
     def add_many(self, channel: int, log_times: Sequence[int],
                  datas: Sequence[bytes]) -> None:
         """Messages on one channel, each at its log time (nanoseconds); the chunk is
-        finished (compressed, written) once it holds ``chunk_size`` bytes."""
+        finished (compressed, written) once it holds ``chunk_size`` bytes. A call that
+        raises (a time out of range, data that is not bytes) adds none of its messages."""
         if not log_times:
             return
+        self._check_open()
         if channel not in self._counts:
             raise ValueError(f"MCAP channel {channel} was never registered")
         if len(datas) != len(log_times):
             raise ValueError(f"{len(log_times)} log times for {len(datas)} messages")
-        if self._finished:
-            raise ValueError("the MCAP file is finished: no message can follow its footer")
+        first, last = min(log_times), max(log_times)
+        if first < 0 or last >= 1 << 64:
+            raise ValueError(f"MCAP log times are 0..2**64-1 ns, got {first}..{last}")
         chunk, pack = self._chunk, _MESSAGE.pack
         index = self._index.get(channel)
+        created = index is None
         if index is None:
             index = self._index[channel] = array("Q")
-        for log_time, data in zip(log_times, datas):
-            index.append(log_time)
-            index.append(len(chunk))
-            chunk += pack(MESSAGE, _MESSAGE_FIXED + len(data), channel, 0, log_time, log_time)
-            chunk += data
-        first, last = min(log_times), max(log_times)
+        size, entries, sequence = len(chunk), len(index), self._counts[channel]
+        try:
+            for log_time, data in zip(log_times, datas):
+                index.append(log_time)
+                index.append(len(chunk))
+                chunk += pack(MESSAGE, _MESSAGE_FIXED + len(data), channel,
+                              sequence & 0xFFFFFFFF, log_time, log_time)
+                chunk += data
+                sequence += 1
+        except BaseException:  # (TypeError: data that is not bytes) the chunk as it was
+            del chunk[size:]
+            del index[entries:]
+            if created:
+                del self._index[channel]
+            raise
         if self._chunk_first < 0:
             self._chunk_first, self._chunk_last = first, last
         else:
@@ -135,22 +149,41 @@ class McapFile:
         else:
             self._first, self._last = min(self._first, first), max(self._last, last)
         self._count += len(log_times)
-        self._counts[channel] += len(log_times)
+        self._counts[channel] = sequence
         if len(chunk) >= self._chunk_size:
             self._finish_chunk()
 
+    def _check_open(self) -> None:
+        if self._failed is not None:
+            raise ValueError(f"an earlier write of this MCAP file failed "
+                             f"({self._failed}): nothing more can be written to it")
+        if self._finished:
+            raise ValueError("the MCAP file is finished: no message can follow its footer")
+
     def _write(self, data: bytes) -> None:
-        self._stream.write(data)
+        """Bytes to the stream; offsets are counted here (the stream is written from its
+        start), so after a write that failed (and may have written part) the file takes
+        no more."""
+        try:
+            self._stream.write(data)
+        except BaseException as exc:
+            self._failed = exc
+            raise
         self._written += len(data)
 
     def _finish_chunk(self) -> None:
-        """The chunk so far, compressed, and its message indexes (a chunk of schema and
-        channel records only, too: a reader reading through needs them)."""
+        """The chunk so far, compressed, and its message indexes. Schema and channel
+        records with no message after them go into the data section as they are: a chunk
+        without messages would have an index of times 0-0, which a viewer takes for the
+        recording's start (1970)."""
         records = bytes(self._chunk)
         if not records:
             return
-        first = max(self._chunk_first, 0)
-        last = max(self._chunk_last, 0)
+        if self._chunk_first < 0:
+            self._write(records)
+            self._chunk = bytearray()
+            return
+        first, last = self._chunk_first, self._chunk_last
         compressed = self._compress(records)
         body = (_U64.pack(first) + _U64.pack(last) + _U64.pack(len(records))
                 + _U32.pack(zlib.crc32(records)) + _string("zstd")
@@ -166,7 +199,7 @@ class McapFile:
             position += len(record)
             indexes.append(record)
         index_bytes = b"".join(indexes)
-        self._write(chunk + index_bytes)  # (a refused write raises before anything is reset)
+        self._write(chunk + index_bytes)
         offset_map = b"".join(offsets)
         self._chunk_indexes.append(_record(CHUNK_INDEX, (
             _U64.pack(first) + _U64.pack(last) + _U64.pack(start) + _U64.pack(len(chunk))
@@ -181,6 +214,8 @@ class McapFile:
         owner flushes and closes it). Once only."""
         if self._finished:
             return
+        if self._failed is not None:
+            self._check_open()
         self._finish_chunk()
         self._finished = True
         self._write(_record(DATA_END, _U32.pack(0)))
