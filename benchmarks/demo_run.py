@@ -1,7 +1,7 @@
 """The demo as a user runs it: overruns with recording on (its default) and off, alternated.
 
     .venv/bin/python benchmarks/demo_run.py [--drives 12] [--rate 1000] [--duration 16]
-                                            [--repeat 3] [--quick]
+                                            [--repeat 3] [--priority N] [--quick]
 
 ``rocoma-can demo --drives 12 --rate 1000`` is the number issue 36 set a target for
 (recording on: mean period <= 1.01 ms, overruns < 0.1 %). Each round runs the demo twice, in
@@ -20,7 +20,8 @@ controller commands them.
 
 The simulated drives are stepped in the loop's pass (the demo's default), so the loop's
 thread does their work too; the machine's other load is what it is: compare the columns of
-one run, not runs of different days.
+one run, not runs of different days. ``--priority N``: every demo and bare loop of the
+rounds with its loop at SCHED_FIFO N (``demo --priority``), as a robot's loop runs.
 """
 from __future__ import annotations
 
@@ -78,6 +79,8 @@ def one(recording: bool, args: argparse.Namespace) -> dict[str, Any]:
         cmd = [sys.executable, "-m", "rocoma_can", "demo", "--drives", str(args.drives),
                "--rate", str(args.rate), "--duration", str(args.duration)]
         cmd += ["--record", tmp] if recording else ["--no-record", "--no-flight"]
+        if args.priority is not None:
+            cmd += ["--priority", str(args.priority)]
         done = subprocess.run(cmd, capture_output=True, text=True,
                               timeout=args.duration + 300)
         if done.returncode != 0:
@@ -97,7 +100,7 @@ def bare(cpu: float, cycles: int, args: argparse.Namespace) -> dict[str, Any]:
     and CPU allowed that much work in that minute. Work over a few MiB, host_floor.py's
     other footprint, overran far more often than the demo in the same minutes (4.0, 0.6 and
     21 % against 0.3-0.4 % in one hour's three rounds): too memory-bound to stand for it."""
-    r = host_floor.one(args.rate, cpu * 1e6, 0, cycles / args.rate)
+    r = host_floor.one(args.rate, cpu * 1e6, 0, cycles / args.rate, args.priority)
     return {"recording": None, "cycles": r["cycles"], "overruns": r["overruns"],
             "on_cpu": r["overruns"] - r["waiting"], "waiting": r["waiting"],
             "period_mean_ms": r["period_mean_ms"], "period_max_ms": r["period_max_ms"],
@@ -111,6 +114,8 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=1000.0)
     parser.add_argument("--duration", type=float, default=16.0, help="the walk-through, s")
     parser.add_argument("--repeat", type=int, default=3, help="rounds (each: on, then off)")
+    parser.add_argument("--priority", type=int, default=None, metavar="1..99",
+                        help="the demo's --priority: its loop SCHED_FIFO (default: normal)")
     parser.add_argument("--quick", action="store_true", help="6 drives, 200 Hz, 6 s, 1 round")
     args = parser.parse_args()
     if args.quick:
@@ -130,7 +135,8 @@ def main() -> None:
                          f"{r['period_mean_ms']:.2f}",
                          f"{r['period_max_ms']:.2f}"])
     report("demo_run", f"rocoma-can demo --drives {args.drives} --rate {args.rate:g}, "
-           "recording on and off",
+           "recording on and off" + (f", loop SCHED_FIFO {args.priority}"
+                                      if args.priority is not None else ""),
            ["run", "cycles", "overruns", "%", "on the CPU", "waiting",
             "in FAILPROOF / EMERGENCY / OK", "period mean ms", "period max ms"],
            rows, args=args, results={"runs": runs},

@@ -40,10 +40,11 @@ from _report import report
 from rocoma_can.runtime.host_timing import MEMORY_FOOTPRINT, bare_loop
 
 
-def one(rate: float, work_us: float, footprint: int, duration: float) -> dict[str, Any]:
+def one(rate: float, work_us: float, footprint: int, duration: float,
+        priority: int | None = None) -> dict[str, Any]:
     """One run of ``duration`` s at ``rate`` with ``work_us`` of work a cycle over
-    ``footprint`` bytes, as the JSON keeps it."""
-    run = bare_loop(rate, work_us, footprint, duration)
+    ``footprint`` bytes (``priority``: SCHED_FIFO), as the JSON keeps it."""
+    run = bare_loop(rate, work_us, footprint, duration, priority=priority)
     return {**asdict(run), "footprint_kib": footprint // 1024}
 
 

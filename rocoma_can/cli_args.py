@@ -81,6 +81,11 @@ def count(text: str) -> int:
     return _whole(text, 1, None, "a whole number >= 1")
 
 
+def rt_priority(text: str) -> int:
+    """A SCHED_FIFO priority, 1..99 (a config's ``realtime.priority``)."""
+    return _whole(text, 1, 99, "a real-time priority 1..99")
+
+
 def node_id(text: str) -> int:
     """A CANopen node id, 1..127."""
     return _whole(text, 1, 127, "a node id 1..127")

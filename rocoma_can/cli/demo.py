@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
-from ..cli_args import count, positive, seconds
+from ..cli_args import count, positive, rt_priority, seconds
 from ..drivers.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError, SimulatorFailed
 from ..exit_codes import FAILED, OK, USAGE
@@ -276,7 +276,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              flight: str | Path | None = None,
              foxglove: FoxgloveConfig | None = None,
              data_bitrate: int | None = None, channel: str | None = None,
-             sim: str = "loop") -> Report:
+             sim: str = "loop", priority: int | None = None) -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
@@ -292,7 +292,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     buses (ConfigError when it does not fit). ``channel``: the in-process channel (several
     buses: ``channel-0``, ...) another part of this process can listen on; default: a new
     one per run. ``sim``: where the simulated drives run, ``loop`` (stepped by the loop's
-    thread after each write) or ``process`` (one of their own; demo_sim.py)."""
+    thread after each write) or ``process`` (one of their own; demo_sim.py). ``priority``:
+    the loop's thread runs SCHED_FIFO at it, as a robot's ``realtime.priority`` has it;
+    where the system refuses, the summary says why and the demo runs on at normal
+    priority."""
     from ..drivers.bus import open_bus
     from ..live.urdf import parse_urdf
     from ..runtime.config import validate
@@ -305,7 +308,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     buses = default_buses(drives) if buses is None else buses
     channel = channel or f"rocoma-demo-{uuid.uuid4().hex[:8]}"
     fd = data_bitrate is not None
-    raw = demo_config(channel, drives, rate, buses, interface, emulated, data_bitrate)
+    raw = demo_config(channel, drives, rate, buses, interface, emulated, data_bitrate,
+                      priority)
     if zenoh_listen is not None:
         raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
     config = validate(raw, source="demo")
@@ -450,6 +454,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="where each e-stop's flight record goes, as with run (default: "
                         "flight/ in the recording's directory, or run's default without one)")
     p.add_argument("--no-flight", action="store_true", help="no flight recorder")
+    p.add_argument("--priority", type=rt_priority, default=None, metavar="1..99",
+                   help="run the loop's thread SCHED_FIFO at this priority, as a robot's "
+                        "realtime.priority (needs CAP_SYS_NICE or an rtprio limit; refused: "
+                        "said, and the demo runs at normal priority). Default: normal")
     from .commands import add_foxglove_options
     add_foxglove_options(p)
     p.add_argument("--zenoh-listen", default=None, metavar="ENDPOINT",
@@ -498,7 +506,7 @@ def _main(args: argparse.Namespace) -> int:
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen, flight=flight,
                           foxglove=foxglove, data_bitrate=data_bitrate,
-                          sim=args.sim)
+                          sim=args.sim, priority=args.priority)
     except SimulatorFailed as exc:  # its drives' process did not start
         print(f"demo: {exc}", flush=True)
         return FAILED

@@ -137,14 +137,16 @@ _MODE_NUMBER = {"csp": 8, "ip": 7, "pp": 1, "cst": 10}
 
 def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
                 interface: str = "virtual", emulated: Emulated | None = None,
-                data_bitrate: int | None = None) -> dict[str, Any]:
+                data_bitrate: int | None = None,
+                priority: int | None = None) -> dict[str, Any]:
     """The demo's config: ``buses`` > 1 gives channels ``channel-0`` ... each with its share
     of the drives (node ids from 1 on each bus); ``interface`` is an in-process one
     (python-can's ``virtual``, or ``inproc``, drivers/inproc.py); ``emulated``: drives
     fitted to a vendor file (``emulate``); ``data_bitrate``: CAN FD buses of FD_BITRATE
     and this data bit rate, load-checked as such, whose drives map PDOs of up to
     FD_PDO_BYTES (one RPDO and one TPDO a cycle). Without it the buses have no bit rate:
-    an in-process bus carries any load."""
+    an in-process bus carries any load. ``priority``: the loop's ``realtime.priority``
+    (SCHED_FIFO); None, the demo's default, runs it at normal priority."""
     joints = [f"joint{i}" for i in range(1, drives + 1)]
     per_bus = -(-drives // buses)
     modes = emulated.modes if emulated else ["csp", "cst"]
@@ -191,6 +193,7 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
                         "blend_time": 0.5, "mode": "CSP"}},
         ],
         "emergency_controllers": [emergency],
+        **({"realtime": {"priority": priority}} if priority is not None else {}),
     }
 
 

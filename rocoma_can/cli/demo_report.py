@@ -113,6 +113,10 @@ def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out(f"  {'steps':28s} {sum(s.ok for s in report.steps)}/{len(report.steps)} ok")
     out(f"  {'walk-through':28s} {report.walk_time:.1f} s")
     out(f"  {'cycles':28s} {timing.cycles}")
+    if rt.loop.priority:
+        refused = rt.loop.realtime_refused
+        out(f"  {'loop priority':28s} "
+            + (f"normal: {refused[-1]}" if refused else f"SCHED_FIFO {rt.loop.priority}"))
     waiting = timing.overruns_waiting
     out(f"  {'overruns (past their period)':28s} {timing.overruns}"
         + (f" ({timing.overruns - waiting} on the CPU, {waiting} waiting off it)"

@@ -314,6 +314,8 @@ class ControlLoop:
         self._plain_until = -math.inf  # the spin yields from then on (YIELD_LATE)
         #: times a yield cost the loop its deadline and the spin stopped yielding a while
         self.yield_pauses = 0
+        #: what the last run's priority and CPUs asked for and did not get (set_realtime)
+        self.realtime_refused: list[str] = []
         self._signalled: str | None = None  # set by the signal handler, taken by the loop
         self.last_state = ManagerState.FAILPROOF  # the manager's start state
 
@@ -346,7 +348,7 @@ class ControlLoop:
     def run(self, duration: float | None = None) -> TimingSummary:
         restore_scheduling = scheduling_restorer() if self.priority or self.cpus \
             else None
-        set_realtime(self.priority, self.cpus)
+        self.realtime_refused = set_realtime(self.priority, self.cpus)
         if self._spin_default:  # (per run: DEFAULT_SPIN says why real-time spins short)
             self.spin = default_spin(self.period, runs_realtime())
         switch_interval = sys.getswitchinterval()
