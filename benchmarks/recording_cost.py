@@ -109,6 +109,7 @@ def time_writer(joints: int, cycles: int) -> tuple[float, float, float]:
 #: the flight record's window, s, and the rate its rows and frames come at, Hz
 FLIGHT_SECONDS, FLIGHT_RATE = 10.0, 1000.0
 SENT, RECEIVED = 7, 6  # a bus's frames a cycle, 3 drives: 6 RPDOs and a SYNC; 6 TPDOs
+FILL_MARGIN = 600.0  # s
 
 
 def time_flight(joints: int, seconds: float = FLIGHT_SECONDS) -> float:
@@ -130,7 +131,9 @@ def time_flight(joints: int, seconds: float = FLIGHT_SECONDS) -> float:
         buses[f"bus{b}"] = readers
     layout_ = trace.layout
     with tempfile.TemporaryDirectory(prefix="rocoma-flight-cost-") as tmp:
-        flight = FlightRecords(Path(tmp), seconds, layout_, rows, buses,
+        # a window longer than what the rings hold: the record is all of it, however long
+        # filling them took (its stamps were taken before)
+        flight = FlightRecords(Path(tmp), seconds + FILL_MARGIN, layout_, rows, buses,
                                lambda w: LiveChannels(w, layout_, 1.0 / FLIGHT_RATE, None,
                                                       Facts(window=seconds)),
                                unpaced)

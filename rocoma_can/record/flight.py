@@ -49,7 +49,7 @@ class FlightRecords:
                  live: Callable[[McapWriter], LiveChannels],
                  pace: Callable[[], None]) -> None:
         self.directory, self.seconds = directory, seconds
-        self._pace = pace  # a record is ~1 s of work: paced throughout (pacing.py)
+        self._pace = pace  # a record is 1-1.6 s of work: paced throughout (pacing.py)
         self.dumps: list[tuple[Path, str]] = []
         self.errors: list[str] = []
         self._layout, self._rows, self._buses, self._live = layout, rows, buses, live

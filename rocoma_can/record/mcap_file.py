@@ -2,12 +2,11 @@
 struct pack and two buffer appends.
 
 Why not the ``mcap`` package's ``Writer`` (still the reader, ``trace.read_messages``): it
-builds a record object, updates statistics and writes six pieces per message, ~3 µs each
-(~3.9 µs a CAN frame with its JSON). A recording with every frame writes ~52,000 of them
-a second for the demo's 12 drives, and a flight record 10 s of them at once: the writer
-process then ran ~40 % of a core beside the loop, and the loop's cycle, measured part by
-part, took 10-15 % longer while it ran (it ran at its old speed with the writer stopped).
-Here a frame with its JSON takes ~1.2 µs.
+builds a record object, updates statistics and writes six pieces per message, ~3 µs each.
+A recording with every frame writes ~52,000 of them a second for the demo's 12 drives,
+and a flight record 10 s of them at once: a frame's message with its JSON took the writer
+process 4.8-9 µs there, 1.9-3 µs here (benchmarks/recording_cost.py), and the writer's
+whole work at 1 kHz went from ~50 to ~30 % of a core.
 
 What it writes (MCAP, https://mcap.dev/spec): the magic, a header, then chunks of
 ``chunk_size`` uncompressed bytes (zstd, with their CRC) each followed by its message
@@ -16,8 +15,12 @@ before any message on them. ``finish`` writes the data end, a summary (schemas, 
 statistics, chunk indexes, each group's offset) and the footer, as ``mcap``'s writer does,
 so a reader may seek by time (Foxglove) or read through (``mcap``'s stream reader).
 
-Errors: a write the stream refuses (a full disk) raises at that write, with its cause.
-Not thread-safe: one writer thread uses it.
+Errors: a write the stream refuses (a full disk) raises at that write, with its cause; the
+file then takes nothing more (its offsets would be wrong after a cut write), and
+``finish`` leaves it as it is, without a summary, which readers that read through still
+read. Bad input (an id past 65,535, a time out of 0..2**64-1 ns, data that is not bytes)
+raises ValueError or TypeError and writes nothing. Not thread-safe: one writer thread
+uses it; the stream is a binary file (a short write is written on until done).
 """
 from __future__ import annotations
 
@@ -37,14 +40,17 @@ _MESSAGE = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = 22  # the fixed fields' bytes (the record's length less its data)
 _RECORD = struct.Struct("<BQ")
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+_MAX_ID = 0xFFFF  # schema and channel ids are u16
 
 
 def _string(text: str) -> bytes:
+    """The spec's string: its UTF-8 length (u32), then the bytes."""
     raw = text.encode()
     return _U32.pack(len(raw)) + raw
 
 
 def _record(opcode: int, body: bytes) -> bytes:
+    """A record: its opcode (u8), its body's length (u64), the body."""
     return _RECORD.pack(opcode, len(body)) + body
 
 
@@ -80,8 +86,11 @@ class McapFile:
         self._write(MAGIC + _record(HEADER, _string(profile) + _string(library)))
 
     def schema(self, name: str, encoding: str, data: bytes) -> int:
-        """A new schema's id (1, 2, ...)."""
+        """A new schema's id (1, 2, ...; 0 is "no schema")."""
+        self._check_open()
         number = len(self._schemas) + 1
+        if number > _MAX_ID:
+            raise ValueError(f"an MCAP file has at most {_MAX_ID} schemas")
         record = _record(SCHEMA, _U16.pack(number) + _string(name) + _string(encoding)
                          + _U32.pack(len(data)) + data)
         self._schemas.append(record)
@@ -90,8 +99,13 @@ class McapFile:
 
     def channel(self, topic: str, message_encoding: str, schema: int,
                 metadata: Mapping[str, str] | None = None) -> int:
-        """A new channel's id (0, 1, ...) for messages under ``schema`` (0: none)."""
-        number = len(self._channels)
+        """A new channel's id (1, 2, ..., as the ``mcap`` package's writer numbers them)
+        for messages under ``schema`` (0: none)."""
+        self._check_open()
+        number = len(self._channels) + 1
+        if number > _MAX_ID or not 0 <= schema <= len(self._schemas):
+            raise ValueError(f"MCAP channel {topic}: {number} channels (at most {_MAX_ID}), "
+                             f"schema {schema} of {len(self._schemas)}")
         pairs = b"".join(_string(k) + _string(v) for k, v in (metadata or {}).items())
         record = _record(CHANNEL, _U16.pack(number) + _U16.pack(schema) + _string(topic)
                          + _string(message_encoding) + _U32.pack(len(pairs)) + pairs)
@@ -106,9 +120,11 @@ class McapFile:
 
     def add_many(self, channel: int, log_times: Sequence[int],
                  datas: Sequence[bytes]) -> None:
-        """Messages on one channel, each at its log time (nanoseconds); the chunk is
-        finished (compressed, written) once it holds ``chunk_size`` bytes. A call that
-        raises (a time out of range, data that is not bytes) adds none of its messages."""
+        """Messages on one channel, each at its log time (nanoseconds; its publish time
+        too), each ``bytes``; the chunk is finished (compressed, written) once it holds
+        ``chunk_size`` bytes. A call refused (a time out of range, data that is not bytes)
+        adds none of its messages; a chunk that cannot be written raises the stream's
+        error after they went in (the file takes nothing more)."""
         if not log_times:
             return
         self._check_open()
@@ -154,6 +170,7 @@ class McapFile:
             self._finish_chunk()
 
     def _check_open(self) -> None:
+        """ValueError if the file takes nothing more: finished, or a write failed."""
         if self._failed is not None:
             raise ValueError(f"an earlier write of this MCAP file failed "
                              f"({self._failed}): nothing more can be written to it")
@@ -165,7 +182,10 @@ class McapFile:
         start), so after a write that failed (and may have written part) the file takes
         no more."""
         try:
-            self._stream.write(data)
+            view = memoryview(data)
+            while view:  # (a buffered file writes all at once; a raw one may not)
+                written = self._stream.write(view)
+                view = view[len(view) if written is None else written:]
         except BaseException as exc:
             self._failed = exc
             raise
@@ -211,13 +231,11 @@ class McapFile:
 
     def finish(self) -> None:
         """The last chunk, the summary and the footer; the stream is left open (its
-        owner flushes and closes it). Once only."""
-        if self._finished:
+        owner flushes and closes it). Once only; after a write that failed, nothing (that
+        failure was raised where it happened, and a summary needs right offsets)."""
+        if self._finished or self._failed is not None:
             return
-        if self._failed is not None:
-            self._check_open()
         self._finish_chunk()
-        self._finished = True
         self._write(_record(DATA_END, _U32.pack(0)))
         summary_start = self._written
         groups = []
@@ -237,3 +255,4 @@ class McapFile:
         self._write(b"".join(_record(SUMMARY_OFFSET, group) for group in groups))
         self._write(_record(FOOTER, _U64.pack(summary_start) + _U64.pack(offsets_start)
                             + _U32.pack(0)) + MAGIC)
+        self._finished = True

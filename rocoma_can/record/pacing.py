@@ -3,7 +3,7 @@ CPU waits for one piece, not for a writing burst.
 
 The writer works in bursts: every 50 ms (writer.POLL) it turns what the rings got into JSON,
 MCAP and candump text (~15 ms of CPU for 12 drives on 4 buses at 1 kHz, every frame in the
-trace), and on an e-stop it writes a flight record (~1 s of CPU). Its niceness does not keep
+trace), and on an e-stop it writes a flight record (1-1.6 s of CPU). Its niceness does not keep
 such a burst from delaying the loop. Traced on a 2-core VM (kernel 6.18, HZ=250) at 1 kHz:
 the loop, woken by its timer on the CPU the writer was running on, was left queued there
 until the writer's slice or the next tick ended, 2.4-3.8 ms later, while the other CPU

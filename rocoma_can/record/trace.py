@@ -39,7 +39,7 @@ JOINT_FIELDS = ("position", "velocity", "torque", "command_mode", "command_posit
                 "command_velocity", "command_torque", "statusword", "cia402_state",
                 "error_code")
 SCALARS = ("t", "period", "work", "late", "state", "controller", "cpu")
-#: /can/<bus> messages between two ``pace`` calls (~1-2 µs each; a row's message takes ~30)
+#: /can/<bus> messages between two ``pace`` calls (~2-3 µs each; a row's message takes ~30)
 PACED_FRAMES = 32
 #: an MCAP chunk's bytes: each is compressed (zstd) in one call between two ``pace`` calls,
 #: ~0.4 ms for 128 KiB where a 1 MiB chunk took ~3 ms
@@ -195,7 +195,7 @@ _FRAME_TAILS = [_frame_tail(flags) for flags in range(128)]
 
 
 class McapWriter:
-    """An MCAP file of /rocoma/cycle and /can/<bus> messages (the ``mcap`` package: the
+    """An MCAP file of /rocoma/cycle and /can/<bus> messages (mcap_file.py writes it; the
     optional extra ``rocoma-can[record]``). Not thread-safe: one writer thread uses it."""
 
     def __init__(self, stream: BinaryIO, joints: Sequence[str],
