@@ -274,6 +274,20 @@ def test_a_stream_that_takes_part_of_a_write_gets_the_rest() -> None:
     assert bytes(trickle.data) == whole.getvalue()
 
 
+class _WouldBlock(_Trickle):
+    """A non-blocking raw stream that is full after its first write."""
+
+    def write(self, data: object) -> int | None:  # type: ignore[override]
+        if self.data:
+            return None
+        return super().write(data)
+
+
+def test_a_stream_that_would_block_is_an_error_not_a_loop() -> None:
+    with pytest.raises(BlockingIOError):
+        McapFile(_WouldBlock()).finish()  # type: ignore[arg-type]
+
+
 def test_bad_input_is_refused_before_anything_is_written() -> None:
     f = McapFile(io.BytesIO())
     with pytest.raises(ValueError, match="channel 3 was never registered"):

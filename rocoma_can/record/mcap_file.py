@@ -24,6 +24,7 @@ uses it; the stream is a binary file (a short write is written on until done).
 """
 from __future__ import annotations
 
+import errno
 import struct
 import sys
 import zlib
@@ -185,7 +186,9 @@ class McapFile:
             view = memoryview(data)
             while view:  # (a buffered file writes all at once; a raw one may not)
                 written = self._stream.write(view)
-                view = view[len(view) if written is None else written:]
+                if written is None:  # a non-blocking raw stream that is full
+                    raise BlockingIOError(errno.EAGAIN, "the MCAP file's stream would block")
+                view = view[written:]
         except BaseException as exc:
             self._failed = exc
             raise
