@@ -115,8 +115,9 @@ def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out(f"  {'cycles':28s} {timing.cycles}")
     if rt.loop.priority:
         refused = rt.loop.realtime_refused
-        out(f"  {'loop priority':28s} "
-            + (f"normal: {refused[-1]}" if refused else f"SCHED_FIFO {rt.loop.priority}"))
+        out(f"  {'loop priority':28s} " + (f"SCHED_FIFO {rt.loop.priority}"
+                                          if rt.loop.ran_realtime else
+                                          "normal: " + "; ".join(refused)))
     waiting = timing.overruns_waiting
     out(f"  {'overruns (past their period)':28s} {timing.overruns}"
         + (f" ({timing.overruns - waiting} on the CPU, {waiting} waiting off it)"

@@ -14,7 +14,6 @@ cores of its own, or a loop that leaves that much headroom.
 """
 from __future__ import annotations
 
-import os
 import random
 import time
 from collections.abc import Collection, Sequence
@@ -24,7 +23,7 @@ import numpy as np
 
 from ..events import ManagerState
 from .host import Check
-from .loop import ControlLoop, CycleEvent, runs_realtime
+from .loop import ControlLoop, CycleEvent
 
 #: bytes one walked object takes, its slot in the list and the allocator's share included
 #: (tracemalloc, CPython 3.11: a pair of an int and a float)
@@ -53,9 +52,6 @@ class WorkHardware:
         objects = [(k, float(k)) for k in range(max(1, footprint // OBJECT_BYTES))]
         random.Random(1).shuffle(objects)
         self.objects, self.visits, self.total, self._at = objects, 0, 0, 0
-        #: how the loop's thread ran, seen at its first cycle: a real-time policy, its CPUs
-        self.realtime: bool | None = None
-        self.cpus: set[int] = set()
 
     def size(self, work_us: float, period: float) -> None:
         """``visits`` for ``work_us`` of thread CPU as the loop will run this work now: a
@@ -68,7 +64,6 @@ class WorkHardware:
         self.visits = round(work_us * 2000 / (self._median_pass(200, 0.0) * 1e6))
         pause = max(0.0, period - work_us * 1e-6)
         self.visits = round(self.visits * work_us / (self._median_pass(50, pause) * 1e6))
-        self.realtime = None  # (seen again at the loop's first cycle)
 
     def _median_pass(self, passes: int, pause: float) -> float:
         """The median thread CPU time (s) of ``passes`` writes, ``pause`` s apart."""
@@ -85,8 +80,6 @@ class WorkHardware:
         return ()
 
     def write(self, manager_state: ManagerState, switch_count: int | None = None) -> None:
-        if self.realtime is None:
-            self.realtime, self.cpus = runs_realtime(), os.sched_getaffinity(0)
         objects, at = self.objects, self._at
         n = len(objects)
         total = 0
@@ -170,11 +163,12 @@ def bare_loop(rate: float, work_us: float, footprint: int, duration: float,
     hardware = WorkHardware(footprint)
     hardware.size(work_us, 1.0 / rate)
     pinned = set(cpus) if cpus else None
-    summary = ControlLoop(hardware, AlwaysOk(), rate, priority=priority, cpus=pinned,
-                          trace=trace, spin=spin).run(duration=duration)
+    loop = ControlLoop(hardware, AlwaysOk(), rate, priority=priority, cpus=pinned,
+                       trace=trace, spin=spin)
+    summary = loop.run(duration=duration)
     cpu = trace.cpu[:trace.n] * 1e6 if trace.n else np.zeros(1)
     return BareRun(rate, work_us, footprint, hardware.visits, priority,
-                   bool(hardware.realtime), sorted(hardware.cpus) if pinned else None,
+                   loop.ran_realtime, sorted(loop.ran_cpus) if pinned else None,
                    summary.cycles, summary.overruns,
                    summary.overruns_waiting, float(np.median(cpu)),
                    float(np.percentile(cpu, 99.9)), summary.period_mean * 1e3,

@@ -314,8 +314,12 @@ class ControlLoop:
         self._plain_until = -math.inf  # the spin yields from then on (YIELD_LATE)
         #: times a yield cost the loop its deadline and the spin stopped yielding a while
         self.yield_pauses = 0
-        #: what the last run's priority and CPUs asked for and did not get (set_realtime)
+        #: the last run's scheduling as it took effect: what its priority and CPUs asked
+        #: for and did not get (set_realtime), whether its thread ran a real-time policy,
+        #: the CPUs it could run on
         self.realtime_refused: list[str] = []
+        self.ran_realtime = False
+        self.ran_cpus: set[int] = set()
         self._signalled: str | None = None  # set by the signal handler, taken by the loop
         self.last_state = ManagerState.FAILPROOF  # the manager's start state
 
@@ -349,8 +353,10 @@ class ControlLoop:
         restore_scheduling = scheduling_restorer() if self.priority or self.cpus \
             else None
         self.realtime_refused = set_realtime(self.priority, self.cpus)
+        self.ran_realtime = runs_realtime()
+        self.ran_cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
         if self._spin_default:  # (per run: DEFAULT_SPIN says why real-time spins short)
-            self.spin = default_spin(self.period, runs_realtime())
+            self.spin = default_spin(self.period, self.ran_realtime)
         switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(min(switch_interval, max(SWITCH_MIN, min(
             SWITCH_MAX, SWITCH_FRACTION * self.period))))
