@@ -28,6 +28,7 @@ from rocoma_can.live.foxglove import (
     FoxgloveConfig,
     parse_address,
 )
+from rocoma_can.live.front import LEGACY_SUBPROTOCOL
 from rocoma_can.live.messages import INFO, MANAGER_CHANNELS, ROBOT, WARNING, event_log
 from rocoma_can.live.urdf import parse_urdf
 from rocoma_can.record.trace import read_messages
@@ -44,10 +45,10 @@ MESSAGE_DATA, SERVICE_CALL_REQUEST, SERVICE_CALL_RESPONSE = 0x01, 0x02, 0x03
 class Viewer:
     """A Foxglove WebSocket client: advertisements, subscriptions, service calls."""
 
-    def __init__(self, port: int, **connect: Any) -> None:
+    def __init__(self, port: int, subprotocol: str = SUBPROTOCOL, **connect: Any) -> None:
         self._stack = ExitStack()
         self.ws = self._stack.enter_context(sync_client.connect(
-            f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=DEMO_WAIT,
+            f"ws://127.0.0.1:{port}", subprotocols=[subprotocol], open_timeout=DEMO_WAIT,
             **connect))
         self.channels: dict[str, dict[str, Any]] = {}
         self.services: dict[str, dict[str, Any]] = {}
@@ -151,14 +152,19 @@ def test_a_recovery_is_a_log_line_as_it_starts_and_ends():
         "recovery failed: not every drive came back (FAILPROOF)", WARNING)
 
 
-def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory):
+@pytest.mark.parametrize("subprotocol", [SUBPROTOCOL, LEGACY_SUBPROTOCOL])
+def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory,
+                                            subprotocol):
+    """Under the protocol's either name: the SDK's, and the specification's that viewers
+    written before the SDK ask for (the front renames it, live/front.py)."""
     sim_segment_factory(2)
     with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
         # served by the writer process: its socket is that process's, not the loop's
         assert rt.recorder is not None
         assert _listener_pids(rt.foxglove.port) == {rt.recorder.pid}
-        viewer = Viewer(rt.foxglove.port)
+        viewer = Viewer(rt.foxglove.port, subprotocol)
         try:
+            assert viewer.ws.subprotocol == subprotocol
             viewer.subscribe(*TOPICS)
             assert {t: viewer.channels[t]["schemaName"] for t in TOPICS} == {
                 c.topic: c.schema_name for c in MANAGER_CHANNELS}

@@ -34,6 +34,7 @@ from ..record.trace import state_name
 from ..remote import COMMANDS, refused
 from . import messages
 from .foxglove import SWITCH_WAIT
+from .front import Front, FrontError
 from .messages import INFO, WARNING, Channel
 
 if TYPE_CHECKING:
@@ -58,6 +59,11 @@ LOSSY_LOGGER = "foxglove.websocket.connected_client.send_lossy"
 #: the SDK's logger for a viewer's connection: an ERROR record for every viewer that goes
 #: without closing (its tab closed, its machine gone), which is a viewer's right
 POLLER_LOGGER = "foxglove.websocket.connected_client.poller"
+#: the SDK's logger of sending to a viewer: an ERROR record for every message sent to a
+#: viewer after it went, until its reader notices
+SENDER_LOGGER = "foxglove.websocket.connected_client"
+#: what the SDK's records of a viewer gone without closing say
+GONE_SIGNS = ("reset by peer", "without closing handshake", "Broken pipe")
 
 
 class ServeError(Exception):
@@ -93,18 +99,22 @@ class _Drops(logging.Handler):
 
 
 class _Gone(logging.Filter):
-    """Counts a viewer that went without closing ("Connection reset by peer") instead of
-    the SDK's ERROR line on the run's terminal; any other record passes."""
+    """Counts a viewer that went without closing (its connection reset, or ended without
+    the WebSocket's closing handshake) instead of the SDK's ERROR line on the run's
+    terminal, and keeps quiet the SDK's lines about sending to it after it went (one a
+    message); any other record passes."""
 
     def __init__(self, count: Callable[[str], None]) -> None:
         super().__init__()
         self._count = count
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if "reset by peer" in record.getMessage():
+        text = record.getMessage()
+        if not any(sign in text for sign in GONE_SIGNS):
+            return True
+        if record.name == POLLER_LOGGER:  # the SDK's reader of that viewer: once a viewer
             self._count("viewers_gone")
-            return False
-        return True
+        return False
 
 
 class FoxgloveServer:
@@ -136,7 +146,8 @@ class FoxgloveServer:
         self._last: list[float] | None = None  # the newest row read
         self._cycles = self._overruns = self._waiting = 0
         self.counters = {"published": 0, "events_dropped": 0, "viewer_drops": 0,
-                         "viewers_gone": 0, "errors": 0}
+                         "viewers_gone": 0, "viewers_refused": 0, "viewers_stalled": 0,
+                         "errors": 0}
         self._reported: dict[str, int] = {}
         self._status_wanted = False
         self._count_lock = threading.Lock()  # the SDK's threads count too
@@ -154,38 +165,49 @@ class FoxgloveServer:
         lossy.addHandler(self._drops)
         lossy.setLevel(logging.INFO)
         self._gone = _Gone(self._count)
-        logging.getLogger(POLLER_LOGGER).addFilter(self._gone)
+        for name in (POLLER_LOGGER, SENDER_LOGGER):
+            logging.getLogger(name).addFilter(self._gone)
         request = foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
             name="rocoma.Request", encoding="jsonschema", data=b""))
         services = [foxglove.Service(f"/rocoma/{name}", schema=foxglove.ServiceSchema(
             f"rocoma.{name}", request=request), handler=self._handler(name))
             for name in COMMANDS]
         host, port = str(settings["host"]), int(settings["port"])
-        try:
+        try:  # the SDK on a loopback port of its own; viewers reach it through the front
             self.server = foxglove.start_server(
-                name="rocoma-can", host=host, port=port,
+                name="rocoma-can", host="127.0.0.1", port=0,
                 capabilities=[Capability.Services], supported_encodings=["json"],
                 services=services, context=self._context,
                 server_listener=cast("ServerListener", self._subscriptions),
                 message_backlog_size=int(settings["backlog"]))
-        except Exception as exc:  # the SDK's RuntimeError: the address taken or unknown
-            lossy.removeHandler(self._drops)
-            logging.getLogger(POLLER_LOGGER).removeFilter(self._gone)
-            raise ServeError(f"Foxglove: cannot serve on {host}:{port}: {exc}") from None
+        except Exception as exc:  # the SDK's RuntimeError
+            self._unhook()
+            raise ServeError(f"Foxglove: cannot serve: {exc}") from None
+        try:
+            self._front = Front(host, port, int(self.server.port), self._count)
+        except FrontError as exc:  # the address taken or unknown
+            self.server.stop()
+            self._unhook()
+            raise ServeError(f"Foxglove: {exc}") from None
         self._thread = threading.Thread(target=self._run, name="foxglove-view", daemon=True)
         self._thread.start()
 
     @property
     def port(self) -> int:
         """The port served (``port: 0`` picks a free one)."""
-        return int(self.server.port)
+        return int(self._front.port)
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(5.0)
         self.server.stop()
+        self._front.close()
+        self._unhook()
+
+    def _unhook(self) -> None:
         logging.getLogger(LOSSY_LOGGER).removeHandler(self._drops)
-        logging.getLogger(POLLER_LOGGER).removeFilter(self._gone)
+        for name in (POLLER_LOGGER, SENDER_LOGGER):
+            logging.getLogger(name).removeFilter(self._gone)
 
     # --- what the loop's process sends (the writer's command thread) -----------------------
     def on_event(self, event: dict[str, Any]) -> None:
