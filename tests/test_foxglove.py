@@ -171,6 +171,14 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
             assert "/robot_description" not in viewer.channels  # no URDF in the config
             viewer.pump(lambda: {f"/rocoma/{c}" for c in COMMANDS} <= set(viewer.services),
                         "every command service advertised")
+            for command in COMMANDS:  # with its request's and answer's JSON schemas
+                service = viewer.services[f"/rocoma/{command}"]
+                for part in ("request", "response"):
+                    assert service[part]["schemaEncoding"] == "jsonschema", service
+                    doc = json.loads(service[part]["schema"])
+                    assert doc["title"] == service[part]["schemaName"]
+            switch = json.loads(viewer.services["/rocoma/switch"]["request"]["schema"])
+            assert set(switch["properties"]) == {"controller"}
             viewer.pump(lambda: viewer.received.get("/joint_states"), "joint states")
             joints = viewer.received["/joint_states"][-1]
             assert joints["name"] == [d["name"] for d in _config(virtual_channel)["drives"]]

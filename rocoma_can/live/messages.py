@@ -81,6 +81,32 @@ TRANSFORMS = Channel("/tf", _schema("foxglove.FrameTransforms", {
 MANAGER_CHANNELS = (JOINT_STATES, MANAGER, STATUS, LOG)
 ROBOT = (ROBOT_DESCRIPTION, TRANSFORMS)
 
+_ERROR = {"type": "string", "description": "why it was refused or failed"}
+_STATE = {"type": "object", "properties": {
+    "ok": {"type": "boolean"}, "state": {"type": "string"},
+    "pending": {"type": "boolean", "description": "the loop had not acted on it yet"},
+    "error": _ERROR}}
+_ANYTHING = {"description": "anything: a stop acts whatever it carries (never read)"}
+#: each service's request and answer as JSON schemas (what Foxglove's Service Call panel
+#: shows): a switch names its controller; a stop reads nothing; clear and recover take
+#: nothing; every answer may instead be ``{"ok": false, "error"}`` when the manager's
+#: process did not answer
+SERVICES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
+    "switch": (_schema("rocoma.SwitchRequest", {"controller": {
+        "type": ["string", "integer"],
+        "description": "a controller's name, or its number in rocoma-can list"}}),
+        _schema("rocoma.SwitchAnswer", {
+            "result": {"enum": ["SWITCHED", "RUNNING", "NOT_FOUND", "ERROR"]},
+            "ok": {"type": "boolean"}, "error": _ERROR})),
+    "estop": ({"title": "rocoma.StopRequest", **_ANYTHING},
+              {"title": "rocoma.StateAnswer", **_STATE}),
+    "failproof": ({"title": "rocoma.StopRequest", **_ANYTHING},
+                  {"title": "rocoma.StateAnswer", **_STATE}),
+    "clear": (_schema("rocoma.EmptyRequest", {}), {"title": "rocoma.StateAnswer", **_STATE}),
+    "recover": (_schema("rocoma.EmptyRequest", {}),
+                {"title": "rocoma.StateAnswer", **_STATE}),
+}
+
 
 def stamp(ns: int) -> dict[str, int]:
     """A foxglove time from nanoseconds since the epoch."""

@@ -167,10 +167,12 @@ class FoxgloveServer:
         self._gone = _Gone(self._count)
         for name in (POLLER_LOGGER, SENDER_LOGGER):
             logging.getLogger(name).addFilter(self._gone)
-        request = foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
-            name="rocoma.Request", encoding="jsonschema", data=b""))
+        def schema(doc: dict[str, Any]) -> Any:
+            return foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
+                name=str(doc["title"]), encoding="jsonschema", data=json.dumps(doc).encode()))
         services = [foxglove.Service(f"/rocoma/{name}", schema=foxglove.ServiceSchema(
-            f"rocoma.{name}", request=request), handler=self._handler(name))
+            f"rocoma.{name}", request=schema(messages.SERVICES[name][0]),
+            response=schema(messages.SERVICES[name][1])), handler=self._handler(name))
             for name in COMMANDS]
         host, port = str(settings["host"]), int(settings["port"])
         try:  # the SDK on a loopback port of its own; viewers reach it through the front
