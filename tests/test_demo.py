@@ -355,3 +355,34 @@ def test_the_demo_cli_refuses_a_priority_out_of_range(capsys):
             main(["demo", "--priority", bad])
         assert exited.value.code == 2
         assert "expected a real-time priority 1..99" in capsys.readouterr().err
+
+
+def test_an_operators_estop_ends_the_walk_through_and_is_never_undone(virtual_channel):
+    """An e-stop from outside the walk-through (here `rocoma-can estop`'s SDO write, as
+    Foxglove's or Zenoh's e-stop service would) ends it at its next step: the robot stays
+    stopped (no clear, recovery or switch after it), the stop and the loop's torque-off are
+    reported, and the demo passes: the manager obeyed the operator."""
+    import can
+
+    from rocoma_can.cli.demo_config import MANAGER_ID
+    from rocoma_can.node.client import ManagerClient
+    from rocoma_can.node.objects import ESTOP
+
+    lines: list[str] = []
+
+    def out(line: str) -> None:
+        lines.append(line)
+        if line.startswith("ok  switch pd -> trajectory"):  # the operator presses e-stop
+            with can.Bus(interface="inproc", channel=virtual_channel,
+                         ignore_config=True) as bus, ManagerClient(bus, MANAGER_ID) as c:
+                c.write(ESTOP, 1)
+
+    report = run_demo(drives=3, rate=100.0, duration=3.0, out=out, channel=virtual_channel)
+    assert report.ok, "\n".join(lines)
+    names = [s.name for s in report.steps]
+    assert names == ["bring-up", "switch to pd (SDO 0x2100)",
+                     "switch pd -> trajectory (swap state)", "walk-through",
+                     "loop stop -> torque-off frames"], names
+    assert "SDO e-stop (0x2110)" in report.steps[3].detail
+    assert not any(line.startswith(("ok  recovery", "ok  fault", "FAILED")) for line in lines)
+    assert lines[-1] == "demo passed"

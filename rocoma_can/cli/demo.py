@@ -7,8 +7,10 @@ bring-up, clear, switch to pd, switch to trajectory (bumpless, by swap state), a
 fault -> emergency controller (damp), a second fault -> failproof torque-off, recovery of
 the drives, a switch back to pd, an e-stop by a raw CAN frame, and the SIGTERM-like stop of
 the loop, which ends in torque-off frames. Each step checks what it should; the exit code
-is 0 only when every step did. The command records the run (every frame, every cycle, every
-manager event) and plots it, and prints where both went.
+is 0 only when every step did. An operator's e-stop (Foxglove, Zenoh, ``rocoma-can
+estop``) ends the walk-through early with the robot left stopped (_OutsideStop). The
+command records the run (every frame, every cycle, every manager event) and plots it, and
+prints where both went.
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ import can
 from ..cli_args import count, positive, rt_priority, seconds
 from ..drivers.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError, SimulatorFailed
+from ..events import EventKind, ManagerEvent
 from ..exit_codes import FAILED, OK, USAGE
 from ..node.client import ManagerClient
 from ..node.objects import ESTOP_CAUSE, STATE_NAMES
@@ -60,6 +63,10 @@ from .demo_sim import (
 #: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
 #: one record, and the walk-through's come seconds apart
 FLIGHT_SECONDS = 2.0
+#: how the causes of stops asked from outside the walk-through begin: the live view's and
+#: Zenoh's services (remote.py) and the manager node's SDO objects (``rocoma-can estop``);
+#: the walk-through itself stops the robot only by drive faults and the CAN e-stop frame
+OUTSIDE_STOPS = ("Foxglove ", "Zenoh ", "SDO ")
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
     from ..live.foxglove import FoxgloveConfig
@@ -116,6 +123,33 @@ class _Pace:
         self.stop.wait(max(MIN_PAUSE * share, until - time.monotonic()))
 
 
+class _Ended(Exception):
+    """The walk-through ends early: an operator stopped the robot (_OutsideStop)."""
+
+
+class _OutsideStop:
+    """The first e-stop from outside the walk-through (OUTSIDE_STOPS: an operator's, from
+    Foxglove, Zenoh or ``rocoma-can estop``), heard on the manager's event thread. The
+    walk-through ends at its next step and commands nothing more: an operator's stop is
+    never cleared or switched away by the demo; the loop's stop and its torque-off frames
+    follow as after any walk-through."""
+
+    def __init__(self, stop: threading.Event) -> None:
+        self.cause: str | None = None
+        self._stop = stop
+
+    def __call__(self, event: ManagerEvent) -> None:
+        if event.kind is EventKind.EMERGENCY_STOP and self.cause is None \
+                and event.cause.startswith(OUTSIDE_STOPS):
+            self.cause = event.cause
+            self._stop.set()  # the walk-through's waits and pauses end at once
+
+    def go_on(self) -> None:
+        """_Ended once an operator has stopped the robot."""
+        if self.cause is not None:
+            raise _Ended(self.cause)
+
+
 def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and not stop.is_set():
@@ -127,7 +161,7 @@ def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) 
 
 def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Watch,
               probes: TorqueOffProbes, report: Report, duration: float,
-              stop: threading.Event,
+              stop: threading.Event, outside: _OutsideStop,
               say: Callable[[str], None]) -> None:
     hw, mgr = rt.hardware, rt.manager
     dt = rt.config.dt
@@ -136,8 +170,10 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
 
     def hold() -> None:
         pace.pause(next(pauses))
+        outside.go_on()
 
     def step(name: str, ok: bool, detail: str = "") -> bool:
+        outside.go_on()  # a step an operator's stop cut short is not judged
         report.steps.append(Step(name, ok, detail))
         verdict = "skip" if detail.startswith("skipped") else "ok " if ok else "FAILED"
         say(f"{verdict} {name}{': ' + detail if detail else ''}")
@@ -173,6 +209,7 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
                     f"{len(hw.drives_config)} drives configured, mapped and started"
                     if hw.all_ready else hw.not_ready() or "drives not ready"):
             return
+        outside.go_on()  # (before each command that would undo a stop: never an operator's)
         client.write(0x2112, 1)  # clear: must-clear starts latched, like an e-stop button
         result = client.switch("pd")
         if not step("switch to pd (SDO 0x2100)",
@@ -208,6 +245,7 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
                  f"state {STATE_NAMES[state()]}")
         hold()
 
+        outside.go_on()
         client.write(0x2113, 1)  # recover drives; on success the e-stop latch is cleared
         # done when the switch guard says so: the recovery clears the latch a moment before
         # it reports its own end, and a switch in between is refused ("a recovery is in
@@ -228,6 +266,11 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
         step(f"e-stop by a raw CAN frame on 0x{ESTOP_COB_ID:03X}", ok,
              f"state {STATE_NAMES[state()]}, cause {client.read_text(ESTOP_CAUSE)!r}")
         hold()
+    except _Ended as ended:
+        report.steps.append(Step("walk-through", True, f"ended early by an e-stop from "
+                                 f"outside it ({ended}): the robot stays stopped, the "
+                                 f"steps after it not run"))
+        say(f"ok  walk-through: {report.steps[-1].detail}")
     except Exception as exc:  # an SDO failure is a failed step, and the demo ends
         why = ""
         try:  # a refused switch says why (0x2103); a fault, its cause (0x2124)
@@ -235,7 +278,8 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
                   f"cause {client.read_text(ESTOP_CAUSE)!r}"
         except Exception:  # noqa: BLE001 - the report is best effort
             pass
-        step("operator", False, f"{type(exc).__name__}: {exc}{why}")
+        report.steps.append(Step("operator", False, f"{type(exc).__name__}: {exc}{why}"))
+        say(f"FAILED operator: {report.steps[-1].detail}")
     finally:
         # the probes' buses open: the stop's torque-off frames wait in their queues
         probes.arm(rt.loop.stop_reason or None)
@@ -372,9 +416,12 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                     f"another shell: rocoma-can status --watch --zenoh {ZENOH_PREFIX} "
                     f"--zenoh-connect {zenoh_listen} --zenoh-no-multicast (estop: the same "
                     "with estop)")
+            outside = _OutsideStop(stop)
+            rt.manager.subscribe(outside)  # (the manager goes with the runtime)
             operator = threading.Thread(
                 target=_operator, name="demo-operator",
-                args=(rt, simulator, client, watch, probes, report, duration, stop, out))
+                args=(rt, simulator, client, watch, probes, report, duration, stop, outside,
+                      out))
             status = threading.Thread(target=status_lines, name="demo-status",
                                       args=(rt, stop, out))
             operator.start()
