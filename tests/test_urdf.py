@@ -3,7 +3,14 @@ hand, hostile and broken files refused in one line naming the file, and ``urdf:`
 with the config (rocoma_can/runtime/config_check.py)."""
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 import yaml
@@ -13,6 +20,9 @@ from rocoma_can.cli.demo_config import demo_urdf
 from rocoma_can.cli.main import main
 from rocoma_can.live.urdf import MAX_URDF_BYTES, UrdfError, parse_urdf, read_urdf
 from rocoma_can.runtime.config import ConfigError, load, validate
+
+#: s a read of a FIFO may take before the test calls it hung
+FIFO_WAIT = 10.0
 
 S = math.sqrt(0.5)  # sin and cos of 45 degrees
 
@@ -170,6 +180,46 @@ def test_a_binary_file_is_not_utf8(tmp_path):
         read_urdf(path)
 
 
+def _without_hanging(work: Callable[[], object]) -> BaseException | None:
+    """What ``work`` raised (None: nothing), run on a thread given FIFO_WAIT s: a read that
+    waits for a FIFO's writer fails the test instead of hanging it."""
+    raised: list[BaseException | None] = [None]
+
+    def run() -> None:
+        try:
+            work()
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            raised[0] = exc
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(FIFO_WAIT)
+    assert not thread.is_alive(), f"still reading after {FIFO_WAIT} s"
+    return raised[0]
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory", "device"])
+def test_only_a_regular_file_is_read(tmp_path, kind):
+    """A FIFO would keep the read waiting for a writer (check-config and run hung), a
+    device could go on for ever: each is refused, unread, in one line."""
+    path = tmp_path / "robot.urdf"
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "directory":
+        path.mkdir()
+    else:
+        path = Path("/dev/zero")
+    try:
+        caught = _without_hanging(lambda: read_urdf(path))
+    finally:
+        if kind == "fifo":  # a reader still waiting (the test failed) is let go
+            with contextlib.suppress(OSError):
+                os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
+    expected = {"fifo": "a FIFO (named pipe)", "directory": "a directory",
+                "device": "a character device"}[kind]
+    assert isinstance(caught, UrdfError)
+    assert str(caught) == f"{path}: {expected}, not a regular file; a URDF is read from a file"
+
+
 # --- urdf: in the config ------------------------------------------------------------------
 
 def _robot(tmp_path, joints=("j1", "j2"), extra=""):
@@ -221,6 +271,25 @@ def test_a_drive_on_a_fixed_joint_would_never_move(tmp_path):
     with pytest.raises(ConfigError, match=r"joint 'j2' \(a drive's name\) is fixed: the view "
                                           "would never move it"):
         load(_config_file(tmp_path, urdf="urdf/robot.urdf"))
+
+
+def test_check_config_refuses_a_fifo_as_the_urdf(tmp_path):
+    """check-config (and run, which loads the config the same way) on a config whose
+    urdf: is a FIFO: a usage error naming the key and the path, at once."""
+    os.mkfifo(tmp_path / "arm.urdf")
+    config = _config_file(tmp_path, urdf="arm.urdf")
+    try:
+        done = subprocess.run([sys.executable, "-m", "rocoma_can.cli.main", "check-config",
+                               str(config)], capture_output=True, text=True,
+                              timeout=FIFO_WAIT + 30)
+    finally:
+        with contextlib.suppress(OSError):
+            os.close(os.open(tmp_path / "arm.urdf", os.O_WRONLY | os.O_NONBLOCK))
+    assert done.returncode == 2, done
+    assert done.stdout.splitlines() == [
+        f"{config}: urdf: {tmp_path}/arm.urdf: a FIFO (named pipe), not a regular file; a "
+        "URDF is read from a file", "1 problem(s)"]
+    assert "Traceback" not in done.stderr
 
 
 def test_check_config_says_a_broken_urdf_in_one_line(tmp_path, capsys):

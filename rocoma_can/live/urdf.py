@@ -3,7 +3,8 @@ positions, which Foxglove's 3D panel needs to move the links it draws (its URDF 
 each link at the joint's origin and moves it only by the transforms it is sent: a robot
 state publisher's job, done here).
 
-The file is read as hostile input: at most MAX_URDF_BYTES, UTF-8, no DOCTYPE (so no entity,
+The file is read as hostile input: a regular file (a FIFO or a device could keep the read
+waiting forever), at most MAX_URDF_BYTES, UTF-8, no DOCTYPE (so no entity,
 internal or external: "billion laughs" and file reads are refused before the XML parser
 sees the text), a ``<robot>`` root, every link and joint complete. Each error is UrdfError
 with one line naming the file and what is wrong with it.
@@ -16,6 +17,8 @@ stay at the origin. Pure Python: a few joints at the view's rate need no numpy.
 from __future__ import annotations
 
 import math
+import os
+import stat
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -30,6 +33,8 @@ MAX_URDF_BYTES = 2 << 20
 #: joints a drive can move in the view
 MOVABLE = frozenset({"revolute", "continuous", "prismatic"})
 KINDS = MOVABLE | {"fixed", "floating", "planar"}
+#: open() flags that keep it from waiting (a FIFO without a writer) or taking a terminal
+_NO_WAIT = getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
 
 Vector = tuple[float, float, float]
 Quaternion = tuple[float, float, float, float]  # x, y, z, w
@@ -91,13 +96,31 @@ class Robot:
 
 
 def read_urdf(path: str | Path) -> Robot:
-    """The URDF file at ``path``; UrdfError (one line) when it cannot be used."""
+    """The URDF file at ``path``; UrdfError (one line) when it cannot be used.
+
+    Only a regular file is read: opening a FIFO waits for a writer and reading a device
+    may never end, so a ``urdf:`` naming one would hang ``check-config`` and ``run``. It is
+    looked at before it is opened (opening some devices does something), opened without
+    waiting (a FIFO swapped in meanwhile opens at once) and looked at again once open."""
     try:
-        with open(path, "rb") as f:
+        _regular(os.stat(path).st_mode, path)
+        with os.fdopen(os.open(path, os.O_RDONLY | _NO_WAIT), "rb") as f:
+            _regular(os.fstat(f.fileno()).st_mode, path)
             raw = f.read(MAX_URDF_BYTES + 1)
     except OSError as exc:
         raise UrdfError(f"{path}: cannot read: {exc.strerror or exc}") from None
     return parse_urdf(raw, str(path))
+
+
+def _regular(mode: int, path: str | Path) -> None:
+    """UrdfError naming what ``path`` is when its ``mode`` is not a regular file's."""
+    if stat.S_ISREG(mode):
+        return
+    kind = next((kind for test, kind in (
+        (stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device")) if test(mode)), "a special file")
+    raise UrdfError(f"{path}: {kind}, not a regular file; a URDF is read from a file")
 
 
 def parse_urdf(raw: bytes, source: str) -> Robot:
