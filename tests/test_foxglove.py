@@ -18,16 +18,8 @@ from typing import Any
 import pytest
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
-from rocoma_can.cli.commands import foxglove_from_args
 from rocoma_can.cli.demo_config import demo_config, demo_urdf
-from rocoma_can.cli.main import build_parser
-from rocoma_can.live.foxglove import (
-    DEFAULT_HOST,
-    DEFAULT_PORT,
-    LAYOUT,
-    FoxgloveConfig,
-    parse_address,
-)
+from rocoma_can.live.foxglove import LAYOUT, FoxgloveConfig
 from rocoma_can.live.front import LEGACY_SUBPROTOCOL
 from rocoma_can.live.messages import INFO, MANAGER_CHANNELS, ROBOT, WARNING, event_log
 from rocoma_can.live.urdf import parse_urdf
@@ -457,35 +449,6 @@ def test_the_manager_channel_goes_on_when_the_loop_stops(virtual_channel,
             assert len(viewer.received["/joint_states"]) == joints
         finally:
             viewer.close()
-
-
-def test_the_address_and_the_flag():
-    assert parse_address("") == (DEFAULT_HOST, DEFAULT_PORT)
-    assert parse_address("0.0.0.0:9000") == ("0.0.0.0", 9000)
-    assert parse_address(":9001") == (DEFAULT_HOST, 9001)
-    assert parse_address("[::1]:9002") == ("::1", 9002)
-    with pytest.raises(ValueError, match="port 0..65535"):
-        parse_address("host:99999")
-    args = build_parser().parse_args(["run", "robot.yaml", "--foxglove"])
-    assert args.foxglove == (DEFAULT_HOST, DEFAULT_PORT)
-    assert build_parser().parse_args(["run", "robot.yaml"]).foxglove is None
-
-
-@pytest.mark.parametrize("verb", [["run", "robot.yaml"], ["demo"]])
-def test_a_live_view_option_without_the_live_view_is_said(verb, capsys):
-    """--foxglove-rate or --foxglove-allow-commands alone would be ignored: said, exit 2,
-    before anything starts."""
-    from rocoma_can.cli.main import main
-    for options, said in ((["--foxglove-rate", "5"], "--foxglove-rate"),
-                          (["--foxglove-allow-commands"], "--foxglove-allow-commands")):
-        assert main([*verb, *options]) == 2
-        captured = capsys.readouterr()
-        assert f"{said} without --foxglove: there is no live view for it" in \
-            captured.out + captured.err
-        assert "Traceback" not in captured.out + captured.err
-    args = build_parser().parse_args(["run", "robot.yaml", "--foxglove", "[::1]:0",
-                                      "--foxglove-rate", "5"])
-    assert foxglove_from_args(args) == FoxgloveConfig("::1", 0, rate=5.0)
 
 
 def test_the_port_taken_is_said_in_one_line(virtual_channel, sim_segment_factory, tmp_path,

@@ -24,8 +24,11 @@ as ``viewer_drops``), so a slow or vanished viewer costs the loop nothing.
 from __future__ import annotations
 
 import importlib.util
+import ipaddress
 import json
 import logging
+import re
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -80,19 +83,66 @@ class FoxgloveConfig:
 
 
 def parse_address(text: str) -> tuple[str, int]:
-    """``HOST:PORT``, ``HOST``, ``:PORT`` or ``[IPV6]:PORT``; ValueError says what is wrong."""
-    host, port = text, ""
+    """``HOST:PORT``, ``HOST``, ``:PORT``, ``IPV6`` or ``[IPV6]:PORT`` (an empty host or
+    port: the default's); ValueError says what is wrong. A malformed address is refused
+    here rather than served somewhere the user did not mean: ``[::1`` is not ``::1``."""
+    expected = f"expected HOST:PORT, HOST, :PORT or [IPV6]:PORT, got {text!r}"
     if text.startswith("["):
-        host, _, rest = text[1:].partition("]")
-        port = rest[1:] if rest.startswith(":") else rest
-    elif text.count(":") == 1:
-        host, port = text.split(":")
-    host = host or DEFAULT_HOST
+        host, closed, rest = text[1:].partition("]")
+        if not closed:
+            raise ValueError(f"{expected}: the '[' has no ']'")
+        if rest and not rest.startswith(":"):
+            raise ValueError(f"{expected}: after ']' comes ':PORT' or nothing")
+        if not _ipv6(host):
+            raise ValueError(f"{expected}: {host!r} in brackets is not an IPv6 address")
+        port = rest[1:]
+    elif text.count(":") > 1:  # a bare IPv6 address, no port
+        if not _ipv6(text):
+            raise ValueError(f"{expected}: an IPv6 address with a port is written "
+                             "[IPV6]:PORT")
+        host, port = text, ""
+    else:
+        host, _, port = text.partition(":")
+        if host and not _HOST.fullmatch(host):
+            raise ValueError(f"{expected}: {host!r} is not a host name or an IPv4 address")
     if not port:
-        return host, DEFAULT_PORT
-    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        return host or DEFAULT_HOST, DEFAULT_PORT
+    if not (port.isascii() and port.isdigit() and int(port) <= 65535):
         raise ValueError(f"expected HOST:PORT with a port 0..65535, got {text!r}")
-    return host, int(port)
+    return host or DEFAULT_HOST, int(port)
+
+
+#: a host name or an IPv4 address as the resolver takes it (letters, digits, '-', '.', '_')
+_HOST = re.compile(r"[A-Za-z0-9_.-]+")
+
+
+def _ipv6(text: str) -> bool:
+    try:
+        ipaddress.IPv6Address(text)
+    except ValueError:
+        return False
+    return True
+
+
+def every_interface(host: str) -> bool:
+    """Serving on ``host`` listens on every interface (of IPv4 or IPv6). Decided from the
+    addresses the host stands for, resolved as the server's bind resolves it (the system
+    resolver), not from its spelling: ``0``, ``0.0``, ``::0``, ``0:0:0:0:0:0:0:0``,
+    ``::ffff:0.0.0.0`` and a name that resolves to one of those all mean every interface.
+    A host that no longer resolves (the server bound it: a resolver gone meanwhile) is
+    said to be one: saying so wrongly costs a line, not saying so a robot in reach."""
+    try:
+        found = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError):
+        return True
+    for family, *_, address in found:
+        if family not in (socket.AF_INET, socket.AF_INET6):
+            continue
+        ip = ipaddress.ip_address(str(address[0]).partition("%")[0])
+        mapped = ip.ipv4_mapped if isinstance(ip, ipaddress.IPv6Address) else None
+        if ip.is_unspecified or (mapped is not None and mapped.is_unspecified):
+            return True
+    return False
 
 
 class FoxgloveView:
@@ -288,7 +338,7 @@ class FoxgloveView:
 def describe(view: FoxgloveView) -> str:
     """The line ``run`` prints: where to connect, what is served, the layout's file."""
     host = view.config.host
-    every = host in ("", "0.0.0.0", "::")  # serves every interface: said
+    every = every_interface(host)  # said: whoever reaches the machine reaches the robot
     return (f"Foxglove live view on ws://{f'[{host}]' if ':' in host else host}:{view.port} "
             f"({', '.join(view.topics)}; switch/clear/recover "
             f"{'allowed' if view.config.allow_commands else 'refused'}); layout to import "
