@@ -135,10 +135,11 @@ def every_interface(host: str) -> bool:
         found = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
     except (OSError, UnicodeError):
         return True
-    for family, *_, address in found:
-        if family not in (socket.AF_INET, socket.AF_INET6):
+    for *_, address in found:
+        try:
+            ip = ipaddress.ip_address(str(address[0]).partition("%")[0])
+        except ValueError:  # no IP address: no interface of IPv4 or IPv6
             continue
-        ip = ipaddress.ip_address(str(address[0]).partition("%")[0])
         mapped = ip.ipv4_mapped if isinstance(ip, ipaddress.IPv6Address) else None
         if ip.is_unspecified or (mapped is not None and mapped.is_unspecified):
             return True
