@@ -129,9 +129,11 @@ class StopAnswers:
 
 
 def switch_target(manager: ControllerManager, raw: bytes, transport: Transport,
-                  running: bool) -> tuple[str | None, dict[str, Any]]:
+                  running: bool, wrong: str = "") -> tuple[str | None, dict[str, Any]]:
     """The controller a switch request names (a name, or its number in ``list``) and None,
-    or None and the refusal to answer with."""
+    or None and the refusal to answer with. ``wrong``: why the request names no controller
+    at all (a transport's own request format), said only after the rules' refusals, as an
+    unknown name is: a caller not allowed to switch learns nothing of the controllers."""
     def refused(result: str, error: str) -> tuple[None, dict[str, Any]]:
         return None, {"result": result, "error": error}
     if not transport.allow_commands:
@@ -139,6 +141,8 @@ def switch_target(manager: ControllerManager, raw: bytes, transport: Transport,
     if not running:
         return refused("ERROR", NOT_RUNNING)
     names = manager.available_controllers()
+    if wrong:
+        return refused("NOT_FOUND", f"no controller: {wrong} (controllers: {', '.join(names)})")
     try:
         name = raw.decode("utf-8").strip()
     except UnicodeDecodeError:  # names none of ours; said without echoing the bytes

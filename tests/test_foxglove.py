@@ -88,11 +88,14 @@ class Viewer:
             subs.append({"id": sub, "channelId": self.channels[topic]["id"]})
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
 
-    def call(self, service: str, request: dict[str, Any] | None = None) -> dict[str, Any]:
+    def call(self, service: str, request: Any = None, raw: bytes | None = None
+             ) -> dict[str, Any]:
+        """``request`` as JSON ({} for None), or the bytes ``raw`` as they are."""
         self.pump(lambda: service in self.services, f"service {service}")
         self._call += 1
         call, encoding = self._call, b"json"
-        payload = json.dumps(request or {}).encode()
+        payload = json.dumps({} if request is None else request).encode() if raw is None \
+            else raw
         self.ws.send(struct.pack("<BIII", SERVICE_CALL_REQUEST, self.services[service]["id"],
                                  call, len(encoding)) + encoding + payload)
         self.pump(lambda: call in self.answers, f"the answer of {service}")
@@ -207,21 +210,25 @@ def test_switch_is_refused_unless_allowed_and_failproof_is_not(virtual_channel,
         viewer = Viewer(rt.foxglove.port)
         try:
             wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
-            answer = viewer.call("/rocoma/switch", {"controller": "pd"})
-            assert answer["result"] == "ERROR"
-            assert "--foxglove-allow-commands: false" in answer["error"]
+            # a request that names no controller gets the same refusal: nothing about
+            # the controllers is said to a caller who may not switch
+            for request in ({"controller": "pd"}, [1]):
+                answer = viewer.call("/rocoma/switch", request)
+                assert answer["result"] == "ERROR"
+                assert "--foxglove-allow-commands: false" in answer["error"]
             assert viewer.call("/rocoma/clear")["ok"] is False
             assert rt.manager.active_controller_name != "pd"
             assert viewer.call("/rocoma/failproof") == {"ok": True, "state": "FAILPROOF"}
-            assert rt.foxglove.info()["refused"] == 2
+            assert rt.foxglove.info()["refused"] == 3
         finally:
             viewer.close()
     # the calls' lines are in the recording's log as the live view showed them
     logged = [m["message"] for topic, _, m in read_messages(str(tmp_path / "trace.mcap"))
               if topic == "/rocoma/log" and "from Foxglove" in m["message"]]
     assert [line.split(":")[0] for line in logged] == [
-        "switch from Foxglove", "clear from Foxglove", "failproof from Foxglove"], logged
-    assert "refused" in logged[0] and logged[2].endswith(": done")
+        "switch from Foxglove", "switch from Foxglove", "clear from Foxglove",
+        "failproof from Foxglove"], logged
+    assert "refused" in logged[0] and logged[3].endswith(": done")
 
 
 def test_a_viewer_gone_without_closing_is_counted_not_said(virtual_channel,
@@ -258,6 +265,28 @@ def test_an_allowed_switch_switches(virtual_channel, sim_segment_factory):
             assert rt.foxglove.info()["calls"] == 0
             assert viewer.call("/rocoma/switch", {"controller": "pd"}) == {
                 "result": "SWITCHED"}
+            assert rt.manager.active_controller_name == "pd"
+            # every form docs/foxglove.md gives: a JSON string is the name (not a name in
+            # quotes), a number is list's, text that is not JSON the bare name
+            for request, raw, active in (("trajectory", None, "trajectory"),
+                                         (1, None, "pd"), ({"controller": 2}, None,
+                                                           "trajectory"),
+                                         (None, b"pd", "pd")):
+                assert viewer.call("/rocoma/switch", request, raw) == {
+                    "result": "SWITCHED"}, (request, raw)
+                assert rt.manager.active_controller_name == active
+            # one that names no controller is refused saying why, and what is accepted
+            forms = 'a controller is named by a string, its number, or {"controller": NAME}'
+            for request, why in (
+                    ({"controler": "pd"}, "the request has no \"controller\" (its keys: "
+                                          "'controler')"),
+                    ({"controller": None}, "the request's \"controller\" is null"),
+                    (["pd"], "the request is an array"), (True, "the request is true or false")):
+                assert viewer.call("/rocoma/switch", request) == {
+                    "result": "NOT_FOUND", "error": f"no controller: {why}; {forms} "
+                                                    "(controllers: pd, trajectory)"}
+            assert viewer.call("/rocoma/switch", "nope")["error"] == (
+                "no controller 'nope' (controllers: pd, trajectory)")
             assert rt.manager.active_controller_name == "pd"
             # a stop is obeyed whatever it carries, however much
             assert viewer.call("/rocoma/estop", {"junk": "y" * 100_000})["ok"] is True

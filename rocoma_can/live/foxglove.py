@@ -8,9 +8,10 @@ and every command called here; ``/robot_description`` whenever a viewer subscrib
 (a WebSocket keeps nothing for a late subscriber, and the 3D panel needs it once).
 
 Services (JSON request and answer, as the Zenoh bridge's, rocoma_can/remote.py):
-``/rocoma/switch`` (request: ``{"controller": NAME}``), ``/rocoma/estop``,
-``/rocoma/failproof``, ``/rocoma/clear``, ``/rocoma/recover``. A stop is obeyed from anyone;
-switch, clear and recover only with ``allow_commands``.
+``/rocoma/switch`` (request: ``{"controller": NAME}``, the JSON string or the number;
+``switch_request``), ``/rocoma/estop``, ``/rocoma/failproof``, ``/rocoma/clear``,
+``/rocoma/recover``. A stop is obeyed from anyone; switch, clear and recover only with
+``allow_commands``.
 
 The server runs in the recording's writer process (server.py; record/recorder.py starts
 it), fed by the rows the loop copies into shared memory for the recording anyway: building,
@@ -46,6 +47,7 @@ from ..remote import (
     Transport,
     refused,
     serve,
+    shown,
     switch_target,
 )
 from . import messages
@@ -144,6 +146,37 @@ def every_interface(host: str) -> bool:
         if ip.is_unspecified or (mapped is not None and mapped.is_unspecified):
             return True
     return False
+
+
+def switch_request(payload: bytes) -> tuple[bytes, str]:
+    """The controller a ``/rocoma/switch`` request names, as remote.switch_target reads it
+    (its name or its number, as text), and what is wrong with a request that names none
+    ("" when nothing is). Foxglove's Service Call panel sends JSON: a JSON string is the
+    name itself (``"pd"``, not a controller named with quotes), a whole number its
+    number, ``{"controller": NAME or NUMBER}`` either; text that is not JSON is the bare
+    name (``pd``)."""
+    try:
+        request = json.loads(payload)
+    except ValueError:  # not JSON (nor UTF-8 text: switch_target says so)
+        return payload, ""
+    forms = 'a controller is named by a string, its number, or {"controller": NAME}'
+    what = "the request"
+    if isinstance(request, dict):
+        if "controller" not in request:
+            keys = f" (its keys: {shown(', '.join(map(str, request)))})" if request else ""
+            return b"", f'the request has no "controller"{keys}; {forms}'
+        what, request = 'the request\'s "controller"', request["controller"]
+    if isinstance(request, str):
+        return request.encode(), ""
+    if isinstance(request, int) and not isinstance(request, bool):
+        return str(request).encode(), ""
+    return b"", f"{what} is {_JSON_KINDS.get(type(request), 'no name')}; {forms}"
+
+
+#: what a JSON value that names no controller is, by its Python type
+_JSON_KINDS: dict[type, str] = {bool: "true or false", type(None): "null",
+                                float: "a number that is not whole", list: "an array",
+                                dict: "an object"}
 
 
 class FoxgloveView:
@@ -302,14 +335,10 @@ class FoxgloveView:
             send(message)
 
     def _switch(self, payload: bytes) -> dict[str, Any]:
-        """``{"controller": NAME}`` (or the bare name) -> the switch's result."""
-        try:
-            request = json.loads(payload) if payload.strip() else {}
-        except (UnicodeDecodeError, json.JSONDecodeError):
-            request = None
-        raw = (str(request.get("controller", "")).encode() if isinstance(request, dict)
-               else payload)
-        name, refusal = switch_target(self.manager, raw, self._transport, self._running)
+        """A switch request (``switch_request``) -> the switch's result."""
+        raw, wrong = switch_request(payload)
+        name, refusal = switch_target(self.manager, raw, self._transport, self._running,
+                                      wrong)
         if name is None:
             return refusal
         future = self.manager.request_switch(name)
