@@ -143,3 +143,37 @@ def test_a_live_view_option_without_the_live_view_is_said(verb, capsys):
     args = build_parser().parse_args(["run", "robot.yaml", "--foxglove", "[::1]:0",
                                       "--foxglove-rate", "5"])
     assert foxglove_from_args(args) == FoxgloveConfig("::1", 0, rate=5.0)
+
+
+@pytest.mark.parametrize("config", ["robot.yaml", "robots/arm.YML", "existing"])
+def test_a_config_taken_as_the_address_is_said(config, tmp_path, monkeypatch, capsys):
+    """``run --foxglove robot.yaml``: --foxglove (its value optional) takes the config as
+    its address, and "required: config" alone does not say why. A word that looks like a
+    config (.yaml, .yml, or a file that exists) gets the hint (a path is no host either:
+    said first)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "existing").write_text("rate: 100\n")
+    with pytest.raises(SystemExit) as exited:
+        main(["run", "--foxglove", config])
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    wrong = ("argument --foxglove: expected HOST:PORT, HOST, :PORT or [IPV6]:PORT, got "
+             f"{config!r}: {config!r} is not a host name or an IPv4 address" if "/" in config
+             else "the following arguments are required: config")
+    assert err.splitlines()[-1] == (
+        f"rocoma-can run: error: {wrong}; --foxglove took {config!r} as its address: put "
+        "the config first or write --foxglove=HOST:PORT")
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("words", [["--foxglove", "localhost"], ["--foxglove=robot.yaml"],
+                                   ["--foxglove"]])
+def test_no_hint_where_no_config_was_taken(words, tmp_path, monkeypatch, capsys):
+    """A host, or an address written with '=' (meant as one): the usage error as
+    argparse says it."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exited:
+        main(["run", *words])
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "rocoma-can run: error: the following arguments are required: config")

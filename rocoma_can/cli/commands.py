@@ -221,6 +221,19 @@ def foxglove_from_args(args: argparse.Namespace) -> FoxgloveConfig | None:
     return FoxgloveConfig(host, port, rate=rate, allow_commands=args.foxglove_allow_commands)
 
 
+def config_taken_as_address(words: list[str]) -> str:
+    """A usage error's hint for ``run --foxglove robot.yaml``: --foxglove's value is
+    optional, so it takes the word after it, the config, as its address. Said when that
+    word looks like a config (a .yaml or .yml name, or a file that exists), which no
+    host is named like."""
+    for option, value in zip(words, words[1:]):
+        if option == "--foxglove" and (value.lower().endswith((".yaml", ".yml"))
+                                       or os.path.isfile(value)):
+            return (f"--foxglove took {value!r} as its address: put the config first or "
+                    "write --foxglove=HOST:PORT")
+    return ""
+
+
 def _foxglove_address(text: str) -> tuple[str, int]:
     try:
         return parse_address(text)
@@ -422,7 +435,8 @@ def _bus_options(p: argparse.ArgumentParser, zenoh: bool = True) -> None:
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = subparsers.add_parser("run", help="run the manager from a YAML config")
+    p = subparsers.add_parser("run", help="run the manager from a YAML config",
+                              hint=config_taken_as_address)
     p.add_argument("config", help="YAML file (see docs/configuration.md)")
     p.add_argument("--duration", type=seconds, default=None, help="stop after this many s")
     p.add_argument("--rate", type=float, default=None, help="override the loop rate, Hz")

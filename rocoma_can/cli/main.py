@@ -1,13 +1,15 @@
 """The ``rocoma-can`` command. Each sub-command lives next to the code it drives and
 registers itself here through a ``register(subparsers)`` function returning nothing; the
-handler is stored with ``parser.set_defaults(func=handler)`` and returns an exit code."""
+handler is stored with ``parser.set_defaults(func=handler)`` and returns an exit code. Each
+sub-command's parser is a CommandParser (``add_parser(..., hint=...)``)."""
 from __future__ import annotations
 
 import argparse
 import importlib
 import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn
 
 from ..exit_codes import INTERRUPTED, OK, USAGE
 
@@ -25,13 +27,35 @@ COMMAND_MODULES: tuple[str, ...] = (
 )
 
 
+class CommandParser(argparse.ArgumentParser):
+    """A sub-command's parser, which may add a hint to a usage error: argparse says what is
+    missing, not why (``run --foxglove robot.yaml``: --foxglove, whose value is optional,
+    took the config as its address, and "required: config" is all it says). ``hint``, a
+    keyword of ``add_parser``: the command line's words -> a hint ("" for none)."""
+
+    def __init__(self, *args: Any, hint: Callable[[list[str]], str] | None = None,
+                 **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._hint = hint
+        self._words: list[str] = []
+
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        self._words = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str) -> NoReturn:
+        hint = self._hint(self._words) if self._hint is not None else ""
+        super().error(f"{message}; {hint}" if hint else message)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="rocoma-can",
         description="Robot controller manager for CANopen CiA 402 actuator buses.")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more log output (-vv for debug)")
-    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND",
+                                       parser_class=CommandParser)
     for module in COMMAND_MODULES:
         importlib.import_module(module).register(subparsers)
     return parser
