@@ -149,7 +149,7 @@ def test_demo_cli_groups_the_files_notes_and_says_how_to_get_the_command(
         "demo passed",
         f"rocoma-can: not on PATH; for the README's commands: . "
         f"{Path(sys.prefix).name}/bin/activate (or pip install -e "
-        "'.[record,plot,live,zenoh]' from a checkout)"]
+        "'.[record,plot,live,zenoh,foxglove]' from a checkout)"]
 
 
 def test_no_path_hint_when_the_command_is_found(tmp_path, monkeypatch):
@@ -158,6 +158,26 @@ def test_no_path_hint_when_the_command_is_found(tmp_path, monkeypatch):
     command.chmod(0o755)
     monkeypatch.setenv("PATH", str(tmp_path))
     assert path_hint() is None
+
+
+def test_the_path_hint_installs_what_the_readme_uses(tmp_path, monkeypatch):
+    """The hint's install has every extra the README's commands need (each it names in a
+    ``pip install``): the README's next steps include ``run --foxglove``, which the
+    hint's install once lacked."""
+    import re
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11
+    root = Path(__file__).parents[1]
+    readme = (root / "README.md").read_text()
+    used = {extra for group in re.findall(r"pip install[^`]*?\[([\w,]+)\]", readme)
+            for extra in group.split(",")}
+    monkeypatch.setenv("PATH", str(tmp_path))
+    hint = path_hint()
+    assert hint is not None
+    given = set(re.search(r"pip install -e '\.\[([\w,]+)\]'", hint).group(1).split(","))
+    assert "foxglove" in used and used <= given, (used, hint)
+    defined = tomllib.loads((root / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"]
+    assert given <= set(defined)
 
 
 def test_demo_says_once_what_is_wrong_with_a_file(tmp_path, capsys):

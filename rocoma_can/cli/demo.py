@@ -583,9 +583,13 @@ def path_hint() -> str | None:
     if shutil.which("rocoma-can") is not None:
         return None
     activate = Path(sys.prefix) / "bin" / "activate"
+    install = f"pip install -e '.[{README_EXTRAS}]' from a checkout"
     if not activate.is_file():
-        return ("rocoma-can: not on PATH; for the README's commands: pip install -e "
-                "'.[record,plot,live,zenoh]' from a checkout")
+        return f"rocoma-can: not on PATH; for the README's commands: {install}"
     shown = os.path.relpath(activate) if activate.is_relative_to(Path.cwd()) else activate
-    return (f"rocoma-can: not on PATH; for the README's commands: . {shown} (or pip install "
-            "-e '.[record,plot,live,zenoh]' from a checkout)")
+    return f"rocoma-can: not on PATH; for the README's commands: . {shown} (or {install})"
+
+
+#: the extras the README's commands need: recording and plots, status --watch, Zenoh, the
+#: Foxglove live view (run --foxglove, demo --foxglove)
+README_EXTRAS = "record,plot,live,zenoh,foxglove"
