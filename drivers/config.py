@@ -13,6 +13,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Literal
 
+from ..user_files import kind
 from . import cia301
 from .cia402 import MAX_AXES
 from .identity import Identity, identity_from_config
@@ -319,8 +320,15 @@ class DriveConfig:
         if not isinstance(self.bus, str):
             raise ValueError(f"{where}: bus must be the name of a bus, got {self.bus!r}")
         self.identity = identity_from_config(self.identity, where)
-        if self.eds is not None and not Path(self.eds).is_file():
-            raise ValueError(f"{where}: eds file {self.eds!r} does not exist")
+        if self.eds is not None:
+            try:
+                what = kind(Path(self.eds).stat().st_mode)
+            except OSError as exc:
+                raise ValueError(f"{where}: eds file {self.eds!r}: "
+                                 f"{exc.strerror or exc}") from None
+            if what is not None:  # (a FIFO would hang reading it: user_files.py)
+                raise ValueError(f"{where}: eds file {self.eds!r} is {what}, not a regular "
+                                 "file")
 
     def _take_limits(self, where: str) -> None:
         """``limits:`` sets the manager's limits too (one set of numbers for both); an old

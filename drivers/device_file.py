@@ -27,10 +27,11 @@ from __future__ import annotations
 import io
 import re
 from dataclasses import dataclass, field
-from pathlib import Path
 
 from canopen import objectdictionary
 from canopen.objectdictionary import datatypes
+
+from ..user_files import read_regular
 
 Key = tuple[int, int]
 
@@ -150,8 +151,8 @@ def _check_mappings(path: str, od: objectdictionary.ObjectDictionary) -> None:
 def read_device_file(path: str) -> DeviceFile:
     """Read and normalise an EDS/DCF; DeviceFileError (one line, naming the file) when it is
     not one."""
-    try:
-        raw = Path(path).read_bytes()
+    try:  # (a FIFO or a device would hang the command: user_files.py)
+        raw = read_regular(path)
     except OSError as exc:
         raise DeviceFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
     notes: list[str] = []

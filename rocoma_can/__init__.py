@@ -15,6 +15,7 @@ overrun      when a control cycle overran: one rule for statistics, recordings, 
 remote       the rules for commands from afar (Zenoh, Foxglove): stops always, the rest when
              allowed
 errors       RocomaError, the one root of the errors raised on purpose
+user_files   files a user names (URDF, EDS) read only when regular: a FIFO cannot hang
 cli_args     argument types every verb shares
 exit_codes   the exit codes every verb shares
 __main__     ``python -m rocoma_can``: the rocoma-can command

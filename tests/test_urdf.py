@@ -8,21 +8,17 @@ import math
 import os
 import subprocess
 import sys
-import threading
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import yaml
+from fixtures.fifo import FIFO_WAIT, without_hanging
 from test_config import good
 
 from rocoma_can.cli.demo_config import demo_urdf
 from rocoma_can.cli.main import main
 from rocoma_can.live.urdf import MAX_URDF_BYTES, UrdfError, parse_urdf, read_urdf
 from rocoma_can.runtime.config import ConfigError, load, validate
-
-#: s a read of a FIFO may take before the test calls it hung
-FIFO_WAIT = 10.0
 
 S = math.sqrt(0.5)  # sin and cos of 45 degrees
 
@@ -180,23 +176,6 @@ def test_a_binary_file_is_not_utf8(tmp_path):
         read_urdf(path)
 
 
-def _without_hanging(work: Callable[[], object]) -> BaseException | None:
-    """What ``work`` raised (None: nothing), run on a thread given FIFO_WAIT s: a read that
-    waits for a FIFO's writer fails the test instead of hanging it."""
-    raised: list[BaseException | None] = [None]
-
-    def run() -> None:
-        try:
-            work()
-        except BaseException as exc:  # noqa: BLE001 - handed to the test
-            raised[0] = exc
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    thread.join(FIFO_WAIT)
-    assert not thread.is_alive(), f"still reading after {FIFO_WAIT} s"
-    return raised[0]
-
-
 @pytest.mark.parametrize("kind", ["fifo", "directory", "device"])
 def test_only_a_regular_file_is_read(tmp_path, kind):
     """A FIFO would keep the read waiting for a writer (check-config and run hung), a
@@ -209,7 +188,7 @@ def test_only_a_regular_file_is_read(tmp_path, kind):
     else:
         path = Path("/dev/zero")
     try:
-        caught = _without_hanging(lambda: read_urdf(path))
+        caught = without_hanging(lambda: read_urdf(path))
     finally:
         if kind == "fifo":  # a reader still waiting (the test failed) is let go
             with contextlib.suppress(OSError):

@@ -17,8 +17,6 @@ stay at the origin. Pure Python: a few joints at the view's rate need no numpy.
 from __future__ import annotations
 
 import math
-import os
-import stat
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -26,6 +24,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from ..errors import RocomaError
+from ..user_files import NotRegularFile, read_regular
 
 #: a URDF is text without meshes (those are files of their own): this bounds what a hostile
 #: or wrong file (a mesh, a log) can cost to read
@@ -33,8 +32,6 @@ MAX_URDF_BYTES = 2 << 20
 #: joints a drive can move in the view
 MOVABLE = frozenset({"revolute", "continuous", "prismatic"})
 KINDS = MOVABLE | {"fixed", "floating", "planar"}
-#: open() flags that keep it from waiting (a FIFO without a writer) or taking a terminal
-_NO_WAIT = getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
 
 Vector = tuple[float, float, float]
 Quaternion = tuple[float, float, float, float]  # x, y, z, w
@@ -103,24 +100,12 @@ def read_urdf(path: str | Path) -> Robot:
     looked at before it is opened (opening some devices does something), opened without
     waiting (a FIFO swapped in meanwhile opens at once) and looked at again once open."""
     try:
-        _regular(os.stat(path).st_mode, path)
-        with os.fdopen(os.open(path, os.O_RDONLY | _NO_WAIT), "rb") as f:
-            _regular(os.fstat(f.fileno()).st_mode, path)
-            raw = f.read(MAX_URDF_BYTES + 1)
+        raw = read_regular(path, MAX_URDF_BYTES + 1)
+    except NotRegularFile as exc:
+        raise UrdfError(f"{path}: {exc.strerror}; a URDF is read from a file") from None
     except OSError as exc:
         raise UrdfError(f"{path}: cannot read: {exc.strerror or exc}") from None
     return parse_urdf(raw, str(path))
-
-
-def _regular(mode: int, path: str | Path) -> None:
-    """UrdfError naming what ``path`` is when its ``mode`` is not a regular file's."""
-    if stat.S_ISREG(mode):
-        return
-    kind = next((kind for test, kind in (
-        (stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
-        (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device")) if test(mode)), "a special file")
-    raise UrdfError(f"{path}: {kind}, not a regular file; a URDF is read from a file")
 
 
 def parse_urdf(raw: bytes, source: str) -> Robot:

@@ -1,0 +1,45 @@
+"""Reading a file a user names (a config's ``urdf:`` and ``eds:``, ``demo --eds``) so that
+no name can hang the command: only a regular file is read.
+
+Opening a FIFO waits for a writer and reading a character device may never end, so a
+config naming one would hang ``check-config``, ``run`` or the demo for ever. The path is
+looked at before it is opened (opening some devices does something), opened without
+waiting (a FIFO swapped in meanwhile opens at once) and looked at again once open.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import stat
+from pathlib import Path
+
+_NO_WAIT = getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+
+
+class NotRegularFile(OSError):
+    """The path names something else than a regular file; ``strerror`` says what."""
+
+
+def kind(mode: int) -> str | None:
+    """What a file of this ``st_mode`` is when it is not a regular file; None when it is."""
+    if stat.S_ISREG(mode):
+        return None
+    return next((kind for test, kind in (
+        (stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device")) if test(mode)), "a special file")
+
+
+def _regular(mode: int) -> None:
+    what = kind(mode)
+    if what is not None:
+        raise NotRegularFile(errno.EINVAL, f"{what}, not a regular file")
+
+
+def read_regular(path: str | Path, limit: int = -1) -> bytes:
+    """The bytes of the regular file at ``path`` (at most ``limit``; -1: all); OSError when
+    it cannot be read, NotRegularFile when it is no regular file."""
+    _regular(os.stat(path).st_mode)
+    with os.fdopen(os.open(path, os.O_RDONLY | _NO_WAIT), "rb") as f:
+        _regular(os.fstat(f.fileno()).st_mode)
+        return f.read(limit)
