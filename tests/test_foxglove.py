@@ -11,7 +11,6 @@ import signal
 import socket
 import struct
 import time
-from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -27,82 +26,10 @@ from rocoma_can.record.trace import read_messages
 from rocoma_can.remote import COMMANDS
 
 pytest.importorskip("foxglove")
-sync_client = pytest.importorskip("websockets.sync.client")
+pytest.importorskip("websockets.sync.client")
+from fixtures.foxglove_viewer import SUBPROTOCOL, Viewer  # noqa: E402 - after the skips
 
-SUBPROTOCOL = "foxglove.sdk.v1"
 TOPICS = [c.topic for c in MANAGER_CHANNELS]
-MESSAGE_DATA, SERVICE_CALL_REQUEST, SERVICE_CALL_RESPONSE = 0x01, 0x02, 0x03
-
-
-class Viewer:
-    """A Foxglove WebSocket client: advertisements, subscriptions, service calls."""
-
-    def __init__(self, port: int, subprotocol: str = SUBPROTOCOL, **connect: Any) -> None:
-        self._stack = ExitStack()
-        self.ws = self._stack.enter_context(sync_client.connect(
-            f"ws://127.0.0.1:{port}", subprotocols=[subprotocol], open_timeout=DEMO_WAIT,
-            **connect))
-        self.channels: dict[str, dict[str, Any]] = {}
-        self.services: dict[str, dict[str, Any]] = {}
-        self.received: dict[str, list[dict[str, Any]]] = {}
-        self.answers: dict[int, dict[str, Any]] = {}
-        self._topics: dict[int, str] = {}
-        self._call = 0
-
-    def pump(self, until, what: str, timeout: float = DEMO_WAIT) -> None:
-        """Read messages until ``until()`` holds (AssertionError naming ``what``)."""
-        deadline = time.monotonic() + timeout
-        while not until():
-            if time.monotonic() > deadline:
-                raise AssertionError(f"timed out waiting for {what}")
-            try:
-                message = self.ws.recv(timeout=0.05)
-            except TimeoutError:
-                continue
-            self._take(message)
-
-    def _take(self, message: str | bytes) -> None:
-        if isinstance(message, str):
-            doc = json.loads(message)
-            if doc["op"] == "advertise":
-                self.channels.update({c["topic"]: c for c in doc["channels"]})
-            elif doc["op"] == "advertiseServices":
-                self.services.update({s["name"]: s for s in doc["services"]})
-            elif doc["op"] == "serviceCallFailure":
-                self.answers[doc["callId"]] = {"failure": doc["message"]}
-            return
-        op = message[0]
-        if op == MESSAGE_DATA:
-            sub, _ = struct.unpack_from("<IQ", message, 1)
-            self.received.setdefault(self._topics[sub], []).append(json.loads(message[13:]))
-        elif op == SERVICE_CALL_RESPONSE:
-            _, call, n = struct.unpack_from("<III", message, 1)
-            self.answers[call] = json.loads(message[13 + n:])
-
-    def subscribe(self, *topics: str) -> None:
-        self.pump(lambda: all(t in self.channels for t in topics), f"channels {topics}")
-        subs = []
-        for topic in topics:
-            sub = len(self._topics) + 1
-            self._topics[sub] = topic
-            subs.append({"id": sub, "channelId": self.channels[topic]["id"]})
-        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
-
-    def call(self, service: str, request: Any = None, raw: bytes | None = None
-             ) -> dict[str, Any]:
-        """``request`` as JSON ({} for None), or the bytes ``raw`` as they are."""
-        self.pump(lambda: service in self.services, f"service {service}")
-        self._call += 1
-        call, encoding = self._call, b"json"
-        payload = json.dumps({} if request is None else request).encode() if raw is None \
-            else raw
-        self.ws.send(struct.pack("<BIII", SERVICE_CALL_REQUEST, self.services[service]["id"],
-                                 call, len(encoding)) + encoding + payload)
-        self.pump(lambda: call in self.answers, f"the answer of {service}")
-        return self.answers[call]
-
-    def close(self) -> None:
-        self._stack.close()
 
 
 def _config(channel: str, drives: int = 2, rate: float = 100.0) -> dict[str, Any]:
