@@ -42,6 +42,10 @@ class ManagerEvent:
     active_controller: str
     cause: str = ""
     time: float = field(default_factory=time.monotonic)
+    #: the e-stop latch as this event left it: a recording reads the latch of every cycle
+    #: from its events' (the latch's own rise, at an e-stop's request, comes a cycle or more
+    #: before the e-stop takes effect; a clear is an event of its own)
+    latched: bool = False
 
 
 Subscriber = Callable[[ManagerEvent], None]

@@ -491,7 +491,8 @@ class ControllerManager:
         return self._events.subscribe(callback)
 
     def _emit(self, kind: EventKind, cause: str = "") -> None:
-        event = ManagerEvent(kind, self._state, self.active_controller_name, cause)
+        event = ManagerEvent(kind, self._state, self.active_controller_name, cause,
+                             latched=self._latched)
         if self._in_update or self._held:  # behind what this cycle holds, in order
             self._held.append((self._events.emit, (event,)))
         else:

@@ -460,6 +460,40 @@ def test_an_event_from_another_thread_queues_behind_the_cycles():
         assert mgr.shutdown()
 
 
+def test_each_event_carries_the_latch_it_left():
+    """A recording reads the e-stop latch of every cycle from the events (record/
+    live_channels.py): an e-stop's event carries it set (with estop_must_be_cleared), a
+    clear's carries it off, and no event says it before it is so."""
+    journal = Journal(update_thread=threading.get_ident())
+    mgr = ControllerManager(FailproofProbe("failproof", journal), dt=0.001,
+                            command=CommandLog(), timing=None, estop_must_be_cleared=True)
+    try:
+        assert mgr.add_controller(Probe("a", journal), emergency=EmergencyProbe("e", journal))
+        seen = []
+        done = threading.Event()
+        mgr.subscribe(lambda ev: (seen.append((ev.kind, ev.cause, ev.latched)),
+                                  done.set() if ev.cause == "emergency stop cleared" else None))
+        mgr.clear_emergency_stop()  # it starts latched
+        assert done.wait(WAIT)
+        assert seen == [(EventKind.STATE_CHANGED, "emergency stop cleared", False)]
+        assert mgr.switch_controller("a") == SwitchResult.SWITCHED
+        mgr.emergency_stop("big red button")  # latched at once; its event at the update
+        assert mgr.estop_latched
+        assert mgr.update() is EMERGENCY
+        mgr.post_cycle()
+        done.clear()
+        mgr.clear_emergency_stop()
+        assert done.wait(WAIT)
+        estop = seen.index((EventKind.EMERGENCY_STOP, "big red button", True))
+        assert estop > 1 and {latched for _, _, latched in seen[1:estop]} == {False}, seen
+        assert seen[estop:] == [(EventKind.EMERGENCY_STOP, "big red button", True),
+                                (EventKind.STATE_CHANGED, "", True),
+                                (EventKind.ACTIVE_CONTROLLER_CHANGED, "", True),
+                                (EventKind.STATE_CHANGED, "emergency stop cleared", False)]
+    finally:
+        assert mgr.shutdown()
+
+
 #: a remote caller without commands (stops are anyone's)
 TRANSPORT = Transport("test", "test.allow_commands", allow_commands=False)
 

@@ -179,9 +179,10 @@ EVENT_SCHEMA = {"type": "object", "title": "rocoma_can.ManagerEvent", "propertie
 
 def event_message(event: ManagerEvent) -> dict[str, Any]:
     """A manager event as plain values (what the writer process is sent), with its
-    monotonic ``time``."""
+    monotonic ``time`` and the e-stop latch it left (``latched``)."""
     return {"kind": event.kind.value, "state": event.state.name,
-            "controller": event.active_controller, "cause": event.cause, "time": event.time}
+            "controller": event.active_controller, "cause": event.cause, "time": event.time,
+            "latched": event.latched}
 
 
 def _frame_tail(flags: int) -> str:
