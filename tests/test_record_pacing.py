@@ -81,8 +81,8 @@ def test_a_recordings_poll_and_a_flight_record_give_way_throughout(tmp_path):
         writer.pace.piece = 0.0
         writer.write()  # a poll of frames only: the candump file's chunks
         assert writer.pace.yields >= FRAMES // CHUNK
-        for k in range(ROWS):  # the last 0.3 s at 1 kHz
-            trace.record(now - (ROWS - k) * 1e-3, 1e-4, 0.0, ManagerState.OK, 1e-4)
+        for k in range(ROWS):  # 0.3 s at 1 kHz, 1 s old: past the hold a poll leaves rows
+            trace.record(now - 1.0 - (ROWS - k) * 1e-3, 1e-4, 0.0, ManagerState.OK, 1e-4)
         polled = writer.pace.yields
         writer.write()  # a poll of rows only: each row's /rocoma/cycle and joint states
         assert writer.pace.yields - polled >= 2 * ROWS

@@ -117,9 +117,8 @@ class FlightRecords:
         events = [e for e in self._events if e["time"] >= since]
         live = self._live(writer)
         writer.cycles(self._layout, controllers, rows, now_wall - now)  # oldest first
-        live.cycles(rows, start, controllers, now_wall - now)
         writer.events(events, now_wall - now)
-        live.events(events, now_wall - now)
+        live.write(rows, start, events, controllers, now_wall - now)
         live.heard(now_wall - now, since)
         for label, rings in self._buses.items():
             parts = [ring.read(0)[1] for ring in rings]  # the window's frames, then sorted:

@@ -156,7 +156,7 @@ class Recorder:
         #: for the files' /rocoma/status; set once what it reads exists (runtime/system.py)
         self.status_source: Callable[[], dict[str, Any]] | None = None
         self._files = record is not None or flight is not None
-        self._manager, self._latched = manager, False
+        self._manager, self._latched = manager, manager.estop_latched
         self._queue: queue.Queue[str | None] = queue.Queue(maxsize=EVENT_QUEUE)
         self._ready: queue.Queue[dict[str, Any]] = queue.Queue()
         self._closing = threading.Event()  # close(): the sender ends with the queue
@@ -167,7 +167,8 @@ class Recorder:
                     list(state.names), dict(self.trace.controllers), record, flight, seconds,
                     rate, robot.text if robot is not None else None,
                     robot.source if robot is not None else "",
-                    view.settings() if view is not None else None, sorted(loop_cpus))
+                    view.settings() if view is not None else None, sorted(loop_cpus),
+                    latched=self._latched)
         try:
             self._process = subprocess.Popen(
                 [sys.executable, "-m", "rocoma_can.record.writer"], stdin=subprocess.PIPE,

@@ -105,6 +105,7 @@ class Recording:
         self.path = directory / "trace.mcap"
         self.errors: list[str] = []
         self._layout, self._rows, self._next = layout, rows, 0
+        self._events: list[Mapping[str, Any]] = []  # held for the next write (``write``)
         self._logs: list[BusLog] = []
         self._stream: IO[bytes] | None = None
         self._writer: McapWriter | None = None
@@ -132,20 +133,27 @@ class Recording:
 
     def write(self, controllers: Mapping[int, str], events: Iterable[Mapping[str, Any]],
               offset: float, until: float) -> str | None:
-        """Everything new (the frames stamped before ``until``: BusLog); the first
-        failure's reason (every file then stopped), else None."""
+        """Everything new stamped before ``until`` (wall clock), the rest held for the next
+        write: the frames (BusLog), and the rows and manager events, whose /rocoma/manager
+        samples carry the e-stop latch and cause of their cycle from events that may still
+        be on their way (live_channels.EstopHistory). The first failure's reason (every
+        file then stopped), else None."""
         writer = self._writer
         if writer is None:
             return None
+        since = until - offset  # (the monotonic clock of rows and events)
         start, rows = self._rows.read(self._next)
+        rows = rows[:int(np.searchsorted(rows[:, 0], since, side="left"))]
+        events = [*self._events, *events]
+        self._events = [event for event in events if event["time"] >= since]
+        events = [event for event in events if event["time"] < since]
         try:
             if start > self._next:
                 raise RecordingError(f"{self.path}: {start - self._next} cycles lost (the "
                                      "writer fell a ring behind)")
             writer.cycles(self._layout, controllers, rows, offset)
-            self._live.cycles(rows, start, controllers, offset)
             writer.events(events, offset)
-            self._live.events(events, offset)
+            self._live.write(rows, start, events, controllers, offset)
             self._live.heard(offset)
             self._next = start + len(rows)
             for bus_log in self._logs:

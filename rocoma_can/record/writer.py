@@ -4,15 +4,16 @@ own.
 
 The loop's process hands over through shared memory (rings.py: signal rows, each bus's
 received and sent frames) and a pipe (this process's stdin, one JSON object a line): first
-the set-up (``Spec``), then manager events ``{"event": ...}``, controller numbers
-``{"controllers": {name: number}}``, the e-stop latch ``{"latched": bool}``, for the live
-view the answer to a service call ``{"answer": id, "reply": {...}}``, the status report
-``{"status": {...}, "time": t}`` (for the view, and into the files' /rocoma/status), and
-``{"close": true}``. Every ``POLL`` s it writes what the rings got
-(``--record``: recording.py) and the flight records due (flight.py), yielding its CPU every
-0.2 ms of that work (pacing.py: a loop queued on its CPU waits for one piece, not a
-writing burst); the live view (live/server.py) publishes on its own threads. It answers
-on stdout, one JSON object a line: ``{"ready": true, "foxglove_port": port}`` or
+the set-up (``Spec``), then manager events ``{"event": ...}`` (each with the e-stop latch it
+left: the files' latch, live_channels.EstopHistory), controller numbers ``{"controllers":
+{name: number}}``, the e-stop latch ``{"latched": bool}`` (as the loop's process sees it
+change: the live view's), for the live view the answer to a service call ``{"answer": id,
+"reply": {...}}``, the status report ``{"status": {...}, "time": t}`` (for the view, and
+into the files' /rocoma/status), and ``{"close": true}``. Every ``POLL`` s it writes what
+the rings got (``--record``: recording.py) and the flight records due (flight.py), yielding
+its CPU every 0.2 ms of that work (pacing.py: a loop queued on its CPU waits for one piece,
+not a writing burst); the live view (live/server.py) publishes on its own threads. It
+answers on stdout, one JSON object a line: ``{"ready": true, "foxglove_port": port}`` or
 ``{"failed": reason, "of": ...}`` at start, ``{"flight_record": path, "cause": ...}``,
 ``{"error": reason, "of": "recording" | "flight"}``, the live view's ``{"call": id,
 "service": name, "payload": hex}``, ``{"view": counters}`` and ``{"status_wanted": bool}``,
@@ -58,7 +59,8 @@ log = logging.getLogger(__name__)
 #: how often the rings are written out, s
 POLL = 0.05
 #: how long a frame stays out of its bus's log at least, s (recording.BusLog): frames
-#: reach the rings up to a cycle late (two at a low rate) or as late as the bus's reader
+#: reach the rings up to a cycle late (two at a low rate) or as late as the bus's reader;
+#: and a row out of the trace, for its cycle's events to come through the pipe
 HOLD = 0.25
 
 
@@ -80,6 +82,7 @@ class Spec:
     urdf_source: str = ""
     foxglove: dict[str, Any] | None = None  # the live view's server (host, port, ...)
     loop_cpus: list[int] = field(default_factory=list)  # realtime.cpus: kept off them
+    latched: bool = False  # the manager's e-stop latch at start (events say its changes)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self))
@@ -113,7 +116,9 @@ class Writer:
                  for label, (channel, specs) in spec.buses.items()}
         self.controllers = {number: name for name, number in spec.controllers.items()}
         self.events: list[dict[str, Any]] = []  # for the recording, since its last write
-        self.facts = Facts(window=spec.seconds)
+        # (a row older than the rows' ring holds is never read: its e-stops are forgotten)
+        self.facts = Facts(window=spec.seconds, latched=spec.latched,
+                           span=spec.rows.capacity / spec.rate)
         robot = (parse_urdf(spec.urdf.encode(), spec.urdf_source)
                  if spec.urdf is not None else None)
         self.view: FoxgloveServer | None = None
@@ -122,6 +127,7 @@ class Writer:
                                        layout, 1.0 / spec.rate, robot, self.call,
                                        lambda message: self.say(**message), self._noted)
             self.view.controllers.update(self.controllers)
+            self.view.latched = spec.latched
 
         def live(writer: McapWriter) -> LiveChannels:
             return LiveChannels(writer, layout, 1.0 / spec.rate, robot, self.facts)
@@ -209,12 +215,11 @@ class Writer:
     def command(self, command: Mapping[str, Any]) -> None:
         if "event" in command:
             event = command["event"]
+            self.facts.on_event(event)
             if self.recording is not None and self.recording.running:
                 self.events.append(event)
             if self.flight is not None:
                 self.flight.on_event(event)
-        if "latched" in command:
-            self.facts.latched = bool(command["latched"])
         if "controllers" in command:
             self.controllers.update({number: name for name, number
                                      in command["controllers"].items()})
