@@ -161,6 +161,7 @@ class ControllerManager:
         self._requests: deque[tuple[bool, str]] = deque()  # (failproof?, cause), any thread
         self._estop_counter = itertools.count(1)
         self._estop_serial = 0   # changes with every e-stop; a switch commits only if unchanged
+        self._requested_cause = ""  # the last requested e-stop's (estop_requested)
         self._latched = estop_must_be_cleared  # like an e-stop button after power-on
         self._closed = False
         self.cycle_count = 0
@@ -423,6 +424,7 @@ class ControllerManager:
     def _request(self, to_failproof: bool, cause: str) -> None:
         if self._must_clear:
             self._latched = True
+        self._requested_cause = cause
         # queued before the serial changes: a switch that sees the new serial finds the
         # request to apply (the other order let it stop a controller still running)
         self._requests.append((to_failproof, cause))
@@ -471,6 +473,13 @@ class ControllerManager:
     @property
     def estop_latched(self) -> bool:
         return self._latched
+
+    @property
+    def estop_requested(self) -> str:
+        """The cause of the last e-stop (or failproof stop) requested from another thread,
+        as soon as it is requested: the event saying it comes with the update that acts
+        on it ("" before any)."""
+        return self._requested_cause
 
     @property
     def active_controller_name(self) -> str:

@@ -4,6 +4,7 @@ loopback: the protocol under both names, the SDK's own refusals passed on, and i
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import os
 import socket
@@ -60,14 +61,16 @@ def served(sdk, counts) -> Iterator[Front]:
 
 
 def _handshake(port: int, protocols: str) -> bytes:
-    """A raw upgrade request offering ``protocols``; the answer's head."""
+    """A raw upgrade request offering ``protocols``; the answer's head (empty when the
+    connection was closed or reset unanswered)."""
     key = base64.b64encode(os.urandom(16)).decode()
-    with socket.create_connection(("127.0.0.1", port), timeout=DEMO_WAIT) as sock:
+    answer = b""
+    with socket.create_connection(("127.0.0.1", port), timeout=DEMO_WAIT) as sock, \
+            contextlib.suppress(ConnectionResetError, BrokenPipeError):
         sock.sendall((f"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n"
                       f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
                       f"Sec-WebSocket-Version: 13\r\n"
                       f"Sec-WebSocket-Protocol: {protocols}\r\n\r\n").encode())
-        answer = b""
         while b"\r\n\r\n" not in answer:
             chunk = sock.recv(4096)
             if not chunk:
@@ -120,7 +123,7 @@ def test_viewers_past_the_limit_are_closed_and_counted(served, counts, monkeypat
             held.enter_context(sync_client.connect(
                 f"ws://127.0.0.1:{served.port}", subprotocols=[LEGACY_SUBPROTOCOL],
                 open_timeout=DEMO_WAIT))
-        with pytest.raises(InvalidMessage):  # closed before any answer
+        with pytest.raises((InvalidMessage, ConnectionClosed)):  # closed before any answer
             sync_client.connect(f"ws://127.0.0.1:{served.port}",
                                 subprotocols=[LEGACY_SUBPROTOCOL], open_timeout=DEMO_WAIT)
         assert counts["viewers_refused"] == 1
@@ -208,3 +211,47 @@ def test_an_address_taken_is_one_line(sdk, counts):
             Front("127.0.0.1", taken.getsockname()[1], server.port, _counter(counts))
     finally:
         taken.close()
+
+
+def test_a_viewer_that_will_not_close_after_the_sdk_did_is_let_go(served, monkeypatch):
+    """The viewer asks to close, the SDK answers and closes its side; a viewer that then
+    keeps its connection open holds no thread or place for more than HANDSHAKE_WAIT."""
+    monkeypatch.setattr(front, "HANDSHAKE_WAIT", 0.5)
+    key = base64.b64encode(os.urandom(16)).decode()
+    with socket.create_connection(("127.0.0.1", served.port), timeout=DEMO_WAIT) as sock:
+        sock.sendall((f"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: "
+                      f"Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+                      f"Sec-WebSocket-Protocol: {LEGACY_SUBPROTOCOL}\r\n\r\n").encode())
+        received = b""
+        while b"\r\n\r\n" not in received:
+            received += sock.recv(4096)
+        assert received.startswith(b"HTTP/1.1 101")
+        sock.sendall(bytes([0x88, 0x80]) + os.urandom(4))  # a masked close, no payload
+        try:
+            while sock.recv(65536):  # messages, the SDK's close, then its end
+                pass
+        except ConnectionResetError:
+            pass
+        wait_for(lambda: not [t for t in threading.enumerate()
+                              if t.name == "foxglove-viewer" and t.is_alive()],
+                 "the viewer's thread ended while it keeps its end open", DEMO_WAIT)
+
+
+def test_no_thread_for_a_viewer_is_a_refusal_not_the_end(served, counts, monkeypatch):
+    """A thread that cannot be started (a process limit) refuses that viewer, counted;
+    the front accepts the next one and closes as usual."""
+    failing = [True]
+    start = threading.Thread.start
+
+    def start_or_fail(thread: threading.Thread) -> None:
+        if thread.name == "foxglove-viewer" and failing.pop() if failing else False:
+            raise RuntimeError("can't start new thread")
+        start(thread)
+    monkeypatch.setattr(threading.Thread, "start", start_or_fail)
+    with pytest.raises((InvalidMessage, ConnectionClosed)):  # closed before any answer
+        sync_client.connect(f"ws://127.0.0.1:{served.port}",
+                            subprotocols=[LEGACY_SUBPROTOCOL], open_timeout=DEMO_WAIT)
+    assert counts["viewers_refused"] == 1
+    with sync_client.connect(f"ws://127.0.0.1:{served.port}", subprotocols=[LEGACY_SUBPROTOCOL],
+                             open_timeout=DEMO_WAIT) as ws:
+        assert ws.subprotocol == LEGACY_SUBPROTOCOL

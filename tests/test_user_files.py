@@ -3,6 +3,7 @@ an EDS given as a FIFO, a directory or a device is refused in one line, at once,
 device-file reader, by check-config and by ``demo --eds`` (each hung on a FIFO)."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -64,3 +65,40 @@ def test_check_config_and_the_demo_refuse_a_fifo_as_the_eds(tmp_path):
     assert demo.stdout.splitlines() == [
         "demo: --eds: drive.eds: cannot read (a FIFO (named pipe), not a regular file)"], demo
     assert "Traceback" not in checked.stderr + demo.stderr
+
+
+def test_a_zenoh_config_file_is_read_here_json5_or_yaml_and_never_a_fifo(tmp_path):
+    """zenoh.config_file: read by rocoma-can (Zenoh's own reader waited on a FIFO in native
+    code, holding the interpreter: not even Ctrl-C ended run), JSON5 or YAML."""
+    zenoh = pytest.importorskip("zenoh")
+    from rocoma_can.fleet.bridge import _config_from
+    (tmp_path / "z.json5").write_text("{mode: 'client', // a comment\n}")
+    (tmp_path / "z.yaml").write_text("mode: client\n")
+    for name in ("z.json5", "z.yaml"):
+        assert json.loads(_config_from(zenoh, str(tmp_path / name)).get_json("mode")) \
+            == "client"
+    with fifo(tmp_path / "z.json5.fifo") as path:
+        caught = without_hanging(lambda: _config_from(zenoh, str(path)))
+    assert isinstance(caught, ValueError)
+    assert str(caught) == f"{path}: a FIFO (named pipe), not a regular file"
+
+
+@pytest.mark.parametrize("what", ["fifo", "missing"])
+def test_check_config_says_a_zenoh_config_file_it_cannot_read(tmp_path, what):
+    config = good()
+    config["zenoh"] = {"prefix": "r", "config_file": "z.json5"}
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(config))
+    if what == "fifo":
+        with fifo(tmp_path / "z.json5"):
+            done = subprocess.run([sys.executable, "-m", "rocoma_can", "check-config",
+                                   str(path)], capture_output=True, text=True,
+                                  timeout=FIFO_WAIT + 30)
+        said = "is a FIFO (named pipe), not a regular file"
+    else:
+        done = subprocess.run([sys.executable, "-m", "rocoma_can", "check-config", str(path)],
+                              capture_output=True, text=True, timeout=60)
+        said = ": No such file or directory"
+    assert done.returncode == 2, done
+    assert f"{path}: zenoh.config_file: {tmp_path}/z.json5{' ' if what == 'fifo' else ''}" \
+        f"{said}" in done.stdout, done.stdout

@@ -8,7 +8,7 @@ fault -> emergency controller (damp), a second fault -> failproof torque-off, re
 the drives, a switch back to pd, an e-stop by a raw CAN frame, and the SIGTERM-like stop of
 the loop, which ends in torque-off frames. Each step checks what it should; the exit code
 is 0 only when every step did. An operator's e-stop (Foxglove, Zenoh, ``rocoma-can
-estop``) ends the walk-through early with the robot left stopped (_OutsideStop). The
+estop``) ends the walk-through early with the robot left stopped (OutsideStop). The
 command records the run (every frame, every cycle, every manager event) and plots it, and
 prints where both went.
 """
@@ -32,7 +32,7 @@ import can
 from ..cli_args import count, positive, rt_priority, seconds
 from ..drivers.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError, SimulatorFailed
-from ..events import EventKind, ManagerEvent
+from ..events import ManagerState
 from ..exit_codes import FAILED, OK, USAGE
 from ..node.client import ManagerClient
 from ..node.objects import ESTOP_CAUSE, STATE_NAMES
@@ -59,14 +59,11 @@ from .demo_sim import (
     SimProcess,
     check_choice,
 )
+from .demo_stops import Ended, OutsideStop
 
 #: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
 #: one record, and the walk-through's come seconds apart
 FLIGHT_SECONDS = 2.0
-#: how the causes of stops asked from outside the walk-through begin: the live view's and
-#: Zenoh's services (remote.py) and the manager node's SDO objects (``rocoma-can estop``);
-#: the walk-through itself stops the robot only by drive faults and the CAN e-stop frame
-OUTSIDE_STOPS = ("Foxglove ", "Zenoh ", "SDO ")
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
     from ..live.foxglove import FoxgloveConfig
@@ -123,33 +120,6 @@ class _Pace:
         self.stop.wait(max(MIN_PAUSE * share, until - time.monotonic()))
 
 
-class _Ended(Exception):
-    """The walk-through ends early: an operator stopped the robot (_OutsideStop)."""
-
-
-class _OutsideStop:
-    """The first e-stop from outside the walk-through (OUTSIDE_STOPS: an operator's, from
-    Foxglove, Zenoh or ``rocoma-can estop``), heard on the manager's event thread. The
-    walk-through ends at its next step and commands nothing more: an operator's stop is
-    never cleared or switched away by the demo; the loop's stop and its torque-off frames
-    follow as after any walk-through."""
-
-    def __init__(self, stop: threading.Event) -> None:
-        self.cause: str | None = None
-        self._stop = stop
-
-    def __call__(self, event: ManagerEvent) -> None:
-        if event.kind is EventKind.EMERGENCY_STOP and self.cause is None \
-                and event.cause.startswith(OUTSIDE_STOPS):
-            self.cause = event.cause
-            self._stop.set()  # the walk-through's waits and pauses end at once
-
-    def go_on(self) -> None:
-        """_Ended once an operator has stopped the robot."""
-        if self.cause is not None:
-            raise _Ended(self.cause)
-
-
 def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and not stop.is_set():
@@ -161,7 +131,7 @@ def _wait(predicate: Callable[[], bool], timeout: float, stop: threading.Event) 
 
 def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Watch,
               probes: TorqueOffProbes, report: Report, duration: float,
-              stop: threading.Event, outside: _OutsideStop,
+              stop: threading.Event, outside: OutsideStop,
               say: Callable[[str], None]) -> None:
     hw, mgr = rt.hardware, rt.manager
     dt = rt.config.dt
@@ -209,7 +179,7 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
                     f"{len(hw.drives_config)} drives configured, mapped and started"
                     if hw.all_ready else hw.not_ready() or "drives not ready"):
             return
-        outside.go_on()  # (before each command that would undo a stop: never an operator's)
+        outside.go_on(mgr.estop_requested)  # (before a command that could undo a stop)
         client.write(0x2112, 1)  # clear: must-clear starts latched, like an e-stop button
         result = client.switch("pd")
         if not step("switch to pd (SDO 0x2100)",
@@ -245,7 +215,7 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
                  f"state {STATE_NAMES[state()]}")
         hold()
 
-        outside.go_on()
+        outside.go_on(mgr.estop_requested)
         client.write(0x2113, 1)  # recover drives; on success the e-stop latch is cleared
         # done when the switch guard says so: the recovery clears the latch a moment before
         # it reports its own end, and a switch in between is refused ("a recovery is in
@@ -266,7 +236,12 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
         step(f"e-stop by a raw CAN frame on 0x{ESTOP_COB_ID:03X}", ok,
              f"state {STATE_NAMES[state()]}, cause {client.read_text(ESTOP_CAUSE)!r}")
         hold()
-    except _Ended as ended:
+    except Ended as ended:
+        # the stop is heard a cycle late (the event thread): a command the walk-through
+        # gave meanwhile (clear and switch) may have undone it; it is given again
+        if mgr.state is ManagerState.OK or not mgr.estop_latched:
+            mgr.emergency_stop(cause=f"demo: {ended}, again (a command of the walk-through "
+                                     "came with it)")
         report.steps.append(Step("walk-through", True, f"ended early by an e-stop from "
                                  f"outside it ({ended}): the robot stays stopped, the "
                                  f"steps after it not run"))
@@ -416,7 +391,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                     f"another shell: rocoma-can status --watch --zenoh {ZENOH_PREFIX} "
                     f"--zenoh-connect {zenoh_listen} --zenoh-no-multicast (estop: the same "
                     "with estop)")
-            outside = _OutsideStop(stop)
+            outside = OutsideStop(stop)
             rt.manager.subscribe(outside)  # (the manager goes with the runtime)
             operator = threading.Thread(
                 target=_operator, name="demo-operator",

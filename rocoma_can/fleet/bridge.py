@@ -41,9 +41,12 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import yaml
+
 from ..errors import RocomaError
 from ..events import ManagerEvent
 from ..remote import STOPS, StopAnswers, Transport, serve, switch_target
+from ..user_files import read_regular
 
 if TYPE_CHECKING:
     import zenoh
@@ -169,6 +172,26 @@ def parse(section: Any, problems: list[str], where: str = "zenoh",
     return out
 
 
+#: the longest Zenoh config file read, bytes (one is a few kB)
+MAX_CONFIG_BYTES = 1 << 20
+
+
+def _config_from(zenoh: Any, path: str) -> Any:
+    """A Zenoh config from a JSON5 or YAML file, read here rather than by Zenoh: its reader
+    waits in native code, holding the interpreter, on a FIFO named by mistake
+    (user_files.py); OSError or a parse error, said by the caller."""
+    try:
+        raw = read_regular(path, MAX_CONFIG_BYTES + 1)
+    except OSError as exc:
+        raise ValueError(f"{path}: {exc.strerror or exc}") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ValueError(f"{path}: larger than {MAX_CONFIG_BYTES} bytes")
+    text = raw.decode("utf-8")
+    if path.endswith((".yaml", ".yml")):
+        text = json.dumps(yaml.safe_load(text))
+    return zenoh.Config.from_json5(text)
+
+
 def open_session(mode: str | None, connect: list[str], listen: list[str],
                  multicast: bool | None, config_file: str | None = None) -> zenoh.Session:
     """A Zenoh session; FleetError says what failed (not installed, an endpoint). ``mode``
@@ -179,7 +202,7 @@ def open_session(mode: str | None, connect: list[str], listen: list[str],
         raise FleetError("Zenoh needs eclipse-zenoh: pip install 'rocoma-can[zenoh]'") \
             from None
     try:
-        conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+        conf = _config_from(zenoh, config_file) if config_file else zenoh.Config()
         if mode is not None:
             conf.insert_json5("mode", json.dumps(mode))
         if connect:

@@ -119,7 +119,8 @@ class Front:
         self._accepting.start()
 
     def close(self) -> None:
-        """Stop listening and cut every viewer; bounded: each thread ends within POLL."""
+        """Stop listening and cut every viewer; bounded: a viewer's thread ends within POLL,
+        one still in its handshake within HANDSHAKE_WAIT."""
         self._stop.set()
         self._accepting.join(2 * POLL + 1.0)
         self._listener.close()
@@ -140,16 +141,19 @@ class Front:
                 continue
             with self._lock:
                 self._viewers = {t for t in self._viewers if t.is_alive()}
-                full = len(self._viewers) >= MAX_VIEWERS
-                if not full:
+                served = len(self._viewers) < MAX_VIEWERS
+                if served:
                     thread = threading.Thread(target=self._serve, args=(conn,),
                                               name="foxglove-viewer", daemon=True)
-                    self._viewers.add(thread)
-            if full:
+                    try:
+                        thread.start()
+                    except RuntimeError:  # no thread to be had (a process limit)
+                        served = False
+                    else:
+                        self._viewers.add(thread)
+            if not served:
                 self._count("viewers_refused")
                 conn.close()
-            else:
-                thread.start()
 
     def _serve(self, viewer: socket.socket) -> None:
         sdk: socket.socket | None = None
@@ -173,6 +177,7 @@ class Front:
             viewer.settimeout(HANDSHAKE_WAIT)
             # as small towards the viewer: what it has not taken waits in the SDK's outbox
             viewer.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, BUFFER)
+            _keep_alive(viewer)
             viewer.sendall(answer + rest)
             self._splice(viewer, sdk)
         except (OSError, ValueError):
@@ -191,14 +196,20 @@ class Front:
         waiting = {viewer: bytearray(), sdk: bytearray()}  # bytes to write to each
         reading = {viewer: True, sdk: True}
         taken = time.monotonic()  # the viewer's last progress, or when bytes began waiting
+        sdk_done: float | None = None  # when the SDK's side had ended and all was delivered
         with selectors.DefaultSelector() as selector:
             watched: dict[socket.socket, int] = {}
             while not self._stop.is_set():
                 if not (reading[viewer] or reading[sdk] or waiting[viewer] or waiting[sdk]):
                     return
-                if waiting[viewer] and time.monotonic() - taken > STALL_LIMIT:
+                now = time.monotonic()
+                if waiting[viewer] and now - taken > STALL_LIMIT:
                     self._count("viewers_stalled")
                     break
+                if not reading[sdk] and not waiting[viewer]:  # the viewer's turn to close
+                    sdk_done = now if sdk_done is None else sdk_done
+                    if now - sdk_done > HANDSHAKE_WAIT:
+                        break
                 for sock in (viewer, sdk):
                     events = (selectors.EVENT_READ if reading[sock]
                               and len(waiting[other[sock]]) < BUFFER else 0) | (
@@ -238,6 +249,15 @@ class Front:
                 except OSError:  # reset, or a shutdown of an end already gone
                     break
             _reset(sdk)  # failed, stalled or closing: the SDK sees the viewer gone
+
+
+def _keep_alive(sock: socket.socket) -> None:
+    """TCP keep-alive probes: a viewer whose machine vanished (no reset will come) is found
+    gone within about a minute, not held for ever."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    for option, value in (("TCP_KEEPIDLE", 30), ("TCP_KEEPINTVL", 10), ("TCP_KEEPCNT", 3)):
+        if hasattr(socket, option):
+            sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, option), value)
 
 
 def _reset(sock: socket.socket | None) -> None:

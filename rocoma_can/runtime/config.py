@@ -59,6 +59,7 @@ from .config_check import (
     check_manager_and_drives,
     check_rate,
     check_realtime,
+    check_regular,
     check_supervision,
     check_timing,
     check_urdf,
@@ -218,6 +219,8 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     fleet = parse_fleet(data.get("zenoh"), problems)
     if fleet is not None and fleet.config_file and base is not None:
         fleet.config_file = str(base / fleet.config_file)  # relative to the YAML file
+    if fleet is not None and fleet.config_file:
+        check_regular("zenoh.config_file", fleet.config_file, problems)
     controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
     notes = check_controller_sections(controllers, drives, check_controllers, problems)
     robot, urdf_notes = check_urdf(data.get("urdf"), base, drives, problems)

@@ -27,6 +27,7 @@ from ..drivers.pdo_layout import cob_id_clashes
 from ..drivers.wire import MAX_DATA_BITRATE
 from ..live.urdf import MOVABLE, Robot, UrdfError, read_urdf
 from ..manager import TimingSupervision
+from ..user_files import kind
 from .bus_load import BusLoad, bus_load
 from .loop import spin_fits
 
@@ -506,3 +507,15 @@ def _numbers(section: Mapping[str, Any], spec: Mapping[str, tuple[bool, float, f
 
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_regular(key: str, path: str, problems: list[str]) -> None:
+    """A file the config names that is read later (``zenoh.config_file``): a problem when
+    it is missing or not a regular file (a FIFO would hang the reading: user_files.py)."""
+    try:
+        what = kind(Path(path).stat().st_mode)
+    except OSError as exc:
+        problems.append(f"{key}: {path}: {exc.strerror or exc}")
+        return
+    if what is not None:
+        problems.append(f"{key}: {path} is {what}, not a regular file")
