@@ -1,6 +1,7 @@
 """NMT, boot-up, heartbeat producer and heartbeat consumer (0x1016 / 0x6007 / 0x1029)."""
 from __future__ import annotations
 
+import statistics
 import struct
 import time
 
@@ -76,9 +77,12 @@ def test_heartbeat_period_within_20_percent(sim_bench, sim_interface):
     node.sdo[0x1017].raw = round(period * 1000)
     mark = rec.mark()
     frames = rec.wait_for_count(11, bench.within(11 * period), 0x701, since=mark)
-    # the producer runs on absolute deadlines: the mean over 10 periods is robust to jitter
-    mean = (frames[-1].time - frames[1].time) / 9
-    assert 0.8 * period <= mean <= 1.2 * period, mean
+    # the producer runs on absolute deadlines, restarted from "now" only after a stall
+    # past a whole period (no burst of catch-up beats): a late wake-up makes one interval
+    # long and the next short, a stall one interval long; the median of the ten is the
+    # period it keeps (the mean moved 27 % with one stall of a loaded VM's timer)
+    gaps = [b.time - a.time for a, b in zip(frames, frames[1:])]
+    assert 0.8 * period <= statistics.median(gaps) <= 1.2 * period, gaps
     node.sdo[0x1017].raw = 0
     mark = bench.barrier()
     bench.nmt(NmtCommand.START)  # the recorder has seen everything sent before this
