@@ -61,6 +61,11 @@ _COB_ID_SUB1 = ((0x1200, 0x12FF), (0x1400, 0x15FF), (0x1800, 0x19FF))
 _COB_ID_SUB0 = (0x1012, 0x1014)
 
 
+#: the largest EDS/DCF read: vendors' files are up to ~0.2 MiB; this bounds what a wrong
+#: file (a log, an image) costs to read and parse
+MAX_DEVICE_FILE_BYTES = 8 << 20
+
+
 class DeviceFileError(ValueError):
     """The file cannot be read as an EDS/DCF at all (not found, not INI text)."""
 
@@ -152,9 +157,12 @@ def read_device_file(path: str) -> DeviceFile:
     """Read and normalise an EDS/DCF; DeviceFileError (one line, naming the file) when it is
     not one."""
     try:  # (a FIFO or a device would hang the command: user_files.py)
-        raw = read_regular(path)
+        raw = read_regular(path, MAX_DEVICE_FILE_BYTES + 1)
     except OSError as exc:
         raise DeviceFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if len(raw) > MAX_DEVICE_FILE_BYTES:
+        raise DeviceFileError(f"{path}: larger than {MAX_DEVICE_FILE_BYTES >> 20} MiB; not an "
+                              "EDS/DCF (the largest vendor files are ~0.2 MiB)")
     notes: list[str] = []
     try:
         text = raw.decode("utf-8-sig")

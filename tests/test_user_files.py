@@ -13,7 +13,11 @@ import yaml
 from fixtures.fifo import FIFO_WAIT, fifo, without_hanging
 from test_config import good
 
-from rocoma_can.drivers.device_file import DeviceFileError, read_device_file
+from rocoma_can.drivers.device_file import (
+    MAX_DEVICE_FILE_BYTES,
+    DeviceFileError,
+    read_device_file,
+)
 from rocoma_can.user_files import NotRegularFile, read_regular
 
 
@@ -102,3 +106,13 @@ def test_check_config_says_a_zenoh_config_file_it_cannot_read(tmp_path, what):
     assert done.returncode == 2, done
     assert f"{path}: zenoh.config_file: {tmp_path}/z.json5{' ' if what == 'fifo' else ''}" \
         f"{said}" in done.stdout, done.stdout
+
+
+def test_a_device_file_past_the_size_limit_is_refused_unparsed(tmp_path):
+    """A wrong file (a log, an image) named as an EDS costs a bounded read, then one line."""
+    path = tmp_path / "huge.eds"
+    with path.open("wb") as f:
+        f.write(b"[1000]\nParameterName=Device type\n")
+        f.truncate(MAX_DEVICE_FILE_BYTES + 1)
+    with pytest.raises(DeviceFileError, match=r"huge.eds: larger than 8 MiB; not an EDS/DCF"):
+        read_device_file(str(path))
