@@ -10,10 +10,9 @@ import difflib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
-from pathlib import Path
 from typing import Any, Literal
 
-from ..user_files import kind
+from ..user_files import not_regular
 from . import cia301
 from .cia402 import MAX_AXES
 from .identity import Identity, identity_from_config
@@ -320,15 +319,9 @@ class DriveConfig:
         if not isinstance(self.bus, str):
             raise ValueError(f"{where}: bus must be the name of a bus, got {self.bus!r}")
         self.identity = identity_from_config(self.identity, where)
-        if self.eds is not None:
-            try:
-                what = kind(Path(self.eds).stat().st_mode)
-            except OSError as exc:
-                raise ValueError(f"{where}: eds file {self.eds!r}: "
-                                 f"{exc.strerror or exc}") from None
-            if what is not None:  # (a FIFO would hang reading it: user_files.py)
-                raise ValueError(f"{where}: eds file {self.eds!r} is {what}, not a regular "
-                                 "file")
+        wrong = not_regular(self.eds) if self.eds is not None else None
+        if wrong is not None:  # (a FIFO would hang reading it: user_files.py)
+            raise ValueError(f"{where}: eds file {self.eds!r}{wrong}")
 
     def _take_limits(self, where: str) -> None:
         """``limits:`` sets the manager's limits too (one set of numbers for both); an old

@@ -30,6 +30,16 @@ def kind(mode: int) -> str | None:
         (stat.S_ISBLK, "a block device")) if test(mode)), "a special file")
 
 
+def not_regular(path: str | Path) -> str | None:
+    """What is wrong with ``path`` as a file to read later (a config's check: missing, or
+    ``is a FIFO (named pipe), not a regular file``), None when it is a regular file."""
+    try:
+        what = kind(Path(path).stat().st_mode)
+    except OSError as exc:
+        return f": {exc.strerror or exc}"
+    return None if what is None else f" is {what}, not a regular file"
+
+
 def _regular(mode: int) -> None:
     what = kind(mode)
     if what is not None:

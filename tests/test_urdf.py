@@ -3,16 +3,14 @@ hand, hostile and broken files refused in one line naming the file, and ``urdf:`
 with the config (rocoma_can/runtime/config_check.py)."""
 from __future__ import annotations
 
-import contextlib
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import yaml
-from fixtures.fifo import FIFO_WAIT, without_hanging
+from fixtures.fifo import FIFO_WAIT, fifo, without_hanging
 from test_config import good
 
 from rocoma_can.cli.demo_config import demo_urdf
@@ -182,17 +180,14 @@ def test_only_a_regular_file_is_read(tmp_path, kind):
     device could go on for ever: each is refused, unread, in one line."""
     path = tmp_path / "robot.urdf"
     if kind == "fifo":
-        os.mkfifo(path)
-    elif kind == "directory":
-        path.mkdir()
+        with fifo(path):
+            caught = without_hanging(lambda: read_urdf(path))
     else:
-        path = Path("/dev/zero")
-    try:
+        if kind == "directory":
+            path.mkdir()
+        else:
+            path = Path("/dev/zero")
         caught = without_hanging(lambda: read_urdf(path))
-    finally:
-        if kind == "fifo":  # a reader still waiting (the test failed) is let go
-            with contextlib.suppress(OSError):
-                os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
     expected = {"fifo": "a FIFO (named pipe)", "directory": "a directory",
                 "device": "a character device"}[kind]
     assert isinstance(caught, UrdfError)
@@ -255,15 +250,11 @@ def test_a_drive_on_a_fixed_joint_would_never_move(tmp_path):
 def test_check_config_refuses_a_fifo_as_the_urdf(tmp_path):
     """check-config (and run, which loads the config the same way) on a config whose
     urdf: is a FIFO: a usage error naming the key and the path, at once."""
-    os.mkfifo(tmp_path / "arm.urdf")
     config = _config_file(tmp_path, urdf="arm.urdf")
-    try:
+    with fifo(tmp_path / "arm.urdf"):
         done = subprocess.run([sys.executable, "-m", "rocoma_can.cli.main", "check-config",
                                str(config)], capture_output=True, text=True,
                               timeout=FIFO_WAIT + 30)
-    finally:
-        with contextlib.suppress(OSError):
-            os.close(os.open(tmp_path / "arm.urdf", os.O_WRONLY | os.O_NONBLOCK))
     assert done.returncode == 2, done
     assert done.stdout.splitlines() == [
         f"{config}: urdf: {tmp_path}/arm.urdf: a FIFO (named pipe), not a regular file; a "

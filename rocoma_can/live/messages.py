@@ -82,11 +82,13 @@ MANAGER_CHANNELS = (JOINT_STATES, MANAGER, STATUS, LOG)
 ROBOT = (ROBOT_DESCRIPTION, TRANSFORMS)
 
 _ERROR = {"type": "string", "description": "why it was refused or failed"}
-_STATE = {"type": "object", "properties": {
+_STATE_ANSWER = _schema("rocoma.StateAnswer", {
     "ok": {"type": "boolean"}, "state": {"type": "string"},
     "pending": {"type": "boolean", "description": "the loop had not acted on it yet"},
-    "error": _ERROR}}
-_ANYTHING = {"description": "anything: a stop acts whatever it carries (never read)"}
+    "error": _ERROR})
+_STOP_REQUEST = {"title": "rocoma.StopRequest",
+                 "description": "anything: a stop acts whatever it carries (never read)"}
+_EMPTY_REQUEST = _schema("rocoma.EmptyRequest", {})
 #: each service's request and answer as JSON schemas (what Foxglove's Service Call panel
 #: shows): a switch names its controller; a stop reads nothing; clear and recover take
 #: nothing; every answer may instead be ``{"ok": false, "error"}`` when the manager's
@@ -98,13 +100,10 @@ SERVICES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
         _schema("rocoma.SwitchAnswer", {
             "result": {"enum": ["SWITCHED", "RUNNING", "NOT_FOUND", "ERROR"]},
             "ok": {"type": "boolean"}, "error": _ERROR})),
-    "estop": ({"title": "rocoma.StopRequest", **_ANYTHING},
-              {"title": "rocoma.StateAnswer", **_STATE}),
-    "failproof": ({"title": "rocoma.StopRequest", **_ANYTHING},
-                  {"title": "rocoma.StateAnswer", **_STATE}),
-    "clear": (_schema("rocoma.EmptyRequest", {}), {"title": "rocoma.StateAnswer", **_STATE}),
-    "recover": (_schema("rocoma.EmptyRequest", {}),
-                {"title": "rocoma.StateAnswer", **_STATE}),
+    "estop": (_STOP_REQUEST, _STATE_ANSWER),
+    "failproof": (_STOP_REQUEST, _STATE_ANSWER),
+    "clear": (_EMPTY_REQUEST, _STATE_ANSWER),
+    "recover": (_EMPTY_REQUEST, _STATE_ANSWER),
 }
 
 

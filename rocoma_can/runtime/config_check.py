@@ -27,7 +27,7 @@ from ..drivers.pdo_layout import cob_id_clashes
 from ..drivers.wire import MAX_DATA_BITRATE
 from ..live.urdf import MOVABLE, Robot, UrdfError, read_urdf
 from ..manager import TimingSupervision
-from ..user_files import kind
+from ..user_files import not_regular
 from .bus_load import BusLoad, bus_load
 from .loop import spin_fits
 
@@ -512,10 +512,6 @@ def _is_int(value: Any) -> bool:
 def check_regular(key: str, path: str, problems: list[str]) -> None:
     """A file the config names that is read later (``zenoh.config_file``): a problem when
     it is missing or not a regular file (a FIFO would hang the reading: user_files.py)."""
-    try:
-        what = kind(Path(path).stat().st_mode)
-    except OSError as exc:
-        problems.append(f"{key}: {path}: {exc.strerror or exc}")
-        return
-    if what is not None:
-        problems.append(f"{key}: {path} is {what}, not a regular file")
+    wrong = not_regular(path)
+    if wrong is not None:
+        problems.append(f"{key}: {path}{wrong}")
