@@ -21,7 +21,7 @@ cache and sees only the scheduler and a slow CPU; at 4 MiB, past the core's seco
 cache, it also sees the memory other programs on the host share. On the 2-core VM these
 benchmarks run on the two differ: 300-400 µs at 1 kHz overran 0-12 times in 8,000 cycles
 at footprint 0, and 0-867 at 4 MiB, whose median differed by up to 1.5x from one run to
-the next (benchmarks/README.md).
+the next (benchmarks/HISTORY.md).
 
 Per rate, footprint and work: cycles, overruns (the loop's own count,
 rocoma_can/overrun.py) and their share, how many of them were on the CPU (the work itself

@@ -51,7 +51,7 @@ the middle of a cycle; the receive thread stands by, and reads the buses again w
 loop has not called for LOCKSTEP_GRACE. Measured on 2 cores with 12 drives on 4 buses at
 1 kHz: the simulator on its thread cost ~0.5 ms of CPU a cycle against ~0.3 ms stepped
 in lockstep (hand-overs of the GIL cost more than the simulation), and tripped TPDO
-supervision where lockstep holds (benchmarks/README.md).
+supervision where lockstep holds (benchmarks/HISTORY.md).
 
 Buses one thread cannot wait on together (python-can's ``virtual`` hands frames over a
 queue per bus) get a receive thread per segment, as a lone segment has (no lockstep). A

@@ -17,7 +17,7 @@ Either way the demo sees one ``DemoSimulator``.
 drives' process halved the loop's work per cycle (and, in the demo without recording, its
 overruns), but it is a third busy process (~0.4 of a core): with recording on, the loop,
 the writer and the drives on two cores overran 1-3x as often as with the lockstep
-simulator (benchmarks/README.md). ``--sim process`` is for a host with a core for each.
+simulator (benchmarks/HISTORY.md). ``--sim process`` is for a host with a core for each.
 """
 from __future__ import annotations
 

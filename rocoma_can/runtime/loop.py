@@ -65,7 +65,7 @@ DEFAULT_SPIN = 0.0005
 #: woken ahead of one that kept running. ``loop_run.py --drives 12 --buses 4 --rate 2000
 #: --fd`` beside two nice-19 CPU hogs missed 6,451 of 23,680 cycles yielding every turn,
 #: 254-480 of ~30,000 always sleeping and 595-873 so; quiet, 4-25 yielding, 30-185
-#: sleeping, 12-27 so (benchmarks/README.md).
+#: sleeping, 12-27 so (benchmarks/HISTORY.md).
 YIELD_LATE = 1.0
 YIELD_PAUSE = 5.0
 PLAIN_SPIN = 0.0001
