@@ -228,9 +228,37 @@ class ObjectDictionaryServer:
                     self.assumed[key] = self.defaults[key]
                 else:
                     self.defaults[key] = _empty(var.data_type)
+        #: default PDO mappings naming an object the file does not describe (or cannot be
+        #: a PDO's): mapping index -> that entry; the drive starts with the PDO unmapped
+        self.unmapped: dict[int, str] = {}
+        self._unmap_undescribed_defaults()
         self.values: dict[Key, Any] = dict(self.defaults)
         self._sdo = BlockUploadServer(c301.SDO_RX + node_id, c301.SDO_TX + node_id, self)
         self._sdo.network = _SdoLink(send)  # type: ignore[assignment]  # send_message only
+
+    def _unmap_undescribed_defaults(self) -> None:
+        """A file's default mapping may name an object the file does not list (or one of a
+        type no PDO carries): the real drive has it, this simulation cannot emulate it. That
+        PDO starts unmapped (0 objects), as if its drive had been cleared; a master remaps a
+        writable mapping at bring-up anyway (a fixed one naming it is refused by planning)."""
+        for index in (*range(0x1600, 0x1604), *range(0x1A00, 0x1A04)):
+            count = self.defaults.get((index, 0))
+            if not isinstance(count, int) or count <= 0:
+                continue
+            for sub in range(1, count + 1):
+                entry = self.defaults.get((index, sub))
+                try:
+                    if not isinstance(entry, int):
+                        raise SdoAbortedError(ABORT_NO_SUBINDEX)
+                    var = self.var(entry >> 16, (entry >> 8) & 0xFF)
+                except SdoAbortedError:
+                    var = None
+                if var is None or not isinstance(var.STRUCT_TYPES.get(var.data_type),
+                                                 struct.Struct):
+                    self.defaults[(index, 0)] = 0
+                    self.unmapped[index] = (f"0x{entry >> 16:04X}:{(entry >> 8) & 0xFF}"
+                                            if isinstance(entry, int) else f"sub-index {sub}")
+                    break
 
     def request(self, data: bytes) -> None:
         """One SDO request frame from a client."""

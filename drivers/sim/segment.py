@@ -192,6 +192,11 @@ class SimulatedSegment:
                      eds, ", ".join(f"0x{i:04X}:{s} = {v if v < 10 else hex(v)}"
                                     for (i, s), v in sorted(assumed.items())
                                     if isinstance(v, int) and not 0x2000 <= i < 0x6000))
+        unmapped = next(iter(self.drives.values())).objects.unmapped if self.drives else {}
+        if unmapped:
+            log.warning("simulated drives of %s: the file's default mapping of %s names an "
+                        "object it does not describe: that PDO starts unmapped", eds,
+                        ", ".join(f"0x{i:04X} ({entry})" for i, entry in sorted(unmapped.items())))
         self._last_step: float | None = None
         # A SegmentGroup that steps its segments' joints together (group.py) leaves a SYNC's
         # dynamics step to itself: ``deferred_dt`` is the step this segment's drives are
