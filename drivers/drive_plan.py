@@ -148,7 +148,13 @@ def plan_drive(drive: DriveConfig,
                         f"0x{caps.device_type:08X})")
     guarded = _guarding(drive, caps, problems, notes)
     problems += _mode_problems(drive, caps)
-    if len(drive.modes) > 1 and not caps.carries(cia402.MODES_OF_OPERATION):
+    if not caps.writable(cia402.MODES_OF_OPERATION):
+        # not even by SDO: the drive would run whatever mode it powers up in
+        problems.append(f"0x6060 (modes of operation): {caps.source} "
+                        + ("has no 0x6060:0" if not caps.has(cia402.MODES_OF_OPERATION)
+                           else "gives 0x6060:0 no write access")
+                        + f", so mode {drive.modes[0].name} cannot be set (by PDO or SDO)")
+    elif len(drive.modes) > 1 and not caps.carries(cia402.MODES_OF_OPERATION):
         problems.append(f"0x6060 (modes of operation): "
                         f"{caps.why_not_carried(cia402.MODES_OF_OPERATION)}, so the mode is "
                         "set once by SDO at start-up and cannot change in the cycle: "

@@ -5,6 +5,7 @@ file, the object and why.
 
     a default PDO mapping naming an object the file does not describe (a vendor object
     left out of the file): the simulator starts that PDO unmapped, the master remaps it
+    a file without 0x6060, or with a read-only one: no mode can be set, refused at planning
 """
 from __future__ import annotations
 
@@ -60,3 +61,25 @@ def test_a_default_mapping_naming_an_undescribed_object_runs(tmp_path, sim_segme
         in caplog.text
     plan_drive(drive(path))  # check-config: a writable mapping is the master's to set
     walk_through(path)
+
+
+@pytest.mark.parametrize("edit, why", [
+    ("drop", "has no 0x6060:0"),
+    ("ro", "gives 0x6060:0 no write access")])
+def test_a_file_where_no_mode_can_be_set_is_refused_in_one_line(tmp_path, edit, why, capsys):
+    """Without a writable 0x6060 check-config said the mode is "set by SDO at start-up",
+    and bring-up then failed on every drive (SDO abort 0x06020000)."""
+    text = (EDS / "minimal.eds").read_text()
+    edits = [(text[text.index("[6060]"):text.index("[6061]")], "")] if edit == "drop" else [(
+        "[6060]\nParameterName=Modes of operation\nObjectType=0x7\nDataType=0x0002\n"
+        "AccessType=rw", "[6060]\nParameterName=Modes of operation\nObjectType=0x7\n"
+        "DataType=0x0002\nAccessType=ro")]
+    edits.append(("DefaultValue=0x60600008", "DefaultValue=0x00000000"))
+    path = variant(tmp_path, f"mode_{edit}.eds", *edits)
+    expected = f"0x6060 (modes of operation): {path} {why}, so mode CSP cannot be set"
+    with pytest.raises(ValueError, match=expected.replace("(", r"\(").replace(")", r"\)")):
+        plan_drive(drive(path))
+    from rocoma_can.cli.main import main
+    assert main(["demo", "--eds", path, "--no-record"]) == 2
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and expected in out[0], out
