@@ -175,6 +175,7 @@ def read_device_file(path: str) -> DeviceFile:
     if not any(_object_key(name) is not None for name in sections):
         raise DeviceFileError(f"{path}: not an EDS/DCF file (no object sections such as "
                               "[1000])")
+    _expand_compact(sections)
     device = DeviceFile(path, sections, notes)
     _normalise_objects(device)
     commissioning = sections.get("DeviceComissioning", {})
@@ -215,6 +216,50 @@ def _parse(path: str, text: str, notes: list[str]) -> dict[str, dict[str, str]]:
         notes.append(f"{len(duplicates)} duplicate key(s), the last one used: "
                      + ", ".join(duplicates[:3]) + (" ..." if len(duplicates) > 3 else ""))
     return sections
+
+
+def _expand_compact(sections: dict[str, dict[str, str]]) -> None:
+    """An array given as ``CompactSubObj=N`` (CiA 306: sub-objects 1..N alike, their names in
+    ``[xxxxName]``, a DCF's values in ``[xxxxValue]``) written out as its sub-objects:
+    canopen keeps only sub-index 1 of such an array, so a compact PDO mapping of eight
+    entries would read as one. Sub-index 0 is the highest sub-index, except where CiA 301
+    gives it another meaning: a PDO mapping's count of mapped objects (its leading non-zero
+    entries, writable as its entries are) and 0x1003's count of errors (0)."""
+    for name in list(sections):
+        keys = sections.get(name, {})  # (a [xxxxName] or [xxxxValue] is gone once read)
+        count = _int(keys.get("CompactSubObj", ""))
+        if not _INDEX_SECTION.fullmatch(name) or "sub" in name or count is None \
+                or not 1 <= count <= 254:
+            continue
+        index = int(name, 16)
+        names = sections.pop(f"{name}Name", {})
+        values = sections.pop(f"{name}Value", {})
+        sections.pop(f"{name}Denotation", None)
+        title = keys.get("ParameterName", f"0x{name}")
+        subs: dict[str, dict[str, str]] = {}
+        for n in range(1, count + 1):
+            sub = {"ParameterName": names.get(str(n), f"{title} {n}"), "ObjectType": "0x7"}
+            sub |= {k: v for k, v in keys.items() if k in (
+                "DataType", "AccessType", "PDOMapping", "DefaultValue", "LowLimit", "HighLimit")}
+            if values.get(str(n), "").strip():
+                sub["ParameterValue"] = values[str(n)]
+            subs[f"{name}sub{n:X}"] = sub
+        mapping = 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00
+        if mapping:
+            given = [_int(sub.get("ParameterValue", sub.get("DefaultValue", "")))
+                     for sub in subs.values()]
+            first = next((n for n, entry in enumerate(given) if not entry), len(given))
+        sub0 = {"ParameterName": "Highest sub-index supported", "ObjectType": "0x7",
+                "DataType": "0x0005", "PDOMapping": "0",
+                "AccessType": keys.get("AccessType", "ro") if mapping or index == 0x1003
+                else "ro",
+                "DefaultValue": str(first if mapping else 0 if index == 0x1003 else count)}
+        sections[name] = {k: v for k, v in keys.items() if k in (
+            "ParameterName", "ObjectType", "StorageLocation", "ObjFlags")}
+        sections[name]["SubNumber"] = str(count + 1)
+        sections.setdefault(f"{name}sub0", sub0)
+        for sub_name, sub in subs.items():
+            sections.setdefault(sub_name, sub)
 
 
 def _section_name(name: str) -> str:

@@ -6,10 +6,12 @@ file, the object and why.
     a default PDO mapping naming an object the file does not describe (a vendor object
     left out of the file): the simulator starts that PDO unmapped, the master remaps it
     a file without 0x6060, or with a read-only one: no mode can be set, refused at planning
+    PDO mapping objects written with CompactSubObj: every entry counts, not sub-index 1
 """
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import pytest
@@ -83,3 +85,54 @@ def test_a_file_where_no_mode_can_be_set_is_refused_in_one_line(tmp_path, edit, 
     assert main(["demo", "--eds", path, "--no-record"]) == 2
     out = capsys.readouterr().out.strip().splitlines()
     assert len(out) == 1 and expected in out[0], out
+
+
+def without(text: str, index: str) -> str:
+    """``text`` without object ``index``: its section and its sub-sections."""
+    kept = re.split(r"\n(?=\[)", text)
+    return "\n".join(part for part in kept
+                     if not part.startswith((f"[{index}]", f"[{index}sub")))
+
+
+def _compact(text: str, index: str, entries: int, values: list[str] | None) -> str:
+    """[index] written as CiA 306's compact array: its sub-sections gone, CompactSubObj=N,
+    a DCF-style [indexValue] section with ``values``."""
+    lines, out, skip = text.splitlines(), [], False
+    for line in lines:
+        if line.startswith("["):
+            skip = line.startswith(f"[{index}sub")
+            if line == f"[{index}]":
+                out += [line, f"ParameterName=Mapping {index}", "ObjectType=0x8",
+                        "DataType=0x0007", "AccessType=rw", "PDOMapping=0",
+                        f"CompactSubObj={entries}", "DefaultValue=0", ""]
+                skip = True
+                continue
+        if not skip:
+            out.append(line)
+    if values is not None:
+        out += ["", f"[{index}Value]", f"NrOfEntries={len(values)}"]
+        out += [f"{n}={v}" for n, v in enumerate(values, start=1)]
+    return "\n".join(out) + "\n"
+
+
+def test_a_compact_pdo_mapping_has_all_its_entries(tmp_path):
+    """One RPDO and one TPDO, their mapping objects written with CompactSubObj=8: canopen
+    keeps sub-index 1 only, so the drive read as "at most 1 objects each" and was refused
+    ("RPDO needs more PDOs ... than the 1 it lets us map"). They have eight entries each."""
+    from rocoma_can.drivers.capabilities import read_capabilities
+    text = (EDS / "minimal.eds").read_text()
+    for index in ("1401", "1402", "1403", "1601", "1602", "1603",
+                  "1801", "1802", "1803", "1A01", "1A02", "1A03"):  # one PDO each way
+        text = without(text, index)
+    text = _compact(text, "1600", 8, ["0x60400010", "0x60600008", "0x607A0020"])
+    text = _compact(text, "1A00", 8, None)
+    path = tmp_path / "compact.eds"
+    path.write_text(text)
+    caps = read_capabilities(str(path), 1)
+    (rpdo,), (tpdo,) = caps.rpdos, caps.tpdos
+    assert (rpdo.max_objects, tpdo.max_objects) == (8, 8)
+    assert rpdo.mapping == (0x60400010, 0x60600008, 0x607A0020) and rpdo.mapping_writable
+    assert tpdo.mapping == () and tpdo.mapping_writable  # entries 0: nothing mapped yet
+    plan = plan_drive(drive(str(path)))
+    assert [p.names for p in plan.layout.rpdos] == [("controlword", "mode", "target_position")]
+    walk_through(str(path))
