@@ -253,8 +253,8 @@ class ObjectDictionaryServer:
                     var = self.var(entry >> 16, (entry >> 8) & 0xFF)
                 except SdoAbortedError:
                     var = None
-                if var is None or not isinstance(var.STRUCT_TYPES.get(var.data_type),
-                                                 struct.Struct):
+                if var is None or var.data_type is None \
+                        or not isinstance(var.STRUCT_TYPES.get(var.data_type), struct.Struct):
                     self.defaults[(index, 0)] = 0
                     self.unmapped[index] = (f"0x{entry >> 16:04X}:{(entry >> 8) & 0xFF}"
                                             if isinstance(entry, int) else f"sub-index {sub}")
