@@ -16,6 +16,13 @@ reads the text once, repairs what has one reading, and hands canopen a normalise
 - numbers in decimal (leading zeros too), hex in either case, and two's-complement hex for
   signed types, rewritten as the decimal value they mean;
 - objects of a custom ``[TypeDefinitions]`` record type (manufacturer data) as domains;
+- names where a number belongs, as some tools write them (``ObjectType=VAR``,
+  ``DataType=UNSIGNED16``, ``PDOMapping=TRUE``), as that number; an object without a
+  ``ParameterName`` named by its index; a manufacturer object (0x2000-0x5FFF) that cannot
+  be read (no ``DataType``, a data type that is no number) left out, noted: rocoma-can
+  commands none; the same in a standard object refuses the file naming its section and key;
+- header values canopen reads as numbers ([DeviceInfo], [DeviceComissioning],
+  [DummyUsage], [Comments]) that are none: left out, noted;
 - a node-relative COB-ID (``DefaultValue=$NODEID+0x200``) whose ``ParameterValue`` was
   baked in for another node (``0x201``) is re-derived for the node id in use (noted).
 
@@ -164,6 +171,9 @@ def read_device_file(path: str) -> DeviceFile:
         raise DeviceFileError(f"{path}: larger than {MAX_DEVICE_FILE_BYTES >> 20} MiB; not an "
                               "EDS/DCF (the largest vendor files are ~0.2 MiB)")
     notes: list[str] = []
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):  # UTF-16 with its byte-order mark
+        raw = raw.decode("utf-16", errors="replace").encode("utf-8")
+        notes.append("UTF-16 text: read as such")
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -177,6 +187,8 @@ def read_device_file(path: str) -> DeviceFile:
                               "[1000])")
     _expand_compact(sections)
     device = DeviceFile(path, sections, notes)
+    _check_headers(device)
+    _check_objects(device)
     _normalise_objects(device)
     commissioning = sections.get("DeviceComissioning", {})
     node = _int(commissioning.get("NodeID", ""))
@@ -307,6 +319,113 @@ def _is_cob_id(key: Key) -> bool:
     if sub == 0:
         return index in _COB_ID_SUB0
     return sub == 1 and any(lo <= index <= hi for lo, hi in _COB_ID_SUB1)
+
+
+#: what files write where canopen reads a number
+_OBJECT_TYPES = {"NULL": 0x0, "DOMAIN": 0x2, "DEFTYPE": 0x5, "DEFSTRUCT": 0x6, "VAR": 0x7,
+                 "ARRAY": 0x8, "RECORD": 0x9}
+_DATA_TYPES = {name: code for name, code in vars(datatypes).items()
+               if name.isupper() and isinstance(code, int) and code <= 0x1B}
+_BOOLEANS = {"true": 1, "yes": 1, "false": 0, "no": 0}
+#: header keys canopen reads with int(): section -> keys (BaudRate_* too, in DeviceInfo)
+_HEADER_NUMBERS = {
+    "DeviceInfo": ("VendorNumber", "ProductNumber", "RevisionNumber", "SimpleBootUpMaster",
+                   "SimpleBootUpSlave", "Granularity", "DynamicChannelsSupported",
+                   "GroupMessaging", "NrOfRXPDO", "NrOfTXPDO", "LSS_Supported"),
+    "DeviceComissioning": ("NodeID", "Baudrate"),
+    "DummyUsage": tuple(f"Dummy{n:04d}" for n in range(1, 8))}
+
+
+def _number(value: str, names: dict[str, int]) -> int | None:
+    """A number as files write it, or one of ``names`` (any case); None for neither."""
+    number = _int(value)
+    return number if number is not None else names.get(value.strip().upper(),
+                                                        names.get(value.strip().lower()))
+
+
+def _check_headers(device: DeviceFile) -> None:
+    """canopen reads these header values with int() and fails the whole file on one that is
+    not a number; rocoma-can needs none of them to run a drive (init-config matches a file
+    by VendorNumber/ProductNumber: a file without them matches none)."""
+    sections, dropped = device.sections, []
+    sections.pop("Comments", None)  # free text; canopen counts its lines with int()
+    for section, names in _HEADER_NUMBERS.items():
+        keys = sections.get(section)
+        if keys is None:
+            continue
+        for key in (*names, *(k for k in keys if k.startswith("BaudRate_"))):
+            if key in keys and _number(keys[key], _BOOLEANS) is None:
+                dropped.append(f"[{section}] {key}={keys.pop(key)}")
+            elif key in keys:
+                keys[key] = str(_number(keys[key], _BOOLEANS))
+        if section == "DummyUsage":  # canopen reads all seven
+            for key in names:
+                keys.setdefault(key, "0")
+    if dropped:
+        device.notes.append("header values that are not numbers left out: "
+                            + ", ".join(dropped[:4])
+                            + (f" and {len(dropped) - 4} more" if len(dropped) > 4 else ""))
+
+
+def _check_objects(device: DeviceFile) -> None:
+    """What canopen's importer needs of every object section, checked before it reads them
+    (it fails on the first, naming neither section nor key): names for numbers rewritten,
+    a missing ParameterName given; a manufacturer object that cannot be read is left out,
+    a standard one refuses the file in one line naming the section and the key."""
+    sections = device.sections
+    broken: dict[int, str] = {}
+    for name, keys in sections.items():
+        key = _object_key(name)
+        if key is None:
+            continue
+        problem = _object_problem(name, key, keys, sections)
+        if problem is not None:
+            broken.setdefault(key[0], problem)
+    left_out = []
+    for index, problem in sorted(broken.items()):
+        if not 0x2000 <= index < 0x6000:
+            raise DeviceFileError(f"{device.path}: {problem}")
+        for name in [n for n in sections if (_object_key(n) or (-1, 0))[0] == index]:
+            del sections[name]
+        left_out.append(f"0x{index:04X} ({problem})")
+    if left_out:
+        device.notes.append("manufacturer objects that cannot be read left out (rocoma-can "
+                            "commands none): " + "; ".join(left_out[:3])
+                            + (f" and {len(left_out) - 3} more" if len(left_out) > 3 else ""))
+
+
+def _object_problem(name: str, key: Key, keys: dict[str, str],
+                    sections: dict[str, dict[str, str]]) -> str | None:
+    index, sub = key
+    keys.setdefault("ParameterName", f"0x{index:04X}" + (f" sub {sub}" if sub else ""))
+    if "sub" in name:
+        parent = sections.get(f"{index:04X}")
+        if parent is None:
+            return f"[{name}] is a sub-index of [{index:04X}], which the file does not have"
+        parent_type = _number(parent.get("ObjectType", "7"), _OBJECT_TYPES)
+        if parent_type in (0x7, 0x2):
+            return None  # canopen reads a sub-index of a variable as nothing: as the drive
+    elif "ObjectType" in keys:
+        object_type = _number(keys["ObjectType"], _OBJECT_TYPES)
+        if object_type is None:
+            return f"[{name}] ObjectType={keys['ObjectType']} is not an object type " \
+                   "(0x7 VAR, 0x8 ARRAY, 0x9 RECORD)"
+        keys["ObjectType"] = f"0x{object_type:X}"
+        if object_type not in (0x7, 0x2):
+            return None  # an array or record: its sub-indices carry the values
+    for needed in ("DataType", "AccessType"):
+        if not keys.get(needed):
+            return f"[{name}] has no {needed}"
+    data_type = _number(keys["DataType"], _DATA_TYPES)
+    if data_type is None:
+        return f"[{name}] DataType={keys['DataType']} is not a data type"
+    keys["DataType"] = f"0x{data_type:04X}"
+    if "PDOMapping" in keys:
+        mappable = _number(keys["PDOMapping"], _BOOLEANS)
+        if mappable not in (0, 1):
+            return f"[{name}] PDOMapping={keys['PDOMapping']} is neither 0 nor 1"
+        keys["PDOMapping"] = str(mappable)
+    return None
 
 
 def _normalise_objects(device: DeviceFile) -> None:

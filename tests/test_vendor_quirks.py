@@ -7,6 +7,10 @@ file, the object and why.
     left out of the file): the simulator starts that PDO unmapped, the master remaps it
     a file without 0x6060, or with a read-only one: no mode can be set, refused at planning
     PDO mapping objects written with CompactSubObj: every entry counts, not sub-index 1
+    names where numbers belong (ObjectType=VAR, DataType=UNSIGNED16, PDOMapping=TRUE), a
+    missing ParameterName, header values that are no numbers, UTF-16 text: read
+    a manufacturer object canopen cannot read: left out, noted; a standard one: refused
+    naming its section and key
 """
 from __future__ import annotations
 
@@ -136,3 +140,85 @@ def test_a_compact_pdo_mapping_has_all_its_entries(tmp_path):
     plan = plan_drive(drive(str(path)))
     assert [p.names for p in plan.layout.rpdos] == [("controlword", "mode", "target_position")]
     walk_through(str(path))
+
+
+CONTROLWORD = ("[6040]\nParameterName=Controlword\nObjectType=0x7\nDataType=0x0006\n"
+               "AccessType=rw\nDefaultValue=0\nPDOMapping=1\n")
+VENDOR_OBJECT = ("\n[2100]\nParameterName=Vendor tuning\nObjectType=0x7\nDataType={type}\n"
+                 "AccessType=rw\nDefaultValue=0\n")
+
+
+def test_names_where_numbers_belong_are_read_as_those_numbers(tmp_path):
+    """Hand-written files spell ObjectType, DataType and PDOMapping by name; canopen read the
+    file as "not a readable EDS/DCF file (ValueError: invalid literal for int() with base 0:
+    'UNSIGNED16')", naming neither the object nor the key."""
+    from rocoma_can.drivers.capabilities import read_capabilities
+    path = variant(tmp_path, "named.eds", (CONTROLWORD, CONTROLWORD.replace(
+        "ObjectType=0x7", "ObjectType=VAR").replace("DataType=0x0006", "DataType=Unsigned16")
+        .replace("PDOMapping=1", "PDOMapping=TRUE").replace("ParameterName=Controlword\n", "")),
+        ("VendorNumber=0x00000000", "VendorNumber=ACME"), ("Lines=0", "Lines=some"))
+    caps = read_capabilities(path, 1)
+    controlword = caps.object_dictionary[0x6040]
+    assert (controlword.data_type, controlword.pdo_mappable, controlword.name) == \
+        (0x0006, True, "0x6040")
+    assert any("[DeviceInfo] VendorNumber=ACME" in note for note in caps.file_notes)
+    plan_drive(drive(path))
+
+
+@pytest.mark.parametrize("vendor_type", ["", "0x00ZZ", "FLOAT"])
+def test_a_manufacturer_object_that_cannot_be_read_is_left_out(tmp_path, vendor_type):
+    """A vendor object without a data type, or with one that is no data type, made the whole
+    file unreadable, though rocoma-can commands no manufacturer object: it is left out, and
+    the file's notes say which and why."""
+    from rocoma_can.drivers.capabilities import read_capabilities
+    path = variant(tmp_path, "vendor.eds",
+                   add=VENDOR_OBJECT.format(type=vendor_type) + "\n[2101sub1]\n"
+                   "ParameterName=orphan\nDataType=0x0007\nAccessType=rw\n")
+    caps = read_capabilities(path, 1)
+    assert 0x2100 not in caps.object_dictionary and 0x2101 not in caps.object_dictionary
+    note = next(n for n in caps.file_notes if n.startswith("manufacturer objects"))
+    assert "0x2100 ([2100] " in note and "0x2101 ([2101sub1] is a sub-index of [2101]" in note
+    plan_drive(drive(path))
+
+
+@pytest.mark.parametrize("edit, problem", [
+    (("DataType=0x0006", "DataType=0x00ZZ"), "[6040] DataType=0x00ZZ is not a data type"),
+    (("DataType=0x0006\n", ""), "[6040] has no DataType"),
+    (("AccessType=rw\nDefaultValue=0\nPDOMapping=1", "DefaultValue=0\nPDOMapping=1"),
+     "[6040] has no AccessType"),
+    (("PDOMapping=1", "PDOMapping=maybe"), "[6040] PDOMapping=maybe is neither 0 nor 1"),
+    (("ObjectType=0x7", "ObjectType=THING"), "[6040] ObjectType=THING is not an object type"),
+])
+def test_a_standard_object_that_cannot_be_read_refuses_the_file_naming_it(
+        tmp_path, edit, problem, capsys):
+    from rocoma_can.drivers.capabilities import CapabilityError, read_capabilities
+    old, new = edit
+    path = variant(tmp_path, "broken.eds", (CONTROLWORD, CONTROLWORD.replace(old, new)))
+    with pytest.raises(CapabilityError) as refused:
+        read_capabilities(path, 1)
+    assert str(refused.value).startswith(f"{path}: {problem}")
+    from rocoma_can.cli.main import main
+    assert main(["demo", "--eds", path, "--no-record"]) == 2
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and problem in out[0], out
+
+
+def test_a_sub_index_without_its_object_refuses_the_file_naming_both(tmp_path):
+    from rocoma_can.drivers.capabilities import CapabilityError, read_capabilities
+    text = (EDS / "minimal.eds").read_text()
+    head = text[text.index("[1600]\n"):text.index("[1600sub0]")]
+    path = variant(tmp_path, "orphan.eds", (head, ""))
+    with pytest.raises(CapabilityError, match=re.escape(
+            "[1600sub0] is a sub-index of [1600], which the file does not have")):
+        read_capabilities(path, 1)
+
+
+def test_a_utf16_file_is_read(tmp_path):
+    """Some Windows tools save UTF-16 with a byte-order mark: it was refused with a garbled
+    line (its text read as Latin-1)."""
+    from rocoma_can.drivers.capabilities import read_capabilities
+    path = tmp_path / "utf16.eds"
+    path.write_bytes((EDS / "minimal.eds").read_text().encode("utf-16"))
+    caps = read_capabilities(str(path), 1)
+    assert "UTF-16 text: read as such" in caps.file_notes
+    plan_drive(drive(str(path)))
