@@ -222,3 +222,47 @@ def test_a_utf16_file_is_read(tmp_path):
     caps = read_capabilities(str(path), 1)
     assert "UTF-16 text: read as such" in caps.file_notes
     plan_drive(drive(str(path)))
+
+
+RESOLUTION = """
+[608F]
+ParameterName=Position encoder resolution
+ObjectType=0x9
+SubNumber=3
+
+[608Fsub0]
+ParameterName=Highest sub-index supported
+DataType=0x0005
+AccessType=const
+DefaultValue=2
+
+[608Fsub1]
+ParameterName=Encoder increments
+DataType=0x0007
+AccessType=rw
+DefaultValue=1
+
+[608Fsub2]
+ParameterName=Motor revolutions
+DataType=0x0007
+AccessType=rw
+DefaultValue=10
+"""
+
+
+@pytest.mark.parametrize("edits, add, problem", [
+    ((), RESOLUTION, "0x608F (position encoder resolution) is 1 increment(s) per 10 "
+     "revolutions: less than one a revolution"),
+    ((("DefaultValue=1000\nPDOMapping=0", "DefaultValue=-1\nPDOMapping=0"),), "",
+     "0x6076 (rated torque) is -1"),
+])
+def test_the_demo_refuses_a_scaling_it_cannot_use_naming_the_object(tmp_path, edits, add,
+                                                                     problem, capsys):
+    """The demo fits its joints' scaling to the file: 1 increment per 10 revolutions said
+    "increments_per_rev must be a positive integer, got 0", a rated torque of -1 "rated_torque_nm
+    must be a positive number, got -0.001": neither named the file's object."""
+    path = variant(tmp_path, "scaling.eds", *edits, add=add)
+    from rocoma_can.cli.main import main
+    assert main(["demo", "--eds", path, "--no-record"]) == 2
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and problem in out[0], out

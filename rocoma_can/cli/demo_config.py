@@ -84,6 +84,10 @@ def emulate(path: str, drives: int) -> Emulated:
                         caps.value(POSITION_ENCODER_RESOLUTION, 2))
     # without 0x608F a file's ramps (0x6084/0x6085) are in units the demo cannot know
     per_rev = int(increments // revs) if increments and revs else 1 << 12
+    if per_rev < 1:
+        raise ValueError(f"0x608F (position encoder resolution) is {increments} increment(s) "
+                         f"per {revs} revolutions: less than one a revolution, which no joint "
+                         "scaling can use")
     overrides: dict[tuple[int, int], int] = {}
     if not (increments and revs) and caps.has(QUICK_STOP_DECELERATION):
         overrides[(QUICK_STOP_DECELERATION, 0)] = 10 * per_rev
@@ -91,6 +95,8 @@ def emulate(path: str, drives: int) -> Emulated:
                      "drives stop at 10 turns/s² (0x6085)")
     motor, shaft = caps.value(GEAR_RATIO, 1), caps.value(GEAR_RATIO, 2)
     rated = caps.value(RATED_TORQUE) or 1000
+    if rated < 0:
+        raise ValueError(f"0x6076 (rated torque) is {rated}: no torque can be scaled by it")
     drive = {"eds": path, "increments_per_rev": per_rev, "rated_torque_nm": rated / 1000.0,
              "gear_ratio": motor / shaft if motor and shaft else 1.0}
     if not caps.supervised():
