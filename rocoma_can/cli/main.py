@@ -7,7 +7,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
@@ -62,17 +64,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return USAGE
-    try:
+    restore = stop_signals_interrupt()
+    try:  # (the sub-commands' imports too: a Ctrl-C at once is no traceback)
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+        logging.basicConfig(level=level,
+                            format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return USAGE
         return int(args.func(args) or OK)
     except KeyboardInterrupt:
         return INTERRUPTED
+    finally:
+        restore()
+
+
+def stop_signals_interrupt() -> Callable[[], None]:
+    """SIGTERM, where nothing else handles it, interrupts as Ctrl-C does (KeyboardInterrupt,
+    exit 130): a command's own handlers (the control loop's while it runs) take both, and
+    outside them, a stop signal while ``run`` closes (a second one, after the loop's
+    torque-off) still closes what it started, the writer process too; by default it ended
+    the process at once (exit 143), leaving a writer that did not answer running. Returns
+    what puts the previous handler back (nothing to do off the main thread)."""
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        return lambda: None
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -346,16 +346,22 @@ class Recorder:
     def close(self) -> None:
         """After the loop's last cycle: the writer writes everything (a last flight record
         after an e-stop), answers and ends; bounded by CLOSE_WAIT, then it is killed. A
-        writer that died has nothing more to say: no wait."""
+        writer that died has nothing more to say: no wait. A Ctrl-C during the wait (an
+        impatient second stop) kills the writer and goes on up: nothing is left running."""
         self._closing.set()
         try:
             self._queue.put_nowait(None)
         except queue.Full:  # the sender ends once it has sent what is queued
             pass
-        if not self._ended.wait(CLOSE_WAIT):
-            self._lost(f"the recording's writer process did not finish within "
-                       f"{CLOSE_WAIT:g} s")
-        self._stop_process()
+        try:
+            if not self._ended.wait(CLOSE_WAIT):
+                self._lost(f"the recording's writer process did not finish within "
+                           f"{CLOSE_WAIT:g} s")
+        except BaseException:
+            self._process.kill()  # (what it had not written yet is lost: asked for)
+            raise
+        finally:
+            self._stop_process()
 
     def _stop_process(self) -> None:
         stdin = self._process.stdin

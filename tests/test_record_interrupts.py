@@ -1,0 +1,122 @@
+"""Stops that come while the recording's writer is being closed (record/recorder.py's close,
+``rocoma-can run``'s end): an impatient second Ctrl-C or SIGTERM while the close waits for a
+writer that does not answer (stopped: SIGSTOP, a debugger, swapped out) still ends the
+writer, and the run exits with its documented code, leaving no process behind."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+import yaml
+from fixtures.budgets import within
+from fixtures.running import DEMO_WAIT, wait_for
+from test_config import good
+
+from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.exit_codes import INTERRUPTED
+from rocoma_can.record.recorder import BusToRecord, Recorder
+
+
+class _Manager:
+    active_controller_name = "pd"
+    estop_latched = False
+
+
+def _gone(pid: int) -> bool:
+    """No such process, or a zombie its parent has not reaped yet."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def _stopped(pid: int) -> bool:
+    with open(f"/proc/{pid}/stat") as stat:
+        return stat.read().rsplit(")", 1)[1].split()[0] == "T"
+
+
+def test_a_close_cut_short_by_ctrl_c_still_ends_a_writer_that_does_not_answer(tmp_path):
+    """The close waits (CLOSE_WAIT) for a writer that is stopped; a Ctrl-C meanwhile goes on
+    up (Runtime.close closes the other parts first), and the writer is ended on the way:
+    it was left stopped for ever, its shared memory with it."""
+    rec = Recorder(JointState.zeros(2), JointCommand.zeros(2), _Manager(), 100.0,
+                   [BusToRecord("arm", "vcan0", False)], controllers=["pd"],
+                   flight=str(tmp_path / "flight"))  # type: ignore[arg-type]
+    writer = rec._process
+    os.kill(writer.pid, signal.SIGSTOP)
+    try:
+        wait_for(lambda: _stopped(writer.pid), "the writer stopped", DEMO_WAIT)
+        impatient = threading.Timer(0.3, signal.pthread_kill,
+                                    (threading.main_thread().ident, signal.SIGINT))
+        impatient.start()
+        with pytest.raises(KeyboardInterrupt):
+            rec.close()
+        impatient.join()
+        wait_for(lambda: _gone(writer.pid), "the writer ended", DEMO_WAIT)
+        assert not [t for t in threading.enumerate() if t.name.startswith("recorder-")]
+    finally:
+        if writer.poll() is None:
+            writer.kill()
+            writer.wait(DEMO_WAIT)
+
+
+def _children(pid: int) -> list[int]:
+    with open(f"/proc/{pid}/task/{pid}/children") as children:
+        return [int(p) for p in children.read().split()]
+
+
+def _writer_of(pid: int) -> int:
+    for child in _children(pid):
+        with open(f"/proc/{child}/cmdline", "rb") as cmdline:
+            if b"rocoma_can.record.writer" in cmdline.read():
+                return child
+    raise AssertionError("no writer process")
+
+
+@pytest.mark.parametrize("second", [signal.SIGTERM, signal.SIGINT])
+def test_a_second_stop_signal_while_run_closes_exits_130_and_leaves_no_writer(tmp_path,
+                                                                             second):
+    """`run --record` whose writer is stopped: the first SIGTERM stops the loop (torque-off,
+    "stopped (signal SIGTERM)"), the close waits for the writer; a second stop signal then
+    (an operator's `kill` again, an impatient Ctrl-C) ends the run as an interruption, exit
+    130, no traceback, and the writer is not left behind (a SIGTERM killed the process
+    outright, exit 143, and the stopped writer stayed for ever)."""
+    cfg = good()
+    cfg["bus"] = {"interface": "virtual", "channel": f"nobody-{tmp_path.name}"}
+    cfg["drives"] = cfg["drives"][:1]
+    cfg["supervision"] = {"boot_wait": 0.0, "sdo_timeout": 0.05}
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    out, err = tmp_path / "out.txt", tmp_path / "err.txt"
+    with open(out, "w") as stdout, open(err, "w") as stderr:
+        run = subprocess.Popen([sys.executable, "-m", "rocoma_can", "run", str(path),
+                                "--record", str(tmp_path / "rec"), "--no-flight"],
+                               stdout=stdout, stderr=stderr, cwd=tmp_path)
+    writer = None
+    try:
+        wait_for(lambda: "recording every frame" in out.read_text(), "the run started",
+                 within(10.0))
+        writer = _writer_of(run.pid)
+        os.kill(writer, signal.SIGSTOP)
+        wait_for(lambda: _stopped(writer), "the writer stopped", DEMO_WAIT)
+        run.send_signal(signal.SIGTERM)
+        wait_for(lambda: "stopped (signal SIGTERM)" in out.read_text(), "the loop stopped",
+                 DEMO_WAIT)
+        time.sleep(0.2)  # into the close's wait for the writer
+        run.send_signal(second)
+        assert run.wait(DEMO_WAIT) == INTERRUPTED, err.read_text()
+        assert "Traceback" not in err.read_text(), err.read_text()
+        wait_for(lambda: _gone(writer), "the writer ended", DEMO_WAIT)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait(DEMO_WAIT)
+        if writer is not None and not _gone(writer):
+            os.kill(writer, signal.SIGKILL)
+
