@@ -120,3 +120,31 @@ def test_a_second_stop_signal_while_run_closes_exits_130_and_leaves_no_writer(tm
         if writer is not None and not _gone(writer):
             os.kill(writer, signal.SIGKILL)
 
+
+
+def test_a_writer_that_does_not_finish_is_said_once(tmp_path, monkeypatch, caplog):
+    """A stopped writer the close gives up on: "did not finish within" is the one line for
+    the flight recorder (its kill then also said "ended (exit code -9)": two errors for one
+    loss), and the recording keeps that one reason."""
+    from rocoma_can.record import recorder as recorder_module
+    monkeypatch.setattr(recorder_module, "CLOSE_WAIT", 0.5)
+    caplog.set_level("WARNING")
+    rec = Recorder(JointState.zeros(2), JointCommand.zeros(2), _Manager(), 100.0,
+                   [BusToRecord("arm", "vcan0", False)], controllers=["pd"],
+                   flight=str(tmp_path / "flight"),
+                   record=str(tmp_path / "rec"))  # type: ignore[arg-type]
+    writer = rec._process
+    os.kill(writer.pid, signal.SIGSTOP)
+    try:
+        rec.close()
+    finally:
+        if writer.poll() is None:
+            writer.kill()
+            writer.wait(DEMO_WAIT)
+    assert rec.flight is not None and rec.recording is not None
+    assert rec.flight.errors == ["the recording's writer process did not finish within "
+                                 "0.5 s: no flight records from now on"]
+    assert rec.recording.errors == ["the recording's writer process did not finish within "
+                                    "0.5 s"]
+    said = [r.getMessage() for r in caplog.records if r.name == recorder_module.__name__]
+    assert len(said) == 2, said  # one for the recording, one for the flight recorder

@@ -148,6 +148,7 @@ class Recorder:
         self.flight = FlightStatus(Path(flight)) if flight is not None else None
         self.recording = RecordingStatus(Path(record)) if record is not None else None
         self.events_dropped = 0
+        self._writer_lost = False  # said (_lost)
         self.status_errors = 0
         self._announce = announce
         self._view = view
@@ -310,7 +311,12 @@ class Recorder:
             self._ended.set()
 
     def _lost(self, reason: str) -> None:
-        """The writer is gone or stuck: said for the recording and the flight recorder."""
+        """The writer is gone or stuck: said for the recording and the flight recorder,
+        once (a stuck writer the close gives up on is then killed, and ends)."""
+        if self._writer_lost:
+            log.debug("the recording's writer process: %s", reason)
+            return
+        self._writer_lost = True
         if self.recording is not None:
             self._error(reason, False)
         if self.flight is not None:
