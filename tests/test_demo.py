@@ -105,6 +105,46 @@ def test_demo_records_its_run_and_plots_it(tmp_path):
     assert any("emergency stop cleared" in line for line in logged[started:done]), logged
 
 
+def _writer_processes() -> list[int]:
+    """This process's recording writers (record/recorder.py starts one per run)."""
+    found = []
+    for task in os.listdir("/proc/self/task"):
+        with open(f"/proc/self/task/{task}/children") as children:
+            for pid in children.read().split():
+                try:
+                    with open(f"/proc/{pid}/cmdline", "rb") as cmdline:
+                        if b"rocoma_can.record.writer" in cmdline.read():
+                            found.append(int(pid))
+                except OSError:  # ended meanwhile
+                    pass
+    return found
+
+
+def test_a_recording_that_stopped_is_said_and_fails_the_demo(tmp_path):
+    """The writer process killed mid-walk-through (the OOM killer; a full disk ends the
+    recording alike): the demo does not claim "every cycle and frame" of a recording with
+    a hole, says where and why it stopped, and exits 1 as run does (it said "demo passed",
+    exit 0)."""
+    import signal
+    lines: list[str] = []
+
+    def out(line: str) -> None:
+        lines.append(line)
+        if line.startswith("ok  switch to pd"):  # the first step after bring-up
+            for pid in _writer_processes():
+                os.kill(pid, signal.SIGKILL)
+
+    report = run_demo(drives=2, rate=100.0, duration=2.0, out=out, record=tmp_path)
+    assert any(line.startswith("ok  switch to pd") for line in lines), "\n".join(lines)
+    failed = [step for step in report.steps if not step.ok]
+    assert [step.name for step in failed] == ["recording"], "\n".join(lines)
+    assert failed[0].detail.startswith("the recording's writer process ended (exit code -9)")
+    said = [line for line in lines if line.startswith("recording: ")]
+    assert said == [f"recording: {tmp_path / 'trace.mcap'} stopped early, what was written "
+                    f"stays: {failed[0].detail}"], said
+    assert not report.ok
+
+
 def test_demo_cli_says_when_it_cannot_record(tmp_path, capsys):
     blocked = tmp_path / "file"
     blocked.write_text("not a directory")

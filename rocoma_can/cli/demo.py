@@ -51,7 +51,16 @@ from .demo_config import (
     emulate,
 )
 from .demo_probe import TorqueOffProbes
-from .demo_report import Report, Said, Step, grouped_notes, plot_run, status_lines, summary
+from .demo_report import (
+    Report,
+    Said,
+    Step,
+    grouped_notes,
+    plot_run,
+    recording_stopped,
+    status_lines,
+    summary,
+)
 from .demo_sim import (
     SIM_CHOICES,
     DemoSimulator,
@@ -417,6 +426,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                         + (f"; {probes.error}" if probes.error else ""))
             report.steps.append(step)
             out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
+            if rt.recording is not None and rt.recording.errors:  # (a full disk, the
+                recording_stopped(report, rt.recording.errors)   # writer killed)
+                out(f"FAILED recording: {rt.recording.errors[0]}")
             summary(out, report, timing, rt)
         if rt.flight is not None:  # closed: the last record is written
             report.flight_records = list(rt.flight.dumps)
@@ -427,7 +439,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             report.steps.append(Step("simulated drives", False, str(exc)))
             out(f"FAILED simulated drives: {exc}")
         if record is not None:
-            plot_run(Path(record), report, out)
+            plot_run(Path(record), report, out,
+                     rt.recording.errors if rt.recording is not None else ())
     finally:
         hardware_log.removeFilter(said)
         probes.close()

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -68,12 +68,20 @@ class Said(logging.Filter):
         return not any(message.endswith(": " + note) for note in self.notes)
 
 
-def plot_run(directory: Path, report: Report, out: Callable[[str], None]) -> None:
-    """After the run (the recording closed): draw it, say where both are."""
+def plot_run(directory: Path, report: Report, out: Callable[[str], None],
+             errors: Sequence[str] = ()) -> None:
+    """After the run (the recording closed): draw it, say where both are. ``errors``: why
+    the recording stopped (the first first: a full disk, the writer process gone): said
+    instead of "every cycle and frame", and a failed step, as ``run`` exits 1 for it."""
     from ..record.plot import PlotError, plot
     report.recording = directory / "trace.mcap"
-    logs = ", ".join(str(p) for p in sorted(directory.glob("*.log")))
-    out(f"recording: {report.recording} (every cycle and frame; candump logs: {logs})")
+    if errors:
+        recording_stopped(report, errors)
+        out(f"recording: {report.recording} stopped early, what was written stays: "
+            f"{errors[0]}")
+    else:
+        logs = ", ".join(str(p) for p in sorted(directory.glob("*.log")))
+        out(f"recording: {report.recording} (every cycle and frame; candump logs: {logs})")
     try:
         report.plot = plot(report.recording, directory / "demo.png",
                            title=f"rocoma-can demo: {len(report.steps)} steps, "
@@ -82,6 +90,13 @@ def plot_run(directory: Path, report: Report, out: Callable[[str], None]) -> Non
         out(f"plot: none ({exc})")
         return
     out(f"plot: {report.plot}")
+
+
+def recording_stopped(report: Report, errors: Sequence[str]) -> None:
+    """The recording's failure as a failed step, once (seen before the summary, or at the
+    close)."""
+    if errors and not any(step.name == "recording" for step in report.steps):
+        report.steps.append(Step("recording", False, errors[0]))
 
 
 def status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None]) -> None:
