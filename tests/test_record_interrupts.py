@@ -148,3 +148,26 @@ def test_a_writer_that_does_not_finish_is_said_once(tmp_path, monkeypatch, caplo
                                     "0.5 s"]
     said = [r.getMessage() for r in caplog.records if r.name == recorder_module.__name__]
     assert len(said) == 2, said  # one for the recording, one for the flight recorder
+
+
+def test_a_flight_directory_that_cannot_be_written_is_said_at_start(tmp_path, caplog):
+    """The flight recorder's directory is tried at start: one line then, naming it and
+    why, not at the first e-stop, whose record it then loses (the run said only where
+    records would go)."""
+    caplog.set_level("WARNING")
+    (tmp_path / "file").write_text("not a directory")
+    flight = tmp_path / "file" / "flight"
+    rec = Recorder(JointState.zeros(2), JointCommand.zeros(2), _Manager(), 100.0,
+                   [BusToRecord("arm", "vcan0", False)], controllers=["pd"],
+                   flight=str(flight))  # type: ignore[arg-type]
+    try:
+        assert rec.flight is not None
+        wait_for(lambda: rec.flight.errors, "the directory's problem said", DEMO_WAIT)
+        [error] = rec.flight.errors
+        assert error.startswith(f"{flight}: cannot write flight records: [Errno 20] Not a "
+                                "directory"), error
+        said = [r.getMessage() for r in caplog.records if "flight recorder" in r.getMessage()]
+        assert said == [f"flight recorder: {error}"], said
+    finally:
+        rec.close()
+    assert rec.flight.errors == [error]  # nothing more at the close: no e-stop

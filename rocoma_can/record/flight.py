@@ -20,6 +20,7 @@ from __future__ import annotations
 import collections
 import math
 import os
+import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -58,6 +59,20 @@ class FlightRecords:
         self._dropped = 0  # requests past MAX_EVENTS, merged by count only
         self._last_dump = -math.inf
         self.faulted = False
+
+    def check(self) -> str | None:
+        """Why no record could be written to the directory (made if missing), tried with a
+        hidden file at start; None when one can. A record is tried at each e-stop anyway
+        (the directory may be mounted, or given room, later)."""
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            with tempfile.NamedTemporaryFile(dir=self.directory, prefix=".flight-check-"):
+                pass
+        except OSError as exc:
+            said = f"[Errno {exc.errno}] {exc.strerror}" if exc.strerror else str(exc)
+            return (f"{self.directory}: cannot write flight records: {said} (each e-stop's "
+                    "is tried, and said if it fails)")
+        return None
 
     def on_event(self, event: dict[str, Any]) -> None:
         self._events.append(event)

@@ -337,6 +337,9 @@ def main() -> int:
         reply.flush()
         return 1
     writer.say(ready=True, foxglove_port=writer.view.port if writer.view else None)
+    unwritable = writer.flight.check() if writer.flight is not None else None
+    if unwritable is not None:  # said at start, not at the first e-stop that loses its record
+        writer.say(error=unwritable, of="flight")
     commands: queue.Queue[dict[str, Any] | None] = queue.Queue()
     threading.Thread(target=_read_commands, args=(sys.stdin, writer, commands), daemon=True,
                      name="commands").start()
