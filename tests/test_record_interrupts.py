@@ -171,3 +171,25 @@ def test_a_flight_directory_that_cannot_be_written_is_said_at_start(tmp_path, ca
     finally:
         rec.close()
     assert rec.flight.errors == [error]  # nothing more at the close: no e-stop
+
+
+def test_a_recording_whose_directory_vanishes_is_said(tmp_path, caplog):
+    """The --record directory deleted (or moved) mid-run: the writer wrote on into files
+    nobody can open any more, without a word, and the run said the recording was whole.
+    Now: the recording stops, said once with the path and why."""
+    import shutil
+    caplog.set_level("WARNING")
+    record = tmp_path / "rec"
+    rec = Recorder(JointState.zeros(2), JointCommand.zeros(2), _Manager(), 100.0,
+                   [BusToRecord("arm", "vcan0", False)], controllers=["pd"],
+                   record=str(record))  # type: ignore[arg-type]
+    try:
+        assert rec.recording is not None
+        shutil.rmtree(record)
+        wait_for(lambda: rec.recording.errors, "the vanished directory said", DEMO_WAIT)
+    finally:
+        rec.close()
+    assert rec.recording.errors == [f"{record / 'trace.mcap'}: removed during the run (its "
+                                    "directory deleted or moved?): the recording stops"]
+    said = [r.getMessage() for r in caplog.records if "recording to" in r.getMessage()]
+    assert len(said) == 1, said

@@ -92,7 +92,10 @@ def stop_signals_interrupt() -> Callable[[], None]:
             or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
         return lambda: None
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
-    return lambda: signal.signal(signal.SIGTERM, previous)
+
+    def restore() -> None:
+        signal.signal(signal.SIGTERM, previous)
+    return restore
 
 
 if __name__ == "__main__":

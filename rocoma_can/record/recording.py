@@ -15,6 +15,7 @@ first one first; the loop never hears of it.
 from __future__ import annotations
 
 import functools
+import os
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -108,6 +109,7 @@ class Recording:
         self._events: list[Mapping[str, Any]] = []  # held for the next write (``write``)
         self._logs: list[BusLog] = []
         self._stream: IO[bytes] | None = None
+        self._identity = (0, 0)  # the trace's device and inode
         self._writer: McapWriter | None = None
         try:
             directory.mkdir(parents=True, exist_ok=True)
@@ -118,6 +120,8 @@ class Recording:
                 self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in stop()
             except OSError as exc:
                 raise RecordingError(f"{self.path}: cannot write: {exc}") from exc
+            stat = os.fstat(self._stream.fileno())
+            self._identity = (stat.st_dev, stat.st_ino)  # (where_it_is)
             self._writer = McapWriter(self._stream, layout.names, pace)
             self._live = live(self._writer)
         except RecordingError:
@@ -151,6 +155,7 @@ class Recording:
             if start > self._next:
                 raise RecordingError(f"{self.path}: {start - self._next} cycles lost (the "
                                      "writer fell a ring behind)")
+            self._where_it_is()
             writer.cycles(self._layout, controllers, rows, offset)
             writer.events(events, offset)
             self._live.write(rows, start, events, controllers, offset)
@@ -165,6 +170,18 @@ class Recording:
             self.stop()
             return reason
         return None
+
+    def _where_it_is(self) -> None:
+        """RecordingError when the trace is no longer at its path (the directory deleted or
+        moved mid-run): writing on would fill a file nobody can open, without a word."""
+        try:
+            stat = os.stat(self.path)
+            here = (stat.st_dev, stat.st_ino) == self._identity
+        except OSError:
+            here = False
+        if not here:
+            raise RecordingError(f"{self.path}: removed during the run (its directory "
+                                 "deleted or moved?): the recording stops")
 
     def _frames(self, writer: McapWriter, label: str, fields: Sequence[Fields]) -> None:
         """A bus's frames into the trace; a failure names the trace, not the bus's log."""
