@@ -451,14 +451,57 @@ def test_a_trace_with_foreign_content_is_said_in_one_line(tmp_path, capsys, name
     assert sorted(p.name for p in tmp_path.iterdir()) == ["foreign.mcap"]  # no PNG, no CSV
 
 
+def write_chunked(path, cycles: int, chunk_size: int) -> None:
+    """``cycles`` cycle messages written as a recording writes them (mcap_file.py: chunks of
+    ``chunk_size`` bytes, then the summary)."""
+    import json
+
+    from rocoma_can.record.mcap_file import McapFile
+    from rocoma_can.record.trace import cycle_schema
+    with open(path, "wb") as stream:
+        f = McapFile(stream, chunk_size=chunk_size)
+        channel = f.channel("/rocoma/cycle", "json", f.schema(
+            "rocoma_can.Cycle", "jsonschema", json.dumps(cycle_schema(JOINTS)).encode()))
+        for k in range(cycles):
+            f.add(channel, 10**9 + k * 10**7, json.dumps(cycle(k)).encode())
+        f.finish()
+
+
 @pytest.mark.parametrize("verb", ["plot", "export"])
-@pytest.mark.parametrize("cut", ["truncated", "garbage", "empty"])
-def test_a_cut_or_garbage_file_is_said_in_one_line(tmp_path, capsys, cut, verb):
+def test_a_file_cut_short_is_read_up_to_the_cut(tmp_path, capsys, verb):
+    """A run killed (SIGKILL, the power) or a full disk leaves a trace without its summary,
+    its last chunk half written: it was "not a rocoma-can trace" (exit 2), though every whole
+    chunk before the cut holds its cycles. They are plotted / exported, and a line says the
+    file was cut short."""
     good = tmp_path / "good.mcap"
-    write_mcap(good, [cycle(k) for k in range(200)])
+    write_chunked(good, 300, chunk_size=4096)
+    data = good.read_bytes()
+    path = tmp_path / "cut.mcap"
+    path.write_bytes(data[:int(len(data) * 0.6)])
+    good.unlink()
+    assert main([verb, str(path)]) == 0
+    captured = capsys.readouterr()
+    (note,) = captured.err.splitlines()
+    assert note.startswith(f"rocoma-can: {path}: cut short (") and note.endswith(
+        "the run that wrote it did not close it): read up to the cut"), note
+    if verb == "export":
+        rows = int(captured.out.split()[0])
+        assert 0 < rows < 300
+        lines = (tmp_path / "cut.csv").read_text().splitlines()
+        assert len(lines) == rows + 1 and lines[1].startswith("1000000000,0.0,")
+    else:
+        assert (tmp_path / "cut.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("verb", ["plot", "export"])
+@pytest.mark.parametrize("cut", ["in its first chunk", "garbage", "empty"])
+def test_a_cut_or_garbage_file_is_said_in_one_line(tmp_path, capsys, cut, verb):
+    """Nothing whole in it (cut inside its first chunk), or not MCAP at all."""
+    good = tmp_path / "good.mcap"
+    write_chunked(good, 200, chunk_size=1 << 20)
     data = good.read_bytes()
     path = tmp_path / "bad.mcap"
-    path.write_bytes({"truncated": data[: len(data) // 2],
+    path.write_bytes({"in its first chunk": data[:60],  # (magic and header: 35 bytes)
                       "garbage": bytes(range(256)) * 64, "empty": b""}[cut])
     good.unlink()
     assert main([verb, str(path)]) == 2
@@ -466,7 +509,7 @@ def test_a_cut_or_garbage_file_is_said_in_one_line(tmp_path, capsys, cut, verb):
     assert err.startswith(f"rocoma-can: {path}: not a rocoma-can trace: ") \
         and err.count("\n") == 1, err
     assert err.endswith({
-        "truncated": "\n",  # where the reader stops depends on where the cut fell
+        "in its first chunk": "\n",  # the reader's words for where the cut fell
         "garbage": "InvalidMagic: not a valid MCAP file, invalid magic: (0, 1, 2, 3, 4, 5, 6, "
                    "7)\n",
         "empty": "not a rocoma-can trace: EndOfFile\n"}[cut]), err

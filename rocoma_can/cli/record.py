@@ -101,9 +101,10 @@ def _export(args: argparse.Namespace) -> int:
         return USAGE
     # written beside, then renamed: a failed export leaves an earlier CSV as it was
     part = out.with_name(out.name + ".part")
+    notes: list[str] = []
     try:
         with open(part, "w", newline="") as stream:
-            rows = _write_csv(source, stream)
+            rows = _write_csv(source, stream, notes)
         os.replace(part, out)
     except ImportError:
         _discard(part)
@@ -117,18 +118,21 @@ def _export(args: argparse.Namespace) -> int:
         _discard(part)
         _say(f"{out}: cannot write the CSV: {exc.strerror or exc}")
         return USAGE
+    for note in notes:
+        _say(f"{source}: {note}")
     print(f"{rows} cycles written to {out}", flush=True)
     return OK
 
 
-def _write_csv(source: Path, stream: Any) -> int:
+def _write_csv(source: Path, stream: Any, notes: list[str]) -> int:
     """The cycles of ``source`` as CSV rows on ``stream`` (a header first); the number of
     cycles. Per-joint columns are ``FIELD[JOINT]`` with the joints' names from the trace
-    (their numbers where a trace carries none), as the arrays appear in PlotJuggler."""
+    (their numbers where a trace carries none), as the arrays appear in PlotJuggler. A
+    file cut short is written up to the cut, said in ``notes``."""
     from ..record.trace import CYCLE_TOPIC, JOINT_FIELDS, SCALARS, joint_names, read_trace
     writer = csv.writer(stream)
     rows = 0
-    for topic, log_time, msg in read_trace(str(source)):
+    for topic, log_time, msg in read_trace(str(source), notes):
         if topic != CYCLE_TOPIC:
             continue
         if rows == 0:
@@ -154,11 +158,14 @@ def _discard(part: Path) -> None:
 
 def _plot(args: argparse.Namespace) -> int:
     from ..record.plot import PlotError, plot
+    notes: list[str] = []
     try:
-        path = plot(args.file, args.out or None)
+        path = plot(args.file, args.out or None, notes=notes)
     except PlotError as exc:
         _say(str(exc))
         return USAGE
+    for note in notes:
+        _say(f"{args.file}: {note}")
     print(f"plot written to {path}", flush=True)
     return OK
 

@@ -73,13 +73,14 @@ class Trace:
                 if rank.get(b, 2) < rank.get(a, 2)]
 
 
-def load(path: str | Path) -> Trace:
-    """The trace in ``path``; PlotError says why a file cannot be read, in one line."""
+def load(path: str | Path, notes: list[str] | None = None) -> Trace:
+    """The trace in ``path``; PlotError says why a file cannot be read, in one line; a file
+    cut short is read up to the cut, said in ``notes`` (trace.read_messages)."""
     from .trace import CYCLE_TOPIC, EVENT_TOPIC, TraceError, joint_names, read_trace
     rows: list[tuple[int, dict[str, Any]]] = []
     raw_events: list[tuple[int, dict[str, Any]]] = []
     try:
-        for topic, log_time, msg in read_trace(str(path)):
+        for topic, log_time, msg in read_trace(str(path), notes):
             if topic == CYCLE_TOPIC:
                 rows.append((log_time, msg))
             elif topic == EVENT_TOPIC:
@@ -199,10 +200,17 @@ def figure(trace: Trace, title: str = "") -> Figure:
     return fig
 
 
-def plot(source: str | Path, out: str | Path | None = None, title: str = "") -> Path:
+def plot(source: str | Path, out: str | Path | None = None, title: str = "",
+         notes: list[str] | None = None) -> Path:
     """Draw ``source`` to ``out`` (default: beside it, ``.png``) and return the PNG's path;
-    the title defaults to the file's name."""
-    trace = load(source)
+    the title defaults to the file's name (marked when the file was cut short: ``notes``
+    says how)."""
+    said: list[str] = []
+    trace = load(source, said)
+    if notes is not None:
+        notes += said
+    if said and not title:
+        title = f"{source} (cut short: read up to the cut)"
     target = Path(out) if out else Path(source).with_suffix(".png")
     try:
         fig = figure(trace, title=title or str(source))

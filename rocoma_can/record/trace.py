@@ -269,41 +269,79 @@ _CYCLE_SCALARS: dict[str, tuple[type, ...]] = {
     "late": (int, float), "state": (str,), "controller": (str,)}
 
 
-def read_messages(path: str, topics: str | Iterable[str] | None = None
+def read_messages(path: str, topics: str | Iterable[str] | None = None,
+                  notes: list[str] | None = None
                   ) -> Iterator[tuple[str, int, dict[str, Any]]]:
     """(topic, log time ns, decoded message) of every JSON message in an MCAP file (on
     ``topics``, None: all), in order. Other programs' channels in other encodings are passed
-    over; ours in another encoding, or not JSON, raise TraceError. The MCAP reader's own
-    failures (a truncated or foreign file) come through as they are."""
-    from mcap.reader import make_reader
+    over; ours in another encoding, or not JSON, raise TraceError. A file cut short (its run
+    killed, the power lost, the disk full: no summary, a record half written) is read up to
+    its last whole record, and ``notes`` gets a line saying so: what was written stays
+    readable. The MCAP reader's other failures (a foreign or garbage file, nothing whole in
+    it) come through as they are."""
+    wanted = [topics] if isinstance(topics, str) else None if topics is None else list(topics)
+    for channel, message in _messages(path, wanted, notes):
+        ours = channel.topic in (CYCLE_TOPIC, EVENT_TOPIC)
+        if channel.message_encoding != "json":
+            if ours:
+                raise TraceError(f"{channel.topic} is encoded as "
+                                 f"{channel.message_encoding!r}, not JSON")
+            continue
+        try:
+            decoded = json.loads(message.data)
+        except ValueError:  # UnicodeDecodeError too
+            if ours:
+                raise TraceError(f"a {channel.topic} message is not JSON: "
+                                 f"{bytes(message.data[:24])!r}") from None
+            continue
+        yield channel.topic, message.log_time, decoded
+
+
+def _messages(path: str, topics: list[str] | None, notes: list[str] | None
+              ) -> Iterator[tuple[Any, Any]]:
+    """(channel, message) in log-time order: through the file's index where it is whole;
+    a file the indexed reader refuses before its first message (a cut one has no footer) is
+    read from its start, record by record, up to where it breaks."""
+    from mcap.reader import NonSeekingReader, make_reader
     with open(path, "rb") as stream:
-        for _schema, channel, message in make_reader(stream).iter_messages(
-                topics=[topics] if isinstance(topics, str) else topics, log_time_order=True):
-            ours = channel.topic in (CYCLE_TOPIC, EVENT_TOPIC)
-            if channel.message_encoding != "json":
-                if ours:
-                    raise TraceError(f"{channel.topic} is encoded as "
-                                     f"{channel.message_encoding!r}, not JSON")
-                continue
+        started = False
+        try:
+            for _schema, channel, message in make_reader(stream).iter_messages(
+                    topics=topics, log_time_order=True):
+                started = True
+                yield channel, message
+            return
+        except Exception as refused:
+            if started:  # broken in the middle of a whole file: not a cut
+                raise
+            stream.seek(0)
+            kept: list[tuple[Any, Any]] = []
             try:
-                decoded = json.loads(message.data)
-            except ValueError:  # UnicodeDecodeError too
-                if ours:
-                    raise TraceError(f"a {channel.topic} message is not JSON: "
-                                     f"{bytes(message.data[:24])!r}") from None
-                continue
-            yield channel.topic, message.log_time, decoded
+                for _schema, channel, message in NonSeekingReader(stream).iter_messages(
+                        topics=topics, log_time_order=False):
+                    kept.append((channel, message))
+            except Exception as cut:
+                if not kept:  # nothing here is a whole message: the indexed reader's reason
+                    raise refused from None
+                if notes is not None:
+                    notes.append(f"cut short ({_reason(cut)} after {len(kept)} messages: "
+                                 "the run that wrote it did not close it): read up to the "
+                                 "cut")
+            kept.sort(key=lambda pair: pair[1].log_time)
+            yield from kept
 
 
-def read_trace(path: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
+def read_trace(path: str, notes: list[str] | None = None
+               ) -> Iterator[tuple[str, int, dict[str, Any]]]:
     """The cycles and events of read_messages, each checked (check_cycle, check_event): what
     ``plot`` and ``export`` read (a recording's frames and the live view's channels are not
-    decoded: most of a trace's messages). Any failure to read the file (none there, a foreign,
-    truncated or garbage file) is a TraceError; ImportError stays itself (mcap missing)."""
+    decoded: most of a trace's messages). Any failure to read the file (none there, a foreign
+    or garbage file) is a TraceError; ImportError stays itself (mcap missing). A file cut
+    short is read up to the cut, said in ``notes`` (read_messages)."""
     cycles = events = 0
     joints: int | None = None
     try:
-        for topic, log_time, msg in read_messages(path, (CYCLE_TOPIC, EVENT_TOPIC)):
+        for topic, log_time, msg in read_messages(path, (CYCLE_TOPIC, EVENT_TOPIC), notes):
             if topic == CYCLE_TOPIC:
                 cycles += 1
                 joints = check_cycle(msg, cycles, joints)
