@@ -6,6 +6,7 @@ import logging
 import os
 import resource
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -450,3 +451,55 @@ def test_an_operators_estop_ends_the_walk_through_and_is_never_undone(virtual_ch
     assert "SDO e-stop (0x2110)" in report.steps[-2].detail
     assert not any(line.startswith(("ok  recovery", "ok  fault", "FAILED")) for line in lines)
     assert lines[-1] == "demo passed"
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_signal_ends_the_walk_through_as_interrupted(virtual_channel, signum, capsys):
+    """Ctrl-C or SIGTERM in the middle of the walk-through: the loop stops with its
+    torque-off; the walk-through commanded on (a fault, a recovery, a switch into a stopped
+    loop), then called every step after it FAILED, the torque-off check too ("before the
+    probes opened"), exit 1. It ends where the signal came: the steps after it not run and
+    not judged, the check said skipped and why, "demo interrupted", exit 130."""
+    import threading
+
+    main_thread = threading.main_thread().ident
+    assert main_thread is not None
+    lines: list[str] = []
+
+    def out(line: str) -> None:
+        lines.append(line)
+        if line.startswith("ok  switch to pd"):
+            signal.pthread_kill(main_thread, signum)  # the loop's handler takes it
+
+    report = run_demo(drives=3, rate=100.0, duration=3.0, out=out, channel=virtual_channel)
+    assert report.interrupted == f"signal {signum.name}" and not report.ok
+    names = [s.name for s in report.steps]
+    assert names == ["bring-up", "switch to pd (SDO 0x2100)", "walk-through",
+                     "loop stop -> torque-off frames"], "\n".join(lines)
+    assert all(s.ok for s in report.steps), "\n".join(lines)
+    assert not any(line.startswith("FAILED") for line in lines), "\n".join(lines)
+    assert f"stop walk-through: cut short: the loop stopped (signal {signum.name}); the " \
+           "steps after it not run" in lines, "\n".join(lines)
+    assert lines[-1] == f"demo interrupted (signal {signum.name}) after 2 steps of the " \
+                        "walk-through"
+    assert report.steps[-1].detail.startswith("skipped: ") \
+        and report.steps[-1].detail.endswith("the manager ended in FAILPROOF")
+
+
+def test_the_demo_cli_exits_130_when_stopped_by_sigterm(tmp_path):
+    """As a user's Ctrl-C or a supervisor's SIGTERM reaches it: the documented exit code for
+    an interrupted command, the verdict line saying so."""
+    from fixtures.running import DEMO_WAIT
+
+    from rocoma_can.exit_codes import INTERRUPTED
+    cmd = [sys.executable, "-m", "rocoma_can", "demo", "--drives", "3", "--rate", "100",
+           "--duration", "6", "--no-record", "--flight-dir", str(tmp_path)]
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True) as demo:
+        assert demo.stdout is not None
+        lines = []
+        for line in demo.stdout:
+            lines.append(line.rstrip("\n"))
+            if line.startswith("ok  switch to pd"):
+                demo.send_signal(signal.SIGTERM)
+        assert demo.wait(DEMO_WAIT) == INTERRUPTED, "\n".join(lines)
+    assert "demo interrupted (signal SIGTERM) after 2 steps of the walk-through" in lines

@@ -33,7 +33,7 @@ from ..cli_args import count, positive, rt_priority, seconds
 from ..drivers.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError, SimulatorFailed
 from ..events import ManagerState
-from ..exit_codes import FAILED, OK, USAGE
+from ..exit_codes import FAILED, INTERRUPTED, OK, USAGE
 from ..node.client import ManagerClient
 from ..node.objects import ESTOP_CAUSE, STATE_NAMES
 from .demo_config import (
@@ -68,7 +68,7 @@ from .demo_sim import (
     SimProcess,
     check_choice,
 )
-from .demo_stops import Ended, OutsideStop
+from .demo_stops import Ended, LoopStopped, OutsideStop, loop_running
 
 #: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
 #: one record, and the walk-through's come seconds apart
@@ -149,13 +149,14 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
 
     def hold() -> None:
         pace.pause(next(pauses))
+        loop_running(rt.loop.stop_reason)
         outside.go_on()
 
     def step(name: str, ok: bool, detail: str = "") -> bool:
-        outside.go_on()  # a step an operator's stop cut short is not judged
+        loop_running(rt.loop.stop_reason)  # a step the loop's stop cut short is not judged
+        outside.go_on()  # nor one an operator's stop cut short
         report.steps.append(Step(name, ok, detail))
-        verdict = "skip" if detail.startswith("skipped") else "ok " if ok else "FAILED"
-        say(f"{verdict} {name}{': ' + detail if detail else ''}")
+        say(report.steps[-1].line())
         return ok
 
     def state() -> int:
@@ -255,6 +256,13 @@ def _operator(rt: Runtime, sim: DemoSimulator, client: ManagerClient, watch: _Wa
                                  f"outside it ({ended}): the robot stays stopped, the "
                                  f"steps after it not run"))
         say(f"ok  walk-through: {report.steps[-1].detail}")
+    except LoopStopped as stopped:
+        signalled = str(stopped).startswith("signal ")
+        if signalled:
+            report.interrupted = str(stopped)
+        report.steps.append(Step("walk-through", signalled, f"cut short: the loop stopped "
+                                 f"({stopped}); the steps after it not run"))
+        say(f"{'stop' if signalled else 'FAILED'} walk-through: {report.steps[-1].detail}")
     except Exception as exc:  # an SDO failure is a failed step, and the demo ends
         why = ""
         try:  # a refused switch says why (0x2103); a fault, its cause (0x2124)
@@ -417,15 +425,11 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                 operator.join(15.0)
                 status.join(2.0)
             time.sleep(0.1)  # the probes run on their buses' reader threads
-            got = probes.seen()
-            seen = int(rt.loop.last_state) == 0 and got == drives
-            step = Step("loop stop -> torque-off frames", seen,
-                        f"{rt.loop.stop_reason}; controlword 0x0000 seen from "
-                        f"{got}/{drives} drives' RPDOs"
-                        + (f" on {buses} buses" if buses > 1 else "")
-                        + (f"; {probes.error}" if probes.error else ""))
+            step = Step("loop stop -> torque-off frames", *probes.judge(
+                rt.loop.stop_reason, int(rt.loop.last_state), drives,
+                bool(report.interrupted)))
             report.steps.append(step)
-            out(f"{'ok ' if seen else 'FAILED'} {step.name}: {step.detail}")
+            out(step.line())
             if rt.recording is not None and rt.recording.errors:  # (a full disk, the
                 recording_stopped(report, rt.recording.errors)   # writer killed)
                 out(f"FAILED recording: {rt.recording.errors[0]}")
@@ -559,6 +563,8 @@ def _main(args: argparse.Namespace) -> int:
     hint = path_hint()
     if hint is not None:
         print(hint, flush=True)
+    if report.interrupted:
+        return INTERRUPTED
     return OK if report.ok else FAILED
 
 

@@ -99,6 +99,22 @@ class TorqueOffProbes:
         """Drives whose torque-off the probes saw."""
         return sum(len(probe.seen) for probe in self.probes)
 
+    def judge(self, stop_reason: str, last_state: int, drives: int, interrupted: bool
+              ) -> tuple[bool, str]:
+        """The last step's verdict and detail: every drive's torque-off seen, the manager
+        ended in FAILPROOF (0). A demo interrupted before the probes opened cannot have
+        seen them: said skipped, with the state the manager ended in."""
+        from ..node.objects import STATE_NAMES
+        if interrupted and self.error:
+            return last_state == 0, (f"skipped: {self.error}: its torque-off frames went out "
+                                     f"unwatched; the manager ended in "
+                                     f"{STATE_NAMES[last_state]}")
+        got, buses = self.seen(), len(self.probes)
+        return last_state == 0 and got == drives, (
+            f"{stop_reason}; controlword 0x0000 seen from {got}/{drives} drives' RPDOs"
+            + (f" on {buses} buses" if buses > 1 else "")
+            + (f"; {self.error}" if self.error else ""))
+
     def close(self) -> None:
         with self._lock:
             self._done = True

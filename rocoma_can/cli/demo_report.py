@@ -24,6 +24,12 @@ class Step:
     ok: bool
     detail: str
 
+    def line(self) -> str:
+        """As the demo prints it: its verdict (``ok``, ``FAILED``, ``skip``), then what."""
+        verdict = "skip" if self.detail.startswith("skipped") else "ok " if self.ok \
+            else "FAILED"
+        return f"{verdict} {self.name}{': ' + self.detail if self.detail else ''}"
+
 
 @dataclass
 class Report:
@@ -33,10 +39,11 @@ class Report:
     plot: Path | None = None           # its PNG
     flight_records: list[Path] = field(default_factory=list)  # one per e-stop (grouped)
     walk_time: float = 0.0             # s from the walk-through's start to the loop's stop
+    interrupted: str = ""              # the signal that stopped the loop mid-walk-through
 
     @property
     def ok(self) -> bool:
-        return bool(self.steps) and all(s.ok for s in self.steps)
+        return bool(self.steps) and all(s.ok for s in self.steps) and not self.interrupted
 
 
 def grouped_notes(plans: Mapping[str, DrivePlan]) -> dict[str, str]:
@@ -152,5 +159,11 @@ def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
     out(f"  {'tx errors':28s} {rt.hardware.tx_errors}")
     for what, took, cycles in report.latencies:
         out(f"  {'latency ' + what:28s} {took * 1e3:.1f} ms (~{cycles} cycles)")
-    out("demo " + ("passed" if report.ok else "FAILED: " + ", ".join(
-        s.name for s in report.steps if not s.ok)))
+    failed = [s.name for s in report.steps if not s.ok]
+    if report.interrupted:
+        walked = next((k for k, s in enumerate(report.steps) if s.name == "walk-through"),
+                      len(report.steps))
+        out(f"demo interrupted ({report.interrupted}) after {walked} steps of the "
+            "walk-through" + (f"; FAILED: {', '.join(failed)}" if failed else ""))
+    else:
+        out("demo " + ("passed" if report.ok else "FAILED: " + ", ".join(failed)))

@@ -17,6 +17,17 @@ class Ended(Exception):
     """The walk-through ends early: an operator stopped the robot (OutsideStop)."""
 
 
+class LoopStopped(Exception):
+    """The walk-through ends early: the loop stopped under it (a Ctrl-C or SIGTERM, its
+    time up); the loop's stop sends the torque-off frames, nothing is commanded after."""
+
+
+def loop_running(stop_reason: str) -> None:
+    """LoopStopped when the loop has stopped (``stop_reason``: the loop's, "" while it runs)."""
+    if stop_reason:
+        raise LoopStopped(stop_reason)
+
+
 class OutsideStop:
     """The first e-stop from outside the walk-through (OUTSIDE_STOPS: an operator's, from
     Foxglove, Zenoh or ``rocoma-can estop``), heard on the manager's event thread. The
