@@ -231,9 +231,22 @@ class NoAnswer(canopen.SdoCommunicationError):
     """The drive did not answer the first request of a configuration attempt."""
 
 
+#: what a cancelled configuration's SDO wait is handed as its answer (cancel_sdo_wait): an
+#: abort (CiA 301 0x08000000, general error), so canopen's client raises at once
+_CANCELLED = struct.pack("<BHBI", 0x80, 0, 0, 0x08000000)
+
+
+def cancel_sdo_wait(sdo: SdoClient) -> None:
+    """End the wait of a request on ``sdo`` (the hardware closes): canopen's client waits
+    for the drive's answer on its ``responses`` queue for up to its timeout (per try), a
+    drive that is not there never answers, and the close would wait it out."""
+    sdo.responses.put(_CANCELLED)
+
+
 def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
               consumer_ms: int, dt: float | None = None,
-              attempts: int = CONFIG_ATTEMPTS) -> ConfigResult:
+              attempts: int = CONFIG_ATTEMPTS,
+              cancelled: threading.Event | None = None) -> ConfigResult:
     """Everything a drive needs before NMT start, by SDO; runs on the configuration worker.
 
     A garbled exchange is transient on a loaded bus: canopen retransmits a request on
@@ -242,15 +255,22 @@ def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
     retransmission off. The configuration is idempotent, so it is repeated
     whole (at most ``attempts`` times) after a pause in which stale answers arrive and are
     dropped. Refusals (SDO aborts) and a drive that never answers are final.
-    Raises with a message naming the step when the drive refuses or does not answer.
+    Raises with a message naming the step when the drive refuses or does not answer;
+    once ``cancelled`` is set (the hardware closes) no attempt follows and the pause ends.
     """
     for attempt in range(1, attempts + 1):
+        if cancelled is not None and cancelled.is_set():
+            raise RuntimeError("cancelled: the hardware closes")
         try:
             return _configure_once(node, plan, manager_node_id, consumer_ms, dt)
         except canopen.SdoCommunicationError as exc:
             failure = exc
             if attempt < attempts:
-                time.sleep(2 * node.sdo.RESPONSE_TIMEOUT)
+                pause = 2 * node.sdo.RESPONSE_TIMEOUT
+                if cancelled is not None:
+                    cancelled.wait(pause)
+                else:
+                    time.sleep(pause)
     if isinstance(failure, NoAnswer):
         raise RuntimeError(f"did not answer (SDO 0x1000, {attempts} x "
                            f"{node.sdo.RESPONSE_TIMEOUT:g} s): power, wiring, node id, "
@@ -341,6 +361,7 @@ class DriveBringup:
         self.reset_cycles = 0       # cycles spent in RESETTING (edge: 0x00 first, then 0x80)
         self.sto_seen = False       # an EMCY 0x5441 arrived during start-up
         self._job: Future[ConfigResult] | None = None
+        self._cancelled = threading.Event()  # cancel(): the hardware closes
         # A higher axis of a multi-axis node: configured once its node's lowest axis
         # (``lead``) has configured and started the node, with the node's SDO client
         self.lead = lead
@@ -407,7 +428,8 @@ class DriveBringup:
                     or lead is None and (self.alive
                                          or now - self.since >= self.timeouts.boot_wait):
                 self._job = executor.submit(self._locked, configure, self.node, self.plan,
-                                            self.manager_node_id, self.consumer_ms, self.dt)
+                                            self.manager_node_id, self.consumer_ms, self.dt,
+                                            CONFIG_ATTEMPTS, self._cancelled)
                 self._enter(Phase.CONFIGURING, now)
         elif phase == Phase.CONFIGURING:
             job = self._job
@@ -469,8 +491,13 @@ class DriveBringup:
         return self.phase == Phase.RESETTING and self.reset_cycles >= 1
 
     def cancel(self) -> None:
-        if self._job is not None:
-            self._job.cancel()
+        """The hardware closes: a configuration not begun does not run, a running one ends at
+        its SDO wait (answered as an abort) and makes no further attempt, so the close does
+        not wait out a silent drive's timeouts and retries (seconds)."""
+        self._cancelled.set()
+        job = self._job
+        if job is not None and not job.cancel() and not job.done():
+            cancel_sdo_wait(self.node.sdo)
 
 
 def create_bringups(plans: Sequence[DrivePlan], networks: Sequence[CanopenBus | None],

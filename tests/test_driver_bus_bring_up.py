@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import struct
 import threading
+import time
 
 from fixtures.driver_rig import MANAGER_NODE_ID, HoldPD, bring_up, enable_with, synced_mark
 
@@ -73,6 +74,27 @@ def test_drive_that_does_not_answer_is_reported(segment, make_rig):
     status = {s.node_id: s for s in rig.hw.drive_status()}
     assert status[9].phase == "FAILED" and "did not answer (SDO 0x1000" in status[9].fault
     assert all(status[n].phase == "READY" for n in nodes)
+
+
+def test_closing_ends_a_configuration_waiting_on_a_silent_drive(segment, make_rig,
+                                                                  recorder):
+    """The hardware closes (the run's end, a Ctrl-C) while a drive that is not there holds
+    a configuration worker in its SDO wait: the close waited out canopen's timeout and then
+    the attempts left (seconds, a drive and a retry at a time) before it could return. The
+    wait ends at once, no further attempt is made, the worker ends with the close."""
+    sdo_timeout = 30.0
+    rig = make_rig(nodes=(9,), sdo_timeout=sdo_timeout)
+    request = 0x600 + 9
+    assert rig.run_until(lambda: recorder.count(request) > 0, rig.setup.bring_up_budget(1)), \
+        rig.hw.drive_status()
+    asked = recorder.frames(request)[0]  # the upload of 0x1000, the drive's first question
+    assert asked.data[:4] == bytes([0x40, 0x00, 0x10, 0x00]), asked
+    started = time.monotonic()
+    rig.close()
+    took = time.monotonic() - started
+    assert took < sdo_timeout / 2, took  # the wait was cut short, not timed out
+    assert recorder.count(request) == 1  # no attempt after the close
+    assert not [t for t in threading.enumerate() if t.name.startswith("canopen-config")]
 
 
 def test_bring_up_phases_are_reported(segment, make_rig):

@@ -71,6 +71,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
         logging.basicConfig(level=level,
                             format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        if args.verbose < 2:
+            logging.getLogger("canopen.sdo.client").addFilter(_own_sdo_reports)
         if not getattr(args, "func", None):
             parser.print_help()
             return USAGE
@@ -79,6 +81,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return INTERRUPTED
     finally:
         restore()
+
+
+def _own_sdo_reports(record: logging.LogRecord) -> bool:
+    """canopen's SDO client logs an ERROR line each time a request of ours times out
+    ("Transfer aborted by client with code 0x05040000": a drive not answering, once per
+    try); the command says what failed itself, once, naming the drive and what to check.
+    Shown with -vv."""
+    return not record.getMessage().startswith("Transfer aborted by client")
 
 
 def stop_signals_interrupt() -> Callable[[], None]:
