@@ -334,20 +334,22 @@ class Recorder:
             log.warning("flight record (%s): %s", cause, path)
 
     def _error(self, reason: str, of_flight: bool) -> None:
+        """Said, then kept in ``errors``: whoever sees it there (the run's end, a test) finds
+        it said already."""
         if of_flight:
+            log.error("flight recorder: %s", reason)
             if self.flight is not None:
                 self.flight.errors.append(reason)
-            log.error("flight recorder: %s", reason)
             return
         status = self.recording
         if status is None:
             return
-        status.errors.append(reason)
-        if len(status.errors) == 1:
+        if not status.errors:
             log.warning("recording to %s stopped, the loop runs on: %s", status.directory,
                         reason)
         else:
             log.debug("recording to %s: %s", status.directory, reason)
+        status.errors.append(reason)
 
     def close(self) -> None:
         """After the loop's last cycle: the writer writes everything (a last flight record
