@@ -20,13 +20,15 @@ It goes in three steps, bounded as a whole:
    node id (a client has no lock and takes every answer on its COB-ID: two clients of one
    node would steal each other's answers): 0x1000, 0x1018:1..4, 0x1008, 0x100A (segmented
    uploads), 0x1017. An object the node does not have is None; a node that stops
-   answering is left after its first unanswered read (``FoundNode.problem`` says so).
+   answering, or answers frames too short to be SDO, is left after that read, and an
+   object longer than MAX_OBJECT_BYTES is cut off there (``FoundNode.problem`` says so).
    A node whose 0x1017 names a heartbeat period not heard yet is waited for up to 1.5
    of its periods (at most ``HEARTBEAT_WAIT``), for its NMT state.
 """
 from __future__ import annotations
 
 import math
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -37,7 +39,7 @@ from typing import Literal
 import can
 import canopen
 from canopen.objectdictionary import ObjectDictionary
-from canopen.sdo.client import SdoClient
+from canopen.sdo.client import ReadableStream, SdoClient
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from . import cia301 as c301
@@ -58,6 +60,12 @@ IN_FLIGHT = 16
 READERS = 8
 #: The longest a scan waits for the heartbeat of a node whose 0x1017 says it sends one.
 HEARTBEAT_WAIT = 1.5
+#: The most a scan reads of one object (device name and software version are a few dozen
+#: bytes); a longer one is cut off here, its transfer aborted.
+MAX_OBJECT_BYTES = 256
+#: SDO abort (CiA 301: cs 4) and its code "out of memory", the client's "no more"
+_ABORT = 0x80
+_ABORT_OUT_OF_MEMORY = 0x0504_0005
 #: An expedited upload request of 0x1000:0 (CiA 301: ccs 2).
 _PROBE = bytes((0x40, 0x00, 0x10, 0x00, 0, 0, 0, 0))
 _NODE_IDS = range(1, 128)
@@ -216,18 +224,48 @@ def _read_objects(network: canopen.Network, node_id: int, timeout: float) -> _Ob
     sdo.MAX_RETRIES = 1  # one attempt (canopen: 0 retries for ever)
     network.subscribe(sdo.tx_cobid, sdo.on_response)
     found = _Objects()
+    cut: list[str] = []
     try:
         for index, subindex in _READS:
             try:
-                found.values[(index, subindex)] = bytes(sdo.upload(index, subindex))
+                data, complete = _upload(sdo, index, subindex)
             except SdoAbortedError:
                 found.values[(index, subindex)] = None
+                continue
             except SdoCommunicationError as exc:
                 found.problem = f"no SDO answer reading 0x{index:04X}:{subindex} ({exc})"
                 break
+            except struct.error:  # canopen unpacks a frame shorter than 8 bytes: garbage
+                found.problem = (f"a malformed SDO answer reading 0x{index:04X}:{subindex} "
+                                 "(shorter than an SDO frame)")
+                break
+            found.values[(index, subindex)] = data
+            if not complete:
+                cut.append(f"0x{index:04X}:{subindex} longer than {MAX_OBJECT_BYTES} bytes: "
+                           "cut off")
     finally:
         network.unsubscribe(sdo.tx_cobid, sdo.on_response)
+    if cut:
+        found.problem = "; ".join(cut + ([found.problem] if found.problem else []))
     return found
+
+
+def _upload(sdo: SdoClient, index: int, subindex: int) -> tuple[bytes, bool]:
+    """An SDO upload of at most MAX_OBJECT_BYTES: the data, and whether that was all of it.
+    Past the bound the transfer is aborted (a node that sends segments for ever would hold
+    the scan for ever: each segment is one request and one answer)."""
+    stream = ReadableStream(sdo, index, subindex)
+    data = bytearray()
+    while len(data) <= MAX_OBJECT_BYTES:
+        chunk = stream.read(7)
+        if not chunk:  # the last segment has come (canopen's own end of an upload)
+            return bytes(data), True
+        data += chunk
+    if not stream._done:  # canopen keeps no other record of the last segment
+        # the abort sent here, not by SdoClient.abort, which logs an ERROR line for it
+        sdo.network.send_message(sdo.rx_cobid, struct.pack(
+            "<BHBI", _ABORT, index, subindex, _ABORT_OUT_OF_MEMORY))
+    return bytes(data[:MAX_OBJECT_BYTES]), False
 
 
 def _unsigned(data: bytes | None) -> int | None:

@@ -157,3 +157,79 @@ def test_usage_errors_exit_2_with_one_line(args, capsys):
     assert main([*args, "--interface", "virtual"] if "nonesuch" not in args else args) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("rocoma-can: ") and "\n" not in err and "Traceback" not in err
+
+
+class _OddNode:
+    """Node 5 as a broken or hostile device answers: ``answer(request) -> frames`` to each
+    SDO request on its own bus (a thread, stopped with the test)."""
+
+    NODE = 5
+
+    def __init__(self, channel: str, answer) -> None:
+        import can
+        self._bus = can.Bus(interface="virtual", channel=channel, ignore_config=True)
+        self._answer = answer
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        import can
+        while not self._stop.is_set():
+            msg = self._bus.recv(0.02)
+            if msg is not None and msg.arbitration_id == cia301.SDO_RX + self.NODE:
+                for data in self._answer(bytes(msg.data)):
+                    self._bus.send(can.Message(arbitration_id=cia301.SDO_TX + self.NODE,
+                                               data=data, is_extended_id=False))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=STALL)
+        self._bus.shutdown()
+
+
+@pytest.fixture
+def odd_node(virtual_channel):
+    nodes: list[_OddNode] = []
+
+    def start(answer) -> _OddNode:
+        nodes.append(_OddNode(virtual_channel, answer))
+        return nodes[-1]
+    yield start
+    for node in nodes:
+        node.close()
+
+
+@pytest.mark.parametrize("garbage", [b"", b"\x80\x00\x10\x00\x00"])
+def test_a_node_answering_garbled_sdo_frames_is_listed_with_the_problem(
+        odd_node, virtual_channel, capsys, garbage):
+    """Shorter than an SDO frame (empty, a 5-byte abort): the scan goes on and
+    lists the node with what went wrong, no traceback."""
+    odd_node(lambda request: [garbage])
+    (node,) = scan_json(capsys, "virtual", virtual_channel)["nodes"]
+    assert node["node_id"] == _OddNode.NODE and node["device_type"] is None
+    assert "malformed SDO answer reading 0x1000:0" in node["problem"]
+
+
+def test_a_node_that_never_ends_a_segmented_upload_is_cut_off(odd_node, virtual_channel,
+                                                              capsys):
+    """Every object as a segmented upload of no stated size whose segments never say
+    "last": the scan stops reading each after a bounded length and goes on (a node that
+    streams for ever must not hang it)."""
+    def endless(request: bytes) -> list[bytes]:
+        if request[0] & 0xE0 == 0x40:  # initiate upload: segmented, no size
+            return [b"\x40" + request[1:4] + bytes(4)]
+        if request[0] & 0xE0 == 0x60:  # upload segment: the toggle echoed, never the last
+            return [bytes([request[0] & 0x10]) + b"ABCDEFG"]
+        return []
+    odd_node(endless)
+    result: dict[str, object] = {}
+    scanner = threading.Thread(target=lambda: result.update(
+        found=scan_json(capsys, "virtual", virtual_channel)), daemon=True)
+    scanner.start()
+    scanner.join(within(10.0))
+    assert not scanner.is_alive(), "the scan never ended"
+    (node,) = result["found"]["nodes"]  # type: ignore[index]
+    assert node["device_name"].startswith("ABCDEFGABCDEFG")
+    assert len(node["device_name"]) <= 256
+    assert "0x1008:0 longer than 256 bytes" in node["problem"]
