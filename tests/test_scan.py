@@ -5,10 +5,14 @@ The tests taking ``sim_interface`` or ``can_setup`` run on python-can's virtual 
 again on SocketCAN vcan0 (the vcan suite, through tools/vcan-run)."""
 from __future__ import annotations
 
+import errno
 import json
+import os
 import threading
 
+import can
 import pytest
+from can.interfaces.virtual import VirtualBus
 from fixtures.budgets import GUEST_STALL, STALL, within
 from fixtures.bus import scan_bus_args
 from fixtures.driver_rig import HoldPD, bring_up, enable_with
@@ -166,7 +170,6 @@ class _OddNode:
     NODE = 5
 
     def __init__(self, channel: str, answer) -> None:
-        import can
         self._bus = can.Bus(interface="virtual", channel=channel, ignore_config=True)
         self._answer = answer
         self._stop = threading.Event()
@@ -174,7 +177,6 @@ class _OddNode:
         self._thread.start()
 
     def _serve(self) -> None:
-        import can
         while not self._stop.is_set():
             msg = self._bus.recv(0.02)
             if msg is not None and msg.arbitration_id == cia301.SDO_RX + self.NODE:
@@ -233,3 +235,38 @@ def test_a_node_that_never_ends_a_segmented_upload_is_cut_off(odd_node, virtual_
     assert node["device_name"].startswith("ABCDEFGABCDEFG")
     assert len(node["device_name"]) <= 256
     assert "0x1008:0 longer than 256 bytes" in node["problem"]
+
+
+class _RefusingBus(VirtualBus):
+    """A bus whose every send fails as SocketCAN's does: ENOBUFS (a transmit queue that
+    stays full: nothing acknowledges the frames) or ENETDOWN (the link is down)."""
+
+    error = errno.ENOBUFS
+
+    def send(self, msg, timeout=None):
+        raise can.CanOperationError(f"Failed to transmit: {os.strerror(self.error)}",
+                                    self.error)
+
+
+@pytest.mark.parametrize("error, hint", [
+    (errno.ENOBUFS, "no node acknowledges the frames"),
+    (errno.ENETDOWN, "sudo ip link set CH up"),
+])
+@pytest.mark.parametrize("verb", [
+    ["scan"], ["scan", "--lss"], ["init-config", "--eds-dir", "."],
+    ["lss", "--fastscan", "--set-node-id", "3"],
+])
+def test_a_bus_that_refuses_every_frame_is_one_line_and_exit_2(
+        monkeypatch, virtual_channel, capsys, verb, error, hint):
+    """What a real bus with nothing on it does (no acknowledgement: the transmit queue
+    fills, ENOBUFS) or a link set down: one line naming the bus and what to check."""
+    from rocoma_can.drivers import bus as bus_module
+    monkeypatch.setattr(_RefusingBus, "error", error)
+    monkeypatch.setattr(bus_module, "open_bus", lambda interface, channel, **kw: _RefusingBus(
+        channel=channel))
+    assert main([*verb, "--channel", virtual_channel, "--interface", "virtual",
+                 "--timeout", "0.05"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("rocoma-can: ") and "\n" not in err, err
+    assert f"virtual:{virtual_channel}" in err and os.strerror(error) in err
+    assert hint.replace("CH", virtual_channel) in err

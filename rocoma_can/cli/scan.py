@@ -4,11 +4,12 @@ a node a node id by LSS, CiA 305).
 ``scan`` only reads (SDO uploads; with ``--lss`` also LSS fastscan, which changes no node
 id): it may run beside a manager. Exit codes: 0 the scan ran (also when no node
 answered), 1 ``lss`` got no answer or a refusal, 2 usage errors and a bus that cannot be
-opened.
+opened or sent on (a link down; a transmit queue that stays full: no node acknowledges).
 """
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import sys
 from collections.abc import Callable
@@ -36,10 +37,17 @@ def _err(message: str) -> None:
 
 
 def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
-    """``work`` on a bus opened from --interface/--channel; one line when it cannot open."""
-    from ..drivers.bus import open_bus
+    """``work`` on a bus opened from --interface/--channel; one line (exit 2) when it cannot
+    open, when its link is down, or when sending fails (nothing acknowledges the frames)."""
+    import can
+
+    from ..drivers import bus as bus_module
+    down = _link_down(args.interface, args.channel)
+    if down:
+        _err(down)
+        return USAGE
     try:
-        bus = open_bus(args.interface, args.channel, receive_own_messages=False)
+        bus = bus_module.open_bus(args.interface, args.channel, receive_own_messages=False)
     except OSError as exc:
         _err(str(exc) + no_socketcan_hint(exc))
         return USAGE
@@ -48,8 +56,34 @@ def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
         return USAGE
     try:
         return work(bus)
+    except can.CanError as exc:  # SocketCAN: ENOBUFS, ENETDOWN (python-can's error_code)
+        _err(f"{args.interface}:{args.channel}: {exc}"
+             + _send_failure_hint(getattr(exc, "error_code", None), args.channel))
+        return USAGE
     finally:
         bus.shutdown()
+
+
+def _link_down(interface: str, channel: str) -> str | None:
+    """The one line for a SocketCAN link that exists but is down, else None."""
+    if interface != "socketcan" or not channel or "/" in channel or channel.startswith("."):
+        return None
+    from ..drivers.can_link import from_sysfs
+    link = from_sysfs(channel)
+    if link is None or link.up:
+        return None
+    return f"{interface}:{channel}: the link is down" + _send_failure_hint(errno.ENETDOWN,
+                                                                           channel)
+
+
+def _send_failure_hint(code: int | None, channel: str) -> str:
+    if code == errno.ENETDOWN:
+        return (f": sudo ip link set {channel} up (at the drives' bit rate: rocoma-can doctor "
+                "checks the link)")
+    if code in (errno.ENOBUFS, errno.EAGAIN):
+        return ("; the transmit queue stays full: no node acknowledges the frames: "
+                + NOTHING_FOUND.split(": ", 1)[1])
+    return ""
 
 
 def _hex(value: int | None, digits: int = 8) -> str:
