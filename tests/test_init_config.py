@@ -129,3 +129,34 @@ def test_no_drive_to_configure_and_usage_errors(sim_segment_factory, virtual_cha
     with pytest.raises(SystemExit) as usage:
         main(["init-config", "--channel", virtual_channel])  # no --eds-dir
     assert usage.value.code == 2
+
+
+@pytest.mark.parametrize("output", ["missing/robot.yaml", "."])
+def test_an_output_that_cannot_be_written_is_refused_before_the_scan(
+        virtual_channel, tmp_path, capsys, output):
+    """-o in a folder that does not exist, or naming a folder: one line, exit 2, and no scan
+    (which takes seconds) before it."""
+    started = time.monotonic()
+    assert main(["init-config", "--interface", "virtual", "--channel", virtual_channel,
+                 "--eds-dir", str(_folder(tmp_path)), "-o", str(tmp_path / output)]) == 2
+    assert time.monotonic() - started < 1.0  # the scan alone takes longer
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("rocoma-can: init-config: -o ") and "\n" not in err, err
+    assert "Traceback" not in err
+
+
+def test_files_it_cannot_read_are_said_also_when_no_drive_matched(
+        sim_segment_factory, virtual_channel, tmp_path, capsys):
+    """A folder of files that are not device files (and a symbolic link in a loop): each is
+    named with why, also when nothing could be configured, where they explain why no file
+    was for the drive."""
+    sim_segment_factory([1], eds_path=str(VENDOR_A))
+    folder = tmp_path / "eds"
+    folder.mkdir()
+    (folder / "drive.eds").write_text("not an EDS\n")
+    (folder / "loop.eds").symlink_to("loop.eds")
+    assert main(["init-config", *scan_bus_args("virtual", virtual_channel, STALL),
+                 "--eds-dir", str(folder)]) == 1
+    err = capsys.readouterr().err
+    assert "note: drive.eds: not read" in err and "note: loop.eds: not read" in err, err
+    assert "no drive could be configured" in err and "Traceback" not in err

@@ -62,7 +62,13 @@ def index_device_files(directory: str) -> tuple[list[DeviceFileInfo], list[str]]
     from ..drivers.device_file import DeviceFileError, read_device_file
     files, notes = [], []
     for entry in sorted(os.scandir(directory), key=lambda e: e.name):
-        if not entry.is_file() or not entry.name.lower().endswith(SUFFIXES):
+        if not entry.name.lower().endswith(SUFFIXES):
+            continue
+        try:
+            if not entry.is_file():
+                continue
+        except OSError as exc:  # a symbolic link in a loop, say
+            notes.append(f"{entry.name}: not read ({exc.strerror or exc})")
             continue
         try:
             device = read_device_file(entry.path)
@@ -113,6 +119,15 @@ def _flow(mapping: dict[str, Any]) -> str:
                           width=10_000).strip()
 
 
+class NothingToConfigure(ValueError):
+    """No drive could be configured (the message says why, per node); ``notes``: the files
+    of the folder that could not be read."""
+
+    def __init__(self, message: str, notes: list[str]) -> None:
+        super().__init__(message)
+        self.notes = notes
+
+
 @dataclass
 class Generated:
     text: str
@@ -123,7 +138,8 @@ class Generated:
 def generate(found: Sequence[Found], eds_dir: str, interface: str, channel: str,
              bitrate: int, base: str = ".") -> Generated:
     """The commented YAML for ``found`` (device file paths relative to ``base``, the
-    directory the YAML will be in); ValueError when no drive could be configured."""
+    directory the YAML will be in); NothingToConfigure (a ValueError) when no drive could
+    be configured."""
     from .demo_config import emulate
     files, notes = index_device_files(eds_dir)
     taken = {n.node_id for n in found}
@@ -184,8 +200,8 @@ def generate(found: Sequence[Found], eds_dir: str, interface: str, channel: str,
             drives.append(entry)
             modes_all.update(fitted.modes)
     if not drives:
-        raise ValueError("no drive could be configured: " + ("; ".join(
-            line.strip().lstrip("# ") for line in lines) or "the scan found no node"))
+        raise NothingToConfigure("no drive could be configured: " + ("; ".join(
+            line.strip().lstrip("# ") for line in lines) or "the scan found no node"), notes)
     damp = all("cst" in d["modes"] for d in drives)
     emergency = ("{name: stop, plugin: damp, params: {damping: 0.05, still_time: 0.2, "
                  "timeout: 2.0}}" if damp else "{name: stop, plugin: hold, params: {mode: CSP}}")
@@ -245,11 +261,38 @@ def _fitting_rate(drives: list[dict[str, Any]], interface: str, bitrate: int,
 
 
 def _init_config(args: argparse.Namespace) -> int:
+    problem = None
     if not os.path.isdir(args.eds_dir):
-        print(f"rocoma-can: init-config: --eds-dir {args.eds_dir}: not a directory",
-              file=sys.stderr)
+        problem = f"--eds-dir {args.eds_dir}: not a directory"
+    else:
+        try:
+            os.listdir(args.eds_dir)
+        except OSError as exc:
+            problem = f"--eds-dir {args.eds_dir}: cannot read ({exc.strerror or exc})"
+    if problem is None and args.output:
+        why = _not_writable(Path(args.output))
+        problem = f"-o {args.output}: {why}" if why else None
+    if problem:  # before the scan, which takes seconds
+        print(f"rocoma-can: init-config: {problem}", file=sys.stderr)
         return USAGE
     return on_bus(args, lambda bus: _write(args, bus))
+
+
+def _not_writable(path: Path) -> str | None:
+    """Why the config cannot be written to ``path``, or None (it may still fail later)."""
+    from ..user_files import kind
+    folder = path.parent
+    if not folder.is_dir():
+        return f"no folder {folder} to write it in"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"the folder {folder} is not writable"
+    try:
+        what = kind(path.stat().st_mode)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return f"is {what}, not a file to write" if what else None
 
 
 def _write(args: argparse.Namespace, bus: Any) -> int:
@@ -264,6 +307,8 @@ def _write(args: argparse.Namespace, bus: Any) -> int:
         made = generate(found, args.eds_dir, args.interface, args.channel, args.bitrate,
                         str(base))
     except ValueError as exc:
+        for note in getattr(exc, "notes", ()):  # files not read: maybe why none matched
+            print(f"rocoma-can: init-config: note: {note}", file=sys.stderr)
         print(f"rocoma-can: init-config: {exc}", file=sys.stderr)
         return FAILED
     try:
@@ -275,7 +320,12 @@ def _write(args: argparse.Namespace, bus: Any) -> int:
     for note in made.notes:
         print(f"rocoma-can: init-config: note: {note}", file=sys.stderr)
     if args.output:
-        Path(args.output).write_text(made.text, encoding="utf-8")
+        try:
+            Path(args.output).write_text(made.text, encoding="utf-8")
+        except OSError as exc:
+            print(f"rocoma-can: init-config: -o {args.output}: cannot write "
+                  f"({exc.strerror or exc})", file=sys.stderr)
+            return USAGE
         print(f"init-config: {made.drives} drive(s) written to {args.output}; next: "
               f"rocoma-can check-config {args.output}", file=sys.stderr)
     else:
