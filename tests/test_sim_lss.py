@@ -104,3 +104,26 @@ def test_reset_communication_of_a_node_with_no_pending_change_is_an_ordinary_res
     bench.nmt(cia301.NmtCommand.RESET_COMMUNICATION, 3)
     assert list(bench.segment.drives) == [3]
     assert bench.segment.drives[3].nmt_state == cia301.NmtState.PRE_OPERATIONAL
+
+
+def test_a_file_listing_the_revision_without_a_value_still_gives_every_node_an_lss_address(
+        sim_bench, virtual_channel, capsys):
+    """vendor_a.eds (the walk-through's file) lists 0x1018:3 without a value, which the
+    drives answer as 0: that 0 is their LSS address too, so `sim --unconfigured serial=N`
+    with it runs and a configured node is selectable by what `scan` shows of it."""
+    from pathlib import Path
+
+    from rocoma_can.cli.main import main
+    vendor_a = str(Path(__file__).parent / "fixtures" / "eds" / "vendor_a.eds")
+    assert main(["sim", "--interface", "virtual", "--channel", virtual_channel + "-cli",
+                 "--eds", vendor_a, "--unconfigured", "serial=0x5", "--duration", "0.1"]) == 0
+    capsys.readouterr()
+    bench = sim_bench([2], eds_path=vendor_a, unconfigured=[Identity(serial=0x5)])
+    assert bench.node(2).sdo.upload(0x1018, 3) == bytes(4)
+    lss = bench.network.lss
+    lss.RESPONSE_TIMEOUT = bench.within(0.01)
+    assert lss.send_switch_state_selective(0xAA, 0x1234, 0, 2)  # node 2 as scan shows it
+    assert lss.inquire_node_id() == 2
+    lss.send_switch_state_global(LssMaster.WAITING_STATE)
+    blank = next(s for s in bench.segment.lss_slaves if not s.configured)
+    assert blank.address == (0xAA, 0x1234, 0, 0x5)

@@ -443,9 +443,10 @@ def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.Obje
 
 def own_identity(od: objectdictionary.ObjectDictionary, node_id: int, overrides: Mapping[Key, Any],
                  given: Identity | None) -> Identity:
-    """A node's 0x1018: the file's, with the vendor and product its [DeviceInfo] names where
-    it names a vendor (what bring-up holds a drive to without ``identity:``:
-    identity.file_identity), a serial number of its own so that each node is one of a kind
+    """A node's 0x1018: the file's (a subindex it lists without a value: 0, as the drive
+    answers it), with the vendor and product its [DeviceInfo] names where it names a vendor
+    (what bring-up holds a drive to without ``identity:``: identity.file_identity), a
+    serial number of its own so that each node is one of a kind
     (the file's plus node id - 1, or the node id where the file gives none), then
     ``overrides`` and ``given``."""
     values: dict[str, int | None] = {}
@@ -453,9 +454,14 @@ def own_identity(od: objectdictionary.ObjectDictionary, node_id: int, overrides:
     for name, sub in SUBINDEX.items():
         variable = od.get_variable(c301.IDENTITY, sub)
         stated = getattr(made_for, name, None) if made_for.vendor_id is not None else None
-        values[name] = overrides.get((c301.IDENTITY, sub), stated if stated is not None
-                                     and variable is not None else variable.default
-                                     if variable is not None else None)
+        if variable is None:
+            listed = None
+        elif stated is not None:
+            listed = stated
+        else:  # listed without a value: what the drive answers for it (DriveObjects), 0
+            listed = variable.default if variable.default is not None \
+                else _empty(variable.data_type)
+        values[name] = overrides.get((c301.IDENTITY, sub), listed)
     if node_id != UNCONFIGURED and not (overrides.get((c301.IDENTITY, SUBINDEX["serial"]))):
         # one file, many simulated nodes: each a device of its own (an LSS address, a
         # serial bring-up may hold it to). A file's serial (a DCF read off one device) is
