@@ -71,6 +71,15 @@ def open_bus(interface: str, channel: str, bitrate: int | None = None,
         bus = can.Bus(interface=interface, channel=channel, ignore_config=True, **kwargs)
     except (OSError, can.CanError) as e:
         raise OSError(f"cannot open CAN bus {interface}:{channel}: {e}") from e
+    except NotImplementedError:  # an interface python-can does not know: the caller says so
+        raise
+    except Exception as e:  # noqa: BLE001 - a backend that breaks as it starts (below)
+        # python-can's adapter backends fail in their own ways when the vendor's library
+        # is missing or a setting is: kvaser without canlib NameError, neovi without
+        # python-ics ImportError, socketcand without host/port TypeError.
+        raise OSError(f"cannot open CAN bus {interface}:{channel}: {type(e).__name__}: {e} "
+                      f"(python-can's {interface} backend: is the adapter's library "
+                      "installed?)") from e
     return enlarge_bus_buffer(bus)
 
 

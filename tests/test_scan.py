@@ -270,3 +270,21 @@ def test_a_bus_that_refuses_every_frame_is_one_line_and_exit_2(
     assert err.startswith("rocoma-can: ") and "\n" not in err, err
     assert f"virtual:{virtual_channel}" in err and os.strerror(error) in err
     assert hint.replace("CH", virtual_channel) in err
+
+
+@pytest.mark.parametrize("failure", [NameError("name 'canGetNumberOfChannels' is not defined"),
+                                     ImportError("Please install python-ics"),
+                                     TypeError("__init__() missing 2 required positional "
+                                               "arguments: 'host' and 'port'")])
+def test_an_adapter_backend_that_fails_to_start_is_one_line_and_exit_2(
+        monkeypatch, capsys, failure):
+    """python-can's kvaser backend without Kvaser's canlib raises NameError, neovi without
+    python-ics ImportError, socketcand without host/port TypeError: what a person meets with
+    a USB adapter whose vendor library is not installed. One line naming the interface."""
+    def broken(**kwargs):
+        raise failure
+    monkeypatch.setattr(can, "Bus", broken)
+    assert main(["scan", "--interface", "kvaser", "--channel", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("rocoma-can: cannot open CAN bus kvaser:0: ") and "\n" not in err
+    assert type(failure).__name__ in err and str(failure) in err
