@@ -65,15 +65,31 @@ def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
 
 
 def _link_down(interface: str, channel: str) -> str | None:
-    """The one line for a SocketCAN link that exists but is down, else None."""
+    """The one line for a SocketCAN link that is down or missing (as doctor says it, and
+    before python-can logs one of its own), else None."""
     if interface != "socketcan" or not channel or "/" in channel or channel.startswith("."):
         return None
-    from ..drivers.can_link import from_sysfs
+    from ..drivers.can_link import LinkReading, from_sysfs
     link = from_sysfs(channel)
-    if link is None or link.up:
+    if link is None:
+        if not _kernel_has_socketcan():
+            return None  # open_bus says so, with what to do instead
+        from ..runtime.can_checks import Wanted, link_checks
+        missing = link_checks(LinkReading(channel, None), Wanted(channel))[0]
+        return f"{interface}:{channel}: {missing.found}: {missing.fix}"
+    if link.up:
         return None
     return f"{interface}:{channel}: the link is down" + _send_failure_hint(errno.ENETDOWN,
                                                                            channel)
+
+
+def _kernel_has_socketcan() -> bool:
+    import socket
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except (OSError, AttributeError):
+        return False
+    return True
 
 
 def _send_failure_hint(code: int | None, channel: str) -> str:

@@ -17,3 +17,11 @@ def test_a_link_that_is_down_is_one_line_with_the_command_that_brings_it_up(
     err = capsys.readouterr().err.strip()
     assert err == ("rocoma-can: socketcan:vcan0: the link is down: sudo ip link set vcan0 up "
                    "(at the drives' bit rate: rocoma-can doctor checks the link)")
+
+
+def test_a_missing_link_is_one_line_with_how_to_create_it(capsys):
+    """Only rocoma-can's line: not python-can's ERROR log before it."""
+    assert main(["scan", "--channel", "vcan7"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("rocoma-can: socketcan:vcan7: no network interface 'vcan7': sudo modprobe "
+                   "vcan && sudo ip link add dev vcan7 type vcan && sudo ip link set vcan7 up")
