@@ -127,3 +127,17 @@ def test_a_file_listing_the_revision_without_a_value_still_gives_every_node_an_l
     lss.send_switch_state_global(LssMaster.WAITING_STATE)
     blank = next(s for s in bench.segment.lss_slaves if not s.configured)
     assert blank.address == (0xAA, 0x1234, 0, 0x5)
+
+
+def test_two_simulated_nodes_with_one_identity_are_a_usage_error_naming_both(
+        virtual_channel, capsys):
+    """`sim --nodes 1,2 --identity 1:serial=2`: node 2 has serial 2 by default, so the two
+    would share an LSS address. One line naming both nodes, exit 2 (the arguments are
+    wrong: nothing failed to open)."""
+    from rocoma_can.cli.main import main
+    assert main(["sim", "--interface", "virtual", "--channel", virtual_channel, "--nodes",
+                 "1,2", "--identity", "1:serial=2", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "cannot open" not in err, err
+    assert err.startswith("rocoma-can sim: node 1 and node 2 have the same identity"), err
+    assert "serial 0x00000002" in err

@@ -187,6 +187,7 @@ def _inject(segment: SimulatedSegment, inj: Injection) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .lss import IdentityError
     from .segment import SimulatedSegment
     injections = [inj for flag in INJECTIONS for inj in getattr(args, flag.replace("-", "_"))]
     identities = dict(args.identity)
@@ -218,6 +219,9 @@ def run(args: argparse.Namespace) -> int:
                                         axes={n: args.axes for n in args.nodes},
                                         identities=identities,
                                         unconfigured=args.unconfigured)
+    except IdentityError as exc:  # --identity / --unconfigured: the arguments are wrong
+        print(f"rocoma-can sim: {exc}", file=sys.stderr)
+        return USAGE
     except (OSError, ValueError, ImportError) as exc:
         print(f"rocoma-can sim: cannot open {args.interface} channel {args.channel}: {exc}",
               file=sys.stderr)

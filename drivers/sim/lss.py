@@ -49,6 +49,11 @@ _IDENTIFY = tuple(range(cs.CS_IDENTIFY_REMOTE_SLAVE_VENDOR_ID,
 _FASTSCAN_ANY = 0x80
 
 
+class IdentityError(ValueError):
+    """The simulated nodes' identities cannot be LSS addresses (one incomplete, two alike):
+    the arguments that gave them are wrong."""
+
+
 class LssState(enum.IntEnum):
     WAITING = 0
     CONFIGURATION = 1
@@ -64,7 +69,7 @@ class LssSlave:
         address = (identity.vendor_id, identity.product_code, identity.revision,
                    identity.serial)
         if any(part is None for part in address):
-            raise ValueError(f"an LSS slave needs all four identity fields, got "
+            raise IdentityError(f"an LSS slave needs all four identity fields, got "
                              f"{identity.describe()}")
         self.identity = identity
         self.address: tuple[int, int, int, int] = address  # type: ignore[assignment]

@@ -43,7 +43,7 @@ from ..identity import Identity
 from ..lss import LSS_REQUEST, UNCONFIGURED
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
-from .lss import LssSlave
+from .lss import IdentityError, LssSlave
 from .objects import (
     MAX_AXES,
     fallback_values,
@@ -182,10 +182,15 @@ class SimulatedSegment:
             self.lss_slaves.append(LssSlave(
                 own_identity(template, UNCONFIGURED, self._overrides, given), UNCONFIGURED,
                 len(joints) + k, 1, self.send, self._move))
-        addresses = [slave.address for slave in self.lss_slaves]
-        if len(set(addresses)) < len(addresses):
-            raise ValueError("two simulated nodes have the same identity (LSS address): "
-                             "give each its own serial number")
+        owners: dict[tuple[int, int, int, int], str] = {}
+        for slave in self.lss_slaves:
+            who = f"node {slave.active_id}" if slave.configured else "a node without a node id"
+            if slave.address in owners:
+                raise IdentityError(
+                    f"{owners[slave.address]} and {who} have the same identity "
+                    f"({slave.identity.describe()}), which LSS needs one of a kind: give each "
+                    "its own serial number")
+            owners[slave.address] = who
         assumed = next(iter(self.drives.values())).objects.assumed if self.drives else {}
         if assumed:
             log.info("simulated drives of %s: where the file gives no value they answer %s",
