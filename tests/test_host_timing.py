@@ -83,3 +83,25 @@ def test_a_memory_speed_that_does_not_hold_warns_even_without_overruns():
     check = _memory_check(_run(0, 0, 400.0, 1_000.0, MEMORY_FOOTPRINT))
     assert check.status == "warn" and "(2.5x)" in check.found
     assert "memory speed does not hold" in (check.fix or "")
+
+
+def test_a_thread_cpu_clock_coarser_than_a_pass_still_sizes_the_work(monkeypatch):
+    """Where the thread CPU clock moves in ticks (user-mode Linux, the vcan suite's guest:
+    10 ms), most passes of the sizing read 0 s: taken as 1 ns, the work grew a million-fold
+    and `doctor --timing` never ended. The size must stay near the one a fine clock gives
+    (here a 4 ms tick)."""
+    import threading
+    import time
+
+    from rocoma_can.runtime import host_timing
+    fine = WorkHardware(0)
+    fine.size(400.0, 0.001)
+    tick = 0.004
+    real = time.thread_time
+    monkeypatch.setattr(host_timing.time, "thread_time", lambda: real() // tick * tick)
+    coarse = WorkHardware(0)
+    sizing = threading.Thread(target=coarse.size, args=(400.0, 0.001), daemon=True)
+    sizing.start()
+    sizing.join(30.0)
+    assert not sizing.is_alive(), "sizing the work never ended"
+    assert coarse.visits < 20 * fine.visits, (coarse.visits, fine.visits)
