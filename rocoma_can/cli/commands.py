@@ -180,13 +180,18 @@ def _run(args: argparse.Namespace) -> int:
 
 def no_socketcan_hint(exc: BaseException) -> str:
     """What to do when the kernel has no SocketCAN (EAFNOSUPPORT: containers, WSL, macOS),
-    which a new user meets first as an errno: its words say nothing about CAN."""
+    or no such link (ENODEV: a typo, an adapter not plugged in, vcan not made), which a new
+    user meets first as an errno: its words say nothing about CAN."""
     seen: BaseException | None = exc
     while seen is not None:
         if isinstance(seen, OSError) and seen.errno == errno.EAFNOSUPPORT:
             return ("; this kernel has no SocketCAN (AF_CAN): on vcan, from a checkout, "
                     "tools/vcan-run -- rocoma-can run CONFIG with channel: vcan0; without a "
                     "kernel bus, rocoma-can demo, or interface: virtual in CONFIG")
+        if isinstance(seen, OSError) and seen.errno == errno.ENODEV:
+            return ("; no such network interface: `ip link` lists them (an adapter plugged "
+                    "in, its driver loaded?); rocoma-can doctor CONFIG checks each bus and "
+                    "says how to create or raise it")
         seen = seen.__cause__ or seen.__context__
     return ""
 

@@ -1,6 +1,6 @@
-"""``rocoma-can scan`` / ``init-config`` / ``lss`` on a SocketCAN link that is down: the
-first mistake on a real robot (the interface never set up). One line saying so and how to
-bring it up, exit 2, before anything is sent."""
+"""``rocoma-can scan`` / ``init-config`` / ``lss`` (and ``run``) on a SocketCAN link that is
+down or missing: the first mistake on a real robot (the interface never set up). One line
+saying so and how to bring it up, exit 2, before anything is sent."""
 from __future__ import annotations
 
 import pytest
@@ -25,3 +25,22 @@ def test_a_missing_link_is_one_line_with_how_to_create_it(capsys):
     err = capsys.readouterr().err.strip()
     assert err == ("rocoma-can: socketcan:vcan7: no network interface 'vcan7': sudo modprobe "
                    "vcan && sudo ip link add dev vcan7 type vcan && sudo ip link set vcan7 up")
+
+
+def test_run_on_a_missing_link_is_one_line_with_what_to_check(tmp_path, capsys, caplog):
+    """`run` with a channel that is no network interface (a typo, an adapter not plugged
+    in): python-can's own ERROR line came first ("Could not access SocketCAN device"), then
+    ours with only "[Errno 19] No such device". One line, with where to look."""
+    import yaml
+    from test_config import good
+    cfg = good()
+    cfg["bus"] = {"interface": "socketcan", "channel": "vcan7"}
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["run", str(path), "--no-flight", "--duration", "1"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "rocoma-can: cannot open CAN bus socketcan:vcan7: [Errno 19] No such device; no such "
+        "network interface: `ip link` lists them (an adapter plugged in, its driver "
+        "loaded?); rocoma-can doctor CONFIG checks each bus and says how to create or raise "
+        "it"]
+    assert not [r for r in caplog.records if r.name.startswith("can.")]
