@@ -130,6 +130,16 @@ def can_interfaces(root: Path = SYSFS_NET) -> list[str]:
     return [n for n in names if _read(root / n / "type") == str(ARPHRD_CAN)]
 
 
+def socketcan_in_kernel() -> bool:
+    """Whether this kernel has SocketCAN (AF_CAN): containers, WSL and macOS often do not."""
+    import socket
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
 def ip_command() -> str | None:
     return shutil.which("ip", path=os.environ.get("PATH", "") + ":" + _SBIN)
 

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import errno
 import logging
-import socket
 from pathlib import Path
 
 import pytest
@@ -12,6 +11,7 @@ from test_config import good
 from test_services import NODE, Rig
 
 from rocoma_can.cli.main import main
+from rocoma_can.drivers.can_link import socketcan_in_kernel
 
 EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
 
@@ -167,18 +167,10 @@ def test_check_config_of_a_valid_file_warns_about_nothing(tmp_path, capsys, capl
     assert err == "" and [r.getMessage() for r in caplog.records] == []
 
 
-def _kernel_has_socketcan() -> bool:
-    try:
-        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
-    except (OSError, AttributeError):
-        return False
-    return True
-
-
 def test_run_without_socketcan_says_what_to_do(tmp_path, capsys, monkeypatch):
     """A kernel without AF_CAN (this project's CI, containers, WSL): the errno, then what
     to do instead, on one line."""
-    if _kernel_has_socketcan():  # the same errno as such a kernel gives, from python-can
+    if socketcan_in_kernel():  # the same errno as such a kernel gives, from python-can
         import can
 
         def no_af_can(*args, **kwargs):

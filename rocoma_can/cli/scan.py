@@ -69,10 +69,10 @@ def _link_down(interface: str, channel: str) -> str | None:
     before python-can logs one of its own), else None."""
     if interface != "socketcan" or not channel or "/" in channel or channel.startswith("."):
         return None
-    from ..drivers.can_link import LinkReading, from_sysfs
+    from ..drivers.can_link import LinkReading, from_sysfs, socketcan_in_kernel
     link = from_sysfs(channel)
     if link is None:
-        if not _kernel_has_socketcan():
+        if not socketcan_in_kernel():
             return None  # open_bus says so, with what to do instead
         from ..runtime.can_checks import Wanted, link_checks
         missing = link_checks(LinkReading(channel, None), Wanted(channel))[0]
@@ -81,15 +81,6 @@ def _link_down(interface: str, channel: str) -> str | None:
         return None
     return f"{interface}:{channel}: the link is down" + _send_failure_hint(errno.ENETDOWN,
                                                                            channel)
-
-
-def _kernel_has_socketcan() -> bool:
-    import socket
-    try:
-        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
-    except (OSError, AttributeError):
-        return False
-    return True
 
 
 def _send_failure_hint(code: int | None, channel: str) -> str:
