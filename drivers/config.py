@@ -296,6 +296,18 @@ class DriveConfig:
         if self.position_min >= self.position_max:
             raise ValueError(f"{where}: position_min ({self.position_min}) must be below "
                              f"position_max ({self.position_max})")
+        # a joint position the drive's INT32 position (0x6064, 0x607A) cannot hold wraps to
+        # the other end of its range: a limit out there guards nothing
+        span = ((1 << 31) - 1) * 2.0 * math.pi / (self.increments_per_rev * abs(self.gear_ratio))
+        for name in ("position_min", "position_max"):
+            value = getattr(self, name)
+            if math.isfinite(value) and abs(value) > span:
+                said = name if self.limits.position is None \
+                    else f"limits.position {name.removeprefix('position_')}"
+                raise ValueError(
+                    f"{where}: {said} {value:g} rad is beyond what the drive's position "
+                    f"(INT32 increments, 0x6064/0x607A) holds at {self.increments_per_rev} "
+                    f"increments a turn and gear ratio {self.gear_ratio:g}: +-{span:.4g} rad")
         if not _whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
             raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
                              f"got {self.heartbeat_ms!r}")

@@ -77,8 +77,8 @@ def test_drive_units_are_rounded_outward_and_a_negative_gear_swaps_min_and_max()
 
 
 def test_a_position_beyond_the_drives_integer32_is_a_config_problem():
-    with pytest.raises(ValueError, match=r"limits.position is \d+ increments in 0x607D:2 "
-                                         r"\(software position limit max\), which its data type"):
+    with pytest.raises(ValueError, match=r"limits.position max 10000 rad is beyond what the "
+                                         r"drive's position \(INT32 increments"):
         plan_drive(drive(gear_ratio=1000.0, limits={"position": [0.0, 1e4]}))
 
 
@@ -148,3 +148,23 @@ def test_the_following_error_watch_keeps_nothing_allocated_and_faults_after_n_cy
         watch.tracking.fill(True)
     assert len(sup.pending) == 24 and "beyond the window 0.1 rad for 3 cycles" in \
         sup.pending[0].cause
+
+
+@pytest.mark.parametrize("limits, name", [({"position": [-1.0, 4.0]}, "limits.position max"),
+                                          ({"position": [-4.0, 1.0]}, "limits.position min"),
+                                          ({"position_max": 4.0}, "position_max")])
+def test_a_position_limit_the_drives_int32_position_cannot_hold_is_refused(limits, name):
+    """At 2**32 increments a turn (a 32-bit encoder's 0x608F) the drive's INT32 position
+    covers half a turn each way: a joint past it reads as the other end of the range, so a
+    limit beyond it guards nothing."""
+    given = {"limits": limits} if "position" in limits else limits  # or the old keys
+    with pytest.raises(ValueError) as info:
+        drive(increments_per_rev=1 << 32, **given)
+    value = limits["position"][1 if name.endswith("max") else 0] if "position" in limits \
+        else limits["position_max"]
+    assert str(info.value) == (
+        f"drive 'knee': {name} {value:g} rad is beyond what the drive's position (INT32 "
+        f"increments, 0x6064/0x607A) holds at {1 << 32} increments a turn and gear ratio "
+        f"1: +-3.142 rad")
+    drive(increments_per_rev=1 << 32, limits={"position": [-3.0, 3.0]})  # inside: taken
+    drive(increments_per_rev=1 << 32)  # none given: nothing to refuse
