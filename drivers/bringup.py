@@ -263,6 +263,10 @@ def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
             raise RuntimeError("cancelled: the hardware closes")
         try:
             return _configure_once(node, plan, manager_node_id, consumer_ms, dt)
+        except struct.error as exc:  # canopen unpacking an answer shorter than an SDO frame
+            raise RuntimeError(f"a malformed SDO answer (shorter than an SDO frame: {exc}): "
+                               f"is node {node.id} the CANopen drive the config says, or is "
+                               "another device answering at its id?") from exc
         except canopen.SdoCommunicationError as exc:
             failure = exc
             if attempt < attempts:

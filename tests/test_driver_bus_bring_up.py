@@ -17,7 +17,17 @@ import struct
 import threading
 import time
 
-from fixtures.driver_rig import MANAGER_NODE_ID, HoldPD, bring_up, enable_with, synced_mark
+import canopen
+import pytest
+from fixtures.driver_rig import (
+    MANAGER_NODE_ID,
+    HoldPD,
+    bring_up,
+    drive_configs,
+    enable_with,
+    synced_mark,
+)
+from fixtures.odd_node import OddNode
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import cia301, cia402
@@ -95,6 +105,32 @@ def test_closing_ends_a_configuration_waiting_on_a_silent_drive(segment, make_ri
     assert took < sdo_timeout / 2, took  # the wait was cut short, not timed out
     assert recorder.count(request) == 1  # no attempt after the close
     assert not [t for t in threading.enumerate() if t.name.startswith("canopen-config")]
+
+
+@pytest.mark.parametrize("garbage", [b"", b"\x43\x00"])
+def test_a_node_answering_garbled_sdo_frames_fails_its_bring_up_in_one_line(virtual_channel,
+                                                                              garbage):
+    """A device at the drive's node id that answers SDO with frames shorter than SDO's
+    8 bytes: canopen's struct.error text was the drive's failure ("unpack requires a buffer
+    of 3 bytes"). The failure says what it means and what to check."""
+    from rocoma_can.drivers.bringup import configure
+    from rocoma_can.drivers.drive_plan import plan_drive
+    odd = OddNode(virtual_channel, lambda request: [garbage])
+    network = canopen.Network()
+    network.connect(interface="virtual", channel=virtual_channel, ignore_config=True)
+    try:
+        node = network.add_node(OddNode.NODE, canopen.ObjectDictionary())
+        with pytest.raises(RuntimeError) as failed:
+            configure(node, plan_drive(drive_configs((OddNode.NODE,))[0]), MANAGER_NODE_ID,
+                      200, attempts=1)
+        assert str(failed.value).startswith("a malformed SDO answer (shorter than an SDO "
+                                            "frame: "), failed.value
+        assert str(failed.value).endswith(f"is node {OddNode.NODE} the CANopen drive the "
+                                          "config says, or is another device answering at "
+                                          "its id?")
+    finally:
+        network.disconnect()
+        odd.close()
 
 
 def test_bring_up_phases_are_reported(segment, make_rig):

@@ -16,6 +16,7 @@ from can.interfaces.virtual import VirtualBus
 from fixtures.budgets import GUEST_STALL, STALL, within
 from fixtures.bus import scan_bus_args
 from fixtures.driver_rig import HoldPD, bring_up, enable_with
+from fixtures.odd_node import OddNode
 
 from rocoma_can import ManagerState
 from rocoma_can.cli.main import main
@@ -163,39 +164,12 @@ def test_usage_errors_exit_2_with_one_line(args, capsys):
     assert err.startswith("rocoma-can: ") and "\n" not in err and "Traceback" not in err
 
 
-class _OddNode:
-    """Node 5 as a broken or hostile device answers: ``answer(request) -> frames`` to each
-    SDO request on its own bus (a thread, stopped with the test)."""
-
-    NODE = 5
-
-    def __init__(self, channel: str, answer) -> None:
-        self._bus = can.Bus(interface="virtual", channel=channel, ignore_config=True)
-        self._answer = answer
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-        self._thread.start()
-
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            msg = self._bus.recv(0.02)
-            if msg is not None and msg.arbitration_id == cia301.SDO_RX + self.NODE:
-                for data in self._answer(bytes(msg.data)):
-                    self._bus.send(can.Message(arbitration_id=cia301.SDO_TX + self.NODE,
-                                               data=data, is_extended_id=False))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=STALL)
-        self._bus.shutdown()
-
-
 @pytest.fixture
 def odd_node(virtual_channel):
-    nodes: list[_OddNode] = []
+    nodes: list[OddNode] = []
 
-    def start(answer) -> _OddNode:
-        nodes.append(_OddNode(virtual_channel, answer))
+    def start(answer) -> OddNode:
+        nodes.append(OddNode(virtual_channel, answer))
         return nodes[-1]
     yield start
     for node in nodes:
@@ -209,7 +183,7 @@ def test_a_node_answering_garbled_sdo_frames_is_listed_with_the_problem(
     lists the node with what went wrong, no traceback."""
     odd_node(lambda request: [garbage])
     (node,) = scan_json(capsys, "virtual", virtual_channel)["nodes"]
-    assert node["node_id"] == _OddNode.NODE and node["device_type"] is None
+    assert node["node_id"] == OddNode.NODE and node["device_type"] is None
     assert "malformed SDO answer reading 0x1000:0" in node["problem"]
 
 
