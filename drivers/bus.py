@@ -67,8 +67,6 @@ def open_bus(interface: str, channel: str, bitrate: int | None = None,
     with the large receive buffer on SocketCAN."""
     if bitrate is not None:
         kwargs["bitrate"] = bitrate
-    said = logging.getLogger("can.interfaces.socketcan.socketcan")
-    said.addFilter(_said_by_us)
     try:
         bus = can.Bus(interface=interface, channel=channel, ignore_config=True, **kwargs)
     except (OSError, can.CanError) as e:
@@ -82,16 +80,7 @@ def open_bus(interface: str, channel: str, bitrate: int | None = None,
         raise OSError(f"cannot open CAN bus {interface}:{channel}: {type(e).__name__}: {e} "
                       f"(python-can's {interface} backend: is the adapter's library "
                       "installed?)") from e
-    finally:
-        said.removeFilter(_said_by_us)
     return enlarge_bus_buffer(bus)
-
-
-def _said_by_us(record: logging.LogRecord) -> bool:
-    """python-can's socketcan logs an ERROR line of its own for a link it cannot open
-    ("Could not access SocketCAN device vcan7") and then raises: the OSError open_bus
-    raises says it, with the bus's name, and the command adds what to do."""
-    return not record.getMessage().startswith("Could not access SocketCAN device")
 
 
 #: A reader whose drain_now was called within this long leaves the reading to its caller

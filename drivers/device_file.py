@@ -326,7 +326,7 @@ _OBJECT_TYPES = {"NULL": 0x0, "DOMAIN": 0x2, "DEFTYPE": 0x5, "DEFSTRUCT": 0x6, "
                  "ARRAY": 0x8, "RECORD": 0x9}
 _DATA_TYPES = {name: code for name, code in vars(datatypes).items()
                if name.isupper() and isinstance(code, int) and code <= 0x1B}
-_BOOLEANS = {"true": 1, "yes": 1, "false": 0, "no": 0}
+_BOOLEANS = {"TRUE": 1, "YES": 1, "FALSE": 0, "NO": 0}
 #: header keys canopen reads with int(): section -> keys (BaudRate_* too, in DeviceInfo)
 _HEADER_NUMBERS = {
     "DeviceInfo": ("VendorNumber", "ProductNumber", "RevisionNumber", "SimpleBootUpMaster",
@@ -339,8 +339,7 @@ _HEADER_NUMBERS = {
 def _number(value: str, names: dict[str, int]) -> int | None:
     """A number as files write it, or one of ``names`` (any case); None for neither."""
     number = _int(value)
-    return number if number is not None else names.get(value.strip().upper(),
-                                                        names.get(value.strip().lower()))
+    return number if number is not None else names.get(value.strip().upper())
 
 
 def _check_headers(device: DeviceFile) -> None:
@@ -378,7 +377,7 @@ def _check_objects(device: DeviceFile) -> None:
         key = _object_key(name)
         if key is None:
             continue
-        problem = _object_problem(name, key, keys, sections)
+        problem = _repair_object(name, key, keys, sections)
         if problem is not None:
             broken.setdefault(key[0], problem)
     left_out = []
@@ -394,8 +393,10 @@ def _check_objects(device: DeviceFile) -> None:
                             + (f" and {len(left_out) - 3} more" if len(left_out) > 3 else ""))
 
 
-def _object_problem(name: str, key: Key, keys: dict[str, str],
-                    sections: dict[str, dict[str, str]]) -> str | None:
+def _repair_object(name: str, key: Key, keys: dict[str, str],
+                   sections: dict[str, dict[str, str]]) -> str | None:
+    """``keys`` as canopen reads them (names for numbers rewritten, a ParameterName given);
+    what makes the object unreadable, or None."""
     index, sub = key
     keys.setdefault("ParameterName", f"0x{index:04X}" + (f" sub {sub}" if sub else ""))
     if "sub" in name:

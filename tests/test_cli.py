@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from test_config import good
+from test_config import good, nobody_answers
 from test_services import NODE, Rig
 
 from rocoma_can.cli.main import main
@@ -190,12 +190,7 @@ def test_run_without_socketcan_says_what_to_do(tmp_path, capsys, monkeypatch):
 def test_a_timed_run_with_no_drive_answering_says_so_and_fails(tmp_path, capfd, caplog):
     """No drive on the bus: each drive's failure once on stderr with what to check, and a
     run whose bring-up never finished exits 1, not "stopped (duration reached)" and 0."""
-    cfg = good()
-    cfg["bus"] = {"interface": "virtual", "channel": f"nobody-{tmp_path.name}"}
-    cfg["drives"] = cfg["drives"][:1]
-    cfg["supervision"] = {"boot_wait": 0.0, "sdo_timeout": 0.05}
-    path = tmp_path / "robot.yaml"
-    path.write_text(yaml.safe_dump(cfg))
+    path = nobody_answers(tmp_path)
     assert main(["run", str(path), "--duration", "3", "--no-flight"]) == 1
     err = capfd.readouterr().err
     assert "rocoma-can: bring-up did not finish: drives not ready: j1 (FAILED: did not " \

@@ -30,6 +30,18 @@ def good() -> dict:
     }
 
 
+def nobody_answers(tmp_path: Path) -> Path:
+    """A config file (in ``tmp_path``) of one drive on a virtual bus with nothing on it,
+    bring-up's timeouts short: a run whose drive never answers."""
+    cfg = good()
+    cfg["bus"] = {"interface": "virtual", "channel": f"nobody-{tmp_path.name}"}
+    cfg["drives"] = cfg["drives"][:1]
+    cfg["supervision"] = {"boot_wait": 0.0, "sdo_timeout": 0.05}
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
 def test_good_config_builds():
     config = validate(good())
     assert config.rate == 100 and config.dt == pytest.approx(0.01)

@@ -12,10 +12,9 @@ import threading
 import time
 
 import pytest
-import yaml
 from fixtures.budgets import within
 from fixtures.running import DEMO_WAIT, wait_for
-from test_config import good
+from test_config import nobody_answers
 
 from rocoma_can.drivers.joints import JointCommand, JointState
 from rocoma_can.exit_codes import INTERRUPTED
@@ -87,12 +86,7 @@ def test_a_second_stop_signal_while_run_closes_exits_130_and_leaves_no_writer(tm
     (an operator's `kill` again, an impatient Ctrl-C) ends the run as an interruption, exit
     130, no traceback, and the writer is not left behind (a SIGTERM killed the process
     outright, exit 143, and the stopped writer stayed for ever)."""
-    cfg = good()
-    cfg["bus"] = {"interface": "virtual", "channel": f"nobody-{tmp_path.name}"}
-    cfg["drives"] = cfg["drives"][:1]
-    cfg["supervision"] = {"boot_wait": 0.0, "sdo_timeout": 0.05}
-    path = tmp_path / "robot.yaml"
-    path.write_text(yaml.safe_dump(cfg))
+    path = nobody_answers(tmp_path)
     out, err = tmp_path / "out.txt", tmp_path / "err.txt"
     with open(out, "w") as stdout, open(err, "w") as stderr:
         run = subprocess.Popen([sys.executable, "-m", "rocoma_can", "run", str(path),

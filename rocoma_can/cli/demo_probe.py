@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING
 
 import can
 
+from ..node.objects import STATE_NAMES
+
 if TYPE_CHECKING:
     from ..drivers.bus import BusReader
     from ..runtime.config import RuntimeConfig
@@ -104,7 +106,6 @@ class TorqueOffProbes:
         """The last step's verdict and detail: every drive's torque-off seen, the manager
         ended in FAILPROOF (0). A demo interrupted before the probes opened cannot have
         seen them: said skipped, with the state the manager ended in."""
-        from ..node.objects import STATE_NAMES
         if interrupted and self.error:
             return last_state == 0, (f"skipped: {self.error}: its torque-off frames went out "
                                      f"unwatched; the manager ended in "

@@ -72,7 +72,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         logging.basicConfig(level=level,
                             format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         if args.verbose < 2:
-            logging.getLogger("canopen.sdo.client").addFilter(_own_sdo_reports)
+            for logger in SAID_BY_US:
+                logging.getLogger(logger).addFilter(_said_by_us)
         if not getattr(args, "func", None):
             parser.print_help()
             return USAGE
@@ -83,12 +84,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         restore()
 
 
-def _own_sdo_reports(record: logging.LogRecord) -> bool:
-    """canopen's SDO client logs an ERROR line each time a request of ours times out
-    ("Transfer aborted by client with code 0x05040000": a drive not answering, once per
-    try); the command says what failed itself, once, naming the drive and what to check.
-    Shown with -vv."""
-    return not record.getMessage().startswith("Transfer aborted by client")
+#: library log lines a command says itself, better: logger -> how the line begins.
+#: canopen's SDO client logs an ERROR line each time a request times out (a drive not
+#: answering, once per try); the command says what failed once, naming the drive and what
+#: to check. python-can's socketcan logs one for a link it cannot open, then raises; the
+#: command says it with the bus's name and what to do. Shown with -vv.
+SAID_BY_US = {"canopen.sdo.client": "Transfer aborted by client",
+              "can.interfaces.socketcan.socketcan": "Could not access SocketCAN device"}
+
+
+def _said_by_us(record: logging.LogRecord) -> bool:
+    return not record.getMessage().startswith(SAID_BY_US.get(record.name, "\0"))
 
 
 def stop_signals_interrupt() -> Callable[[], None]:
