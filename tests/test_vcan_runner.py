@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -153,3 +154,150 @@ def test_a_killed_runner_takes_the_guest_with_it(uml, tmp_path):
         time.sleep(0.05)
     assert group_members(pgid) == []
     assert not state.exists(), "the guest's state directory was left behind"
+
+
+# ----------------------------------------------------------------- which guest kernel boots
+
+sys.path.insert(0, str(VCAN_RUN.parent))
+import uml_kernels  # noqa: E402  (tools/ is no package)
+
+#: A kernel as Debian bookworm's linux.uml behaves on an Intel host with AVX-512/AMX under
+#: host kernel 6.18: it starts, dies at its first user process, says so on its console (the
+#: one its command line names) and aborts. Each boot leaves a line in a file of the test's.
+PANICKING_KERNEL = """#!/bin/bash
+# {mark}
+case "$1" in --version) echo 6.1.176; exit 0 ;; esac
+echo boot >> {boots}
+console=0
+for arg; do case $arg in console=tty*) console=${{arg#console=tty}} ;; esac; done
+out=1
+for arg; do case $arg in "con$console="*fd:*) out=${{arg##*fd:}} ;; esac; done
+{{
+    echo "Linux version 6.1.176 (a stand-in for Debian's 6.1um4)"
+    echo "Run /tmp/vcan-run-x/init as init process"
+    echo "userspace - ptrace set fp regs failed, errno = 14"
+    echo "Kernel panic - not syncing: Attempted to kill init! exitcode=0x0000000b"
+    echo "CPU: 0 PID: 1 Comm: init Not tainted 6.1.176 #1"
+    echo "Stack:"
+    echo " 606944ba 607e7fcd 66843c60 6067bb96"
+    echo "Call Trace:"
+    echo " [<6002df68>] ? flush_tlb_page+0x116/0x1dd"
+}} >&"$out"
+kill -ABRT $$
+"""
+
+
+@pytest.fixture
+def panicking_kernel(tmp_path) -> tuple[Path, Path]:
+    """The kernel (new for each test: its own verdict) and the file counting its boots."""
+    kernel, boots = tmp_path / "linux.uml", tmp_path / "boots"
+    kernel.write_text(PANICKING_KERNEL.format(mark=tmp_path, boots=boots))
+    kernel.chmod(0o755)
+    return kernel, boots
+
+
+@pytest.fixture
+def own_verdicts(tmp_path) -> dict[str, str]:
+    """A cache whose verdicts are the test's own, whose fetched kernels are the machine's (a
+    fetch is some 70 MB: once a machine, not once a test)."""
+    shared = uml_kernels.cache_dir() / "kernels"
+    shared.mkdir(parents=True, exist_ok=True)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "kernels").symlink_to(shared)
+    return {"ROCOMA_VCAN_CACHE": str(cache)}
+
+
+def test_a_kernel_that_dies_booting_is_said_at_once_with_its_last_console_lines(
+        uml, panicking_kernel, tmp_path):
+    """No kernel boots (the installed one panics, nothing fetched, fetching off): --check
+    and a run both fail at once, 125, with the guest's own last words (its stack dump left
+    out), not a hint about memory; the command never runs."""
+    kernel, boots = panicking_kernel
+    env = dict(uml, ROCOMA_VCAN_CACHE=str(tmp_path / "empty"), ROCOMA_VCAN_UML=str(kernel),
+               ROCOMA_VCAN_FETCH="0")
+    check = vcan_run("--check", **env)
+    ran = tmp_path / "ran"
+    run = vcan_run("touch", str(ran), **env)
+
+    for result in (check, run):
+        assert result.returncode == 125, result.stderr
+        assert "no user-mode-linux kernel boots on this host" in result.stderr
+        assert f"{kernel} (kernel 6.1.176): the guest's last console lines:\n" \
+               "    Linux version 6.1.176 (a stand-in for Debian's 6.1um4)\n" \
+               "    Run /tmp/vcan-run-x/init as init process\n" \
+               "    userspace - ptrace set fp regs failed, errno = 14\n" \
+               "    Kernel panic - not syncing: Attempted to kill init! exitcode=0x0000000b\n" \
+               "  newer kernels are not fetched (ROCOMA_VCAN_FETCH=0)" in result.stderr
+        assert "flush_tlb_page" not in result.stderr and "MEM" not in result.stderr
+    assert not ran.exists()
+    assert boots.read_text() == "boot\n", "the verdict was not kept: the kernel booted again"
+
+
+def test_a_kernel_that_does_not_boot_gives_way_to_a_newer_debian_one(
+        uml, panicking_kernel, own_verdicts, tmp_path):
+    """The installed kernel panics: a newer suite's user-mode-linux (fetched into the cache
+    through the system's apt sources, once a machine) is proven, chosen and named in one line
+    with why; the command runs in it with vcan up and the modules of the kernel that booted;
+    the installed kernel is not booted again."""
+    kernel, boots = panicking_kernel
+    env = dict(uml, **own_verdicts, ROCOMA_VCAN_UML=str(kernel))
+    probe = ("import os, socket; socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)"
+             ".close(); print(os.uname().release, os.environ['ROCOMA_VCAN_RUNNER'],"
+             " [int(open(f'/sys/class/net/{n}/flags').read(), 16) & 1 for n in"
+             " ('vcan0', 'vcan1')])")
+    result = vcan_run(sys.executable, "-c", probe, cwd=tmp_path, **env)
+    again = vcan_run("--check", **env)
+
+    assert result.returncode == 0, result.stderr
+    release, runner, up = result.stdout.split(maxsplit=2)
+    assert (runner, up) == ("uml", "[1, 1]\n")
+    chosen = [line for line in result.stderr.splitlines() if "guest kernel:" in line]
+    assert len(chosen) == 1, result.stderr
+    assert re.fullmatch(
+        rf"vcan-run: guest kernel: Debian \S+'s user-mode-linux (\S+) \((\S+)\) \(kernel "
+        rf"{re.escape(release)}\): {re.escape(str(kernel))} \(kernel 6\.1\.176\) does not boot "
+        r"on this host \(userspace - ptrace set fp regs failed, errno = 14 \| Kernel panic - "
+        r"not syncing: Attempted to kill init! exitcode=0x0000000b\)", chosen[0]), chosen[0]
+    directory = Path(re.search(r"user-mode-linux \S+ \((\S+)\)", chosen[0]).group(1))
+    assert directory.parent.resolve() == (uml_kernels.cache_dir() / "kernels").resolve()
+    assert (directory / "modules" / release / "kernel" / "drivers/net/can/vcan.ko").is_file()
+    assert again.returncode == 0 and chosen[0] in again.stderr, again.stderr
+    assert boots.read_text() == "boot\n"
+
+
+def test_a_fetched_kernel_starts_through_the_loader_beside_it(tmp_path):
+    """How a fetched kernel runs on the C library of its own suite, system files untouched:
+    its program interpreter is rewritten to a path relative to its directory, from which it
+    is started. Shown on a copy of /bin/true and this host's own loader."""
+    binary = tmp_path / "true"
+    shutil.copy("/bin/true", binary)
+    original = Path("/bin/true").read_bytes()
+    loader = next(Path(p) for p in ("/lib64/ld-linux-x86-64.so.2", "/lib/ld-linux-aarch64.so.1")
+                  if Path(p).exists())
+    (tmp_path / "lib").mkdir()
+    shutil.copy(loader, tmp_path / "lib" / loader.name)
+
+    written = uml_kernels.patch_loader(binary, tmp_path / "lib")
+
+    assert written == f"lib/{loader.name}"
+    assert subprocess.run([str(binary)], cwd=tmp_path).returncode == 0
+    with pytest.raises(FileNotFoundError):  # elsewhere the relative loader is not found
+        subprocess.run([str(binary)], cwd="/")
+    assert Path("/bin/true").read_bytes() == original
+
+
+@pytest.mark.parametrize(("member", "kept_as"), [
+    ("./usr/bin/linux.uml", "linux.uml"),
+    ("./usr/lib/uml/modules/7.2.7/kernel/net/can/can-raw.ko",
+     "modules/7.2.7/kernel/net/can/can-raw.ko"),
+    ("./usr/lib/uml/modules/7.2.7/kernel/drivers/net/can/dev/can-dev.ko",
+     "modules/7.2.7/kernel/drivers/net/can/dev/can-dev.ko"),
+    ("./usr/lib/uml/modules/7.2.7/kernel/fs/btrfs/btrfs.ko", None),
+    ("./usr/lib/x86_64-linux-gnu/libc.so.6", "lib/libc.so.6"),
+    ("./lib/x86_64-linux-gnu/ld-linux-x86-64.so.2", "lib/ld-linux-x86-64.so.2"),
+    ("./usr/lib/x86_64-linux-gnu/gconv/UTF-16.so", None),
+    ("./usr/share/doc/libc6/copyright", None),
+])
+def test_a_fetched_kernel_keeps_only_what_the_guest_needs(member, kept_as):
+    assert uml_kernels.wanted(member) == kept_as
