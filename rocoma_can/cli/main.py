@@ -102,15 +102,23 @@ def stop_signals_interrupt() -> Callable[[], None]:
     exit 130): a command's own handlers (the control loop's while it runs) take both, and
     outside them, a stop signal while ``run`` closes (a second one, after the loop's
     torque-off) still closes what it started, the writer process too; by default it ended
-    the process at once (exit 143), leaving a writer that did not answer running. Returns
-    what puts the previous handler back (nothing to do off the main thread)."""
-    if threading.current_thread() is not threading.main_thread() \
-            or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+    the process at once (exit 143), leaving a writer that did not answer running.
+
+    SIGINT too, when the process started with it ignored: a shell without job control
+    starts a background job so (``rocoma-can run robot.yaml &`` in a script, a launcher);
+    the loop takes SIGINT anyway, and outside the loop an operator's Ctrl-C or ``kill -INT``
+    went unanswered. A stop signal is never ignored here. Returns what puts the previous
+    handlers back (nothing to do off the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
         return lambda: None
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    previous: dict[signal.Signals, Any] = {}
+    for sig, unhandled in ((signal.SIGTERM, signal.SIG_DFL), (signal.SIGINT, signal.SIG_IGN)):
+        if signal.getsignal(sig) == unhandled:
+            previous[sig] = signal.signal(sig, signal.default_int_handler)
 
     def restore() -> None:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return restore
 
 
