@@ -22,8 +22,11 @@ from fixtures.budgets import GUEST_STALL, within
 EXAMPLE = Path(__file__).resolve().parents[2] / "rocoma_can" / "examples" / "bench_vcan.yaml"
 CLI_BUDGET = within(10, GUEST_STALL)
 N_SLCAN = 17  # the slcan line discipline (linux/tty.h)
-SLCAN_MODULE = Path("/usr/lib/uml/modules", os.uname().release, "kernel/drivers/net/can/slcan",
-                    "slcan.ko")
+# tools/vcan-run's guest names the module directory of the kernel that booted (Debian's, or
+# one it fetched into its cache)
+SLCAN_MODULE = Path(os.environ.get("ROCOMA_VCAN_MODULES",
+                                   f"/usr/lib/uml/modules/{os.uname().release}/kernel"),
+                    "drivers/net/can/slcan/slcan.ko")
 
 
 def doctor(*args: str) -> subprocess.CompletedProcess[str]:
