@@ -53,3 +53,33 @@ def read_regular(path: str | Path, limit: int = -1) -> bytes:
     with os.fdopen(os.open(path, os.O_RDONLY | _NO_WAIT), "rb") as f:
         _regular(os.fstat(f.fileno()).st_mode)
         return f.read(limit)
+
+
+def yaml_problem(exc: Exception, source: str, text: str = "") -> str:
+    """What a YAML reader said of the file ``source`` (``text``: what it read), as one line
+    that names the file and the line: PyYAML names the stream it was handed (``<unicode
+    string>`` for text read first, as every file here is, to bound its size) and spreads
+    its message over several lines, with the offending line quoted."""
+    problem_mark = getattr(exc, "problem_mark", None)
+    if problem_mark is None:  # a ReaderError: a character YAML refuses, by its offset
+        position = getattr(exc, "position", None)
+        reason = getattr(exc, "reason", None) or str(exc).splitlines()[0]
+        character = getattr(exc, "character", None)
+        what = (f"{reason} (character #x{character:04x})" if isinstance(character, int)
+                else str(reason))
+        if isinstance(position, int) and text:
+            line = text.count("\n", 0, position) + 1
+            column = position - (text.rfind("\n", 0, position) + 1) + 1
+            return f"{source}: line {line}, column {column}: not valid YAML: {what}"
+        return f"{source}: not valid YAML: {what}"
+    where = f"line {problem_mark.line + 1}, column {problem_mark.column + 1}"
+    said = getattr(exc, "problem", None) or "not understood"
+    context, context_mark = getattr(exc, "context", None), getattr(exc, "context_mark", None)
+    if context:
+        began = ""
+        if context_mark is not None and (context_mark.line, context_mark.column) != (
+                problem_mark.line, problem_mark.column):
+            began = f" that began at line {context_mark.line + 1}, column " \
+                    f"{context_mark.column + 1}"
+        said += f" ({context}{began})"
+    return f"{source}: {where}: not valid YAML: {said}"

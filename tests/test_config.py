@@ -505,3 +505,57 @@ def test_an_in_process_bus_with_a_bitrate_is_checked_as_the_bus_it_stands_for():
         validate(cfg)
     cfg["rate"] = 1000
     assert validate(cfg).loads["x"].load < 1.0
+
+
+# -- every config error names the file (and the line, where YAML gives one) -----------------
+
+@pytest.mark.parametrize("text, expected", [
+    ("- bus: {channel: can0}\n- rate: 100\n", "(top): expected a mapping"),   # a YAML list
+    ("", "(top): expected a mapping"),                                        # empty
+    ("just words\n", "(top): expected a mapping"),                            # a scalar
+    ("rate: 100\ndrives: [1,\n", "line 3"),                  # a list never closed
+    ("rate: 100\n  bus: x\n", "line 2"),                     # indentation
+    ("rate: 100\nbus: {channel: \"can0}\n", "line 2"),       # a string never closed
+    ("rate: 100\nbus: \x07\n", "not valid YAML"),             # a control character
+    ("rate: 100\n\trate: 200\n", "line 2"),                   # a tab where YAML wants spaces
+])
+def test_every_config_error_names_the_file(tmp_path, text, expected):
+    """Through load(), as check-config and run read a config: each problem begins with the
+    file's name (never ``<unicode string>`` or a bare ``(top)``), a YAML syntax error with
+    the line YAML found it on."""
+    path = tmp_path / "robot.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as refused:
+        load(path)
+    for problem in refused.value.problems:
+        assert problem.startswith(f"{path}: "), problem
+        assert "<unicode string>" not in problem and "\n" not in problem, problem
+    assert expected in str(refused.value), refused.value.problems
+
+
+def test_a_yaml_syntax_error_says_line_and_column_once(tmp_path):
+    path = tmp_path / "robot.yaml"
+    path.write_text("rate: 100\ndrives: [1,\n")
+    with pytest.raises(ConfigError) as refused:
+        load(path)
+    assert refused.value.problems == [
+        f"{path}: line 3, column 1: not valid YAML: expected the node content, but found "
+        "'<stream end>' (while parsing a flow node)"]
+    path.write_text('rate: 100\nbus: {channel: "can0}\n')
+    with pytest.raises(ConfigError) as refused:
+        load(path)
+    assert refused.value.problems == [
+        f"{path}: line 3, column 1: not valid YAML: found unexpected end of stream (while "
+        "scanning a quoted scalar that began at line 2, column 16)"]
+
+
+def test_a_config_that_is_not_a_mapping_says_what_it_is(tmp_path):
+    for text, what in (("- a\n- b\n", "a list"), ("", "an empty file"),
+                       ("42\n", "an integer")):
+        path = tmp_path / "robot.yaml"
+        path.write_text(text)
+        with pytest.raises(ConfigError) as refused:
+            load(path)
+        assert refused.value.problems == [
+            f"{path}: (top): expected a mapping with bus, rate, drives, controllers, got "
+            f"{what}"]

@@ -460,3 +460,21 @@ def test_the_cli_says_in_one_line_when_the_answer_is_not_a_managers(endpoint, pr
     with foreign(endpoint, prefix, answer):
         assert main(["estop", *opts]) == 1
     assert capsys.readouterr().err == f"rocoma-can: {prefix}/estop: {said}\n"
+
+
+@pytest.mark.parametrize("content, said", [
+    (b"mode: peer\n  connect: x\n", "line 2, column 10: not valid YAML: mapping values are "
+                                     "not allowed here"),
+    (b"mode: \xff\n", "not UTF-8 text"),
+])
+def test_a_zenoh_config_file_that_cannot_be_read_is_one_line_naming_it(tmp_path, content,
+                                                                       said):
+    """zenoh.config_file is a config too: its error names the file and the line, on one
+    line (PyYAML said ``<unicode string>`` over four lines)."""
+    path = tmp_path / "zenoh.yaml"
+    path.write_bytes(content)
+    with pytest.raises(FleetError) as refused:
+        open_session(None, [], [], None, str(path))
+    message = str(refused.value)
+    assert f"{path}: {said}" in message and "\n" not in message, message
+    assert "<unicode string>" not in message

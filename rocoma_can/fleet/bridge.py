@@ -46,7 +46,7 @@ import yaml
 from ..errors import RocomaError
 from ..events import ManagerEvent
 from ..remote import STOPS, StopAnswers, Transport, serve, switch_target
-from ..user_files import read_regular
+from ..user_files import read_regular, yaml_problem
 
 if TYPE_CHECKING:
     import zenoh
@@ -186,9 +186,16 @@ def _config_from(zenoh: Any, path: str) -> Any:
         raise ValueError(f"{path}: {exc.strerror or exc}") from None
     if len(raw) > MAX_CONFIG_BYTES:
         raise ValueError(f"{path}: larger than {MAX_CONFIG_BYTES} bytes")
-    text = raw.decode("utf-8")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") \
+            from None
     if path.endswith((".yaml", ".yml")):
-        text = json.dumps(yaml.safe_load(text))
+        try:
+            text = json.dumps(yaml.safe_load(text))
+        except yaml.YAMLError as exc:
+            raise ValueError(yaml_problem(exc, path, text)) from None
     return zenoh.Config.from_json5(text)
 
 

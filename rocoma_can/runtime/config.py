@@ -49,6 +49,7 @@ from ..fleet.bridge import FleetConfig
 from ..fleet.bridge import parse as parse_fleet
 from ..live.urdf import Robot
 from ..manager import TimingSupervision
+from ..user_files import yaml_problem
 from .bus_load import BusLoad
 from .config_check import (
     check_bus_loads,
@@ -148,7 +149,7 @@ def load(path: str | Path, rate: float | None = None) -> RuntimeConfig:
         raise ConfigError([f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})"]) \
             from None
     except yaml.YAMLError as exc:
-        raise ConfigError([f"{path}: not valid YAML: {exc}"]) from None
+        raise ConfigError([yaml_problem(exc, str(path), text)]) from None
     except RecursionError:
         raise ConfigError([f"{path}: nested too deeply; not a config file"]) from None
     if rate is not None and isinstance(data, Mapping):
@@ -185,6 +186,14 @@ def _check_expanded_size(root: yaml.Node | None, source: str) -> None:
         size(root)
 
 
+def _what(data: Any) -> str:
+    """What a YAML document is, as a person would say it."""
+    if data is None:
+        return "an empty file"
+    return {list: "a list", str: "a string", int: "an integer", float: "a number",
+            bool: "a boolean"}.get(type(data), type(data).__name__)
+
+
 def validate(data: Any, source: str = "<memory>", base: Path | None = None,
              check_controllers: bool = True) -> RuntimeConfig:
     """Build a RuntimeConfig from a parsed YAML mapping, or raise ConfigError (all problems).
@@ -192,8 +201,8 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     ``problems``."""
     problems: list[str] = []
     if not isinstance(data, Mapping):
-        raise ConfigError([f"(top): expected a mapping with bus, rate, drives, controllers, "
-                           f"got {type(data).__name__}"])
+        raise ConfigError([f"{source}: (top): expected a mapping with bus, rate, drives, "
+                           f"controllers, got {_what(data)}"])
     # a misspelt section is read under the name it was meant to have: its own problem is
     # the spelling, not also "no controllers" or "no drives"
     data = unknown_keys(data, _TOP_KEYS, "", problems)
