@@ -32,6 +32,7 @@ SHORT = {
     "demo_run": ["--repeat", "1"],
     "host_floor": ["--work", "300,400", "--duration", "4", "--repeat", "1"],
     "sim_cost": [],
+    "urdf_read": [],
 }
 
 

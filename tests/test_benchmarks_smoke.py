@@ -54,6 +54,8 @@ CASES = {
         and run["cycles"] > 0 and run["waiting"] <= run["overruns"] for run in r["runs"]),
     "sim_cost": lambda r: [row["drives"] for row in r] == [1, 3, 6, 12] and all(
         {"per_sync_us", "per_drive_us", "bench_core_share"} <= set(row) for row in r),
+    "urdf_read": lambda r: [row["links"] for row in r] == [1000, 4000] and all(
+        {"mbytes", "median_ms", "per_link_us"} <= set(row) for row in r),
     "cli_start": lambda r: all({"seconds", "modules", "numpy", "exit_code"} <= set(c)
                                for c in r.values())
     and not r["rocoma-can status --help"]["numpy"],

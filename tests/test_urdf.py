@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,7 @@ from test_config import good
 
 from rocoma_can.cli.demo_config import demo_urdf
 from rocoma_can.cli.main import main
-from rocoma_can.live.urdf import MAX_URDF_BYTES, UrdfError, parse_urdf, read_urdf
+from rocoma_can.live.urdf import MAX_URDF_BYTES, Robot, UrdfError, parse_urdf, read_urdf
 from rocoma_can.runtime.config import ConfigError, load, validate
 
 S = math.sqrt(0.5)  # sin and cos of 45 degrees
@@ -269,3 +270,102 @@ def test_check_config_says_a_broken_urdf_in_one_line(tmp_path, capsys):
     assert out[0].endswith("arm.urdf: has a DOCTYPE or ENTITY declaration; refused (a URDF "
                            "needs none, and entities can expand without bound or read files)")
     assert out[1:] == ["1 problem(s)"]
+
+
+# -- a big robot costs what its size does, and is read once --------------------------------
+
+def chain(links: int, name: str = "big") -> bytes:
+    """A robot of ``links`` links in one chain, each joint revolute (a long snake)."""
+    parts = [f'<robot name="{name}">', '<link name="l0"/>']
+    for i in range(1, links):
+        parts.append(f'<link name="l{i}"/><joint name="j{i}" type="revolute"><parent '
+                     f'link="l{i - 1}"/><child link="l{i}"/><axis xyz="0 0 1"/></joint>')
+    return ("\n".join(parts) + "</robot>").encode()
+
+
+def _lines_run(work: Callable[[], object]) -> int:
+    """How many Python lines ``work`` runs in rocoma_can's URDF module (a count of the work
+    done, the same on any machine: no clock)."""
+    import rocoma_can.live.urdf as module
+    count = 0
+
+    def tracer(frame, event, arg):
+        nonlocal count
+        if frame.f_code.co_filename == module.__file__:
+            if event == "line":
+                count += 1
+            return tracer
+        return None
+    sys.settrace(tracer)
+    try:
+        work()
+    finally:
+        sys.settrace(None)
+    return count
+
+
+def test_reading_a_urdf_grows_with_its_size_not_its_square():
+    """A 1.4 MB URDF of 14,000 links took 16 s: every joint was compared with every joint
+    before it (names, children, the roots). Four times the links must cost about four
+    times the work."""
+    small = _lines_run(lambda: parse_urdf(chain(250), "small.urdf"))
+    large = _lines_run(lambda: parse_urdf(chain(1000), "large.urdf"))
+    assert large <= 5 * small, (small, large)
+
+
+def test_the_largest_robot_the_size_limit_lets_in_is_read():
+    text = chain(14_000)
+    assert 1_400_000 <= len(text) <= MAX_URDF_BYTES
+    robot = parse_urdf(text, "snake.urdf")
+    assert len(robot.links) == 14_000 and len(robot.joints) == 13_999
+    assert robot.joints[-1].parent == "l13998"
+
+
+def test_an_empty_robot_is_said_to_be_empty():
+    """``<robot name="r"/>`` has no joints to make a loop: it has no links at all."""
+    with pytest.raises(UrdfError) as caught:
+        parse_urdf(b'<robot name="r"/>', "empty.urdf")
+    assert str(caught.value) == "empty.urdf: robot 'r' has no <link>: an empty robot"
+
+
+def test_a_loop_beside_a_tree_is_found():
+    """One link with no parent (the root) and two links that are each other's child: the
+    root count alone took it for one tree."""
+    text = ("<robot><link name='root'/><link name='a'/><link name='b'/>"
+            "<joint name='j' type='fixed'><parent link='a'/><child link='b'/></joint>"
+            "<joint name='k' type='fixed'><parent link='b'/><child link='a'/></joint>"
+            "</robot>")
+    with pytest.raises(UrdfError) as caught:
+        parse_urdf(text.encode(), "loop.urdf")
+    assert str(caught.value) == ("loop.urdf: links a, b are not under the root link 'root': "
+                                 "their joints make a loop")
+
+
+def test_the_urdf_of_a_run_is_parsed_once(tmp_path, monkeypatch):
+    """check-config's reading is the one `run` uses, and the recording's writer process
+    (the live view, the recording's /tf) takes the robot read, not the text to read again."""
+    import io
+    import json
+    import os
+    import xml.etree.ElementTree as ET
+
+    from rocoma_can.record.rings import SharedFile, layout
+    from rocoma_can.record.trace import RowLayout
+    from rocoma_can.record.writer import Spec, Writer
+    parses = []
+    real = ET.fromstring
+    monkeypatch.setattr(ET, "fromstring", lambda *a, **k: parses.append(1) or real(*a, **k))
+    _robot(tmp_path, joints=("j1", "j2"))
+    config = load(_config_file(tmp_path, urdf="urdf/robot.urdf"))
+    assert config.robot is not None and len(parses) == 1
+    [rows] = layout([("rows", 64, RowLayout(["j1", "j2"]).width, False)])
+    shared = SharedFile(rows.size)
+    try:
+        spec = Spec(os.dup(shared.fd), shared.size, rows, {}, ["j1", "j2"], {},
+                    robot=config.robot.as_json())
+        writer = Writer(Spec.from_json(spec.to_json()), io.StringIO())
+        writer.close()
+    finally:
+        shared.close()
+    assert len(parses) == 1
+    assert Robot.from_json(json.loads(json.dumps(config.robot.as_json()))) == config.robot

@@ -166,8 +166,7 @@ class Recorder:
                     {bus.label: (bus.channel, [specs[1 + 2 * k], specs[2 + 2 * k]])
                      for k, bus in enumerate(buses)},
                     list(state.names), dict(self.trace.controllers), record, flight, seconds,
-                    rate, robot.text if robot is not None else None,
-                    robot.source if robot is not None else "",
+                    rate, robot.as_json() if robot is not None else None,
                     view.settings() if view is not None else None, sorted(loop_cpus),
                     latched=self._latched)
         try:

@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from ..live.server import FoxgloveServer, ServeError
-from ..live.urdf import parse_urdf
+from ..live.urdf import Robot
 from .can_log import RecordingError
 from .flight import FlightRecords
 from .live_channels import Facts, LiveChannels
@@ -78,8 +78,7 @@ class Spec:
     flight: str | None = None
     seconds: float = 10.0
     rate: float = 100.0
-    urdf: str | None = None   # the robot's URDF text (urdf_source names it)
-    urdf_source: str = ""
+    robot: dict[str, Any] | None = None  # the config's URDF as read (urdf.Robot.as_json)
     foxglove: dict[str, Any] | None = None  # the live view's server (host, port, ...)
     loop_cpus: list[int] = field(default_factory=list)  # realtime.cpus: kept off them
     latched: bool = False  # the manager's e-stop latch at start (events say its changes)
@@ -119,8 +118,7 @@ class Writer:
         # (a row older than the rows' ring holds is never read: its e-stops are forgotten)
         self.facts = Facts(window=spec.seconds, latched=spec.latched,
                            span=spec.rows.capacity / spec.rate)
-        robot = (parse_urdf(spec.urdf.encode(), spec.urdf_source)
-                 if spec.urdf is not None else None)
+        robot = Robot.from_json(spec.robot) if spec.robot is not None else None
         self.view: FoxgloveServer | None = None
         if spec.foxglove is not None:  # first: an address taken leaves no files behind
             self.view = FoxgloveServer(spec.foxglove, RingReader(self.shared, spec.rows),
