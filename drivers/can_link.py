@@ -19,6 +19,8 @@ from typing import Any
 
 #: ARPHRD_CAN (linux/if_arp.h): /sys/class/net/DEV/type of every CAN link, vcan too
 ARPHRD_CAN = 280
+#: /sys/class/net/DEV/type -> the name ``ip -json`` gives the link type (link_type)
+LINK_TYPES = {ARPHRD_CAN: "can", 1: "ether", 772: "loopback"}
 #: a link that carries CAN FD frames (linux/can.h CANFD_MTU); classic CAN is 16
 CANFD_MTU = 72
 SYSFS_NET = Path("/sys/class/net")
@@ -48,10 +50,18 @@ class CanLink:
     restart_ms: int | None = None    # automatic restart after bus-off (0: none)
     berr: tuple[int, int] | None = None  # the controller's (tx, rx) error counters
     counters: Mapping[str, int] = field(default_factory=dict)  # bus_off, tx_errors, ...
+    #: the kernel's link type: "can" (ARPHRD_CAN), "ether", "loopback", ... (None: not said)
+    link_type: str | None = None
 
     @property
     def fd(self) -> bool:
         return "FD" in self.ctrlmode
+
+    @property
+    def is_can(self) -> bool:
+        """A CAN link (ARPHRD_CAN: a controller, vcan, vxcan), as the kernel says; a link
+        whose type is not known is given the benefit of the doubt (the bus says more)."""
+        return self.link_type in (None, "can")
 
 
 def _int(value: Any) -> int | None:
@@ -99,6 +109,7 @@ def parse_ip_link(text: str) -> CanLink:
         restart_ms=_int(can.get("restart_ms")),
         berr=(int(berr["tx"]), int(berr["rx"])) if isinstance(berr, dict) else None,
         counters=counters,
+        link_type=str(link["link_type"]) if isinstance(link.get("link_type"), str) else None,
     )
 
 
@@ -115,10 +126,14 @@ def from_sysfs(name: str, root: Path = SYSFS_NET) -> CanLink | None:
     flags, mtu = _read(base / "flags"), _read(base / "mtu")
     if flags is None or mtu is None:
         return None
-    queue = _read(base / "tx_queue_len")
+    queue, number = _read(base / "tx_queue_len"), _read(base / "type")
+    link_type = None
+    if number is not None and number.isdigit():
+        link_type = LINK_TYPES.get(int(number), f"type {number}")
     return CanLink(name=name, up=bool(int(flags, 16) & IFF_UP),
                    operstate=(_read(base / "operstate") or "unknown").upper(),
-                   mtu=int(mtu), txqueuelen=int(queue) if queue else None)
+                   mtu=int(mtu), txqueuelen=int(queue) if queue else None,
+                   link_type=link_type)
 
 
 def can_interfaces(root: Path = SYSFS_NET) -> list[str]:
@@ -127,7 +142,8 @@ def can_interfaces(root: Path = SYSFS_NET) -> list[str]:
         names = sorted(p.name for p in root.iterdir())
     except OSError:
         return []
-    return [n for n in names if _read(root / n / "type") == str(ARPHRD_CAN)]
+    return [n for n in names if (link := from_sysfs(n, root)) is not None
+            and link.link_type == LINK_TYPES[ARPHRD_CAN]]
 
 
 def socketcan_in_kernel() -> bool:

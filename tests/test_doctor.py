@@ -1,7 +1,8 @@
 """``rocoma-can doctor``: the link checks judged from ``ip -details -statistics -json``
 output captured from real kernels (tests/fixtures/ip_link/, taken in the vcan-run guest:
 vcan0 up and down, and an slcan controller — a real CAN device of kind "can" on a pty —
-stopped, up at 1 Mbit/s, told ERROR-WARNING and BUS-OFF by its adapter protocol), and the
+stopped, up at 1 Mbit/s, told ERROR-WARNING and BUS-OFF by its adapter protocol; and two
+links that are not CAN, eth0 and lo, taken on a development host's kernel 6.18), and the
 host checks as they run on this machine. tests/vcan/test_vcan_doctor.py runs the verb
 against live links."""
 from __future__ import annotations
@@ -18,7 +19,7 @@ import pytest
 import yaml
 from fixtures.budgets import within
 
-from rocoma_can.drivers.can_link import LinkReading, parse_ip_link
+from rocoma_can.drivers.can_link import LinkReading, from_sysfs, parse_ip_link
 from rocoma_can.drivers.config import BusConfig
 from rocoma_can.runtime.can_checks import RESTART_MS, TXQUEUELEN_MIN, Wanted, link_checks
 from rocoma_can.runtime.host import (
@@ -160,6 +161,63 @@ def test_without_iproute2_the_details_are_not_judged_and_the_install_is_named():
                                                               1_000_000))))
     detail = checks["bit rate, state, counters"]
     assert detail.status == "warn" and detail.fix == "sudo apt-get install iproute2"
+
+
+# -- a link that is not CAN -----------------------------------------------------------------
+
+@pytest.mark.parametrize("name, link_type", [("eth0_up", "ether"), ("lo_up", "loopback")])
+def test_a_link_that_is_not_can_is_read_as_such(name, link_type):
+    """Captured from a real kernel: an Ethernet link and the loopback, both up."""
+    link = parse_ip_link((CAPTURED / f"{name}.json").read_text())
+    assert link.link_type == link_type and not link.is_can
+    assert parse_ip_link((CAPTURED / "vcan0_up.json").read_text()).is_can
+    assert parse_ip_link((CAPTURED / "slcan_up.json").read_text()).is_can
+
+
+@pytest.mark.parametrize("name, channel", [("eth0_up", "eth0"), ("lo_up", "lo")])
+@pytest.mark.parametrize("with_config", [True, False])
+def test_a_link_that_is_not_can_fails_and_is_not_judged_further(name, channel, with_config):
+    """eth0 and lo are up and have no bit rate to compare: judged as a CAN link, nothing
+    blocked them. One FAIL saying what the link is, and nothing after it."""
+    want = Wanted.of(BusConfig("socketcan", channel, 1_000_000)) if with_config \
+        else Wanted(channel)
+    (check,) = link_checks(captured(name), want)
+    assert (check.name, check.status) == (f"{channel}: exists", "fail")
+    assert "not a CAN link" in check.found and "link/" in check.found, check.found
+    assert "ip link shows" in check.fix and "link/can" in check.fix
+
+
+def test_a_link_that_is_not_can_is_known_from_sysfs_alone(tmp_path):
+    """Without iproute2, /sys/class/net/DEV/type says it: ARPHRD_CAN (280) or not."""
+    for name, kind in (("can0", "280"), ("eth0", "1"), ("lo", "772"), ("odd", "65534")):
+        (tmp_path / name).mkdir()
+        for key, value in (("flags", "0x1003"), ("mtu", "16"), ("type", kind)):
+            (tmp_path / name / key).write_text(value + "\n")
+    reading = {n: from_sysfs(n, tmp_path) for n in ("can0", "eth0", "lo", "odd")}
+    assert [(n, r.is_can) for n, r in reading.items() if r] == [
+        ("can0", True), ("eth0", False), ("lo", False), ("odd", False)]
+    assert reading["eth0"].link_type == "ether" and reading["lo"].link_type == "loopback"
+    assert reading["odd"].link_type == "type 65534"
+    (check,) = link_checks(LinkReading("lo", reading["lo"], "iproute2 (ip) is not "
+                                       "installed"), Wanted("lo"))
+    assert check.status == "fail" and "not a CAN link" in check.found
+
+
+def test_doctor_fails_for_the_loopback_as_a_can_channel(tmp_path):
+    """Every host has lo: doctor --channel lo, and a config whose bus is lo, both exit 1
+    with the FAIL line (it said "nothing blocks it")."""
+    done = doctor("--channel", "lo")
+    assert done.returncode == 1, done.stdout
+    assert "FAIL  lo: exists" in done.stdout and "not a CAN link" in done.stdout
+    assert done.stdout.splitlines()[-1].endswith(": blocks it")
+    path = tmp_path / "robot.yaml"
+    data = yaml.safe_load((EXAMPLES / "bench_vcan.yaml").read_text())
+    data["bus"]["channel"] = "lo"
+    path.write_text(yaml.safe_dump(data))
+    done = doctor(str(path), "--json")
+    checks = {c["name"]: c for c in json.loads(done.stdout)}
+    assert done.returncode == 1 and checks["lo: exists"]["status"] == "fail"
+    assert not [name for name in checks if name.startswith("lo: ") and name != "lo: exists"]
 
 
 # -- this host, as it is ---------------------------------------------------------------------

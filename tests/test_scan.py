@@ -262,3 +262,14 @@ def test_an_adapter_backend_that_fails_to_start_is_one_line_and_exit_2(
     err = capsys.readouterr().err.strip()
     assert err.startswith("rocoma-can: cannot open CAN bus kvaser:0: ") and "\n" not in err
     assert type(failure).__name__ in err and str(failure) in err
+
+
+@pytest.mark.parametrize("verb", [["scan"], ["init-config", "--eds-dir", "."],
+                                  ["lss", "--fastscan", "--set-node-id", "3"]])
+def test_a_channel_that_is_not_a_can_link_is_one_line_and_exit_2(verb, capsys):
+    """lo (every host has it) is up and exists: it is no CAN link, which the command says
+    before it opens anything (as doctor judges it)."""
+    assert main([*verb, "--channel", "lo"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("rocoma-can: socketcan:lo: link/loopback, not a CAN link"), err
+    assert "\n" not in err and "link/can" in err

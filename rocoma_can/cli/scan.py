@@ -71,12 +71,12 @@ def _link_down(interface: str, channel: str) -> str | None:
         return None
     from ..drivers.can_link import LinkReading, from_sysfs, socketcan_in_kernel
     link = from_sysfs(channel)
-    if link is None:
-        if not socketcan_in_kernel():
-            return None  # open_bus says so, with what to do instead
+    if link is None and not socketcan_in_kernel():
+        return None  # open_bus says so, with what to do instead
+    if link is None or not link.is_can:  # missing, or eth0, lo: as doctor says it
         from ..runtime.can_checks import Wanted, link_checks
-        missing = link_checks(LinkReading(channel, None), Wanted(channel))[0]
-        return f"{interface}:{channel}: {missing.found}: {missing.fix}"
+        exists = link_checks(LinkReading(channel, link), Wanted(channel))[0]
+        return f"{interface}:{channel}: {exists.found}: {exists.fix}"
     if link.up:
         return None
     return f"{interface}:{channel}: the link is down" + _send_failure_hint(errno.ENETDOWN,

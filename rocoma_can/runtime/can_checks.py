@@ -74,6 +74,11 @@ def link_checks(reading: LinkReading, want: Wanted) -> list[Check]:
     link = reading.link
     if link is None:
         return [_missing(want)]
+    if not link.is_can:  # eth0, lo: up, no bit rate to compare; nothing else applies
+        return [Check(f"{name}: exists", "fail", f"link/{link.link_type}, not a CAN link: "
+                      "no CAN frame can be sent or received on it",
+                      "name a CAN interface in the config or --channel (ip link shows "
+                      "every link; CAN ones say link/can)")]
     kind = link.kind or "unknown (iproute2's details missing)"
     checks = [Check(f"{name}: exists", "ok", f"{kind} link, mtu {link.mtu}")]
     is_can = link.kind == "can"
