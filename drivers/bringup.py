@@ -311,7 +311,7 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
         if missing:
             raise RuntimeError(f"does not support mode(s) {missing} (0x6502 = 0x{supported:X})")
     _check_scaling(sdo, drive)
-    write_limits(sdo, drive, caps, dt)  # in the drive's units: after its scaling is checked
+    write_limits(sdo, plan.limit_writes, caps)  # drive units: after its scaling is checked
     _configure_pdos(sdo, layout.rpdos, caps.rpdos)
     _configure_pdos(sdo, layout.tpdos, caps.tpdos)
     if node_level:

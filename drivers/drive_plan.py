@@ -44,6 +44,9 @@ class DrivePlan:
     leads_node: bool = True     # configures its node (NMT, heartbeat or guarding, consumer,
                                 # unused PDOs): False for the higher axes of a shared node
     other_axes: tuple[int, ...] = ()  # the node's other axes (set on the one that leads)
+    #: the limit objects bring-up writes, computed here once (limits.drive_writes)
+    limit_writes: tuple[limits.LimitWrite, ...] = ()
+    period: float | None = None  # s, the loop's the limits were computed for
 
     @property
     def identity(self) -> IdentityCheck:
@@ -68,15 +71,17 @@ class DrivePlan:
                  f"{', '.join(d.feedback or ()) or 'statusword only'}",
                  f"  {pdos}"]
         lines += [f"  {line}" for line in self.caps.report(self.guarded)]
-        lines += [f"  {line}" for line in limits.report(d, self.caps)]
+        lines += [f"  {line}" for line in limits.report(d, self.limit_writes, self.period)]
         lines.append(f"  {self.identity.describe()}"
                      + ("" if self.leads_node else " (the node's: checked by its lowest axis)"))
         lines += [f"  note: {n}" for n in self.notes]
         return lines
 
 
-def plan_drives(drives: Sequence[DriveConfig], first_bus: str = "") -> list[DrivePlan]:
-    """Every drive's plan (``plan_drive``). The axes of one node share its PDO channels:
+def plan_drives(drives: Sequence[DriveConfig], first_bus: str = "", *,
+                period: float | None = None) -> list[DrivePlan]:
+    """Every drive's plan (``plan_drive``, at the loop's ``period``). The axes of one node
+    share its PDO channels:
     planned in axis order, each takes from the channels the ones before it left; then each
     keeps only its own, so its bring-up configures those alone, and the node's lowest axis
     (``leads_node``) also switches off the channels no axis uses."""
@@ -88,7 +93,7 @@ def plan_drives(drives: Sequence[DriveConfig], first_bus: str = "") -> list[Driv
         members.sort(key=lambda i: drives[i].axis)
         taken: set[tuple[bool, int]] = set()
         for i in members:
-            planned = plan_drive(drives[i], frozenset(taken))
+            planned = plan_drive(drives[i], frozenset(taken), period=period)
             taken |= _channels_of(planned.layout)
             plans[i] = planned
         if len(members) > 1:
@@ -115,10 +120,13 @@ def _without(caps: DriveCapabilities, channels: Iterable[tuple[bool, int]]) -> D
         tpdos=tuple(ch for ch in caps.tpdos if (True, ch.number) not in drop))
 
 
-def plan_drive(drive: DriveConfig,
-               taken: frozenset[tuple[bool, int]] = frozenset()) -> DrivePlan:
+def plan_drive(drive: DriveConfig, taken: frozenset[tuple[bool, int]] = frozenset(), *,
+               period: float | None = None) -> DrivePlan:
     """Measure one drive's config against its file; ValueError with every problem found.
-    ``taken``: PDO channels (is a TPDO, number) other axes of its node use already."""
+    ``taken``: PDO channels (is a TPDO, number) other axes of its node use already.
+    ``period``: the loop's (s), which the limits in time are computed for (0x6066: the
+    plan's ``limit_writes``, what bring-up writes); None where no loop will run it (a
+    file's fit), which leaves those out."""
     where = f"drive {drive.name!r}"
     try:
         caps = read_capabilities(drive.eds, drive.node_id, drive.axis)
@@ -202,8 +210,9 @@ def plan_drive(drive: DriveConfig,
                      "guarding) makes it "
                      "leave OPERATIONAL (0x1029) and stop applying RPDOs; whether it also "
                      "switches its power stage off is its vendor's choice")
+    writes: list[limits.LimitWrite] = []
     try:
-        limits.drive_writes(drive, caps)
+        writes = limits.drive_writes(drive, caps, period)
     except ValueError as exc:
         problems.append(str(exc).removeprefix(f"{where}: "))
     if problems:
@@ -211,7 +220,8 @@ def plan_drive(drive: DriveConfig,
     resolved, layout = _fit_feedback(drive, feedback, caps, notes)
     check_against_od(layout, caps.object_dictionary, drive.name)
     notes += always_on(layout, caps)
-    return DrivePlan(resolved, caps, layout, tuple(notes), guarded)
+    return DrivePlan(resolved, caps, layout, tuple(notes), guarded,
+                     limit_writes=tuple(writes), period=period)
 
 
 def _guarding(drive: DriveConfig, caps: DriveCapabilities, problems: list[str],

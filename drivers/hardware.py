@@ -131,11 +131,13 @@ class CanopenHardware:
                  manager_heartbeat_ms: int = 100, supervision: Supervision | None = None,
                  config_workers: int = 4, estop_cob_id: int = 0,
                  on_fault: Callable[[FaultEvent], None] | None = None) -> None:
+        if not dt > 0:
+            raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
         buses = named_buses(bus)
         check_drives(list(drives), manager_node_id, list(buses))
         # each drive measured against its EDS/DCF: modes, feedback, PDOs, manager loss (the
-        # axes of a multi-axis node share its PDO channels out)
-        self.plans = plan_drives(list(drives), next(iter(buses)))
+        # axes of a multi-axis node share its PDO channels out), its limits at this rate
+        self.plans = plan_drives(list(drives), next(iter(buses)), period=float(dt))
         drives = [p.drive for p in self.plans]
         clashes = cob_id_clashes([(p.drive, p.layout) for p in self.plans], manager_node_id,
                                  estop_cob_id, next(iter(buses)))
@@ -145,8 +147,6 @@ class CanopenHardware:
             for note in p.notes:
                 log.warning("drive %r: %s", p.drive.name, note)
         supervision = supervision or Supervision()
-        if not dt > 0:
-            raise ValueError(f"dt must be a positive time step in seconds, got {dt!r}")
         consumer_ms = supervision.consumer_ms(manager_heartbeat_ms)
         self.drives_config = drives
         self.manager_node_id = manager_node_id

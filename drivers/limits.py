@@ -20,11 +20,17 @@ let through, and the manager's clip is the one a controller meets. The objects::
     following_error 0x6065                 increments (following error window)
                     0x6066                 ms: 2 x following_error_cycles x the loop period
                                            (the manager e-stops first; the drive backs it up)
+
+The values are computed once per drive, with the loop's period, when the drive is planned
+(drive_plan.plan_drive): check-config plans at the config's rate (``run --rate``'s when
+given), the hardware at its loop's, and bring-up writes what the plan holds, so a value
+check-config accepts is the one bring-up writes.
 """
 from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -39,8 +45,6 @@ MAX_MOTOR_SPEED = cia402.MAX_MOTOR_SPEED
 _ROUNDING = 1e-9  # relative: 0.5 Nm of a 1 Nm motor is 500 per mille, not 501
 #: The drive's following error time out is this many times the manager's cycles.
 DRIVE_TIMEOUT_FACTOR = 2
-#: The loop period assumed for 0x6066 when bring-up is given none (seconds).
-DEFAULT_PERIOD = 0.001
 
 
 class Sdo(Protocol):
@@ -85,8 +89,10 @@ def _down(x: float) -> int:
     return math.floor(x + _ROUNDING * max(1.0, abs(x)))
 
 
-def _values(drive: DriveConfig, period: float) -> dict[tuple[int, int], tuple[int, str]]:
-    """Every object's value in drive units, rounded outward (module docstring)."""
+def _values(drive: DriveConfig, period: float | None
+            ) -> dict[tuple[int, int], tuple[int, str]]:
+    """Every object's value in drive units, rounded outward (module docstring); without a
+    loop ``period`` (s) no time-based one (0x6066)."""
     lim, gear = drive.limits, abs(drive.gear_ratio)
     per_rad = drive.increments_per_rev * drive.gear_ratio / (2.0 * math.pi)  # signed
     out: dict[tuple[int, int], tuple[int, str]] = {}
@@ -105,41 +111,48 @@ def _values(drive: DriveConfig, period: float) -> dict[tuple[int, int], tuple[in
     if lim.following_error is not None:
         out[cia402.FOLLOWING_ERROR_WINDOW, 0] = (
             _up(lim.following_error * abs(per_rad)), "increments")
-        out[cia402.FOLLOWING_ERROR_TIMEOUT, 0] = (
-            max(1, _up(DRIVE_TIMEOUT_FACTOR * lim.following_error_cycles * period * 1000.0)),
-            "ms")
+        if period is not None:
+            out[cia402.FOLLOWING_ERROR_TIMEOUT, 0] = (max(1, _up(
+                DRIVE_TIMEOUT_FACTOR * lim.following_error_cycles * period * 1000.0)), "ms")
     return out
 
 
 def drive_writes(drive: DriveConfig, caps: DriveCapabilities,
-                 period: float | None = None) -> list[LimitWrite]:
+                 period: float | None) -> list[LimitWrite]:
     """What bring-up writes for this drive's limits: each set limit's objects its file has,
-    writable. ValueError naming the drive, the limit and the object when a value does not
-    fit the object's data type (a position beyond INTEGER32 increments)."""
-    values = _values(drive, DEFAULT_PERIOD if period is None else period)
+    writable, at the loop's ``period`` (s; None where no loop runs: 0x6066, a time, is left
+    out). ValueError naming the drive, the limit and the object when a value does not fit
+    the object's data type (a position beyond INTEGER32 increments, a following error time
+    out of more than 65535 ms)."""
+    values = _values(drive, period)
     writes: list[LimitWrite] = []
     for limit in drive.limits.given():
         for index, sub, name in OBJECTS[limit]:
             var = caps.variable(index, sub)
-            if var is None or not var.writable:
+            if var is None or not var.writable or (index, sub) not in values:
                 continue
             value, unit = values[index, sub]
             try:
                 var.encode_raw(value)
             except (struct.error, OverflowError, ValueError):
+                why = ""
+                if index == cia402.FOLLOWING_ERROR_TIMEOUT and period is not None:
+                    why = (f" ({DRIVE_TIMEOUT_FACTOR} x following_error_cycles "
+                           f"{drive.limits.following_error_cycles} x {period * 1000:g} ms at "
+                           f"{1 / period:g} Hz: fewer cycles, or a higher rate)")
                 raise ValueError(f"drive {drive.name!r}: limits.{limit} is {value} {unit} in "
                                  f"0x{index:04X}:{sub} ({name}), which its data type cannot "
-                                 "hold") from None
+                                 f"hold{why}") from None
             writes.append(LimitWrite(limit, index, sub, value, unit))
     return writes
 
 
-def write_limits(sdo: Sdo, drive: DriveConfig, caps: DriveCapabilities,
-                 period: float | None) -> None:
-    """Write each limit object, then read it back: a drive that keeps another value (it
-    clamps to its own range, or ignores the write) fails its bring-up, naming the object
-    and both values. A refusal (SDO abort) names the object too (bringup.ObjectRefused)."""
-    for w in drive_writes(drive, caps, period):
+def write_limits(sdo: Sdo, writes: Sequence[LimitWrite], caps: DriveCapabilities) -> None:
+    """Write each limit object the drive's plan holds (``drive_writes``), then read it
+    back: a drive that keeps another value (it clamps to its own range, or ignores the
+    write) fails its bring-up, naming the object and both values. A refusal (SDO abort)
+    names the object too (bringup.ObjectRefused)."""
+    for w in writes:
         var = caps.variable(w.index, w.subindex)
         assert var is not None  # drive_writes took only objects the file has
         sdo.download(w.index, w.subindex, var.encode_raw(w.value))
@@ -149,11 +162,11 @@ def write_limits(sdo: Sdo, drive: DriveConfig, caps: DriveCapabilities,
                                f"read back {got!r}: the drive clamps or ignores it")
 
 
-def report(drive: DriveConfig, caps: DriveCapabilities) -> list[str]:
-    """check-config's lines: which limits the drive enforces (written at bring-up), which
-    only the manager does, and why."""
+def report(drive: DriveConfig, writes: Sequence[LimitWrite], period: float | None
+           ) -> list[str]:
+    """check-config's lines: which limits the drive enforces (``writes``, as planned at the
+    loop's ``period``: written at bring-up), which only the manager does, and why."""
     lim = drive.limits
-    writes = drive_writes(drive, caps)
     by_limit: dict[str, list[LimitWrite]] = {}
     for w in writes:
         by_limit.setdefault(w.limit, []).append(w)
@@ -161,8 +174,8 @@ def report(drive: DriveConfig, caps: DriveCapabilities) -> list[str]:
     for limit in lim.given():
         written = by_limit.get(limit, [])
         if written:
-            drive_side.append(f"{limit} (" + ", ".join(_shown(w, lim.following_error_cycles)
-                                                       for w in written) + ")")
+            drive_side.append(f"{limit} (" + ", ".join(
+                _shown(w, lim.following_error_cycles, period) for w in written) + ")")
         else:
             names = " or ".join(f"0x{i:04X}" + (f":{s}" if s else "")
                                 for i, s, _ in OBJECTS[limit])
@@ -185,8 +198,9 @@ def report(drive: DriveConfig, caps: DriveCapabilities) -> list[str]:
     return lines
 
 
-def _shown(w: LimitWrite, cycles: int) -> str:
-    if w.index == cia402.FOLLOWING_ERROR_TIMEOUT:
-        return f"{w.object} = {DRIVE_TIMEOUT_FACTOR} x {cycles} loop periods"
+def _shown(w: LimitWrite, cycles: int, period: float | None) -> str:
+    if w.index == cia402.FOLLOWING_ERROR_TIMEOUT and period is not None:
+        return (f"{w.object} = {w.value} {w.unit} ({DRIVE_TIMEOUT_FACTOR} x {cycles} cycles "
+                f"of {period * 1000:g} ms)")
     return f"{w.object} = {w.value} {w.unit}"
 

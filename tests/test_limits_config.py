@@ -7,12 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from rocoma_can import eds
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.drive_plan import plan_drive
+from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.limits import drive_writes
 from rocoma_can.drivers.scaling import Scaling
+from rocoma_can.runtime.config import ConfigError, load, validate
 
 BASE = {"name": "knee", "node_id": 1, "increments_per_rev": 4096, "rated_torque_nm": 2.0}
 
@@ -59,7 +62,7 @@ def test_an_old_key_that_disagrees_with_limits_is_an_error_and_one_that_agrees_i
 def test_old_keys_stay_the_managers_only_and_are_never_written():
     d = drive(position_min=-1.0, position_max=1.0, max_torque_nm=3.0)
     assert d.manager_only_limits() == ["position_min", "position_max", "max_torque_nm"]
-    assert drive_writes(d, plan_drive(d).caps) == []
+    assert drive_writes(d, plan_drive(d).caps, 0.002) == []
 
 
 def test_drive_units_are_rounded_outward_and_a_negative_gear_swaps_min_and_max():
@@ -168,3 +171,58 @@ def test_a_position_limit_the_drives_int32_position_cannot_hold_is_refused(limit
         f"1: +-3.142 rad")
     drive(increments_per_rev=1 << 32, limits={"position": [-3.0, 3.0]})  # inside: taken
     drive(increments_per_rev=1 << 32)  # none given: nothing to refuse
+
+
+# -- 0x6066 is computed once, at the loop's rate, for check-config and bring-up alike --------
+
+def _config(rate: float, cycles: int) -> dict:
+    return {"bus": {"interface": "virtual", "channel": "limits-rate"}, "rate": rate,
+            "drives": [{**BASE, "name": "j1", "limits": {"following_error": 0.05,
+                                                         "following_error_cycles": cycles}}],
+            "controllers": [{"name": "pd", "plugin": "pd", "emergency": "damp"}],
+            "emergency_controllers": [{"name": "damp", "plugin": "damp"}]}
+
+
+def _timeout(plan) -> int:
+    (value,) = [w.value for w in plan.limit_writes if w.index == 0x6066]
+    return value
+
+
+def test_check_config_refuses_a_following_error_time_out_the_drive_cannot_hold_at_its_rate():
+    """4000 cycles at 100 Hz is 80 s: 0x6066 (UNSIGNED16, ms) cannot hold it. check-config
+    took a 1 ms period (8000 ms: accepted) and bring-up the loop's, which refused it."""
+    with pytest.raises(ConfigError) as refused:
+        validate(_config(100, 4000))
+    (problem,) = refused.value.problems
+    assert "drives[0]: drive 'j1': limits.following_error is 80000 ms in 0x6066:0 " \
+           "(following error time out), which its data type cannot hold" in problem
+    assert "2 x following_error_cycles 4000 x 10 ms at 100 Hz" in problem
+    assert _timeout(validate(_config(1000, 4000)).plans["j1"]) == 8000  # 1 kHz: it fits
+
+
+def test_run_rate_is_the_rate_0x6066_is_checked_at(tmp_path):
+    """``run --rate 100`` over a 1 kHz file: checked at the rate the loop will run."""
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(_config(1000, 4000)))
+    assert _timeout(load(path).plans["j1"]) == 8000
+    with pytest.raises(ConfigError, match="80000 ms in 0x6066:0"):
+        load(path, rate=100)
+
+
+@pytest.mark.parametrize("rate", [100, 250, 1000])
+def test_check_config_and_bring_up_write_one_0x6066(rate):
+    """What check-config plans is what the hardware (bring-up) plans, at the config's
+    rate: twice the manager's cycles, in ms."""
+    config = validate(_config(rate, 3))
+    hw = CanopenHardware(config.bus, config.drives, 100, config.dt)
+    try:
+        assert _timeout(config.plans["j1"]) == _timeout(hw.plans[0]) \
+            == math.ceil(2 * 3 * 1000 / rate)
+    finally:
+        hw.close()
+
+
+def test_check_config_says_0x6066_in_ms_at_the_rate():
+    report = validate(_config(100, 3)).plans["j1"].report()
+    (line,) = [line for line in report if "limits the drive enforces" in line]
+    assert "0x6066 = 60 ms (2 x 3 cycles of 10 ms)" in line, line

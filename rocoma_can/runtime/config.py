@@ -219,7 +219,8 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
     named: list[str] = []  # every drive name given, built or not
     planned, clean = check_drives(data.get("drives"), manager.node_id, base, problems,
                                   [b.label for b in buses], named,
-                                  fd={b.label for b in buses if b.fd})
+                                  fd={b.label for b in buses if b.fd},
+                                  period=1.0 / rate if rate is not None else None)
     drives = [d for d, _ in planned]
     plans: dict[str, DrivePlan] = {}
     for d, plan in planned:

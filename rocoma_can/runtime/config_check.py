@@ -237,13 +237,15 @@ def check_timing(section: Mapping[str, Any], problems: list[str]) -> TimingSuper
 
 
 def check_drives(entries: Any, manager_id: int, base: Path | None, problems: list[str],
-                 buses: list[str], named: list[str], fd: Collection[str] = ()
+                 buses: list[str], named: list[str], fd: Collection[str] = (),
+                 period: float | None = None
             ) -> tuple[list[tuple[DriveConfig, DrivePlan]], list[tuple[DriveConfig, DrivePlan]]]:
     """Each drive built and measured against its file, with its own plan (two drives of
     one name keep theirs); and those of them whose node id was not already reported, which
     the COB-ID check takes (a taken node id is one problem, not also its PDOs' clashes).
     ``named`` gets every name given, so a drive that failed is not also "no such drive";
-    ``fd``: the buses that are CAN FD (the only ones PDOs over 8 bytes go on)."""
+    ``fd``: the buses that are CAN FD (the only ones PDOs over 8 bytes go on); ``period``:
+    the loop's (s), the limits in time are planned at (None: the rate is wrong, said)."""
     if not isinstance(entries, list) or not entries:
         problems.append(f"drives: expected a non-empty list of drives, got {entries!r}")
         return [], []
@@ -264,7 +266,7 @@ def check_drives(entries: Any, manager_id: int, base: Path | None, problems: lis
                 if not Path(entry["eds"]).is_absolute() else entry["eds"]
         try:
             # measured against its EDS/DCF: modes, feedback (resolved), PDOs, manager loss
-            plan = plan_drive(DriveConfig.from_dict(entry))
+            plan = plan_drive(DriveConfig.from_dict(entry), period=period)
             drive = plan.drive
         except (ValueError, TypeError) as exc:
             problems.append(f"{where}: {exc}")
@@ -293,11 +295,13 @@ def check_drives(entries: Any, manager_id: int, base: Path | None, problems: lis
         planned.append((drive, plan))
         if not taken:
             clean.append((drive, plan))
-    return _share_nodes(planned, buses, problems), _share_nodes(clean, buses, [])
+    return (_share_nodes(planned, buses, problems, period),
+            _share_nodes(clean, buses, [], period))
 
 
 def _share_nodes(drives: list[tuple[DriveConfig, DrivePlan]], buses: list[str],
-                 problems: list[str]) -> list[tuple[DriveConfig, DrivePlan]]:
+                 problems: list[str], period: float | None
+                 ) -> list[tuple[DriveConfig, DrivePlan]]:
     """The axes of a multi-axis node planned together (they share its PDO channels:
     drive_plan.plan_drives), each problem said once."""
     nodes: dict[tuple[str, int], list[int]] = {}
@@ -312,7 +316,7 @@ def _share_nodes(drives: list[tuple[DriveConfig, DrivePlan]], buses: list[str],
         try:
             if why is not None:
                 raise ValueError(why)
-            shared = plan_drives(axes, buses[0])
+            shared = plan_drives(axes, buses[0], period=period)
         except ValueError as exc:
             problems.append(f"drives: {exc}")
             continue
