@@ -22,6 +22,12 @@ It goes in three steps, bounded as a whole:
    uploads), 0x1017. An object the node does not have is None; a node that stops
    answering, or answers frames too short to be SDO, is left after that read, and an
    object longer than MAX_OBJECT_BYTES is cut off there (``FoundNode.problem`` says so).
+   A number that comes in another length than its type's (a device type of 7 bytes, from
+   a segmented upload that said 0xFFFFFFFF) is malformed, said so, never taken for an
+   object the node lacks (``FoundNode.malformed``). Each request is let through to the
+   client with its first answer only: a second answer to one request is a second device
+   at that node id (two drives given one id), which the scan says
+   (``FoundNode.several_devices``) instead of reading a mix of the two answers as one.
    A node whose 0x1017 names a heartbeat period not heard yet is waited for up to 1.5
    of its periods (at most ``HEARTBEAT_WAIT``), for its NMT state.
 """
@@ -66,6 +72,11 @@ MAX_OBJECT_BYTES = 256
 #: SDO abort (CiA 301: cs 4) and its code "out of memory", the client's "no more"
 _ABORT = 0x80
 _ABORT_OUT_OF_MEMORY = 0x0504_0005
+#: upload initiate (request ccs 2, answer scs 2) and upload segment request (ccs 3); a
+#: segment's answer is scs 0; the toggle bit of segments
+_UPLOAD_INITIATE = 0x40
+_UPLOAD_SEGMENT = 0x60
+_TOGGLE = 0x10
 #: An expedited upload request of 0x1000:0 (CiA 301: ccs 2).
 _PROBE = bytes((0x40, 0x00, 0x10, 0x00, 0, 0, 0, 0))
 _NODE_IDS = range(1, 128)
@@ -88,6 +99,10 @@ class FoundNode:
     seen_by: SeenBy
     #: why objects are missing, e.g. a node that stopped answering; None when all answered
     problem: str | None = None
+    #: more than one device answered its requests (the values shown may mix them)
+    several_devices: bool = False
+    #: the objects that came malformed (e.g. "0x1000:0": not the length of its type)
+    malformed: tuple[str, ...] = ()
 
     def as_json(self) -> dict[str, object]:
         """Plain values for ``json.dumps`` (the identity as a nested object)."""
@@ -209,26 +224,112 @@ def _probe(network: canopen.Network, ids: list[int], heard: _Listener, timeout: 
 class _Objects:
     values: dict[tuple[int, int], bytes | None] = field(default_factory=dict)
     problem: str | None = None
+    malformed: dict[tuple[int, int], str] = field(default_factory=dict)  # -> what came
+    doubled: int = 0      # requests answered more than once
+    requests: int = 0     # requests sent
+    #: per object, each different answer its requests had (two devices: what they differ in)
+    answers: dict[tuple[int, int], list[bytes]] = field(default_factory=dict)
 
 
 #: What a scan reads of every node, in order (0x1018:1 is mandatory, the rest optional).
 _READS = ((c301.DEVICE_TYPE, 0), *((c301.IDENTITY, s) for s in SUBINDEX.values()),
           (DEVICE_NAME, 0), (SOFTWARE_VERSION, 0), (c301.PRODUCER_HEARTBEAT_TIME, 0))
+#: The numbers among _READS: (index, subindex) -> (bytes of its type, its name); an
+#: expedited answer without a size carries 4 bytes, which a shorter type accepts
+_NUMBERS = {(c301.DEVICE_TYPE, 0): (4, "device type"),
+            **{(c301.IDENTITY, s): (4, name.replace("_", " ")) for name, s in SUBINDEX.items()},
+            (c301.PRODUCER_HEARTBEAT_TIME, 0): (2, "producer heartbeat time")}
+_TYPE_NAMES = {4: "UNSIGNED32", 2: "UNSIGNED16"}
+
+
+class _FirstAnswerSdo(SdoClient):
+    """An SDO client that takes the first answer to each request it sends and counts the
+    others: a second answer to one request is a second device at the node id (its answer,
+    taken as the next request's, made the reads fail with "Toggle bit mismatch", or read
+    one device's vendor with the other's serial). Answers are told apart by what they
+    answer: an initiate answer by its index and subindex (each object is read once), a
+    segment answer by its toggle bit."""
+
+    def __init__(self, node_id: int, found: _Objects) -> None:
+        super().__init__(  # type: ignore[no-untyped-call]  # canopen's own is untyped
+            c301.SDO_RX + node_id, c301.SDO_TX + node_id, ObjectDictionary())
+        self._found = found
+        self._lock = threading.Lock()
+        self._request = self._previous = b""
+        self._answered = True
+        self._objects: dict[bytes, tuple[int, int]] = {}  # initiate answer key -> object
+        self._object: tuple[int, int] = (0, 0)
+
+    def send_request(self, request: bytes | bytearray) -> None:
+        with self._lock:
+            self._previous, self._request = self._request, bytes(request)
+            self._answered = False
+            if request[0] & 0xE0 == _UPLOAD_INITIATE:
+                self._object = struct.unpack_from("<HB", request, 1)
+                self._objects[bytes(request[1:4])] = self._object
+            self._found.requests += 1
+        super().send_request(request)  # type: ignore[no-untyped-call]
+
+    def on_response(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._lock:
+            earlier = self._answers_earlier(data)
+            if self._answered or earlier:
+                if earlier or self._answers(data, self._request):
+                    self._found.doubled += 1
+                    self._note(bytes(data))
+                return  # the client sees one answer per request
+            self._answered = True
+            if self._answers(data, self._request):
+                self._note(bytes(data))
+        super().on_response(can_id, data, timestamp)  # type: ignore[no-untyped-call]
+
+    @staticmethod
+    def _answers(data: bytearray, request: bytes) -> bool:
+        """Whether ``data`` answers ``request`` (an abort of it too)."""
+        if len(data) < 4 or not request:
+            return False
+        if data[0] == _ABORT:
+            return request[0] & 0xE0 != _UPLOAD_INITIATE or data[1:4] == request[1:4]
+        if request[0] & 0xE0 == _UPLOAD_INITIATE:
+            return data[0] & 0xE0 == _UPLOAD_INITIATE and data[1:4] == request[1:4]
+        if request[0] & 0xE0 == _UPLOAD_SEGMENT:
+            return data[0] & 0xE0 == 0 and data[0] & _TOGGLE == request[0] & _TOGGLE
+        return False
+
+    def _answers_earlier(self, data: bytearray) -> bool:
+        """Whether ``data`` answers an earlier request and not the one outstanding: a
+        second device's answer, later than the first one's (an initiate's by its object,
+        the previous segment's by its toggle bit)."""
+        if len(data) < 4 or self._answers(data, self._request):
+            return False
+        key = bytes(data[1:4])
+        return (data[0] & 0xE0 in (_UPLOAD_INITIATE, _ABORT) and key in self._objects) \
+            or (self._previous[:1] != b"" and self._previous[0] & 0xE0 == _UPLOAD_SEGMENT
+                and self._answers(data, self._previous))
+
+    def _note(self, data: bytes) -> None:
+        """Keep each different answer to an expedited initiate (the value it carries)."""
+        if data[0] & 0xE0 != _UPLOAD_INITIATE or not data[0] & 0x02:
+            return
+        seen = self._found.answers.setdefault(self._objects.get(data[1:4], self._object), [])
+        value = data[4:8 - ((data[0] >> 2) & 0x3 if data[0] & 0x01 else 0)]
+        if value not in seen:
+            seen.append(value)
 
 
 def _read_objects(network: canopen.Network, node_id: int, timeout: float) -> _Objects:
     """Upload each of _READS; an abort is an object the node lacks, no answer ends it."""
-    sdo = SdoClient(c301.SDO_RX + node_id, c301.SDO_TX + node_id, ObjectDictionary())
+    found = _Objects()
+    sdo = _FirstAnswerSdo(node_id, found)
     sdo.network = network
     sdo.RESPONSE_TIMEOUT = timeout
     sdo.MAX_RETRIES = 1  # one attempt (canopen: 0 retries for ever)
     network.subscribe(sdo.tx_cobid, sdo.on_response)
-    found = _Objects()
     cut: list[str] = []
     try:
         for index, subindex in _READS:
             try:
-                data, complete = _upload(sdo, index, subindex)
+                data, complete, stated = _upload(sdo, index, subindex)
             except SdoAbortedError:
                 found.values[(index, subindex)] = None
                 continue
@@ -239,6 +340,11 @@ def _read_objects(network: canopen.Network, node_id: int, timeout: float) -> _Ob
                 found.problem = (f"a malformed SDO answer reading 0x{index:04X}:{subindex} "
                                  "(shorter than an SDO frame)")
                 break
+            why = _malformed(index, subindex, data, stated) if complete else None
+            if why is not None:
+                found.malformed[(index, subindex)] = why
+                found.values[(index, subindex)] = None
+                continue
             found.values[(index, subindex)] = data
             if not complete:
                 cut.append(f"0x{index:04X}:{subindex} longer than {MAX_OBJECT_BYTES} bytes: "
@@ -250,22 +356,36 @@ def _read_objects(network: canopen.Network, node_id: int, timeout: float) -> _Ob
     return found
 
 
-def _upload(sdo: SdoClient, index: int, subindex: int) -> tuple[bytes, bool]:
-    """An SDO upload of at most MAX_OBJECT_BYTES: the data, and whether that was all of it.
-    Past the bound the transfer is aborted (a node that sends segments for ever would hold
-    the scan for ever: each segment is one request and one answer)."""
+def _malformed(index: int, subindex: int, data: bytes, stated: int | None) -> str | None:
+    """Why ``data`` (``stated``: the size its transfer announced) cannot be the number
+    this object is, or None."""
+    if (index, subindex) not in _NUMBERS:
+        return None
+    size, _ = _NUMBERS[(index, subindex)]
+    if len(data) == size or (len(data) == 4 and stated is None):
+        return None
+    said = f"; the transfer said {stated} bytes" if stated is not None else ""
+    return (f"{len(data)} bytes, where an {_TYPE_NAMES[size]} has {size}"
+            + (said if stated != len(data) else ""))
+
+
+def _upload(sdo: SdoClient, index: int, subindex: int) -> tuple[bytes, bool, int | None]:
+    """An SDO upload of at most MAX_OBJECT_BYTES: the data, whether that was all of it,
+    and the size the node announced (None: none). Past the bound the transfer is aborted
+    (a node that sends segments for ever would hold the scan for ever: each segment is one
+    request and one answer)."""
     stream = ReadableStream(sdo, index, subindex)
     data = bytearray()
     while len(data) <= MAX_OBJECT_BYTES:
         chunk = stream.read(7)
         if not chunk:  # the last segment has come (canopen's own end of an upload)
-            return bytes(data), True
+            return bytes(data), True, stream.size
         data += chunk
     if not stream._done:  # canopen keeps no other record of the last segment
         # the abort sent here, not by SdoClient.abort, which logs an ERROR line for it
         sdo.network.send_message(sdo.rx_cobid, struct.pack(
             "<BHBI", _ABORT, index, subindex, _ABORT_OUT_OF_MEMORY))
-    return bytes(data[:MAX_OBJECT_BYTES]), False
+    return bytes(data[:MAX_OBJECT_BYTES]), False, stream.size
 
 
 def _unsigned(data: bytes | None) -> int | None:
@@ -292,12 +412,21 @@ def _found(node_id: int, objects: _Objects, heard: _Heard | None) -> FoundNode:
     identity = Identity(**{name: _unsigned(values.get((c301.IDENTITY, sub)))
                            for name, sub in SUBINDEX.items()})
     name, version = values.get((DEVICE_NAME, 0)), values.get((SOFTWARE_VERSION, 0))
-    if values.get((c301.DEVICE_TYPE, 0)) is None and objects.problem is None:
+    device_type = (c301.DEVICE_TYPE, 0)
+    if values.get(device_type) is None and objects.problem is None \
+            and device_type not in objects.malformed:
         problem: str | None = "0x1000 (device type, mandatory) refused"
     else:
         problem = objects.problem
+    malformed = [f"0x{i:04X}:{s} ({_NUMBERS[(i, s)][1]}): a malformed answer: {why}"
+                 for (i, s), why in objects.malformed.items()]
+    if malformed:
+        problem = "; ".join(malformed + ([problem] if problem else []))
     if problem and heard is not None and heard.state == "STOPPED":
         problem += ": the node is STOPPED, where CiA 301 allows no SDO"
+    several = objects.doubled > 0
+    if several:
+        problem = _several(node_id, objects) + (f"; {problem}" if problem else "")
     return FoundNode(
         node_id=node_id, identity=identity,
         device_type=_unsigned(values.get((c301.DEVICE_TYPE, 0))),
@@ -305,7 +434,20 @@ def _found(node_id: int, objects: _Objects, heard: _Heard | None) -> FoundNode:
         software_version=visible_string(version) if version is not None else None,
         heartbeat_ms=_unsigned(values.get((c301.PRODUCER_HEARTBEAT_TIME, 0))),
         nmt_state=heard.state if heard else "unknown",
-        seen_by=heard.first if heard else "sdo", problem=problem)
+        seen_by=heard.first if heard else "sdo", problem=problem, several_devices=several,
+        malformed=tuple(f"0x{i:04X}:{s}" for i, s in objects.malformed))
+
+
+def _several(node_id: int, objects: _Objects) -> str:
+    """The problem of a node id more than one device answers at: how often, and the values
+    they gave that differ (their identities tell them apart)."""
+    differ = [f"{_NUMBERS[key][1]} " + ", ".join(
+                  f"0x{n:08X}" for n in sorted(int.from_bytes(v, "little") for v in values))
+              for key, values in objects.answers.items() if len(values) > 1 and key in _NUMBERS]
+    return (f"two or more devices answer at node id {node_id} ({objects.doubled} of "
+            f"{objects.requests} requests answered twice"
+            + (f"; {'; '.join(differ)}" if differ else "") + "): give each its own node id "
+            "(rocoma-can lss); what this row shows may mix their answers")
 
 
 def device_type_text(device_type: int | None) -> str:

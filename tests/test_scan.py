@@ -273,3 +273,71 @@ def test_a_channel_that_is_not_a_can_link_is_one_line_and_exit_2(verb, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("rocoma-can: socketcan:lo: link/loopback, not a CAN link"), err
     assert "\n" not in err and "link/can" in err
+
+
+# -- two devices at one node id; an answer that is malformed ---------------------------------
+
+@pytest.mark.parametrize("second", [Identity(serial=0x77), None])
+def test_two_devices_at_one_node_id_are_said_in_the_row_and_the_json(
+        sim_segment_factory, virtual_channel, capsys, second):
+    """Node 1 twice (a drive given a taken id), beside a node 2 alone: every request to node
+    1 has two answers. The scan showed one clean row, or a "Toggle bit mismatch"; it now says
+    two devices answer there, with the values they differ in, and reads node 2 as ever."""
+    sim_segment_factory([1, 2])
+    sim_segment_factory([1], identities={1: second} if second else {})
+    for _ in range(2):  # whichever device answers first
+        found = {n["node_id"]: n for n in scan_json(capsys, "virtual", virtual_channel)["nodes"]}
+        assert sorted(found) == [1, 2]
+        one, two = found[1], found[2]
+        assert one["several_devices"] is True
+        assert one["problem"].startswith("two or more devices answer at node id 1"), one
+        if second:
+            assert "serial 0x00000001, 0x00000077" in one["problem"], one["problem"]
+        assert "Toggle bit" not in one["problem"] and "instead" not in one["problem"]
+        assert two["several_devices"] is False and two["problem"] is None
+        assert two["device_name"] == "rocoma-can simulated CiA 402 drive"
+    assert main(["scan", *scan_bus_args("virtual", virtual_channel, STALL)]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    (row,) = [r for r in rows if r.startswith("1 ")]
+    assert "two or more devices answer here: their answers mix" in row, rows
+    assert [r for r in rows if r.startswith("node 1: two or more devices")], rows
+
+
+def _segmented_0x1000(stated: bytes, segment: bytes):
+    """A node whose 0x1000 comes as a segmented upload stating ``stated`` as its size, then
+    one last segment of ``segment``; every other object it lacks (abort)."""
+    def answer(request: bytes) -> list[bytes]:
+        if request[0] & 0xE0 == 0x40 and request[1:4] == b"\x00\x10\x00":
+            return [b"\x41\x00\x10\x00" + stated]
+        if request[0] & 0xE0 == 0x60:  # one segment, the last, its length in the command
+            return [bytes([0x01 | (7 - len(segment)) << 1 | request[0] & 0x10])
+                    + segment.ljust(7, b"\x00")]
+        if request[0] & 0xE0 == 0x40:
+            return [b"\x80" + request[1:4] + (0x06020000).to_bytes(4, "little")]
+        return []
+    return answer
+
+
+@pytest.mark.parametrize("answer, said", [
+    (_segmented_0x1000(b"\xff\xff\xff\xff", b"\x92\x01\x02\x00ABC"),
+     "7 bytes, where an UNSIGNED32 has 4; the transfer said 4294967295 bytes"),
+    (_segmented_0x1000(b"\x04\x00\x00\x00", b"\x92\x01\x02\x00ABC"),
+     "7 bytes, where an UNSIGNED32 has 4; the transfer said 4 bytes"),
+    (_segmented_0x1000(b"\x02\x00\x00\x00", b"\x92\x01"),
+     "2 bytes, where an UNSIGNED32 has 4"),
+    (lambda request: [b"\x4b\x00\x10\x00\x92\x01\x00\x00"] if request[1:4] == b"\x00\x10\x00"
+     else [b"\x80" + request[1:4] + (0x06020000).to_bytes(4, "little")],  # expedited, 2 bytes
+     "2 bytes, where an UNSIGNED32 has 4"),
+])
+def test_a_malformed_0x1000_answer_is_said_not_taken_for_a_missing_object(
+        odd_node, virtual_channel, capsys, answer, said):
+    """The device type came as 7 bytes of a segmented upload that stated 0xFFFFFFFF (or 4,
+    or as 2 bytes): the row showed "-", as for a node without 0x1000, and no problem."""
+    odd_node(answer)
+    (node,) = scan_json(capsys, "virtual", virtual_channel)["nodes"]
+    assert node["device_type"] is None and node["malformed"] == ["0x1000:0"]
+    assert node["problem"] == f"0x1000:0 (device type): a malformed answer: {said}"
+    assert main(["scan", *scan_bus_args("virtual", virtual_channel, STALL)]) == 0
+    head, row, problem = capsys.readouterr().out.splitlines()
+    assert row.split()[5] == "malformed", row  # the device type's column
+    assert problem == f"node {OddNode.NODE}: {node['problem']}"

@@ -101,19 +101,39 @@ def _period(ms: int | None) -> str:
     return "-" if ms is None else f"{ms} ms" if ms else "off"
 
 
+#: the row of a node id more than one device answers at: its cells would mix them
+SEVERAL = "two or more devices answer here: their answers mix (see below)"
+
+
 def table(nodes: list[FoundNode]) -> list[str]:
-    """One row per node, columns as wide as their widest cell."""
+    """One row per node, columns as wide as their widest cell; an object that came
+    malformed is "malformed" (not "-", which is an object the node lacks), and a node id
+    more than one device answers at says so instead of its cells."""
+    from ..drivers.cia301 import DEVICE_TYPE, IDENTITY, PRODUCER_HEARTBEAT_TIME
+    from ..drivers.identity import SUBINDEX
     from ..drivers.scan import device_type_text
     head = ("node", "vendor", "product", "revision", "serial", "device type", "name",
             "software", "heartbeat", "NMT state")
-    rows = [head] + [(
-        str(n.node_id), _hex(n.identity.vendor_id), _hex(n.identity.product_code),
-        _hex(n.identity.revision), _hex(n.identity.serial), device_type_text(n.device_type),
-        n.device_name or "-", n.software_version or "-",
-        _period(n.heartbeat_ms), n.nmt_state) for n in nodes]
+    cells: list[tuple[str, ...]] = []
+    for n in nodes:
+        def shown(index: int, subindex: int, text: str, node: FoundNode = n) -> str:
+            return "malformed" if f"0x{index:04X}:{subindex}" in node.malformed else text
+        ident = n.identity
+        cells.append((
+            str(n.node_id),
+            *(shown(IDENTITY, SUBINDEX[k], _hex(getattr(ident, k))) for k in SUBINDEX),
+            shown(DEVICE_TYPE, 0, device_type_text(n.device_type)),
+            n.device_name or "-", n.software_version or "-",
+            shown(PRODUCER_HEARTBEAT_TIME, 0, _period(n.heartbeat_ms)), n.nmt_state))
+    rows = [head] + [c for c, n in zip(cells, nodes) if not n.several_devices]
     widths = [max(len(row[k]) for row in rows) for k in range(len(head))]
+    widths[0] = max([widths[0]] + [len(c[0]) for c in cells])
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip()
-             for row in rows]
+             for row in [head]]
+    for row, n in zip(cells, nodes):
+        text = (row[0].ljust(widths[0]) + "  " + SEVERAL) if n.several_devices else \
+            "  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip()
+        lines.append(text)
     lines += [f"node {n.node_id}: {n.problem}" for n in nodes if n.problem]
     return lines
 
