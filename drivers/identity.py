@@ -10,7 +10,11 @@ What bring-up requires of a drive (``IdentityCheck``): the fields its config's
 ``identity:`` names, and for the vendor-ID and product code it does not name, the ones its
 EDS/DCF is for (a file for vendor X driving a drive of vendor Y is a wrong file or a wrong
 drive). ``identity: any`` requires nothing; a file that names no vendor (a generic one)
-constrains nothing.
+constrains nothing, nor does a product number a file does not give.
+
+``file_fit`` is the same rule seen from a folder of files (``init-config``): a file bring-up
+would refuse for a device is not for it; one that names the device's vendor and product is
+made for it; the rest may fit, and say what they leave open (no vendor, no product number).
 """
 from __future__ import annotations
 
@@ -154,12 +158,61 @@ class IdentityCheck:
                      else f"the drive has no 0x{IDENTITY:04X}:{SUBINDEX[name]}")
                  for name, v in self.configured.known().items() if have.get(name) != v]
         why = [f"{'; '.join(wrong)}: swapped node ids or cables?"] if wrong else []
-        meant = self.from_file.known()
-        if any(name in have and have[name] != v for name, v in meant.items()):
-            seen = _fields({name: have[name] for name in meant if name in have})
-            why.append(f"{seen} found, its file {self.file} is for {_fields(meant)}: "
-                       "wrong file or wrong drive?")
+        mismatch = file_mismatch(self.from_file, found, self.file)
+        if mismatch is not None:
+            why.append(mismatch)
         return "; ".join(why) or None
+
+
+def file_mismatch(meant: Identity, found: Identity, file: str) -> str | None:
+    """Why a device that answered ``found`` is not one the file ``file`` is for, which
+    names ``meant`` (its vendor-ID and product code, as ``IdentityCheck.from_file`` keeps
+    them), or None: a field the file names and the device says otherwise. The one rule of
+    bring-up's check and of init-config's choice of files."""
+    have, said = found.known(), meant.known()
+    if not any(name in have and have[name] != v for name, v in said.items()):
+        return None
+    seen = _fields({name: have[name] for name in said if name in have})
+    return f"{seen} found, its file {file} is for {_fields(said)}: wrong file or wrong drive?"
+
+
+@dataclass(frozen=True)
+class FileFit:
+    """How a device file fits a device (``file_fit``): ``wrong`` why it is not for it
+    (bring-up would refuse them together), else ``open`` what it leaves open, a person's
+    to decide; neither: the file is made for the device."""
+    wrong: str | None = None
+    open: str | None = None
+
+    @property
+    def made_for(self) -> bool:
+        return self.wrong is None and self.open is None
+
+
+def file_fit(od: objectdictionary.ObjectDictionary, found: Identity, file: str) -> FileFit:
+    """How the file ``file`` (its object dictionary ``od``) fits the device that answered
+    ``found``: bring-up's rule (``IdentityCheck`` of a drive whose config names no
+    identity), then what the file names. Made for it: the file names the device's vendor
+    and product (or, where neither names a vendor, vendor-ID 0, the file's product is the
+    device's)."""
+    check = IdentityCheck.of(None, od, file)
+    wrong = file_mismatch(check.from_file, found, Path(file).name)
+    if wrong is not None:
+        return FileFit(wrong=wrong)
+    own, have = file_identity(od), found.known()
+    if own.vendor_id is None:
+        if not found.vendor_id and own.product_code is not None \
+                and own.product_code == found.product_code:
+            return FileFit()
+        return FileFit(open="it names no vendor: a generic file, for any vendor's drive")
+    if own.product_code is None:
+        return FileFit(open=f"it names vendor 0x{own.vendor_id:08X} and no product number: "
+                            "any product of that vendor fits it")
+    missing = [f"0x{IDENTITY:04X}:{SUBINDEX[k]}" for k in ("vendor_id", "product_code")
+               if k not in have]
+    if missing:
+        return FileFit(open=f"the device does not say its {' or '.join(missing)}")
+    return FileFit()
 
 
 class Uploads(Protocol):

@@ -1,16 +1,20 @@
 """``rocoma-can init-config``: a run config from what a scan found on the bus.
 
-Each node the scan found is matched to a device file in ``--eds-dir`` by the vendor-ID and
-product code its identity object (0x1018) reports and the file's [DeviceInfo] gives (a
-matching revision, then a DCF commissioned for that node id, win among several). A matched
-CiA 402 drive becomes a drive entry fitted to its file the way the demo fits one (the modes
-it can run, its scaling, every axis of a multi-axis device) and carries the identity it was
-seen with, so bring-up refuses a drive that is not this one (swapped node ids or cables).
-The rest are comments: nodes no file matches, devices that are not drives, drives the
-manager could not supervise (they would keep running when the manager dies: left out
-until someone decides so, in writing). The rate is the highest of 1000, 500, 250, 100 Hz
-whose worst-case bus load fits. The output is checked like any config before it is
-written: what check-config refuses is never written.
+Each node the scan found is matched to a device file in ``--eds-dir`` by the rule bring-up
+checks a drive's identity with (drivers.identity.file_fit): a file that names the
+vendor-ID and product code its identity object (0x1018) reports is made for it (a
+matching revision, then a DCF commissioned for that node id, win among several); a file
+bring-up would refuse for it is not; one that names too little (no product number, no
+vendor) may fit: it is offered, with what it leaves open and the ``--eds NODE=FILE`` that
+picks it. A chosen CiA 402 drive becomes a drive entry fitted to its file the way the demo
+fits one (the modes it can run, its scaling, every axis of a multi-axis device) and
+carries the identity it was seen with, so bring-up refuses a drive that is not this one
+(swapped node ids or cables). The rest are comments: nodes no file is made for, devices
+that are not drives, two devices at one node id, drives the manager could not supervise
+(they would keep running when the manager dies: left out until someone decides so, in
+writing). The rate is the highest of 1000, 500, 250, 100 Hz whose worst-case bus load fits.
+The output is checked like any config before it is written: what check-config refuses is
+never written; an existing file is replaced only with ``--force``, and kept beside it.
 
 Safe defaults throughout: the manager starts latched (``estop_must_be_cleared``), the one
 controller holds the pose it finds (pd without a target), joint names say they are
@@ -21,13 +25,18 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ..exit_codes import FAILED, OK, USAGE
 from .scan import bus_options, on_bus
+
+if TYPE_CHECKING:  # the verb imports canopen when it runs: `rocoma-can --help` stays fast
+    from canopen.objectdictionary import ObjectDictionary
+
+    from ..drivers.identity import Identity
 
 #: rates tried, highest first
 RATES = (1000, 500, 250, 100)
@@ -42,64 +51,111 @@ class Found(Protocol):
     @property
     def node_id(self) -> int: ...
     @property
-    def identity(self) -> Any: ...  # drivers.identity.Identity
+    def identity(self) -> Identity: ...
     @property
     def device_type(self) -> int | None: ...
+    @property
+    def several_devices(self) -> bool: ...
+    @property
+    def malformed(self) -> tuple[str, ...]: ...
 
 
 @dataclass(frozen=True)
 class DeviceFileInfo:
-    """One file of the directory, by what it says it is for."""
+    """One file of the directory (or of ``--eds``): its object dictionary, which the
+    identity rule reads, and what ranks it among files made for one device."""
     path: str
-    vendor: int | None
-    product: int | None
+    od: ObjectDictionary
     revision: int | None
-    node_id: int | None  # a DCF's commissioned node id
+    node_id: int | None        # a DCF's commissioned node id
+    device_type: int | None    # its 0x1000 (None: not given)
+
+
+def read_file_info(path: str) -> DeviceFileInfo:
+    """One device file; DeviceFileError when it is none (drivers.device_file)."""
+    from ..drivers.cia301 import DEVICE_TYPE
+    from ..drivers.device_file import read_device_file
+    device = read_device_file(path)
+    od = device.object_dictionary(1)
+    var = od.get_variable(DEVICE_TYPE, 0)
+    device_type = None if var is None else var.value if var.value is not None else var.default
+    return DeviceFileInfo(path, od, _number(od.device_information.revision_number),
+                          device.commissioned_node_id,
+                          device_type if isinstance(device_type, int) else None)
 
 
 def index_device_files(directory: str) -> tuple[list[DeviceFileInfo], list[str]]:
-    """Every EDS/DCF in ``directory`` (not below it) and a note per file it cannot read."""
-    from ..drivers.device_file import DeviceFileError, read_device_file
+    """Every EDS/DCF in ``directory`` (not below it) and a note per file it cannot read, or
+    that a config cannot name (a name that is not UTF-8: YAML is UTF-8 text)."""
+    from ..drivers.device_file import DeviceFileError
     files, notes = [], []
     for entry in sorted(os.scandir(directory), key=lambda e: e.name):
         if not entry.name.lower().endswith(SUFFIXES):
             continue
+        shown = shown_name(entry.name)
         try:
             if not entry.is_file():
                 continue
         except OSError as exc:  # a symbolic link in a loop, say
-            notes.append(f"{entry.name}: not read ({exc.strerror or exc})")
+            notes.append(f"{shown}: not read ({exc.strerror or exc})")
+            continue
+        if shown != entry.name:
+            notes.append(f"{shown}: its name is not UTF-8: a config (UTF-8 text) cannot name "
+                         "it; rename it")
             continue
         try:
-            device = read_device_file(entry.path)
+            files.append(read_file_info(entry.path))
         except DeviceFileError as exc:
-            notes.append(f"{entry.name}: not read ({exc})")
-            continue
-        info = {k.lower(): v for k, v in device.sections.get("DeviceInfo", {}).items()}
-        files.append(DeviceFileInfo(entry.path, _number(info.get("vendornumber")),
-                                    _number(info.get("productnumber")),
-                                    _number(info.get("revisionnumber")),
-                                    device.commissioned_node_id))
+            notes.append(f"{shown}: not read ({exc})")
     return files, notes
 
 
-def _number(text: str | None) -> int | None:
-    if not text:
+def shown_name(name: str) -> str:
+    """A file name as printable UTF-8 text: the bytes that are not UTF-8 escaped (\\xff)."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return os.fsencode(name).decode("utf-8", "backslashreplace")
+    return name
+
+
+def _number(value: Any) -> int | None:
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if not isinstance(value, str) or not value.strip():
         return None
     try:
-        return int(text.strip(), 0)
+        return int(value.strip(), 0)
     except ValueError:
         return None
 
 
-def match(node_id: int, identity: Any, files: Sequence[DeviceFileInfo]) -> list[DeviceFileInfo]:
-    """The files made for this device, best first: same vendor and product (a file that
-    names no vendor matches nothing), then same revision, then commissioned for this node."""
-    same = [f for f in files if f.vendor and f.vendor == identity.vendor_id
-            and f.product == identity.product_code]
-    return sorted(same, key=lambda f: (f.revision != identity.revision,
-                                       f.node_id not in (None, node_id), f.node_id is None,
-                                       f.path))
+def match(node_id: int, identity: Identity, device_type: int | None,
+          files: Sequence[DeviceFileInfo]
+          ) -> tuple[list[DeviceFileInfo], list[tuple[DeviceFileInfo, str]]]:
+    """The files made for this device, best first (same revision, then commissioned for
+    this node), and those that may fit it, each with what it leaves open (the identity
+    rule: drivers.identity.file_fit). A file of another device profile than the device's
+    (0x1000: the manager's own EDS beside the drives') is for neither."""
+    from ..drivers.identity import file_fit
+    made, may = [], []
+    for f in _rank(node_id, identity, files):
+        if device_type is not None and f.device_type \
+                and f.device_type & 0xFFFF != device_type & 0xFFFF:
+            continue
+        fit = file_fit(f.od, identity, f.path)
+        if fit.made_for:
+            made.append(f)
+        elif fit.open is not None:
+            may.append((f, fit.open))
+    return made, may
+
+
+def _rank(node_id: int, identity: Identity, files: Sequence[DeviceFileInfo]
+          ) -> list[DeviceFileInfo]:
+    return sorted(files, key=lambda f: (f.revision != identity.revision,
+                                        f.node_id not in (None, node_id), f.node_id is None,
+                                        f.path))
 
 
 def _hex(value: int | None) -> str:
@@ -135,13 +191,19 @@ class Generated:
     notes: list[str]
 
 
-def generate(found: Sequence[Found], eds_dir: str, interface: str, channel: str,
-             bitrate: int, base: str = ".") -> Generated:
+def generate(found: Sequence[Found], eds_dir: str | None, interface: str, channel: str,
+             bitrate: int, base: str = ".",
+             picked: Mapping[int, DeviceFileInfo] | None = None) -> Generated:
     """The commented YAML for ``found`` (device file paths relative to ``base``, the
-    directory the YAML will be in); NothingToConfigure (a ValueError) when no drive could
-    be configured."""
+    directory the YAML will be in), each node's file from ``picked`` (``--eds``) or else
+    from ``eds_dir``; NothingToConfigure (a ValueError) when no drive could be
+    configured."""
+    from ..drivers.identity import file_fit
     from .demo_config import emulate
-    files, notes = index_device_files(eds_dir)
+    files, notes = index_device_files(eds_dir) if eds_dir is not None else ([], [])
+    picked = dict(picked or {})
+    notes += [f"--eds {n}={shown_name(f.path)}: no node {n} answered the scan"
+              for n, f in sorted(picked.items()) if n not in {node.node_id for node in found}]
     taken = {n.node_id for n in found}
     manager_id = next((i for i in MANAGER_NODE_IDS if i not in taken), None)
     if manager_id is None:
@@ -152,27 +214,46 @@ def generate(found: Sequence[Found], eds_dir: str, interface: str, channel: str,
     for node in sorted(found, key=lambda n: n.node_id):
         ident = node.identity
         seen = f"node {node.node_id}: {ident.describe()}"
+        if node.several_devices:
+            lines.append(f"  # node {node.node_id}: two or more devices answer at node id "
+                         f"{node.node_id}: not configured (give each its own node id: "
+                         "rocoma-can lss)")
+            continue
+        if "0x1000:0" in node.malformed:
+            lines.append(f"  # {seen}: its device type (0x1000) came malformed "
+                         "(rocoma-can scan shows it): not configured")
+            continue
         if node.device_type is not None and node.device_type & 0xFFFF != CIA402:
             lines.append(f"  # {seen}: device type 0x{node.device_type:08X}, not a CiA 402 "
                          "drive: not configured")
             continue
-        candidates = match(node.node_id, ident, files)
-        if not candidates:
-            lines.append(f"  # {seen}: no file in {eds_dir} is for vendor "
-                         f"{_hex(ident.vendor_id)} product {_hex(ident.product_code)}: add "
-                         "its EDS/DCF and run init-config again")
-            continue
-        chosen = candidates[0]
+        how = ""
+        if node.node_id in picked:
+            chosen = picked[node.node_id]
+            fit = file_fit(chosen.od, ident, chosen.path)
+            if fit.wrong is not None:
+                lines.append(f"  # node {node.node_id}: --eds {Path(chosen.path).name}: "
+                             f"{fit.wrong}: not configured")
+                continue
+            how = "picked by --eds" + (f"; {fit.open}" if fit.open else "")
+            others = ""
+        else:
+            made, may = match(node.node_id, ident, node.device_type, files)
+            if not made:
+                lines.append(f"  # {seen}: " + _no_file(node.node_id, ident, eds_dir, may))
+                continue
+            chosen = made[0]
+            others = ", ".join(Path(f.path).name for f in made[1:])
         try:
             fitted = emulate(chosen.path, 1)
         except ValueError as exc:
             lines.append(f"  # {seen}: {Path(chosen.path).name}: {exc}")
             continue
-        others = ", ".join(Path(f.path).name for f in candidates[1:])
         guessed = _guessed(chosen.path)
         drive = dict(fitted.drive)
         unsupervised = drive.pop("accept_unsupervised", False)
         lines.append(f"  # node {node.node_id}: {Path(chosen.path).name}"
+                     + (f" ({how})" if how else "")
                      + (f" (also matching: {others})" if others else "")
                      + f"; modes {', '.join(fitted.modes)}"
                      + (f"; {' and '.join(guessed)} not in its file: a guess, take it "
@@ -233,6 +314,19 @@ def generate(found: Sequence[Found], eds_dir: str, interface: str, channel: str,
     return Generated(text, len(drives), notes)
 
 
+def _no_file(node_id: int, identity: Identity, eds_dir: str | None,
+             may: Sequence[tuple[DeviceFileInfo, str]]) -> str:
+    """Why no file is chosen for a node: the files that may fit, each with what it leaves
+    open and the option that picks it, or that none is there to pick."""
+    where = f"no file in {eds_dir}" if eds_dir is not None else "no --eds-dir file"
+    if not may:
+        return (f"{where} is for vendor {_hex(identity.vendor_id)} product "
+                f"{_hex(identity.product_code)}: add its EDS/DCF and run init-config again")
+    offered = ", ".join(f"{Path(f.path).name} ({why})" for f, why in may)
+    return (f"{where} names this device; may fit: {offered}: pick one with --eds "
+            f"{node_id}={may[0][0].path}")
+
+
 def _guessed(path: str) -> list[str]:
     """The scaling keys the demo's fit had to guess for this file (no 0x608F / 0x6076)."""
     from ..drivers.capabilities import read_capabilities
@@ -262,15 +356,22 @@ def _fitting_rate(drives: list[dict[str, Any]], interface: str, bitrate: int,
 
 def _init_config(args: argparse.Namespace) -> int:
     problem = None
-    if not os.path.isdir(args.eds_dir):
+    if args.eds_dir is None and not args.eds:
+        problem = "give --eds-dir DIR or --eds NODE=FILE (the drives' EDS/DCF files)"
+    elif args.eds_dir is not None and not os.path.isdir(args.eds_dir):
         problem = f"--eds-dir {args.eds_dir}: not a directory"
-    else:
+    elif args.eds_dir is not None:
         try:
             os.listdir(args.eds_dir)
         except OSError as exc:
             problem = f"--eds-dir {args.eds_dir}: cannot read ({exc.strerror or exc})"
+        if problem is None and shown_name(args.eds_dir) != args.eds_dir:
+            problem = (f"--eds-dir {shown_name(args.eds_dir)}: its path is not UTF-8: a "
+                       "config (UTF-8 text) cannot name the files in it")
+    if problem is None:
+        args.picked, problem = _picked(args.eds)
     if problem is None and args.output:
-        why = _not_writable(Path(args.output))
+        why = _not_writable(Path(args.output), args.force)
         problem = f"-o {args.output}: {why}" if why else None
     if problem:  # before the scan, which takes seconds
         print(f"rocoma-can: init-config: {problem}", file=sys.stderr)
@@ -278,8 +379,38 @@ def _init_config(args: argparse.Namespace) -> int:
     return on_bus(args, lambda bus: _write(args, bus))
 
 
-def _not_writable(path: Path) -> str | None:
-    """Why the config cannot be written to ``path``, or None (it may still fail later)."""
+def _eds_pick(text: str) -> tuple[int, str]:
+    """--eds NODE=FILE as (node id, path); ArgumentTypeError for anything else."""
+    node, sep, path = text.partition("=")
+    if not sep or not node.strip().isdigit() or not path:
+        raise argparse.ArgumentTypeError(f"expected NODE=FILE (a node id and its EDS/DCF), "
+                                         f"got {text!r}")
+    if not 1 <= int(node) <= 127:
+        raise argparse.ArgumentTypeError(f"{text}: node ids are 1..127")
+    return int(node), path
+
+
+def _picked(picks: Sequence[tuple[int, str]]
+            ) -> tuple[dict[int, DeviceFileInfo], str | None]:
+    """The --eds files, read; the first problem (one line) of one that cannot be used."""
+    from ..drivers.device_file import DeviceFileError
+    out: dict[int, DeviceFileInfo] = {}
+    for node, path in picks:
+        if node in out:
+            return out, f"--eds {node}={path}: node {node} has a file already"
+        if shown_name(path) != path:
+            return out, (f"--eds {node}={shown_name(path)}: its path is not UTF-8: a config "
+                         "(UTF-8 text) cannot name it")
+        try:
+            out[node] = read_file_info(path)
+        except (DeviceFileError, OSError) as exc:
+            return out, f"--eds {node}={path}: not read ({exc})"
+    return out, None
+
+
+def _not_writable(path: Path, force: bool) -> str | None:
+    """Why the config cannot be written to ``path``, or None (it may still fail later): an
+    existing file only with ``force`` (a config edited by hand must not be lost)."""
     from ..user_files import kind
     folder = path.parent
     if not folder.is_dir():
@@ -292,7 +423,40 @@ def _not_writable(path: Path) -> str | None:
         return None
     except OSError as exc:
         return exc.strerror or str(exc)
-    return f"is {what}, not a file to write" if what else None
+    if what:
+        return f"is {what}, not a file to write"
+    if not force:
+        return (f"exists (a config edited by hand would be lost): --force replaces it, "
+                f"keeping it as {_backup(path).name}")
+    return None
+
+
+def _backup(path: Path) -> Path:
+    """Where the file at ``path`` is kept when replaced: NAME.bak, else the first free
+    NAME.bak.N (an older backup is never overwritten)."""
+    candidate, n = path.with_name(path.name + ".bak"), 0
+    while candidate.exists() or candidate.is_symlink():
+        n += 1
+        candidate = path.with_name(f"{path.name}.bak.{n}")
+    return candidate
+
+
+def _replace(path: Path, text: str) -> Path | None:
+    """Write ``text`` to ``path`` whole or not at all (a file beside it, renamed over it);
+    an existing file is first moved to its backup, which is returned (None: there was
+    none). OSError when it cannot."""
+    temporary = path.with_name(f".{path.name}.init-config.tmp")
+    temporary.write_text(text, encoding="utf-8")
+    kept = None
+    try:
+        if path.exists():
+            kept = _backup(path)
+            os.replace(path, kept)
+        os.replace(temporary, path)
+    finally:
+        if temporary.exists():
+            temporary.unlink()
+    return kept
 
 
 def _write(args: argparse.Namespace, bus: Any) -> int:
@@ -305,7 +469,7 @@ def _write(args: argparse.Namespace, bus: Any) -> int:
     base = Path(args.output).resolve().parent if args.output else Path.cwd()
     try:
         made = generate(found, args.eds_dir, args.interface, args.channel, args.bitrate,
-                        str(base))
+                        str(base), args.picked)
     except ValueError as exc:
         for note in getattr(exc, "notes", ()):  # files not read: maybe why none matched
             print(f"rocoma-can: init-config: note: {note}", file=sys.stderr)
@@ -321,11 +485,13 @@ def _write(args: argparse.Namespace, bus: Any) -> int:
         print(f"rocoma-can: init-config: note: {note}", file=sys.stderr)
     if args.output:
         try:
-            Path(args.output).write_text(made.text, encoding="utf-8")
+            kept = _replace(Path(args.output), made.text)
         except OSError as exc:
             print(f"rocoma-can: init-config: -o {args.output}: cannot write "
                   f"({exc.strerror or exc})", file=sys.stderr)
             return USAGE
+        if kept is not None:
+            print(f"init-config: {args.output} existed: kept as {kept}", file=sys.stderr)
         print(f"init-config: {made.drives} drive(s) written to {args.output}; next: "
               f"rocoma-can check-config {args.output}", file=sys.stderr)
     else:
@@ -339,15 +505,23 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p = subparsers.add_parser(
         "init-config", help="a run config from a scan of the bus and a folder of EDS/DCF files",
         description="Scan the bus (as `rocoma-can scan`), match each node to a file in "
-                    "--eds-dir by its vendor-ID and product code, and write a commented "
-                    "config that check-config accepts: a drive per matched CiA 402 node with "
-                    "the identity it was seen with; the rest as comments.")
+                    "--eds-dir by its vendor-ID and product code (the rule bring-up checks "
+                    "identities with), and write a commented config that check-config "
+                    "accepts: a drive per matched CiA 402 node with the identity it was seen "
+                    "with; the rest as comments, with the files that may fit and why.")
     bus_options(p, TIMEOUT, "seconds to wait for each SDO answer")
     p.add_argument("--listen", type=seconds, default=LISTEN, metavar="S",
                    help=f"listen for heartbeats this long first (default {LISTEN:g})")
-    p.add_argument("--eds-dir", required=True, metavar="DIR",
+    p.add_argument("--eds-dir", default=None, metavar="DIR",
                    help="the drives' EDS/DCF files (matched by vendor and product)")
+    p.add_argument("--eds", type=_eds_pick, action="append", default=[],
+                   metavar="NODE=FILE",
+                   help="this node's file, whatever --eds-dir offers (one that names too "
+                        "little to be matched; repeat per node); refused when bring-up "
+                        "would refuse it")
     p.add_argument("--bitrate", type=count, default=1_000_000,
                    help="the bus's bit rate, for the config and its rate (default 1000000)")
     p.add_argument("-o", "--output", metavar="FILE", help="write here (default: stdout)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing -o FILE, keeping it as FILE.bak (or .bak.N)")
     p.set_defaults(func=_init_config)
