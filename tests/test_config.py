@@ -533,20 +533,19 @@ def test_every_config_error_names_the_file(tmp_path, text, expected):
     assert expected in str(refused.value), refused.value.problems
 
 
-def test_a_yaml_syntax_error_says_line_and_column_once(tmp_path):
+@pytest.mark.parametrize("text, said", [
+    ("rate: 100\ndrives: [1,\n", "line 3, column 1: not valid YAML: expected the node "
+     "content, but found '<stream end>' (while parsing a flow node)"),
+    ('rate: 100\nbus: {channel: "can0}\n', "line 3, column 1: not valid YAML: found "
+     "unexpected end of stream (while scanning a quoted scalar that began at line 2, column "
+     "16)"),
+])
+def test_a_yaml_syntax_error_says_line_and_column_once(tmp_path, text, said):
     path = tmp_path / "robot.yaml"
-    path.write_text("rate: 100\ndrives: [1,\n")
+    path.write_text(text)
     with pytest.raises(ConfigError) as refused:
         load(path)
-    assert refused.value.problems == [
-        f"{path}: line 3, column 1: not valid YAML: expected the node content, but found "
-        "'<stream end>' (while parsing a flow node)"]
-    path.write_text('rate: 100\nbus: {channel: "can0}\n')
-    with pytest.raises(ConfigError) as refused:
-        load(path)
-    assert refused.value.problems == [
-        f"{path}: line 3, column 1: not valid YAML: found unexpected end of stream (while "
-        "scanning a quoted scalar that began at line 2, column 16)"]
+    assert refused.value.problems == [f"{path}: {said}"]
 
 
 def test_a_config_that_is_not_a_mapping_says_what_it_is(tmp_path):

@@ -210,12 +210,7 @@ def test_doctor_fails_for_the_loopback_as_a_can_channel(tmp_path):
     assert done.returncode == 1, done.stdout
     assert "FAIL  lo: exists" in done.stdout and "not a CAN link" in done.stdout
     assert done.stdout.splitlines()[-1].endswith(": blocks it")
-    path = tmp_path / "robot.yaml"
-    data = yaml.safe_load((EXAMPLES / "bench_vcan.yaml").read_text())
-    data["bus"]["channel"] = "lo"
-    path.write_text(yaml.safe_dump(data))
-    done = doctor(str(path), "--json")
-    checks = {c["name"]: c for c in json.loads(done.stdout)}
+    done, checks = doctor_on(tmp_path, "lo")
     assert done.returncode == 1 and checks["lo: exists"]["status"] == "fail"
     assert not [name for name in checks if name.startswith("lo: ") and name != "lo: exists"]
 
@@ -322,13 +317,19 @@ def test_a_config_that_does_not_load_gives_its_own_errors_and_exit_2(tmp_path):
     assert missing.returncode == 2 and "cannot read" in missing.stderr
 
 
-def test_a_config_on_a_missing_link_fails_naming_it(tmp_path):
+def doctor_on(tmp_path: Path, channel: str) -> tuple[subprocess.CompletedProcess[str], dict]:
+    """doctor --json of the shipped vcan bench with its bus on ``channel``: the run and its
+    checks by name."""
     path = tmp_path / "robot.yaml"
     data = yaml.safe_load((EXAMPLES / "bench_vcan.yaml").read_text())
-    data["bus"]["channel"] = "vcan9"
+    data["bus"]["channel"] = channel
     path.write_text(yaml.safe_dump(data))
     done = doctor(str(path), "--json")
-    checks = {c["name"]: c for c in json.loads(done.stdout)}
+    return done, {c["name"]: c for c in json.loads(done.stdout)}
+
+
+def test_a_config_on_a_missing_link_fails_naming_it(tmp_path):
+    done, checks = doctor_on(tmp_path, "vcan9")
     assert done.returncode == 1
     assert checks["vcan9: exists"]["status"] == "fail"
     assert "ip link add dev vcan9 type vcan" in checks["vcan9: exists"]["fix"]
