@@ -21,6 +21,9 @@ log = logging.getLogger("rocoma_can.manager")
 #: flight recorder and the plot do not take it for a fault.
 STOP_CAUSE = "loop stopping:"
 
+#: why a switch is refused while the e-stop latch is set (switcher.py; ``clear`` lifts it)
+LATCHED = "emergency stop not cleared"
+
 
 class ManagerState(enum.IntEnum):
     FAILPROOF = 0
@@ -33,6 +36,9 @@ class EventKind(enum.Enum):
     ACTIVE_CONTROLLER_CHANGED = "active_controller_changed"
     EMERGENCY_STOP = "emergency_stop"
     RECOVERY = "recovery"  # of the drives: started, done or failed (its cause says)
+    #: an operator's request and its answer, as the surface that took it tells it (its
+    #: cause: "SDO (node 100): switch to 'pd': SWITCHED"): the audit trail (audit.py)
+    REQUEST = "request"
 
 
 @dataclass(frozen=True)

@@ -495,6 +495,14 @@ class ControllerManager:
         any thread, the cycle's included: it only queues the event."""
         self._emit(EventKind.RECOVERY, cause)
 
+    def notify_request(self, text: str) -> None:
+        """Tell the subscribers of an operator's request and how it was answered: ``text``
+        says who (the surface), what and the answer ("SDO (node 100): clear: the e-stop
+        latch is cleared"). The request surfaces call it (node/server.py, remote.py);
+        stops need not: their e-stop events name them in the cause. From any thread, the
+        cycle's included: it only queues the event."""
+        self._emit(EventKind.REQUEST, text)
+
     def subscribe(self, callback: Subscriber) -> Callable[[], None]:
         """Call ``callback(event)`` on the event thread; returns the unsubscribe function."""
         return self._events.subscribe(callback)

@@ -52,14 +52,29 @@ class Transport:
 
 def serve(manager: ControllerManager, service: str, transport: Transport, running: bool,
           recover: Callable[[], Future[bool]] | None) -> dict[str, Any]:
-    """Run one of estop, failproof, clear, recover under the rules (see the module)."""
-    m = manager
-    if service not in STOPS and not transport.allow_commands:
-        return {"ok": False, "state": m.state.name, "error": transport.not_allowed(service)}
-    if service not in STOPS and not running:
-        return {"ok": False, "state": m.state.name, "error": NOT_RUNNING}
+    """Run one of estop, failproof, clear, recover under the rules (see the module); a
+    request other than a stop is told to the audit trail with its answer (``tell``)."""
     if service in STOPS:
-        return stopped(m, stop(m, service, transport), running)
+        return stopped(manager, stop(manager, service, transport), running)
+    latched = manager.estop_latched
+    answer = _serve(manager, service, transport, running, recover)
+    tell(manager, transport, service, answer, cleared(latched) if service == "clear" else "")
+    return answer
+
+
+def cleared(latched: bool) -> str:
+    """What a clear did, by whether the latch was set (every surface says it so)."""
+    return ("the e-stop latch is cleared" if latched
+            else "nothing to clear (the e-stop latch was not set)")
+
+
+def _serve(manager: ControllerManager, service: str, transport: Transport, running: bool,
+           recover: Callable[[], Future[bool]] | None) -> dict[str, Any]:
+    m = manager
+    if not transport.allow_commands:
+        return {"ok": False, "state": m.state.name, "error": transport.not_allowed(service)}
+    if not running:
+        return {"ok": False, "state": m.state.name, "error": NOT_RUNNING}
     if service == "clear":
         if not m.clear_emergency_stop():
             return {"ok": False, "state": m.state.name,
@@ -71,8 +86,23 @@ def serve(manager: ControllerManager, service: str, transport: Transport, runnin
         recover()
         return {"ok": True, "state": m.state.name, "recovery": "started"}
     else:
-        return {"ok": False, "state": m.state.name, "error": f"no service {service!r}"}
+        return {"ok": False, "state": m.state.name, "error": f"no service {shown(service)}"}
     return {"ok": True, "state": m.state.name}
+
+
+def tell(manager: ControllerManager, transport: Transport, what: str,
+         answer: dict[str, Any], done: str = "") -> None:
+    """A request from ``transport`` and its ``answer`` (a service's or a switch's), told to
+    the audit trail (ControllerManager.notify_request); ``done``: what an answer that
+    says yes did, when the answer does not say it."""
+    error = answer.get("error")
+    if "result" in answer:  # a switch
+        said = str(answer["result"]) + (f": {error}" if error else "")
+    elif answer.get("ok"):
+        said = done or ("started" if answer.get("recovery") == "started" else "done")
+    else:
+        said = f"refused: {error or 'no reason given'}"
+    manager.notify_request(f"{transport.name}: {what}: {said}")
 
 
 def stop(manager: ControllerManager, service: str, transport: Transport) -> int:
@@ -158,6 +188,15 @@ def switch_target(manager: ControllerManager, raw: bytes, transport: Transport,
     if blocked is not None:
         return refused("ERROR", f"switch refused: {blocked}")
     return name, {}
+
+
+def switch_what(raw: bytes) -> str:
+    """A switch request as the audit trail names it: "switch to 'pd'" (cut as answers cut
+    it: a payload of any size may come in)."""
+    try:
+        return f"switch to {shown(raw.decode('utf-8').strip())}"
+    except UnicodeDecodeError:
+        return f"switch ({len(raw)} bytes, not UTF-8 text)"
 
 
 def refused(answer: dict[str, Any]) -> bool:

@@ -45,7 +45,7 @@ import yaml
 
 from ..errors import RocomaError
 from ..events import ManagerEvent
-from ..remote import STOPS, StopAnswers, Transport, serve, switch_target
+from ..remote import STOPS, StopAnswers, Transport, serve, switch_target, switch_what, tell
 from ..user_files import read_regular, yaml_problem
 
 if TYPE_CHECKING:
@@ -426,11 +426,14 @@ class FleetBridge:
     def _switch(self, query: Any, key: str) -> None:
         m = self.manager
 
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+
         def reply(result: str, error: str = "") -> None:
             if result == "ERROR" or result == "NOT_FOUND":
                 self._count("refused")
-            self._reply(query, key, {"result": result, **({"error": error} if error else {})})
-        raw = query.payload.to_bytes() if query.payload is not None else b""
+            answer = {"result": result, **({"error": error} if error else {})}
+            tell(m, self._transport(), switch_what(raw), answer)
+            self._reply(query, key, answer)
         name, refusal = switch_target(m, raw, self._transport(), self._running)
         if name is None:
             reply(refusal["result"], refusal["error"])

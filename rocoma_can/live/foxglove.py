@@ -49,6 +49,8 @@ from ..remote import (
     serve,
     shown,
     switch_target,
+    switch_what,
+    tell,
 )
 from . import messages
 
@@ -335,8 +337,14 @@ class FoxgloveView:
             send(message)
 
     def _switch(self, payload: bytes) -> dict[str, Any]:
-        """A switch request (``switch_request``) -> the switch's result."""
+        """A switch request (``switch_request``) -> the switch's result, told to the
+        audit trail (remote.tell)."""
         raw, wrong = switch_request(payload)
+        answer = self._switched(raw, wrong)
+        tell(self.manager, self._transport, switch_what(raw), answer)
+        return answer
+
+    def _switched(self, raw: bytes, wrong: str) -> dict[str, Any]:
         name, refusal = switch_target(self.manager, raw, self._transport, self._running,
                                       wrong)
         if name is None:

@@ -25,10 +25,13 @@ The last two only with a URDF in the config (``urdf:``).
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
+
+from ..audit import event_text
 
 #: foxglove.Log levels (an e-stop is a WARNING: the manager did what it must)
 INFO, WARNING = 2, 3
@@ -138,17 +141,11 @@ def log(ns: int, text: str, level: int = INFO) -> dict[str, Any]:
 
 
 def event_log(event: Mapping[str, Any]) -> tuple[str, int]:
-    """A manager event (as record/trace.event_message gives it: ``kind``, ``state``,
-    ``controller``, ``cause``) as a log line and its level."""
-    kind, state, cause = event["kind"], event["state"], event["cause"]
-    if kind == "emergency_stop":
-        return f"e-stop ({state}): {cause or 'no cause given'}", WARNING
-    if kind == "active_controller_changed":
-        return f"switched to {event['controller']} ({state})", INFO
-    if kind == "recovery":
-        return f"recovery {cause} ({state})", WARNING if cause.startswith("failed") else INFO
-    return f"state {state}, controller {event['controller']}" + (
-        f": {cause}" if cause else ""), INFO
+    """A manager event (as record/trace.event_message gives it) as a log line and its
+    level: the audit trail's wording (rocoma_can/audit.py), one for the console and the
+    recordings."""
+    text, level = event_text(event)
+    return text, WARNING if level >= logging.WARNING else INFO
 
 
 def robot_description(urdf: str) -> dict[str, Any]:

@@ -67,6 +67,7 @@ from ..drivers.wire import frame_bits
 from ..errors import HomingFailed
 from ..events import EventKind, ManagerEvent, ManagerState
 from ..manager import ControllerManager, SwitchResult
+from ..remote import cleared
 from .objects import (
     ABORT_NO_RECOVERY,
     ABORT_NOT_FOUND,
@@ -86,6 +87,7 @@ from .objects import (
     NO_SWITCH_YET,
     PENDING,
     RECOVER,
+    RESULT_NAMES,
     STATE,
     SWITCH_INDEX,
     SWITCH_NAME,
@@ -112,6 +114,13 @@ def burst_gap(bitrate: int) -> float:
     (worst-case 8-byte frames), so its frames have left the transmit queue, and the control
     loop's frames that queued behind them too, before the next burst joins the queue."""
     return 2 * BURST * frame_bits(8) / bitrate
+
+
+def _homing_end(job: Future[object], drive: str) -> str:
+    """How a homing job ended, as ``home`` prints it ("homed", "failed: why"; the job's
+    words begin with the drive's name, said already)."""
+    exc = job.exception()
+    return "homed" if exc is None else f"failed: {str(exc).removeprefix(f'{drive}: ')}"
 
 
 def _never_produce_heartbeats(node: canopen.LocalNode) -> None:
@@ -334,6 +343,7 @@ class ManagerNode(can.Listener):
                 name = bytes(data).decode("utf-8").strip("\x00 ")
             except UnicodeDecodeError:
                 self.last_result = 2
+                self._tell("switch", "NOT_FOUND (the name is not UTF-8)")
                 raise SdoAbortedError(ABORT_NOT_FOUND) from None
             self._switch(name)
         elif index == SWITCH_INDEX:
@@ -341,40 +351,58 @@ class ManagerNode(can.Listener):
             n = _integer(od, data)
             if not 1 <= n <= len(names):
                 self.last_result = 2
+                self._tell(f"switch to number {n}", f"NOT_FOUND (controllers: "
+                                                    f"{', '.join(names) or 'none'})")
                 raise SdoAbortedError(ABORT_NOT_FOUND)
             self._switch(names[n - 1])
-        elif index == ESTOP:
+        elif index == ESTOP:  # (a stop is told by its e-stop event, whose cause names it)
             m.emergency_stop(cause=f"SDO e-stop (0x{ESTOP:04X})")
         elif index == FAILPROOF_STOP:
             m.failproof_stop(cause=f"SDO failproof stop (0x{FAILPROOF_STOP:04X})")
         elif index == CLEAR:
+            latched = m.estop_latched
             m.clear_emergency_stop()
+            self._tell("clear", cleared(latched))
             self._wake.set()
         elif index == RECOVER:
             if self.recover is None:
+                self._tell("recover", "refused: this manager has no drives")
                 raise SdoAbortedError(ABORT_NO_RECOVERY)
+            self._tell("recover", "started")
             self.recover()
         elif index == ESTOP_COB_ID:
             self._change_estop_cob_id(_integer(od, data))
         elif index == HOME_DRIVE:
             self._home(bytes(data))
 
+    def _tell(self, what: str, answer: str) -> None:
+        """An SDO request and its answer, for the audit trail (ControllerManager.
+        notify_request): the SDO channel does not say which client asked."""
+        self.manager.notify_request(f"SDO (node {self.node_id}): {what}: {answer}")
+
     def _home(self, data: bytes) -> None:
         """Answered at once, like a switch: refused (abort, reason in 0x2151) or started."""
         if self.home is None:
             self.homing_refusal = "this manager has no drives"
+            self._tell("home", f"refused: {self.homing_refusal}")
             raise SdoAbortedError(ABORT_NO_RECOVERY)
         try:
             name = data.decode("utf-8").strip("\x00 ")
         except UnicodeDecodeError:
             self.homing_refusal = "the drive name is not UTF-8"
+            self._tell("home", f"refused: {self.homing_refusal}")
             raise SdoAbortedError(ABORT_NOT_FOUND) from None
         try:
-            self.home(name)
+            job = self.home(name)
         except HomingFailed as exc:
             self.homing_refusal = str(exc)
+            self._tell(f"home {name!r}", f"refused: {exc}")
             raise SdoAbortedError(ABORT_REFUSED) from None
         self.homing_refusal = ""
+        self._tell(f"home {name!r}", "started")
+        if isinstance(job, Future):  # its end told too (queued: it may end in the cycle)
+            job.add_done_callback(
+                lambda done: self._tell(f"home {name!r}", _homing_end(done, name)))
 
     def _change_estop_cob_id(self, value: int) -> None:
         """An SDO write of 0x2130: bit 31 set (CiA 301 "not valid") or 0 switches the e-stop
@@ -394,26 +422,33 @@ class ManagerNode(can.Listener):
 
     def _switch(self, name: str) -> None:
         m = self.manager
+        what = f"switch to {name!r}"
         if name not in m.available_controllers():
             m.last_refusal = f"no controller {name!r}"
             self.last_result = 2
+            self._tell(what, f"NOT_FOUND (controllers: "
+                             f"{', '.join(m.available_controllers()) or 'none'})")
             raise SdoAbortedError(ABORT_NOT_FOUND)
         blocked = m.switch_blocked()  # e-stop latched, drives not ready: m.last_refusal says
         if blocked is not None:
             m.last_refusal = blocked
             self.last_result = 3
+            self._tell(what, f"refused: {blocked}")
             raise SdoAbortedError(ABORT_REFUSED)
         self.last_result = PENDING
         future = m.request_switch(name)
-        future.add_done_callback(self._switch_done)
+        future.add_done_callback(lambda done: self._switch_done(what, done))
         if future.done() and future.result() == 3:
             raise SdoAbortedError(ABORT_REFUSED)
 
-    def _switch_done(self, future: Future[SwitchResult]) -> None:
+    def _switch_done(self, what: str, future: Future[SwitchResult]) -> None:
         try:
             self.last_result = int(future.result())
         except Exception:
             self.last_result = 3
+        result = RESULT_NAMES.get(self.last_result, str(self.last_result))
+        refusal = self.manager.last_refusal if self.last_result == 3 else ""
+        self._tell(what, f"{result}: {refusal}" if refusal else result)
 
     # --- frames out ---------------------------------------------------------------------------
     def _on_event(self, event: ManagerEvent) -> None:

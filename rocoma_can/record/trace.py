@@ -14,7 +14,8 @@ arrays ``position``, ``velocity``, ``torque``,
 ``command_mode``, ``command_position``, ``command_velocity``, ``command_torque``,
 ``statusword``, ``cia402_state``, ``error_code``), ``/rocoma/event`` (one message per
 manager event: ``kind`` emergency_stop / state_changed / active_controller_changed /
-recovery, ``state``, ``controller``, ``cause``) and ``/can/<bus>`` (one message per frame: ``id``,
+recovery / request (an operator's request and its answer), ``state``, ``controller``,
+``cause``) and ``/can/<bus>`` (one message per frame: ``id``,
 ``data`` as hex, ``dlc``, ``extended``, ``remote``, ``error``, ``fd``, ``sent``: sent by
 this manager, not received).
 """
@@ -171,10 +172,11 @@ FRAME_SCHEMA = {"type": "object", "title": "rocoma_can.CanFrame", "properties": 
 
 EVENT_SCHEMA = {"type": "object", "title": "rocoma_can.ManagerEvent", "properties": {
     "kind": {"type": "string",
-             "description": "emergency_stop, state_changed, active_controller_changed or "
-                            "recovery"},
+             "description": "emergency_stop, state_changed, active_controller_changed, "
+                            "recovery or request"},
     "state": {"type": "string"}, "controller": {"type": "string"},
-    "cause": {"type": "string", "description": "an e-stop's cause"}}}
+    "cause": {"type": "string", "description": "an e-stop's cause; a request's surface, "
+                                               "what it asked and the answer"}}}
 
 
 def event_message(event: ManagerEvent) -> dict[str, Any]:

@@ -11,6 +11,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
+from ..audit import Audit
 from ..controllers.torque_off import TorqueOff
 from ..drivers.bus import open_bus
 from ..drivers.hardware import CanopenHardware
@@ -135,6 +136,7 @@ class Runtime:
                 timing=config.timing,
                 switch_guard=lambda: hardware.not_ready(required))
             self._parts.insert(0, self.manager.shutdown)
+            self.manager.subscribe(Audit())  # its events as the audit trail's lines
             add_to_manager(self.manager, config.controllers)
             bus = config.node_bus
             extra: dict[str, object] = {"fd": True} if bus.fd else {}
