@@ -41,7 +41,7 @@ from .bus import CanopenBus
 from .capabilities import DriveCapabilities, PdoChannel
 from .config import DriveConfig, Supervision, Timeouts
 from .drive_plan import DrivePlan
-from .identity import verify_identity
+from .identity import IdentityCheck, verify_identity
 from .limits import write_limits
 from .modes import DriveMode, interpolation_period
 from .pdo_layout import Pdo
@@ -231,6 +231,15 @@ class NoAnswer(canopen.SdoCommunicationError):
     """The drive did not answer the first request of a configuration attempt."""
 
 
+class Unanswered(RuntimeError):
+    """The drive answered no attempt of its configuration (``what``: the request and its
+    tries); the message adds what to check."""
+
+    def __init__(self, what: str) -> None:
+        super().__init__(f"{what}: power, wiring, node id, bitrate?")
+        self.what = what
+
+
 #: what a cancelled configuration's SDO wait is handed as its answer (cancel_sdo_wait): an
 #: abort (CiA 301 0x08000000, general error), so canopen's client raises at once
 _CANCELLED = struct.pack("<BHBI", 0x80, 0, 0, 0x08000000)
@@ -246,7 +255,8 @@ def cancel_sdo_wait(sdo: SdoClient) -> None:
 def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
               consumer_ms: int, dt: float | None = None,
               attempts: int = CONFIG_ATTEMPTS,
-              cancelled: threading.Event | None = None) -> ConfigResult:
+              cancelled: threading.Event | None = None,
+              others: Sequence[tuple[str, IdentityCheck]] = ()) -> ConfigResult:
     """Everything a drive needs before NMT start, by SDO; runs on the configuration worker.
 
     A garbled exchange is transient on a loaded bus: canopen retransmits a request on
@@ -257,12 +267,13 @@ def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
     dropped. Refusals (SDO aborts) and a drive that never answers are final.
     Raises with a message naming the step when the drive refuses or does not answer;
     once ``cancelled`` is set (the hardware closes) no attempt follows and the pause ends.
+    ``others``: the other drives' identity checks (a device that is one of them: swapped).
     """
     for attempt in range(1, attempts + 1):
         if cancelled is not None and cancelled.is_set():
             raise RuntimeError("cancelled: the hardware closes")
         try:
-            return _configure_once(node, plan, manager_node_id, consumer_ms, dt)
+            return _configure_once(node, plan, manager_node_id, consumer_ms, dt, others)
         except struct.error as exc:  # canopen unpacking an answer shorter than an SDO frame
             raise RuntimeError(f"a malformed SDO answer (shorter than an SDO frame: {exc}): "
                                f"is node {node.id} the CANopen drive the config says, or is "
@@ -276,14 +287,14 @@ def configure(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
                 else:
                     time.sleep(pause)
     if isinstance(failure, NoAnswer):
-        raise RuntimeError(f"did not answer (SDO 0x1000, {attempts} x "
-                           f"{node.sdo.RESPONSE_TIMEOUT:g} s): power, wiring, node id, "
-                           "bitrate?") from failure
+        raise Unanswered(f"did not answer (SDO 0x1000, {attempts} x "
+                         f"{node.sdo.RESPONSE_TIMEOUT:g} s)") from failure
     raise RuntimeError(f"SDO exchange failed {attempts} times: {failure}") from failure
 
 
 def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: int,
-                    consumer_ms: int, dt: float | None) -> ConfigResult:
+                    consumer_ms: int, dt: float | None,
+                    others: Sequence[tuple[str, IdentityCheck]]) -> ConfigResult:
     sdo, drive, layout, caps = NamedSdo(node.sdo, plan.drive.axis), plan.drive, plan.layout, \
         plan.caps
     # The node's lowest axis configures the node: NMT, its heartbeat or guarding, its
@@ -299,7 +310,7 @@ def _configure_once(node: canopen.RemoteNode, plan: DrivePlan, manager_node_id: 
     if device_type & 0xFFFF != 402:
         raise RuntimeError(f"is not a CiA 402 drive (0x1000 = 0x{device_type:08X})")
     if node_level:  # before anything is written: a wrong drive must not be reconfigured
-        verify_identity(sdo, plan.identity)
+        verify_identity(sdo, plan.identity, others)
     for axis in plan.other_axes:  # pre-operational stops their RPDOs: switched off first
         NamedSdo(node.sdo, axis).download(cia402.CONTROLWORD, 0, _u16(0))
     try:
@@ -348,8 +359,10 @@ class DriveBringup:
 
     def __init__(self, plan: DrivePlan, node: canopen.RemoteNode, manager_node_id: int,
                  consumer_ms: int, timeouts: Timeouts, dt: float | None = None,
-                 lead: DriveBringup | None = None) -> None:
+                 lead: DriveBringup | None = None,
+                 others: Sequence[tuple[str, IdentityCheck]] = ()) -> None:
         self.dt = dt  # the loop period: an IP drive's interpolation period
+        self.others = others  # the other drives' identity checks (configure)
         self.plan = plan
         self.drive = plan.drive
         self.layout = plan.layout
@@ -362,6 +375,9 @@ class DriveBringup:
         self.alive = False          # boot-up or heartbeat seen (set by the receive drain)
         self.mapped = False         # our PDO layout is configured: safe to send our RPDOs
         self.failure: str | None = None
+        #: the failure was a drive that never answered: the request and its tries
+        #: ("did not answer (SDO 0x1000, 3 x 0.5 s)"), else ""
+        self.unanswered = ""
         self.reset_cycles = 0       # cycles spent in RESETTING (edge: 0x00 first, then 0x80)
         self.sto_seen = False       # an EMCY 0x5441 arrived during start-up
         self._job: Future[ConfigResult] | None = None
@@ -405,6 +421,7 @@ class DriveBringup:
         self.since = now - (self.timeouts.boot_wait if probe_at_once else 0.0)
         self.alive = False
         self.failure = None
+        self.unanswered = ""
         self.sto_seen = False
 
     def reset_fault(self, now: float) -> None:
@@ -426,6 +443,7 @@ class DriveBringup:
         if phase == Phase.WAIT_BOOT:
             lead = self.lead
             if lead is not None and lead.phase == Phase.FAILED:
+                self.unanswered = lead.unanswered  # its node's silence is its own
                 self._fail(f"its node's axis {lead.drive.axis} (drive {lead.name!r}) did not "
                            f"start: {lead.failure}", now)
             elif lead is not None and Phase.STARTING <= lead.phase <= Phase.READY \
@@ -433,7 +451,7 @@ class DriveBringup:
                                          or now - self.since >= self.timeouts.boot_wait):
                 self._job = executor.submit(self._locked, configure, self.node, self.plan,
                                             self.manager_node_id, self.consumer_ms, self.dt,
-                                            CONFIG_ATTEMPTS, self._cancelled)
+                                            CONFIG_ATTEMPTS, self._cancelled, self.others)
                 self._enter(Phase.CONFIGURING, now)
         elif phase == Phase.CONFIGURING:
             job = self._job
@@ -441,6 +459,7 @@ class DriveBringup:
                 self._job = None
                 exc = job.exception()
                 if exc is not None:
+                    self.unanswered = exc.what if isinstance(exc, Unanswered) else ""
                     self._fail(str(exc) or type(exc).__name__, now)
                     return False
                 self.mapped = True
@@ -510,6 +529,7 @@ def create_bringups(plans: Sequence[DrivePlan], networks: Sequence[CanopenBus | 
     """Every drive's bring-up on its opened bus: one canopen node per CANopen node, its
     lowest axis first (a higher axis shares that node's SDO client and lock)."""
     made: dict[int, DriveBringup] = {}
+    checks = [(f"drive {p.drive.name!r} (node {p.drive.node_id})", p.identity) for p in plans]
     for i in sorted(range(len(plans)), key=lambda k: node[k][0] != k):
         plan, bus, lead = plans[i], networks[i], node[i][0]
         if lead != i:
@@ -531,5 +551,6 @@ def create_bringups(plans: Sequence[DrivePlan], networks: Sequence[CanopenBus | 
         remote.sdo.RESPONSE_TIMEOUT = supervision.sdo_timeout
         remote.sdo.MAX_RETRIES = supervision.sdo_retries + 1  # canopen counts tries (0: forever)
         made[i] = DriveBringup(plan, remote, manager_node_id, consumer_ms,
-                               supervision.timeouts, dt)
+                               supervision.timeouts, dt,
+                               others=[c for k, c in enumerate(checks) if k != i])
     return [made[i] for i in range(len(plans))]

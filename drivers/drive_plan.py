@@ -109,6 +109,18 @@ def plan_drives(drives: Sequence[DriveConfig], first_bus: str = "", *,
     return [p for p in plans if p is not None]
 
 
+def grouped_notes(plans: Sequence[DrivePlan]) -> list[tuple[str, str]]:
+    """Every drive's notes, each said once: (note, "drive 'j1'" or "drives 'j1', 'j2'"),
+    in the order first met. Drives of one model share their notes; a line per drive
+    said the same thing once per drive at each start (six lines for two drives)."""
+    drives: dict[str, list[str]] = {}
+    for plan in plans:
+        for note in plan.notes:
+            drives.setdefault(note, []).append(repr(plan.drive.name))
+    return [(note, ("drive " if len(names) == 1 else "drives ") + ", ".join(names))
+            for note, names in drives.items()]
+
+
 def _channels_of(layout: DriveLayout) -> set[tuple[bool, int]]:
     return {(False, p.number) for p in layout.rpdos} | {(True, p.number) for p in layout.tpdos}
 

@@ -86,12 +86,13 @@ import numpy as np
 from ..errors import HomingFailed
 from ..events import ManagerState
 from .bringup import DriveBringup, Phase, create_bringups
+from .bringup_report import BringupReport
 from .bus import start_reading
 from .bus_port import Bus, BusPort, SentFrames, named_buses
 from .cia402 import State402
 from .command import Commands
 from .config import DriveConfig, Supervision, check_drives, estop_conflict
-from .drive_plan import check_pdo_bytes, pdo_using, plan_drives
+from .drive_plan import check_pdo_bytes, grouped_notes, pdo_using, plan_drives
 from .enable import EnableSequence
 from .frames_out import FramesOut
 from .homing import HomingJob, refusal
@@ -143,9 +144,8 @@ class CanopenHardware:
                                  estop_cob_id, next(iter(buses)))
         if clashes:
             raise ValueError("; ".join(clashes))
-        for p in self.plans:
-            for note in p.notes:
-                log.warning("drive %r: %s", p.drive.name, note)
+        for note, which in grouped_notes(self.plans):  # each said once, for every drive
+            log.warning("%s: %s", which, note)
         supervision = supervision or Supervision()
         consumer_ms = supervision.consumer_ms(manager_heartbeat_ms)
         self.drives_config = drives
@@ -215,6 +215,9 @@ class CanopenHardware:
         # the bus readers' drain_now (start): read hands over what waits on the buses first
         self._drains: list[Callable[[], bool]] = []
         self._bringup: list[DriveBringup] = []
+        self._report = BringupReport([d.node_id for d in drives],
+                                     [self.ports.index(p) for p in self._port_of],
+                                     [p.channel for p in self.ports], self._submit)
         self._executor: ThreadPoolExecutor | None = None
         self._switch_off = SdoSwitchOff()  # started with the bus (start)
         self._now = 0.0
@@ -277,6 +280,7 @@ class CanopenHardware:
                                   self.supervision)
         for b in bringup:
             b.restart(now)
+        self._report.started_at = now
         self._now = now
         # published whole: a status read from another thread never sees half a list
         self.receiver.bringup = self.recovery.bringup = self._bringup = bringup
@@ -352,11 +356,10 @@ class CanopenHardware:
             if b.step(now, executor, bool(fresh[i]), int(states[i]), int(codes[i])):
                 self.supervisor.arm(i, now)
                 self.state.error_code[i] = 0
+                self._report.ended(i, self._bringup, now)
             elif b.phase == Phase.FAILED:
-                # said once, at once, on stderr (status has it too); written by a worker:
-                # the cycle does no I/O
-                executor.submit(log.error, "drive %r (node %d): start-up failed: %s", b.name,
-                                b.drive.node_id, b.failure)
+                # said once (status has it too), by a worker: the cycle does no I/O
+                self._report.ended(i, self._bringup, now)
             elif phase == Phase.CONFIGURING and b.phase == Phase.STARTING:
                 # The drive's heartbeat consumer was just (re)configured, and it only starts
                 # watching with the first heartbeat it receives: send one in this cycle, so
@@ -364,6 +367,11 @@ class CanopenHardware:
                 # Life guarding likewise starts with the first guard request.
                 self.frames.next_heartbeat = -math.inf
                 self.guarding.start(i)
+
+    def _submit(self, call: Callable[..., object], *args: object) -> None:
+        """``call(*args)`` on a configuration worker (the bring-up report's lines)."""
+        if self._executor is not None:
+            self._executor.submit(call, *args)
 
     def _still_latched(self, i: int, event: FaultEvent) -> Callable[[], bool]:
         """For the SDO switch-off: whether drive i is still latched by ``event``."""

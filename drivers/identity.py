@@ -19,7 +19,7 @@ made for it; the rest may fit, and say what they leave open (no vendor, no produ
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -149,15 +149,23 @@ class IdentityCheck:
             parts.append(f"vendor/product from its file ({_fields(self.from_file.known())})")
         return "identity: " + "; ".join(parts)
 
-    def problem(self, found: Identity) -> str | None:
+    def problem(self, found: Identity,
+                others: Sequence[tuple[str, IdentityCheck]] = ()) -> str | None:
         """Why the device that answered ``found`` is not this drive, or None. A field the
-        device does not have is compared only where the config asks for it."""
+        device does not have is compared only where the config asks for it. ``others``:
+        the config's other drives (how each is named, its check): a device that is one of
+        them is a swap of node ids or cables; a swap is not suggested otherwise."""
         have = found.known()
-        wrong = [f"{name} 0x{v:08X} expected, " + (
+        wrong = {name: f"{name} 0x{v:08X} expected, " + (
                      f"0x{have[name]:08X} found" if name in have
                      else f"the drive has no 0x{IDENTITY:04X}:{SUBINDEX[name]}")
-                 for name, v in self.configured.known().items() if have.get(name) != v]
-        why = [f"{'; '.join(wrong)}: swapped node ids or cables?"] if wrong else []
+                 for name, v in self.configured.known().items() if have.get(name) != v}
+        twin = next((named for named, other in others
+                     if other.configured.known() and other.problem(found) is None), None)
+        hint = (f"it is {twin}: swapped node ids or cables?" if twin is not None
+                else "another drive of the same model (replaced?)" if set(wrong) == {"serial"}
+                else "not the drive the config names")
+        why = [f"{'; '.join(wrong.values())}: {hint}"] if wrong else []
         mismatch = file_mismatch(self.from_file, found, self.file)
         if mismatch is not None:
             why.append(mismatch)
@@ -234,11 +242,12 @@ def read_identity(sdo: Uploads, names: Iterable[str]) -> Identity:
     return Identity(**values)
 
 
-def verify_identity(sdo: Uploads, check: IdentityCheck) -> None:
+def verify_identity(sdo: Uploads, check: IdentityCheck,
+                    others: Sequence[tuple[str, IdentityCheck]] = ()) -> None:
     """Raise WrongDevice when the device is not the one ``check`` requires (nothing is read
-    when it requires nothing)."""
+    when it requires nothing); ``others`` as IdentityCheck.problem's."""
     if not check.wanted:
         return
-    why = check.problem(read_identity(sdo, check.wanted))
+    why = check.problem(read_identity(sdo, check.wanted), others)
     if why is not None:
         raise WrongDevice(why)

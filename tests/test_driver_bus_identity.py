@@ -82,7 +82,8 @@ def test_a_swapped_serial_is_refused_naming_both_values_and_the_others_come_up(
     for mine, theirs in ((a, b), (b, a)):
         assert found[mine].phase == "FAILED"
         assert found[mine].fault == (f"serial 0x{SERIAL + mine:08X} expected, "
-                                     f"0x{SERIAL + theirs:08X} found: swapped node ids or "
+                                     f"0x{SERIAL + theirs:08X} found: it is drive "
+                                     f"'j{theirs}' (node {theirs}): swapped node ids or "
                                      "cables?")
         assert sdo_writes(recorder, mine) == 0  # refused before anything was written
         assert segment.drives[mine].nmt_state != cia301.NmtState.OPERATIONAL
@@ -136,7 +137,7 @@ def test_a_drive_swapped_while_running_is_refused_by_the_recovery(drives, make_r
     found = status(rig)
     assert found[swapped].phase == "FAILED"
     assert found[swapped].fault == (f"serial 0x{SERIAL + swapped:08X} expected, 0x00005678 "
-                                    "found: swapped node ids or cables?")
+                                    "found: another drive of the same model (replaced?)")
     assert all(found[n].phase == "READY" for n in nodes[:-1]), rig.hw.drive_status()
 
 
@@ -154,8 +155,8 @@ def test_a_two_axis_node_is_identified_once_by_its_lowest_axis(virtual_channel,
         synced_mark(recorder, rig)
         first, second = rig.hw.drive_status()
         assert first.phase == second.phase == "FAILED"
-        assert first.fault == ("serial 0x00001234 expected, 0x00005678 found: swapped node "
-                               "ids or cables?")
+        assert first.fault == ("serial 0x00001234 expected, 0x00005678 found: another drive "
+                               "of the same model (replaced?)")
         assert second.fault == f"its node's axis 1 (drive 'j1') did not start: {first.fault}"
         reads = recorder.frames(cia301.SDO_RX + 1, where=lambda f: f.data[0] >> 5 == 2
                                 and f.data[1:4] == bytes((0x18, 0x10, 4)))

@@ -117,13 +117,35 @@ def test_a_found_identity_is_judged_naming_both_values(tmp_path):
     assert required.wanted == ("vendor_id", "product_code", "revision", "serial")
     assert required.problem(Identity(0x9A, 0x1234, 3, 0x1234)) is None
     assert required.problem(Identity(0x9A, 0x1234, 3, 0x5678)) == \
-        "serial 0x00001234 expected, 0x00005678 found: swapped node ids or cables?"
+        "serial 0x00001234 expected, 0x00005678 found: another drive of the same model " \
+        "(replaced?)"
     # a subindex the device lacks: compared where the config asks for it, said so
     assert required.problem(Identity(0x9A, None, None, 0x1234)) == (
-        "revision 0x00000003 expected, the drive has no 0x1018:3: swapped node ids or cables?")
+        "revision 0x00000003 expected, the drive has no 0x1018:3: not the drive the config "
+        "names")
     assert required.problem(Identity(0x9B, 0x1234, 3, 0x1234)) == (
         "vendor_id 0x0000009B, product_code 0x00001234 found, its file vendor.eds is for "
         "vendor_id 0x0000009A, product_code 0x00001234: wrong file or wrong drive?")
+
+
+def test_a_swap_is_suggested_only_when_the_device_is_another_configured_drive(tmp_path):
+    """"swapped node ids or cables?" when the device found is one the config names for
+    another drive; a device of another model, or one no drive of the config is, is not
+    called a swap (a whole robot of wrong models said so for every drive)."""
+    vendor = vendor_file(tmp_path)
+    knee = check(Identity(serial=1), vendor)
+    hip = ("drive 'hip' (node 2)", check(Identity(serial=2), vendor))
+    assert knee.problem(Identity(0x9A, 0x1234, None, 2), [hip]) == (
+        "serial 0x00000001 expected, 0x00000002 found: it is drive 'hip' (node 2): swapped "
+        "node ids or cables?")
+    assert knee.problem(Identity(0x9A, 0x1234, None, 7), [hip]) == (
+        "serial 0x00000001 expected, 0x00000007 found: another drive of the same model "
+        "(replaced?)")
+    model = check(Identity(vendor_id=0x9A, product_code=0x1234), vendor)
+    other_model = ("drive 'hip' (node 2)", check(Identity(vendor_id=0x9A,
+                                                          product_code=0x1234), vendor))
+    assert model.problem(Identity(0x9A, 0x99), [other_model]) == (
+        "product_code 0x00001234 expected, 0x00000099 found: not the drive the config names")
 
 
 # --- check-config -------------------------------------------------------------------------

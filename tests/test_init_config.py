@@ -115,7 +115,8 @@ def test_a_swapped_drive_is_refused_by_the_config_init_config_wrote(
     segment.drives[2].swap(Identity(serial=1))
     status = _bring_up(out)
     assert [s.phase for s in status] == ["FAILED", "FAILED"], status
-    assert "serial 0x00000001 expected, 0x00000002 found: swapped node ids or cables?" \
+    assert "serial 0x00000001 expected, 0x00000002 found: it is drive 'node2' (node 2): " \
+        "swapped node ids or cables?" \
         in str(status[0].fault), status
 
 
