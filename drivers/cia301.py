@@ -71,6 +71,16 @@ class NmtState(enum.IntEnum):
     PRE_OPERATIONAL = 0x7F
 
 
+def nmt_name(state: int) -> str:
+    """An NMT state (a heartbeat's byte) as CiA 301 spells it and every output of
+    rocoma-can shows it (status, scan, supervision's faults, the simulator's lines):
+    OPERATIONAL, PRE-OPERATIONAL, STOPPED, BOOT-UP; 0xNN for any other value."""
+    try:
+        return NmtState(state).name.replace("_", "-")
+    except ValueError:
+        return f"0x{state:02X}"
+
+
 # EMCY error codes used by the simulator and understood by the driver.
 EMCY_NO_ERROR = 0x0000
 EMCY_GENERIC = 0x1000

@@ -88,7 +88,7 @@ def drive_status(drives: Sequence[DriveConfig], bringup: Sequence[DriveBringup],
         out.append(DriveStatus(
             d.name, d.node_id, b.phase.name if b else "NOT_STARTED",
             State402(int(state.cia402_state[i])).name, bool(enabled[i]), fault,
-            cia301.NmtState(nmt).name if nmt in cia301.NmtState._value2member_map_
+            cia301.nmt_name(nmt) if nmt in cia301.NmtState._value2member_map_
             else "UNKNOWN",
             round(now - seen, 3) if math.isfinite(seen) else None,
             job.describe() if (job := homing[i]) is not None else "",

@@ -143,9 +143,8 @@ class Supervisor:
             return
         self.heartbeat_deadline[i] = now + self.heartbeat_timeout[i]
         if state != cia301.NmtState.OPERATIONAL:
-            name = cia301.NmtState(state).name if state in cia301.NmtState._value2member_map_ \
-                else f"0x{state:02X}"
-            self.fault(i, f"NMT state {name} reported in {self._signal[i]}", now)
+            self.fault(i, f"NMT state {cia301.nmt_name(state)} reported in {self._signal[i]}",
+                       now)
 
     def on_bad_tpdo(self, i: int, cob_id: int, dlc: int, size: int, now: float) -> None:
         """A TPDO whose length is not its mapping's: garbled or remapped, never feedback."""

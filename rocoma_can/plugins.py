@@ -27,7 +27,6 @@ Everything is built before anything is added to a manager, so a bad file changes
 """
 from __future__ import annotations
 
-import difflib
 import importlib
 import inspect
 import logging
@@ -39,6 +38,7 @@ from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
+from .cli_args import did_you_mean
 from .errors import ParamError, PluginError
 from .interfaces import Controller, EmergencyController, FailproofController
 from .tuples import ControllerTuple, EmergencyControllerTuple
@@ -195,7 +195,7 @@ def _build(entry: Any, where: str, base: type, exclude: type | None,
     allowed = _ENTRY_KEYS | extra_keys
     for key in entry:
         if key not in allowed:
-            raise _error(_at(where, str(key)), "unknown key" + _did_you_mean(str(key), allowed)
+            raise _error(_at(where, str(key)), "unknown key" + did_you_mean(str(key), allowed)
                          + f" (allowed: {', '.join(sorted(allowed))})")
     name = entry.get("name")
     if not isinstance(name, str) or not name:
@@ -247,7 +247,7 @@ def _instantiate(cls: type, name: str, params: Any,
         for key in params:
             if not takes_any and key not in signature.parameters:
                 raise _error(_at(params_at, key), f"{cls.__name__} has no parameter {key!r}"
-                             f"{_did_you_mean(key, list(signature.parameters)[1:])} "
+                             f"{did_you_mean(key, list(signature.parameters)[1:])} "
                              f"(accepts: {accepted})")
         try:
             signature.bind(name, **params)
@@ -280,7 +280,7 @@ def _emergency_of(entry: Mapping[str, Any], where: str,
     if ref not in emergency:
         declared = ", ".join(sorted(emergency)) or "none"
         raise _error(at, f"no emergency controller named {ref!r}"
-                         f"{_did_you_mean(ref, emergency)} (declared: {declared})")
+                         f"{did_you_mean(ref, emergency)} (declared: {declared})")
     return emergency[ref]
 
 
@@ -293,7 +293,7 @@ def _entry_point_class(spec: str, where: str) -> Any:
         known = ", ".join(sorted(plugins)) or f"none installed in group {GROUP!r}"
         hint = " (a class is named as 'package.module:Class')" if "." in spec else ""
         raise _error(where, f"no controller plugin named {spec!r}"
-                            f"{_did_you_mean(spec, plugins)} (known: {known}){hint}")
+                            f"{did_you_mean(spec, plugins)} (known: {known}){hint}")
     try:
         return ep.load()
     except Exception as exc:
@@ -340,11 +340,6 @@ def _an(cls: type) -> str:
 
 def _is_list(value: Any) -> bool:
     return isinstance(value, Sequence) and not isinstance(value, (str, bytes))
-
-
-def _did_you_mean(word: str, choices: Any) -> str:
-    close = difflib.get_close_matches(word, list(choices), n=1)
-    return f", did you mean {close[0]!r}?" if close else ""
 
 
 #: what an annotated parameter must be: the YAML scalars a constructor can be given (and

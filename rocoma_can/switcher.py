@@ -28,7 +28,7 @@ from concurrent.futures import Future
 from typing import TYPE_CHECKING, Protocol
 
 from .adapters import ControllerAdapter, ControllerPair
-from .events import ManagerState
+from .events import LATCHED, ManagerState
 from .stopper import Stoppers
 
 if TYPE_CHECKING:
@@ -120,7 +120,7 @@ class Switcher:
     def blocked(self) -> str | None:
         """ControllerManager.switch_blocked (which says why a raising guard blocks)."""
         if self._manager._latched:
-            return "emergency stop not cleared"
+            return LATCHED
         return self._guard_reason()
 
     def _guard_reason(self) -> str | None:
@@ -163,7 +163,7 @@ class Switcher:
         new = pair.controller
         with m._cycle_lock:  # a consistent view of who runs, between two cycles
             if m._latched:
-                log.error("switch to %r refused: emergency stop not cleared", new.name)
+                log.error("switch to %r refused: %s", new.name, LATCHED)
                 return SwitchResult.ERROR
             if m._state is ManagerState.OK and m._active is pair:
                 return SwitchResult.RUNNING

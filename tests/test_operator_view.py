@@ -209,7 +209,7 @@ def test_status_view_draws_bring_up_progress_a_pulsing_homing_and_a_stale_manage
 
     from rocoma_can.cli.live import view
     drive = {"node_id": 1, "cia402_state": "SWITCH_ON_DISABLED", "enabled": False,
-             "fault": None, "nmt_state": "PRE_OPERATIONAL", "heartbeat_age": 0.05,
+             "fault": None, "nmt_state": "PRE-OPERATIONAL", "heartbeat_age": 0.05,
              "homing": "", "position": 0.25, "velocity": None, "torque": None}
     status = {"state": "FAILPROOF", "active": "torque_off", "latched": True,
               "last_switch": "none", "switch_refused": "", "estop_cause": "",

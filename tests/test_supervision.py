@@ -80,7 +80,7 @@ def test_heartbeat_in_another_nmt_state_and_emcy_are_faults_at_once():
     sup.on_emcy(1, cia301.EMCY_NO_ERROR, 0.0)  # an error reset is no fault
     sup.on_emcy(1, cia301.EMCY_OVERTEMPERATURE, 0.0)
     assert [(e.drive, e.cause) for e in sup.take_pending()] == [
-        ("j1", "NMT state PRE_OPERATIONAL reported in heartbeat"),
+        ("j1", "NMT state PRE-OPERATIONAL reported in heartbeat"),
         ("j2", "EMCY 0x4310 (overtemperature)")]
 
 

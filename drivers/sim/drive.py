@@ -36,7 +36,7 @@ from canopen import objectdictionary
 
 from .. import cia301 as c301
 from .. import cia402 as c
-from ..cia301 import NmtCommand, NmtState
+from ..cia301 import NmtCommand, NmtState, nmt_name
 from ..cia402 import State402
 from ..identity import Identity
 from .faults import Babble, EmcyProducer, InjectedFaults, register_bits
@@ -152,7 +152,7 @@ class SimulatedAxis:
         flags = "".join((" STO" if node.sto_low else "", " SILENT" if f.silent else "",
                          " NO-SYNC" if not f.answer_sync else ""))
         axis = f" axis {self.number}" if len(node.axes) > 1 else ""
-        return (f"node {node.node_id:3d}{axis} {node.nmt_state.name:15s} "
+        return (f"node {node.node_id:3d}{axis} {nmt_name(node.nmt_state):15s} "
                 f"{self.state402.name:22s} sw=0x{self.statusword:04X} mode={mode:4s} "
                 f"pos={self.position_rad:+9.4f} rad vel={self.velocity_rad_s:+9.4f} rad/s "
                 f"torque={self.torque_nm:+7.3f} Nm err=0x{self.error_code:04X}{flags}")

@@ -293,7 +293,8 @@ def generate(found: Sequence[Found], eds_dir: str | None, interface: str, channe
         "# Drive names are placeholders (rename them to your joints); each drive carries the",
         "# identity it was seen with: bring-up refuses a drive that differs (swapped node ids",
         "# or cables). Joint limits are not known here: add limits per drive (docs).",
-        f"bus: {{interface: {interface}, channel: {channel}, bitrate: {bitrate}}}",
+        # (a scalar YAML would read as another type is quoted: channel 29536, a Kvaser's)
+        f"bus: {_flow({'interface': interface, 'channel': channel, 'bitrate': bitrate})}",
         f"rate: {rate}   # the highest of {', '.join(map(str, RATES))} Hz the bus carries "
         "(worst case)",
         f"manager: {{node_id: {manager_id}, heartbeat_ms: 100, estop_must_be_cleared: true}}",

@@ -133,6 +133,53 @@ def load(path: str | Path, rate: float | None = None) -> RuntimeConfig:
     """Read and validate a YAML file; ConfigError lists every problem. ``rate``: instead of
     the file's (``run --rate``), checked with everything that depends on it (the bus load,
     the spin, the cycles of each supervision)."""
+    data = _read(path)
+    if rate is not None and isinstance(data, Mapping):
+        data = {**data, "rate": rate}
+    p = Path(path)
+    return validate(data, source=str(p), base=p.parent)
+
+
+@dataclass(frozen=True)
+class Reach:
+    """How a client reaches the manager a config runs: the bus its node serves on, its node
+    id, and the Zenoh prefix the config names (None: it names none; the default is the
+    name of the host the manager runs on)."""
+    interface: str
+    channel: str
+    node_id: int
+    zenoh_prefix: str | None
+
+
+def load_reach(path: str | Path) -> Reach:
+    """What the operator verbs need of a config (``rocoma-can switch pd -c robot.yaml``):
+    its buses, manager and zenoh sections, checked as ``load`` checks them; the rest (the
+    drives' files, the controllers' plug-ins, which an operator's machine may not have) is
+    not read. ConfigError for a problem in those sections."""
+    data = _read(path)
+    problems: list[str] = []
+    if not isinstance(data, Mapping):
+        raise ConfigError([f"{path}: (top): expected a mapping, got {type(data).__name__}"])
+    buses = check_buses(data, problems)
+    manager = ManagerNodeConfig()
+    m = section_at(data, "manager", problems)
+    check_manager(m, manager, problems)
+    node_bus = m.get("bus") or buses[0].label
+    bus = next((b for b in buses if b.label == node_bus), None)
+    if bus is None:
+        problems.append(f"manager.bus: expected the name of one of the buses, got {node_bus!r}")
+    fleet = parse_fleet(data.get("zenoh"), problems)
+    if problems or bus is None:
+        raise ConfigError([f"{path}: {p}" for p in problems])
+    zenoh = data.get("zenoh")  # a prefix the file names (the default is the robot's host's)
+    named = isinstance(zenoh, Mapping) and "prefix" in zenoh and fleet is not None
+    return Reach(bus.interface, bus.channel, manager.node_id,
+                 fleet.prefix if named and fleet is not None else None)
+
+
+def _read(path: str | Path) -> Any:
+    """A config file's YAML, bounded (MAX_CONFIG_BYTES, MAX_CONFIG_NODES); ConfigError in
+    one line for a file that cannot be read or is not YAML."""
     p = Path(path)
     try:
         with p.open("rb") as f:
@@ -152,9 +199,7 @@ def load(path: str | Path, rate: float | None = None) -> RuntimeConfig:
         raise ConfigError([yaml_problem(exc, str(path), text)]) from None
     except RecursionError:
         raise ConfigError([f"{path}: nested too deeply; not a config file"]) from None
-    if rate is not None and isinstance(data, Mapping):
-        data = {**data, "rate": rate}
-    return validate(data, source=str(p), base=p.parent)
+    return data
 
 
 def _check_expanded_size(root: yaml.Node | None, source: str) -> None:

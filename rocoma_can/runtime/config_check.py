@@ -113,6 +113,8 @@ def _bus(section: Mapping[str, Any], where: str, problems: list[str],
     before = len(problems)
     interface = section.get("interface", "socketcan")
     channel = section.get("channel", "can0")
+    if _is_int(channel) and channel >= 0:  # `channel: 0` (Kvaser, IXXAT, Vector number
+        channel = str(channel)             # theirs): YAML reads an int; a channel is text
     name = section.get("name", "")
     for key, value in (("interface", interface), ("channel", channel)):
         if not isinstance(value, str) or not value:
