@@ -8,3 +8,4 @@ FAILED = 1     # the manager refused, or the operation failed
 USAGE = 2      # bad arguments or configuration (argparse exits with 2 too)
 NO_ANSWER = 3  # nobody answered within the timeout
 INTERRUPTED = 130  # Ctrl-C (128 + SIGINT, as a shell reports it)
+PIPE_CLOSED = 141  # stdout's reader went away (`| head`): 128 + SIGPIPE, as a shell reports it

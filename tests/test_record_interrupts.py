@@ -13,6 +13,7 @@ import time
 
 import pytest
 from fixtures.budgets import within
+from fixtures.console import untimed
 from fixtures.running import DEMO_WAIT, wait_for
 from test_config import nobody_answers
 
@@ -124,7 +125,9 @@ def test_a_second_stop_signal_while_run_closes_exits_130_and_leaves_no_writer(
         time.sleep(0.2)  # into the close's wait for the writer
         run.send_signal(second)
         assert run.wait(DEMO_WAIT) == INTERRUPTED, err.read_text()
-        assert "Traceback" not in err.read_text(), err.read_text()
+        assert untimed(err.read_text())[-1] == (
+            f"rocoma-can: error: interrupted ({second.name}) while closing, after the "
+            "torque-off"), err.read_text()
         wait_for(lambda: _gone(writer), "the writer ended", DEMO_WAIT)
     finally:
         if run.poll() is None:
@@ -133,6 +136,47 @@ def test_a_second_stop_signal_while_run_closes_exits_130_and_leaves_no_writer(
         if writer is not None and not _gone(writer):
             os.kill(writer, signal.SIGKILL)
 
+
+
+def test_a_ctrl_c_while_the_writer_starts_leaves_no_flight_record(tmp_path,
+                                                                  ctrl_c_interrupts):
+    """A Ctrl-C while the recorder waits for its writer to start (``run`` before bring-up:
+    nothing ran): the writer is told to end, and ends without a record; its input's end
+    read as the manager's death made a record "the manager's process ended without
+    closing" of a run that never was."""
+    main = threading.main_thread().ident
+    stopped: list[int] = []
+
+    def interrupt_once_started() -> None:
+        """The writer held before it can say it is ready, the Ctrl-C, the writer let go."""
+        def started() -> bool:
+            try:
+                return bool(_writer_of(os.getpid()))
+            except (AssertionError, OSError):  # not yet (or a child that just ended)
+                return False
+        wait_for(started, "the writer", DEMO_WAIT)
+        writer = _writer_of(os.getpid())
+        os.kill(writer, signal.SIGSTOP)
+        stopped.append(writer)
+        signal.pthread_kill(main, signal.SIGINT)
+        time.sleep(0.3)  # the recorder into its close of the start (which waits 5 s)
+        os.kill(writer, signal.SIGCONT)
+    helper = threading.Thread(target=interrupt_once_started)
+    helper.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            Recorder(JointState.zeros(2), JointCommand.zeros(2), _Manager(), 100.0,
+                     [BusToRecord("arm", "vcan0", False)], controllers=["pd"],
+                     flight=str(tmp_path / "flight"))  # type: ignore[arg-type]
+    finally:
+        helper.join(DEMO_WAIT)
+        for writer in stopped:
+            if not _gone(writer):
+                os.kill(writer, signal.SIGCONT)
+    assert stopped
+    wait_for(lambda: _gone(stopped[0]), "the writer ended", DEMO_WAIT)
+    flight = tmp_path / "flight"
+    assert not flight.exists() or not list(flight.glob("*.mcap")), list(flight.iterdir())
 
 
 def test_a_writer_that_does_not_finish_is_said_once(tmp_path, monkeypatch, caplog):

@@ -15,6 +15,7 @@ import errno
 import faulthandler
 import importlib.util
 import json
+import logging
 import os
 import signal
 import sys
@@ -22,9 +23,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..cli_args import flight_seconds, node_id, positive, seconds, seconds_or_zero
+from ..audit import AUDIT
+from ..cli_args import (
+    did_you_mean,
+    flight_seconds,
+    node_id,
+    positive,
+    seconds,
+    seconds_or_zero,
+    with_clear_hint,
+)
 from ..errors import ConfigError, NoAnswer, Refused, RocomaError
-from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
+from ..exit_codes import FAILED, INTERRUPTED, NO_ANSWER, OK, USAGE
 from ..fleet import client as fleet_client
 from ..fleet.bridge import FleetConfig, FleetError
 from ..fleet.bridge import parse as parse_fleet
@@ -40,13 +50,22 @@ from ..node.objects import (
     SWITCH_REFUSAL,
 )
 from .live import cycle_text
+from .main import interrupted_by
 
 if TYPE_CHECKING:  # the client verbs do not import the config (a fast start)
     from ..runtime.config import RuntimeConfig
+    from ..runtime.loop import TimingSummary
+    from ..runtime.system import Runtime
 
 
 def _err(message: str) -> None:
     print(f"rocoma-can: {message}", file=sys.stderr, flush=True)
+
+
+#: ``run``'s console (cli/console.py): its own lines on stdout with the audit trail, its
+#: errors on stderr, both in the one format with the time in front
+say = logging.getLogger(AUDIT)
+log = logging.getLogger(__name__)
 
 
 # --- run / check-config -----------------------------------------------------------------------
@@ -106,75 +125,117 @@ def recording_available() -> bool:
 
 
 def _run(args: argparse.Namespace) -> int:
+    """``rocoma-can run``: one outcome per phase of a stop signal (Ctrl-C, SIGTERM), each
+    said in one line (docs/cli.md, "Stopping run"): before bring-up nothing was sent to the
+    drives (exit 130); during bring-up the loop's torque-off, exit 130; while running the
+    loop's torque-off, exit 0 (the way a run is ended); while closing, after the
+    torque-off, what was cut short, exit 130."""
     from ..runtime.config import load
     from ..runtime.system import Runtime
     try:  # the options first: nothing is read or started for a command line that is wrong
         foxglove = foxglove_from_args(args)
     except ValueError as exc:
-        _err(str(exc))
+        log.error("%s", exc)
         return USAGE
     try:
         config = load(args.config, rate=args.rate)
     except ConfigError as exc:
         for problem in exc.problems:
-            _err(problem + (" (with --rate)" if args.rate is not None else ""))
+            log.error("%s", problem + (" (with --rate)" if args.rate is not None else ""))
         return USAGE
+    except KeyboardInterrupt:
+        return _interrupted("before bring-up: nothing was sent to the drives")
     try:
         config.fleet = fleet_from_args(args, config.fleet)
     except ConfigError as exc:
         for problem in exc.problems:
-            _err(problem)
+            log.error("%s", problem)
         return USAGE
     flight = None if args.no_flight else args.flight_dir
     if flight is not None and not recording_available():
-        _err("flight recorder off: it writes MCAP, pip install 'rocoma-can[record]'")
+        log.warning("flight recorder off: it writes MCAP, pip install 'rocoma-can[record]'")
         flight = None
     if args.record and not recording_available():
-        _err("--record writes MCAP: pip install 'rocoma-can[record]'")
+        log.error("--record writes MCAP: pip install 'rocoma-can[record]'")
         return USAGE
     try:
         runtime = Runtime(config, record=args.record, flight=flight,
-                          flight_seconds=args.flight_seconds,
-                          announce=lambda text: print(f"rocoma-can: {text}", flush=True),
+                          flight_seconds=args.flight_seconds, announce=say.info,
                           foxglove=foxglove)
     except (OSError, ValueError, FleetError, FoxgloveError) as exc:
-        _err(str(exc) + no_socketcan_hint(exc))
+        log.error("%s", str(exc) + no_socketcan_hint(exc))
         return USAGE
+    except KeyboardInterrupt:
+        return _interrupted("before bring-up: nothing was sent to the drives")
     if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
         faulthandler.register(signal.SIGUSR2, all_threads=True)
-    with runtime:
-        print(f"rocoma-can: running {len(config.drives)} drives at {config.rate:g} Hz on "
-              f"{_buses(config)}, manager node "
-              f"{config.manager.node_id} (Ctrl-C / SIGTERM: torque-off, then exit)", flush=True)
-        if runtime.flight is not None:
-            print(f"rocoma-can: flight recorder: the last {args.flight_seconds:g} s before "
-                  f"every e-stop go to {runtime.flight.directory}", flush=True)
-        if runtime.recording is not None:
-            print(f"rocoma-can: recording every frame and cycle to {args.record}", flush=True)
-        if runtime.fleet is not None:
-            f = runtime.fleet.config
-            print(f"rocoma-can: on Zenoh as {f.prefix} ({f.mode}"
-                  + "".join(f", {k} {', '.join(v)}" for k, v in (("listen", f.listen),
-                                                                 ("connect", f.connect)) if v)
-                  + f"; switch/clear/recover {'allowed' if f.allow_commands else 'refused'})",
-                  flush=True)
-        elif runtime.fleet_error:
-            _err(f"running without Zenoh: {runtime.fleet_error}")
-        if runtime.foxglove is not None:
-            print(f"rocoma-can: {describe(runtime.foxglove)}", flush=True)
-        try:
-            summary = runtime.run(duration=args.duration)
-        except OSError as exc:
-            _err(str(exc) + no_socketcan_hint(exc))
-            return USAGE
-        print(f"rocoma-can: stopped ({runtime.loop.stop_reason}); {summary.line()}", flush=True)
-        hw = runtime.hardware
-        unfinished = hw.starting or any(d.phase == "FAILED" for d in hw.drive_status())
-        if unfinished:  # each failure was said as it happened; this run did not do its job
-            _err(f"bring-up did not finish: {hw.not_ready() or 'drives starting'}")
-    # said as it happened (one warning); the exit code tells a script the record has a hole
-    if unfinished or (runtime.recording is not None and runtime.recording.errors):
+    phase = "before bring-up: nothing was sent to the drives"
+    try:
+        with runtime:
+            _say_started(runtime, args)
+            phase = "while closing, after the torque-off"
+            try:
+                summary = runtime.run(duration=args.duration)
+            except OSError as exc:
+                log.error("%s", str(exc) + no_socketcan_hint(exc))
+                return USAGE
+            return _stopped(runtime, summary)
+    except KeyboardInterrupt:
+        return _interrupted(phase)
+
+
+def _interrupted(when: str) -> int:
+    log.error("interrupted (%s) %s", interrupted_by(), when)
+    return INTERRUPTED
+
+
+def _say_started(runtime: Runtime, args: argparse.Namespace) -> None:
+    config = runtime.config
+    say.info("running %d drives at %g Hz on %s, manager node %d (Ctrl-C / SIGTERM: "
+             "torque-off, then exit)", len(config.drives), config.rate, _buses(config),
+             config.manager.node_id)
+    if runtime.flight is not None:
+        say.info("flight recorder: the last %g s before every e-stop go to %s",
+                 args.flight_seconds, runtime.flight.directory)
+    if runtime.recording is not None:
+        say.info("recording every frame and cycle to %s", args.record)
+    if runtime.fleet is not None:
+        f = runtime.fleet.config
+        say.info("on Zenoh as %s (%s%s; switch/clear/recover %s)", f.prefix, f.mode,
+                 "".join(f", {k} {', '.join(v)}" for k, v in (("listen", f.listen),
+                                                              ("connect", f.connect)) if v),
+                 "allowed" if f.allow_commands else "refused")
+    elif runtime.fleet_error:
+        log.warning("running without Zenoh: %s", runtime.fleet_error)
+    if runtime.foxglove is not None:
+        say.info("%s", describe(runtime.foxglove))
+    m = runtime.manager
+    say.info("state %s, controller %s%s", m.state.name, m.active_controller_name,
+             ", e-stop latched (rocoma-can clear clears it)" if m.estop_latched else "")
+
+
+def _stopped(runtime: Runtime, summary: TimingSummary) -> int:
+    """The run's last line (how it stopped, its cycles) and its exit code (see _run)."""
+    hw, reason = runtime.hardware, runtime.loop.stop_reason
+    drives = hw.drive_status()
+    failed = [d.name for d in drives if d.phase == "FAILED"]
+    starting = [f"{d.name} ({d.phase})" for d in drives if d.phase not in ("READY", "FAILED")]
+    signalled = reason.startswith("signal ")
+    if signalled and starting:
+        say.info("stopped (%s) during bring-up, torque-off sent; not brought up: %s; %s",
+                 reason, ", ".join(starting + [f"{n} (FAILED)" for n in failed]),
+                 summary.line())
+        return INTERRUPTED
+    say.info("stopped (%s); %s", reason, summary.line())
+    if failed or starting:  # each failure was said as it happened: counted, not repeated
+        log.error("bring-up did not finish: %s", "; ".join(
+            part for part in (f"{len(failed)} of {len(drives)} drives failed (said above)"
+                              if failed else "",
+                              f"still starting: {', '.join(starting)}" if starting else "")
+            if part))
         return FAILED
+    if runtime.recording is not None and runtime.recording.errors:
+        return FAILED  # said as it happened (one warning); the record has a hole
     return OK
 
 
@@ -286,7 +347,7 @@ def _client(args: argparse.Namespace, action: Callable[[ManagerClient], int]) ->
         with ManagerClient(bus, args.node, timeout=args.timeout) as client:
             return action(client)
     except NoAnswer as exc:
-        _err(f"{exc} (is `rocoma-can run` running on {args.interface}:{args.channel}?)")
+        _err(f"{exc} (is rocoma-can run running on {args.interface}:{args.channel}?)")
         return NO_ANSWER
     except (Refused, RocomaError) as exc:  # refused, or not a rocoma-can manager node
         _err(str(exc))
@@ -306,14 +367,18 @@ def _switch(args: argparse.Namespace) -> int:
         except Refused as exc:
             if exc.code == ABORT_NOT_FOUND:
                 print("NOT_FOUND", flush=True)
-                _err(f"no controller {args.name!r} (`rocoma-can list` names them)")
+                _err(f"no controller {args.name!r}"
+                     + did_you_mean(args.name, client.controllers())
+                     + " (rocoma-can list names them)")
                 return FAILED
             print("ERROR", flush=True)
-            _err(f"switch refused: {client.read_text(SWITCH_REFUSAL) or exc}")
+            _err("switch refused: "
+                 + with_clear_hint(client.read_text(SWITCH_REFUSAL) or str(exc)))
             return FAILED
         print(RESULT_NAMES.get(result, str(result)), flush=True)
         if result == 3:
-            _err(f"switch failed: {client.read_text(SWITCH_REFUSAL) or 'see the manager log'}")
+            _err("switch failed: " + with_clear_hint(client.read_text(SWITCH_REFUSAL)
+                                                      or "see the manager log"))
         return OK if result in (0, 1) else FAILED
     return _client(args, action)
 
@@ -431,12 +496,46 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def _bus_options(p: argparse.ArgumentParser, zenoh: bool = True) -> None:
-    p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
-    p.add_argument("--channel", default="can0", help="CAN channel (can0)")
-    p.add_argument("--node", type=node_id, default=100, help="the manager's node id (100)")
+    p.add_argument("-c", "--config", default=None, metavar="CONFIG",
+                   help="reach the manager this config runs: its bus's interface and "
+                        "channel, its manager node id" + (" and Zenoh prefix" if zenoh else "")
+                   + " (the options below override it)")
+    p.add_argument("--interface", default=None, help="python-can interface (socketcan)")
+    p.add_argument("--channel", default=None, help="CAN channel (can0)")
+    p.add_argument("--node", type=node_id, default=None, help="the manager's node id (100)")
     p.add_argument("--timeout", type=seconds, default=0.5, help="SDO answer timeout, s (0.5)")
     if zenoh:
         fleet_client.add_options(p)
+
+
+#: where the operator verbs look for the manager without --config or an option
+DEFAULT_REACH = {"interface": "socketcan", "channel": "can0", "node": 100}
+
+
+def operator_verb(handler: Callable[[argparse.Namespace], int]
+                  ) -> Callable[[argparse.Namespace], int]:
+    """``handler`` with its bus, channel and node id (and Zenoh prefix) resolved: each
+    option given, else the config's (``-c CONFIG``), else DEFAULT_REACH. A config that
+    cannot be read is a usage error in one line per problem."""
+    def resolved(args: argparse.Namespace) -> int:
+        reach: dict[str, Any] = dict(DEFAULT_REACH)
+        if args.config is not None:
+            from ..runtime.config import load_reach
+            try:
+                found = load_reach(args.config)
+            except ConfigError as exc:
+                for problem in exc.problems:
+                    _err(problem)
+                return USAGE
+            reach = {"interface": found.interface, "channel": found.channel,
+                     "node": found.node_id}
+            if getattr(args, "zenoh", None) == "" and found.zenoh_prefix:
+                args.zenoh = found.zenoh_prefix  # --zenoh without a prefix: the config's
+        for key, value in reach.items():
+            if getattr(args, key) is None:
+                setattr(args, key, value)
+        return handler(args)
+    return resolved
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -466,7 +565,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     g.add_argument("--zenoh-deadman", default=None, metavar="KEY",
                    help="e-stop when this liveliness token vanishes (once seen)")
     add_foxglove_options(p)
-    p.set_defaults(func=_run)
+    p.set_defaults(func=_run, clock=True, audit=True)  # its console: the run's record
 
     p = subparsers.add_parser("check-config", help="validate a YAML config, list every problem")
     p.add_argument("config")
@@ -476,10 +575,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.set_defaults(func=_check_config)
 
     p = subparsers.add_parser("switch", help="switch the running manager's controller")
-    p.add_argument("name", help="controller name, or its number from `list`")
+    p.add_argument("name", help="controller name, or its number from rocoma-can list")
     p.add_argument("--wait", type=seconds_or_zero, default=10.0, help="wait for the result, s (10)")
     _bus_options(p)
-    p.set_defaults(func=_switch)
+    p.set_defaults(func=operator_verb(_switch))
     for name, index, text, done in (
             ("estop", ESTOP, "emergency stop (emergency controller, else torque-off)",
              "e-stop requested"),
@@ -488,7 +587,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
             ("recover", RECOVER, "fault-reset / restart faulted drives", "recovery started")):
         p = subparsers.add_parser(name, help=text)
         _bus_options(p)
-        p.set_defaults(func=_command(index, name, done))
+        p.set_defaults(func=operator_verb(_command(index, name, done)))
     p = subparsers.add_parser(
         "home", help="home one drive (CiA 402 homing, its own method) while the active "
                      "controller holds the others; waits for the result")
@@ -497,7 +596,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="give up waiting after S seconds (90; the manager's own limit is "
                         "the drive's homing_timeout)")
     _bus_options(p, zenoh=False)
-    p.set_defaults(func=_home)
+    p.set_defaults(func=operator_verb(_home))
     p = subparsers.add_parser("status", help="state, active controller, e-stop latch and cause, "
                                               "every drive's bring-up, CiA 402 state and fault")
     p.add_argument("--json", action="store_true", help="everything as one JSON document")
@@ -509,7 +608,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--duration", type=seconds, default=None, metavar="S",
                    help="--watch: stop after S seconds (default: Ctrl-C)")
     _bus_options(p)
-    p.set_defaults(func=_status)
+    p.set_defaults(func=operator_verb(_status))
     p = subparsers.add_parser("list", help="the switchable controllers, numbered")
     _bus_options(p)
-    p.set_defaults(func=_list)
+    p.set_defaults(func=operator_verb(_list))

@@ -176,7 +176,7 @@ def cycle_text(cycle: dict[str, Any]) -> str:
     """The status report's cycle statistics in one line (``status`` prints it too)."""
     def ms(key: str) -> str:
         value = cycle.get(key)
-        return "n/a" if value is None else f"{value:.2f} ms"
+        return "n/a" if value is None else f"{value:.3f} ms"  # (run's last line too)
     waiting = cycle.get("overruns_waiting")  # (None: a manager from before it was counted)
     return (f"{cycle['cycles']} cycles at {cycle['rate']:g} Hz, overruns {cycle['overruns']}"
             + (f" ({waiting} waiting)" if waiting is not None else "") + ", "

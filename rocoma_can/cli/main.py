@@ -1,19 +1,24 @@
 """The ``rocoma-can`` command. Each sub-command lives next to the code it drives and
 registers itself here through a ``register(subparsers)`` function returning nothing; the
 handler is stored with ``parser.set_defaults(func=handler)`` and returns an exit code. Each
-sub-command's parser is a CommandParser (``add_parser(..., hint=...)``)."""
+sub-command's parser is a CommandParser (``add_parser(..., hint=...)``); ``set_defaults(
+clock=True, audit=True)`` gives a verb ``run``'s console (console.py)."""
 from __future__ import annotations
 
 import argparse
 import importlib
-import logging
+import re
 import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
+from types import FrameType
 from typing import Any, NoReturn
 
-from ..exit_codes import INTERRUPTED, OK, USAGE
+from .. import __version__
+from ..cli_args import did_you_mean
+from ..exit_codes import INTERRUPTED, OK, PIPE_CLOSED, USAGE
+from .console import console, err, point_stdout_at_devnull, stdout_gone
 
 # Modules that contribute sub-commands, in help order.
 COMMAND_MODULES: tuple[str, ...] = (
@@ -27,6 +32,13 @@ COMMAND_MODULES: tuple[str, ...] = (
     "rocoma_can.cli.scaffold",
     "rocoma_can.drivers.sim.cli",
 )
+
+
+def plain(text: str) -> str:
+    """Help text as a terminal shows it: the docstrings and help strings the verbs share
+    with the docs mark code with reStructuredText/Markdown backticks, which --help
+    printed as they are (````rocoma-can sim````)."""
+    return text.replace("``", "").replace("`", "")
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -49,52 +61,93 @@ class CommandParser(argparse.ArgumentParser):
         hint = self._hint(self._words) if self._hint is not None else ""
         super().error(f"{message}; {hint}" if hint else message)
 
+    def format_help(self) -> str:
+        return plain(super().format_help())
+
+
+class TopParser(argparse.ArgumentParser):
+    """The ``rocoma-can`` parser: an unknown verb gets the nearest one as a hint
+    (``rocoma-can stauts``: did you mean 'status'?)."""
+
+    def error(self, message: str) -> NoReturn:
+        unknown = re.match(r"argument COMMAND: invalid choice: '([^']*)'", message)
+        if unknown is not None:
+            verbs = [a.choices for a in self._actions
+                     if isinstance(a, argparse._SubParsersAction)][0]
+            message = f"unknown command {unknown.group(1)!r}" \
+                + did_you_mean(unknown.group(1), verbs) \
+                + " (rocoma-can --help lists them)"
+        super().error(message)
+
+    def format_help(self) -> str:
+        return plain(super().format_help())
+
+
+VERBOSE_HELP = "more log output (-vv for debug), before or after the command"
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = TopParser(
         prog="rocoma-can",
         description="Robot controller manager for CANopen CiA 402 actuator buses.")
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="more log output (-vv for debug)")
+    parser.add_argument("--version", action="version", version=f"rocoma-can {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help=VERBOSE_HELP)
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND",
                                        parser_class=CommandParser)
     for module in COMMAND_MODULES:
         importlib.import_module(module).register(subparsers)
+    for verb in subparsers.choices.values():  # `rocoma-can status -v` as `rocoma-can -v status`
+        verb.add_argument("-v", "--verbose", action="count", default=0, dest="verbose_after",
+                          help=VERBOSE_HELP)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     restore = stop_signals_interrupt()
+    args: argparse.Namespace | None = None
     try:  # (the sub-commands' imports too: a Ctrl-C at once is no traceback)
         parser = build_parser()
-        args = parser.parse_args(argv)
-        level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
-        logging.basicConfig(level=level,
-                            format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-        if args.verbose < 2:
-            for logger in SAID_BY_US:
-                logging.getLogger(logger).addFilter(_said_by_us)
-        if not getattr(args, "func", None):
-            parser.print_help()
-            return USAGE
-        return int(args.func(args) or OK)
-    except KeyboardInterrupt:
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # --help, --version (a usage error: its line on stderr)
+            sys.stdout.flush()
+            if exc.code in (0, None) and stdout_gone():  # (argparse drops its failed
+                raise BrokenPipeError from None        # write without a word)
+            raise
+        verbose = args.verbose + getattr(args, "verbose_after", 0)
+        with console(verbose, clock=getattr(args, "clock", False),
+                     audit=getattr(args, "audit", False)):
+            if not getattr(args, "func", None):
+                parser.print_help()
+                return USAGE
+            code = int(args.func(args) or OK)
+            sys.stdout.flush()  # (a reader gone is found here, not at the interpreter's exit)
+            return code
+    except KeyboardInterrupt:  # one the command did not say itself (run says each phase)
+        err(f"interrupted ({interrupted_by()})" + (
+            " while starting: nothing was sent or changed" if args is None else ""))
         return INTERRUPTED
+    except BrokenPipeError:  # `rocoma-can status | head -3`: its reader has gone (console.py)
+        if not stdout_gone():
+            raise
+        point_stdout_at_devnull()
+        return PIPE_CLOSED
     finally:
         restore()
 
 
-#: library log lines a command says itself, better: logger -> how the line begins.
-#: canopen's SDO client logs an ERROR line each time a request times out (a drive not
-#: answering, once per try); the command says what failed once, naming the drive and what
-#: to check. python-can's socketcan logs one for a link it cannot open, then raises; the
-#: command says it with the bus's name and what to do. Shown with -vv.
-SAID_BY_US = {"canopen.sdo.client": "Transfer aborted by client",
-              "can.interfaces.socketcan.socketcan": "Could not access SocketCAN device"}
+_stopped_by = ["SIGINT"]  # the signal of the last interruption (stop_signals_interrupt)
 
 
-def _said_by_us(record: logging.LogRecord) -> bool:
-    return not record.getMessage().startswith(SAID_BY_US.get(record.name, "\0"))
+def interrupted_by() -> str:
+    """The stop signal that interrupted the command last ("SIGINT" or "SIGTERM")."""
+    return _stopped_by[0]
+
+
+def _interrupt(signum: int, frame: FrameType | None) -> None:
+    """Python's own SIGINT handler, for SIGTERM too, saying which signal it was."""
+    _stopped_by[0] = signal.Signals(signum).name
+    raise KeyboardInterrupt
 
 
 def stop_signals_interrupt() -> Callable[[], None]:
@@ -107,14 +160,16 @@ def stop_signals_interrupt() -> Callable[[], None]:
     SIGINT too, when the process started with it ignored: a shell without job control
     starts a background job so (``rocoma-can run robot.yaml &`` in a script, a launcher);
     the loop takes SIGINT anyway, and outside the loop an operator's Ctrl-C or ``kill -INT``
-    went unanswered. A stop signal is never ignored here. Returns what puts the previous
-    handlers back (nothing to do off the main thread)."""
+    went unanswered. A stop signal is never ignored here. Each raises KeyboardInterrupt
+    and is remembered (``interrupted_by``: ``run`` names it in what it says). Returns what
+    puts the previous handlers back (nothing to do off the main thread)."""
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
     previous: dict[signal.Signals, Any] = {}
-    for sig, unhandled in ((signal.SIGTERM, signal.SIG_DFL), (signal.SIGINT, signal.SIG_IGN)):
-        if signal.getsignal(sig) == unhandled:
-            previous[sig] = signal.signal(sig, signal.default_int_handler)
+    for sig, unhandled in ((signal.SIGTERM, (signal.SIG_DFL,)),
+                           (signal.SIGINT, (signal.SIG_IGN, signal.default_int_handler))):
+        if signal.getsignal(sig) in unhandled:
+            previous[sig] = signal.signal(sig, _interrupt)
 
     def restore() -> None:
         for sig, handler in previous.items():

@@ -10,7 +10,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from ..cli_args import seconds
+from ..cli_args import did_you_mean, seconds, with_clear_hint
 from ..errors import NoAnswer, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from ..remote import STOPS
@@ -183,7 +183,9 @@ def switch(args: argparse.Namespace) -> int:
         result = answer.get("result", "ERROR")
         print(result, flush=True)
         if answer.get("error"):
-            _err(answer["error"])
+            hint = did_you_mean(args.name, client.status().get("controllers", [])) \
+                if result == "NOT_FOUND" else ""
+            _err(with_clear_hint(answer["error"]) + hint)
         return OK if result in ("SWITCHED", "RUNNING") else FAILED
     return with_client(args, action)
 

@@ -373,8 +373,10 @@ class Recorder:
     def _stop_process(self) -> None:
         stdin = self._process.stdin
         sender = self._sender
-        if sender is None or not sender.is_alive():  # (a sender blocked on a full pipe
-            _close_quietly(stdin)                    # holds it: it ends with the writer)
+        if sender is None:  # a start cut short (a Ctrl-C, the writer's failure): told to
+            _close_quietly(stdin, '{"close": true}\n')  # end, its input's end is no death
+        elif not sender.is_alive():  # (a sender blocked on a full pipe
+            _close_quietly(stdin)    # holds it: it ends with the writer)
         try:  # (a start that failed: its end of input tells the writer to end)
             self._process.wait(5.0)
         except subprocess.TimeoutExpired:
@@ -387,11 +389,13 @@ class Recorder:
         self._shared.close()
 
 
-def _close_quietly(stream: IO[str] | None) -> None:
+def _close_quietly(stream: IO[str] | None, last: str = "") -> None:
     """A pipe to or from the writer, closed whatever the writer did (gone: its unsent
-    input fails)."""
+    input fails), after ``last`` (a last command) when there is one."""
     try:
         if stream is not None:
+            if last:
+                stream.write(last)
             stream.close()
     except (OSError, ValueError):
         pass

@@ -104,11 +104,13 @@ class TimingSummary:
     work_max: float           # s, time spent inside read/update/write
 
     def line(self) -> str:
+        """In ms, as ``status`` says the same figures (live.cycle_text)."""
+        if not self.cycles:  # stopped before its first cycle: no figure to give
+            return "no cycle ran"
         return (f"cycles {self.cycles}, overruns {self.overruns} ({self.overruns_waiting} "
-                f"waiting), period mean "
-                f"{self.period_mean * 1e3:.3f} ms max {self.period_max * 1e3:.3f} ms, jitter "
-                f"p99 {self.jitter_p99 * 1e6:.0f} us max {self.jitter_max * 1e6:.0f} us, "
-                f"work max {self.work_max * 1e6:.0f} us")
+                f"waiting), period mean {self.period_mean * 1e3:.3f} ms max "
+                f"{self.period_max * 1e3:.3f} ms, jitter p99 {self.jitter_p99 * 1e3:.3f} ms "
+                f"max {self.jitter_max * 1e3:.3f} ms, work max {self.work_max * 1e3:.3f} ms")
 
 
 class CycleStats:
