@@ -105,6 +105,27 @@ def test_timeout_kills_the_whole_guest(uml):
     assert group_members(guest_pid(result.stderr)) == []
 
 
+def test_what_the_command_left_running_ends_with_it(uml):
+    """A background job the command leaves (``bash -c 'rocoma-can sim ... & ...'``) holds
+    the pipes its output comes through: the guest stayed up until the timeout (1800 s).
+    It is ended as the command ends, and said; the command's status is the runner's."""
+    result = vcan_run("bash", "-c", "sleep 600 & sleep 600 & echo started; exit 3",
+                      ROCOMA_VCAN_TIMEOUT="120", **uml)
+
+    assert result.returncode == 3, result.stderr
+    assert result.stdout == "started\n"
+    assert "vcan-run (guest): the command ended; ending what it left running (SIGTERM)" \
+        in result.stderr
+    assert group_members(guest_pid(result.stderr)) == []
+
+
+def test_a_leftover_that_ignores_sigterm_is_killed(uml):
+    result = vcan_run("bash", "-c", "trap '' TERM; sleep 600 & exit 0",
+                      ROCOMA_VCAN_TIMEOUT="120", **uml)
+    assert result.returncode == 0, result.stderr
+    assert "ending what it left running" in result.stderr
+
+
 def test_interrupt_kills_the_whole_guest_and_reports_the_signal(uml, tmp_path):
     started = tmp_path / "started"
     out, err = (tmp_path / "out").open("w+"), (tmp_path / "err").open("w+")
