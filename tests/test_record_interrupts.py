@@ -14,6 +14,7 @@ import time
 import pytest
 from fixtures.budgets import within
 from fixtures.console import untimed
+from fixtures.processes import gone, stopped, writer_of
 from fixtures.running import DEMO_WAIT, wait_for
 from test_config import nobody_answers
 
@@ -25,20 +26,6 @@ from rocoma_can.record.recorder import BusToRecord, Recorder
 class _Manager:
     active_controller_name = "pd"
     estop_latched = False
-
-
-def _gone(pid: int) -> bool:
-    """No such process, or a zombie its parent has not reaped yet."""
-    try:
-        with open(f"/proc/{pid}/stat") as stat:
-            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
-    except OSError:
-        return True
-
-
-def _stopped(pid: int) -> bool:
-    with open(f"/proc/{pid}/stat") as stat:
-        return stat.read().rsplit(")", 1)[1].split()[0] == "T"
 
 
 @pytest.fixture
@@ -64,32 +51,19 @@ def test_a_close_cut_short_by_ctrl_c_still_ends_a_writer_that_does_not_answer(
     writer = rec._process
     os.kill(writer.pid, signal.SIGSTOP)
     try:
-        wait_for(lambda: _stopped(writer.pid), "the writer stopped", DEMO_WAIT)
+        wait_for(lambda: stopped(writer.pid), "the writer stopped", DEMO_WAIT)
         impatient = threading.Timer(0.3, signal.pthread_kill,
                                     (threading.main_thread().ident, signal.SIGINT))
         impatient.start()
         with pytest.raises(KeyboardInterrupt):
             rec.close()
         impatient.join()
-        wait_for(lambda: _gone(writer.pid), "the writer ended", DEMO_WAIT)
+        wait_for(lambda: gone(writer.pid), "the writer ended", DEMO_WAIT)
         assert not [t for t in threading.enumerate() if t.name.startswith("recorder-")]
     finally:
         if writer.poll() is None:
             writer.kill()
             writer.wait(DEMO_WAIT)
-
-
-def _children(pid: int) -> list[int]:
-    with open(f"/proc/{pid}/task/{pid}/children") as children:
-        return [int(p) for p in children.read().split()]
-
-
-def _writer_of(pid: int) -> int:
-    for child in _children(pid):
-        with open(f"/proc/{child}/cmdline", "rb") as cmdline:
-            if b"rocoma_can.record.writer" in cmdline.read():
-                return child
-    raise AssertionError("no writer process")
 
 
 @pytest.mark.parametrize(("second", "sigint_at_start"), [
@@ -116,9 +90,9 @@ def test_a_second_stop_signal_while_run_closes_exits_130_and_leaves_no_writer(
     try:
         wait_for(lambda: "recording every frame" in out.read_text(), "the run started",
                  within(10.0))
-        writer = _writer_of(run.pid)
+        writer = writer_of(run.pid)
         os.kill(writer, signal.SIGSTOP)
-        wait_for(lambda: _stopped(writer), "the writer stopped", DEMO_WAIT)
+        wait_for(lambda: stopped(writer), "the writer stopped", DEMO_WAIT)
         run.send_signal(signal.SIGTERM)
         wait_for(lambda: "stopped (signal SIGTERM)" in out.read_text(), "the loop stopped",
                  DEMO_WAIT)
@@ -128,12 +102,12 @@ def test_a_second_stop_signal_while_run_closes_exits_130_and_leaves_no_writer(
         assert untimed(err.read_text())[-1] == (
             f"rocoma-can: error: interrupted ({second.name}) while closing, after the "
             "torque-off"), err.read_text()
-        wait_for(lambda: _gone(writer), "the writer ended", DEMO_WAIT)
+        wait_for(lambda: gone(writer), "the writer ended", DEMO_WAIT)
     finally:
         if run.poll() is None:
             run.kill()
             run.wait(DEMO_WAIT)
-        if writer is not None and not _gone(writer):
+        if writer is not None and not gone(writer):
             os.kill(writer, signal.SIGKILL)
 
 
@@ -151,11 +125,11 @@ def test_a_ctrl_c_while_the_writer_starts_leaves_no_flight_record(tmp_path,
         """The writer held before it can say it is ready, the Ctrl-C, the writer let go."""
         def started() -> bool:
             try:
-                return bool(_writer_of(os.getpid()))
+                return bool(writer_of(os.getpid()))
             except (AssertionError, OSError):  # not yet (or a child that just ended)
                 return False
         wait_for(started, "the writer", DEMO_WAIT)
-        writer = _writer_of(os.getpid())
+        writer = writer_of(os.getpid())
         os.kill(writer, signal.SIGSTOP)
         stopped.append(writer)
         signal.pthread_kill(main, signal.SIGINT)
@@ -171,10 +145,10 @@ def test_a_ctrl_c_while_the_writer_starts_leaves_no_flight_record(tmp_path,
     finally:
         helper.join(DEMO_WAIT)
         for writer in stopped:
-            if not _gone(writer):
+            if not gone(writer):
                 os.kill(writer, signal.SIGCONT)
     assert stopped
-    wait_for(lambda: _gone(stopped[0]), "the writer ended", DEMO_WAIT)
+    wait_for(lambda: gone(stopped[0]), "the writer ended", DEMO_WAIT)
     flight = tmp_path / "flight"
     assert not flight.exists() or not list(flight.glob("*.mcap")), list(flight.iterdir())
 

@@ -28,6 +28,7 @@ import pytest
 import yaml
 from fixtures.budgets import within
 from fixtures.console import untimed
+from fixtures.processes import blocked_in, gone, writer_of
 from fixtures.running import DEMO_WAIT, wait_for
 from test_config import nobody_answers
 
@@ -39,43 +40,15 @@ CHILD = Path(__file__).parent / "fixtures" / "cli_child.py"
 START = within(20.0)
 
 
-def _blocked_in(pid: int, where: str) -> bool:
-    """The process's main thread sleeps in the kernel function named ``where`` (its
-    /proc wchan: "pipe_write", "wait_for_partner")."""
-    try:
-        with open(f"/proc/{pid}/wchan") as wchan:
-            return where in wchan.read()
-    except OSError:
-        return False
-
-
 def _stays_blocked_in(pid: int, where: str, looks: int = 5) -> bool:
     """Blocked there at ``looks`` looks 20 ms apart: a write to a full pipe stays, one that
     goes through (the writer process's set-up on its own pipe) does not."""
     for look in range(looks):
-        if not _blocked_in(pid, where):
+        if not blocked_in(pid, where):
             return False
         if look < looks - 1:
             time.sleep(0.02)
     return True
-
-
-def _writers(pid: int) -> list[int]:
-    found = []
-    with open(f"/proc/{pid}/task/{pid}/children") as children:
-        for child in children.read().split():
-            with open(f"/proc/{child}/cmdline", "rb") as cmdline:
-                if b"rocoma_can.record.writer" in cmdline.read():
-                    found.append(int(child))
-    return found
-
-
-def _gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as stat:
-            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
-    except OSError:
-        return True
 
 
 class Run:
@@ -139,7 +112,7 @@ def test_ctrl_c_while_the_config_is_read_says_nothing_was_sent(tmp_path):
     fifo = tmp_path / "robot.yaml"
     os.mkfifo(fifo)
     run = Run([str(fifo), "--no-flight"])
-    wait_for(lambda: _blocked_in(run.process.pid, "partner"), "the config's open", START)
+    wait_for(lambda: blocked_in(run.process.pid, "partner"), "the config's open", START)
     run.process.send_signal(signal.SIGINT)
     code, out, err = run.end(DEMO_WAIT)
     assert (code, out, err) == (INTERRUPTED, [], [
@@ -161,8 +134,7 @@ def test_ctrl_c_before_bring_up_ends_the_writer_without_a_flight_record(
     try:
         wait_for(lambda: _stays_blocked_in(run.process.pid, "pipe_write"), "the first line",
                  START)
-        writers = _writers(run.process.pid)
-        assert len(writers) == 1, writers
+        writer = writer_of(run.process.pid)
         run.process.send_signal(signal.SIGINT)
         with os.fdopen(read, "rb") as reader:  # the rest, now the run may go on
             out = reader.read().decode().strip("\n")
@@ -176,7 +148,7 @@ def test_ctrl_c_before_bring_up_ends_the_writer_without_a_flight_record(
     assert (code, err) == (INTERRUPTED, [
         "rocoma-can: error: interrupted (SIGINT) before bring-up: nothing was sent to the "
         "drives"])
-    wait_for(lambda: _gone(writers[0]), "the writer ended", DEMO_WAIT)
+    wait_for(lambda: gone(writer), "the writer ended", DEMO_WAIT)
     assert not flight.exists() or not [p for p in flight.iterdir()
                                         if not p.name.startswith(".")]
 
