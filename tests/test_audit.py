@@ -194,3 +194,22 @@ def test_warnings_of_a_start_are_said_once_in_the_consoles_format(tmp_path, capf
                          "(said above)")
     lines = untimed(out)
     assert any(line.startswith("rocoma-can: bring-up ended in ") for line in lines), lines
+
+
+def test_the_recording_writers_lines_come_in_runs_format(tmp_path, capfd):
+    """The recorder's writer process says what goes wrong on run's stderr, in run's one
+    format, naming itself (it said ``rocoma-can writer process: LOGGER: ...``, unstamped)."""
+    from rocoma_can.drivers.joints import JointCommand, JointState
+    from rocoma_can.record.recorder import BusToRecord, Recorder
+
+    class Manager:
+        active_controller_name = "pd"
+        estop_latched = False
+    recorder = Recorder(JointState.zeros(2), JointCommand.zeros(2), Manager(), 100.0,
+                        [BusToRecord("arm", "vcan0", False)], controllers=["pd"],
+                        flight=str(tmp_path / "flight"))  # type: ignore[arg-type]
+    recorder._queue.put_nowait("not json")  # a line the writer cannot take
+    recorder.close()
+    assert untimed(capfd.readouterr().err) == [
+        "rocoma-can: warning: writer process: rocoma_can.record.writer: a command it could "
+        "not take (Expecting value: line 1 column 1 (char 0)): not json"]

@@ -33,8 +33,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from ..audit import AUDIT
-
-PROGRAM = "rocoma-can"
+from ..log_format import PROGRAM, ConsoleFormatter
 
 #: library log lines a command says itself, better: logger -> how such a line begins.
 #: canopen's SDO client logs an ERROR line each time a request times out (a drive not
@@ -43,32 +42,6 @@ PROGRAM = "rocoma-can"
 #: command says it with the bus's name and what to do. Shown with -vv.
 SAID_BY_US = {"canopen.sdo.client": ("Transfer aborted by client",),
               "can.interfaces.socketcan.socketcan": ("Could not access SocketCAN device",)}
-
-_LEVEL_WORDS = ((logging.ERROR, "error: "), (logging.WARNING, "warning: "),
-                (logging.INFO, ""), (logging.NOTSET, "debug: "))
-
-
-def level_word(levelno: int) -> str:
-    return next(word for level, word in _LEVEL_WORDS if levelno >= level)
-
-
-class ConsoleFormatter(logging.Formatter):
-    """``[TIME ]rocoma-can: [LEVEL: ][LOGGER: ]MESSAGE``, and a traceback where a record
-    carries one (a bug's: it is kept whole). ``clock``: the local time in front (``run``);
-    ``names``: the logger's name (``-vv``)."""
-
-    def __init__(self, clock: bool = False, names: bool = False) -> None:
-        super().__init__()
-        self.clock, self.names = clock, names
-
-    def format(self, record: logging.LogRecord) -> str:
-        when = (f"{self.formatTime(record, '%Y-%m-%d %H:%M:%S')}.{int(record.msecs):03d} "
-                if self.clock else "")
-        name = f"{record.name}: " if self.names else ""
-        text = f"{when}{PROGRAM}: {level_word(record.levelno)}{name}{record.getMessage()}"
-        if record.exc_info:
-            text += "\n" + self.formatException(record.exc_info)
-        return text
 
 
 def line(text: str) -> str:

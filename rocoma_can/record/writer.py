@@ -46,6 +46,7 @@ from typing import IO, Any
 
 from ..live.server import FoxgloveServer, ServeError
 from ..live.urdf import Robot
+from ..log_format import ConsoleFormatter
 from .can_log import RecordingError
 from .flight import FlightRecords
 from .live_channels import Facts, LiveChannels
@@ -54,7 +55,7 @@ from .recording import Recording
 from .rings import RingReader, RingSpec, SharedFile
 from .trace import McapWriter, RowLayout
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("rocoma_can.record.writer")  # (run as __main__: -m)
 
 #: how often the rings are written out, s
 POLL = 0.05
@@ -286,7 +287,7 @@ def _read_commands(stream: IO[str], writer: Writer,
                 if not writer.take(command):
                     commands.put(command)
             except Exception as exc:  # noqa: BLE001 - one bad line must not deafen the writer
-                log.warning("a command it could not take (%s): %.200s", exc, line)
+                log.warning("a command it could not take (%s): %.200s", exc, line.rstrip("\n"))
     finally:
         writer.unanswered()
         commands.put(None)
@@ -315,10 +316,11 @@ def main() -> int:
     for stop in (signal.SIGTERM, signal.SIGINT):
         signal.signal(stop, signal.SIG_IGN)
     # what goes wrong here (the live view's SDK: a viewer gone mid-message) is said on the
-    # run's stderr, saying whose it is; the SDK's INFO records (counted) stay unsaid
+    # run's stderr in the run's format, saying whose it is; the SDK's INFO records
+    # (counted) stay unsaid
     said = logging.StreamHandler(sys.stderr)
     said.setLevel(logging.WARNING)
-    said.setFormatter(logging.Formatter("rocoma-can writer process: %(name)s: %(message)s"))
+    said.setFormatter(ConsoleFormatter(clock=True, names=True, who="writer process"))
     logging.getLogger().addHandler(said)
     reply = sys.stdout
     try:
