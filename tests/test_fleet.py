@@ -16,6 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+import yaml
 import zenoh
 from fixtures.running import DEMO_WAIT, runtime_running
 from fixtures.running import wait_for as wait_until
@@ -184,6 +185,37 @@ def test_the_cli_acts_through_zenoh(virtual_channel, sim_segment_factory, endpoi
         assert f"{prefix}: OK, trajectory, 2 drives" in capsys.readouterr().out
         assert main(["estop", *opts]) == 0
         wait_for(lambda: rt.manager.state is not ManagerState.OK, "the e-stop")
+
+
+def test_the_cli_reaches_the_configs_prefix_and_each_request_is_published(
+        virtual_channel, sim_segment_factory, endpoint, prefix, operator, tmp_path, capsys):
+    """``-c robot.yaml --zenoh``: the prefix the config names; each request through Zenoh is
+    an event on <prefix>/state (kind request: the audit trail), a refusal with its reason;
+    an unknown controller gets the nearest one."""
+    sim_segment_factory(2)
+    config = tmp_path / "robot.yaml"
+    config.write_text(yaml.safe_dump({"bus": {"interface": "virtual", "channel": "elsewhere"},
+                                      "zenoh": {"prefix": prefix}}))
+    opts = ["-c", str(config), "--zenoh", "--zenoh-connect", endpoint, "--zenoh-no-multicast"]
+    with manager(virtual_channel, endpoint, prefix, allow_commands=True) as rt:
+        z = operator()
+        states: list[dict] = []
+        z.declare_subscriber(f"{prefix}/state",
+                             lambda s: states.append(json.loads(s.payload.to_string())))
+        wait_for(lambda: rt.hardware.all_ready, "every drive brought up")
+        assert main(["clear", *opts]) == 0
+        assert main(["switch", "trajectry", *opts]) == 1
+        assert capsys.readouterr().err.endswith(", did you mean 'trajectory'?\n")
+        assert main(["switch", "pd", *opts]) == 0
+
+        def requests() -> list[str]:
+            return [s["cause"] for s in states if s["kind"] == "request"]
+        wait_for(lambda: len(requests()) >= 3, "the requests published")
+    assert requests() == [
+        "Zenoh: clear: the e-stop latch is cleared",
+        "Zenoh: switch to 'trajectry': NOT_FOUND: no controller 'trajectry' (controllers: pd, "
+        "trajectory)",
+        "Zenoh: switch to 'pd': SWITCHED"]
 
 
 def test_the_alive_token_vanishes_when_the_loop_stops(virtual_channel, sim_segment_factory,
