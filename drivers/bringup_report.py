@@ -50,7 +50,9 @@ class BringupReport:
             list(channels)
         self._say = say
         self._held: list[list[int]] = [[] for _ in channels]  # silent drives not told yet
-        self._finished = False  # the start-up's end told (once: recoveries say their own)
+        #: the start-up has ended, every drive READY or FAILED (once: a recovery that
+        #: restarts drives later is no start-up)
+        self.finished = False
         self.started_at = 0.0
 
     def ended(self, i: int, drives: Sequence[Started], now: float) -> None:
@@ -63,7 +65,7 @@ class BringupReport:
             else:
                 self._say(self._tell_failure, b.name, self._node_ids[i], b.failure)
         mine = [k for k, on in enumerate(self._bus_of) if on == bus]
-        held = self._held[bus]
+        held = sorted(self._held[bus])  # (in the config's order, not the failures')
         if held and not any(_starting(drives[k]) for k in mine):
             self._held[bus] = []
             if len(held) == len(mine):
@@ -74,8 +76,8 @@ class BringupReport:
                 for k in held:
                     self._say(self._tell_failure, drives[k].name, self._node_ids[k],
                               drives[k].failure)
-        if not self._finished and not any(_starting(d) for d in drives):
-            self._finished = True
+        if not self.finished and not any(_starting(d) for d in drives):
+            self.finished = True
             self._say(self._tell_finished, [(d.name, d.phase == Phase.READY) for d in drives],
                       now - self.started_at)
 

@@ -567,6 +567,12 @@ class CanopenHardware:
         return bool(self._bringup) and bool(self.ready.all())
 
     @property
+    def started_up(self) -> bool:
+        """The start-up has ended (every drive READY or FAILED once); a recovery that
+        restarts drives later does not undo it."""
+        return self._report.finished
+
+    @property
     def starting(self) -> bool:
         """Some drive is still in bring-up (neither READY nor FAILED)."""
         return any(b.phase not in (Phase.READY, Phase.FAILED) for b in self._bringup)

@@ -220,8 +220,7 @@ def _stopped(runtime: Runtime, summary: TimingSummary) -> int:
     drives = hw.drive_status()
     failed = [d.name for d in drives if d.phase == "FAILED"]
     starting = [f"{d.name} ({d.phase})" for d in drives if d.phase not in ("READY", "FAILED")]
-    signalled = reason.startswith("signal ")
-    if signalled and starting:
+    if reason.startswith("signal ") and not hw.started_up:
         say.info("stopped (%s) during bring-up, torque-off sent; not brought up: %s; %s",
                  reason, ", ".join(starting + [f"{n} (FAILED)" for n in failed]),
                  summary.line())
