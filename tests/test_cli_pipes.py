@@ -48,7 +48,8 @@ def manager_verb(channel: str, *verb: str) -> list[str]:
 @pytest.mark.parametrize("verb", [
     ["--help"], ["--version"], ["run", "--help"],
     ["check-config", str(EXAMPLES / "robot_can0.yaml"), "--drives"],
-    ["status"], ["status", "--json"], ["list"], ["switch", "pd"], ["estop"]],
+    ["status"], ["status", "--json"], ["status", "--watch", "--duration", "2"], ["list"],
+    ["switch", "pd"], ["estop"]],
     ids=lambda verb: " ".join(verb[:2]).replace(str(EXAMPLES) + "/", ""))
 def test_a_reader_gone_ends_the_verb_quietly_with_141(verb, virtual_channel):
     needs_manager = verb[0] in ("status", "list", "switch", "estop")

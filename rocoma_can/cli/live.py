@@ -46,10 +46,17 @@ def watch(read: Callable[[], dict[str, Any]], label: str, interval: float = 0.5,
         print("rocoma-can: status --watch needs rich: pip install 'rocoma-can[live]'",
               file=sys.stderr, flush=True)
         return USAGE
+    class Watched(Console):
+        def on_broken_pipe(self) -> None:
+            """Its reader gone (`| head`): rich's own exits 1; every verb's ends 141
+            (cli/console.py), and the view's last refresh writes nothing more."""
+            self.quiet = True
+            raise BrokenPipeError
+
     if console is None:
-        console = Console()
+        console = Watched()
         if not console.is_terminal:  # piped or logged: no width to fit, do not truncate
-            console = Console(width=160)
+            console = Watched(width=160)
     stop = stop or threading.Event()
     end = time.monotonic() + duration if duration is not None else float("inf")
     status: dict[str, Any] | None = None
