@@ -205,8 +205,7 @@ def _say_started(runtime: Runtime, args: argparse.Namespace) -> None:
                  "".join(f", {k} {', '.join(v)}" for k, v in (("listen", f.listen),
                                                               ("connect", f.connect)) if v),
                  "allowed" if f.allow_commands else "refused")
-    elif runtime.fleet_error:
-        log.warning("running without Zenoh: %s", runtime.fleet_error)
+    # (running without Zenoh, zenoh.required false: said by the runtime as it found it)
     if runtime.foxglove is not None:
         say.info("%s", describe(runtime.foxglove))
     m = runtime.manager
