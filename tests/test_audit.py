@@ -52,6 +52,10 @@ def test_every_sdo_request_is_one_audit_line_written_off_the_loop(
             with pytest.raises(Exception, match="0x06090030|not found|Not found"):
                 client.switch("pdd")
             assert client.switch("pd", timeout=DEMO_WAIT) == 0
+            wait_for(lambda: rt.hardware.all_enabled, "the drives enabled", DEMO_WAIT)
+            assert client.home("joint1", timeout=DEMO_WAIT) == "homed"
+            with pytest.raises(Exception, match="refused"):
+                client.home("knee")                      # no such drive
             client.write(ESTOP, 1)
             wait_for(lambda: rt.manager.state.name == "EMERGENCY", "the e-stop", DEMO_WAIT)
             client.write(RECOVER, 1)
@@ -70,6 +74,9 @@ def test_every_sdo_request_is_one_audit_line_written_off_the_loop(
         f"{node}: switch to 'pdd': NOT_FOUND (controllers: pd, trajectory)",
         "state OK, controller pd",
         f"{node}: switch to 'pd': SWITCHED",
+        f"{node}: home 'joint1': started",
+        f"{node}: home 'joint1': homed",
+        f"{node}: home 'knee': refused: no drive named 'knee' (drives: joint1, joint2)",
         "e-stop (EMERGENCY): SDO e-stop (0x2110)",
         f"{node}: recover: started",
         "recovery started (EMERGENCY)",
