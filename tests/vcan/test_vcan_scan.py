@@ -4,6 +4,7 @@ saying so and how to bring it up, exit 2, before anything is sent."""
 from __future__ import annotations
 
 import pytest
+from fixtures.console import untimed
 
 from rocoma_can.cli.main import main
 
@@ -38,9 +39,9 @@ def test_run_on_a_missing_link_is_one_line_with_what_to_check(tmp_path, capsys, 
     path = tmp_path / "robot.yaml"
     path.write_text(yaml.safe_dump(cfg))
     assert main(["run", str(path), "--no-flight", "--duration", "1"]) == 2
-    assert capsys.readouterr().err.splitlines() == [
-        "rocoma-can: cannot open CAN bus socketcan:vcan7: [Errno 19] No such device; no such "
-        "network interface: `ip link` lists them (an adapter plugged in, its driver "
+    assert untimed(capsys.readouterr().err) == [
+        "rocoma-can: error: cannot open CAN bus socketcan:vcan7: [Errno 19] No such device; no "
+        "such network interface: `ip link` lists them (an adapter plugged in, its driver "
         "loaded?); rocoma-can doctor CONFIG checks each bus and says how to create or raise "
         "it"]
     assert not [r for r in caplog.records if r.name.startswith("can.")]
