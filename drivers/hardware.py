@@ -190,6 +190,8 @@ class CanopenHardware:
         self.guarding = NodeGuarding([p.guarded and p.leads_node for p in self.plans],
                                      [d.node_id for d in drives],
                                      [d.heartbeat_ms / 1000.0 for d in drives], self._port_of)
+        # a guarded node's loss says of every axis what its lead's answers were
+        self.supervisor.why_lost = lambda i: self.guarding.why_lost(self._node[i][0])
         self.receiver = Receiver(self.ports, self.layouts, [d.node_id for d in drives],
                                  [p.leads_node for p in self.plans], self._node, self._raw,
                                  self.state, self.scaling, self.supervisor, self.guarding,

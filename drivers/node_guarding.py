@@ -34,7 +34,9 @@ class NodeGuarding:
         self._due = [math.inf] * n   # inf: not guarded (yet)
         self.next_due = math.inf     # the earliest of them
         self._toggle = [-1] * n      # the last answer's toggle bit; -1: none yet
-        self._asked = [0] * n        # requests sent since the last answer taken
+        self._asked = [0] * n        # requests sent since the last answer heard (any)
+        self._excused = [False] * n  # the last answer taken was a lost one's excused repeat
+        self.stale = [0] * n         # answers not taken since the last one taken
         self.repeats = 0             # answers whose toggle bit did not change
 
     def start(self, i: int) -> None:
@@ -59,17 +61,40 @@ class NodeGuarding:
 
     def answer(self, i: int, byte: int) -> int | None:
         """The NMT state a guard answer of drive i reports, or None when it does not count:
-        the answer taken last again (a stale or doubled frame; answers that never toggle
-        run into the deadline, a guarding loss). After two requests or more the same bit is
-        a new answer: the one between was lost, and one lost frame is not a lost drive."""
+        its toggle bit is the last taken answer's (a stale or doubled frame, or a hung
+        node's CAN controller answering each request by itself with the frame last loaded
+        into its mailbox). Such answers are no sign of life, however many come: the
+        deadline runs out as for a silent drive (``why_lost`` says why).
+
+        One excuse: the drive toggles with every answer it sends, so after one answer was
+        lost on the bus the next carries the bit of the one taken before it. A repeat is
+        taken when a request went unanswered right before it (two requests since the last
+        answer heard, of any kind), once: the answer after it must toggle. A mailbox
+        answers every request, so it never earns the excuse; one lost frame is not a lost
+        drive."""
         toggle = byte & cia301.GUARD_TOGGLE
         state = byte & ~cia301.GUARD_TOGGLE
+        asked, self._asked[i] = self._asked[i], 0
         if state == cia301.NmtState.BOOT_UP:  # a boot-up restarts the toggling
             self._toggle[i] = -1
-        elif toggle == self._toggle[i] and self._asked[i] < 2:
-            self.repeats += 1
-            return None
-        else:
+            self._excused[i] = False
+        elif toggle != self._toggle[i]:
             self._toggle[i] = toggle
-            self._asked[i] = 0
+            self._excused[i] = False
+        elif asked >= 2 and not self._excused[i]:
+            self._excused[i] = True
+        else:
+            self.repeats += 1
+            self.stale[i] += 1
+            return None
+        self.stale[i] = 0
         return state
+
+    def why_lost(self, i: int) -> str:
+        """What to add to drive i's guarding loss: the answers that came and were not taken
+        since the last one that was (empty when none came)."""
+        stale = self.stale[i]
+        if not stale:
+            return ""
+        return (f"; {stale} answer{'s' if stale > 1 else ''} came whose toggle bit did not "
+                "change: no sign of life (a hung node's CAN controller answering by itself?)")

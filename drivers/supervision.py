@@ -2,8 +2,8 @@
 
 Causes: heartbeat deadline missed (monotonic clock, not canopen's wall-clock timestamps),
 heartbeat reporting a state other than operational (the drive rebooted or was stopped), the
-same for a node-guarded drive's answers (hardware.py sends the requests and drops answers
-whose toggle bit did not change), an
+same for a node-guarded drive's answers (hardware.py sends the requests; answers whose
+toggle bit did not change are no sign of life, node_guarding.py), an
 EMCY with a non-zero code, the statusword fault bit or a statusword that is no CiA 402 state,
 TPDOs missing for k cycles, a TPDO
 whose length is not its mapping's, a drive
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import collections
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,6 +91,9 @@ class Supervisor:
         # what a drive's life signal is (a node-guarded drive answers requests instead)
         self._signal = ["node guarding answer" if i < len(guarded) and guarded[i]
                         else "heartbeat" for i in range(n)]
+        #: what a life signal's loss adds to its cause, per drive (the hardware's: the
+        #: guard answers that came and did not count); called only when one is lost
+        self.why_lost: Callable[[int], str] = lambda i: ""
 
     def arm(self, i: int, now: float) -> None:
         """Start supervising drive i (brought up); heartbeat deadline from now."""
@@ -179,7 +182,8 @@ class Supervisor:
             heard = now if heard_until is None else heard_until
             for i in np.flatnonzero(watch & (self.heartbeat_deadline < heard)):
                 self.fault(int(i), f"{self._signal[i]} lost (none for "
-                                   f"{self.heartbeat_timeout[i]:.3f} s)", now)
+                                   f"{self.heartbeat_timeout[i]:.3f} s)"
+                                   + self.why_lost(int(i)), now)
                 self.heartbeat_deadline[i] = math.inf  # one event per loss
         if max(missing.tolist()) >= self.tpdo_timeout_cycles:
             for i in np.flatnonzero(watch & (missing >= self.tpdo_timeout_cycles)):

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import math
 import struct
+import threading
 import time
 from pathlib import Path
 
 import can
 import pytest
+from fixtures.budgets import STALL
 from fixtures.driver_rig import (
     Brake,
     Rig,
@@ -22,6 +24,8 @@ from fixtures.driver_rig import (
     seconds_until_all_off,
     synced_mark,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers import cia301
@@ -29,6 +33,7 @@ from rocoma_can.drivers.bringup import life_time_factor
 from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.drive_plan import plan_drive
 from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.node_guarding import NodeGuarding
 
 GUARDED = str(Path(__file__).parent / "fixtures" / "eds" / "guarded.eds")
 
@@ -173,6 +178,176 @@ def test_one_lost_answer_is_not_taken_for_a_repeat(can_setup, rig_on, frame_reco
                          3 * guard_s + rig.setup.cycles_budget(10))
     assert rig.hw.guard_repeats == 0
     assert rig.mgr.state == ManagerState.OK
+
+
+class HungMailbox:
+    """A hung node's CAN controller: its CPU stopped, but the controller still answers each
+    remote request on 0x700 + node id by itself, with the frame last loaded into its
+    mailbox, the same byte every time: its toggle bit never changes (on its own bus
+    handle, a thread, stopped with the test)."""
+
+    def __init__(self, bus: can.BusABC, node: int, byte: int) -> None:
+        self._bus, self._node, self._byte = bus, node, byte
+        self.answered = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            msg = self._bus.recv(0.01)
+            if msg is not None and msg.is_remote_frame \
+                    and msg.arbitration_id == cia301.HEARTBEAT + self._node:
+                self._bus.send(can.Message(arbitration_id=cia301.HEARTBEAT + self._node,
+                                           is_extended_id=False, data=bytes((self._byte,))))
+                self.answered += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(STALL)
+
+
+@pytest.fixture
+def hung_mailbox(can_setup, bus_factory, virtual_channel):
+    boxes: list[HungMailbox] = []
+
+    def make(node: int, byte: int) -> HungMailbox:
+        box = HungMailbox(bus_factory(can_setup.channel(virtual_channel), can_setup.interface),
+                          node, byte)
+        boxes.append(box)
+        return box
+    yield make
+    for box in boxes:
+        box.close()
+
+
+def test_a_hung_node_whose_mailbox_answers_without_toggling_is_an_estop(rig_on, hung_mailbox):
+    """Answers that never toggle are no sign of life, however many come: the deadline runs
+    out as for a silent drive, and the cause says why the answers did not count."""
+    segment, rig = rig_on(tpdo_timeout_cycles=1_000_000)  # the guarding deadline trips
+    _bring_up_and_hold(rig)
+    node = tuple(segment.drives)[-1]
+    lead = rig.hw.drives_config.index(next(d for d in rig.hw.drives_config
+                                           if d.node_id == node))
+    last = rig.hw.guarding._toggle[lead]
+    segment.drives[node].set_silent(True)  # its CPU hangs: nothing of its own any more
+    box = hung_mailbox(node, last | cia301.NmtState.OPERATIONAL)
+    assert rig.run_until(lambda: rig.mgr.state == ManagerState.EMERGENCY,
+                         rig.setup.detect_budget()), rig.hw.drive_status()
+    assert box.answered >= 2
+    latched = rig.hw.supervisor.latched[lead]
+    assert latched.node_id == node and "node guarding answer lost" in latched.cause
+    assert "toggle bit did not change" in latched.cause, latched.cause
+    assert rig.hw.guard_repeats >= box.answered - 1
+
+
+def test_a_hung_node_is_faulted_no_later_than_a_silent_one(rig_on, hung_mailbox):
+    """The deadline counts from the last answer that toggled: a mailbox answering every
+    request buys the drive not one period more than silence would."""
+    segment, rig = rig_on(tpdo_timeout_cycles=1_000_000)
+    _bring_up_and_hold(rig)
+    node = tuple(segment.drives)[0]
+    lead = 0
+    last = rig.hw.guarding._toggle[lead]
+    segment.drives[node].set_silent(True)
+    hung_mailbox(node, last | cia301.NmtState.OPERATIONAL)
+    hung = time.monotonic()
+    assert rig.run_until(lambda: rig.hw.supervisor.latched[lead] is not None,
+                         rig.setup.detect_budget()), rig.hw.drive_status()
+    timeout = rig.hw.supervisor.heartbeat_timeout[lead]
+    # the last toggling answer came at most one guard period before the hang
+    assert rig.hw.supervisor.latched[lead].time - hung <= timeout + rig.setup.cycles_budget(2)
+
+
+# --- which answers count, without a bus: the rule itself ------------------------------------
+class _Requests:
+    """Where the guard requests go: counted (a port's ``send``)."""
+
+    def __init__(self) -> None:
+        self.sent = 0
+
+    def send(self, msg: can.Message) -> None:
+        self.sent += 1
+
+
+OPERATIONAL = cia301.NmtState.OPERATIONAL
+
+
+def _guarding() -> NodeGuarding:
+    guarding = NodeGuarding([True], [1], [0.1], [_Requests()])
+    guarding.start(0)
+    return guarding
+
+
+def _asked(guarding: NodeGuarding, t: float) -> float:
+    guarding.send_due(t)
+    return t + 0.1
+
+
+def test_a_mailbox_answering_every_request_alike_counts_once():
+    guarding, t = _guarding(), 0.0
+    taken = []
+    for _ in range(20):
+        t = _asked(guarding, t)
+        taken.append(guarding.answer(0, OPERATIONAL))
+    assert taken[0] == OPERATIONAL and taken[1:] == [None] * 19
+    assert guarding.repeats == 19 and guarding.stale[0] == 19
+    assert "19 answers came whose toggle bit did not change" in guarding.why_lost(0)
+
+
+def test_a_mailbox_answering_every_second_request_alike_is_excused_once():
+    """A request without an answer before a repeat may be a lost answer: excused, once; the
+    answer after it must toggle."""
+    guarding, t = _guarding(), 0.0
+    taken = []
+    for k in range(20):
+        t = _asked(guarding, t)
+        if k % 2 == 0:
+            taken.append(guarding.answer(0, OPERATIONAL | cia301.GUARD_TOGGLE))
+    assert taken[:2] == [OPERATIONAL, OPERATIONAL] and set(taken[2:]) == {None}
+
+
+def test_a_boot_up_starts_the_toggling_over():
+    guarding, t = _guarding(), 0.0
+    t = _asked(guarding, t)
+    assert guarding.answer(0, OPERATIONAL) == OPERATIONAL
+    t = _asked(guarding, t)
+    assert guarding.answer(0, cia301.NmtState.BOOT_UP) == cia301.NmtState.BOOT_UP
+    t = _asked(guarding, t)
+    assert guarding.answer(0, cia301.NmtState.PRE_OPERATIONAL) == \
+        cia301.NmtState.PRE_OPERATIONAL
+    assert guarding.stale[0] == 0 and guarding.why_lost(0) == ""
+
+
+@settings(max_examples=300, derandomize=True, deadline=None)
+@given(st.lists(st.booleans(), min_size=1, max_size=60), st.integers(0, 1))
+def test_answers_that_never_toggle_buy_at_most_one_excused_answer(heard, bit):
+    """Whatever the pattern of requests answered and not, a constant toggle bit is taken
+    at most twice: the first answer and one excused as following a lost one."""
+    guarding, t = _guarding(), 0.0
+    taken = 0
+    for answered in heard:
+        t = _asked(guarding, t)
+        if answered:
+            taken += guarding.answer(0, OPERATIONAL | bit << 7) is not None
+    assert taken <= 2
+
+
+@settings(max_examples=300, derandomize=True, deadline=None)
+@given(st.lists(st.integers(2, 6), max_size=12), st.integers(0, 1))
+def test_a_drive_that_toggles_loses_no_answer_to_an_isolated_lost_frame(runs, first):
+    """A drive that toggles with every answer it sends, one answer lost now and then (each
+    loss followed by at least two answers heard): every answer heard is taken."""
+    guarding, t = _guarding(), 0.0
+    toggle = first
+    pattern = [True] * 3 + [x for run in runs for x in [False] + [True] * run]
+    for heard in pattern:
+        t = _asked(guarding, t)
+        byte = OPERATIONAL | toggle << 7
+        toggle ^= 1  # the drive sent it, heard or not
+        if heard:
+            assert guarding.answer(0, byte) == OPERATIONAL
+    assert guarding.repeats == 0
 
 
 # --- which way a drive is watched (check-config), without a bus ----------------------------
