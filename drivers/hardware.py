@@ -85,6 +85,7 @@ import numpy as np
 
 from ..errors import HomingFailed
 from ..events import ManagerState
+from ..stop_surfaces import CAN_FRAME
 from .bringup import DriveBringup, Phase, create_bringups
 from .bringup_report import BringupReport
 from .bus import start_reading
@@ -334,8 +335,8 @@ class CanopenHardware:
     def _on_estop_frames(self, port: BusPort, count: int) -> None:
         """E-stop frames on one bus in this read: one request, whatever their count."""
         self.estop_frames += count
-        self._events.append(StopRequest(
-            f"CAN e-stop from 0x{self._estop_cob_id:03X} on bus {port.name!r}"))
+        self._events.append(StopRequest(CAN_FRAME.cause(
+            "estop", f" from 0x{self._estop_cob_id:03X} on bus {port.name!r}")))
 
     def _bus_failed(self, port: BusPort, cause: str, now: float) -> None:
         """A fault of every drive on the bus and one event (Supervisor.bus_fault), latched

@@ -17,6 +17,8 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from .stop_surfaces import StopSurface
+
 if TYPE_CHECKING:
     from .manager import ControllerManager
 
@@ -39,11 +41,16 @@ SHOWN_NAME = 64
 
 @dataclass(frozen=True)
 class Transport:
-    """Who calls: ``name`` in the stop causes and refusals ("Zenoh"), ``setting`` the config
-    key that allows commands ("zenoh.allow_commands")."""
-    name: str
+    """Who calls: ``surface`` the stop surface it is (its label in the stop causes and
+    refusals: "Zenoh"), ``setting`` the config key that allows commands
+    ("zenoh.allow_commands")."""
+    surface: StopSurface
     setting: str
     allow_commands: bool
+
+    @property
+    def name(self) -> str:
+        return self.surface.label
 
     def not_allowed(self, service: str) -> str:
         return (f"{service} over {self.name} is not allowed by this manager's config "
@@ -106,12 +113,9 @@ def tell(manager: ControllerManager, transport: Transport, what: str,
 
 
 def stop(manager: ControllerManager, service: str, transport: Transport) -> int:
-    """The stop ``service`` (estop, failproof) requested, at once; the manager's update
-    count just after, for ``stopped``."""
-    if service == "estop":
-        manager.emergency_stop(cause=f"{transport.name} e-stop")
-    else:
-        manager.failproof_stop(cause=f"{transport.name} failproof stop")
+    """The stop ``service`` (estop, failproof) requested, at once, through the transport's
+    stop surface; the manager's update count just after, for ``stopped``."""
+    transport.surface.stop(manager, service)
     return manager.cycle_count
 
 

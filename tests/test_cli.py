@@ -114,6 +114,40 @@ def test_client_commands_against_a_manager(bus_factory, virtual_channel, capsys)
         rig.close()
 
 
+def test_a_stop_sends_first_and_then_names_what_it_ignored(bus_factory, virtual_channel,
+                                                          capsys):
+    """A stop verb acts whatever else the line carries (rocoma_can/stop_surfaces.py: CLI):
+    the stop is sent, then one line names the words it did not take, escaped and cut."""
+    rig = Rig(bus_factory, must_clear=False)
+    opts = ["--interface", "virtual", "--channel", virtual_channel, "--node", str(NODE)]
+    try:
+        assert main(["clear", *opts]) == 0
+        assert main(["switch", "pd", *opts]) == 0
+        capsys.readouterr()
+        invalid = b"\xff\xfe".decode("utf-8", "surrogateescape")
+        assert main(["estop", "now", "--force", invalid, "y" * 500, *opts]) == 0
+        assert rig.wait_state(1)
+        out, err = capsys.readouterr()
+        assert out.strip() == "e-stop requested"
+        assert err.strip() == ("rocoma-can: estop: ignored (a stop takes nothing but where to "
+                               "send it): 'now', '--force', '\\udcff\\udcfe', '" + "y" * 40
+                               + "'... (500 characters)")
+        assert main(["failproof", *[f"w{k}" for k in range(9)], *opts]) == 0
+        assert rig.wait_state(0)
+        assert capsys.readouterr().err.strip().endswith("'w3', 'w4' and 4 more")
+    finally:
+        rig.close()
+
+
+@pytest.mark.parametrize("args", [["switch", "pd", "now"], ["clear", "--force"],
+                                  ["status", "extra"], ["run", "x.yaml", "--bogus"]])
+def test_verbs_other_than_the_stops_still_refuse_words_they_do_not_take(args, capsys):
+    with pytest.raises(SystemExit) as exited:
+        main(args)
+    assert exited.value.code == 2
+    assert f"unrecognized arguments: {args[-1]}" in capsys.readouterr().err
+
+
 def _write(tmp_path: Path, cfg: dict, name: str = "robot.yaml") -> Path:
     path = tmp_path / name
     path.write_text(yaml.safe_dump(cfg))

@@ -25,6 +25,7 @@ from fixtures.manager_probes import (
 
 from rocoma_can import ControllerManager, EventKind, ManagerState, ManagerTimeouts, SwitchResult
 from rocoma_can.remote import STOP_CALLS, StopAnswers, Transport, serve
+from rocoma_can.stop_surfaces import StopSurface
 
 OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
 
@@ -497,7 +498,8 @@ def test_each_event_carries_the_latch_it_left():
 
 
 #: a remote caller without commands (stops are anyone's)
-TRANSPORT = Transport("test", "test.allow_commands", allow_commands=False)
+TRANSPORT = Transport(StopSurface("test", "test", "a test's calls"), "test.allow_commands",
+                      allow_commands=False)
 
 
 @contextmanager

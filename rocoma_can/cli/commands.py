@@ -392,12 +392,32 @@ def _home(args: argparse.Namespace) -> int:
 
 #: tries of an e-stop or failproof stop over SDO (see _command)
 STOP_ATTEMPTS = 3
+#: words a stop did not take that its warning names (the rest are counted)
+IGNORED_SHOWN = 5
+#: characters of each such word it shows
+WORD_SHOWN = 40
+
+
+def _word(word: str) -> str:
+    """A command-line word as a warning shows it: ASCII (invalid UTF-8 escaped), cut short."""
+    shown = ascii(word[:WORD_SHOWN])
+    return shown + (f"... ({len(word)} characters)" if len(word) > WORD_SHOWN else "")
 
 
 def _command(index: int, verb: str, done: str) -> Callable[[argparse.Namespace], int]:
     through_zenoh = fleet_client.command(verb, done)
 
     def handler(args: argparse.Namespace) -> int:
+        try:
+            return sent(args)
+        finally:  # a stop is sent first; what it did not take is said after it
+            if getattr(args, "ignored", None):
+                _err(f"{verb}: ignored (a stop takes nothing but where to send it): "
+                     + ", ".join(_word(w) for w in args.ignored[:IGNORED_SHOWN])
+                     + (f" and {len(args.ignored) - IGNORED_SHOWN} more"
+                        if len(args.ignored) > IGNORED_SHOWN else ""))
+
+    def sent(args: argparse.Namespace) -> int:
         if args.zenoh is not None:
             return through_zenoh(args)
         def action(client: ManagerClient) -> int:
@@ -585,7 +605,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
             ("recover", RECOVER, "fault-reset / restart faulted drives", "recovery started")):
         p = subparsers.add_parser(name, help=text)
         _bus_options(p)
-        p.set_defaults(func=operator_verb(_command(index, name, done)))
+        # a stop acts whatever else the line carries (rocoma_can/stop_surfaces.py: CLI)
+        p.set_defaults(func=operator_verb(_command(index, name, done)),
+                       takes_anything=index in (ESTOP, FAILPROOF_STOP))
     p = subparsers.add_parser(
         "home", help="home one drive (CiA 402 homing, its own method) while the active "
                      "controller holds the others; waits for the result")

@@ -108,12 +108,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:  # (the sub-commands' imports too: a Ctrl-C at once is no traceback)
         parser = build_parser()
         try:
-            args = parser.parse_args(argv)
+            args, extra = parser.parse_known_args(argv)
+            if extra and not getattr(args, "takes_anything", False):
+                parser.error(f"unrecognized arguments: {' '.join(extra)}")
         except SystemExit as exc:  # --help, --version (a usage error: its line on stderr)
             sys.stdout.flush()
             if exc.code in (0, None) and stdout_gone():  # (argparse drops its failed
                 raise BrokenPipeError from None        # write without a word)
             raise
+        args.ignored = extra  # a stop's: it acts whatever else the line carries
         verbose = args.verbose + getattr(args, "verbose_after", 0)
         with console(verbose, clock=getattr(args, "clock", False),
                      audit=getattr(args, "audit", False)):

@@ -46,6 +46,7 @@ import yaml
 from ..errors import RocomaError
 from ..events import ManagerEvent
 from ..remote import STOPS, StopAnswers, Transport, serve, switch_target, switch_what, tell
+from ..stop_surfaces import ZENOH
 from ..user_files import read_regular, yaml_problem
 
 if TYPE_CHECKING:
@@ -421,7 +422,7 @@ class FleetBridge:
         return serve(self.manager, service, self._transport(), self._running, self._recover)
 
     def _transport(self) -> Transport:
-        return Transport("Zenoh", "zenoh.allow_commands", self.config.allow_commands)
+        return Transport(ZENOH, "zenoh.allow_commands", self.config.allow_commands)
 
     def _switch(self, query: Any, key: str) -> None:
         m = self.manager

@@ -52,6 +52,7 @@ from ..remote import (
     switch_what,
     tell,
 )
+from ..stop_surfaces import FOXGLOVE
 from . import messages
 
 if TYPE_CHECKING:
@@ -199,7 +200,7 @@ class FoxgloveView:
         self._status = status
         self._recover = recover
         self.robot = robot
-        self._transport = Transport("Foxglove", "--foxglove-allow-commands",
+        self._transport = Transport(FOXGLOVE, "--foxglove-allow-commands",
                                     config.allow_commands)
         served = messages.MANAGER_CHANNELS + (messages.ROBOT if robot is not None else ())
         self.topics = [c.topic for c in served]

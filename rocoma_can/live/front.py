@@ -9,7 +9,9 @@ handshake with HTTP 400. The messages are the same under both names. So the view
 this front's: it reads each connection's HTTP upgrade request (bounded in size and time),
 hands a request that offers only the old name to the SDK's server (on a loopback port of its
 own) as asking for the new one, and gives the SDK's answer back naming the old one, the
-name the viewer asked for; from then on the bytes pass unchanged both ways.
+name the viewer asked for; from then on the bytes pass unchanged both ways, but for a call of
+a stop service, which reaches the SDK as an empty JSON call whatever its encoding, size or
+framing (stop_calls.py: the SDK would refuse it before the stop).
 
 Bounds: one thread per viewer moves its bytes (a live view's tens of kB/s), at most
 MAX_VIEWERS at once (more are closed at once); each direction holds at most BUFFER bytes,
@@ -28,6 +30,8 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+
+from .stop_calls import StopCalls, without_extensions
 
 #: the subprotocol names of the one protocol: the SDK's, and the specification's
 SDK_SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.sdk.v1.1")
@@ -160,6 +164,8 @@ class Front:
         try:
             deadline = time.monotonic() + HANDSHAKE_WAIT
             request, early = _read_head(viewer, deadline)
+            request = without_extensions(request)  # plain frames, for the stop calls
+            calls = StopCalls()
             names = offered(request)
             legacy = LEGACY_SUBPROTOCOL in names and not any(
                 n in SDK_SUBPROTOCOLS for n in names)
@@ -170,8 +176,9 @@ class Front:
             sdk.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, BUFFER)
             sdk.settimeout(max(0.0, deadline - time.monotonic()) + HANDSHAKE_WAIT)
             sdk.connect(("127.0.0.1", self._upstream))
-            sdk.sendall(request + early)
+            sdk.sendall(request + calls.from_viewer(early))
             answer, rest = _read_head(sdk, time.monotonic() + HANDSHAKE_WAIT)
+            calls.from_sdk(rest)
             if legacy and offered(answer):
                 answer = renamed(answer, LEGACY_SUBPROTOCOL)
             viewer.settimeout(HANDSHAKE_WAIT)
@@ -179,7 +186,7 @@ class Front:
             viewer.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, BUFFER)
             _keep_alive(viewer)
             viewer.sendall(answer + rest)
-            self._splice(viewer, sdk)
+            self._splice(viewer, sdk, calls)
         except (OSError, ValueError):
             _reset(sdk)  # the viewer or the SDK went during the handshake: nothing to keep
         finally:
@@ -187,9 +194,11 @@ class Front:
             if sdk is not None:
                 sdk.close()
 
-    def _splice(self, viewer: socket.socket, sdk: socket.socket) -> None:
+    def _splice(self, viewer: socket.socket, sdk: socket.socket, calls: StopCalls) -> None:
         """Bytes both ways until both ends have closed; a viewer that fails, stalls or
-        leaves without its half of a close leaves the SDK's side reset."""
+        leaves without its half of a close leaves the SDK's side reset. The viewer's bytes
+        go through ``calls`` (a stop call reaches the SDK in the form it takes), the SDK's
+        are read by it (the stop services' ids)."""
         viewer.setblocking(False)
         sdk.setblocking(False)
         other = {viewer: sdk, sdk: viewer}
@@ -243,6 +252,10 @@ class Front:
                             else:
                                 if to is viewer and not waiting[to]:
                                     taken = time.monotonic()
+                                if sock is viewer:
+                                    data = calls.from_viewer(data)
+                                else:
+                                    calls.from_sdk(data)
                                 waiting[to] += data
                 except (BlockingIOError, InterruptedError):
                     continue

@@ -5,6 +5,7 @@ from __future__ import annotations
 import struct
 import threading
 import time
+from collections.abc import Callable, Mapping
 
 import can
 import canopen
@@ -31,6 +32,10 @@ BURST = 8
 REFUSED_BURSTS = 8
 #: How long the pacing thread sleeps with nothing to send before it looks again.
 PACER_IDLE = 1.0
+#: the command byte of a download's first request (CiA 301: ccs 1, and ccs 6 with cs 0 for a
+#: block download), masked as ``on_request`` reads it
+_DOWNLOAD_INITIATE = 0x20
+_BLOCK_DOWNLOAD_INITIATE = 0xC0
 
 
 class StrictSdoServer(BlockUploadServer):
@@ -65,6 +70,12 @@ class StrictSdoServer(BlockUploadServer):
     - An expedited download without the size indicated carries the object's own size
       (CiA 301: the trailing bytes are unspecified), so a one-byte e-stop written that way is
       an e-stop, not a length error.
+    - A download to a stop object (``stops``: the manager's 0x2110, 0x2111) is a stop at
+      the request that opens it, whatever it carries (rocoma_can/stop_surfaces.py): any
+      value, size and subindex, expedited, segmented (its segments need not follow, it may
+      announce megabytes) or block (refused as a transfer after the stop), and a frame cut
+      short as long as it names the object. What the transfer does afterwards is only
+      what the client is answered.
     """
 
     _open: int | None = None  # REQUEST_SEGMENT_UPLOAD / _DOWNLOAD while one is open
@@ -93,7 +104,15 @@ class StrictSdoServer(BlockUploadServer):
         if pacer is not None:
             pacer.join(2.0)
 
+    #: object index -> what a download to it does at once (the node's stops)
+    stops: Mapping[int, Callable[[], None]] = {}
+
     def on_request(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if len(data) >= 3 and (data[0] & 0xE0 == _DOWNLOAD_INITIATE or data[0] & 0xE1
+                               == _BLOCK_DOWNLOAD_INITIATE):
+            stop = self.stops.get(data[1] | data[2] << 8)
+            if stop is not None:  # before anything the request carries is read
+                stop()
         if len(data) != 8:
             return
         with self._lock:

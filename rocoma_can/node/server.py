@@ -68,6 +68,7 @@ from ..errors import HomingFailed
 from ..events import EventKind, ManagerEvent, ManagerState
 from ..manager import ControllerManager, SwitchResult
 from ..remote import cleared
+from ..stop_surfaces import CAN_FRAME, SDO
 from .objects import (
     ABORT_NO_RECOVERY,
     ABORT_NOT_FOUND,
@@ -196,6 +197,11 @@ class ManagerNode(can.Listener):
         self._node.sdo = StrictSdoServer(self._node.sdo.rx_cobid, self._node.sdo.tx_cobid,
                                           self._node,
                                           burst_gap=burst_gap(bitrate or ASSUMED_BITRATE))
+        # a download to 0x2110 / 0x2111 stops at its first request, whatever it carries
+        self._node.sdo.stops = {
+            ESTOP: lambda: SDO.stop(self.manager, "estop", f" (0x{ESTOP:04X})"),
+            FAILPROOF_STOP: lambda: SDO.stop(self.manager, "failproof",
+                                             f" (0x{FAILPROOF_STOP:04X})")}
         _never_produce_heartbeats(self._node)
         self._node.add_read_callback(self._on_read)
         self._node.add_write_callback(self._on_write)
@@ -292,7 +298,7 @@ class ManagerNode(can.Listener):
         cob_id = self._estop_cob_id
         if cob_id and msg.arbitration_id == cob_id and self._estop_in_cycle is None \
                 and not (msg.is_extended_id or msg.is_error_frame):
-            self.manager.emergency_stop(cause=f"CAN e-stop from 0x{cob_id:03X}")
+            CAN_FRAME.stop(self.manager, "estop", f" from 0x{cob_id:03X}")
             self.estop_frames.append(time.monotonic())
 
     def on_error(self, exc: Exception) -> None:  # the reader counts and retries bus errors
@@ -355,10 +361,8 @@ class ManagerNode(can.Listener):
                                                     f"{', '.join(names) or 'none'})")
                 raise SdoAbortedError(ABORT_NOT_FOUND)
             self._switch(names[n - 1])
-        elif index == ESTOP:  # (a stop is told by its e-stop event, whose cause names it)
-            m.emergency_stop(cause=f"SDO e-stop (0x{ESTOP:04X})")
-        elif index == FAILPROOF_STOP:
-            m.failproof_stop(cause=f"SDO failproof stop (0x{FAILPROOF_STOP:04X})")
+        elif index in (ESTOP, FAILPROOF_STOP):
+            pass  # stopped at the transfer's first request (StrictSdoServer.stops)
         elif index == CLEAR:
             latched = m.estop_latched
             m.clear_emergency_stop()

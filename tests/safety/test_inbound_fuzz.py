@@ -100,14 +100,16 @@ SEQUENCES = st.one_of(st.lists(frames(), min_size=1, max_size=12),
 
 
 def _touches(msg: can.Message, objects: set[int]) -> bool:
-    """An 8-byte download (initiate or segment: a segment may complete an open one) to one
-    of ``objects``; a segment names no object, so any segment counts."""
+    """A download (initiate or segment: a segment may complete an open one) to one of
+    ``objects``; a segment names no object, so any segment counts. A block download's
+    first request to a stop object stops too (the node refuses the transfer after it)."""
     if msg.arbitration_id != SDO_RX or msg.is_extended_id or msg.is_remote_frame:
         return False
     ccs = msg.data[0] >> 5 if msg.dlc else -1
     if ccs == 0:
         return True
-    return ccs == 1 and msg.dlc >= 3 and struct.unpack_from("<H", msg.data, 1)[0] in objects
+    initiate = ccs == 1 or ccs == 6 and not msg.data[0] & 1
+    return initiate and msg.dlc >= 3 and struct.unpack_from("<H", msg.data, 1)[0] in objects
 
 
 def _takes_drives_out(msg: can.Message) -> bool:
