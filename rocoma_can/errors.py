@@ -36,6 +36,10 @@ class HomingFailed(RocomaError, RuntimeError):
     """Homing of a drive did not end with it homed (the message names the drive and why)."""
 
 
+class BusTaken(RocomaError, RuntimeError):
+    """Another manager drives the bus (runtime/another_manager.py): what was heard there."""
+
+
 class LssFailed(RocomaError, RuntimeError):
     """An LSS service (CiA 305) got no answer or an error answer; the message says which."""
 

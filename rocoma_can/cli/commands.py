@@ -33,7 +33,7 @@ from ..cli_args import (
     seconds_or_zero,
     with_clear_hint,
 )
-from ..errors import ConfigError, NoAnswer, Refused, RocomaError
+from ..errors import BusTaken, ConfigError, NoAnswer, Refused, RocomaError
 from ..exit_codes import FAILED, INTERRUPTED, NO_ANSWER, OK, USAGE
 from ..fleet import client as fleet_client
 from ..fleet.bridge import FleetConfig, FleetError
@@ -71,6 +71,7 @@ log = logging.getLogger(__name__)
 # --- run / check-config -----------------------------------------------------------------------
 
 def _check_config(args: argparse.Namespace) -> int:
+    from ..runtime.another_manager import what_run_listens_for
     from ..runtime.config import load
     try:
         config = load(args.config)
@@ -84,6 +85,7 @@ def _check_config(args: argparse.Namespace) -> int:
           f"e-stop COB-ID 0x{config.manager.estop_cob_id:03X}", flush=True)
     for note in config.notes:
         print(f"note: {note}", flush=True)
+    print(f"note: {what_run_listens_for(config)}", flush=True)
     several = len(config.buses) > 1
     for name, load_ in config.loads.items():
         print(f"bus load{f' {name}' if several else ''}: {load_.explain()}", flush=True)
@@ -162,7 +164,7 @@ def _run(args: argparse.Namespace) -> int:
         runtime = Runtime(config, record=args.record, flight=flight,
                           flight_seconds=args.flight_seconds, announce=say.info,
                           foxglove=foxglove)
-    except (OSError, ValueError, FleetError, FoxgloveError) as exc:
+    except (OSError, ValueError, FleetError, FoxgloveError, BusTaken) as exc:
         log.error("%s", str(exc) + no_socketcan_hint(exc))
         return USAGE
     except KeyboardInterrupt:

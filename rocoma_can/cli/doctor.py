@@ -1,11 +1,13 @@
 """``rocoma-can doctor [CONFIG]``: is this host ready for the configuration, as a checklist
 with the fix for each miss. It only reads (sysfs, iproute2, rlimits, one SCHED_FIFO probe
-on a thread that ends at once); every fix is printed, never run. ``--timing`` also runs the
-bare control loop (runtime/host_timing.py) for a few seconds at the rate: whether this host
-keeps a loop's speed, which no setting read from /sys tells.
+on a thread that ends at once; with CONFIG it listens on its buses, sending nothing, for
+another manager, as run does before it starts); every fix is printed, never run.
+``--timing`` also runs the bare control loop (runtime/host_timing.py) for a few seconds at
+the rate: whether this host keeps a loop's speed, which no setting read from /sys tells.
 
 Exit codes: 0 nothing blocks the configuration (warnings allowed), 1 something does (a
-link missing, down, at another bit rate or bus-off; a realtime priority that is refused),
+link missing, down, at another bit rate or bus-off; a realtime priority that is refused;
+another manager heard on a bus),
 2 usage or a configuration that does not load.
 """
 from __future__ import annotations
@@ -91,6 +93,8 @@ def _read_checks(args: argparse.Namespace) -> tuple[str, list[Check], _LoopRun]:
             else:
                 checks.append(Check(f"bus {bus.label}", "n/a", f"interface {bus.interface!r}: "
                                     "doctor reads SocketCAN links only"))
+        from ..runtime.another_manager import doctor_check
+        checks.append(doctor_check(config))  # what run listens for before it sends
         return (args.config, checks + realtime_checks(config.priority, config.cpus, True),
                 (config.rate, config.priority, config.cpus, config.spin))
     if args.channel:

@@ -24,6 +24,7 @@ from ..node.server import ManagerNode
 from ..plugins import add_to_manager
 from ..record.recorder import BusToRecord, FlightStatus, Recorder, RecordingStatus
 from ..record.trace import SignalTrace
+from .another_manager import refuse_if_heard
 from .config import RuntimeConfig
 from .loop import ControlLoop, TimingSummary
 
@@ -127,6 +128,9 @@ class Runtime:
         # built in order; on a failure, what was built so far is closed (_close_parts)
         self._parts: list[Callable[[], object]] = [self.hardware.close]
         try:
+            # before anything is built that sends: another manager on these buses is
+            # BusTaken (runtime/another_manager.py), and nothing was sent
+            refuse_if_heard(config, self.hardware.layouts)
             names = [d.name for d in config.drives]
             required = (None if m.required_drives is None
                         else [names.index(n) for n in m.required_drives])
