@@ -195,6 +195,36 @@ def scan(bus: can.BusABC, *, listen: float = LISTEN, timeout: float = TIMEOUT,
         canopen_bus.close()
 
 
+def present(network: canopen.Network, node_id: int, *, listen: float = LISTEN,
+            timeout: float = TIMEOUT) -> str | None:
+    """How node ``node_id`` shows it is on the bus, as a scan would find it, or None: its
+    heartbeat or boot-up within ``listen`` s, else an answer (an abort too) to an SDO
+    upload of 0x1000 within ``timeout``. Sends that upload and nothing else. A STOPPED node
+    answers no SDO (CiA 301): it is found only by a heartbeat heard in ``listen``."""
+    heard = _Listener()
+    cob_id = c301.HEARTBEAT + node_id
+    network.subscribe(cob_id, heard.on_heartbeat)
+    try:
+        with heard.changed:
+            heard.changed.wait_for(lambda: node_id in heard.heard, listen)
+            seen = heard.heard.get(node_id)
+        if seen is None:
+            _probe(network, [node_id], heard, timeout, 1)
+            with heard.changed:
+                seen = heard.heard.get(node_id)
+                answered = node_id in heard.answered
+        else:
+            answered = False
+    finally:
+        network.unsubscribe(cob_id, heard.on_heartbeat)
+    if seen is not None:
+        return f"its {seen.first} on 0x{cob_id:03X}, {seen.state}"
+    if answered:
+        return (f"it answered an SDO upload of 0x{c301.DEVICE_TYPE:04X} on "
+                f"0x{c301.SDO_TX + node_id:03X}")
+    return None
+
+
 def _probe(network: canopen.Network, ids: list[int], heard: _Listener, timeout: float,
            in_flight: int) -> None:
     """Send the 0x1000 probes, ``in_flight`` outstanding at once, each ``timeout`` long."""

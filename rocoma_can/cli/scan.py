@@ -3,8 +3,10 @@ a node a node id by LSS, CiA 305).
 
 ``scan`` only reads (SDO uploads; with ``--lss`` also LSS fastscan, which changes no node
 id): it may run beside a manager. Exit codes: 0 the scan ran (also when no node
-answered), 1 ``lss`` got no answer or a refusal, 2 usage errors and a bus that cannot be
-opened or sent on (a link down; a transmit queue that stays full: no node acknowledges).
+answered), 1 ``lss`` got no answer, a refusal or a malformed answer, or found the node id
+taken by a node already on the bus (nothing assigned), and ``scan --lss`` a malformed LSS
+answer, 2 usage errors and a bus that cannot be opened or sent on (a link down; a transmit
+queue that stays full: no node acknowledges).
 """
 from __future__ import annotations
 
@@ -143,7 +145,13 @@ def _scan(args: argparse.Namespace) -> int:
 
     def work(bus: can.BusABC) -> int:
         nodes = scan(bus, timeout=args.timeout, listen=args.listen)
-        unconfigured = _unconfigured(bus, args.timeout) if args.lss else None
+        try:
+            unconfigured = _unconfigured(bus, args.timeout) if args.lss else None
+        except LssFailed as exc:  # the nodes found are still worth their lines
+            if not args.json and nodes:
+                print("\n".join(table(nodes)), flush=True)
+            _err(f"scan --lss: {exc}")
+            return FAILED
         if args.json:
             print(json.dumps({"nodes": [n.as_json() for n in nodes],
                               **({"unconfigured": [vars(i) for i in unconfigured]}
@@ -176,6 +184,8 @@ def _lss(args: argparse.Namespace) -> int:
     from ..drivers.bus import CanopenBus
     from ..drivers.identity import Identity
     from ..drivers.lss import assign, bit_timing_index
+    from ..drivers.scan import TIMEOUT as SDO_TIMEOUT
+    from ..drivers.scan import present
     address = None
     if not args.fastscan:
         parts = {"vendor_id": args.vendor, "product_code": args.product,
@@ -197,7 +207,9 @@ def _lss(args: argparse.Namespace) -> int:
         lent = CanopenBus(bus)
         try:
             target = assign(lent.network, args.set_node_id, address, bitrate=args.bitrate,
-                            store=args.store, timeout=args.timeout)
+                            store=args.store, timeout=args.timeout,
+                            occupant=lambda n: present(lent.network, n, listen=args.listen,
+                                                       timeout=max(args.timeout, SDO_TIMEOUT)))
         except LssFailed as exc:
             _err(str(exc))
             return FAILED
@@ -265,6 +277,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="also the bit rate, bit/s (CiA 305 table: 1000000 ... 10000)")
     p.add_argument("--store", action="store_true",
                    help="store the configuration in the node (kept across a power cycle)")
+    p.add_argument("--listen", type=seconds, default=LISTEN, metavar="S",
+                   help="first listen this long for a node already at --set-node-id (its "
+                        f"heartbeat; then an SDO probe); default {LISTEN:g}")
     p.set_defaults(func=_lss)
 
 
