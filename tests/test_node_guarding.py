@@ -10,13 +10,11 @@ from __future__ import annotations
 
 import math
 import struct
-import threading
 import time
 from pathlib import Path
 
 import can
 import pytest
-from fixtures.budgets import STALL
 from fixtures.driver_rig import (
     Brake,
     Rig,
@@ -24,6 +22,7 @@ from fixtures.driver_rig import (
     seconds_until_all_off,
     synced_mark,
 )
+from fixtures.odd_node import Responder, frames
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -180,31 +179,20 @@ def test_one_lost_answer_is_not_taken_for_a_repeat(can_setup, rig_on, frame_reco
     assert rig.mgr.state == ManagerState.OK
 
 
-class HungMailbox:
+class HungMailbox(Responder):
     """A hung node's CAN controller: its CPU stopped, but the controller still answers each
     remote request on 0x700 + node id by itself, with the frame last loaded into its
-    mailbox, the same byte every time: its toggle bit never changes (on its own bus
-    handle, a thread, stopped with the test)."""
+    mailbox, the same byte every time: its toggle bit never changes."""
 
     def __init__(self, bus: can.BusABC, node: int, byte: int) -> None:
-        self._bus, self._node, self._byte = bus, node, byte
         self.answered = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-        self._thread.start()
 
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            msg = self._bus.recv(0.01)
-            if msg is not None and msg.is_remote_frame \
-                    and msg.arbitration_id == cia301.HEARTBEAT + self._node:
-                self._bus.send(can.Message(arbitration_id=cia301.HEARTBEAT + self._node,
-                                           is_extended_id=False, data=bytes((self._byte,))))
-                self.answered += 1
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(STALL)
+        def answer(msg: can.Message) -> list[can.Message]:
+            if not (msg.is_remote_frame and msg.arbitration_id == cia301.HEARTBEAT + node):
+                return []
+            self.answered += 1
+            return frames(cia301.HEARTBEAT + node, [bytes((byte,))])
+        super().__init__(bus, answer, owns_bus=False)  # the test's bus_factory shuts it
 
 
 @pytest.fixture
@@ -273,7 +261,7 @@ class _Requests:
 OPERATIONAL = cia301.NmtState.OPERATIONAL
 
 
-def _guarding() -> NodeGuarding:
+def _one_guarded() -> NodeGuarding:
     guarding = NodeGuarding([True], [1], [0.1], [_Requests()])
     guarding.start(0)
     return guarding
@@ -285,7 +273,7 @@ def _asked(guarding: NodeGuarding, t: float) -> float:
 
 
 def test_a_mailbox_answering_every_request_alike_counts_once():
-    guarding, t = _guarding(), 0.0
+    guarding, t = _one_guarded(), 0.0
     taken = []
     for _ in range(20):
         t = _asked(guarding, t)
@@ -298,7 +286,7 @@ def test_a_mailbox_answering_every_request_alike_counts_once():
 def test_a_mailbox_answering_every_second_request_alike_is_excused_once():
     """A request without an answer before a repeat may be a lost answer: excused, once; the
     answer after it must toggle."""
-    guarding, t = _guarding(), 0.0
+    guarding, t = _one_guarded(), 0.0
     taken = []
     for k in range(20):
         t = _asked(guarding, t)
@@ -308,7 +296,7 @@ def test_a_mailbox_answering_every_second_request_alike_is_excused_once():
 
 
 def test_a_boot_up_starts_the_toggling_over():
-    guarding, t = _guarding(), 0.0
+    guarding, t = _one_guarded(), 0.0
     t = _asked(guarding, t)
     assert guarding.answer(0, OPERATIONAL) == OPERATIONAL
     t = _asked(guarding, t)
@@ -324,7 +312,7 @@ def test_a_boot_up_starts_the_toggling_over():
 def test_answers_that_never_toggle_buy_at_most_one_excused_answer(heard, bit):
     """Whatever the pattern of requests answered and not, a constant toggle bit is taken
     at most twice: the first answer and one excused as following a lost one."""
-    guarding, t = _guarding(), 0.0
+    guarding, t = _one_guarded(), 0.0
     taken = 0
     for answered in heard:
         t = _asked(guarding, t)
@@ -338,7 +326,7 @@ def test_answers_that_never_toggle_buy_at_most_one_excused_answer(heard, bit):
 def test_a_drive_that_toggles_loses_no_answer_to_an_isolated_lost_frame(runs, first):
     """A drive that toggles with every answer it sends, one answer lost now and then (each
     loss followed by at least two answers heard): every answer heard is taken."""
-    guarding, t = _guarding(), 0.0
+    guarding, t = _one_guarded(), 0.0
     toggle = first
     pattern = [True] * 3 + [x for run in runs for x in [False] + [True] * run]
     for heard in pattern:
