@@ -267,6 +267,7 @@ def test_every_surface_has_garbage_forms_and_both_ways_are_listed():
 #: these is a stop request from outside; every such request goes through a StopSurface.
 NOT_A_REQUEST = {
     ("rocoma_can/stop_surfaces.py", "stop"),            # the one place requests arrive
+    ("rocoma_can/stop_surfaces.py", "StopSurface("),    # where the surfaces are made
     ("drivers/stop_requests.py", "apply"),              # what the cycle's read found (faults,
                                                         # and e-stop frames: CAN_FRAME's cause)
     ("rocoma_can/runtime/loop.py", "_torque_off"),      # the loop's own stop
@@ -293,6 +294,10 @@ class _Calls(ast.NodeVisitor):
     def visit_Call(self, node: ast.Call) -> None:
         if isinstance(node.func, ast.Attribute) and node.func.attr in STOP_CALLS:
             self.found.add((self.file, self._functions[-1]))
+        name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(
+            node.func, "id", "")
+        if name == "StopSurface":  # a surface made where SURFACES does not list it
+            self.found.add((self.file, "StopSurface("))
         self.generic_visit(node)
 
 
@@ -307,8 +312,9 @@ def _stop_calls() -> set[tuple[str, str]]:
 
 
 def test_no_stop_reaches_the_manager_but_through_a_surface():
-    """A call of the manager's stop outside NOT_A_REQUEST is a surface that is not in
-    SURFACES (or a new place that stops without one): add it there, and its forms here."""
+    """A call of the manager's stop outside NOT_A_REQUEST, or a StopSurface made outside
+    rocoma_can/stop_surfaces.py, is a surface that is not in SURFACES: add it there, and
+    its forms here."""
     calls = _stop_calls()
     outside = sorted(calls - NOT_A_REQUEST - {
         (f, fn) for f, fn in calls if f == "rocoma_can/manager.py"})  # the manager itself
