@@ -13,6 +13,7 @@ from typing import Any
 import can
 import pytest
 import yaml
+from fixtures.console import untimed
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
 from rocoma_can import ManagerState, SwitchResult
@@ -80,9 +81,9 @@ def test_a_second_run_on_a_bus_a_manager_drives_refuses_and_sends_nothing(
         assert main(["run", _file(tmp_path, cfg), "--no-flight", "--duration", "5"]) == 2
         out, err = capsys.readouterr()
         assert out == ""
-        [line] = err.splitlines()  # one line
+        [line] = untimed(err)  # one line, in run's console format
         assert line == (
-            "rocoma-can: another manager is driving the bus: heard within "
+            "rocoma-can: error: another manager is driving the bus: heard within "
             f"{listen_time(validate(cfg)):.3f} s on virtual:{virtual_channel}: SYNC (0x080), "
             "the state frame of manager node 100 (0x1E4), the heartbeat of node 100 (0x764), "
             "this manager's node id, an RPDO to drive 'joint1' (0x201, 0x301), an RPDO to "
