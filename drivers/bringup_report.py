@@ -40,16 +40,16 @@ class Started(Protocol):
 
 
 class BringupReport:
-    """``names``/``node_ids``: the drives'; ``bus_of``: each drive's bus (its index in
-    ``channels``, each bus's channel as a person names it); ``say``: runs a call off the
-    cycle (the hardware's executor's submit)."""
+    """``names``/``node_ids``: the drives'; ``bus_of``: each drive's bus (an index of
+    ``channel``'s, which names a bus's channel as a person reads it, asked only when a bus
+    is told); ``say``: runs a call off the cycle (the hardware's executor's submit)."""
 
     def __init__(self, node_ids: Sequence[int], bus_of: Sequence[int],
-                 channels: Sequence[str], say: Callable[..., object]) -> None:
-        self._node_ids, self._bus_of, self._channels = list(node_ids), list(bus_of), \
-            list(channels)
+                 channel: Callable[[int], str], say: Callable[..., object]) -> None:
+        self._node_ids, self._bus_of, self._channel = list(node_ids), list(bus_of), channel
         self._say = say
-        self._held: list[list[int]] = [[] for _ in channels]  # silent drives not told yet
+        # silent drives not told yet, per bus
+        self._held: list[list[int]] = [[] for _ in range(max(bus_of, default=-1) + 1)]
         #: the start-up has ended, every drive READY or FAILED (once: a recovery that
         #: restarts drives later is no start-up)
         self.finished = False
@@ -69,7 +69,7 @@ class BringupReport:
         if held and not any(_starting(drives[k]) for k in mine):
             self._held[bus] = []
             if len(held) == len(mine):
-                self._say(self._tell_silent_bus, self._channels[bus],
+                self._say(self._tell_silent_bus, self._channel(bus),
                           [(drives[k].name, self._node_ids[k]) for k in held],
                           drives[held[0]].unanswered)
             else:

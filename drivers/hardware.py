@@ -220,7 +220,7 @@ class CanopenHardware:
         self._bringup: list[DriveBringup] = []
         self._report = BringupReport([d.node_id for d in drives],
                                      [self.ports.index(p) for p in self._port_of],
-                                     [p.channel for p in self.ports], self._submit)
+                                     lambda bus: self.ports[bus].channel, self._submit)
         self._executor: ThreadPoolExecutor | None = None
         self._switch_off = SdoSwitchOff()  # started with the bus (start)
         self._now = 0.0

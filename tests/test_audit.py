@@ -24,6 +24,7 @@ from rocoma_can.exit_codes import OK
 from rocoma_can.node.client import ManagerClient
 from rocoma_can.node.objects import CLEAR, ESTOP, RECOVER
 from rocoma_can.remote import Transport, serve
+from rocoma_can.stop_surfaces import FOXGLOVE, ZENOH
 
 
 def _lines(caplog: pytest.LogCaptureFixture) -> list[str]:
@@ -99,8 +100,8 @@ def test_the_remote_surfaces_requests_are_told_alike(caplog):
                                 estop_must_be_cleared=True)
     add_to_manager(manager, {"controllers": [{"name": "pd", "plugin": "pd"}]})
     manager.subscribe(Audit())
-    zenoh = Transport("Zenoh", "zenoh.allow_commands", True)
-    foxglove = Transport("Foxglove", "foxglove.allow_commands", False)
+    zenoh = Transport(ZENOH, "zenoh.allow_commands", True)
+    foxglove = Transport(FOXGLOVE, "foxglove.allow_commands", False)
     try:
         with caplog.at_level(logging.INFO, logger=AUDIT):
             manager.emergency_stop("test")
