@@ -1,7 +1,8 @@
 """The import contract: dependencies point one way, core <- drivers <- node, record, fleet,
-live <- runtime <- cli, and controllers see the core and the joint types they command only. Read
-from the source (every import statement, at any depth, relative ones resolved), so a
-violation fails the fast suite wherever it hides; and the CLI's verbs start without numpy.
+live, ros2 <- runtime <- cli, and controllers see the core and the joint types they command
+only. Read from the source (every import statement, at any depth, relative ones resolved),
+so a violation fails the fast suite wherever it hides; and the CLI's verbs start without
+numpy.
 
 import-linter cannot check this project: drivers/ and controllers/ are mapped into the
 rocoma_can namespace by setuptools (package-dir), and it walks the root package's folder.
@@ -23,7 +24,7 @@ PACKAGES = {ROOT / "rocoma_can": "rocoma_can", ROOT / "drivers": "rocoma_can.dri
             ROOT / "controllers": "rocoma_can.controllers"}
 #: rank of each part of the package: a module imports its own rank or lower
 RANK = {"core": 0, "eds": 0, "drivers": 1, "node": 2, "record": 2, "fleet": 2, "live": 2,
-        "runtime": 3, "cli": 4}
+        "ros2": 2, "runtime": 3, "cli": 4}
 #: what the controllers may use besides the core
 CONTROLLERS_MAY = ("rocoma_can.drivers.joints",)
 

@@ -49,6 +49,8 @@ from ..node.objects import (
     RESULT_NAMES,
     SWITCH_REFUSAL,
 )
+from ..ros2.config import add_options as add_ros2_options
+from ..ros2.config import from_args as ros2_from_args
 from .live import cycle_text
 from .main import interrupted_by
 
@@ -132,6 +134,7 @@ def _run(args: argparse.Namespace) -> int:
     drives (exit 130); during bring-up the loop's torque-off, exit 130; while running the
     loop's torque-off, exit 0 (the way a run is ended); while closing, after the
     torque-off, what was cut short, exit 130."""
+    from ..ros2.node import Ros2Error
     from ..runtime.config import load
     from ..runtime.system import Runtime
     try:  # the options first: nothing is read or started for a command line that is wrong
@@ -153,6 +156,12 @@ def _run(args: argparse.Namespace) -> int:
         for problem in exc.problems:
             log.error("%s", problem)
         return USAGE
+    problems: list[str] = []
+    config.ros2 = ros2_from_args(args, config.ros2, problems)
+    for problem in problems:
+        log.error("%s", problem)
+    if problems:
+        return USAGE
     flight = None if args.no_flight else args.flight_dir
     if flight is not None and not recording_available():
         log.warning("flight recorder off: it writes MCAP, pip install 'rocoma-can[record]'")
@@ -164,7 +173,7 @@ def _run(args: argparse.Namespace) -> int:
         runtime = Runtime(config, record=args.record, flight=flight,
                           flight_seconds=args.flight_seconds, announce=say.info,
                           foxglove=foxglove)
-    except (OSError, ValueError, FleetError, FoxgloveError, BusTaken) as exc:
+    except (OSError, ValueError, FleetError, FoxgloveError, BusTaken, Ros2Error) as exc:
         log.error("%s", str(exc) + no_socketcan_hint(exc))
         return USAGE
     except KeyboardInterrupt:
@@ -210,6 +219,11 @@ def _say_started(runtime: Runtime, args: argparse.Namespace) -> None:
     # (running without Zenoh, zenoh.required false: said by the runtime as it found it)
     if runtime.foxglove is not None:
         say.info("%s", describe(runtime.foxglove))
+    if runtime.ros2 is not None:
+        from ..ros2.node import describe as describe_ros2
+        say.info("%s", describe_ros2(runtime.ros2))
+    elif runtime.ros2_error:
+        log.warning("running without the ROS 2 node: %s", runtime.ros2_error)
     m = runtime.manager
     say.info("state %s, controller %s%s", m.state.name, m.active_controller_name,
              ", e-stop latched (rocoma-can clear clears it)" if m.estop_latched else "")
@@ -327,6 +341,8 @@ def fleet_from_args(args: argparse.Namespace, fleet: FleetConfig | None) -> Flee
         flags["deadman"] = args.zenoh_deadman
     if not flags and args.zenoh is None:
         return fleet
+    if args.ros2 and args.zenoh is None and fleet is None and list(flags) == ["connect"]:
+        return None  # --ros2 --zenoh-connect: the ROS 2 node's router, no fleet bridge
     problems: list[str] = []
     merged = parse_fleet(flags, problems, where="--zenoh", base=fleet)
     if problems:
@@ -585,6 +601,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     g.add_argument("--zenoh-deadman", default=None, metavar="KEY",
                    help="e-stop when this liveliness token vanishes (once seen)")
     add_foxglove_options(p)
+    add_ros2_options(p)
     p.set_defaults(func=_run, clock=True, audit=True)  # its console: the run's record
 
     p = subparsers.add_parser("check-config", help="validate a YAML config, list every problem")

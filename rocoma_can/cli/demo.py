@@ -76,6 +76,7 @@ FLIGHT_SECONDS = 2.0
 
 if TYPE_CHECKING:  # imported by run_demo(): `rocoma-can --help` must not import them
     from ..live.foxglove import FoxgloveConfig
+    from ..ros2.config import Ros2Config
     from ..runtime.config import RuntimeConfig
     from ..runtime.system import Runtime
 
@@ -312,7 +313,8 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
              flight: str | Path | None = None,
              foxglove: FoxgloveConfig | None = None,
              data_bitrate: int | None = None, channel: str | None = None,
-             sim: str = "loop", priority: int | None = None) -> Report:
+             sim: str = "loop", priority: int | None = None,
+             ros2: Ros2Config | None = None) -> Report:
     """The walk-through; ``eds``: the simulated drives emulate this EDS/DCF and the demo
     uses the modes it supports, skipping (with the reason) the steps it cannot do;
     ``record``: a directory for the run's recording (``run --record``'s files) and its
@@ -331,7 +333,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     thread after each write) or ``process`` (one of their own; demo_sim.py). ``priority``:
     the loop's thread runs SCHED_FIFO at it, as a robot's ``realtime.priority`` has it;
     where the system refuses, the summary says why and the demo runs on at normal
-    priority."""
+    priority. ``ros2``: the manager as a ROS 2 node, as ``run --ros2`` serves it."""
     from ..drivers.bus import open_bus
     from ..live.urdf import parse_urdf
     from ..runtime.config import validate
@@ -349,6 +351,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     if zenoh_listen is not None:
         raw["zenoh"] = {"prefix": ZENOH_PREFIX, "listen": [zenoh_listen], "multicast": False}
     config = validate(raw, source="demo")
+    config.ros2 = ros2
     config.robot = parse_urdf(demo_urdf([d.name for d in config.drives]).encode(), "demo")
     notes = grouped_notes(config.plans)
     for line in notes.values():
@@ -403,6 +406,9 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
             if rt.foxglove is not None:
                 from ..live.foxglove import describe
                 out(f"rocoma-can demo: {describe(rt.foxglove)}")
+            if rt.ros2 is not None:
+                from ..ros2.node import describe as describe_ros2
+                out(f"rocoma-can demo: {describe_ros2(rt.ros2)}")
             if zenoh_listen is not None:
                 out(f"rocoma-can demo: on Zenoh as {ZENOH_PREFIX} at {zenoh_listen}; from "
                     f"another shell: rocoma-can status --watch --zenoh {ZENOH_PREFIX} "
@@ -499,6 +505,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         "said, and the demo runs at normal priority). Default: normal")
     from .commands import add_foxglove_options
     add_foxglove_options(p)
+    from ..ros2.config import add_options as add_ros2_options
+    add_ros2_options(p, connect=True)
     p.add_argument("--zenoh-listen", default=None, metavar="ENDPOINT",
                    help="serve the demo's manager on Zenoh as rocoma/demo at ENDPOINT "
                         "(e.g. tcp/127.0.0.1:7447): watch and e-stop it from another shell")
@@ -530,6 +538,13 @@ def _main(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"demo: {exc}", flush=True)
         return USAGE
+    from ..ros2.config import from_args as ros2_from_args
+    problems: list[str] = []
+    ros2 = ros2_from_args(args, None, problems)
+    if problems:
+        for problem in problems:
+            print(f"demo: {problem}", flush=True)
+        return USAGE
     record = None if args.no_record else Path(args.record or default_record_dir())
     if record is not None:
         try:
@@ -545,7 +560,7 @@ def _main(args: argparse.Namespace) -> int:
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen, flight=flight,
                           foxglove=foxglove, data_bitrate=data_bitrate,
-                          sim=args.sim, priority=args.priority)
+                          sim=args.sim, priority=args.priority, ros2=ros2)
     except SimulatorFailed as exc:  # its drives' process did not start
         print(f"demo: {exc}", flush=True)
         return FAILED

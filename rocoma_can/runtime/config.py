@@ -23,6 +23,8 @@ Layout (every key but ``drives`` and ``controllers`` has a default; docs/configu
     zenoh: {prefix: rocoma/<host>, mode: null, connect: [], listen: [], multicast: null,
             allow_commands: false, deadman: null, required: true}  # optional (fleet/bridge.py);
                                    # null mode/multicast: Zenoh's own (peer, scouting on)
+    ros2: {node: rocoma, namespace: /, domain_id: 0, distro: jazzy}  # optional: the manager
+                                   # as a ROS 2 node over rmw_zenoh (ros2/config.py)
     urdf: robot.urdf               # optional: the robot Foxglove's 3D panel draws (relative
                                    # to this file; a joint per drive, by the drive's name)
     drives: [ {name, node_id, increments_per_rev, rated_torque_nm, modes, ...} ]
@@ -49,6 +51,8 @@ from ..fleet.bridge import FleetConfig
 from ..fleet.bridge import parse as parse_fleet
 from ..live.urdf import Robot
 from ..manager import TimingSupervision
+from ..ros2.config import Ros2Config
+from ..ros2.config import parse as parse_ros2
 from ..user_files import yaml_problem
 from .bus_load import BusLoad
 from .config_check import (
@@ -69,7 +73,7 @@ from .config_check import (
 )
 
 _TOP_KEYS = {"bus", "buses", "rate", "manager", "realtime", "supervision", "timing", "drives",
-             "controllers", "emergency_controllers", "zenoh", "urdf"}
+             "controllers", "emergency_controllers", "zenoh", "urdf", "ros2"}
 
 
 @dataclass
@@ -102,6 +106,7 @@ class RuntimeConfig:
     spin: float | None = None  # s the loop spins before each deadline (None: loop.py's)
     notes: list[str] = field(default_factory=list)  # worth saying, not wrong (check-config)
     robot: Robot | None = None  # urdf: (the live view's 3D robot)
+    ros2: Ros2Config | None = None  # the ros2: section (None: no ROS 2 node)
 
     @property
     def bus(self) -> BusConfig:
@@ -276,6 +281,7 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
         fleet.config_file = str(base / fleet.config_file)  # relative to the YAML file
     if fleet is not None and fleet.config_file:
         check_regular("zenoh.config_file", fleet.config_file, problems)
+    ros2 = parse_ros2(data.get("ros2"), problems)
     controllers = {k: data.get(k) for k in ("controllers", "emergency_controllers")}
     notes = check_controller_sections(controllers, drives, check_controllers, problems)
     robot, urdf_notes = check_urdf(data.get("urdf"), base, drives, problems)
@@ -287,5 +293,5 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                          controllers, priority, set(cpus) if cpus else None, supervision,
                          timing, source, loads, plans, fleet,
                          spin=None if spin_us is None else spin_us * 1e-6,
-                         notes=notes + urdf_notes, robot=robot)
+                         notes=notes + urdf_notes, robot=robot, ros2=ros2)
 

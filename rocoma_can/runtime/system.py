@@ -17,6 +17,7 @@ from ..drivers.bus import open_bus
 from ..drivers.hardware import CanopenHardware
 from ..drivers.status import HardwareStatus
 from ..fleet.bridge import FleetBridge, FleetConfig, FleetError
+from ..inputs import TopicCommanded
 from ..live.foxglove import FoxgloveConfig, FoxgloveView
 from ..manager import ControllerManager
 from ..node.objects import RESULT_NAMES
@@ -24,6 +25,7 @@ from ..node.server import ManagerNode
 from ..plugins import add_to_manager
 from ..record.recorder import BusToRecord, FlightStatus, Recorder, RecordingStatus
 from ..record.trace import SignalTrace
+from ..ros2.node import Ros2Error, Ros2Node
 from .another_manager import refuse_if_heard
 from .config import RuntimeConfig
 from .loop import ControlLoop, TimingSummary
@@ -54,6 +56,7 @@ class RuntimeStatus:
     loads: dict[str, float]   # per bus: planned load at the running rate (0..1)
     cycle: CycleReport
     zenoh: dict[str, Any] | None
+    ros2: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         report = self.hardware.as_dict()
@@ -62,6 +65,8 @@ class RuntimeStatus:
         report["cycle"] = dict(vars(self.cycle))  # (plain values: no deep copy)
         if self.zenoh is not None:
             report["zenoh"] = self.zenoh
+        if self.ros2 is not None:
+            report["ros2"] = self.ros2
         return report
 
 
@@ -114,6 +119,8 @@ class Runtime:
         self.recording: RecordingStatus | None = None
         self.flight: FlightStatus | None = None
         self.fleet: FleetBridge | None = None
+        self.ros2: Ros2Node | None = None
+        self.ros2_error = ""
         self.foxglove: FoxgloveView | None = None
         self.fleet_error = ""
         self._recovery_lock = threading.Lock()
@@ -168,6 +175,8 @@ class Runtime:
             self.loop.trace = self._recorders(record, flight, flight_seconds, announce)
             if config.fleet is not None:  # its queries read the loop's statistics
                 self._bridge(config.fleet)
+            if config.ros2 is not None:
+                self._ros2_node()
         except BaseException:
             self.close()
             raise
@@ -184,6 +193,27 @@ class Runtime:
             log.warning("running without Zenoh (zenoh.required: false): %s", exc)
             return
         self._parts.insert(0, self.fleet.close)
+
+    def _ros2_node(self) -> None:
+        """The ROS 2 node (ros2/node.py): Ros2Error when it cannot be served and the section
+        says ``required``; otherwise a warning, and the reason in the status report. The
+        controllers that follow a command topic get its commands."""
+        config = self.config
+        assert config.ros2 is not None
+        inputs = [a.controller for a in self.manager.adapters().values()
+                  if isinstance(a.controller, TopicCommanded)]
+        first = config.buses[0].label
+        try:
+            self.ros2 = Ros2Node(config.ros2, self.manager, self.hardware.state, self.status,
+                                 recover=self._recover, inputs=inputs,
+                                 buses={d.name: d.bus or first for d in config.drives})
+        except Ros2Error as exc:
+            if config.ros2.required:
+                raise
+            self.ros2_error = str(exc)
+            log.warning("running without the ROS 2 node (ros2.required: false): %s", exc)
+            return
+        self._parts.insert(0, self.ros2.close)
 
     def _recorders(self, record: str | None, flight: str | None, seconds: float,
                    announce: Callable[[str], None] | None) -> SignalTrace | None:
@@ -259,10 +289,12 @@ class Runtime:
                                            t.work_max))
         zenoh = (self.fleet.info() if self.fleet is not None
                  else {"error": self.fleet_error} if self.fleet_error else None)
+        ros2 = (self.ros2.info() if self.ros2 is not None
+                else {"error": self.ros2_error} if self.ros2_error else None)
         return RuntimeStatus(self.hardware.status_report(), loads,
                              CycleReport(rate, t.cycles, t.overruns, t.overruns_waiting,
                                          mean, peak, p99, work, self.loop.yield_pauses),
-                             zenoh)
+                             zenoh, ros2)
 
     def status(self) -> dict[str, Any]:
         """What ``rocoma-can status --json`` prints, built here rather than read over SDO
@@ -275,7 +307,8 @@ class Runtime:
                 "switch_refused": m.last_refusal, "estop_cause": node.last_cause,
                 "estop_cob_id": node.estop_cob_id,
                 **{k: report.get(k) for k in ("startup_finished", "recovery", "bus_fault",
-                                              "cycle", "buses", "drives", "zenoh")},
+                                              "cycle", "buses", "drives", "zenoh",
+                                              "ros2")},
                 **({"foxglove": self.foxglove.info()} if self.foxglove is not None else {})}
 
     def run(self, duration: float | None = None, signals: bool = True) -> TimingSummary:
@@ -286,12 +319,16 @@ class Runtime:
             self.node.start()
             if self.fleet is not None:
                 self.fleet.start()
+            if self.ros2 is not None:
+                self.ros2.start()
             if self.foxglove is not None:
                 self.foxglove.start()
             return self.loop.run(duration)
         finally:
             if self.fleet is not None:
                 self.fleet.loop_stopped()
+            if self.ros2 is not None:
+                self.ros2.loop_stopped()
             if self.foxglove is not None:
                 self.foxglove.loop_stopped()
             if restore is not None:

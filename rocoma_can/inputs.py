@@ -1,0 +1,43 @@
+"""Commands from outside the manager for the controllers that follow them: a controller
+that takes joint commands from a topic (controllers/ros2_command.py) says which
+(``command_topic``) and takes each sample (``take_command``, called from the transport's
+thread, never the cycle's); the ROS 2 node (rocoma_can/ros2/) delivers them. The
+controllers see only this seam, not the transport."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+
+@dataclass(frozen=True)
+class JointCommandSample:
+    """One joint command as it arrived (a sensor_msgs/JointState: names, and per name a
+    position, velocity and effort, any of the three lists empty when not commanded);
+    ``received``: time.monotonic() on arrival."""
+    names: tuple[str, ...]
+    position: tuple[float, ...]
+    velocity: tuple[float, ...]
+    effort: tuple[float, ...]
+    received: float
+
+    def problem(self) -> str:
+        """What makes the sample unusable ("" when nothing does): a list neither empty nor
+        as long as the names, a name twice."""
+        n = len(self.names)
+        for field, values in (("position", self.position), ("velocity", self.velocity),
+                              ("effort", self.effort)):
+            if values and len(values) != n:
+                return f"{len(values)} {field} values for {n} joints"
+        if len(set(self.names)) != n:
+            return "a joint named twice"
+        return ""
+
+
+@runtime_checkable
+class TopicCommanded(Protocol):
+    """A controller that follows joint commands published on ``command_topic``."""
+
+    @property
+    def command_topic(self) -> str: ...
+
+    def take_command(self, sample: JointCommandSample) -> None: ...

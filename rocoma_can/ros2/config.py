@@ -1,0 +1,171 @@
+"""The ``ros2:`` config section and the ``--ros2`` family of command-line options
+(docs/ros2.md); both go through ``parse``, so a flag is checked as the section is.
+
+    ros2:
+      node: rocoma               # the node's name
+      namespace: ""              # e.g. /robot1
+      domain_id: 0               # ROS_DOMAIN_ID (default: that variable, else 0)
+      distro: jazzy              # jazzy or kilted: the type hashes served
+      ros2_control: null         # controller_manager_msgs of this ros2_control release
+                                 # (4.0, 4.13, 4.28; null: the distro's current)
+      mode: client               # a Zenoh client of the router, as rmw_zenoh's nodes reach it
+      connect: [tcp/localhost:7447]
+      joint_states_rate: 100     # Hz
+      allow_commands: false      # clear, recover, switch_controller from ROS 2
+      required: true             # no router at start-up: an error (false: a warning)
+"""
+from __future__ import annotations
+
+import argparse
+import difflib
+import os
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from .interfaces import DISTROS, ROS2_CONTROL
+
+DEFAULT_ROUTER = "tcp/localhost:7447"
+_KEYS = {"node", "namespace", "domain_id", "distro", "ros2_control", "mode", "connect",
+         "joint_states_rate", "allow_commands", "required"}
+#: a ROS 2 name token: a letter or '_' first, then letters, digits, '_'
+_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+#: rmw_zenoh, as DDS, partitions by domain id; ROS 2 accepts 0..232 on Linux
+MAX_DOMAIN_ID = 232
+
+
+def default_domain_id() -> int:
+    """ROS_DOMAIN_ID when it is a domain id, else 0 (as rcl does)."""
+    value = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    return int(value) if value.isdigit() and int(value) <= MAX_DOMAIN_ID else 0
+
+
+@dataclass
+class Ros2Config:
+    node: str = "rocoma"
+    namespace: str = "/"
+    domain_id: int = field(default_factory=default_domain_id)
+    distro: str = "jazzy"
+    ros2_control: str | None = None
+    mode: str = "client"
+    connect: list[str] = field(default_factory=lambda: [DEFAULT_ROUTER])
+    joint_states_rate: float = 100.0
+    allow_commands: bool = False
+    required: bool = True
+
+
+def name_problem(name: Any) -> str | None:
+    """Why ``name`` is no ROS 2 node name (None: it is one)."""
+    if not isinstance(name, str) or not _TOKEN.fullmatch(name):
+        return (f"expected a ROS 2 name (a letter or '_', then letters, digits, '_'), "
+                f"got {name!r}")
+    return None
+
+
+def namespace_problem(namespace: Any) -> str | None:
+    """Why ``namespace`` is no ROS 2 namespace ('' or '/': the root; '/a/b')."""
+    if not isinstance(namespace, str):
+        return f"expected a namespace such as /robot1, got {namespace!r}"
+    parts = namespace.strip("/").split("/") if namespace.strip("/") else []
+    if any(not _TOKEN.fullmatch(p) for p in parts) or "//" in namespace:
+        return f"expected a namespace such as /robot1, got {namespace!r}"
+    return None
+
+
+def parse(section: Any, problems: list[str], where: str = "ros2",
+          base: Ros2Config | None = None) -> Ros2Config | None:
+    """The ``ros2:`` section over ``base`` (None: absent), each problem "ros2.KEY: ..."."""
+    if section is None:
+        return None
+    if not isinstance(section, Mapping):
+        problems.append(f"{where}: expected a mapping, got {type(section).__name__}")
+        return None
+    for key in sorted(set(section) - _KEYS, key=str):
+        close = difflib.get_close_matches(str(key), _KEYS, n=1)
+        hint = f", did you mean {close[0]!r}?" if close else ""
+        problems.append(f"{where}.{key}: unknown key{hint} (known: {', '.join(sorted(_KEYS))})")
+    out = base or Ros2Config()
+
+    def take(key: str, why: str | None) -> None:
+        if key in section:
+            if why:
+                problems.append(f"{where}.{key}: {why}")
+            else:
+                setattr(out, key, section[key])
+    take("node", name_problem(section.get("node")))
+    if "namespace" in section:
+        why = namespace_problem(section["namespace"])
+        if why:
+            problems.append(f"{where}.namespace: {why}")
+        else:
+            out.namespace = "/" + section["namespace"].strip("/")
+    domain = section.get("domain_id")
+    take("domain_id", None if isinstance(domain, int) and not isinstance(domain, bool)
+         and 0 <= domain <= MAX_DOMAIN_ID else f"expected 0..{MAX_DOMAIN_ID}, got {domain!r}")
+    take("distro", None if section.get("distro") in DISTROS
+         else f"expected one of {', '.join(DISTROS)}, got {section.get('distro')!r}")
+    control = section.get("ros2_control")
+    take("ros2_control", None if control is None or control in ROS2_CONTROL
+         else f"expected one of {', '.join(ROS2_CONTROL)} (the ros2_control release whose "
+              f"controller_manager_msgs to serve), got {control!r}")
+    take("mode", None if section.get("mode") in ("client", "peer")
+         else f"expected client or peer, got {section.get('mode')!r}")
+    if "connect" in section:
+        value = section["connect"]
+        value = [value] if isinstance(value, str) else value
+        if not isinstance(value, list) or not value \
+                or not all(isinstance(v, str) and "/" in v for v in value):
+            problems.append(f"{where}.connect: expected Zenoh endpoints like "
+                            f"{DEFAULT_ROUTER}, got {section['connect']!r}")
+        else:
+            out.connect = list(value)
+    rate = section.get("joint_states_rate")
+    take("joint_states_rate", None if isinstance(rate, (int, float))
+         and not isinstance(rate, bool) and 0.1 <= rate <= 1000
+         else f"expected Hz 0.1..1000, got {rate!r}")
+    for key in ("allow_commands", "required"):
+        take(key, None if isinstance(section.get(key), bool)
+             else f"expected true or false, got {section.get(key)!r}")
+    if isinstance(out.joint_states_rate, int):
+        out.joint_states_rate = float(out.joint_states_rate)
+    return out
+
+
+def add_options(p: argparse.ArgumentParser, connect: bool = False) -> None:
+    """``--ros2`` and its options, for run and demo alike; ``connect``: add
+    ``--zenoh-connect`` here (run has it among its Zenoh options: with --ros2 it names the
+    node's router, see ``from_args``)."""
+    g = p.add_argument_group("ROS 2 (a node over rmw_zenoh, extra ros2; docs/ros2.md)")
+    g.add_argument("--ros2", action="store_true",
+                   help="be a ROS 2 node (joint states, diagnostics, services, ros2 control)")
+    g.add_argument("--ros-namespace", default=None, metavar="NS", help="the node's namespace")
+    g.add_argument("--ros-domain-id", type=int, default=None, metavar="ID",
+                   help="ROS domain id (default: ROS_DOMAIN_ID, else 0)")
+    g.add_argument("--ros-distro", choices=DISTROS, default=None,
+                   help="the distro whose type hashes are served (jazzy)")
+    g.add_argument("--ros-allow-commands", action="store_true",
+                   help="allow clear, recover and switch_controller from ROS 2")
+    if connect:
+        g.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                       help=f"the Zenoh router to connect to ({DEFAULT_ROUTER})")
+
+
+def from_args(args: argparse.Namespace, config: Ros2Config | None,
+              problems: list[str]) -> Ros2Config | None:
+    """The config's ros2: section with the --ros* flags over it (--ros2, or any of them, turns
+    the node on); ``--zenoh-connect`` endpoints are the router's when given."""
+    flags: dict[str, Any] = {}
+    if args.ros_namespace is not None:
+        flags["namespace"] = args.ros_namespace
+    if args.ros_domain_id is not None:
+        flags["domain_id"] = args.ros_domain_id
+    if args.ros_distro is not None:
+        flags["distro"] = args.ros_distro
+    if args.ros_allow_commands:
+        flags["allow_commands"] = True
+    if not (args.ros2 or flags or config is not None):
+        return None
+    if getattr(args, "zenoh_connect", None) and (args.ros2 or flags):
+        flags["connect"] = list(args.zenoh_connect)
+    return parse(flags, problems, where="--ros2", base=config)
