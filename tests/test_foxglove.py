@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from fixtures.budgets import odd_late
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
 from rocoma_can.cli.demo_config import demo_config, demo_urdf
@@ -225,14 +226,6 @@ def test_an_allowed_switch_switches(virtual_channel, sim_segment_factory):
             viewer.close()
 
 
-def _odd_late(cycles: int) -> int:
-    """Overruns a loaded machine may give ``cycles`` cycles of a loop with nothing to wait
-    on: one in ten, at least two (a count, never a wall time; CPU hogs beside a parallel
-    suite made 4 of 309). A loop that waited on a stalled viewer would overrun every
-    cycle the view published in: each one, at the view's rate above the loop's."""
-    return max(2, cycles // 10)
-
-
 def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_factory):
     """A viewer subscribed to everything that never reads (a tiny receive buffer, at most
     one frame queued in the client), then vanishes, while another keeps reading: the view
@@ -266,14 +259,14 @@ def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_fa
             wait_for(lambda: rt.foxglove.info()["published"] - published >= 600,
                      "600 messages published meanwhile", DEMO_WAIT)
             assert stats.cycles > cycles
-            assert stats.overruns - overruns <= _odd_late(stats.cycles - cycles)
+            assert stats.overruns - overruns <= odd_late(stats.cycles - cycles)
             assert rt.foxglove.info()["events_dropped"] == 0
             raw.shutdown(socket.SHUT_RDWR)  # vanished: the view serves the other one on
             stalled.close()
             n = len(healthy.received["/joint_states"])
             healthy.pump(lambda: len(healthy.received["/joint_states"]) >= n + 100,
                          "joint states after the stalled viewer vanished", DEMO_RUN)
-            assert stats.overruns - overruns <= _odd_late(stats.cycles - cycles)
+            assert stats.overruns - overruns <= odd_late(stats.cycles - cycles)
         finally:
             raw.close()
             stalled.close()
