@@ -7,18 +7,23 @@ from __future__ import annotations
 
 import json
 import socket
+import threading
+import time
 from contextlib import contextmanager
 
+import numpy as np
 import pytest
 import zenoh
-from fixtures.running import DEMO_WAIT, runtime_running
+from fixtures.budgets import odd_late
+from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running
 from fixtures.running import wait_for as wait_until
 from mcap_ros2._dynamic import generate_dynamic
-from zenoh_ros2_sdk import ROS2ServiceClient, ROS2Subscriber, ZenohSession
+from zenoh_ros2_sdk import ROS2Publisher, ROS2ServiceClient, ROS2Subscriber, ZenohSession
 
 from rocoma_can import ManagerState
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.ros2.interfaces import JOINT_STATE, Interfaces
+from rocoma_can.ros2.node import EVENT_QUEUE, Ros2Error
 
 RATE = 100.0
 DOMAIN = 7
@@ -198,3 +203,298 @@ def test_a_third_party_rmw_zenoh_client_sees_joint_states_estops_lists_and_switc
         assert rt.manager.state is ManagerState.EMERGENCY
         listed = {c.name: c.state for c in lister.call().controller}
         assert listed["damp"] == "active" and listed["pd"] == "inactive", listed
+
+
+def test_every_payload_decodes_with_an_independent_cdr_implementation(
+        virtual_channel, sim_segment_factory, router, peer):
+    """Every publication and every answer, read by a plain Zenoh session and decoded by
+    mcap_ros2 from the definitions' text; each carries the 33-byte attachment (sequence
+    number, timestamp, GID), and an answer echoes the request's sequence number and GID.
+    The graph: the node's liveliness tokens, as ros2 node/topic/service list read them."""
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2], namespace="/robot1") as rt:
+        z = peer()
+        got: dict[str, list] = {}
+        for name, kind in (("robot1/joint_states", "sensor_msgs/msg/JointState"),
+                           ("diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
+                           ("rosout", "rcl_interfaces/msg/Log"),
+                           ("robot1/rocoma/state", "std_msgs/msg/String")):
+            z.declare_subscriber(key(name, kind), lambda s, k=kind: got.setdefault(k, []).append(
+                (decode(k, s.payload.to_bytes()), s.attachment.to_bytes())))
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+        rt.manager.emergency_stop(cause="test")  # an event: on /rosout
+        wait_for(lambda: len(got) == 4, "every topic published")
+        joints, attached = got["sensor_msgs/msg/JointState"][-1]
+        assert list(joints.name) == ["joint1", "joint2"] and len(joints.position) == 2
+        assert len(attached) == 33 and attached[16] == 16
+        sequences = [int.from_bytes(a[:8], "little") for _, a in
+                     got["sensor_msgs/msg/JointState"]]
+        assert sequences == sorted(sequences) and len(set(sequences)) == len(sequences)
+        status = json.loads(got["std_msgs/msg/String"][-1][0].data)
+        assert status["state"] == rt.manager.state.name and status["ros2"]["domain_id"] == DOMAIN
+        diagnostics = got["diagnostic_msgs/msg/DiagnosticArray"][-1][0]
+        assert [s.name for s in diagnostics.status] == [
+            "/robot1/rocoma: manager", "/robot1/rocoma: joint1", "/robot1/rocoma: joint2"]
+        wait_for(lambda: any("e-stop" in m.msg for m, _ in got["rcl_interfaces/msg/Log"]),
+                 "the e-stop on /rosout")
+        log = next(m for m, _ in got["rcl_interfaces/msg/Log"] if "e-stop" in m.msg)
+        assert log.level == 30 and log.name == "robot1.rocoma" and "test" in log.msg
+
+        gid = bytes(range(16))
+        for service, kind, response in (
+                ("robot1/rocoma/failproof", "std_srvs/srv/Trigger",
+                 "std_srvs/srv/Trigger_Response"),
+                ("robot1/controller_manager/list_controllers",
+                 "controller_manager_msgs/srv/ListControllers",
+                 "controller_manager_msgs/srv/ListControllers_Response")):
+            replies = list(z.get(key(service, kind), payload=b"\x00\x01\x00\x00",
+                                 attachment=attachment_of(41, gid),
+                                 target=zenoh.QueryTarget.ALL_COMPLETE, timeout=DEMO_WAIT))
+            assert len(replies) == 1 and replies[0].ok is not None, replies
+            reply = replies[0].ok
+            decode(response, reply.payload.to_bytes())
+            echoed = reply.attachment.to_bytes()
+            assert int.from_bytes(echoed[:8], "little") == 41 and echoed[17:] == gid
+
+        tokens = {str(r.ok.key_expr) for r in z.liveliness().get(f"@ros2_lv/{DOMAIN}/**",
+                                                                timeout=DEMO_WAIT)
+                  if r.ok is not None}
+        zid = {t.split("/")[2] for t in tokens}
+        assert len(zid) == 1, tokens  # one session: the node's
+        shown = {"/".join(t.split("/")[5:10]) for t in tokens}
+        assert "NN/%/%robot1/rocoma" in shown
+        for entry in ("MP/%/%robot1/rocoma/%robot1%joint_states",
+                      "MP/%/%robot1/rocoma/%rosout",  # absolute names stay absolute
+                      "SS/%/%robot1/rocoma/%robot1%rocoma%estop",
+                      "SS/%/%robot1/rocoma/%robot1%controller_manager%switch_controller",
+                      "MS/%/%robot1/rocoma/%robot_joint_command"):
+            assert entry in shown, sorted(shown)
+        joint_token = next(t for t in tokens if "%robot1%joint_states" in t)
+        assert joint_token.endswith(f"/sensor_msgs::msg::dds_::JointState_/"
+                                    f"{HASHES.hash(JOINT_STATE)}/::,10:,:,:,,")
+
+
+def attachment_of(sequence: int, gid: bytes) -> bytes:
+    """A request's attachment, written here as the design doc gives it."""
+    return (sequence.to_bytes(8, "little") + time.time_ns().to_bytes(8, "little")
+            + bytes([len(gid)]) + gid)
+
+
+def trigger(z, name: str, payload: bytes | None = b"") -> tuple[bool, str]:
+    """One std_srvs/Trigger call through a plain session: (success, message)."""
+    for reply in z.get(key(name, "std_srvs/srv/Trigger"), payload=payload,
+                       target=zenoh.QueryTarget.ALL_COMPLETE, timeout=DEMO_WAIT):
+        assert reply.ok is not None, reply.err.payload.to_string()
+        answer = decode("std_srvs/srv/Trigger_Response", reply.ok.payload.to_bytes())
+        return answer.success, answer.message
+    raise AssertionError(f"no answer on {name}")
+
+
+def test_the_trigger_services_stop_whatever_the_request_holds_and_keep_the_rules(
+        virtual_channel, sim_segment_factory, router, peer):
+    """A stop acts on any request (no attachment, bytes that are no Trigger request,
+    megabytes); clear and recover follow the rules of every remote surface: refused
+    without ros2.allow_commands, saying which setting allows them."""
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2], allow_commands=False) as rt:
+        z = peer()
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+        assert rt.manager.switch_controller("pd", timeout=DEMO_WAIT).name == "SWITCHED"
+        assert trigger(z, "rocoma/estop", b"\xff" * 1_000_000) == (True, "state EMERGENCY")
+        assert trigger(z, "rocoma/estop", None) == (True, "state FAILPROOF")
+        assert rt.manager.state is ManagerState.FAILPROOF
+        ok, why = trigger(z, "rocoma/clear")
+        assert not ok and "ros2.allow_commands: false" in why, why
+        ok, why = trigger(z, "rocoma/recover")
+        assert not ok and "ros2.allow_commands" in why, why
+        assert trigger(z, "rocoma/failproof", b"junk") == (True, "state FAILPROOF")
+        assert rt.ros2.info()["refused"] == 2
+
+
+def switch(z, activate: list[str]) -> tuple[bool, str]:
+    """A SwitchController call through a plain session, its request encoded by rosbags'
+    own definitions (the answer is decoded independently)."""
+    i = HASHES
+    request = i.encode(i.message(
+        "controller_manager_msgs/srv/SwitchController_Request", activate_controllers=activate,
+        deactivate_controllers=[], strictness=2, activate_asap=True,
+        timeout=i.message("builtin_interfaces/msg/Duration", sec=0, nanosec=0)),
+        "controller_manager_msgs/srv/SwitchController_Request")
+    for reply in z.get(key("controller_manager/switch_controller",
+                           "controller_manager_msgs/srv/SwitchController"), payload=request,
+                       target=zenoh.QueryTarget.ALL_COMPLETE, timeout=DEMO_WAIT):
+        answer = decode("controller_manager_msgs/srv/SwitchController_Response",
+                        reply.ok.payload.to_bytes())
+        return answer.ok, answer.message
+    raise AssertionError("no answer on switch_controller")
+
+
+def test_switch_controller_switches_one_and_says_why_it_does_not(
+        virtual_channel, sim_segment_factory, router, peer):
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2]) as rt:
+        z = peer()
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+        ok, why = switch(z, ["pd", "trajectory"])
+        assert not ok and "2 controllers to activate" in why, why
+        ok, why = switch(z, ["damp"])  # an emergency controller is not switchable
+        assert not ok and why.startswith("NOT_FOUND: no controller 'damp'"), why
+        assert switch(z, ["trajectory"]) == (True, "SWITCHED")
+        assert rt.manager.active_controller_name == "trajectory"
+    with node(virtual_channel, router[2], allow_commands=False):
+        ok, why = switch(peer(), ["pd"])
+        assert not ok and "ros2.allow_commands: false" in why, why
+
+
+def publisher(ros2_sdk):
+    sdk_knows(ros2_sdk, JOINT_STATE)
+    return ROS2Publisher("/robot_joint_command", JOINT_STATE,
+                         msg_definition=DEFINITIONS[JOINT_STATE][0],
+                         type_hash=HASHES.hash(JOINT_STATE))
+
+
+def command(ros2_sdk, names, position):
+    types = ros2_sdk.store.types
+    return dict(header=types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id=""),
+        name=list(names), position=np.array(position, dtype=float),
+        velocity=np.zeros(0), effort=np.zeros(0))
+
+
+@contextmanager
+def commanding(pub, message: dict, period: float = 0.02):
+    """``message`` published every ``period`` s on a thread until the block ends (the
+    content may change meanwhile: the dict is read each time)."""
+    stop = threading.Event()
+
+    def run() -> None:
+        while not stop.wait(period):
+            pub.publish(**message)
+    thread = threading.Thread(target=run, name="test-commands")
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(DEMO_WAIT)
+
+
+def test_ros2_command_follows_the_topic_and_falls_to_its_emergency_when_it_goes_stale(
+        virtual_channel, sim_segment_factory, router, ros2_sdk):
+    """Commands published by a third-party client reach the drives' command; when they
+    stop for longer than the timeout (3 periods of its 50 Hz), the controller fails and
+    its emergency controller takes over, as from any failing controller."""
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2]) as rt:
+        pub = publisher(ros2_sdk)
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+        here = [float(v) for v in rt.hardware.state.position]
+        message = command(ros2_sdk, ["joint1", "joint2"], here)
+        with commanding(pub, message):
+            assert rt.manager.switch_controller("follow", timeout=DEMO_WAIT).name == "SWITCHED"
+            target = [here[0] + 0.05, here[1] - 0.05]
+            message["position"] = np.array(target)
+            wait_for(lambda: list(rt.hardware.command.position) == target,
+                     "the command reaching the drives")
+            assert rt.manager.state is ManagerState.OK
+            assert rt.ros2.info()["commands"] > 0
+        wait_for(lambda: rt.manager.state is ManagerState.EMERGENCY, "the stale command's fall")
+        assert rt.manager.active_controller_name == "damp"
+        assert "no command on /robot_joint_command" in rt.status()["estop_cause"]
+
+
+@pytest.mark.parametrize("names,position,why", [
+    (["joint1", "joint2"], [float("nan"), 0.0], "outside -3..3"),
+    (["joint1", "elbow"], [0.0, 0.0], "names joint 'elbow'"),
+    (["joint1", "joint2"], [0.0, 5.0], "position 5.0 for joint2 outside -3..3"),
+])
+def test_a_nan_unknown_or_out_of_limits_command_falls_to_the_emergency_controller(
+        virtual_channel, sim_segment_factory, router, ros2_sdk, names, position, why):
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2]) as rt:
+        pub = publisher(ros2_sdk)
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+        here = [float(v) for v in rt.hardware.state.position]
+        message = command(ros2_sdk, ["joint1", "joint2"], here)
+        with commanding(pub, message):
+            assert rt.manager.switch_controller("follow", timeout=DEMO_WAIT).name == "SWITCHED"
+            message.update(name=names, position=np.array(position))
+            wait_for(lambda: rt.manager.state is ManagerState.EMERGENCY, f"the fall ({why})")
+        assert rt.manager.active_controller_name == "damp"
+        assert why in rt.status()["estop_cause"], rt.status()["estop_cause"]
+
+
+def test_a_peer_that_stops_reading_leaves_the_loop_its_period(
+        virtual_channel, sim_segment_factory, router, peer, ros2_sdk):
+    """A subscriber to everything the node publishes that never returns from its first
+    sample (its session reads no more), at 200 Hz of joint states: the node keeps
+    publishing and another subscriber keeps receiving, and the loop keeps its rate
+    (overruns counted, not wall time: odd_late), counted from its 300th cycle."""
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2], joint_states_rate=200) as rt:
+        sdk_knows(ros2_sdk, JOINT_STATE)
+        healthy: list = []
+        ROS2Subscriber("/joint_states", JOINT_STATE, healthy.append,
+                       msg_definition=DEFINITIONS[JOINT_STATE][0],
+                       type_hash=HASHES.hash(JOINT_STATE))
+        wait_for(lambda: rt.loop.stats.cycles >= 300, "300 cycles", DEMO_RUN)
+        release = threading.Event()
+        stalled = peer()
+        stalled.declare_subscriber(f"{DOMAIN}/**", lambda sample: release.wait(DEMO_RUN))
+        try:
+            stats = rt.loop.stats
+            cycles, overruns = stats.cycles, stats.overruns
+            published, received = rt.ros2.info()["published"], len(healthy)
+            wait_for(lambda: rt.ros2.info()["published"] - published >= 600,
+                     "600 publications while a peer stalls", DEMO_RUN)
+            wait_for(lambda: len(healthy) - received >= 300,
+                     "300 joint states to the other subscriber meanwhile", DEMO_RUN)
+            assert stats.cycles > cycles
+            assert stats.overruns - overruns <= odd_late(stats.cycles - cycles)
+        finally:
+            release.set()
+
+
+def test_events_past_the_queue_are_dropped_and_counted(virtual_channel, router):
+    """The node's event queue is bounded: the manager's dispatcher never waits for it."""
+    from rocoma_can.events import EventKind, ManagerEvent
+    from rocoma_can.runtime import Runtime
+    from rocoma_can.runtime.config import validate
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["ros2"] = {"connect": [router[2]]}
+    with Runtime(validate(cfg)) as rt:  # not run: the publisher thread takes none
+        event = ManagerEvent(EventKind.STATE_CHANGED, ManagerState.FAILPROOF, "torque_off")
+        for _ in range(EVENT_QUEUE + 3):
+            rt.ros2._on_event(event)
+        assert rt.ros2.info()["dropped"] == 3
+
+
+def test_no_router_is_an_error_or_a_warning_as_configured(virtual_channel, caplog):
+    from rocoma_can.runtime import Runtime
+    from rocoma_can.runtime.config import validate
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    cfg["ros2"] = {"connect": [nobody]}
+    with pytest.raises(Ros2Error, match=f"Zenoh session .*{nobody}.* could not be opened"):
+        Runtime(validate(cfg))
+    cfg["ros2"]["required"] = False
+    with Runtime(validate(cfg)) as rt:
+        assert rt.ros2 is None and "could not be opened" in rt.status()["ros2"]["error"]
+    assert "running without the ROS 2 node" in caplog.text
+
+
+def test_a_bad_ros2_section_lists_every_problem(virtual_channel):
+    from rocoma_can.errors import ConfigError
+    from rocoma_can.runtime.config import validate
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["ros2"] = {"node": "1robot", "namespace": "/a//b", "domain_id": 300,
+                   "distro": "humble", "ros2_control": "3.0", "connect": "7447",
+                   "joint_states_rate": 0, "allow_commands": "yes", "nodes": 1}
+    with pytest.raises(ConfigError) as caught:
+        validate(cfg)
+    said = "\n".join(caught.value.problems)
+    for part in ("ros2.nodes: unknown key, did you mean 'node'?", "ros2.node: expected a ROS 2",
+                 "ros2.namespace:", "ros2.domain_id: expected 0..232", "ros2.distro:",
+                 "ros2.ros2_control:", "ros2.connect:", "ros2.joint_states_rate:",
+                 "ros2.allow_commands: expected true or false"):
+        assert part in said, said

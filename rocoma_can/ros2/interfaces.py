@@ -191,8 +191,8 @@ def _uint8_chars(desc: Any) -> Any:
 def _msg(name: str, text: str) -> dict[str, Any]:
     """``name``'s definition parsed from .msg ``text`` (rosbags' parser); a service part's
     name kept as ROS has it (rosbags files ``pkg/srv/X`` as ``pkg/srv/msg/X``)."""
-    from rosbags.typesys import get_types_from_msg
     from rosbags.interfaces import Nodetype
+    from rosbags.typesys import get_types_from_msg
     mangled = name.replace("/srv/", "/srv/msg/")
 
     def unmangle(desc: Any) -> Any:

@@ -69,7 +69,8 @@ def diagnostics(i: Interfaces, ns: int, node: str, report: Mapping[str, Any],
     drives = []
     for d in report.get("drives") or []:
         fault = d.get("fault")
-        bus: Mapping[str, Any] = loads.get(buses.get(str(d.get("name")), "")) or next(iter(loads.values()), {})
+        bus: Mapping[str, Any] = (loads.get(buses.get(str(d.get("name")), ""))
+                                  or next(iter(loads.values()), {}))
         level = ERROR_LEVEL if fault else OK_LEVEL if d.get("enabled") else WARN_LEVEL
         drives.append(status(
             level, f"{node}: {d.get('name')}", fault or str(d.get("cia402_state")),

@@ -2,15 +2,16 @@
 ``ros2 service list`` and ``ros2 control list_controllers`` see, with no ROS on this
 machine. A Zenoh client of the router rmw_zenoh's nodes use (tcp/localhost:7447).
 
-Publishes ``/joint_states`` (every 1/joint_states_rate s), ``/diagnostics`` (every second
+Publishes ``joint_states`` (every 1/joint_states_rate s), ``/diagnostics`` (every second
 and on every manager event), ``/rosout`` (every e-stop, switch, clear, recovery and fault)
 and ``/rocoma/state`` (the status report as JSON, with the diagnostics); serves
 ``/rocoma/estop``, ``/rocoma/failproof``, ``/rocoma/clear``, ``/rocoma/recover``
 (std_srvs/Trigger: a stop acts whatever the request holds; the others under the rules of
 every remote surface, rocoma_can/remote.py), ``/controller_manager/list_controllers`` and
 ``/controller_manager/switch_controller``; subscribes to the command topic of every
-controller that follows one (rocoma_can/inputs.py). Names are relative to the node's
-namespace.
+controller that follows one (rocoma_can/inputs.py). Relative names are in the node's
+namespace (``joint_states`` as joint_state_broadcaster's, ``rocoma/...``,
+``controller_manager/...``); ``/diagnostics`` and ``/rosout`` are absolute, as ROS 2's own.
 
 Threads: the node's publisher thread builds and sends every publication; Zenoh's threads
 answer the services (a few attribute reads, a non-blocking manager call, a switch answered
@@ -128,7 +129,7 @@ class Ros2Node:
             self._entity = 0
             self._token(self.name.token())
             self._pubs = {topic: self._publisher(topic, kind, qos) for topic, kind, qos in (
-                ("/joint_states", JOINT_STATE, DEFAULT_QOS),
+                ("joint_states", JOINT_STATE, DEFAULT_QOS),
                 ("/diagnostics", DIAGNOSTIC_ARRAY, DEFAULT_QOS),
                 ("/rosout", LOG, ROSOUT_QOS),
                 ("rocoma/state", STRING, DEFAULT_QOS))}
@@ -286,7 +287,7 @@ class Ros2Node:
                 if missed:  # due while the thread was held up: gone, counted
                     self._count("dropped", missed)
                 next_joints += (missed + 1) * period
-                self._publish("/joint_states", lambda: messages.joint_states(
+                self._publish("joint_states", lambda: messages.joint_states(
                     self.interfaces, time.time_ns(), names, state.position.copy(),
                     state.velocity.copy(), state.torque.copy()))
             if now >= next_diagnostics:
