@@ -498,3 +498,27 @@ def test_a_bad_ros2_section_lists_every_problem(virtual_channel):
                  "ros2.ros2_control:", "ros2.connect:", "ros2.joint_states_rate:",
                  "ros2.allow_commands: expected true or false"):
         assert part in said, said
+
+
+def test_run_ros2_serves_the_node_and_refuses_a_bad_flag(
+        tmp_path, virtual_channel, sim_segment_factory, router, peer, capfd):
+    """``run --ros2 --zenoh-connect ROUTER``: the node on that router (and no fleet bridge:
+    --zenoh-connect alone names the node's router); a flag out of range is a usage error
+    in one line, before anything starts."""
+    import yaml
+
+    from rocoma_can.cli.main import main
+    sim_segment_factory(2)
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(demo_config(virtual_channel, drives=2, rate=RATE)))
+    assert main(["run", str(path), "--ros2", "--ros-domain-id", "999"]) == 2
+    assert "--ros2.domain_id: expected 0..232, got 999" in capfd.readouterr().err
+    z = peer()
+    seen: list = []
+    z.declare_subscriber(f"{DOMAIN}/joint_states/**", seen.append)
+    assert main(["run", str(path), "--ros2", "--zenoh-connect", router[2], "--ros-domain-id",
+                 str(DOMAIN), "--duration", "2", "--no-flight"]) == 0
+    out = capfd.readouterr().out
+    assert f"ROS 2 node /rocoma (domain {DOMAIN}, jazzy" in out and "on Zenoh as" not in out
+    assert seen and decode(JOINT_STATE, seen[-1].payload.to_bytes()).name == [
+        "joint1", "joint2"]
