@@ -30,6 +30,7 @@ SHORT = {
     "recording_cost": [],
     "telemetry_run": ["--duration", "10"],
     "demo_run": ["--repeat", "1"],
+    "ros2_run": ["--repeat", "1", "--duration", "10"],
     "host_floor": ["--work", "300,400", "--duration", "4", "--repeat", "1"],
     "sim_cost": [],
     "urdf_read": [],

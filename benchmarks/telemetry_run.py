@@ -7,7 +7,8 @@ held by a PD controller at a steady rate, once per set of telemetry.
 
 Sets: ``off`` (nothing), ``flight`` (the flight recorder, ``run``'s default), ``record``
 (``--record`` and the flight recorder: the demo's default), ``foxglove`` and ``zenoh``
-(each alone on top of ``record``), ``all`` (record, flight
+(each alone on top of ``record``), ``ros2`` (the ROS 2 node, ``run --ros2``, on a Zenoh
+router in this process, with a subscriber to everything it publishes), ``all`` (record, flight
 recorder, Zenoh bridge on loopback, Foxglove live view on loopback with one viewer, a
 process of its own, subscribed to everything; ``--viewer-nice 19`` runs it niced, as a
 viewer on another machine would cost the robot's nothing), ``+fd`` in a set's name (``off+fd``,
@@ -94,6 +95,7 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
     if "zenoh" in parts:
         raw["zenoh"] = {"prefix": "bench", "listen": [f"tcp/127.0.0.1:{_free_port()}"],
                         "multicast": False}
+    router = _ros2_router(raw) if "ros2" in parts else None
     config = validate(raw, source="benchmark")
     sim_buses = [(b.channel, [d.node_id for d in config.drives_on(b)]) for b in config.buses]
     starts = np.zeros(int(rate * (duration + 60)) + 1000)
@@ -145,6 +147,9 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
                         resource.RUSAGE_SELF), writer_cpu_end=_cpu_seconds(writer)
                         if writer else 0.0, state_end=rt.manager.state.name,
                         overruns_end=rt.loop.stats.overruns,
+                        # the work of the ring's cycles (start to end; the last 4096)
+                        work_median_us=float(np.median(rt.loop.stats._work[
+                            :min(rt.loop.stats.cycles, len(rt.loop.stats._work))])) * 1e6,
                         sim_cpu_end=_cpu_seconds(simulator.pid) if simulator.pid else 0.0)
                     rt.loop.stop("benchmark done")
 
@@ -159,6 +164,9 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
                     (rt.flight.errors if rt.flight is not None else [])
         finally:
             simulator.stop()
+            if router is not None:
+                for session in router:
+                    session.close()
     first, last = window["first"], window["last"]
     period = np.diff(starts[first:last]) * 1e6
     cycles = last - first
@@ -173,8 +181,40 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
             "period_us": stats(period), "loop_process_cpu_us": cpu / cycles * 1e6,
             "writer_cpu_us": writer / cycles * 1e6,
             "sim_process_cpu_us": (window["sim_cpu_end"] - window["sim_cpu"]) / cycles * 1e6,
-            "state": window["state_end"],
+            "state": window["state_end"], "work_median_us": window["work_median_us"],
             "errors": errors}
+
+
+def _ros2_router(raw: dict[str, Any]) -> list[Any]:
+    """A Zenoh router on loopback (rmw_zenoh's rmw_zenohd stands there on a robot), the
+    config's ros2: section connected to it, and a peer subscribed to every topic it
+    publishes (as ros2 topic echo would be): the sessions, to close."""
+    import zenoh
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    sessions = []
+    for mode, key in (("router", "listen"), ("client", "connect")):
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps(mode))
+        conf.insert_json5(f"{key}/endpoints", json.dumps([endpoint]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        sessions.append(zenoh.open(conf))
+    sessions[1].declare_subscriber("0/**", lambda sample: None)
+    raw["ros2"] = {"connect": [endpoint]}
+    return sessions
+
+
+def run_set(name: str, args: argparse.Namespace) -> dict[str, Any]:
+    """One set in a fresh process (``--one``); its row as a dict, or {"error": why}."""
+    cmd = [sys.executable, __file__, "--one", name, "--drives", str(args.drives),
+           "--rate", str(args.rate), "--duration", str(args.duration),
+           "--viewer-nice", str(getattr(args, "viewer_nice", 0))]
+    if getattr(args, "buses", None) is not None:
+        cmd += ["--buses", str(args.buses)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=args.duration + 180)
+    if done.returncode != 0:
+        return {"set": name, "error": (done.stderr.strip().splitlines() or ["?"])[-1]}
+    result: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
+    return result
 
 
 _VIEWER = """
@@ -226,18 +266,10 @@ def main() -> None:
     rows, results, notes = [], [], []
     for _ in range(args.repeat):
         for name in args.sets.split(","):
-            cmd = [sys.executable, __file__, "--one", name, "--drives", str(args.drives),
-                   "--rate", str(args.rate), "--duration", str(args.duration),
-                   "--viewer-nice", str(args.viewer_nice)]
-            if args.buses is not None:
-                cmd += ["--buses", str(args.buses)]
-            done = subprocess.run(cmd, capture_output=True, text=True, timeout=args.duration
-                                  + 180)
-            if done.returncode != 0:
-                rows.append([name, "failed", "", "", "", "", "", "", "", "",
-                             done.stderr.strip().splitlines()[-1:]])
+            r = run_set(name, args)
+            if "error" in r:
+                rows.append([name, "failed", "", "", "", "", "", "", "", "", r["error"]])
                 continue
-            r = json.loads(done.stdout.strip().splitlines()[-1])
             results.append(r)
             p = r["period_us"]
             busiest = sorted(r["threads_cpu_us"].items(), key=lambda kv: -kv[1])[:4]

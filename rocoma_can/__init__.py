@@ -12,8 +12,9 @@ workers      worker threads owned by a controller
 events       notifications and logging, delivered off the cycle
 plugins      controllers by name from configuration (entry points)
 overrun      when a control cycle overran: one rule for statistics, recordings, view
-remote       the rules for commands from afar (Zenoh, Foxglove): stops always, the rest when
-             allowed
+remote       the rules for commands from afar (Zenoh, Foxglove, ROS 2): stops always, the
+             rest when allowed
+inputs       commands from outside for the controllers that follow a topic (ros2_command)
 errors       RocomaError, the one root of the errors raised on purpose
 user_files   files a user names (URDF, EDS) read only when regular: a FIFO cannot hang
 cli_args     argument types every verb shares
@@ -22,7 +23,7 @@ __main__     ``python -m rocoma_can``: the rocoma-can command
 _lazy        package attributes imported on first use (a fast CLI start)
 
 Subpackages: runtime (the manager on a bus), node (its CANopen node), record, fleet, live
-(the Foxglove view), cli;
+(the Foxglove view), ros2 (a ROS 2 node over rmw_zenoh), cli;
 drivers and controllers are installed into this namespace.
 """
 from __future__ import annotations

@@ -47,6 +47,10 @@ CASES = {
         for run in r["runs"]) and sum(r["runs"][0]["by_state"].values())
     == r["runs"][0]["overruns"] and r["runs"][2]["work_us"] > 0
     and r["runs"][2]["work_us"] == 1e6 * r["runs"][0]["cpu_median_s"],
+    "ros2_run": lambda r: [run["set"] for run in r["runs"]] == ["off", "ros2", "bare"]
+    and all({"cycles", "overruns", "work_median_us"} <= set(run) and run["cycles"] > 0
+            for run in r["runs"]) and r["runs"][2]["work_us"] == r["runs"][0]["work_median_us"]
+    and r["runs"][1]["threads_cpu_us"].get("ros2-node", 0) > 0,
     "host_floor": lambda r: [(run["rate"], run["footprint_kib"], run["work_us"])
                              for run in r["runs"]] == [(1000.0, 0, 300.0), (1000.0, 4096, 300.0)]
     and all(

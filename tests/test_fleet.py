@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import yaml
 import zenoh
-from fixtures.running import DEMO_WAIT, runtime_running
+from fixtures.running import DEMO_WAIT, free_port, runtime_running
 from fixtures.running import wait_for as wait_until
 
 from rocoma_can import Controller, ManagerState
@@ -31,12 +31,6 @@ from rocoma_can.runtime.config import validate
 
 RATE = 100.0
 BIN = Path(sys.executable).parent / "rocoma-can"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_for(predicate, what: str, timeout: float = DEMO_WAIT) -> None:

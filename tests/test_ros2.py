@@ -6,7 +6,6 @@ mcap_ros2, from the ROS message definitions as text: not rosbags, which encodes 
 from __future__ import annotations
 
 import json
-import socket
 import threading
 import time
 from contextlib import contextmanager
@@ -15,7 +14,7 @@ import numpy as np
 import pytest
 import zenoh
 from fixtures.budgets import odd_late
-from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running
+from fixtures.running import DEMO_RUN, DEMO_WAIT, free_port, runtime_running
 from fixtures.running import wait_for as wait_until
 from mcap_ros2._dynamic import generate_dynamic
 from zenoh_ros2_sdk import ROS2Publisher, ROS2ServiceClient, ROS2Subscriber, ZenohSession
@@ -78,12 +77,6 @@ def sdk_knows(session, *names: str) -> None:
     for n, text in reversed(nested.items()):
         package, base = n.split("/")
         session.register_message_type(text, f"{package}/msg/{base}")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_for(predicate, what: str, timeout: float = DEMO_WAIT) -> None:
@@ -362,9 +355,14 @@ def command(ros2_sdk, names, position):
 
 
 @contextmanager
-def commanding(pub, message: dict, period: float = 0.02):
-    """``message`` published every ``period`` s on a thread until the block ends (the
-    content may change meanwhile: the dict is read each time)."""
+def following(rt, ros2_sdk, period: float = 0.02):
+    """The drives up, a third-party publisher sending the pose they are at every
+    ``period`` s on a thread, and the manager switched to ``follow``: the message (a dict
+    read at every send: change it to command) until the block ends, when sending stops."""
+    pub = publisher(ros2_sdk)
+    wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+    message = command(ros2_sdk, ["joint1", "joint2"],
+                      [float(v) for v in rt.hardware.state.position])
     stop = threading.Event()
 
     def run() -> None:
@@ -373,7 +371,8 @@ def commanding(pub, message: dict, period: float = 0.02):
     thread = threading.Thread(target=run, name="test-commands")
     thread.start()
     try:
-        yield
+        assert rt.manager.switch_controller("follow", timeout=DEMO_WAIT).name == "SWITCHED"
+        yield message
     finally:
         stop.set()
         thread.join(DEMO_WAIT)
@@ -386,12 +385,8 @@ def test_ros2_command_follows_the_topic_and_falls_to_its_emergency_when_it_goes_
     its emergency controller takes over, as from any failing controller."""
     sim_segment_factory(2)
     with node(virtual_channel, router[2]) as rt:
-        pub = publisher(ros2_sdk)
-        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
-        here = [float(v) for v in rt.hardware.state.position]
-        message = command(ros2_sdk, ["joint1", "joint2"], here)
-        with commanding(pub, message):
-            assert rt.manager.switch_controller("follow", timeout=DEMO_WAIT).name == "SWITCHED"
+        with following(rt, ros2_sdk) as message:
+            here = list(message["position"])
             target = [here[0] + 0.05, here[1] - 0.05]
             message["position"] = np.array(target)
             wait_for(lambda: list(rt.hardware.command.position) == target,
@@ -412,12 +407,7 @@ def test_a_nan_unknown_or_out_of_limits_command_falls_to_the_emergency_controlle
         virtual_channel, sim_segment_factory, router, ros2_sdk, names, position, why):
     sim_segment_factory(2)
     with node(virtual_channel, router[2]) as rt:
-        pub = publisher(ros2_sdk)
-        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
-        here = [float(v) for v in rt.hardware.state.position]
-        message = command(ros2_sdk, ["joint1", "joint2"], here)
-        with commanding(pub, message):
-            assert rt.manager.switch_controller("follow", timeout=DEMO_WAIT).name == "SWITCHED"
+        with following(rt, ros2_sdk) as message:
             message.update(name=names, position=np.array(position))
             wait_for(lambda: rt.manager.state is ManagerState.EMERGENCY, f"the fall ({why})")
         assert rt.manager.active_controller_name == "damp"

@@ -106,19 +106,25 @@ class FleetConfig:
     config_file: str | None = None  # a Zenoh JSON5 config (access control, TLS) beneath ours
 
 
+def known_section(section: Any, known: set[str], where: str, problems: list[str]) -> bool:
+    """Whether ``section`` is a mapping (else said); each key of it not ``known`` said with
+    the closest known one. The zenoh: and ros2: sections' first check."""
+    if not isinstance(section, Mapping):
+        problems.append(f"{where}: expected a mapping, got {type(section).__name__}")
+        return False
+    for key in sorted(set(section) - known, key=str):
+        close = difflib.get_close_matches(str(key), known, n=1)
+        hint = f", did you mean {close[0]!r}?" if close else ""
+        problems.append(f"{where}.{key}: unknown key{hint} (known: {', '.join(sorted(known))})")
+    return True
+
+
 def parse(section: Any, problems: list[str], where: str = "zenoh",
           base: FleetConfig | None = None) -> FleetConfig | None:
     """The ``zenoh:`` section (None: absent) over ``base`` (default: the defaults), every
     problem as "zenoh.KEY: ..."; the CLI's flags come through here too."""
-    if section is None:
+    if section is None or not known_section(section, _KEYS, where, problems):
         return None
-    if not isinstance(section, Mapping):
-        problems.append(f"{where}: expected a mapping, got {type(section).__name__}")
-        return None
-    for key in sorted(set(section) - _KEYS, key=str):
-        close = difflib.get_close_matches(str(key), _KEYS, n=1)
-        hint = f", did you mean {close[0]!r}?" if close else ""
-        problems.append(f"{where}.{key}: unknown key{hint} (known: {', '.join(sorted(_KEYS))})")
     out = base or FleetConfig()
     if "prefix" in section:
         why = key_problem(section["prefix"])

@@ -17,13 +17,12 @@
 from __future__ import annotations
 
 import argparse
-import difflib
 import os
 import re
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..fleet.bridge import known_section
 from .interfaces import DISTROS, ROS2_CONTROL
 
 DEFAULT_ROUTER = "tcp/localhost:7447"
@@ -76,15 +75,8 @@ def namespace_problem(namespace: Any) -> str | None:
 def parse(section: Any, problems: list[str], where: str = "ros2",
           base: Ros2Config | None = None) -> Ros2Config | None:
     """The ``ros2:`` section over ``base`` (None: absent), each problem "ros2.KEY: ..."."""
-    if section is None:
+    if section is None or not known_section(section, _KEYS, where, problems):
         return None
-    if not isinstance(section, Mapping):
-        problems.append(f"{where}: expected a mapping, got {type(section).__name__}")
-        return None
-    for key in sorted(set(section) - _KEYS, key=str):
-        close = difflib.get_close_matches(str(key), _KEYS, n=1)
-        hint = f", did you mean {close[0]!r}?" if close else ""
-        problems.append(f"{where}.{key}: unknown key{hint} (known: {', '.join(sorted(_KEYS))})")
     out = base or Ros2Config()
 
     def take(key: str, why: str | None) -> None:
