@@ -175,15 +175,17 @@ ONE_MISTAKE = [
      ["drives[1].node_id: 100 is the manager's node id (manager.node_id)"]),
     ("misspelt controllers", lambda cfg: cfg.update(controlers=cfg.pop("controllers")),
      ["controlers: unknown key, did you mean 'controllers'? (known: bus, buses, controllers, "
-      "drives, emergency_controllers, manager, rate, realtime, supervision, timing, urdf, zenoh)"]),
+      "drives, emergency_controllers, manager, rate, realtime, ros2, supervision, timing, "
+      "urdf, zenoh)"]),
     ("misspelt emergency", lambda cfg: cfg.update(
         emergency_controler=cfg.pop("emergency_controllers")),
      ["emergency_controler: unknown key, did you mean 'emergency_controllers'? (known: bus, "
-      "buses, controllers, drives, emergency_controllers, manager, rate, realtime, "
+      "buses, controllers, drives, emergency_controllers, manager, rate, realtime, ros2, "
       "supervision, timing, urdf, zenoh)"]),
     ("misspelt drives", lambda cfg: cfg.update(drive=cfg.pop("drives")),
      ["drive: unknown key, did you mean 'drives'? (known: bus, buses, controllers, drives, "
-      "emergency_controllers, manager, rate, realtime, supervision, timing, urdf, zenoh)"]),
+      "emergency_controllers, manager, rate, realtime, ros2, supervision, timing, urdf, "
+      "zenoh)"]),
     ("misspelt node_id", lambda cfg: cfg["drives"][1].update(
         node_ids=cfg["drives"][1].pop("node_id")),
      ["drives[1].node_ids: unknown key, did you mean 'node_id'? (known: accept_unsupervised, "
