@@ -512,3 +512,14 @@ def test_run_ros2_serves_the_node_and_refuses_a_bad_flag(
     assert f"ROS 2 node /rocoma (domain {DOMAIN}, jazzy" in out and "on Zenoh as" not in out
     assert seen and decode(JOINT_STATE, seen[-1].payload.to_bytes()).name == [
         "joint1", "joint2"]
+
+
+def test_a_controller_following_a_topic_without_a_node_is_said(virtual_channel, caplog):
+    from rocoma_can.runtime import Runtime
+    from rocoma_can.runtime.config import validate
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["controllers"].append(COMMANDED)
+    with Runtime(validate(cfg)) as rt:
+        assert rt.ros2 is None
+    assert "controller 'follow' follows /robot_joint_command, but no ROS 2 node runs" \
+        in caplog.text

@@ -177,6 +177,13 @@ class Runtime:
                 self._bridge(config.fleet)
             if config.ros2 is not None:
                 self._ros2_node()
+            else:
+                for name, adapter in self.manager.adapters().items():
+                    if isinstance(adapter.controller, TopicCommanded):
+                        log.warning("controller %r follows %s, but no ROS 2 node runs (run "
+                                    "--ros2 or a ros2: section): switched to, it fails when "
+                                    "its timeout passes", name,
+                                    adapter.controller.command_topic)
         except BaseException:
             self.close()
             raise
