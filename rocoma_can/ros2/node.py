@@ -115,7 +115,9 @@ class Ros2Node:
         self._running = False
         self._transport = Transport("ROS 2", "ros2.allow_commands", config.allow_commands)
         self._stops = StopAnswers(manager, "ros2")
-        self._sequence = 0
+        #: each publisher's sequence number, as rmw_zenoh keeps one per publisher: its
+        #: subscribers count a gap in a publisher's numbers as messages lost
+        self._sequences: dict[str, int] = {}
         self._unsubscribe: Callable[[], None] | None = None
         self._declared: list[Any] = []
         self._thread = threading.Thread(target=self._run, name="ros2-node", daemon=True)
@@ -319,8 +321,8 @@ class Ros2Node:
         publisher, _, gid = self._pubs[topic]
         try:
             payload = build()
-            self._sequence += 1
-            publisher.put(payload, attachment=attachment(self._sequence, gid))
+            sequence = self._sequences[topic] = self._sequences.get(topic, 0) + 1
+            publisher.put(payload, attachment=attachment(sequence, gid))
             self._count("published")
         except Exception as exc:  # noqa: BLE001 - Zenoh down: counted, the manager runs on
             self._count("errors")
