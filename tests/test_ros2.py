@@ -495,6 +495,36 @@ def test_a_bad_ros2_section_lists_every_problem(virtual_channel):
         assert part in said, said
 
 
+@pytest.mark.parametrize("value", ["abc", "300", "-1", "7x"])
+def test_a_ros_domain_id_that_is_no_domain_id_is_refused_not_taken_for_0(
+        virtual_channel, monkeypatch, tmp_path, capfd, value):
+    """ROS_DOMAIN_ID set to something that is no domain id: the node would otherwise join
+    domain 0, another graph, and follow that graph's commands. Said, in one line, where
+    the domain would come from it (the section or the flag naming one, it is not read)."""
+    import yaml
+
+    from rocoma_can.cli.main import main
+    from rocoma_can.errors import ConfigError
+    from rocoma_can.runtime.config import validate
+    monkeypatch.setenv("ROS_DOMAIN_ID", value)
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["ros2"] = {"node": "rocoma"}
+    with pytest.raises(ConfigError) as caught:
+        validate(cfg)
+    assert f"ros2.domain_id: ROS_DOMAIN_ID is {value!r}" in "\n".join(caught.value.problems)
+    cfg["ros2"]["domain_id"] = 3
+    assert validate(cfg).ros2.domain_id == 3
+    del cfg["ros2"]
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["run", str(path), "--ros2"]) == 2
+    err = capfd.readouterr().err
+    assert f"--ros2.domain_id: ROS_DOMAIN_ID is {value!r}" in err and "Traceback" not in err
+    monkeypatch.setenv("ROS_DOMAIN_ID", "")  # empty: unset, as rcl has it
+    cfg["ros2"] = {}
+    assert validate(cfg).ros2.domain_id == 0
+
+
 def test_run_ros2_serves_the_node_and_refuses_a_bad_flag(
         tmp_path, virtual_channel, sim_segment_factory, router, peer, capfd):
     """``run --ros2 --zenoh-connect ROUTER``: the node on that router (and no fleet bridge:

@@ -35,9 +35,22 @@ MAX_DOMAIN_ID = 232
 
 
 def default_domain_id() -> int:
-    """ROS_DOMAIN_ID when it is a domain id, else 0 (as rcl does)."""
+    """ROS_DOMAIN_ID when it is a domain id, else 0 (unset or empty, as rcl has it; any
+    other value is refused by ``parse``: see ``domain_id_problem``)."""
     value = os.environ.get("ROS_DOMAIN_ID", "").strip()
     return int(value) if value.isdigit() and int(value) <= MAX_DOMAIN_ID else 0
+
+
+def domain_id_problem() -> str | None:
+    """Why ROS_DOMAIN_ID is no domain id 0..MAX_DOMAIN_ID (None: unset, empty or one).
+    rcl refuses a value that is no number; taking one for 0 would put the node in
+    another graph, following that graph's commands."""
+    raw = os.environ.get("ROS_DOMAIN_ID", "")
+    value = raw.strip()
+    if not value or (value.isdigit() and int(value) <= MAX_DOMAIN_ID):
+        return None
+    return (f"ROS_DOMAIN_ID is {raw!r}, not a domain id 0..{MAX_DOMAIN_ID} (set it to one, "
+            f"unset it for 0, or name the domain here)")
 
 
 @dataclass
@@ -95,6 +108,9 @@ def parse(section: Any, problems: list[str], where: str = "ros2",
     domain = section.get("domain_id")
     take("domain_id", None if isinstance(domain, int) and not isinstance(domain, bool)
          and 0 <= domain <= MAX_DOMAIN_ID else f"expected 0..{MAX_DOMAIN_ID}, got {domain!r}")
+    env_problem = domain_id_problem()
+    if base is None and "domain_id" not in section and env_problem:
+        problems.append(f"{where}.domain_id: {env_problem}")
     take("distro", None if section.get("distro") in DISTROS
          else f"expected one of {', '.join(DISTROS)}, got {section.get('distro')!r}")
     control = section.get("ros2_control")
