@@ -125,10 +125,12 @@ class Ros2Command(Controller[JointState, JointCommand]):
         return True
 
     def _apply(self, sample: JointCommandSample) -> None:
-        """A new command into ``_values``; ValueError says what makes it unusable."""
-        problem = sample.problem()
-        if problem:
-            raise ValueError(f"command on {self._topic}: {problem}")
+        """A new command into ``_values``; ValueError says what makes it unusable. Reads at
+        most one name past the joints it drives (the sample's own check was made where it
+        arrived: no name twice, so every name read before an unknown one is a joint of
+        ours)."""
+        if sample.problem:
+            raise ValueError(f"command on {self._topic}: {sample.problem}")
         field = _FIELD[self.mode]
         values = getattr(sample, field)
         if not values:

@@ -5,7 +5,7 @@ thread, never the cycle's); the ROS 2 node (rocoma_can/ros2/) delivers them. The
 controllers see only this seam, not the transport."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 
@@ -13,21 +13,26 @@ from typing import Protocol, runtime_checkable
 class JointCommandSample:
     """One joint command as it arrived (a sensor_msgs/JointState: names, and per name a
     position, velocity and effort, any of the three lists empty when not commanded);
-    ``received``: time.monotonic() on arrival."""
+    ``received``: time.monotonic() on arrival. ``problem``: what makes it unusable ("" when
+    nothing does: a list neither empty nor as long as the names, a name twice), found
+    where the sample is made, on the transport's thread: a message may hold any number of
+    names, and the cycle must not pay for reading them all."""
     names: tuple[str, ...]
     position: tuple[float, ...]
     velocity: tuple[float, ...]
     effort: tuple[float, ...]
     received: float
+    problem: str = field(init=False, repr=False, compare=False)
 
-    def problem(self) -> str:
-        """What makes the sample unusable ("" when nothing does): a list neither empty nor
-        as long as the names, a name twice."""
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "problem", self._find_problem())
+
+    def _find_problem(self) -> str:
         n = len(self.names)
-        for field, values in (("position", self.position), ("velocity", self.velocity),
-                              ("effort", self.effort)):
+        for name, values in (("position", self.position), ("velocity", self.velocity),
+                             ("effort", self.effort)):
             if values and len(values) != n:
-                return f"{len(values)} {field} values for {n} joints"
+                return f"{len(values)} {name} values for {n} joints"
         if len(set(self.names)) != n:
             return "a joint named twice"
         return ""

@@ -427,6 +427,41 @@ def test_a_nan_unknown_or_out_of_limits_command_falls_to_the_emergency_controlle
         assert why in cause, cause
 
 
+class CountedNames(tuple):
+    """A command's joint names that count, per thread, the names read from them."""
+    reads: dict[int, int]
+
+    def __iter__(self):
+        for name in tuple.__iter__(self):
+            self.reads[threading.get_ident()] = self.reads.get(threading.get_ident(), 0) + 1
+            yield name
+
+
+def test_a_command_of_any_size_costs_the_cycle_only_the_joints_it_drives(
+        virtual_channel, sim_segment_factory):
+    """A command is checked where it arrives (the transport's thread, here the test's): the
+    cycle reads at most one name past the joints it drives, however many the message
+    holds, and falls to the emergency controller on the first it does not drive."""
+    from rocoma_can.inputs import JointCommandSample
+    sim_segment_factory(2)
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    cfg["controllers"].append({**COMMANDED, "params": {**COMMANDED["params"], "timeout": 30.0}})
+    cfg["manager"]["estop_must_be_cleared"] = False
+    with runtime_running(cfg, DEMO_WAIT) as rt:
+        follow = rt.manager.adapters()["follow"].controller
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+        assert rt.manager.switch_controller("follow", timeout=DEMO_WAIT).name == "SWITCHED"
+        here = [float(v) for v in rt.hardware.state.position]
+        names = CountedNames(["joint1", "joint2"] + [f"extra{i}" for i in range(10_000)])
+        names.reads = {}
+        follow.take_command(JointCommandSample(names, tuple(here + [0.0] * 10_000), (), (),
+                                               time.monotonic()))
+        wait_for(lambda: rt.manager.state is ManagerState.EMERGENCY, "the fall")
+        assert "names joint 'extra0'" in estop_cause(rt)
+        elsewhere = sum(n for thread, n in names.reads.items() if thread != threading.get_ident())
+        assert elsewhere <= 3, names.reads
+
+
 def test_a_peer_that_stops_reading_leaves_the_loop_its_period(
         virtual_channel, sim_segment_factory, router, peer, ros2_sdk):
     """A subscriber to everything the node publishes that never returns from its first
