@@ -538,6 +538,22 @@ def test_a_bad_ros2_section_lists_every_problem(virtual_channel):
         assert part in said, said
 
 
+def test_a_ros2_control_release_written_as_a_yaml_number_is_taken(virtual_channel):
+    """``ros2_control: 4.28`` is a float to YAML: taken as the release it names, not refused
+    with "expected one of 4.0, 4.13, 4.28, got 4.28"."""
+    import yaml
+
+    from rocoma_can.errors import ConfigError
+    from rocoma_can.runtime.config import validate
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    for text, release in (("4.28", "4.28"), ("4.13", "4.13"), ("4.0", "4.0"), ("'4.0'", "4.0")):
+        cfg["ros2"] = yaml.safe_load(f"{{ros2_control: {text}}}")
+        assert validate(cfg).ros2.ros2_control == release
+    cfg["ros2"] = yaml.safe_load("{ros2_control: 4.1}")
+    with pytest.raises(ConfigError, match=r"ros2.ros2_control: expected one of .* got 4\.1"):
+        validate(cfg)
+
+
 @pytest.mark.parametrize("value", ["abc", "300", "-1", "7x"])
 def test_a_ros_domain_id_that_is_no_domain_id_is_refused_not_taken_for_0(
         virtual_channel, monkeypatch, tmp_path, capfd, value):

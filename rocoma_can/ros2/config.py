@@ -114,9 +114,15 @@ def parse(section: Any, problems: list[str], where: str = "ros2",
     take("distro", None if section.get("distro") in DISTROS
          else f"expected one of {', '.join(DISTROS)}, got {section.get('distro')!r}")
     control = section.get("ros2_control")
-    take("ros2_control", None if control is None or control in ROS2_CONTROL
-         else f"expected one of {', '.join(ROS2_CONTROL)} (the ros2_control release whose "
-              f"controller_manager_msgs to serve), got {control!r}")
+    if isinstance(control, float):  # `ros2_control: 4.28` unquoted: a number to YAML
+        control = str(control)
+    if "ros2_control" in section:
+        if control is None or control in ROS2_CONTROL:
+            out.ros2_control = control
+        else:
+            problems.append(f"{where}.ros2_control: expected one of {', '.join(ROS2_CONTROL)} "
+                            f"(the ros2_control release whose controller_manager_msgs to "
+                            f"serve), got {section['ros2_control']!r}")
     take("mode", None if section.get("mode") in ("client", "peer")
          else f"expected client or peer, got {section.get('mode')!r}")
     if "connect" in section:
