@@ -1,8 +1,8 @@
 """The ROS 2 node's contract with rmw_zenoh, without a session: RIHS01 type hashes against
 the values published with the ROS packages (the generated type descriptions of the Jazzy
-builds: sensor_msgs, std_msgs, std_srvs, service_msgs, controller_manager_msgs), the key
-expressions, liveliness tokens and QoS text against ros2/rmw_zenoh's docs/design.md
-examples, and the attachment."""
+builds: sensor_msgs, std_msgs, std_srvs, service_msgs, rcl_interfaces, diagnostic_msgs,
+controller_manager_msgs), the key expressions, liveliness tokens and QoS text against
+ros2/rmw_zenoh's docs/design.md examples, and the attachment."""
 from __future__ import annotations
 
 import pytest
@@ -21,9 +21,11 @@ from rocoma_can.ros2.graph import (
     topic_key,
 )
 from rocoma_can.ros2.interfaces import (
+    DIAGNOSTIC_ARRAY,
     DISTROS,
     JOINT_STATE,
     LIST_CONTROLLERS,
+    LOG,
     STRING,
     SWITCH_CONTROLLER,
     TRIGGER,
@@ -37,6 +39,9 @@ PUBLISHED = {
     JOINT_STATE: "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",
     STRING: "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
     TRIGGER: "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f",
+    LOG: "RIHS01_e28ce254ca8abc06abf92773b74602cdbf116ed34fbaf294fb9f81da9f318eac",
+    DIAGNOSTIC_ARRAY:
+        "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e",
     # its char[16] client_gid is uint8[16] to rosidl: rosbags alone hashes it wrongly
     "service_msgs/msg/ServiceEventInfo":
         "RIHS01_41bcbbe07a75c9b52bc96bfd5c24d7f0fc0a08c0cb7921b3373c5732345a6f45",
