@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
-from rocoma_can.inputs import JointCommandSample
+from rocoma_can.inputs import JointCommandSample, topic_problem
 from rocoma_can.interfaces import Controller
 
 from .joint_group import JointGroup
@@ -50,9 +50,9 @@ class Ros2Command(Controller[JointState, JointCommand]):
                  position_min: object = -math.inf, position_max: object = math.inf,
                  velocity_limit: object = math.inf, effort_limit: object = math.inf) -> None:
         super().__init__(name)
-        if not isinstance(topic, str) or not topic.strip("/") or " " in topic:
-            raise param_error(self, "topic", f"expected a topic name such as "
-                                             f"/robot_joint_command, got {topic!r}")
+        problem = topic_problem(topic)
+        if problem or not isinstance(topic, str):
+            raise param_error(self, "topic", str(problem))
         self._topic = topic
         self.group = JointGroup(self, joints)
         self.mode = output_mode(self, mode, tuple(_FIELD))

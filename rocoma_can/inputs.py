@@ -5,8 +5,23 @@ thread, never the cycle's); the ROS 2 node (rocoma_can/ros2/) delivers them. The
 controllers see only this seam, not the transport."""
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
+
+#: a ROS 2 name token: a letter or '_' first, then letters, digits, '_'
+NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def topic_problem(topic: object) -> str | None:
+    """Why ``topic`` is no ROS 2 topic name, absolute (``/a/b``) or relative to the node's
+    namespace (``a/b``); None: it is one. Its chunks are name tokens: a wildcard would
+    follow every JointState it matches, the robot's own joint states among them."""
+    if isinstance(topic, str):
+        chunks = topic.removeprefix("/").split("/")
+        if all(NAME_TOKEN.fullmatch(chunk) for chunk in chunks):
+            return None
+    return f"expected a topic name such as /robot_joint_command, got {topic!r}"
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.quick_stop import QuickStop
+from rocoma_can.controllers.ros2_command import Ros2Command
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.controllers.tracking_monitor import TrackingMonitor
 from rocoma_can.controllers.trajectory import Trajectory
@@ -21,7 +22,7 @@ from rocoma_can.controllers.zero_torque import Float
 ENTRY_POINTS = {
     "torque_off": TorqueOff, "damp": Damp, "hold": Hold, "quick_stop": QuickStop,
     "pd": JointPD, "trajectory": Trajectory, "float": Float,
-    "worker_example": TrackingMonitor,
+    "worker_example": TrackingMonitor, "ros2_command": Ros2Command,
 }
 
 
@@ -65,6 +66,15 @@ def test_every_controller_is_registered_as_an_entry_point():
     (TrackingMonitor, {"monitor_frequency": 0.0}, "monitor_frequency", "> 0"),
     (TrackingMonitor, {"kp": -3.0}, "kp", ">= 0"),
     (Float, {"joints": 3}, "joints", "list of joint names"),
+    # a ROS 2 topic name: a wildcard would follow every JointState it matches (the robot's
+    # own joint_states among them)
+    (Ros2Command, {"topic": "/*"}, "topic", "expected a topic name"),
+    (Ros2Command, {"topic": "**"}, "topic", "expected a topic name"),
+    (Ros2Command, {"topic": "/robot_$*"}, "topic", "expected a topic name"),
+    (Ros2Command, {"topic": "/a//b"}, "topic", "expected a topic name"),
+    (Ros2Command, {"topic": "/1st"}, "topic", "expected a topic name"),
+    (Ros2Command, {"topic": "/a b"}, "topic", "expected a topic name"),
+    (Ros2Command, {"topic": 5}, "topic", "expected a topic name"),
 ])
 def test_bad_parameter_is_a_clear_value_error(cls, params, param, reason):
     with pytest.raises(ValueError) as info:

@@ -18,18 +18,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 from dataclasses import dataclass, field
 from typing import Any
 
 from ..fleet.bridge import known_section
+from ..inputs import NAME_TOKEN
 from .interfaces import DISTROS, ROS2_CONTROL
 
 DEFAULT_ROUTER = "tcp/localhost:7447"
 _KEYS = {"node", "namespace", "domain_id", "distro", "ros2_control", "mode", "connect",
          "joint_states_rate", "allow_commands", "required"}
-#: a ROS 2 name token: a letter or '_' first, then letters, digits, '_'
-_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 #: rmw_zenoh, as DDS, partitions by domain id; ROS 2 accepts 0..232 on Linux
 MAX_DOMAIN_ID = 232
 
@@ -69,7 +67,7 @@ class Ros2Config:
 
 def name_problem(name: Any) -> str | None:
     """Why ``name`` is no ROS 2 node name (None: it is one)."""
-    if not isinstance(name, str) or not _TOKEN.fullmatch(name):
+    if not isinstance(name, str) or not NAME_TOKEN.fullmatch(name):
         return (f"expected a ROS 2 name (a letter or '_', then letters, digits, '_'), "
                 f"got {name!r}")
     return None
@@ -80,7 +78,7 @@ def namespace_problem(namespace: Any) -> str | None:
     if not isinstance(namespace, str):
         return f"expected a namespace such as /robot1, got {namespace!r}"
     parts = namespace.strip("/").split("/") if namespace.strip("/") else []
-    if any(not _TOKEN.fullmatch(p) for p in parts) or "//" in namespace:
+    if any(not NAME_TOKEN.fullmatch(p) for p in parts) or "//" in namespace:
         return f"expected a namespace such as /robot1, got {namespace!r}"
     return None
 
