@@ -344,6 +344,28 @@ def test_switch_controller_switches_one_and_says_why_it_does_not(
         assert not ok and "ros2.allow_commands: false" in why, why
 
 
+def test_a_refused_call_is_said_on_rosout(virtual_channel, sim_segment_factory, router, peer):
+    """`ros2 control switch_controllers` answers a refusal with "Error switching
+    controllers, check controller_manager logs" and shows no reason (nor has the
+    SwitchController of ros2_control before 4.28 a field for one): the reason goes to
+    /rosout, where rqt_console shows it, as a warning naming the service."""
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2], allow_commands=False) as rt:
+        z = peer()
+        logs: list = []
+        z.declare_subscriber(key("rosout", "rcl_interfaces/msg/Log"),
+                             lambda s: logs.append(decode("rcl_interfaces/msg/Log",
+                                                          s.payload.to_bytes())))
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+        assert not switch(z, ["pd"])[0]
+        assert not trigger(z, "rocoma/clear")[0]
+        for service in ("switch_controller", "clear"):
+            wait_for(lambda s=service: any(s in m.msg and "ros2.allow_commands: false" in m.msg
+                                           for m in logs), f"{service}'s refusal on /rosout")
+        said = [m for m in logs if "allow_commands" in m.msg]
+        assert all(m.level == 30 and m.name == "rocoma" for m in said), said
+
+
 def publisher(ros2_sdk):
     sdk_knows(ros2_sdk, JOINT_STATE)
     return ROS2Publisher("/robot_joint_command", JOINT_STATE,

@@ -3,8 +3,9 @@
 machine. A Zenoh client of the router rmw_zenoh's nodes use (tcp/localhost:7447).
 
 Publishes ``joint_states`` (every 1/joint_states_rate s), ``/diagnostics`` (every second
-and on every manager event), ``/rosout`` (every e-stop, switch, clear, recovery and fault)
-and ``/rocoma/state`` (the status report as JSON, with the diagnostics); serves
+and on every manager event), ``/rosout`` (every e-stop, switch, clear, recovery and fault,
+and every call refused, with why) and ``/rocoma/state`` (the status report as JSON, with
+the diagnostics); serves
 ``/rocoma/estop``, ``/rocoma/failproof``, ``/rocoma/clear``, ``/rocoma/recover``
 (std_srvs/Trigger: a stop acts whatever the request holds; the others under the rules of
 every remote surface, rocoma_can/remote.py), ``/controller_manager/list_controllers`` and
@@ -110,7 +111,8 @@ class Ros2Node:
         self.counters = {"published": 0, "dropped": 0, "requests": 0, "refused": 0,
                          "commands": 0, "rejected": 0, "errors": 0}
         self._count_lock = threading.Lock()  # Zenoh answers on several threads
-        self._events: queue.Queue[ManagerEvent | None] = queue.Queue(EVENT_QUEUE)
+        #: manager events, and (text) the refusals of ROS 2 calls to say on /rosout
+        self._events: queue.Queue[ManagerEvent | str | None] = queue.Queue(EVENT_QUEUE)
         self._stop = threading.Event()
         self._running = False
         self._transport = Transport("ROS 2", "ros2.allow_commands", config.allow_commands)
@@ -260,12 +262,19 @@ class Ros2Node:
         with self._count_lock:
             self.counters[what] += n
 
-    def _on_event(self, event: ManagerEvent) -> None:
-        """The manager's dispatcher thread: queued, never waited for."""
+    def _on_event(self, event: ManagerEvent | str) -> None:
+        """The manager's dispatcher thread (an event), Zenoh's (a refusal): queued, never
+        waited for."""
         try:
             self._events.put_nowait(event)
         except queue.Full:
             self._count("dropped")
+
+    def _refused(self, service: str, why: str) -> None:
+        """A call answered no: counted, and said on /rosout, where `ros2 control` sends its
+        user ("check controller_manager logs") and rqt_console shows it."""
+        self._count("refused")
+        self._on_event(f"{self._name(service)} refused: {why}")
 
     # --- the publisher thread -----------------------------------------------------------------
     def _run(self) -> None:
@@ -280,7 +289,9 @@ class Ros2Node:
                 event = self._events.get(timeout=wait) if wait > 0 else self._events.get_nowait()
             except queue.Empty:
                 event = None
-            if event is not None:
+            if isinstance(event, str):
+                self._log(messages.WARN, event)
+            elif event is not None:
                 self._log_event(event)
                 next_diagnostics = time.monotonic()
             now = time.monotonic()
@@ -313,9 +324,12 @@ class Ros2Node:
         from ..live.messages import WARNING, event_log
         from ..record.trace import event_message
         text, level = event_log(event_message(event))
+        self._log(messages.WARN if level == WARNING else messages.INFO, text)
+
+    def _log(self, level: int, text: str) -> None:
         self._publish("/rosout", lambda: messages.log(
             self.interfaces, time.time_ns(), self._name(self.config.node)[1:].replace("/", "."),
-            messages.WARN if level == WARNING else messages.INFO, text))
+            level, text))
 
     def _publish(self, topic: str, build: Callable[[], bytes]) -> None:
         publisher, _, gid = self._pubs[topic]
@@ -347,10 +361,10 @@ class Ros2Node:
     def _trigger(self, service: str) -> Callable[[Any, Any], None]:
         def answer(query: Any, request: Any) -> None:
             def reply(result: dict[str, Any]) -> None:
-                if result.get("ok") is False:
-                    self._count("refused")
                 text = result.get("error") or f"state {result.get('state')}" + (
                     " (the loop had not acted on it yet)" if result.get("pending") else "")
+                if result.get("ok") is False:
+                    self._refused(f"rocoma/{service}", text)
                 self._reply(query, request, messages.trigger_response(
                     self.interfaces, bool(result.get("ok")), text))
             # A stop acts whatever the request holds: its payload is never read.
@@ -376,7 +390,7 @@ class Ros2Node:
     def _switch_controller(self, query: Any, request: Any) -> None:
         def reply(ok: bool, message: str) -> None:
             if not ok:
-                self._count("refused")
+                self._refused("controller_manager/switch_controller", message)
             self._reply(query, request, messages.switch_response(self.interfaces, ok, message))
         try:
             raw = query.payload.to_bytes() if query.payload is not None else b""
