@@ -272,9 +272,14 @@ class Ros2Node:
 
     def _refused(self, service: str, why: str) -> None:
         """A call answered no: counted, and said on /rosout, where `ros2 control` sends its
-        user ("check controller_manager logs") and rqt_console shows it."""
+        user ("check controller_manager logs") and rqt_console shows it. Refusals take half
+        the event queue at most: a caller's flood of them never crowds out the manager's
+        events."""
         self._count("refused")
-        self._on_event(f"{self._name(service)} refused: {why}")
+        if self._events.qsize() < EVENT_QUEUE // 2:
+            self._on_event(f"{self._name(service)} refused: {why}")
+        else:
+            self._count("dropped")
 
     # --- the publisher thread -----------------------------------------------------------------
     def _run(self) -> None:
