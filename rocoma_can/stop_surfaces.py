@@ -82,5 +82,11 @@ FOXGLOVE = StopSurface(
     "a call of /rocoma/estop or /rocoma/failproof, with any encoding and payload (the "
     "live view's front hands it to the SDK as an empty JSON call)")
 
+ROS2 = StopSurface(
+    "ros2", "ROS 2",
+    "a call of the ROS 2 node's std_srvs/srv/Trigger services rocoma/estop or "
+    "rocoma/failproof over rmw_zenoh, with any payload, encoding and attachment (none, "
+    "garbage, another client's)")
+
 #: every surface (see the module docstring: closed, and tested as a whole)
-SURFACES: tuple[StopSurface, ...] = (CAN_FRAME, SDO, CLI, ZENOH, FOXGLOVE)
+SURFACES: tuple[StopSurface, ...] = (CAN_FRAME, SDO, CLI, ZENOH, FOXGLOVE, ROS2)

@@ -35,10 +35,11 @@ from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
-from ..events import ManagerEvent
+from ..events import EventKind, ManagerEvent
 from ..inputs import JointCommandSample, TopicCommanded
 from ..interfaces import EmergencyController, FailproofController
-from ..remote import STOPS, StopAnswers, Transport, serve, switch_target
+from ..remote import STOPS, StopAnswers, Transport, serve, switch_target, switch_what, tell
+from ..stop_surfaces import ROS2
 from . import messages
 from .config import Ros2Config
 from .graph import (
@@ -115,7 +116,7 @@ class Ros2Node:
         self._events: queue.Queue[ManagerEvent | str | None] = queue.Queue(EVENT_QUEUE)
         self._stop = threading.Event()
         self._running = False
-        self._transport = Transport("ROS 2", "ros2.allow_commands", config.allow_commands)
+        self._transport = Transport(ROS2, "ros2.allow_commands", config.allow_commands)
         self._stops = StopAnswers(manager, "ros2")
         #: each publisher's sequence number, as rmw_zenoh keeps one per publisher: its
         #: subscribers count a gap in a publisher's numbers as messages lost
@@ -328,6 +329,8 @@ class Ros2Node:
     def _log_event(self, event: ManagerEvent) -> None:
         from ..live.messages import WARNING, event_log
         from ..record.trace import event_message
+        if event.kind is EventKind.REQUEST and event.cause.startswith(f"{ROS2.label}: "):
+            return  # this node's own callers: a refusal is said as such (_refused)
         text, level = event_log(event_message(event))
         self._log(messages.WARN if level == WARNING else messages.INFO, text)
 
@@ -393,34 +396,41 @@ class Ros2Node:
         self._reply(query, request, messages.controller_list(self.interfaces, listed))
 
     def _switch_controller(self, query: Any, request: Any) -> None:
-        def reply(ok: bool, message: str) -> None:
+        what = ["switch"]  # (what the audit trail is told: the name, once it is read)
+
+        def reply(ok: bool, result: str, error: str = "") -> None:
+            message = f"{result}: {error}" if error else result
             if not ok:
                 self._refused("controller_manager/switch_controller", message)
+            tell(self.manager, self._transport, what[0],
+                 {"result": result, **({"error": error} if error else {})})
             self._reply(query, request, messages.switch_response(self.interfaces, ok, message))
         try:
             raw = query.payload.to_bytes() if query.payload is not None else b""
             msg = self.interfaces.decode(raw, Service(SWITCH_CONTROLLER).request)
         except ValueError as exc:
-            reply(False, str(exc))
+            reply(False, "ERROR", str(exc))
             return
         activate = list(msg.activate_controllers)
+        if activate:
+            what[0] = switch_what(activate[0].encode())
         wrong = ("" if len(activate) == 1 else
                  f"{len(activate)} controllers to activate; this manager runs one at a time"
                  " (activate exactly one: the one running is deactivated)")
         name, refusal = switch_target(self.manager, (activate[0] if activate else "").encode(),
                                       self._transport, self._running, wrong)
         if name is None:
-            reply(False, f"{refusal['result']}: {refusal['error']}")
+            reply(False, refusal["result"], refusal["error"])
             return
 
         def done(future: Future[SwitchResult]) -> None:
             try:
                 result = future.result()
             except Exception as exc:  # noqa: BLE001 - answered, not raised in the switcher
-                reply(False, f"ERROR: {type(exc).__name__}: {exc}")
+                reply(False, "ERROR", f"{type(exc).__name__}: {exc}")
                 return
-            reply(result.name in ("SWITCHED", "RUNNING"), result.name + (
-                f": {self.manager.last_refusal}" if result.name == "ERROR" else ""))
+            reply(result.name in ("SWITCHED", "RUNNING"), result.name,
+                  self.manager.last_refusal if result.name == "ERROR" else "")
         self.manager.request_switch(name).add_done_callback(done)
 
 

@@ -2,8 +2,8 @@
 
 One running system serves every surface at once: a Runtime on python-can's virtual bus with
 two simulated drives, its manager node (SDO, the e-stop COB-ID), the Zenoh bridge on a
-loopback endpoint and the Foxglove live view (served by the recording's writer process,
-through its front). Each case brings the manager to OK (controller pd), sends one stop in
+loopback endpoint, the ROS 2 node (a Zenoh client of that endpoint) and the Foxglove live
+view (served by the recording's writer process, through its front). Each case brings the manager to OK (controller pd), sends one stop in
 one garbage form (an encoding nobody expects, nothing, megabytes, wrong types, invalid
 UTF-8, garbage JSON, a framing no client of ours uses) and asserts the stop acted: one
 e-stop of that surface, the manager in EMERGENCY (pd has an emergency controller) or, for a
@@ -79,6 +79,8 @@ def system() -> Iterator[System]:
     cfg = demo_config(channel, drives=2, rate=100.0)
     cfg["manager"]["estop_must_be_cleared"] = False  # each case switches back at once
     cfg["zenoh"] = {"prefix": prefix, "listen": [endpoint], "multicast": False}
+    # the ROS 2 node, a Zenoh client as rmw_zenoh's are, of the bridge's endpoint
+    cfg["ros2"] = {"connect": [endpoint], "domain_id": ROS2_DOMAIN}
     raw = can.Bus(interface="virtual", channel=channel, ignore_config=True)
     try:
         with runtime_running(cfg, DEMO_RUN,
@@ -163,6 +165,29 @@ def _foxglove(encoding: bytes, payload: bytes, fragments: int = 1) -> Send:
     return send
 
 
+ROS2_DOMAIN = 7
+
+
+def _ros2(payload: bytes | None, encoding: str | None = None,
+          attachment: bytes | None = None) -> Send:
+    """A call of the ROS 2 node's Trigger service rocoma/<kind> as any client may make it
+    (rmw_zenoh's service key, a query with the target a ROS 2 client uses); its answer a
+    Trigger response saying success."""
+    from rocoma_can.ros2.interfaces import Interfaces, dds_type_name
+    ros2 = Interfaces("jazzy")
+    trigger = "std_srvs/srv/Trigger"
+
+    def send(s: System, kind: str) -> None:
+        key = f"{ROS2_DOMAIN}/rocoma/{kind}/{dds_type_name(trigger)}/{ros2.hash(trigger)}"
+        replies = list(s.zenoh.get(key, payload=payload, encoding=encoding,
+                                   attachment=attachment,
+                                   target=zenoh.QueryTarget.ALL_COMPLETE, timeout=DEMO_WAIT))
+        assert replies and replies[0].ok is not None, "no answer from the ROS 2 node"
+        answer = ros2.decode(replies[0].ok.payload.to_bytes(), f"{trigger}_Response")
+        assert answer.success, answer.message
+    return send
+
+
 HOSTILE_BYTES = bytes(range(256))
 INVALID_UTF8 = b"\xff\xfe\xc3("
 GARBAGE_JSON = b'{"name": [1, {"pd": nul'
@@ -211,6 +236,15 @@ FORMS: dict[str, list[tuple[str, Send]]] = {
         ("wrong-types", _foxglove(b"json", WRONG_TYPES)),
         ("huge", _foxglove(b"cbor", b"\xff" * (2 << 20))),
         ("fragmented", _foxglove(b"msgpack", b"\x81\xa1a\x01", fragments=5)),
+    ],
+    "ros2": [
+        ("no-payload-no-attachment", _ros2(None)),
+        ("bytes", _ros2(HOSTILE_BYTES, attachment=b"\x01")),
+        ("invalid-utf8", _ros2(INVALID_UTF8, "text/plain;charset=utf-8")),
+        ("huge", _ros2(b"\xff" * (1 << 20))),
+        ("garbage-json", _ros2(GARBAGE_JSON, "application/json", attachment=GARBAGE_JSON)),
+        ("wrong-types", _ros2(WRONG_TYPES, "application/cdr")),
+        ("attachment-too-long", _ros2(b"\x00\x01\x00\x00", attachment=b"\xff" * 4096)),
     ],
 }
 
