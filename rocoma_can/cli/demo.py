@@ -601,4 +601,4 @@ def path_hint() -> str | None:
 
 #: the extras the README's commands need: recording and plots, status --watch, Zenoh, the
 #: Foxglove live view (run --foxglove, demo --foxglove)
-README_EXTRAS = "record,plot,live,zenoh,foxglove"
+README_EXTRAS = "record,plot,live,zenoh,foxglove,ros2"

@@ -3,9 +3,10 @@
 One running system serves every surface at once: a Runtime on python-can's virtual bus with
 two simulated drives, its manager node (SDO, the e-stop COB-ID), the Zenoh bridge on a
 loopback endpoint, the ROS 2 node (a Zenoh client of that endpoint) and the Foxglove live
-view (served by the recording's writer process, through its front). Each case brings the manager to OK (controller pd), sends one stop in
-one garbage form (an encoding nobody expects, nothing, megabytes, wrong types, invalid
-UTF-8, garbage JSON, a framing no client of ours uses) and asserts the stop acted: one
+view (served by the recording's writer process, through its front). Each case brings the
+manager to OK (controller pd), sends one stop in one garbage form (an encoding nobody
+expects, nothing, megabytes, wrong types, invalid UTF-8, garbage JSON, a framing no client
+of ours uses) and asserts the stop acted: one
 e-stop of that surface, the manager in EMERGENCY (pd has an emergency controller) or, for a
 failproof stop, FAILPROOF with every drive's torque off.
 
