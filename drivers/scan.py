@@ -166,7 +166,7 @@ def scan(bus: can.BusABC, *, listen: float = LISTEN, timeout: float = TIMEOUT,
     The bus is lent: a reader thread of the scan's own reads it meanwhile, and the bus is
     left open. Takes at most about ``listen + ceil(ids / in_flight) x timeout`` for the
     probe, then a few ``timeout`` per ``readers`` nodes that stop answering, plus
-    ``HEARTBEAT_WAIT``."""
+    ``HEARTBEAT_WAIT`` and one ``timeout`` for a second device's late answers."""
     ids = sorted(set(node_ids))
     if not all(1 <= n <= 127 for n in ids):
         raise ValueError(f"node ids must be 1..127, got {ids}")
@@ -185,10 +185,19 @@ def scan(bus: can.BusABC, *, listen: float = LISTEN, timeout: float = TIMEOUT,
         _probe(network, [n for n in ids if n not in heard.heard], heard, timeout, in_flight)
         with heard.changed:
             present = sorted(set(heard.heard) | heard.answered)
-        with ThreadPoolExecutor(max_workers=readers, thread_name_prefix="scan") as pool:
-            objects = dict(zip(present, pool.map(
-                lambda n: _read_objects(network, n, timeout), present)))
-        _await_heartbeats(heard, objects, start, clock)
+        readers_of: list[_FirstAnswerSdo] = []  # (kept listening to the scan's end)
+        try:
+            with ThreadPoolExecutor(max_workers=readers, thread_name_prefix="scan") as pool:
+                objects = dict(zip(present, pool.map(
+                    lambda n: _read_objects(network, n, timeout, readers_of), present)))
+            _await_heartbeats(heard, objects, start, clock)
+            # A second device at a node id may answer later than the first, past the node's
+            # last read (its thread or its CAN controller slower): its answers still count
+            # until one SDO timeout after the reads.
+            time.sleep(timeout)
+        finally:
+            for sdo in readers_of:
+                network.unsubscribe(sdo.tx_cobid, sdo.on_response)
         with heard.changed:
             return [_found(n, objects[n], heard.heard.get(n)) for n in present]
     finally:
@@ -347,40 +356,41 @@ class _FirstAnswerSdo(SdoClient):
             seen.append(value)
 
 
-def _read_objects(network: canopen.Network, node_id: int, timeout: float) -> _Objects:
-    """Upload each of _READS; an abort is an object the node lacks, no answer ends it."""
+def _read_objects(network: canopen.Network, node_id: int, timeout: float,
+                  listening: list[_FirstAnswerSdo]) -> _Objects:
+    """Upload each of _READS; an abort is an object the node lacks, no answer ends it. The
+    node's SDO client is left listening (appended to ``listening``, which the caller
+    unsubscribes): answers after the reads are a second device's."""
     found = _Objects()
     sdo = _FirstAnswerSdo(node_id, found)
     sdo.network = network
     sdo.RESPONSE_TIMEOUT = timeout
     sdo.MAX_RETRIES = 1  # one attempt (canopen: 0 retries for ever)
     network.subscribe(sdo.tx_cobid, sdo.on_response)
+    listening.append(sdo)
     cut: list[str] = []
-    try:
-        for index, subindex in _READS:
-            try:
-                data, complete, stated = _upload(sdo, index, subindex)
-            except SdoAbortedError:
-                found.values[(index, subindex)] = None
-                continue
-            except SdoCommunicationError as exc:
-                found.problem = f"no SDO answer reading 0x{index:04X}:{subindex} ({exc})"
-                break
-            except struct.error:  # canopen unpacks a frame shorter than 8 bytes: garbage
-                found.problem = (f"a malformed SDO answer reading 0x{index:04X}:{subindex} "
-                                 "(shorter than an SDO frame)")
-                break
-            why = _malformed(index, subindex, data, stated) if complete else None
-            if why is not None:
-                found.malformed[(index, subindex)] = why
-                found.values[(index, subindex)] = None
-                continue
-            found.values[(index, subindex)] = data
-            if not complete:
-                cut.append(f"0x{index:04X}:{subindex} longer than {MAX_OBJECT_BYTES} bytes: "
-                           "cut off")
-    finally:
-        network.unsubscribe(sdo.tx_cobid, sdo.on_response)
+    for index, subindex in _READS:
+        try:
+            data, complete, stated = _upload(sdo, index, subindex)
+        except SdoAbortedError:
+            found.values[(index, subindex)] = None
+            continue
+        except SdoCommunicationError as exc:
+            found.problem = f"no SDO answer reading 0x{index:04X}:{subindex} ({exc})"
+            break
+        except struct.error:  # canopen unpacks a frame shorter than 8 bytes: garbage
+            found.problem = (f"a malformed SDO answer reading 0x{index:04X}:{subindex} "
+                             "(shorter than an SDO frame)")
+            break
+        why = _malformed(index, subindex, data, stated) if complete else None
+        if why is not None:
+            found.malformed[(index, subindex)] = why
+            found.values[(index, subindex)] = None
+            continue
+        found.values[(index, subindex)] = data
+        if not complete:
+            cut.append(f"0x{index:04X}:{subindex} longer than {MAX_OBJECT_BYTES} bytes: "
+                       "cut off")
     if cut:
         found.problem = "; ".join(cut + ([found.problem] if found.problem else []))
     return found

@@ -190,7 +190,7 @@ def test_demo_cli_groups_the_files_notes_and_says_how_to_get_the_command(
         "demo passed",
         f"rocoma-can: not on PATH; for the README's commands: . "
         f"{Path(sys.prefix).name}/bin/activate (or pip install -e "
-        "'.[record,plot,live,zenoh,foxglove]' from a checkout)"]
+        "'.[record,plot,live,zenoh,foxglove,ros2]' from a checkout)"]
 
 
 def test_no_path_hint_when_the_command_is_found(tmp_path, monkeypatch):
