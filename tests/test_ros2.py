@@ -453,6 +453,63 @@ def test_a_nan_unknown_or_out_of_limits_command_falls_to_the_emergency_controlle
         assert why in cause, cause
 
 
+def documented_hardware_interface() -> dict[str, str]:
+    """The hardware parameters of docs/ros2.md's URDF snippet (the ``<ros2_control>`` block
+    a user copies into the robot's description)."""
+    import re
+    import xml.etree.ElementTree as ET
+    from pathlib import Path
+    text = (Path(__file__).parents[1] / "docs" / "ros2.md").read_text()
+    snippet = re.search(r"```xml\n(<ros2_control.*?</ros2_control>)\n```", text, re.S)
+    assert snippet, "docs/ros2.md has no <ros2_control> snippet"
+    hardware = ET.fromstring(snippet.group(1)).find("hardware")
+    return {p.get("name", ""): (p.text or "").strip() for p in hardware.iter("param")}
+
+
+def test_the_documented_hardware_interface_keeps_a_robot_holding_still_followed(
+        virtual_channel, sim_segment_factory, router, peer, ros2_sdk):
+    """docs/ros2.md's URDF snippet, run as joint_state_topic_hardware_interface runs its
+    write(): it publishes the command only while the states it reads differ from it by more
+    than ``trigger_joint_command_threshold`` (summed over the joints; 1e-5 unless set). A
+    robot holding its commanded pose (a trajectory's end, JointTrajectoryController's hold)
+    must stay followed, not fall to its emergency controller for a command gone stale."""
+    params = documented_hardware_interface()
+    threshold = float(params.get("trigger_joint_command_threshold", "1e-5"))
+    commands = params["joint_commands_topic"]
+    assert commands == COMMANDED["params"].get("topic", "/robot_joint_command")
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2]) as rt:
+        z = peer()
+        states: list = []
+        z.declare_subscriber(key(params["joint_states_topic"].strip("/"), JOINT_STATE),
+                             lambda s: states.append(decode(JOINT_STATE, s.payload.to_bytes())))
+        pub = publisher(ros2_sdk)
+        wait_for(lambda: rt.manager.switch_blocked() is None and states, "the drives up")
+        held = [float(v) for v in states[-1].position]  # the pose the controller holds
+        message = command(ros2_sdk, ["joint1", "joint2"], held)
+        stop, sent = threading.Event(), [0, 0]
+
+        def write() -> None:  # the interface's write(), every period of its update rate
+            while not stop.wait(0.02):
+                state = states[-1].position
+                if sum(abs(a - b) for a, b in zip(state, held)) <= threshold:
+                    sent[1] += 1
+                    continue
+                pub.publish(**message)
+                sent[0] += 1
+        thread = threading.Thread(target=write, name="test-hardware-interface")
+        thread.start()
+        try:
+            assert rt.manager.switch_controller("follow", timeout=DEMO_WAIT).name == "SWITCHED"
+            timeout = COMMANDED["params"]["timeout"]
+            time.sleep(2 * timeout)
+            assert (rt.manager.state, rt.manager.active_controller_name) == (
+                ManagerState.OK, "follow"), (rt.status()["estop_cause"], sent)
+        finally:
+            stop.set()
+            thread.join(DEMO_WAIT)
+
+
 class CountedNames(tuple):
     """A command's joint names that count, per thread, the names read from them."""
     reads: dict[int, int]
