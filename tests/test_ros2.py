@@ -696,6 +696,31 @@ def test_run_ros2_serves_the_node_and_refuses_a_bad_flag(
         "joint1", "joint2"]
 
 
+def test_demo_ros2_serves_the_demos_joints_and_says_a_missing_router_in_one_line(
+        router, peer, capfd):
+    """``demo --ros2`` (docs/ros2.md): the demo's manager is the node on the router
+    --zenoh-connect names, its joint states carry the demo's joint names; with no router
+    there, one line and exit 2 before anything is brought up."""
+    from rocoma_can.cli.main import main
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    assert main(["demo", "--ros2", "--zenoh-connect", nobody, "--drives", "2",
+                 "--duration", "2", "--no-record", "--no-flight"]) == 2
+    said = [line.strip() for line in capfd.readouterr().out.splitlines()]  # (demo: stdout)
+    assert said == [
+        f"demo: ROS 2 node: Zenoh session (client; connect {nobody}) could not be opened: "
+        f"Unable to connect to any of [Single({nobody})]!"], said
+    z = peer()
+    seen: list = []
+    z.declare_subscriber(f"{DOMAIN}/joint_states/**", seen.append)
+    assert main(["demo", "--ros2", "--zenoh-connect", router[2], "--ros-domain-id",
+                 str(DOMAIN), "--drives", "2", "--duration", "2", "--no-record",
+                 "--no-flight"]) == 0
+    out = capfd.readouterr().out
+    assert f"rocoma-can demo: ROS 2 node /rocoma (domain {DOMAIN}, jazzy" in out, out
+    assert seen and decode(JOINT_STATE, seen[-1].payload.to_bytes()).name == [
+        "joint1", "joint2"]
+
+
 def test_a_controller_following_a_topic_without_a_node_is_said(virtual_channel, caplog):
     from rocoma_can.runtime import Runtime
     from rocoma_can.runtime.config import validate
