@@ -466,6 +466,30 @@ def documented_hardware_interface() -> dict[str, str]:
     return {p.get("name", ""): (p.text or "").strip() for p in hardware.iter("param")}
 
 
+def test_the_configuration_docs_ros2_md_gives_is_taken(virtual_channel):
+    """docs/ros2.md's ``ros2:`` section and its ``ros2_command`` controller, copied into a
+    config, are taken as they read: docs that cannot rot silently."""
+    import re
+    from pathlib import Path
+
+    import yaml
+
+    from rocoma_can.runtime.config import validate
+    text = (Path(__file__).parents[1] / "docs" / "ros2.md").read_text()
+    blocks = [yaml.safe_load(b) for b in re.findall(r"```yaml\n(.*?)```", text, re.S)]
+    cfg = demo_config(virtual_channel, drives=2, rate=RATE)
+    for block in blocks:
+        cfg["controllers"] += block.pop("controllers", [])
+        cfg.update(block)
+    config = validate(cfg)
+    assert config.ros2 is not None and config.ros2.namespace == "/robot1"
+    # the controller follows the topic the documented hardware interface publishes on
+    from rocoma_can.controllers.ros2_command import Ros2Command
+    follow = next(c for c in cfg["controllers"] if c["plugin"] == "ros2_command")
+    assert Ros2Command(follow["name"], **follow["params"]).command_topic \
+        == documented_hardware_interface()["joint_commands_topic"]
+
+
 def test_the_documented_hardware_interface_keeps_a_robot_holding_still_followed(
         virtual_channel, sim_segment_factory, router, peer, ros2_sdk):
     """docs/ros2.md's URDF snippet, run as joint_state_topic_hardware_interface runs its
