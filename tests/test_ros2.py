@@ -313,7 +313,8 @@ def test_the_trigger_services_stop_whatever_the_request_holds_and_keep_the_rules
         assert rt.ros2.info()["refused"] == 2
 
 
-def switch(z, activate: list[str]) -> tuple[bool, str]:
+def switch(z, activate: list[str],
+           manager: str = "controller_manager") -> tuple[bool, str]:
     """A SwitchController call through a plain session, its request encoded by rosbags'
     own definitions (the answer is decoded independently)."""
     i = HASHES
@@ -322,7 +323,7 @@ def switch(z, activate: list[str]) -> tuple[bool, str]:
         deactivate_controllers=[], strictness=2, activate_asap=True,
         timeout=i.message("builtin_interfaces/msg/Duration", sec=0, nanosec=0)),
         "controller_manager_msgs/srv/SwitchController_Request")
-    for reply in z.get(key("controller_manager/switch_controller",
+    for reply in z.get(key(f"{manager}/switch_controller",
                            "controller_manager_msgs/srv/SwitchController"), payload=request,
                        target=zenoh.QueryTarget.ALL_COMPLETE, timeout=DEMO_WAIT):
         answer = decode("controller_manager_msgs/srv/SwitchController_Response",
@@ -346,6 +347,36 @@ def test_switch_controller_switches_one_and_says_why_it_does_not(
     with node(virtual_channel, router[2], allow_commands=False):
         ok, why = switch(peer(), ["pd"])
         assert not ok and "ros2.allow_commands: false" in why, why
+
+
+def test_a_controller_manager_name_of_its_own_keeps_clear_of_ros2_controls(
+        virtual_channel, sim_segment_factory, router, peer):
+    """Beside ros2_control's own controller_manager (the topic-based hardware interface and
+    its JointTrajectoryController run in one), two servers of /controller_manager/... would
+    both answer every `ros2 control` call, the caller taking whichever came first:
+    ``ros2.controller_manager`` names the node's. Each name then answers alone."""
+    sim_segment_factory(2)
+    lists = "controller_manager_msgs/srv/ListControllers"
+    with node(virtual_channel, router[2], controller_manager="rocoma_manager") as rt:
+        z = peer()
+        theirs = z.declare_queryable(  # ros2_control's controller_manager, as a stand-in
+            key("controller_manager/list_controllers", lists),
+            lambda q: q.reply(q.key_expr, b"theirs"), complete=True)
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+
+        def answers(name: str) -> list[bytes]:
+            return [r.ok.payload.to_bytes() for r in z.get(
+                key(name, lists), payload=b"\x00\x01\x00\x00\x00",
+                attachment=attachment_of(1, bytes(16)), target=zenoh.QueryTarget.ALL_COMPLETE,
+                timeout=DEMO_WAIT) if r.ok is not None]
+        assert answers("controller_manager/list_controllers") == [b"theirs"]
+        ours = answers("rocoma_manager/list_controllers")
+        assert len(ours) == 1, ours
+        listed = decode("controller_manager_msgs/srv/ListControllers_Response", ours[0])
+        assert "follow" in [c.name for c in listed.controller]
+        ok, why = switch(z, ["pd"], "rocoma_manager")
+        assert ok and rt.manager.active_controller_name == "pd", why
+        theirs.undeclare()
 
 
 def test_a_refused_call_is_said_on_rosout(virtual_channel, sim_segment_factory, router, peer):
@@ -639,14 +670,16 @@ def test_a_bad_ros2_section_lists_every_problem(virtual_channel):
     cfg = demo_config(virtual_channel, drives=2, rate=RATE)
     cfg["ros2"] = {"node": "1robot", "namespace": "/a//b", "domain_id": 300,
                    "distro": "humble", "ros2_control": "3.0", "connect": "7447",
-                   "joint_states_rate": 0, "allow_commands": "yes", "nodes": 1}
+                   "joint_states_rate": 0, "allow_commands": "yes", "nodes": 1,
+                   "controller_manager": "cm/*"}
     with pytest.raises(ConfigError) as caught:
         validate(cfg)
     said = "\n".join(caught.value.problems)
     for part in ("ros2.nodes: unknown key, did you mean 'node'?", "ros2.node: expected a ROS 2",
                  "ros2.namespace:", "ros2.domain_id: expected 0..232", "ros2.distro:",
                  "ros2.ros2_control:", "ros2.connect:", "ros2.joint_states_rate:",
-                 "ros2.allow_commands: expected true or false"):
+                 "ros2.allow_commands: expected true or false",
+                 "ros2.controller_manager: expected a name such as controller_manager"):
         assert part in said, said
 
 

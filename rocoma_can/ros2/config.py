@@ -11,6 +11,7 @@
       mode: client               # a Zenoh client of the router, as rmw_zenoh's nodes reach it
       connect: [tcp/localhost:7447]
       joint_states_rate: 100     # Hz
+      controller_manager: controller_manager  # its services' prefix (ros2 control -c NAME)
       allow_commands: false      # clear, recover, switch_controller from ROS 2
       required: true             # no router at start-up: an error (false: a warning)
 """
@@ -27,7 +28,7 @@ from .interfaces import DISTROS, ROS2_CONTROL
 
 DEFAULT_ROUTER = "tcp/localhost:7447"
 _KEYS = {"node", "namespace", "domain_id", "distro", "ros2_control", "mode", "connect",
-         "joint_states_rate", "allow_commands", "required"}
+         "joint_states_rate", "controller_manager", "allow_commands", "required"}
 #: rmw_zenoh, as DDS, partitions by domain id; ROS 2 accepts 0..232 on Linux
 MAX_DOMAIN_ID = 232
 
@@ -61,6 +62,9 @@ class Ros2Config:
     mode: str = "client"
     connect: list[str] = field(default_factory=lambda: [DEFAULT_ROUTER])
     joint_states_rate: float = 100.0
+    #: where list_controllers and switch_controller are served (``ros2 control -c``): another
+    #: name than ros2_control's own controller_manager when one runs in the same graph
+    controller_manager: str = "controller_manager"
     allow_commands: bool = False
     required: bool = True
 
@@ -71,6 +75,15 @@ def name_problem(name: Any) -> str | None:
         return (f"expected a ROS 2 name (a letter or '_', then letters, digits, '_'), "
                 f"got {name!r}")
     return None
+
+
+def controller_manager_problem(name: Any) -> str | None:
+    """Why ``name`` is no controller manager's name, relative (in the node's namespace) or
+    absolute: its chunks ROS 2 name tokens (None: it is one)."""
+    if isinstance(name, str) and all(NAME_TOKEN.fullmatch(chunk)
+                                     for chunk in name.removeprefix("/").split("/")):
+        return None
+    return f"expected a name such as controller_manager or /arm/controller_manager, got {name!r}"
 
 
 def namespace_problem(namespace: Any) -> str | None:
@@ -136,6 +149,7 @@ def parse(section: Any, problems: list[str], where: str = "ros2",
     take("joint_states_rate", None if isinstance(rate, (int, float))
          and not isinstance(rate, bool) and 0.1 <= rate <= 1000
          else f"expected Hz 0.1..1000, got {rate!r}")
+    take("controller_manager", controller_manager_problem(section.get("controller_manager")))
     for key in ("allow_commands", "required"):
         take(key, None if isinstance(section.get(key), bool)
              else f"expected true or false, got {section.get(key)!r}")

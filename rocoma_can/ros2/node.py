@@ -9,8 +9,9 @@ the diagnostics); serves
 ``/rocoma/estop``, ``/rocoma/failproof``, ``/rocoma/clear``, ``/rocoma/recover``
 (std_srvs/Trigger: a stop acts whatever the request holds; the others under the rules of
 every remote surface, rocoma_can/remote.py), ``/controller_manager/list_controllers`` and
-``/controller_manager/switch_controller``; subscribes to the command topic of every
-controller that follows one (rocoma_can/inputs.py). Relative names are in the node's
+``/controller_manager/switch_controller`` (``ros2.controller_manager`` names another
+prefix, clear of ros2_control's own controller manager); subscribes to the command topic
+of every controller that follows one (rocoma_can/inputs.py). Relative names are in the node's
 namespace (``joint_states`` as joint_state_broadcaster's, ``rocoma/...``,
 ``controller_manager/...``); ``/diagnostics`` and ``/rosout`` are absolute, as ROS 2's own.
 
@@ -140,9 +141,9 @@ class Ros2Node:
                 ("rocoma/state", STRING, DEFAULT_QOS))}
             for service in TRIGGERS:
                 self._service(f"rocoma/{service}", TRIGGER, self._trigger(service))
-            self._service("controller_manager/list_controllers", LIST_CONTROLLERS,
+            self._service(f"{config.controller_manager}/list_controllers", LIST_CONTROLLERS,
                           self._list_controllers)
-            self._service("controller_manager/switch_controller", SWITCH_CONTROLLER,
+            self._service(f"{config.controller_manager}/switch_controller", SWITCH_CONTROLLER,
                           self._switch_controller)
             by_topic: dict[str, list[TopicCommanded]] = {}
             for controller in inputs:
@@ -401,7 +402,7 @@ class Ros2Node:
         def reply(ok: bool, result: str, error: str = "") -> None:
             message = f"{result}: {error}" if error else result
             if not ok:
-                self._refused("controller_manager/switch_controller", message)
+                self._refused(f"{self.config.controller_manager}/switch_controller", message)
             tell(self.manager, self._transport, what[0],
                  {"result": result, **({"error": error} if error else {})})
             self._reply(query, request, messages.switch_response(self.interfaces, ok, message))
