@@ -263,6 +263,12 @@ def test_every_payload_decodes_with_an_independent_cdr_implementation(
                   if r.ok is not None}
         zid = {t.split("/")[2] for t in tokens}
         assert len(zid) == 1, tokens  # one session: the node's
+        for token in tokens:  # as rmw_zenoh's graph cache splits one (else it drops it)
+            parts = token.split("/")
+            assert all(parts) and len(parts) == (9 if parts[5] == "NN" else 13), token
+            if len(parts) == 13:  # the QoS: six groups, depth / deadline / lifespan / lease
+                groups = [g.split(",") for g in parts[12].split(":")]
+                assert [len(g) for g in groups] == [1, 1, 2, 2, 2, 3], token
         shown = {"/".join(t.split("/")[5:10]) for t in tokens}
         assert "NN/%/%robot1/rocoma" in shown
         for entry in ("MP/%/%robot1/rocoma/%robot1%joint_states",
