@@ -771,7 +771,9 @@ def test_demo_ros2_serves_the_demos_joints_and_says_a_missing_router_in_one_line
     said = [line.strip() for line in capfd.readouterr().out.splitlines()]  # (demo: stdout)
     assert said == [
         f"demo: ROS 2 node: Zenoh session (client; connect {nobody}) could not be opened: "
-        f"Unable to connect to any of [Single({nobody})]!"], said
+        f"Unable to connect to any of [Single({nobody})]! (a ROS 2 machine starts its router "
+        "with `ros2 run rmw_zenoh_cpp rmw_zenohd`; --zenoh-connect names another; "
+        "ros2.required: false runs without the node)"], said
     z = peer()
     seen: list = []
     z.declare_subscriber(f"{DOMAIN}/joint_states/**", seen.append)

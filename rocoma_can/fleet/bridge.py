@@ -242,7 +242,7 @@ def _where(mode: str | None, connect: list[str], listen: list[str],
 
 def _said(exc: BaseException) -> str:
     """Zenoh's message without the Rust source location it ends with."""
-    return str(exc).split(" at /")[0]
+    return str(exc).split(" at /")[0].strip()
 
 
 class FleetBridge:

@@ -128,7 +128,10 @@ class Ros2Node:
         try:
             self.session = open_session(config.mode, config.connect, [], False)
         except FleetError as exc:
-            raise Ros2Error(f"ROS 2 node: {exc}") from None
+            raise Ros2Error(
+                f"ROS 2 node: {exc} (a ROS 2 machine starts its router with `ros2 run "
+                "rmw_zenoh_cpp rmw_zenohd`; --zenoh-connect names another; ros2.required: "
+                "false runs without the node)") from None
         try:
             self.name = NodeName(config.domain_id, str(self.session.info.zid()), config.node,
                                  config.namespace)
