@@ -355,6 +355,25 @@ def test_switch_controller_switches_one_and_says_why_it_does_not(
         assert not ok and "ros2.allow_commands: false" in why, why
 
 
+def test_a_request_or_command_past_its_size_is_refused_undecoded(
+        virtual_channel, sim_segment_factory, router, peer, caplog):
+    """A peer's megabytes are refused by their length, before a decoder spends the
+    interpreter (which the loop's thread shares) on them: a switch request answers why, a
+    command on the topic is counted rejected and said."""
+    from rocoma_can.ros2.node import MAX_REQUEST
+    sim_segment_factory(2)
+    with node(virtual_channel, router[2]) as rt:
+        z = peer()
+        wait_for(lambda: rt.manager.switch_blocked() is None, "the drives up")
+        ok, why = switch(z, ["x" * MAX_REQUEST])
+        assert not ok and f"more than the {MAX_REQUEST} this node reads" in why, why
+        z.put(key("robot_joint_command", JOINT_STATE),
+              b"\x00\x01\x00\x00" + bytes(MAX_REQUEST))
+        wait_for(lambda: rt.ros2.counters["rejected"] == 1, "the command rejected")
+        assert any(f"more than the {MAX_REQUEST} this node reads" in r.getMessage()
+                   for r in caplog.records), caplog.text
+
+
 def test_a_controller_manager_name_of_its_own_keeps_clear_of_ros2_controls(
         virtual_channel, sim_segment_factory, router, peer):
     """Beside ros2_control's own controller_manager (the topic-based hardware interface and

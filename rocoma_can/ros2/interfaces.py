@@ -147,9 +147,13 @@ class Interfaces:
     def encode(self, message: Any, name: str) -> bytes:
         return bytes(self._store.serialize_cdr(message, name))
 
-    def decode(self, data: bytes | memoryview, name: str) -> Any:
+    def decode(self, data: bytes | memoryview, name: str, limit: int | None = None) -> Any:
         """A message of type ``name`` from CDR; ValueError (with why) for bytes that are not
-        one, whatever rosbags raised."""
+        one, whatever rosbags raised, or that are more than ``limit`` bytes (a peer's
+        megabytes would take the interpreter for a good part of a second to decode)."""
+        if limit is not None and len(data) > limit:
+            raise ValueError(f"a {name} of {len(data)} bytes, more than the {limit} this "
+                             "node reads")
         try:
             return self._store.deserialize_cdr(bytes(data), name)
         except Exception as exc:  # rosbags raises struct, index, unicode errors ...

@@ -82,6 +82,10 @@ EVENT_QUEUE = 256
 DIAGNOSTICS_PERIOD = 1.0
 #: the Trigger services under /rocoma
 TRIGGERS = ("estop", "failproof", "clear", "recover")
+#: the most bytes of a command or a switch request the node decodes: a JointState of a
+#: hundred joints is ~6 KiB; a peer's megabytes would hold the interpreter (and so the
+#: loop's thread) for a good part of a second each
+MAX_REQUEST = 64 * 1024
 
 
 class Ros2Error(RocomaError):
@@ -203,7 +207,8 @@ class Ros2Node:
         def on_sample(sample: Any) -> None:
             received = time.monotonic()
             try:
-                msg = self.interfaces.decode(sample.payload.to_bytes(), JOINT_STATE)
+                msg = self.interfaces.decode(sample.payload.to_bytes(), JOINT_STATE,
+                                             MAX_REQUEST)
             except ValueError as exc:
                 self._count("rejected")
                 if self.counters["rejected"] in (1, 10, 100, 1000):
@@ -411,7 +416,7 @@ class Ros2Node:
             self._reply(query, request, messages.switch_response(self.interfaces, ok, message))
         try:
             raw = query.payload.to_bytes() if query.payload is not None else b""
-            msg = self.interfaces.decode(raw, Service(SWITCH_CONTROLLER).request)
+            msg = self.interfaces.decode(raw, Service(SWITCH_CONTROLLER).request, MAX_REQUEST)
         except ValueError as exc:
             reply(False, "ERROR", str(exc))
             return
