@@ -21,7 +21,9 @@ from typing import Any
 
 import can
 import canopen
+from can.interfaces import VALID_INTERFACES
 
+from ..cli_args import did_you_mean
 from .frame_io import READ_LIMIT, BusSelector, FrameReader, FrameWriter, clock_offset, to_monotonic
 
 log = logging.getLogger(__name__)
@@ -61,6 +63,18 @@ def enlarge_bus_buffer(bus: can.BusABC) -> can.BusABC:
     return bus
 
 
+def unknown_interface(interface: str) -> str | None:
+    """Why ``interface`` cannot be opened, before anything opens: a name python-can does not
+    know (its own backends and the ones installed packages add, as ``inproc``), with the
+    nearest it knows; None when it knows it. A typo in a config or on the command line is
+    a usage error in one line, not the NotImplementedError python-can raises on opening."""
+    if interface in VALID_INTERFACES:
+        return None
+    return (f"{interface!r} is no interface python-can knows"
+            f"{did_you_mean(interface, VALID_INTERFACES)} (known: "
+            f"{', '.join(sorted(VALID_INTERFACES))})")
+
+
 def open_bus(interface: str, channel: str, bitrate: int | None = None,
              **kwargs: Any) -> can.BusABC:
     """A python-can bus that ignores ~/.canrc and CAN_* variables (the config says it all),
@@ -71,8 +85,9 @@ def open_bus(interface: str, channel: str, bitrate: int | None = None,
         bus = can.Bus(interface=interface, channel=channel, ignore_config=True, **kwargs)
     except (OSError, can.CanError) as e:
         raise OSError(f"cannot open CAN bus {interface}:{channel}: {e}") from e
-    except NotImplementedError:  # an interface python-can does not know: the caller says so
-        raise
+    except NotImplementedError:  # a typo in --interface or the config's bus.interface
+        raise OSError(f"cannot open CAN bus {interface}:{channel}: "
+                      f"{unknown_interface(interface)}") from None
     except Exception as e:  # noqa: BLE001 - a backend that breaks as it starts (below)
         # python-can's adapter backends fail in their own ways when the vendor's library
         # is missing or a setting is: kvaser without canlib NameError, neovi without

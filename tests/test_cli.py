@@ -238,3 +238,37 @@ def test_a_timed_run_with_no_drive_answering_says_so_and_fails(tmp_path, capfd, 
     # canopen's own ERROR line per timed-out try ("Transfer aborted by client with code
     # 0x05040000") is not the operator's: the line above says it once, with what to check
     assert not [r for r in caplog.records if r.name == "canopen.sdo.client"]
+
+
+@pytest.mark.parametrize("args", [
+    ["status"], ["list"], ["estop"], ["failproof"], ["clear"], ["recover"], ["switch", "pd"],
+    ["home", "j1"], ["scan"], ["record", "never.log", "--duration", "0.1"],
+    ["sim", "--nodes", "1"],
+])
+def test_an_interface_python_can_does_not_know_is_one_line(args, tmp_path, capsys,
+                                                           monkeypatch):
+    """A typo in --interface (socketcna) is a usage error naming it, with the nearest
+    interface python-can knows: not NotImplementedError's traceback, exit 1."""
+    monkeypatch.chdir(tmp_path)
+    assert main([*args, "--interface", "socketcna", "--channel", "x"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "\n" not in err.strip(), err
+    assert err.startswith("rocoma-can") and "'socketcna' is no interface python-can knows" \
+        in err, err
+    assert "did you mean 'socketcan'?" in err, err
+    assert not (tmp_path / "never.log").exists()
+
+
+def test_a_config_whose_interface_python_can_does_not_know_is_refused(tmp_path, capsys):
+    """check-config said ok to `interface: socketcna`; run and doctor then ended in
+    NotImplementedError's traceback."""
+    cfg = good()
+    cfg["bus"]["interface"] = "socketcna"
+    path = tmp_path / "typo.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    for verb in (["check-config"], ["run"], ["doctor"], ["status", "-c"]):
+        assert main([*verb, str(path)]) == 2, verb
+        out = capsys.readouterr()
+        assert "Traceback" not in out.err
+        assert f"{path}: bus.interface: 'socketcna' is no interface python-can knows, " \
+               "did you mean 'socketcan'?" in out.out + out.err, (verb, out)

@@ -200,6 +200,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"rocoma-can sim: --{inj.flag}: node {inj.node} is not in --nodes",
                   file=sys.stderr)
             return USAGE
+    from ..bus import unknown_interface
+    unknown = unknown_interface(args.interface)
+    if unknown:
+        print(f"rocoma-can sim: --interface: {unknown}", file=sys.stderr)
+        return USAGE
     from ..capabilities import CapabilityError, read_capabilities
     try:
         caps = read_capabilities(args.eds, args.nodes[0])

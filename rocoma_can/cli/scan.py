@@ -53,9 +53,6 @@ def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
     except OSError as exc:
         _err(str(exc) + no_socketcan_hint(exc))
         return USAGE
-    except NotImplementedError as exc:  # python-can: an interface it does not know
-        _err(f"--interface {args.interface}: {exc}")
-        return USAGE
     try:
         return work(bus)
     except can.CanError as exc:  # SocketCAN: ENOBUFS, ENETDOWN (python-can's error_code)

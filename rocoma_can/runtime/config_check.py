@@ -13,6 +13,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..drivers.bus import unknown_interface
 from ..drivers.cia301 import reserved_cob_id
 from ..drivers.config import (
     BusConfig,
@@ -119,6 +120,10 @@ def _bus(section: Mapping[str, Any], where: str, problems: list[str],
     for key, value in (("interface", interface), ("channel", channel)):
         if not isinstance(value, str) or not value:
             problems.append(f"{where}.{key}: expected a non-empty string, got {value!r}")
+    unknown = unknown_interface(interface) if isinstance(interface, str) and interface \
+        else None
+    if unknown:
+        problems.append(f"{where}.interface: {unknown}")
     if not isinstance(name, str) or (named and not name):
         problems.append(f"{where}.name: expected the bus's name (drives name it in their "
                         f"bus:), got {name!r}")
