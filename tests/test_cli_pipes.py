@@ -93,6 +93,26 @@ def test_a_reader_that_reads_the_first_lines_and_goes(tmp_path):
     assert (child.returncode, err) == (PIPE_CLOSED, ""), err
 
 
+def test_the_demo_whose_reader_goes_while_its_threads_print_ends_quietly():
+    """``rocoma-can demo | head -2``: the demo's lines come from its operator's and its
+    status threads and the recorder's reply reader too; each of them ended in a
+    BrokenPipeError traceback of its thread once the reader had gone."""
+    read, write = os.pipe()
+    fcntl.fcntl(write, fcntl.F_SETPIPE_SZ, 4096)
+    child = subprocess.Popen([sys.executable, str(CHILD), "--", "demo", "--duration", "1",
+                              "--drives", "2", "--no-record"],
+                             stdout=write, stderr=subprocess.PIPE, text=True)
+    os.close(write)
+    with os.fdopen(read, "rb") as reader:
+        head = reader.readline()
+    try:
+        _, err = child.communicate(timeout=BUDGET)
+    finally:
+        child.kill()
+    assert head.startswith(b"rocoma-can demo: 2 simulated drives"), head
+    assert (child.returncode, err) == (PIPE_CLOSED, ""), err
+
+
 def test_run_goes_on_when_its_stdout_closes_and_says_so_on_stderr(tmp_path, virtual_channel):
     """A robot is not stopped because the reader of its log went away (a `| tee` that
     ended): the run goes on to its end, says once where its lines go, writes them there,

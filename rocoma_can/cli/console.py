@@ -157,3 +157,26 @@ def point_stdout_at_devnull() -> None:
         os.close(devnull)
     except (OSError, ValueError):
         pass
+
+
+class ThreadedLines:
+    """``print`` for a verb whose result lines come from several threads (the demo's
+    operator, its status lines, the recorder's announcements): a reader gone is found by
+    whichever thread writes next, and there a BrokenPipeError ended that thread in a
+    traceback while the others went on. Here the first one to find it points stdout at
+    /dev/null (module docstring) and the lines after it go nowhere; the verb ends with
+    PIPE_CLOSED when ``gone``."""
+
+    def __init__(self) -> None:
+        self.gone = False
+
+    def __call__(self, text: str) -> None:
+        if self.gone:
+            return
+        try:
+            print(text, flush=True)
+        except BrokenPipeError:
+            if not stdout_gone():
+                raise
+            self.gone = True
+            point_stdout_at_devnull()

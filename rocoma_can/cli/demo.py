@@ -33,9 +33,10 @@ from ..cli_args import count, positive, rt_priority, seconds
 from ..drivers.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError, SimulatorFailed
 from ..events import ManagerState
-from ..exit_codes import FAILED, INTERRUPTED, OK, USAGE
+from ..exit_codes import FAILED, INTERRUPTED, OK, PIPE_CLOSED, USAGE
 from ..node.client import ManagerClient
 from ..node.objects import ESTOP_CAUSE, STATE_NAMES
+from .console import ThreadedLines
 from .demo_config import (
     DEFAULT_INTERFACE,
     ESTOP_COB_ID,
@@ -554,9 +555,10 @@ def _main(args: argparse.Namespace) -> int:
             return USAGE
     flight = None if args.no_flight else Path(
         args.flight_dir or (record / "flight" if record is not None else default_flight_dir()))
+    out = ThreadedLines()
     try:
         report = run_demo(args.drives, args.rate, args.duration,
-                          out=lambda line: print(line, flush=True), buses=args.buses,
+                          out=out, buses=args.buses,
                           interface=args.interface, eds=args.eds, record=record,
                           zenoh_listen=args.zenoh_listen, flight=flight,
                           foxglove=foxglove, data_bitrate=data_bitrate,
@@ -577,7 +579,9 @@ def _main(args: argparse.Namespace) -> int:
         return USAGE
     hint = path_hint()
     if hint is not None:
-        print(hint, flush=True)
+        out(hint)
+    if out.gone:
+        return PIPE_CLOSED
     if report.interrupted:
         return INTERRUPTED
     return OK if report.ok else FAILED
