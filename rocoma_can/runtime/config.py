@@ -195,7 +195,9 @@ def _read(path: str | Path) -> Any:
         raise ConfigError([f"{path}: larger than {MAX_CONFIG_BYTES} bytes; not a config file"])
     try:
         text = raw.decode("utf-8")
-        _check_expanded_size(yaml.compose(text, Loader=yaml.SafeLoader), str(path))
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        _check_expanded_size(root, str(path))
+        _check_keys_once(root, str(path))
         data = yaml.safe_load(text)
     except UnicodeDecodeError as exc:
         raise ConfigError([f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})"]) \
@@ -234,6 +236,40 @@ def _check_expanded_size(root: yaml.Node | None, source: str) -> None:
 
     if root is not None:
         size(root)
+
+
+def _check_keys_once(root: yaml.Node | None, source: str) -> None:
+    """Refuse a mapping that gives one key twice: YAML keeps the last and drops the first
+    without a word (a section appended with ``cat >>`` that the file already has, two
+    ``node_id:`` in one drive), so the values in force would not be the ones a person reads
+    first. A merge key (``<<``) is YAML's own way to override, and is left alone."""
+    seen: set[int] = set()
+
+    def walk(node: yaml.Node, where: str) -> None:
+        if id(node) in seen:  # an alias: walked where it was defined
+            return
+        seen.add(id(node))
+        if isinstance(node, yaml.SequenceNode):
+            for k, child in enumerate(node.value):
+                walk(child, f"{where}[{k}]")
+        elif isinstance(node, yaml.MappingNode):
+            first: dict[str, yaml.Node] = {}
+            for key, value in node.value:
+                name = key.value if isinstance(key, yaml.ScalarNode) else None
+                path = f"{where}.{name}" if where else str(name)
+                if name is not None and name != "<<":
+                    if name in first:
+                        mark = key.start_mark
+                        raise ConfigError([
+                            f"{source}: line {mark.line + 1}, column {mark.column + 1}: "
+                            f"{path}: given twice (first on line "
+                            f"{first[name].start_mark.line + 1}): YAML keeps only the last; "
+                            "give it once"])
+                    first[name] = key
+                walk(value, path)
+
+    if root is not None:
+        walk(root, "")
 
 
 def _what(data: Any) -> str:

@@ -52,3 +52,23 @@ def test_every_eds_is_parsed_and_checked_at_config_time(tmp_path, content):
     problem = "\n".join(refused.value.problems)
     assert problem.startswith("robot.yaml: drives[0]: drive 'j1': ") and (
         "vendor.eds" in problem or "EDS has no" in problem), problem
+
+
+@pytest.mark.parametrize("text, said", [
+    ("rate: 100\nsupervision: {sdo_timeout: 0.1}\nrate: 500\n",
+     "line 3, column 1: rate: given twice (first on line 1)"),
+    ("drives:\n  - {name: j1, node_id: 1, node_id: 2}\n",
+     "line 2, column 28: drives[0].node_id: given twice (first on line 2)"),
+    ("bus: {channel: can0}\nmanager:\n  node_id: 100\n  node_id: 101\n",
+     "line 4, column 3: manager.node_id: given twice (first on line 3)"),
+], ids=["top", "in-a-list", "nested"])
+def test_a_key_given_twice_is_refused_not_the_first_dropped(tmp_path, text, said):
+    """YAML keeps the last of two equal keys and drops the first without a word: a
+    `cat >> robot.yaml` of a section the file has, or two `node_id:` in a drive, ran with
+    values the person did not read as the ones in force."""
+    path = tmp_path / "robot.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as refused:
+        load(path)
+    assert f"{path}: {said}: YAML keeps only the last; give it once" in \
+        refused.value.problems, refused.value.problems
