@@ -186,3 +186,22 @@ def test_a_stop_signal_while_running_torques_off_and_exits_0(tmp_path, virtual_c
     assert out[-1].startswith(f"rocoma-can: stopped (signal {stop.name}); cycles "), out
     assert err == []
     assert not flight.exists() or not list(flight.glob("*.mcap"))
+
+
+@pytest.mark.parametrize("cut", ["fleet_from_args", "ros2_from_args", "recording_available"])
+def test_ctrl_c_between_the_config_and_the_buses_says_nothing_was_sent(
+        tmp_path, virtual_channel, capsys, monkeypatch, cut):
+    """Before bring-up, between its steps (the command's own imports, the Zenoh and ROS 2
+    options, the recorder's look for mcap): the same line as at its first and last step,
+    not main()'s bare ``interrupted (SIGINT)``."""
+    from rocoma_can.cli import commands
+    from rocoma_can.cli.main import main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(commands, cut, interrupted)
+    assert main(["run", str(_bench(tmp_path, virtual_channel))]) == INTERRUPTED
+    captured = capsys.readouterr()
+    assert (untimed(captured.out), untimed(captured.err)) == ([], [
+        "rocoma-can: error: interrupted (SIGINT) before bring-up: nothing was sent to the "
+        "drives"])

@@ -133,7 +133,18 @@ def _run(args: argparse.Namespace) -> int:
     said in one line (docs/cli.md, "Stopping run"): before bring-up nothing was sent to the
     drives (exit 130); during bring-up the loop's torque-off, exit 130; while running the
     loop's torque-off, exit 0 (the way a run is ended); while closing, after the
-    torque-off, what was cut short, exit 130."""
+    torque-off, what was cut short, exit 130. Before bring-up is every step up to the
+    loop's start, its imports and option checks too: a Ctrl-C between two of them said
+    main()'s bare ``interrupted (SIGINT)``."""
+    phase = ["before bring-up: nothing was sent to the drives"]
+    try:
+        return _run_phases(args, phase)
+    except KeyboardInterrupt:
+        return _interrupted(phase[0])
+
+
+def _run_phases(args: argparse.Namespace, phase: list[str]) -> int:
+    """_run's steps; ``phase[0]``: what a stop signal now interrupts."""
     from ..ros2.node import Ros2Error
     from ..runtime.config import load
     from ..runtime.system import Runtime
@@ -148,8 +159,6 @@ def _run(args: argparse.Namespace) -> int:
         for problem in exc.problems:
             log.error("%s", problem + (" (with --rate)" if args.rate is not None else ""))
         return USAGE
-    except KeyboardInterrupt:
-        return _interrupted("before bring-up: nothing was sent to the drives")
     try:
         config.fleet = fleet_from_args(args, config.fleet)
     except ConfigError as exc:
@@ -169,6 +178,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.record and not recording_available():
         log.error("--record writes MCAP: pip install 'rocoma-can[record]'")
         return USAGE
+    if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
+        faulthandler.register(signal.SIGUSR2, all_threads=True)
     try:
         runtime = Runtime(config, record=args.record, flight=flight,
                           flight_seconds=args.flight_seconds, announce=say.info,
@@ -176,23 +187,15 @@ def _run(args: argparse.Namespace) -> int:
     except (OSError, ValueError, FleetError, FoxgloveError, BusTaken, Ros2Error) as exc:
         log.error("%s", str(exc) + no_socketcan_hint(exc))
         return USAGE
-    except KeyboardInterrupt:
-        return _interrupted("before bring-up: nothing was sent to the drives")
-    if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
-        faulthandler.register(signal.SIGUSR2, all_threads=True)
-    phase = "before bring-up: nothing was sent to the drives"
-    try:
-        with runtime:
-            _say_started(runtime, args)
-            phase = "while closing, after the torque-off"
-            try:
-                summary = runtime.run(duration=args.duration)
-            except OSError as exc:
-                log.error("%s", str(exc) + no_socketcan_hint(exc))
-                return USAGE
-            return _stopped(runtime, summary)
-    except KeyboardInterrupt:
-        return _interrupted(phase)
+    with runtime:  # (closed whatever interrupts it, from its first line on)
+        _say_started(runtime, args)
+        phase[0] = "while closing, after the torque-off"
+        try:
+            summary = runtime.run(duration=args.duration)
+        except OSError as exc:
+            log.error("%s", str(exc) + no_socketcan_hint(exc))
+            return USAGE
+        return _stopped(runtime, summary)
 
 
 def _interrupted(when: str) -> int:
