@@ -98,9 +98,14 @@ def test_client_commands_against_a_manager(bus_factory, virtual_channel, capsys)
         assert capsys.readouterr().out.strip().splitlines()[-1] == "SWITCHED"
         assert main(["switch", "nope", *opts]) == 1
         assert capsys.readouterr().out.strip() == "NOT_FOUND"  # on stdout, as documented
-        for odd in ("é", "300", "\u00b2", "0"):  # UTF-8 names, numbers no U8 index holds
+        # UTF-8 names, numbers no U8 index holds, a byte that is no UTF-8 (the shell's
+        # $'\xff': Python's argv holds it as a lone surrogate; a UnicodeEncodeError
+        # traceback as it was sent)
+        for odd in ("é", "300", "\u00b2", "0", "\udcff"):
             assert main(["switch", odd, *opts]) == 1, odd
             assert capsys.readouterr().out.strip() == "NOT_FOUND", odd
+        assert main(["switch", "pd\udce9", *opts]) == 1
+        assert "no controller 'pd\\udce9', did you mean 'pd'?" in capsys.readouterr().err
         assert main(["list", *opts]) == 0
         assert capsys.readouterr().out.splitlines() == ["1 pd", "2 trajectory"]
         assert main(["estop", *opts]) == 0

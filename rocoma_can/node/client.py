@@ -118,7 +118,7 @@ class ManagerClient:
         encoding of a VISIBLE_STRING is ASCII and raised on "é")."""
         try:
             if isinstance(value, str):
-                self.node.sdo.download(index, 0, value.encode("utf-8"))
+                self.node.sdo.download(index, 0, value.encode("utf-8", "surrogateescape"))
             else:  # numbers: taking only this write's answer (sdo_write says why)
                 sdo_write.download(self.node.sdo, index, 0,
                                    bytes(self.node.sdo[index].od.encode_raw(value)))
