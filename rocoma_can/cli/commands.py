@@ -178,8 +178,6 @@ def _run_phases(args: argparse.Namespace, phase: list[str]) -> int:
     if args.record and not recording_available():
         log.error("--record writes MCAP: pip install 'rocoma-can[record]'")
         return USAGE
-    if hasattr(signal, "SIGUSR2"):  # `kill -USR2 <pid>`: every thread's stack, for a hang report
-        faulthandler.register(signal.SIGUSR2, all_threads=True)
     try:
         runtime = Runtime(config, record=args.record, flight=flight,
                           flight_seconds=args.flight_seconds, announce=say.info,
@@ -188,6 +186,8 @@ def _run_phases(args: argparse.Namespace, phase: list[str]) -> int:
         log.error("%s", str(exc) + no_socketcan_hint(exc))
         return USAGE
     with runtime:  # (closed whatever interrupts it, from its first line on)
+        if hasattr(signal, "SIGUSR2"):  # `kill -USR2 PID`: every thread's stack (a hang)
+            faulthandler.register(signal.SIGUSR2, all_threads=True)
         _say_started(runtime, args)
         phase[0] = "while closing, after the torque-off"
         try:
