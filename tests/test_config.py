@@ -13,7 +13,7 @@ from rocoma_can.drivers.config import DriveConfig, Supervision
 from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.wire import frame_bits
 from rocoma_can.runtime.bus_load import bus_load
-from rocoma_can.runtime.config import ConfigError, load, validate
+from rocoma_can.runtime.config import ConfigError, load, load_reach, validate
 
 EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
 
@@ -560,3 +560,7 @@ def test_a_config_that_is_not_a_mapping_says_what_it_is(tmp_path):
         assert refused.value.problems == [
             f"{path}: (top): expected a mapping with bus, rate, drives, controllers, got "
             f"{what}"]
+        with pytest.raises(ConfigError) as refused:  # -c CONFIG of the operator verbs
+            load_reach(path)                          # ("got NoneType" for an empty file)
+        assert refused.value.problems == [
+            f"{path}: (top): expected a mapping with bus and manager, got {what}"]

@@ -164,7 +164,8 @@ def load_reach(path: str | Path) -> Reach:
     data = _read(path)
     problems: list[str] = []
     if not isinstance(data, Mapping):
-        raise ConfigError([f"{path}: (top): expected a mapping, got {type(data).__name__}"])
+        raise ConfigError([f"{path}: (top): expected a mapping with bus and manager, got "
+                           f"{_what(data)}"])
     buses = check_buses(data, problems)
     manager = ManagerNodeConfig()
     m = section_at(data, "manager", problems)
