@@ -222,3 +222,17 @@ def test_run_says_its_timing_in_ms_as_status_does():
                                   "mean 1.000 ms max 1.210 ms, jitter p99 0.090 ms, work max "
                                   "0.310 ms")
     assert TimingSummary(0, 0, 0, *[float("nan")] * 5).line() == "no cycle ran"
+
+
+@pytest.mark.parametrize(("words", "meant"), [
+    (["status", "--channle", "can0"], "--channel"),
+    (["switch", "pd", "--wiat", "2"], "--wait"),
+    (["run", "robot.yaml", "--duraton=5"], "--duration"),
+    (["scan", "--channel", "can0", "--jsno"], "--json")])
+def test_an_unknown_option_gets_the_nearest_of_its_verb_as_a_hint(words, meant, capsys):
+    """As an unknown verb does: argparse (before Python 3.14) names no option for a typo."""
+    with pytest.raises(SystemExit) as exited:
+        main(words)
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].endswith(
+        f", did you mean {meant!r}?"), words

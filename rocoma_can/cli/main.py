@@ -65,6 +65,12 @@ class CommandParser(argparse.ArgumentParser):
         return plain(super().format_help())
 
 
+def verbs_of(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """The top parser's verbs, each with its parser."""
+    return next(a.choices for a in parser._actions
+                if isinstance(a, argparse._SubParsersAction))
+
+
 class TopParser(argparse.ArgumentParser):
     """The ``rocoma-can`` parser: an unknown verb gets the nearest one as a hint
     (``rocoma-can stauts``: did you mean 'status'?)."""
@@ -72,15 +78,25 @@ class TopParser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         unknown = re.match(r"argument COMMAND: invalid choice: '([^']*)'", message)
         if unknown is not None:
-            verbs = [a.choices for a in self._actions
-                     if isinstance(a, argparse._SubParsersAction)][0]
             message = f"unknown command {unknown.group(1)!r}" \
-                + did_you_mean(unknown.group(1), verbs) \
+                + did_you_mean(unknown.group(1), verbs_of(self)) \
                 + " (rocoma-can --help lists them)"
         super().error(message)
 
     def format_help(self) -> str:
         return plain(super().format_help())
+
+
+def _option_hint(parser: argparse.ArgumentParser, verb: str | None,
+                 extra: Sequence[str]) -> str:
+    """The nearest option of the verb to the first unknown one (``--channle``: ", did you
+    mean '--channel'?"), as an unknown verb gets; "" when none is near."""
+    typed = next((word.split("=", 1)[0] for word in extra if word.startswith("--")), None)
+    command = verbs_of(parser).get(verb) if verb else None
+    if typed is None or command is None:
+        return ""
+    return did_you_mean(typed, [option for action in command._actions
+                                for option in action.option_strings if option.startswith("--")])
 
 
 VERBOSE_HELP = "more log output (-vv for debug), before or after the command"
@@ -110,7 +126,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             args, extra = parser.parse_known_args(argv)
             if extra and not getattr(args, "takes_anything", False):
-                parser.error(f"unrecognized arguments: {' '.join(extra)}")
+                parser.error(f"unrecognized arguments: {' '.join(extra)}"
+                             + _option_hint(parser, args.command, extra))
         except SystemExit as exc:  # --help, --version (a usage error: its line on stderr)
             sys.stdout.flush()
             if exc.code in (0, None) and stdout_gone():  # (argparse drops its failed
