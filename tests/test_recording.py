@@ -494,6 +494,31 @@ def test_a_file_cut_short_is_read_up_to_the_cut(tmp_path, capsys, verb):
 
 
 @pytest.mark.parametrize("verb", ["plot", "export"])
+def test_a_file_damaged_in_the_middle_is_read_up_to_the_damage(tmp_path, capsys, verb):
+    """A whole trace with one chunk damaged (a bad sector, a copy gone wrong): it was "not
+    a rocoma-can trace: ZstdError: ..." (exit 2), and none of its cycles were read, though
+    every chunk before the damaged one holds its cycles."""
+    good = tmp_path / "good.mcap"
+    write_chunked(good, 300, chunk_size=4096)
+    data = bytearray(good.read_bytes())
+    good.unlink()
+    middle = len(data) // 2
+    data[middle:middle + 64] = b"\xff" * 64
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(bytes(data))
+    assert main([verb, str(path)]) == 0
+    captured = capsys.readouterr()
+    (note,) = captured.err.splitlines()
+    assert note.startswith(f"rocoma-can: {path}: damaged (") and note.endswith(
+        "messages: a part of it cannot be read): read up to the damage"), note
+    if verb == "export":
+        rows = int(captured.out.split()[0])
+        assert 0 < rows < 300
+    else:
+        assert (tmp_path / "damaged.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("verb", ["plot", "export"])
 @pytest.mark.parametrize("cut", ["in its first chunk", "garbage", "empty"])
 def test_a_cut_or_garbage_file_is_said_in_one_line(tmp_path, capsys, cut, verb):
     """Nothing whole in it (cut inside its first chunk), or not MCAP at all."""

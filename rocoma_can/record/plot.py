@@ -209,8 +209,8 @@ def plot(source: str | Path, out: str | Path | None = None, title: str = "",
     trace = load(source, said)
     if notes is not None:
         notes += said
-    if said and not title:
-        title = f"{source} (cut short: read up to the cut)"
+    if said and not title:  # (the note's last words: "read up to the cut" / "the damage")
+        title = f"{source} ({said[0].split(' (', 1)[0]}: {said[0].rsplit(': ', 1)[-1]})"
     target = Path(out) if out else Path(source).with_suffix(".png")
     try:
         fig = figure(trace, title=title or str(source))

@@ -279,8 +279,9 @@ def read_messages(path: str, topics: str | Iterable[str] | None = None,
     over; ours in another encoding, or not JSON, raise TraceError. A file cut short (its run
     killed, the power lost, the disk full: no summary, a record half written) is read up to
     its last whole record, and ``notes`` gets a line saying so: what was written stays
-    readable. The MCAP reader's other failures (a foreign or garbage file, nothing whole in
-    it) come through as they are."""
+    readable; so is a whole file damaged in its middle (a bad sector), up to the damage.
+    The MCAP reader's other failures (a foreign or garbage file, nothing whole in it) come
+    through as they are."""
     wanted = [topics] if isinstance(topics, str) else None if topics is None else list(topics)
     for channel, message in _messages(path, wanted, notes):
         ours = channel.topic in (CYCLE_TOPIC, EVENT_TOPIC)
@@ -306,16 +307,19 @@ def _messages(path: str, topics: list[str] | None, notes: list[str] | None
     read from its start, record by record, up to where it breaks."""
     from mcap.reader import NonSeekingReader, make_reader
     with open(path, "rb") as stream:
-        started = False
+        read = 0
         try:
             for _schema, channel, message in make_reader(stream).iter_messages(
                     topics=topics, log_time_order=True):
-                started = True
+                read += 1
                 yield channel, message
             return
         except Exception as refused:
-            if started:  # broken in the middle of a whole file: not a cut
-                raise
+            if read:  # damaged in the middle of a whole file (a chunk): what came before
+                if notes is not None:  # it is kept, as before a cut
+                    notes.append(f"damaged ({_reason(refused)} after {read} messages: a "
+                                 "part of it cannot be read): read up to the damage")
+                return
             stream.seek(0)
             kept: list[tuple[Any, Any]] = []
             try:
