@@ -28,3 +28,18 @@ def test_bad_names_and_existing_folders(tmp_path, capsys):
     assert main(["new-controller", "ok_name", "--dir", str(tmp_path)]) == 0
     assert main(["new-controller", "ok_name", "--dir", str(tmp_path)]) == 2
     assert "already exists" in capsys.readouterr().out
+
+
+def test_a_name_an_installed_controller_or_module_has_is_refused(tmp_path, capsys):
+    """`new-controller pd` made a package whose entry point `pd` shadowed the shipped pd
+    controller once installed (or was shadowed: the first installed wins, whichever that
+    is), and `new-controller numpy` one whose module `numpy` shadowed NumPy for the whole
+    environment. Nothing is written for either."""
+    for name, taken in (("pd", "a controller"), ("damp", "a controller"),
+                        ("torque_off", "a controller"), ("numpy", "a module"),
+                        ("json", "a module"), ("can", "a module")):
+        assert main(["new-controller", name, "--dir", str(tmp_path)]) == 2, name
+        said = capsys.readouterr().out
+        assert f"controller name {name!r} is taken: {taken} of that name is installed" \
+            in said, said
+    assert list(tmp_path.iterdir()) == []

@@ -6,6 +6,7 @@ under the ControllerManager, and a README. ``pip install -e NAME && pytest NAME`
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import keyword
 from pathlib import Path
 
@@ -143,11 +144,28 @@ def class_name(name: str) -> str:
     return "".join(part.capitalize() for part in name.split("_") if part) or "Controller"
 
 
+def _taken(name: str) -> str:
+    """What installed already has ``name``: "a controller" (an entry point of the
+    controllers' group: two of one name and the first installed wins, whichever that is),
+    "a module" (the package's own module would shadow it, NumPy for ``numpy``), else ""."""
+    from ..plugins import available_plugins
+    if name in available_plugins():
+        return "a controller"
+    if importlib.util.find_spec(name) is not None:
+        return "a module"
+    return ""
+
+
 def create_package(name: str, where: Path) -> Path:
     """Write the package folder ``where/name``; ValueError for a bad name or existing folder."""
     if not name.isidentifier() or keyword.iskeyword(name) or name != name.lower():
         raise ValueError(f"controller name {name!r} must be a lower-case Python identifier "
                          "(letters, digits, underscores), e.g. my_pd")
+    taken = _taken(name)
+    if taken:
+        raise ValueError(f"controller name {name!r} is taken: {taken} of that name is "
+                         "installed, which the package would shadow or be shadowed by; "
+                         f"pick another, e.g. my_{name}")
     root = where / name
     if root.exists():
         raise ValueError(f"{root} already exists; pick another name or remove it")
