@@ -731,3 +731,38 @@ def test_a_frame_log_that_failed_keeps_nothing_more(tmp_path):
         assert len(frame_log._queue) == 0
         frame_log.stop()
         assert open_files_under(mount) == [] and writer_threads() == []
+
+
+def test_a_directory_holding_an_earlier_recording_is_not_written_over(tmp_path, capfd):
+    """`run --record DIR` again from the shell's history wrote over the last run's
+    trace.mcap and bus logs without a word: the record of what went wrong, lost. The run
+    is refused before it starts (exit 2), naming what DIR holds; the files stay as they
+    were."""
+    from test_config import nobody_answers
+    config = nobody_answers(tmp_path)
+    record = tmp_path / "rec"
+    record.mkdir()
+    earlier = {"trace.mcap": b"an earlier run's trace", "notes.txt": b"the operator's"}
+    for name, data in earlier.items():
+        (record / name).write_bytes(data)
+    assert main(["run", str(config), "--record", str(record), "--no-flight",
+                 "--duration", "0.2"]) == 2
+    _, err = capfd.readouterr()
+    assert f"{record}: holds an earlier recording (trace.mcap): not written over; " \
+           "give --record a new directory, or move them" in err, err
+    assert {p.name: p.read_bytes() for p in record.iterdir()} == earlier
+
+
+def test_the_demo_refuses_a_directory_holding_an_earlier_recording_in_one_line(tmp_path,
+                                                                                capfd):
+    """The demo's --record the same (RecordingError came through as a traceback)."""
+    record = tmp_path / "rec"
+    record.mkdir()
+    (record / "trace.mcap").write_bytes(b"an earlier demo's")
+    assert main(["demo", "--drives", "2", "--duration", "0.5", "--record",
+                 str(record)]) == 2
+    out, err = capfd.readouterr()
+    assert "Traceback" not in err and (
+        f"demo: --record: {record}: holds an earlier recording (trace.mcap): not written "
+        "over; give --record a new directory, or move them") in out.splitlines(), out
+    assert (record / "trace.mcap").read_bytes() == b"an earlier demo's"

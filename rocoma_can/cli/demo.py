@@ -36,6 +36,7 @@ from ..events import ManagerState
 from ..exit_codes import FAILED, INTERRUPTED, OK, PIPE_CLOSED, USAGE
 from ..node.client import ManagerClient
 from ..node.objects import ESTOP_CAUSE, STATE_NAMES
+from ..record.can_log import RecordingError
 from .console import ThreadedLines
 from .demo_config import (
     DEFAULT_INTERFACE,
@@ -301,9 +302,16 @@ def _load_line(config: RuntimeConfig) -> str | None:
 
 
 def default_record_dir() -> Path:
-    """A new directory per run under the state directory's demo/ (commands.state_dir)."""
+    """A new directory per run under the state directory's demo/ (commands.state_dir):
+    named for its start, numbered after a run started in the same second (a recording is
+    never written over)."""
     from .commands import state_dir
-    return state_dir("demo", time.strftime("%Y%m%d-%H%M%S"))
+    first = state_dir("demo", time.strftime("%Y%m%d-%H%M%S"))
+    path, n = first, 1
+    while path.exists():
+        n += 1
+        path = first.with_name(f"{first.name}-{n}")
+    return path
 
 
 
@@ -566,6 +574,9 @@ def _main(args: argparse.Namespace) -> int:
     except SimulatorFailed as exc:  # its drives' process did not start
         print(f"demo: {exc}", flush=True)
         return FAILED
+    except RecordingError as exc:  # --record DIR: not writable, or an earlier recording
+        print(f"demo: --record: {exc}", flush=True)
+        return USAGE
     except (ValueError, RocomaError) as exc:
         if isinstance(exc, ConfigError):  # --zenoh-listen that is no endpoint: "demo: ..."
             for problem in exc.problems:

@@ -5,7 +5,8 @@
 (live_channels.py); ``DIR/<bus>.log`` every frame of the bus again, received (``R``) and
 sent by this manager (``T``), in candump -L text (``canplayer`` and ``can.LogReader`` replay
 it). The files are made at start, so a directory that cannot be written stops the run before
-it begins.
+it begins; so does one that holds these files already, an earlier run's record, which is
+never written over.
 
 The first failure of any of its files (a full disk, mostly) or a ring the writer fell behind
 (the loop's process overwrote records not yet written) stops every file, each closed: a
@@ -113,6 +114,12 @@ class Recording:
         self._writer: McapWriter | None = None
         try:
             directory.mkdir(parents=True, exist_ok=True)
+            earlier = sorted(p.name for p in (self.path, *(
+                directory / f"{slug(label)}.log" for label in buses)) if p.exists())
+            if earlier:  # (the same command again from a shell's history)
+                raise RecordingError(f"{directory}: holds an earlier recording "
+                                     f"({', '.join(earlier)}): not written over; give "
+                                     "--record a new directory, or move them")
             for label, (channel, rings) in buses.items():
                 self._logs.append(BusLog(directory / f"{slug(label)}.log", label, channel,
                                          rings, pace))
