@@ -87,6 +87,18 @@ def test_record_refuses_an_unknown_format_or_missing_directory(tmp_path, capsys)
     assert "unknown recording format '.txt'" in err and "does not exist" in err
 
 
+def test_record_refuses_a_file_that_exists(tmp_path, capsys):
+    """`record bus.log` again wrote over the last capture without a word."""
+    path = tmp_path / "bus.log"
+    path.write_text("(1.000000) can0 701#05\n")
+    assert main(["record", str(path), "--interface", "virtual", "--channel", "r",
+                 "--duration", "0.1"]) == 2
+    assert capsys.readouterr().err == (
+        f"rocoma-can: {path}: exists: an earlier recording is not written over; give "
+        "another file, or move it\n")
+    assert path.read_text() == "(1.000000) can0 701#05\n"
+
+
 @pytest.fixture
 def config(demo_bench):
     return demo_bench[0]

@@ -62,13 +62,17 @@ class RecordingError(OSError):
 
 
 def check_path(path: str | Path) -> Path:
-    """The file a recording will write: a known suffix and a writable directory."""
+    """The file a recording will write: a known suffix, a writable directory, and not there
+    yet (an earlier capture is never written over)."""
     path = Path(path)
     if path.suffix.lower() not in SUFFIXES:
         raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use "
                              f"{', '.join(SUFFIXES)}")
     if not path.parent.is_dir():
         raise RecordingError(f"{path}: directory {path.parent} does not exist")
+    if path.exists() or path.is_symlink():
+        raise RecordingError(f"{path}: exists: an earlier recording is not written over; "
+                             "give another file, or move it")
     return path
 
 
