@@ -277,3 +277,16 @@ def test_a_config_whose_interface_python_can_does_not_know_is_refused(tmp_path, 
         assert "Traceback" not in out.err
         assert f"{path}: bus.interface: 'socketcna' is no interface python-can knows, " \
                "did you mean 'socketcan'?" in out.out + out.err, (verb, out)
+
+
+def test_check_config_says_an_e_stop_frame_turned_off_as_off(tmp_path, capsys):
+    """`estop_cob_id: 0` turns the e-stop frame off: "e-stop COB-ID 0x000" read as a frame
+    on identifier 0 (NMT's)."""
+    cfg = good()
+    cfg["manager"]["estop_cob_id"] = 0
+    cfg["bus"] = {"interface": "virtual", "channel": "never-opened"}
+    path = tmp_path / "off.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["check-config", str(path)]) == 0
+    assert capsys.readouterr().out.splitlines()[0].endswith(
+        "manager node 100, no e-stop frame (manager.estop_cob_id: 0)")

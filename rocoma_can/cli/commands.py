@@ -84,7 +84,9 @@ def _check_config(args: argparse.Namespace) -> int:
         return USAGE
     print(f"{args.config}: ok: {len(config.drives)} drives on {_buses(config)} at "
           f"{config.rate:g} Hz, manager node {config.manager.node_id}, "
-          f"e-stop COB-ID 0x{config.manager.estop_cob_id:03X}", flush=True)
+          + (f"e-stop COB-ID 0x{config.manager.estop_cob_id:03X}"
+             if config.manager.estop_cob_id else "no e-stop frame (manager.estop_cob_id: 0)"),
+          flush=True)
     for note in config.notes:
         print(f"note: {note}", flush=True)
     print(f"note: {what_run_listens_for(config)}", flush=True)
