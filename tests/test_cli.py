@@ -191,6 +191,18 @@ def test_check_config_misspelt_key_is_one_problem(tmp_path, capsys):
         "2 problem(s)"]
 
 
+def test_check_config_says_where_a_limit_written_on_the_drive_belongs(tmp_path, capsys):
+    """`following_error_cycles: 4000` (issue 53's words) written on the drive, not in its
+    limits: "unknown key" and a list of 30 keys, none of them it."""
+    cfg = good()
+    cfg["drives"][0]["following_error_cycles"] = 4000
+    path = _write(tmp_path, cfg)
+    assert main(["check-config", str(path)]) == 2
+    assert capsys.readouterr().out.splitlines()[0] == (
+        f"{path}: drives[0].following_error_cycles: unknown key here, it goes in limits "
+        "(limits: {following_error_cycles: 4000})")
+
+
 def test_check_config_of_a_valid_file_warns_about_nothing(tmp_path, capsys, caplog):
     """The unused emergency controller is a note on stdout, once; nothing is logged."""
     cfg = good()

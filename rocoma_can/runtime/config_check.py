@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from ..drivers.bus import unknown_interface
 from ..drivers.cia301 import reserved_cob_id
 from ..drivers.config import (
+    LIMIT_KEYS,
     BusConfig,
     DriveConfig,
     Supervision,
@@ -267,7 +268,8 @@ def check_drives(entries: Any, manager_id: int, base: Path | None, problems: lis
             continue
         if isinstance(entry.get("name"), str):
             named.append(entry["name"])
-        entry = unknown_keys(entry, _DRIVE_KEYS, where, problems)
+        entry = unknown_keys(entry, _DRIVE_KEYS, where, problems,
+                             inside=dict.fromkeys(LIMIT_KEYS, "limits"))
         if base is not None and isinstance(entry.get("eds"), str):
             entry["eds"] = str((base / entry["eds"]).resolve()) \
                 if not Path(entry["eds"]).is_absolute() else entry["eds"]
@@ -476,13 +478,21 @@ def section_at(data: Mapping[str, Any], key: str, problems: list[str]) -> Mappin
 
 
 def unknown_keys(section: Mapping[str, Any], known: set[str], where: str,
-                 problems: list[str]) -> dict[str, Any]:
+                 problems: list[str], inside: Mapping[str, str] | None = None
+                 ) -> dict[str, Any]:
     """A problem per unknown key, with the known key it is closest to; returns the section
     with each such key read as the one it was meant to be where that one is not given
     too, so what follows is checked as intended instead of reporting the key as missing
-    (the section is wrong already: the problem stands)."""
+    (the section is wrong already: the problem stands). ``inside``: keys of a sub-section
+    written one level up (a drive's ``following_error_cycles``), each with the sub-section
+    it goes in: said so instead."""
     out = {key: value for key, value in section.items() if key in known}
     for key, value in section.items():
+        if key not in known and inside is not None and key in inside:
+            sub = inside[key]
+            problems.append(f"{where}.{key}: unknown key here, it goes in {sub} "
+                            f"({sub}: {{{key}: {value}}})")
+            continue
         if key not in known:
             close = difflib.get_close_matches(str(key), known, n=1)
             if not close:  # a word cut short (gear: gear_ratio) is too short to be "close"
