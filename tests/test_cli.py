@@ -302,3 +302,22 @@ def test_check_config_says_an_e_stop_frame_turned_off_as_off(tmp_path, capsys):
     assert main(["check-config", str(path)]) == 0
     assert capsys.readouterr().out.splitlines()[0].endswith(
         "manager node 100, no e-stop frame (manager.estop_cob_id: 0)")
+
+
+@pytest.mark.parametrize("verb", [["status"], ["list"], ["switch", "pd"], ["estop"],
+                                  ["clear"], ["home", "j1"]])
+def test_a_node_that_is_no_manager_is_said_as_such(verb, virtual_channel, capsys):
+    """--node pointing at a drive (the wrong --node, which docs/cli.md answers with exit 3):
+    its SDO server aborts "object does not exist" (0x06020000), and each verb said "read
+    0x2140: refused by the manager (SDO abort 0x06020000: see CiA 301)", exit 1."""
+    from rocoma_can.drivers.sim.segment import SimulatedSegment
+    segment = SimulatedSegment.open(virtual_channel, "virtual", [1]).start()
+    try:
+        assert main([*verb, "--interface", "virtual", "--channel", virtual_channel,
+                     "--node", "1", "--timeout", "0.3"]) == 3
+    finally:
+        segment.stop()
+    err = capsys.readouterr().err
+    assert "rocoma-can: node 1 is no rocoma-can manager (or an older one): it has no object " \
+        "0x21" in err, err
+    assert "refused by the manager" not in err and err.count("\n") == 1, err

@@ -16,6 +16,7 @@ from ..drivers.bus import BusReader
 from ..errors import NoAnswer, Refused, RocomaError
 from . import sdo_block, sdo_write
 from .objects import (
+    ABORT_NO_OBJECT,
     ABORT_TEXT,
     ACTIVE_NAME,
     CONTROLLER_LIST,
@@ -88,7 +89,7 @@ class ManagerClient:
                 return value
             except SdoAbortedError as exc:
                 if exc.code not in PROTOCOL_ABORTS:
-                    raise Refused(exc.code, f"read 0x{index:04X}", _meaning(exc.code)) from None
+                    raise self._refused(exc.code, "read", index) from None
                 unanswered = exc
             except SdoCommunicationError as exc:
                 unanswered = exc
@@ -123,11 +124,21 @@ class ManagerClient:
                 sdo_write.download(self.node.sdo, index, 0,
                                    bytes(self.node.sdo[index].od.encode_raw(value)))
         except SdoAbortedError as exc:
-            raise Refused(exc.code, f"write 0x{index:04X}", _meaning(exc.code)) from None
+            raise self._refused(exc.code, "write", index) from None
         except SdoCommunicationError as exc:
             raise NoAnswer(f"no answer from manager node {self.node.id}: {exc}") from None
         except can.CanError as exc:
             raise NoAnswer(f"cannot ask manager node {self.node.id}: {exc}") from None
+
+    def _refused(self, code: int, what: str, index: int) -> RocomaError:
+        """An abort of a read or write of ``index``: the manager's refusal, or, where the
+        node has no such object (abort 0x06020000), a node that is no rocoma-can manager
+        (a wrong --node: a drive's id), which is no manager's answer (NoAnswer)."""
+        if code == ABORT_NO_OBJECT:
+            return NoAnswer(f"node {self.node.id} is no rocoma-can manager (or an older one): "
+                            f"it has no object 0x{index:04X} (SDO abort 0x{code:08X}): "
+                            "wrong --node? (rocoma-can scan lists the nodes)")
+        return Refused(code, f"{what} 0x{index:04X}", _meaning(code))
 
     def home(self, drive: str, timeout: float = 60.0, poll: float = 0.1) -> str:
         """Home one drive and wait (bounded) until its 0x2140 entry says how it ended:

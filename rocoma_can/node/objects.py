@@ -11,6 +11,7 @@ from canopen.sdo.constants import (
     ABORT_INVALID_SEQUENCE_NUMBER,
     ABORT_INVALID_VALUE,
     ABORT_LENGTH_TOO_HIGH,
+    ABORT_NOT_IN_OD,
     ABORT_TIMED_OUT,
 )
 
@@ -33,6 +34,7 @@ SEGMENT = 7  # bytes of data in one SDO segment (the frame's first byte is the c
 MAX_DOWNLOAD = 256
 # SDO abort codes the node answers with (CiA 301; canopen's names)
 ABORT_NOT_FOUND = ABORT_INVALID_VALUE  # 0x06090030 value range exceeded: no such controller
+ABORT_NO_OBJECT = ABORT_NOT_IN_OD  # 0x06020000 no such object: the node is no manager
 ABORT_COMMAND_SPECIFIER = ABORT_INVALID_COMMAND_SPECIFIER  # 0x05040001
 ABORT_BLOCK_SIZE = ABORT_INVALID_BLOCK_SIZE  # 0x05040002 blksize outside 1..127
 ABORT_SEQUENCE_NUMBER = ABORT_INVALID_SEQUENCE_NUMBER  # 0x05040003 acked more than was sent
