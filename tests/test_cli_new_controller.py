@@ -27,7 +27,7 @@ def test_bad_names_and_existing_folders(tmp_path, capsys):
     assert main(["new-controller", "My-PD", "--dir", str(tmp_path)]) == 2
     assert main(["new-controller", "ok_name", "--dir", str(tmp_path)]) == 0
     assert main(["new-controller", "ok_name", "--dir", str(tmp_path)]) == 2
-    assert "already exists" in capsys.readouterr().out
+    assert "already exists" in capsys.readouterr().err  # a message: stderr (docs/cli.md)
 
 
 def test_a_name_an_installed_controller_or_module_has_is_refused(tmp_path, capsys):
@@ -39,7 +39,7 @@ def test_a_name_an_installed_controller_or_module_has_is_refused(tmp_path, capsy
                         ("torque_off", "a controller"), ("numpy", "a module"),
                         ("json", "a module"), ("can", "a module")):
         assert main(["new-controller", name, "--dir", str(tmp_path)]) == 2, name
-        said = capsys.readouterr().out
+        said = capsys.readouterr().err
         assert f"controller name {name!r} is taken: {taken} of that name is installed" \
             in said, said
     assert list(tmp_path.iterdir()) == []

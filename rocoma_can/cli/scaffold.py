@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import keyword
+import sys
 from pathlib import Path
 
 from ..exit_codes import OK, USAGE
@@ -193,7 +194,7 @@ def _main(args: argparse.Namespace) -> int:
     try:
         root = create_package(args.name, Path(args.dir))
     except (ValueError, OSError) as exc:
-        print(f"rocoma-can: {exc}", flush=True)
+        print(f"rocoma-can: {exc}", file=sys.stderr, flush=True)
         return USAGE
     print(f"created {root}: pip install -e {root} && pytest {root}", flush=True)
     return OK
