@@ -479,55 +479,47 @@ def write_chunked(path, cycles: int, chunk_size: int) -> None:
         f.finish()
 
 
+def _cut(data: bytes) -> bytes:
+    return data[:int(len(data) * 0.6)]
+
+
+def _damaged(data: bytes) -> bytes:
+    middle = len(data) // 2
+    return data[:middle] + b"\xff" * 64 + data[middle + 64:]
+
+
+#: how a file is spoilt -> its bytes from a whole file's, the note's start and end
+SPOILT = {
+    "cut": (_cut, "cut short (", "the run that wrote it did not close it): read up to the cut"),
+    "damaged": (_damaged, "damaged (",
+                "messages: a part of it cannot be read): read up to the damage")}
+
+
 @pytest.mark.parametrize("verb", ["plot", "export"])
-def test_a_file_cut_short_is_read_up_to_the_cut(tmp_path, capsys, verb):
+@pytest.mark.parametrize("how", SPOILT)
+def test_a_file_cut_short_or_damaged_is_read_up_to_it(tmp_path, capsys, verb, how):
     """A run killed (SIGKILL, the power) or a full disk leaves a trace without its summary,
     its last chunk half written: it was "not a rocoma-can trace" (exit 2), though every whole
-    chunk before the cut holds its cycles. They are plotted / exported, and a line says the
-    file was cut short."""
+    chunk before the cut holds its cycles. A whole trace with a chunk damaged in its middle
+    (a bad sector, a copy gone wrong) was "not a rocoma-can trace: ZstdError: ..." (exit 2)
+    too. They are plotted / exported up to it, and a line says what it was."""
+    spoil, starts, ends = SPOILT[how]
     good = tmp_path / "good.mcap"
     write_chunked(good, 300, chunk_size=4096)
-    data = good.read_bytes()
-    path = tmp_path / "cut.mcap"
-    path.write_bytes(data[:int(len(data) * 0.6)])
+    path = tmp_path / "spoilt.mcap"
+    path.write_bytes(spoil(good.read_bytes()))
     good.unlink()
     assert main([verb, str(path)]) == 0
     captured = capsys.readouterr()
     (note,) = captured.err.splitlines()
-    assert note.startswith(f"rocoma-can: {path}: cut short (") and note.endswith(
-        "the run that wrote it did not close it): read up to the cut"), note
+    assert note.startswith(f"rocoma-can: {path}: {starts}") and note.endswith(ends), note
     if verb == "export":
         rows = int(captured.out.split()[0])
         assert 0 < rows < 300
-        lines = (tmp_path / "cut.csv").read_text().splitlines()
+        lines = (tmp_path / "spoilt.csv").read_text().splitlines()
         assert len(lines) == rows + 1 and lines[1].startswith("1000000000,0.0,")
     else:
-        assert (tmp_path / "cut.png").stat().st_size > 0
-
-
-@pytest.mark.parametrize("verb", ["plot", "export"])
-def test_a_file_damaged_in_the_middle_is_read_up_to_the_damage(tmp_path, capsys, verb):
-    """A whole trace with one chunk damaged (a bad sector, a copy gone wrong): it was "not
-    a rocoma-can trace: ZstdError: ..." (exit 2), and none of its cycles were read, though
-    every chunk before the damaged one holds its cycles."""
-    good = tmp_path / "good.mcap"
-    write_chunked(good, 300, chunk_size=4096)
-    data = bytearray(good.read_bytes())
-    good.unlink()
-    middle = len(data) // 2
-    data[middle:middle + 64] = b"\xff" * 64
-    path = tmp_path / "damaged.mcap"
-    path.write_bytes(bytes(data))
-    assert main([verb, str(path)]) == 0
-    captured = capsys.readouterr()
-    (note,) = captured.err.splitlines()
-    assert note.startswith(f"rocoma-can: {path}: damaged (") and note.endswith(
-        "messages: a part of it cannot be read): read up to the damage"), note
-    if verb == "export":
-        rows = int(captured.out.split()[0])
-        assert 0 < rows < 300
-    else:
-        assert (tmp_path / "damaged.png").stat().st_size > 0
+        assert (tmp_path / "spoilt.png").stat().st_size > 0
 
 
 @pytest.mark.parametrize("verb", ["plot", "export"])
