@@ -349,6 +349,9 @@ def test_a_matching_file_whose_name_is_not_utf8_is_a_note_not_a_traceback(
     assert "Traceback" not in err
     assert "note: vendor_\\xff.eds: its name is not UTF-8: a config (UTF-8 text) cannot " \
            "name it; rename it" in err, err
+    # the node's own line: not only "add its EDS/DCF", when a file in DIR was not read
+    assert ": add its EDS/DCF (or fix a file init-config noted as not read) and run init-config " \
+           "again" in err, err
     shutil.copy(VENDOR_A, folder)  # the same file under a name a config can hold
     assert _run(tmp_path, virtual_channel, folder) == 0, capsys.readouterr()
 

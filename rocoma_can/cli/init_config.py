@@ -201,6 +201,7 @@ def generate(found: Sequence[Found], eds_dir: str | None, interface: str, channe
     from ..drivers.identity import file_fit
     from .demo_config import emulate
     files, notes = index_device_files(eds_dir) if eds_dir is not None else ([], [])
+    unread = bool(notes)  # files in DIR not read: one may be the node's
     picked = dict(picked or {})
     notes += [f"--eds {n}={shown_name(f.path)}: no node {n} answered the scan"
               for n, f in sorted(picked.items()) if n not in {node.node_id for node in found}]
@@ -240,7 +241,8 @@ def generate(found: Sequence[Found], eds_dir: str | None, interface: str, channe
         else:
             made, may = match(node.node_id, ident, node.device_type, files)
             if not made:
-                lines.append(f"  # {seen}: " + _no_file(node.node_id, ident, eds_dir, may))
+                lines.append(f"  # {seen}: " + _no_file(node.node_id, ident, eds_dir, may,
+                                                         unread))
                 continue
             chosen = made[0]
             others = ", ".join(Path(f.path).name for f in made[1:])
@@ -316,13 +318,16 @@ def generate(found: Sequence[Found], eds_dir: str | None, interface: str, channe
 
 
 def _no_file(node_id: int, identity: Identity, eds_dir: str | None,
-             may: Sequence[tuple[DeviceFileInfo, str]]) -> str:
+             may: Sequence[tuple[DeviceFileInfo, str]], unread: bool = False) -> str:
     """Why no file is chosen for a node: the files that may fit, each with what it leaves
-    open and the option that picks it, or that none is there to pick."""
+    open and the option that picks it, or that none is there to pick (``unread``: files in
+    the folder that were not read, each in a note, one of which may be the node's)."""
     where = f"no file in {eds_dir}" if eds_dir is not None else "no --eds-dir file"
     if not may:
         return (f"{where} is for vendor {_hex(identity.vendor_id)} product "
-                f"{_hex(identity.product_code)}: add its EDS/DCF and run init-config again")
+                f"{_hex(identity.product_code)}: add its EDS/DCF"
+                + (" (or fix a file init-config noted as not read)" if unread else "")
+                + " and run init-config again")
     offered = ", ".join(f"{Path(f.path).name} ({why})" for f, why in may)
     return (f"{where} names this device; may fit: {offered}: pick one with --eds "
             f"{node_id}={may[0][0].path}")
