@@ -770,3 +770,17 @@ def test_the_demo_refuses_a_directory_holding_an_earlier_recording_in_one_line(t
         f"demo: --record: {record}: holds an earlier recording (trace.mcap): not written "
         "over; give --record a new directory, or move them") in out.splitlines(), out
     assert (record / "trace.mcap").read_bytes() == b"an earlier demo's"
+
+
+def test_export_to_dash_writes_the_rows_on_stdout_and_no_file(tmp_path, capsys, monkeypatch):
+    """``--csv -`` is stdout, as for csvkit and the shell's tools: the rows there, what is
+    said on stderr, no file named ``-``."""
+    path = tmp_path / "ok.mcap"
+    write_mcap(path, [cycle(k) for k in range(5)])
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", str(path), "--csv", "-"]) == 0
+    said = capsys.readouterr()
+    rows = list(csv.reader(said.out.splitlines()))
+    assert rows[0][:2] == ["log_time_ns", "t"] and len(rows) == 1 + 5
+    assert said.err == "rocoma-can: 5 cycles written to stdout\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.mcap"]

@@ -95,6 +95,8 @@ def _progress(log: FrameLog) -> Callable[[float | None], None]:
 def _export(args: argparse.Namespace) -> int:
     from ..record.trace import TraceError
     source = Path(args.file)
+    if args.out == "-":
+        return _export_to_stdout(source)
     out = Path(args.out) if args.out else source.with_suffix(".csv")
     if out.resolve() == source.resolve():
         _say(f"{out}: the CSV would overwrite the trace it is read from; give --csv FILE")
@@ -121,6 +123,26 @@ def _export(args: argparse.Namespace) -> int:
     for note in notes:
         _say(f"{source}: {note}")
     print(f"{rows} cycles written to {out}", flush=True)
+    return OK
+
+
+def _export_to_stdout(source: Path) -> int:
+    """``--csv -``: the rows on stdout for a pipe (``| head``, ``| csvlook``), what is said
+    on stderr; a trace that turns out unreadable after rows went out is said, exit 2."""
+    from ..record.trace import TraceError
+    notes: list[str] = []
+    try:
+        rows = _write_csv(source, sys.stdout, notes)
+        sys.stdout.flush()
+    except ImportError:
+        _say("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
+        return USAGE
+    except TraceError as exc:
+        _say(f"{source}: not a rocoma-can trace: {exc}")
+        return USAGE
+    for note in notes:
+        _say(f"{source}: {note}")
+    _say(f"{rows} cycles written to stdout")
     return OK
 
 
@@ -185,7 +207,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                                              "to CSV, one row per cycle")
     p.add_argument("file", help="FILE.mcap")
     p.add_argument("--csv", dest="out", nargs="?", const="", default="", metavar="OUT",
-                   help="the CSV file (default: FILE.csv)")
+                   help="the CSV file (default: FILE.csv; - for stdout)")
     p.set_defaults(func=_export)
     p = subparsers.add_parser(
         "plot", help="a trace (run --record, a flight record, the demo's) as one PNG",
