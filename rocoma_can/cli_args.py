@@ -96,6 +96,16 @@ def node_id(text: str) -> int:
     return _whole(text, 1, 127, "a node id 1..127")
 
 
+def channel_name(text: str) -> str:
+    """A CAN channel's name, never empty: ``--channel "$CH"`` with CH unset would otherwise
+    mean the verb's default link, or for ``doctor`` every link, and say nothing."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(
+            f"expected a CAN channel (can0, vcan0, a number for Kvaser, IXXAT, Vector), "
+            f"got {text!r}")
+    return text
+
+
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
     """The hint an unknown name gets: ", did you mean 'x'?" for the nearest of ``choices``,
     "" when none is near."""

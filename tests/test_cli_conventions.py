@@ -236,3 +236,14 @@ def test_an_unknown_option_gets_the_nearest_of_its_verb_as_a_hint(words, meant, 
     assert exited.value.code == 2
     assert capsys.readouterr().err.splitlines()[-1].endswith(
         f", did you mean {meant!r}?"), words
+
+
+@pytest.mark.parametrize("verb", [["doctor"], ["status"], ["estop"], ["scan"],
+                                  ["record", "x.log"], ["sim"], ["lss", "--fastscan"]])
+def test_an_empty_channel_is_a_usage_error_not_a_default(verb, capsys):
+    """``--channel "$CH"`` with CH unset: doctor checked every link and said "nothing blocks
+    it", the others took their default link; now a usage error naming the option."""
+    with pytest.raises(SystemExit) as exited:
+        main([*verb, "--channel", ""])
+    assert exited.value.code == 2
+    assert "argument --channel: expected a CAN channel" in capsys.readouterr().err

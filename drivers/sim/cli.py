@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from ...cli_args import LONGEST, count, positive, seconds, seconds_or_zero
+from ...cli_args import LONGEST, channel_name, count, positive, seconds, seconds_or_zero
 from ...exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
@@ -139,7 +139,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p = subparsers.add_parser(
         "sim", help="run simulated CiA 402 drives on a CAN interface",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--channel", default="vcan0", help="CAN channel (default vcan0)")
+    p.add_argument("--channel", type=channel_name, default="vcan0",
+                   help="CAN channel (default vcan0)")
     p.add_argument("--interface", default="socketcan",
                    help="python-can interface: socketcan (default), virtual, ...")
     p.add_argument("--nodes", type=parse_node_ids, default=[1], metavar="IDS",

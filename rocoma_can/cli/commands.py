@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..audit import AUDIT
 from ..cli_args import (
+    channel_name,
     did_you_mean,
     flight_seconds,
     node_id,
@@ -542,7 +543,7 @@ def _bus_options(p: argparse.ArgumentParser, zenoh: bool = True) -> None:
                         "channel, its manager node id" + (" and Zenoh prefix" if zenoh else "")
                    + " (the options below override it)")
     p.add_argument("--interface", default=None, help="python-can interface (socketcan)")
-    p.add_argument("--channel", default=None, help="CAN channel (can0)")
+    p.add_argument("--channel", type=channel_name, default=None, help="CAN channel (can0)")
     p.add_argument("--node", type=node_id, default=None, help="the manager's node id (100)")
     p.add_argument("--timeout", type=seconds, default=0.5, help="SDO answer timeout, s (0.5)")
     if zenoh:

@@ -18,7 +18,7 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from ..cli_args import positive, seconds
+from ..cli_args import channel_name, positive, seconds
 from ..errors import ConfigError
 from ..exit_codes import FAILED, OK, USAGE
 
@@ -173,7 +173,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                     "nothing blocks the config (warnings allowed); 1: something does; 2: "
                     "usage, or a config that does not load.")
     p.add_argument("config", nargs="?", default=None, help="the run's YAML (optional)")
-    p.add_argument("--channel", default=None, help="without CONFIG: check this link only")
+    p.add_argument("--channel", type=channel_name, default=None,
+                   help="without CONFIG: check this link only")
     p.add_argument("--interface", default=None,
                    help="without CONFIG: python-can interface of --channel (socketcan)")
     p.add_argument("--json", action="store_true",

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..cli_args import seconds
+from ..cli_args import channel_name, seconds
 from ..exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:
@@ -199,7 +199,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                     "with `canplayer` or `python -m can.player`.")
     p.add_argument("file", help="FILE.log (candump -L), FILE.asc or FILE.blf")
     p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
-    p.add_argument("--channel", default="can0", help="CAN channel (can0)")
+    p.add_argument("--channel", type=channel_name, default="can0", help="CAN channel (can0)")
     p.add_argument("--duration", type=seconds, default=None, metavar="S",
                    help="stop after S seconds (default: Ctrl-C / SIGTERM)")
     p.set_defaults(func=_record)

@@ -17,7 +17,7 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from ..cli_args import node_id, seconds
+from ..cli_args import channel_name, node_id, seconds
 from ..errors import LssFailed
 from ..exit_codes import FAILED, OK, USAGE
 from .commands import no_socketcan_hint
@@ -232,7 +232,7 @@ def _u32(text: str) -> int:
 
 
 def bus_options(p: argparse.ArgumentParser, timeout: float, what: str) -> None:
-    p.add_argument("--channel", required=True, help="CAN channel, e.g. can0")
+    p.add_argument("--channel", type=channel_name, required=True, help="CAN channel, e.g. can0")
     p.add_argument("--interface", default="socketcan",
                    help="python-can interface (default socketcan)")
     p.add_argument("--timeout", type=seconds, default=timeout, metavar="S",
