@@ -239,6 +239,25 @@ def test_run_without_socketcan_says_what_to_do(tmp_path, capsys, monkeypatch):
         "kernel bus, rocoma-can demo, or interface: virtual in CONFIG"]
 
 
+@pytest.mark.parametrize("verb", [["status"], ["estop"], ["record", "x.log"]])
+def test_a_verb_reaching_the_bus_without_socketcan_says_where_it_can(verb, tmp_path, capsys,
+                                                                      monkeypatch):
+    """As run does: the errno, then what to do, on one line (status said the bare errno)."""
+    if socketcan_in_kernel():
+        import can
+
+        def no_af_can(*args, **kwargs):
+            raise OSError(errno.EAFNOSUPPORT, "Address family not supported by protocol")
+        monkeypatch.setattr(can, "Bus", no_af_can)
+    monkeypatch.chdir(tmp_path)
+    assert main([*verb, "--channel", "can0"]) == 2
+    assert capsys.readouterr().err == (
+        "rocoma-can: cannot open CAN bus socketcan:can0: [Errno 97] Address family not "
+        "supported by protocol; this kernel has no SocketCAN (AF_CAN): run it where the "
+        "manager's bus is: the robot's computer, or on vcan, from a checkout, inside "
+        "tools/vcan-run beside the manager\n")
+
+
 def test_a_timed_run_with_no_drive_answering_says_so_and_fails(tmp_path, capfd, caplog):
     """No drive on the bus: said once, for the bus, with what to check, and a run whose
     bring-up never finished exits 1, not "stopped (duration reached)" and 0; the end says

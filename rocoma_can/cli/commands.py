@@ -259,16 +259,23 @@ def _stopped(runtime: Runtime, summary: TimingSummary) -> int:
     return OK
 
 
-def no_socketcan_hint(exc: BaseException) -> str:
-    """What to do when the kernel has no SocketCAN (EAFNOSUPPORT: containers, WSL, macOS),
-    or no such link (ENODEV: a typo, an adapter not plugged in, vcan not made), which a new
-    user meets first as an errno: its words say nothing about CAN."""
+#: what to do instead of ``run`` on a kernel without SocketCAN
+RUN_ELSEWHERE = ("on vcan, from a checkout, tools/vcan-run -- rocoma-can run CONFIG with "
+                 "channel: vcan0; without a kernel bus, rocoma-can demo, or interface: "
+                 "virtual in CONFIG")
+#: what to do instead of a verb that reaches a running manager's bus (status, record ...)
+REACH_ELSEWHERE = ("run it where the manager's bus is: the robot's computer, or on vcan, from "
+                   "a checkout, inside tools/vcan-run beside the manager")
+
+
+def no_socketcan_hint(exc: BaseException, instead: str = RUN_ELSEWHERE) -> str:
+    """What to do when the kernel has no SocketCAN (EAFNOSUPPORT: containers, WSL, macOS;
+    ``instead`` says what), or no such link (ENODEV: a typo, an adapter not plugged in, vcan
+    not made), which a new user meets first as an errno: its words say nothing about CAN."""
     seen: BaseException | None = exc
     while seen is not None:
         if isinstance(seen, OSError) and seen.errno == errno.EAFNOSUPPORT:
-            return ("; this kernel has no SocketCAN (AF_CAN): on vcan, from a checkout, "
-                    "tools/vcan-run -- rocoma-can run CONFIG with channel: vcan0; without a "
-                    "kernel bus, rocoma-can demo, or interface: virtual in CONFIG")
+            return f"; this kernel has no SocketCAN (AF_CAN): {instead}"
         if isinstance(seen, OSError) and seen.errno == errno.ENODEV:
             return ("; no such network interface: `ip link` lists them (an adapter plugged "
                     "in, its driver loaded?); rocoma-can doctor CONFIG checks each bus and "
@@ -363,7 +370,7 @@ def _client(args: argparse.Namespace, action: Callable[[ManagerClient], int]) ->
     try:
         bus = open_bus(args.interface, args.channel, receive_own_messages=False)
     except OSError as exc:
-        _err(str(exc))
+        _err(str(exc) + no_socketcan_hint(exc, REACH_ELSEWHERE))
         return USAGE
     try:
         with ManagerClient(bus, args.node, timeout=args.timeout) as client:

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..cli_args import channel_name, seconds
 from ..exit_codes import FAILED, OK, USAGE
+from .commands import REACH_ELSEWHERE, no_socketcan_hint
 
 if TYPE_CHECKING:
     from ..record.can_log import FrameLog
@@ -31,7 +32,7 @@ def _record(args: argparse.Namespace) -> int:
         check_path(args.file)
         bus = open_bus(args.interface, args.channel, receive_own_messages=False)
     except (RecordingError, OSError) as exc:
-        _say(str(exc))
+        _say(str(exc) + no_socketcan_hint(exc, REACH_ELSEWHERE))
         return USAGE
     try:
         recording = BusRecording(bus, args.file)
