@@ -154,7 +154,10 @@ def test_ctrl_c_before_bring_up_ends_the_writer_without_a_flight_record(
 
 
 def test_ctrl_c_during_bring_up_torques_off_and_exits_130(tmp_path, flight):
-    """Its drive does not answer yet (a long SDO timeout: bring-up takes seconds)."""
+    """Its drive does not answer yet (a long SDO timeout: bring-up takes seconds). The stop
+    comes as soon as run says its state: from that line on, a stop is the loop's (on a
+    loaded machine one that came before the loop had started was an interrupt: exit 130
+    without the torque-off line)."""
     path = nobody_answers(tmp_path)
     cfg = yaml.safe_load(path.read_text())
     cfg["supervision"]["sdo_timeout"] = 5.0
@@ -170,6 +173,37 @@ def test_ctrl_c_during_bring_up_torques_off_and_exits_130(tmp_path, flight):
                               "torque-off sent; not brought up: j1 ("), out
     assert err == []  # no "bring-up did not finish": the operator stopped it
     assert not flight.exists() or not list(flight.glob("*.mcap"))
+
+
+def test_a_stop_signal_right_after_the_state_line_is_the_loops(tmp_path, capfd):
+    """The moment between run's state line and the loop's start, made exact: the signal is
+    raised as the line is logged (this process, main() on its main thread). It is the loop's
+    stop with its torque-off, not an interrupt said as "while closing, after the
+    torque-off" (no torque-off had been sent; seen on a loaded machine)."""
+    import logging
+
+    from rocoma_can.cli.commands import AUDIT
+    from rocoma_can.cli.main import main
+
+    class SignalAtState(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.getMessage().startswith("state FAILPROOF"):
+                os.kill(os.getpid(), signal.SIGINT)
+    path = nobody_answers(tmp_path)
+    cfg = yaml.safe_load(path.read_text())
+    cfg["supervision"]["sdo_timeout"] = 5.0
+    path.write_text(yaml.safe_dump(cfg))
+    trigger = SignalAtState()
+    logging.getLogger(AUDIT).addHandler(trigger)
+    try:
+        code = main(["run", str(path), "--no-flight"])
+    finally:
+        logging.getLogger(AUDIT).removeHandler(trigger)
+    said = untimed(capfd.readouterr().out)
+    assert code == INTERRUPTED, said
+    assert said[-2] == "rocoma-can: torque-off (FAILPROOF): loop stopping: signal SIGINT"
+    assert said[-1].startswith("rocoma-can: stopped (signal SIGINT) during bring-up, "
+                               "torque-off sent; not brought up: j1 ("), said
 
 
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)

@@ -192,12 +192,19 @@ def _run_phases(args: argparse.Namespace, phase: list[str]) -> int:
         if hasattr(signal, "SIGUSR2"):  # `kill -USR2 PID`: every thread's stack (a hang)
             faulthandler.register(signal.SIGUSR2, all_threads=True)
         _say_started(runtime, args)
-        phase[0] = "while closing, after the torque-off"
+        # The loop takes Ctrl-C / SIGTERM before run says its state: a stop after that line
+        # is the loop's (torque-off, "stopped ... during bring-up"), never an interrupt of
+        # the moment before the loop starts.
+        restore = runtime.loop.install_signal_handlers()
         try:
-            summary = runtime.run(duration=args.duration)
+            phase[0] = "while closing, after the torque-off"
+            _say_state(runtime)
+            summary = runtime.run(duration=args.duration, signals=False)
         except OSError as exc:
             log.error("%s", str(exc) + no_socketcan_hint(exc))
             return USAGE
+        finally:
+            restore()
         return _stopped(runtime, summary)
 
 
@@ -230,6 +237,10 @@ def _say_started(runtime: Runtime, args: argparse.Namespace) -> None:
         say.info("%s", describe_ros2(runtime.ros2))
     elif runtime.ros2_error:
         log.warning("running without the ROS 2 node: %s", runtime.ros2_error)
+
+
+def _say_state(runtime: Runtime) -> None:
+    """run's last line before the loop starts: from it on, a stop is the loop's."""
     m = runtime.manager
     say.info("state %s, controller %s%s", m.state.name, m.active_controller_name,
              ", e-stop latched (rocoma-can clear clears it)" if m.estop_latched else "")
