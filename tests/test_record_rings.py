@@ -159,11 +159,13 @@ def test_the_rings_memory_is_all_taken_at_start():
 
 
 def test_rings_larger_than_the_memory_allows_are_refused_at_once():
+    """Twice what the share allows: the memory available moves between this read and the
+    check's (other work ends: a megabyte past the share was allowed once in CI)."""
     available = memory_available()
     assert available is not None  # Linux says it
     with pytest.raises(RecordingError, match=r"the recording's rings need \d+ MB of "
                                              r"memory, and \d+ MB are available"):
-        SharedFile(int(available * MEMORY_SHARE) + (1 << 20))
+        SharedFile(int(available * MEMORY_SHARE * 2))
 
 
 def test_a_late_answer_to_a_call_that_timed_out_is_dropped_and_the_writer_hears_on():
