@@ -3,7 +3,7 @@ a manager, the manager's CANopen node and the project's own ControlLoop (rocoma_
 
 Wired the way ``rocoma_can.runtime.Runtime`` wires it, but with controllers given in code,
 so a benchmark can add ones that fail or initialize slowly on purpose. The simulator runs
-in this process over an in-process bus (default ``inproc``, drivers/inproc.py), stepped on
+in this process over an in-process bus (default ``inproc``, drivers/link/inproc.py), stepped on
 the loop's thread after each write (SegmentGroup.lockstep_pass, as ``rocoma-can demo`` runs
 it; ``sim_thread=True``: on a receive thread of its own; ``interface="virtual"``, python-can's
 bus, which copies every frame once per receiver, always has a thread per bus), or as
@@ -25,9 +25,9 @@ import can
 import numpy as np
 
 from rocoma_can.cli.demo_config import FD_PDO_BYTES
-from rocoma_can.drivers.bus import open_bus
-from rocoma_can.drivers.config import DriveConfig
 from rocoma_can.drivers.hardware import CanopenHardware
+from rocoma_can.drivers.link.bus import open_bus
+from rocoma_can.drivers.plan.config import DriveConfig
 from rocoma_can.drivers.sim.group import SegmentGroup
 from rocoma_can.drivers.sim.segment import SimulatedSegment
 from rocoma_can.interfaces import Controller, EmergencyController

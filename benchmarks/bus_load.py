@@ -3,8 +3,8 @@
     .venv/bin/python benchmarks/bus_load.py [--drives 1,6,12,24] [--rates 250,500,1000]
 
 Computed, not measured: frames per cycle come from the driver's own PDO layouts
-(drivers/pdo_layout.py, the same ``layout_for`` the hardware layer uses) and bits per frame
-from the classic-CAN formula the config check uses (rocoma_can.drivers.wire.frame_bits):
+(drivers/plan/pdo_layout.py, the same ``layout_for`` the hardware layer uses) and bits per frame
+from the classic-CAN formula the config check uses (rocoma_can.drivers.protocol.wire.frame_bits):
 8n + 47 bits for n data bytes (with intermission), plus up to floor((34 + 8n - 1) / 4) stuff
 bits in the worst case.
 Per cycle: every drive's RPDOs and TPDOs and one SYNC; per second on top: the manager's and
@@ -17,10 +17,10 @@ import argparse
 
 from _report import report
 
-from rocoma_can.drivers.config import DriveConfig
-from rocoma_can.drivers.joints import JointMode
-from rocoma_can.drivers.pdo_layout import layout_for
-from rocoma_can.drivers.wire import frame_bits as wire_bits
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.pdo_layout import layout_for
+from rocoma_can.drivers.protocol.joints import JointMode
+from rocoma_can.drivers.protocol.wire import frame_bits as wire_bits
 
 BITRATES = (500_000, 1_000_000)
 #: name -> (modes, feedback): the default drive and the leanest CSP drive

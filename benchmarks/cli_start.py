@@ -45,7 +45,7 @@ def served_manager(interface: str, channel: str):
     """A manager with its CANopen node (id 100) on ``channel``, for a real status call."""
     from rocoma_can import ControllerManager
     from rocoma_can.controllers.torque_off import TorqueOff
-    from rocoma_can.drivers.bus import open_bus
+    from rocoma_can.drivers.link.bus import open_bus
     from rocoma_can.node.server import ManagerNode
     manager = ControllerManager(TorqueOff(), 0.01)
     bus = open_bus(interface, channel)  # as rocoma-can run opens the node's bus

@@ -26,12 +26,12 @@ import numpy as np
 from _report import report, stats
 
 from rocoma_can import ManagerState, eds
-from rocoma_can.drivers.bringup import Phase
-from rocoma_can.drivers.config import DriveConfig
+from rocoma_can.drivers.bringup.drive_bringup import Phase
 from rocoma_can.drivers.hardware import CanopenHardware
-from rocoma_can.drivers.joints import JointMode
-from rocoma_can.drivers.pdo_layout import layout_for
-from rocoma_can.drivers.scaling import Scaling
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.pdo_layout import layout_for
+from rocoma_can.drivers.plan.scaling import Scaling
+from rocoma_can.drivers.protocol.joints import JointMode
 
 MODES = ("csp", "csv", "cst")
 MANAGER_NODE_ID = 100

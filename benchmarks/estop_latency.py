@@ -32,8 +32,8 @@ from _rig import ESTOP_COB_ID, Rig, Script, run_script
 from rocoma_can import ManagerState
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.quick_stop import QuickStop
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.bus import open_bus
+from rocoma_can.drivers.link.bus import open_bus
+from rocoma_can.drivers.protocol import cia301
 
 STOP_CONTROLWORDS = (0x0000, 0x0002)  # torque off (disable voltage), quick stop
 SETTLE_CYCLES = 20                    # OK and enabled this long before each trigger

@@ -37,7 +37,7 @@ from rocoma_can import ManagerState
 from rocoma_can.cli.demo_config import FD_BITRATE, FD_DATA_BITRATE
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
-from rocoma_can.drivers.pdo_layout import DriveLayout
+from rocoma_can.drivers.plan.pdo_layout import DriveLayout
 from rocoma_can.runtime.bus_load import BusLoad, bus_load
 
 

@@ -29,7 +29,7 @@ from rocoma_can import ControllerManager, ManagerState, SwitchResult
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.torque_off import TorqueOff
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.interfaces import Controller
 
 DT = 0.001

@@ -32,7 +32,7 @@ import numpy as np
 from _report import report, stats
 
 from rocoma_can import ManagerState
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.record.can_log import candump_line
 from rocoma_can.record.flight import FlightRecords
 from rocoma_can.record.live_channels import Facts, LiveChannels

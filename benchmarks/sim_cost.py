@@ -26,9 +26,9 @@ import uuid
 import can
 from _report import report, stats
 
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.bus import open_bus
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.link.bus import open_bus
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 from rocoma_can.drivers.sim.segment import SimulatedSegment
 
 #: the simulated drive's default RPDO1: controlword, modes of operation, target torque

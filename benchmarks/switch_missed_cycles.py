@@ -25,7 +25,7 @@ from _rig import Rig, Script, StartLog, missed_cycles, run_script
 from rocoma_can import ControllerManager, SwitchResult
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.torque_off import TorqueOff
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.runtime import ControlLoop
 
 BASELINE_S = 0.6  # settle time before each switch (also the longest baseline window)

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import EmergencyController
 
 from .joint_group import JointGroup

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointMode, JointState
 
 from .params import Owner, joint_names, param_error
 

@@ -19,7 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol.joints import JointMode
 from rocoma_can.errors import ParamError
 
 

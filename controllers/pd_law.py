@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol.joints import JointMode
 
 from .joint_group import JointGroup
 from .params import Owner, PerJoint, per_joint

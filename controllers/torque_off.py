@@ -6,7 +6,7 @@ shared JointCommand truthful for loggers and for the next controller's swap.
 """
 from __future__ import annotations
 
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.interfaces import FailproofController
 
 

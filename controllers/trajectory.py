@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import Controller, SwapState
 
 from .joint_group import JointGroup

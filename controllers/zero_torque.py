@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointMode, JointState
 from rocoma_can.interfaces import Controller
 
 from .joint_group import JointGroup

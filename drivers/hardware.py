@@ -86,28 +86,28 @@ import numpy as np
 from ..errors import HomingFailed
 from ..events import ManagerState
 from ..stop_surfaces import CAN_FRAME
-from .bringup import DriveBringup, Phase, create_bringups
-from .bringup_report import BringupReport
-from .bus import start_reading
-from .bus_port import Bus, BusPort, SentFrames, named_buses
-from .cia402 import State402
-from .command import Commands
-from .config import DriveConfig, Supervision, check_drives, estop_conflict
-from .drive_plan import check_pdo_bytes, grouped_notes, pdo_using, plan_drives
-from .enable import EnableSequence
-from .frames_out import FramesOut
-from .homing import HomingJob, refusal
-from .joints import JointCommand, JointState
-from .node_guarding import NodeGuarding
-from .pdo_layout import IGNORED, DriveLayout, cob_id_clashes
-from .receive import Receiver
-from .recovery import Recovery
-from .scaling import Scaling
-from .status import DriveStatus, HardwareStatus, bus_status, drive_status, recovery_status
-from .status import not_ready as _not_ready
-from .stop_requests import CycleEvent, RecoveryDone, StopRequest
-from .supervision import FaultEvent, Supervisor
-from .switch_off import SdoSwitchOff
+from .bringup.drive_bringup import DriveBringup, Phase, create_bringups
+from .bringup.report import BringupReport
+from .cycle.command import Commands
+from .cycle.enable import EnableSequence
+from .cycle.frames_out import FramesOut
+from .cycle.homing import HomingJob, refusal
+from .cycle.node_guarding import NodeGuarding
+from .cycle.receive import Receiver
+from .cycle.recovery import Recovery
+from .cycle.status import DriveStatus, HardwareStatus, bus_status, drive_status, recovery_status
+from .cycle.status import not_ready as _not_ready
+from .cycle.stop_requests import CycleEvent, RecoveryDone, StopRequest
+from .cycle.supervision import FaultEvent, Supervisor
+from .cycle.switch_off import SdoSwitchOff
+from .link.bus import start_reading
+from .link.bus_port import Bus, BusPort, SentFrames, named_buses
+from .plan.config import DriveConfig, Supervision, check_drives, estop_conflict
+from .plan.drive_plan import check_pdo_bytes, grouped_notes, pdo_using, plan_drives
+from .plan.pdo_layout import IGNORED, DriveLayout, cob_id_clashes
+from .plan.scaling import Scaling
+from .protocol.cia402 import State402
+from .protocol.joints import JointCommand, JointState
 
 __all__ = ["CanopenHardware", "DriveStatus", "HardwareStatus", "WORKER_START"]
 

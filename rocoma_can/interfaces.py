@@ -66,7 +66,7 @@ class _Named(Generic[StateT, CommandT]):
     # them before that is a clear error instead of an AttributeError on None later.
     @property
     def state(self) -> StateT:
-        """The manager's state object (on a CAN bus a drivers.joints.JointState)."""
+        """The manager's state object (on a CAN bus a drivers.protocol.joints.JointState)."""
         if isinstance(self._state, _Unset):
             raise self._unattached("state")
         return self._state
@@ -77,7 +77,7 @@ class _Named(Generic[StateT, CommandT]):
 
     @property
     def command(self) -> CommandT:
-        """The manager's command object (on a CAN bus a drivers.joints.JointCommand)."""
+        """The manager's command object (on a CAN bus a drivers.protocol.joints.JointCommand)."""
         if isinstance(self._command, _Unset):
             raise self._unattached("command")
         return self._command

@@ -18,7 +18,7 @@ from rocoma_can.audit import AUDIT, Audit
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.controllers.torque_off import TorqueOff
-from rocoma_can.drivers.bus import open_bus
+from rocoma_can.drivers.link.bus import open_bus
 from rocoma_can.errors import NoAnswer
 from rocoma_can.exit_codes import OK
 from rocoma_can.node.client import ManagerClient
@@ -207,7 +207,7 @@ def test_warnings_of_a_start_are_said_once_in_the_consoles_format(tmp_path, capf
 def test_the_recording_writers_lines_come_in_runs_format(tmp_path, capfd):
     """The recorder's writer process says what goes wrong on run's stderr, in run's one
     format, naming itself (it said ``rocoma-can writer process: LOGGER: ...``, unstamped)."""
-    from rocoma_can.drivers.joints import JointCommand, JointState
+    from rocoma_can.drivers.protocol.joints import JointCommand, JointState
     from rocoma_can.record.recorder import BusToRecord, Recorder
 
     class Manager:

@@ -1,6 +1,7 @@
-"""DriveBringup (drivers/bringup.py), the per-drive start-up state machine, without a bus: its
-phases, timeouts and failure causes. The SDO configuration job is replaced by its result
-(the job itself is tested on the bus: tests/test_driver_bus_bring_up.py); jobs run inline."""
+"""DriveBringup (drivers/bringup/drive_bringup.py), the per-drive start-up state machine,
+without a bus: its phases, timeouts and failure causes. The SDO configuration job is replaced
+by its result (the job itself is tested on the bus: tests/test_driver_bus_bring_up.py); jobs
+run inline."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -11,11 +12,12 @@ import canopen
 import pytest
 from fixtures.driver_rig import drive_configs
 
-from rocoma_can.drivers import bringup, cia301
-from rocoma_can.drivers.bringup import ConfigResult, DriveBringup, Phase
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.config import Timeouts
-from rocoma_can.drivers.drive_plan import plan_drive
+from rocoma_can.drivers.bringup import drive_bringup as bringup
+from rocoma_can.drivers.bringup.drive_bringup import ConfigResult, DriveBringup, Phase
+from rocoma_can.drivers.plan.config import Timeouts
+from rocoma_can.drivers.plan.drive_plan import plan_drive
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 
 TIMEOUTS = Timeouts(boot_wait=1.0, start=2.0, reset=1.0, enable=1.0)
 SWITCH_ON_DISABLED = 0x0040

@@ -1,4 +1,4 @@
-"""What bring-up tells a person (drivers/bringup_report.py), each thing once: a whole bus
+"""What bring-up tells a person (drivers/bringup/report.py), each thing once: a whole bus
 that does not answer (unplugged, unpowered, at another bit rate) is one line for the bus
 with what to check, not a line per drive and their summary; a silent drive among answering
 ones is its own line; the end of the start-up is one audit line."""

@@ -1,4 +1,4 @@
-"""BusReader (drivers/bus.py): the one reader of a bus, or of several buses on one thread.
+"""BusReader (drivers/link/bus.py): the one reader of a bus, or of several buses on one thread.
 
 What must hold with several buses on one thread: each frame reaches the listeners of its
 own bus, in order; a bus that fails is reported to its own listeners only, read again at
@@ -19,7 +19,7 @@ import can
 import pytest
 from fixtures.driver_rig import VIRTUAL
 
-from rocoma_can.drivers.bus import (
+from rocoma_can.drivers.link.bus import (
     DRAIN_STANDBY,
     BusReader,
     CanopenBus,

@@ -12,7 +12,7 @@ from test_config import good, nobody_answers
 from test_services import NODE, Rig
 
 from rocoma_can.cli.main import main
-from rocoma_can.drivers.can_link import socketcan_in_kernel
+from rocoma_can.drivers.link.can_link import socketcan_in_kernel
 
 EXAMPLES = Path(__file__).parents[1] / "rocoma_can" / "examples"
 

@@ -18,8 +18,8 @@ from test_services import NODE, Rig
 
 from rocoma_can import __version__
 from rocoma_can.cli.main import build_parser, main
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.scan import nmt_state_name
+from rocoma_can.drivers.commission.scan import nmt_state_name
+from rocoma_can.drivers.protocol import cia301
 from rocoma_can.exit_codes import FAILED, NO_ANSWER, OK
 from rocoma_can.runtime.config import load, load_reach
 from rocoma_can.runtime.loop import TimingSummary

@@ -9,9 +9,9 @@ import pytest
 import yaml
 
 from rocoma_can import TimingSupervision
-from rocoma_can.drivers.config import DriveConfig, Supervision
 from rocoma_can.drivers.hardware import CanopenHardware
-from rocoma_can.drivers.wire import frame_bits
+from rocoma_can.drivers.plan.config import DriveConfig, Supervision
+from rocoma_can.drivers.protocol.wire import frame_bits
 from rocoma_can.runtime.bus_load import bus_load
 from rocoma_can.runtime.config import ConfigError, load, load_reach, validate
 

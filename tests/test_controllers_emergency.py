@@ -8,8 +8,8 @@ from fixtures.joint_plant import JointPlant, attach
 from rocoma_can.controllers.damp import Damp
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.quick_stop import QuickStop
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol.cia402 import State402
+from rocoma_can.drivers.protocol.joints import JointMode
 
 DT = 0.001
 MOVING = [3.0, -2.0, 1.0, 0.0]

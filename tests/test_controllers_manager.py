@@ -17,7 +17,7 @@ from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.quick_stop import QuickStop
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.controllers.tracking_monitor import WORKER_NAME
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol.joints import JointMode
 from rocoma_can.plugins import add_to_manager
 
 NAMES = ("left_hip", "left_knee", "right_hip", "right_knee", "shoulder", "elbow")

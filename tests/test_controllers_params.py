@@ -135,6 +135,6 @@ def test_create_without_state_says_to_add_the_controller_to_a_manager():
 
 
 def test_mode_accepts_names_in_any_case_and_joint_modes():
-    from rocoma_can.drivers.joints import JointMode
+    from rocoma_can.drivers.protocol.joints import JointMode
     assert JointPD("a", mode="csp").mode is JointMode.CSP
     assert Hold("b", mode=JointMode.CSP).mode is JointMode.CSP

@@ -9,7 +9,7 @@ from fixtures.joint_plant import JointPlant, attach
 
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.zero_torque import Float
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol.joints import JointMode
 
 DT = 0.001
 

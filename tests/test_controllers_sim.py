@@ -16,8 +16,8 @@ from fixtures.budgets import STALL
 from fixtures.driver_rig import VIRTUAL, Can, Rig, outlasting, pd_settle, position_settle
 
 from rocoma_can import ManagerState, SwitchResult, TimingSupervision
-from rocoma_can.drivers.cia402 import QUICK_STOP_DECELERATION, State402
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol.cia402 import QUICK_STOP_DECELERATION, State402
+from rocoma_can.drivers.protocol.joints import JointMode
 from rocoma_can.drivers.sim.dynamics import JointParams
 from rocoma_can.plugins import add_to_manager
 

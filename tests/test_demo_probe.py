@@ -15,8 +15,8 @@ import pytest
 from rocoma_can.cli.demo import _only
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.demo_probe import TorqueOffProbes, controlword_carriers
-from rocoma_can.drivers import inproc
-from rocoma_can.drivers.bus import open_bus
+from rocoma_can.drivers.link import inproc
+from rocoma_can.drivers.link.bus import open_bus
 from rocoma_can.runtime.config import RuntimeConfig, validate
 
 DRIVES, BUSES = 4, 2

@@ -19,8 +19,8 @@ import pytest
 import yaml
 from fixtures.budgets import within
 
-from rocoma_can.drivers.can_link import LinkReading, from_sysfs, parse_ip_link
-from rocoma_can.drivers.config import BusConfig
+from rocoma_can.drivers.link.can_link import LinkReading, from_sysfs, parse_ip_link
+from rocoma_can.drivers.plan.config import BusConfig
 from rocoma_can.runtime.can_checks import RESTART_MS, TXQUEUELEN_MIN, Wanted, link_checks
 from rocoma_can.runtime.host import (
     CPU_SYSFS,

@@ -1,4 +1,4 @@
-"""Modes beyond CSP/CSV/CST (drivers/modes.py): IP, PP and PV carry the same controller
+"""Modes beyond CSP/CSV/CST (drivers/plan/modes.py): IP, PP and PV carry the same controller
 commands as CSP and CSV. Units here; on the bus against simulated drives that emulate a
 robot-arm joint's EDS (PP, VL, IP only) and a drive listing PV."""
 from __future__ import annotations
@@ -18,11 +18,8 @@ from fixtures.driver_rig import (
 )
 
 from rocoma_can import Controller, ManagerState, SwitchResult
-from rocoma_can.drivers import cia402
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.config import DriveConfig
-from rocoma_can.drivers.joints import JointMode
-from rocoma_can.drivers.modes import (
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.modes import (
     CW_CHANGE_IMMEDIATELY,
     CW_NEW_SETPOINT,
     SW_SETPOINT_ACK,
@@ -30,6 +27,9 @@ from rocoma_can.drivers.modes import (
     SetPointHandshake,
     interpolation_period,
 )
+from rocoma_can.drivers.protocol import cia402
+from rocoma_can.drivers.protocol.cia402 import State402
+from rocoma_can.drivers.protocol.joints import JointMode
 
 EDS = Path(__file__).parent / "fixtures" / "eds"
 ARM = str(EDS / "arm_ip_pp_vl.eds")
@@ -195,7 +195,7 @@ def test_pv_carries_csv_commands(mode_rig, tmp_path):
 
 
 def test_a_drive_config_of_only_ip_refuses_velocity_commands():
-    from rocoma_can.drivers.drive_plan import plan_drive
+    from rocoma_can.drivers.plan.drive_plan import plan_drive
     plan = plan_drive(DriveConfig("j", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=ARM,
                                   modes=["ip"], accept_unsupervised=False))
     assert plan.drive.modes == (DriveMode.IP,)

@@ -30,9 +30,9 @@ from fixtures.driver_rig import (
 from fixtures.odd_node import OddNode
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia301, cia402
-from rocoma_can.drivers.bringup import Phase
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.bringup.drive_bringup import Phase
+from rocoma_can.drivers.protocol import cia301, cia402
+from rocoma_can.drivers.protocol.cia402 import State402
 
 
 def test_bring_up_six_drives_to_operation_enabled(segment, make_rig, can_setup):
@@ -113,8 +113,8 @@ def test_a_node_answering_garbled_sdo_frames_fails_its_bring_up_in_one_line(virt
     """A device at the drive's node id that answers SDO with frames shorter than SDO's
     8 bytes: canopen's struct.error text was the drive's failure ("unpack requires a buffer
     of 3 bytes"). The failure says what it means and what to check."""
-    from rocoma_can.drivers.bringup import configure
-    from rocoma_can.drivers.drive_plan import plan_drive
+    from rocoma_can.drivers.bringup.drive_bringup import configure
+    from rocoma_can.drivers.plan.drive_plan import plan_drive
     odd = OddNode(virtual_channel, lambda request: [garbage])
     network = canopen.Network()
     network.connect(interface="virtual", channel=virtual_channel, ignore_config=True)

@@ -17,8 +17,8 @@ import numpy as np
 from fixtures.driver_rig import RPDO1, HoldPD, Sine, bring_up, enable_with, synced_mark
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia402
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol import cia402
+from rocoma_can.drivers.protocol.joints import JointMode
 
 
 def _drive_side(segment, mode: JointMode) -> list[tuple[float, float, float]]:

@@ -20,8 +20,8 @@ from fixtures.driver_rig import VIRTUAL, Rig, bring_up, synced_mark
 
 from rocoma_can import ManagerState
 from rocoma_can import eds as shipped_eds
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.identity import Identity
+from rocoma_can.drivers.files.identity import Identity
+from rocoma_can.drivers.protocol import cia301
 
 SERIAL = 0x0000_1200  # + node id: each simulated drive's serial number
 VENDOR, PRODUCT = 0x0000_009A, 0x0000_1234

@@ -14,8 +14,8 @@ from pathlib import Path
 from fixtures.driver_rig import INCREMENTS_PER_REV, bring_up, enable_with
 
 from rocoma_can import Controller, ManagerState, eds
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol.cia402 import State402
+from rocoma_can.drivers.protocol.joints import JointMode
 
 PER_RAD = INCREMENTS_PER_REV / (2 * math.pi)
 LIMITS = {"position": [-0.5, 0.8], "velocity": 3.0, "torque": 0.5, "following_error": 0.2}

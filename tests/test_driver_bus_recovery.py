@@ -17,8 +17,8 @@ import time
 from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig, bring_up, enable_with
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 
 
 def test_recovery_after_a_fault_returns_to_ok(segment, make_rig):

@@ -20,8 +20,8 @@ import can
 from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig, bring_up, enable_with, status_report
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 
 NODES = VIRTUAL.nodes
 

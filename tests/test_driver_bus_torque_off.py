@@ -29,9 +29,9 @@ from fixtures.driver_rig import (
 )
 
 from rocoma_can import ManagerState
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
+from rocoma_can.drivers.protocol.joints import JointMode
 
 
 def rpdo1_cycles(frames) -> list[dict[int, int]]:

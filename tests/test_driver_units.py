@@ -11,12 +11,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from rocoma_can import eds
-from rocoma_can.drivers import cia402
-from rocoma_can.drivers.config import DriveConfig, check_drives
-from rocoma_can.drivers.enable import ENABLE_STEP, EnableSequence
+from rocoma_can.drivers.cycle.enable import ENABLE_STEP, EnableSequence
 from rocoma_can.drivers.hardware import CanopenHardware
-from rocoma_can.drivers.joints import JointCommand, JointMode
-from rocoma_can.drivers.pdo_layout import (
+from rocoma_can.drivers.plan.config import DriveConfig, check_drives
+from rocoma_can.drivers.plan.pdo_layout import (
     CONTROLWORD,
     MODE,
     STATUSWORD,
@@ -25,8 +23,10 @@ from rocoma_can.drivers.pdo_layout import (
     first_fit,
     layout_for,
 )
-from rocoma_can.drivers.scaling import Scaling
-from rocoma_can.drivers.wire import fd_length, frame_bits
+from rocoma_can.drivers.plan.scaling import Scaling
+from rocoma_can.drivers.protocol import cia402
+from rocoma_can.drivers.protocol.joints import JointCommand, JointMode
+from rocoma_can.drivers.protocol.wire import fd_length, frame_bits
 from rocoma_can.runtime.system import manager_for
 
 

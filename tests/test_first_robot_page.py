@@ -14,7 +14,7 @@ from fixtures.doc_page import blocks, excerpt, matches, steps
 from test_init_config import _bring_up
 
 from rocoma_can.cli.main import main
-from rocoma_can.drivers.identity import Identity
+from rocoma_can.drivers.files.identity import Identity
 from rocoma_can.runtime.can_checks import TXQUEUELEN_MIN, setup_command
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -13,9 +13,9 @@ import pytest
 from fixtures.driver_rig import MANAGER_NODE_ID, drive_configs
 
 from rocoma_can import ManagerState
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.config import Supervision, Timeouts
 from rocoma_can.drivers.hardware import CanopenHardware
+from rocoma_can.drivers.plan.config import Supervision, Timeouts
+from rocoma_can.drivers.protocol import cia301
 
 HEARTBEAT = cia301.HEARTBEAT + MANAGER_NODE_ID
 

@@ -1,4 +1,4 @@
-"""Homing one drive (drivers/homing.py) while the active controller keeps the others: in
+"""Homing one drive (drivers/cycle/homing.py) while the active controller keeps the others: in
 the cycle, against simulated drives on the virtual bus; refusals; an e-stop during homing;
 and the whole path from `rocoma-can home` over the manager node."""
 from __future__ import annotations
@@ -15,9 +15,9 @@ from fixtures.running import DEMO_RUN, DEMO_WAIT
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.homing import CW_HOMING_START, HOMING_MODE
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.cycle.homing import CW_HOMING_START, HOMING_MODE
+from rocoma_can.drivers.protocol.cia402 import State402
+from rocoma_can.drivers.protocol.joints import JointMode
 from rocoma_can.drivers.sim.state_machine import HOMING_TIME
 from rocoma_can.errors import HomingFailed
 from rocoma_can.runtime import Runtime
@@ -181,7 +181,7 @@ def test_a_homing_error_or_timeout_ends_as_failed(method, timeout, why, sim_segm
 def test_a_bit_12_left_set_before_the_start_counts_only_after_it_was_low():
     from concurrent.futures import Future
 
-    from rocoma_can.drivers.homing import SW_HOMING_ATTAINED, HomingJob
+    from rocoma_can.drivers.cycle.homing import SW_HOMING_ATTAINED, HomingJob
     homed = SW_HOMING_ATTAINED | 0x0400  # bit 12 + target reached
     job = HomingJob(0, "j", 10.0, Future())
     assert job.step(True, homed, 0.0) is not None       # stale: set before the start edge

@@ -10,10 +10,10 @@ import yaml
 from test_config import good
 
 from rocoma_can.cli.main import main
-from rocoma_can.drivers.capabilities import read_capabilities
-from rocoma_can.drivers.config import DriveConfig
-from rocoma_can.drivers.drive_plan import plan_drives
-from rocoma_can.drivers.identity import Identity, IdentityCheck
+from rocoma_can.drivers.files.capabilities import read_capabilities
+from rocoma_can.drivers.files.identity import Identity, IdentityCheck
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_plan import plan_drives
 from rocoma_can.runtime.config import ConfigError, validate
 
 EDS = Path(__file__).parent / "fixtures" / "eds"

@@ -1,6 +1,7 @@
 """The import contract: dependencies point one way, core <- drivers <- node, record, fleet,
 live, ros2 <- runtime <- cli, and controllers see the core and the joint types they command
-only. Read from the source (every import statement, at any depth, relative ones resolved),
+only; inside drivers/, the stages point one way too (protocol <- files <- plan <- link <-
+bringup <- cycle <- commission <- sim <- hardware). Read from the source (every import statement, at any depth, relative ones resolved),
 so a violation fails the fast suite wherever it hides; and the CLI's verbs start without
 numpy.
 
@@ -25,8 +26,12 @@ PACKAGES = {ROOT / "rocoma_can": "rocoma_can", ROOT / "drivers": "rocoma_can.dri
 #: rank of each part of the package: a module imports its own rank or lower
 RANK = {"core": 0, "eds": 0, "drivers": 1, "node": 2, "record": 2, "fleet": 2, "live": 2,
         "ros2": 2, "runtime": 3, "cli": 4}
+#: drivers/ by stage, bottom to top: a drivers module imports its own stage or one before it
+#: (hardware.py, at the top of drivers/, wires them all; sim/ is a drive, built on them too)
+DRIVER_STAGES = ("protocol", "files", "plan", "link", "bringup", "cycle", "commission", "sim",
+                 "hardware")
 #: what the controllers may use besides the core
-CONTROLLERS_MAY = ("rocoma_can.drivers.joints",)
+CONTROLLERS_MAY = ("rocoma_can.drivers.protocol.joints",)
 
 
 def _modules() -> dict[str, Path]:
@@ -49,6 +54,13 @@ def _part(module: str) -> str:
     if len(parts) == 1 or parts[1] not in RANK and parts[1] != "controllers":
         return "core"
     return parts[1]
+
+
+def _stage(module: str) -> int:
+    """Rank of a drivers module's stage; the package itself re-exports names from the
+    stages, so it ranks above them all."""
+    parts = module.split(".")
+    return DRIVER_STAGES.index(parts[2]) if len(parts) > 2 else len(DRIVER_STAGES)
 
 
 def _imports(module: str, path: Path) -> list[tuple[int, str]]:
@@ -84,6 +96,8 @@ def test_dependencies_point_one_way():
                 ok = True  # ``python -m rocoma_can`` is the command
             else:
                 ok = RANK[other] <= RANK[part]
+            if ok and part == other == "drivers":
+                ok = _stage(target) <= _stage(module)
             if not ok:
                 broken.append(f"{path.relative_to(ROOT)}:{line}: {part} imports {target}")
     assert not broken, "\n".join(sorted(set(broken)))
@@ -96,6 +110,14 @@ def test_the_contract_sees_a_violation(tmp_path):
     imports = _imports("rocoma_can.drivers.bad", bad)
     assert imports == [(1, "rocoma_can.runtime.config")]
     assert RANK[_part(imports[0][1])] > RANK[_part("rocoma_can.drivers.bad")]
+
+
+def test_the_contract_sees_a_stage_imported_upwards():
+    """Within drivers/: a plan module importing the cycle is caught, the cycle importing the
+    plan is not."""
+    assert _stage("rocoma_can.drivers.cycle.command") > _stage("rocoma_can.drivers.plan.config")
+    assert all((ROOT / "drivers" / stage).is_dir() or stage == "hardware"
+               for stage in DRIVER_STAGES)
 
 
 @pytest.mark.parametrize("module", ["rocoma_can.cli", *COMMAND_MODULES])

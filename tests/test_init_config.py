@@ -20,7 +20,7 @@ from fixtures.bus import scan_bus_args
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can.cli.main import main
-from rocoma_can.drivers.identity import Identity
+from rocoma_can.drivers.files.identity import Identity
 from rocoma_can.runtime.config import validate
 from rocoma_can.runtime.system import Runtime
 
@@ -276,8 +276,8 @@ def test_init_config_offers_no_file_bring_up_would_refuse(tmp_path, file_vendor,
     it (identity.IdentityCheck with the file's vendor and product), and every file bring-up
     accepts is made for it or offered."""
     from rocoma_can.cli.init_config import index_device_files, match
-    from rocoma_can.drivers.device_file import read_device_file
-    from rocoma_can.drivers.identity import IdentityCheck
+    from rocoma_can.drivers.files.device_file import read_device_file
+    from rocoma_can.drivers.files.identity import IdentityCheck
     vendor, product = f"0x{file_vendor or 0:08X}", f"0x{file_product or 0:08X}"
     text = VENDOR_A.read_text().replace("=0x000000AA", f"={vendor}")  # [DeviceInfo], 0x1018
     text = text.replace("=0x00001234", f"={product}")

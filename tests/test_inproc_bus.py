@@ -14,8 +14,8 @@ import can
 import pytest
 from fixtures.driver_rig import VIRTUAL
 
-from rocoma_can.drivers.frame_io import BusSelector, FrameReader, FrameWriter
-from rocoma_can.drivers.inproc import InProcessBus
+from rocoma_can.drivers.link.frame_io import BusSelector, FrameReader, FrameWriter
+from rocoma_can.drivers.link.inproc import InProcessBus
 
 
 @pytest.fixture

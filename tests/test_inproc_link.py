@@ -1,4 +1,4 @@
-"""The link between two processes' in-process channels (drivers/inproc_link.py): what the
+"""The link between two processes' in-process channels (drivers/link/inproc_link.py): what the
 demo's simulator process and the loop's process rely on.
 
 Both ends run in this process here, each joined to channels of its own name (the link
@@ -16,7 +16,7 @@ from collections.abc import Iterator
 import can
 import pytest
 
-from rocoma_can.drivers.inproc_link import FRAME, InProcessLink
+from rocoma_can.drivers.link.inproc_link import FRAME, InProcessLink
 
 WAIT = 2.0  # s for a frame to cross: a bound, never expected to be reached
 TIMEOUT = 20.0  # s: a socket timeout a send would wait out if the link kept it

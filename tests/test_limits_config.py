@@ -1,5 +1,6 @@
-"""``limits:`` in a drive's config (drivers/config.py), its drive units (drivers/limits.py)
-and what check-config says of it: which limits the drive enforces, which the manager only."""
+"""``limits:`` in a drive's config (drivers/plan/config.py), its drive units
+(drivers/plan/limits.py) and what check-config says of it: which limits the drive enforces,
+which the manager only."""
 from __future__ import annotations
 
 import math
@@ -10,11 +11,11 @@ import pytest
 import yaml
 
 from rocoma_can import eds
-from rocoma_can.drivers.config import DriveConfig
-from rocoma_can.drivers.drive_plan import plan_drive
 from rocoma_can.drivers.hardware import CanopenHardware
-from rocoma_can.drivers.limits import drive_writes
-from rocoma_can.drivers.scaling import Scaling
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_plan import plan_drive
+from rocoma_can.drivers.plan.limits import drive_writes
+from rocoma_can.drivers.plan.scaling import Scaling
 from rocoma_can.runtime.config import ConfigError, load, validate
 
 BASE = {"name": "knee", "node_id": 1, "increments_per_rev": 4096, "rated_torque_nm": 2.0}
@@ -123,7 +124,7 @@ def test_check_config_without_limits_says_the_drive_keeps_its_own():
 def test_the_following_error_watch_keeps_nothing_allocated_and_faults_after_n_cycles():
     import tracemalloc
 
-    from rocoma_can.drivers.supervision import FollowingErrorWatch, Supervisor
+    from rocoma_can.drivers.cycle.supervision import FollowingErrorWatch, Supervisor
     drives = [DriveConfig.from_dict({**BASE, "name": f"j{i}", "node_id": i,
                                      "limits": {"following_error": 0.1}}) for i in range(1, 25)]
     watch = FollowingErrorWatch(drives, np.ones(24, dtype=bool))

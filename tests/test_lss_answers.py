@@ -1,5 +1,5 @@
-"""`rocoma-can lss` and `scan --lss` (drivers/lss.py) against LSS answers no CiA 305 slave
-sends (empty, cut short, another service's) and against a node id that is already taken:
+"""`rocoma-can lss` and `scan --lss` (drivers/commission/lss.py) against LSS answers no CiA 305
+slave sends (empty, cut short, another service's) and against a node id that is already taken:
 one clear line and the exit code docs/cli.md gives, never a traceback, and nothing assigned
 where a node already is. Over python-can's virtual bus, with simulated drives and with an
 LSS slave that answers as a broken device would (fixtures/odd_node.py)."""
@@ -16,9 +16,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rocoma_can.cli.main import main
-from rocoma_can.drivers import lss as lss_module
-from rocoma_can.drivers.identity import Identity
-from rocoma_can.drivers.lss import LSS_REQUEST, UNCONFIGURED, assign, find_unconfigured
+from rocoma_can.drivers.commission import lss as lss_module
+from rocoma_can.drivers.commission.lss import LSS_REQUEST, UNCONFIGURED, assign, find_unconfigured
+from rocoma_can.drivers.files.identity import Identity
 from rocoma_can.errors import LssFailed
 
 BLANK = Identity(serial=0x11)  # an unconfigured simulated node
@@ -235,7 +235,7 @@ def test_by_address_the_node_that_holds_the_id_may_be_given_it_again(sim_bench,
 
 
 def test_present_says_how_a_node_was_seen(sim_segment_factory, network):
-    from rocoma_can.drivers.scan import present
+    from rocoma_can.drivers.commission.scan import present
     sim_segment_factory([4])
     assert present(network, 5, listen=0.05, timeout=STALL / 4) is None
     seen = present(network, 4, listen=0.05, timeout=STALL / 4)

@@ -16,8 +16,8 @@ from fixtures.bus import record
 from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig
 
 from rocoma_can import EventKind, ManagerState, SwitchResult
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 from rocoma_can.runtime.loop import run_cycle
 
 NODES = (1, 2)
@@ -227,8 +227,8 @@ def test_drives_that_map_longer_pdos_send_one_rpdo_and_one_tpdo_a_cycle(two_buse
 
 
 def test_pdos_over_8_bytes_need_a_can_fd_bus(bus_factory, virtual_channel):
-    from rocoma_can.drivers.config import DriveConfig
     from rocoma_can.drivers.hardware import CanopenHardware
+    from rocoma_can.drivers.plan.config import DriveConfig
     with pytest.raises(ValueError, match="drive 'j1': pdo_bytes: 64 bytes a PDO need a CAN "
                                          "FD bus .*bus 'bus' is classic CAN"):
         CanopenHardware(bus_factory(virtual_channel), [DriveConfig("j1", 1, 4096, 1.0,
@@ -240,8 +240,8 @@ def test_a_bus_without_drives_still_gets_sync_and_the_manager_heartbeat(virtual_
     """SYNC and the manager heartbeat go out on every configured bus, one without drives
     too (a bus for a later limb, or for the integrator's e-stop box that watches the
     manager's heartbeat), in FAILPROOF and under the hang watchdog alike."""
-    from rocoma_can.drivers.config import DriveConfig
     from rocoma_can.drivers.hardware import CanopenHardware
+    from rocoma_can.drivers.plan.config import DriveConfig
 
     channels = {side: f"{virtual_channel}-{side}" for side in SIDES}
     empty = record(channels["left"])

@@ -27,12 +27,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.bringup import life_time_factor
-from rocoma_can.drivers.config import DriveConfig
-from rocoma_can.drivers.drive_plan import plan_drive
-from rocoma_can.drivers.joints import JointMode
-from rocoma_can.drivers.node_guarding import NodeGuarding
+from rocoma_can.drivers.bringup.drive_bringup import life_time_factor
+from rocoma_can.drivers.cycle.node_guarding import NodeGuarding
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_plan import plan_drive
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.joints import JointMode
 
 GUARDED = str(Path(__file__).parent / "fixtures" / "eds" / "guarded.eds")
 

@@ -17,8 +17,8 @@ from fixtures.running import wait_for as wait_until
 from rocoma_can import ManagerState
 from rocoma_can.cli.demo_config import MANAGER_ID, demo_config
 from rocoma_can.cli.main import main
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 
 RATE = 100.0
 # Every wait is a budget of the bus setup the demo config shares with the driver tests

@@ -9,7 +9,7 @@ from fixtures import plugin_samples
 from fixtures.plugin_samples import Brake, Gains
 
 from rocoma_can.controllers.torque_off import TorqueOff
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.plugins import (
     GROUP,
     LoadedController,

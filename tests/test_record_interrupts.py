@@ -18,7 +18,7 @@ from fixtures.processes import gone, stopped, writer_of
 from fixtures.running import DEMO_WAIT, wait_for
 from test_config import nobody_answers
 
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.exit_codes import INTERRUPTED
 from rocoma_can.record.recorder import BusToRecord, Recorder
 

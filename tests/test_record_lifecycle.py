@@ -19,7 +19,7 @@ from fixtures.budgets import within
 from fixtures.running import DEMO_WAIT, wait_for
 
 from rocoma_can import ManagerState
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.events import EventKind, ManagerEvent
 from rocoma_can.record import recorder as recorder_module
 from rocoma_can.record.can_log import RecordingError

@@ -17,7 +17,7 @@ import pytest
 
 from rocoma_can import ManagerState
 from rocoma_can.cli.demo_config import demo_urdf
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.events import EventKind, ManagerEvent
 from rocoma_can.live.urdf import Robot, parse_urdf
 from rocoma_can.record.live_channels import SAMPLE_RATE, EstopHistory, Facts, LiveChannels

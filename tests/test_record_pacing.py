@@ -10,7 +10,7 @@ import time
 import can
 
 from rocoma_can import ManagerState
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.record.pacing import Pacer
 from rocoma_can.record.rings import CHUNK, FrameRing, SharedFile, layout
 from rocoma_can.record.trace import PACED_FRAMES, RowLayout, SignalTrace, read_messages

@@ -24,7 +24,7 @@ from fixtures.running import (
 )
 
 from rocoma_can import ManagerState
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.record.rings import FrameRing, RingReader, SharedFile, frame_fields, layout
 from rocoma_can.record.trace import RowLayout, SignalTrace, read_messages
 from rocoma_can.runtime import Runtime
@@ -95,7 +95,7 @@ def test_the_flight_record_has_the_frames_the_hardware_read_and_sent(demo_bench,
     """No second bus handle: the hardware's own reader and sends feed the flight recorder.
     The record has both directions, each frame marked."""
     config, segment = demo_bench
-    from rocoma_can.drivers.bus_port import BusPort
+    from rocoma_can.drivers.link.bus_port import BusPort
     opened: list[object] = []
     original = BusPort.open
 

@@ -13,7 +13,7 @@ import can
 import pytest
 
 from rocoma_can import ManagerState
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.record.can_log import RecordingError, candump_line
 from rocoma_can.record.rings import (
     MEMORY_SHARE,
@@ -111,7 +111,7 @@ def test_a_frame_longer_than_its_rings_records_keeps_to_its_record():
 
 def test_a_frames_flags_survive_the_ring_and_its_candump_line(tmp_path):
     """The ring encodes a frame's flags inline, the candump line reads them by
-    drivers/wire.py's names: python-can's own log reader must get every flag back."""
+    drivers/protocol/wire.py's names: python-can's own log reader must get every flag back."""
     [spec] = layout([("bus sent", CAPACITY, 0, True)])
     shared = SharedFile(spec.size)
     ring = FrameRing(shared, spec, sent=True)

@@ -265,7 +265,7 @@ def test_rate_must_be_positive():
 
 
 def test_start_up_timeouts_come_from_the_yaml(virtual_channel):
-    from rocoma_can.drivers.config import Timeouts
+    from rocoma_can.drivers.plan.config import Timeouts
     cfg = demo_config(virtual_channel, drives=2, rate=100.0)
     cfg["supervision"] = {"boot_wait": 0.5, "start_timeout": 3.0, "reset_timeout": 4.0,
                           "enable_timeout": 2.0}

@@ -20,10 +20,10 @@ from fixtures.odd_node import OddNode
 
 from rocoma_can import ManagerState
 from rocoma_can.cli.main import main
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.identity import Identity
-from rocoma_can.drivers.lss import LSS_REQUEST
+from rocoma_can.drivers.commission.lss import LSS_REQUEST
+from rocoma_can.drivers.files.identity import Identity
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 
 IDENTITIES = {1: Identity(vendor_id=0x9A, product_code=0x10, revision=0x2, serial=0x1001),
               2: Identity(vendor_id=0x9A, product_code=0x10, revision=0x2, serial=0x1002),
@@ -234,7 +234,7 @@ def test_a_bus_that_refuses_every_frame_is_one_line_and_exit_2(
         monkeypatch, virtual_channel, capsys, verb, error, hint):
     """What a real bus with nothing on it does (no acknowledgement: the transmit queue
     fills, ENOBUFS) or a link set down: one line naming the bus and what to check."""
-    from rocoma_can.drivers import bus as bus_module
+    from rocoma_can.drivers.link import bus as bus_module
     monkeypatch.setattr(_RefusingBus, "error", error)
     monkeypatch.setattr(bus_module, "open_bus", lambda interface, channel, **kw: _RefusingBus(
         channel=channel))

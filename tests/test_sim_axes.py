@@ -14,9 +14,9 @@ import pytest
 from canopen.sdo import SdoAbortedError
 
 from rocoma_can import cli
-from rocoma_can.drivers import cia301 as c301
-from rocoma_can.drivers.cia301 import NmtCommand
-from rocoma_can.drivers.cia402 import AbortConnectionOption, Mode, State402
+from rocoma_can.drivers.protocol import cia301 as c301
+from rocoma_can.drivers.protocol.cia301 import NmtCommand
+from rocoma_can.drivers.protocol.cia402 import AbortConnectionOption, Mode, State402
 from rocoma_can.drivers.sim.dynamics import JointParams
 
 EDS = Path(__file__).parent / "fixtures" / "eds"

@@ -6,10 +6,10 @@ import struct
 import numpy as np
 import pytest
 
-from rocoma_can.drivers import cia301 as c301
-from rocoma_can.drivers import cia402 as c
-from rocoma_can.drivers.cia301 import NmtCommand
-from rocoma_can.drivers.cia402 import Mode, State402
+from rocoma_can.drivers.protocol import cia301 as c301
+from rocoma_can.drivers.protocol import cia402 as c
+from rocoma_can.drivers.protocol.cia301 import NmtCommand
+from rocoma_can.drivers.protocol.cia402 import Mode, State402
 
 S = State402
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from fixtures.driver_rig import VIRTUAL
 
-from rocoma_can.drivers.cia402 import Mode, State402
-from rocoma_can.drivers.frame_io import FrameReader
+from rocoma_can.drivers.link.frame_io import FrameReader
+from rocoma_can.drivers.protocol.cia402 import Mode, State402
 from rocoma_can.drivers.sim.dynamics import JointDynamics, JointParams, LoopMode
 from rocoma_can.drivers.sim.segment import RX_IDLE, SimulatedSegment
 

@@ -8,7 +8,7 @@ import canopen
 import pytest
 
 from rocoma_can import eds
-from rocoma_can.drivers import cia301, cia402
+from rocoma_can.drivers.protocol import cia301, cia402
 
 
 def _import_quietly(name: str, node_id: int, caplog: pytest.LogCaptureFixture):

@@ -27,8 +27,8 @@ from fixtures.sim_group import (
     wait_until,
 )
 
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 from rocoma_can.drivers.sim.group import SegmentGroup
 from rocoma_can.drivers.sim.segment import RX_IDLE, SimulatedSegment
 

@@ -23,7 +23,7 @@ from fixtures.sim_group import (
     wait_until,
 )
 
-from rocoma_can.drivers import cia301
+from rocoma_can.drivers.protocol import cia301
 
 
 def _answers(bus: can.BusABC) -> set[int]:

@@ -21,8 +21,8 @@ from fixtures.driver_rig import VCAN, VIRTUAL, Brake, HoldPD, Rig
 from fixtures.sim_group import NODES, sdo_write, send, wait_until
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 from rocoma_can.drivers.sim.group import SegmentGroup
 from rocoma_can.drivers.sim.segment import RX_BATCH, RX_IDLE, SimulatedSegment
 

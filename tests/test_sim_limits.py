@@ -7,8 +7,8 @@ import struct
 
 import pytest
 
-from rocoma_can.drivers import cia301, cia402
-from rocoma_can.drivers.cia402 import Mode, State402
+from rocoma_can.drivers.protocol import cia301, cia402
+from rocoma_can.drivers.protocol.cia402 import Mode, State402
 
 REV = 1 << 20                  # the shipped EDS's increments per revolution (gear 1:1)
 PER_RAD = REV / (2 * math.pi)

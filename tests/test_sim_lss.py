@@ -7,9 +7,9 @@ import pytest
 from canopen import lss as cs
 from canopen.lss import LssError, LssMaster
 
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.identity import Identity
-from rocoma_can.drivers.lss import LSS_RESPONSE, UNCONFIGURED
+from rocoma_can.drivers.commission.lss import LSS_RESPONSE, UNCONFIGURED
+from rocoma_can.drivers.files.identity import Identity
+from rocoma_can.drivers.protocol import cia301
 
 CONFIGURED = Identity(vendor_id=0x9A, product_code=0x10, revision=0x20003, serial=0x1001)
 #: few one bits: each costs a fastscan one unanswered request (a whole timeout)

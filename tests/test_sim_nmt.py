@@ -5,9 +5,9 @@ import statistics
 import struct
 import time
 
-from rocoma_can.drivers import cia301 as c301
-from rocoma_can.drivers.cia301 import NmtCommand, NmtState
-from rocoma_can.drivers.cia402 import AbortConnectionOption, Mode, State402
+from rocoma_can.drivers.protocol import cia301 as c301
+from rocoma_can.drivers.protocol.cia301 import NmtCommand, NmtState
+from rocoma_can.drivers.protocol.cia402 import AbortConnectionOption, Mode, State402
 
 MASTER = 0x7F
 

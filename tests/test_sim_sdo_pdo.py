@@ -9,10 +9,10 @@ import can
 import pytest
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from rocoma_can.drivers import cia301 as c301
-from rocoma_can.drivers import cia402 as c
-from rocoma_can.drivers.cia301 import NmtCommand
-from rocoma_can.drivers.cia402 import Mode, State402
+from rocoma_can.drivers.protocol import cia301 as c301
+from rocoma_can.drivers.protocol import cia402 as c
+from rocoma_can.drivers.protocol.cia301 import NmtCommand
+from rocoma_can.drivers.protocol.cia402 import Mode, State402
 
 WRITES = {0x6040: 0x06, 0x6060: int(Mode.CSV), 0x6071: 123, 0x607A: -4567, 0x60FF: 890,
           0x60B1: 11, 0x60B2: -12, 0x6072: 2500}
@@ -319,7 +319,7 @@ def test_each_drive_answers_the_identity_it_was_given(sim_bench, bus_factory):
     """0x1018 is what tells drives apart on a bus (a scan, a generated config, bring-up's
     check): the fields given replace the file's; a drive given none answers the file's
     vendor and product and its node id as serial number, so no two are alike."""
-    from rocoma_can.drivers.identity import Identity
+    from rocoma_can.drivers.files.identity import Identity
     from rocoma_can.drivers.sim.segment import SimulatedSegment
 
     bench = sim_bench([1, 2], identities={2: Identity(vendor_id=0x9A, product_code=0x77,

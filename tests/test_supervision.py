@@ -1,4 +1,4 @@
-"""Supervisor (drivers/supervision.py) as the pure state machine it is, without a bus: which
+"""Supervisor (drivers/cycle/supervision.py) as the pure state machine it is, without a bus: which
 symptom becomes a fault event, when, and only once per drive until recovery."""
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from fixtures.driver_rig import drive_configs
 
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia301 import NmtState
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.supervision import Supervisor
+from rocoma_can.drivers.cycle.supervision import Supervisor
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia301 import NmtState
+from rocoma_can.drivers.protocol.cia402 import State402
 
 TPDO_CYCLES = 3
 FACTOR = 2.5

@@ -6,7 +6,7 @@ import logging
 import pytest
 
 from rocoma_can.controllers.torque_off import TorqueOff
-from rocoma_can.drivers.joints import JointCommand, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.interfaces import Controller, EmergencyController, SwapState
 from rocoma_can.tuples import ControllerTuple, EmergencyControllerTuple, TupleSwapState
 from rocoma_can.workers import WorkerManager, WorkerOptions

@@ -18,11 +18,11 @@ import pytest
 from fixtures.driver_rig import Brake, Rig
 
 from rocoma_can import Controller, ManagerState, SwitchResult
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.config import DriveConfig, check_drives
-from rocoma_can.drivers.drive_plan import plan_drive, plan_drives
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.plan.config import DriveConfig, check_drives
+from rocoma_can.drivers.plan.drive_plan import plan_drive, plan_drives
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
+from rocoma_can.drivers.protocol.joints import JointMode
 from rocoma_can.runtime.config import ConfigError, validate
 
 TWO_AXES = str(Path(__file__).parent / "fixtures" / "eds" / "two_axes.eds")

@@ -13,7 +13,7 @@ import yaml
 from fixtures.fifo import FIFO_WAIT, fifo, without_hanging
 from test_config import good
 
-from rocoma_can.drivers.device_file import (
+from rocoma_can.drivers.files.device_file import (
     MAX_DEVICE_FILE_BYTES,
     DeviceFileError,
     read_device_file,

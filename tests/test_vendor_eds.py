@@ -30,14 +30,14 @@ from canopen.sdo.exceptions import SdoAbortedError
 from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Rig, Sine
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia301, cia402
-from rocoma_can.drivers.bringup import NamedSdo, ObjectRefused
-from rocoma_can.drivers.capabilities import read_capabilities
-from rocoma_can.drivers.cia402 import State402
-from rocoma_can.drivers.config import DriveConfig
-from rocoma_can.drivers.device_file import read_device_file
-from rocoma_can.drivers.drive_plan import plan_drive
-from rocoma_can.drivers.joints import JointMode
+from rocoma_can.drivers.bringup.drive_bringup import NamedSdo, ObjectRefused
+from rocoma_can.drivers.files.capabilities import read_capabilities
+from rocoma_can.drivers.files.device_file import read_device_file
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_plan import plan_drive
+from rocoma_can.drivers.protocol import cia301, cia402
+from rocoma_can.drivers.protocol.cia402 import State402
+from rocoma_can.drivers.protocol.joints import JointMode
 
 EDS = Path(__file__).parent / "fixtures" / "eds"
 ABORT_NOT_IN_OD = 0x06020000

@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM
 
-from rocoma_can.drivers.config import DriveConfig
-from rocoma_can.drivers.drive_plan import plan_drive
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_plan import plan_drive
 
 EDS = Path(__file__).parent / "fixtures" / "eds"
 
@@ -123,7 +123,7 @@ def test_a_compact_pdo_mapping_has_all_its_entries(tmp_path):
     """One RPDO and one TPDO, their mapping objects written with CompactSubObj=8: canopen
     keeps sub-index 1 only, so the drive read as "at most 1 objects each" and was refused
     ("RPDO needs more PDOs ... than the 1 it lets us map"). They have eight entries each."""
-    from rocoma_can.drivers.capabilities import read_capabilities
+    from rocoma_can.drivers.files.capabilities import read_capabilities
     text = (EDS / "minimal.eds").read_text()
     for index in ("1401", "1402", "1403", "1601", "1602", "1603",
                   "1801", "1802", "1803", "1A01", "1A02", "1A03"):  # one PDO each way
@@ -152,7 +152,7 @@ def test_names_where_numbers_belong_are_read_as_those_numbers(tmp_path):
     """Hand-written files spell ObjectType, DataType and PDOMapping by name; canopen read the
     file as "not a readable EDS/DCF file (ValueError: invalid literal for int() with base 0:
     'UNSIGNED16')", naming neither the object nor the key."""
-    from rocoma_can.drivers.capabilities import read_capabilities
+    from rocoma_can.drivers.files.capabilities import read_capabilities
     path = variant(tmp_path, "named.eds", (CONTROLWORD, CONTROLWORD.replace(
         "ObjectType=0x7", "ObjectType=VAR").replace("DataType=0x0006", "DataType=Unsigned16")
         .replace("PDOMapping=1", "PDOMapping=TRUE").replace("ParameterName=Controlword\n", "")),
@@ -170,7 +170,7 @@ def test_a_manufacturer_object_that_cannot_be_read_is_left_out(tmp_path, vendor_
     """A vendor object without a data type, or with one that is no data type, made the whole
     file unreadable, though rocoma-can commands no manufacturer object: it is left out, and
     the file's notes say which and why."""
-    from rocoma_can.drivers.capabilities import read_capabilities
+    from rocoma_can.drivers.files.capabilities import read_capabilities
     path = variant(tmp_path, "vendor.eds",
                    add=VENDOR_OBJECT.format(type=vendor_type) + "\n[2101sub1]\n"
                    "ParameterName=orphan\nDataType=0x0007\nAccessType=rw\n")
@@ -191,7 +191,7 @@ def test_a_manufacturer_object_that_cannot_be_read_is_left_out(tmp_path, vendor_
 ])
 def test_a_standard_object_that_cannot_be_read_refuses_the_file_naming_it(
         tmp_path, edit, problem, capsys):
-    from rocoma_can.drivers.capabilities import CapabilityError, read_capabilities
+    from rocoma_can.drivers.files.capabilities import CapabilityError, read_capabilities
     old, new = edit
     path = variant(tmp_path, "broken.eds", (CONTROLWORD, CONTROLWORD.replace(old, new)))
     with pytest.raises(CapabilityError) as refused:
@@ -204,7 +204,7 @@ def test_a_standard_object_that_cannot_be_read_refuses_the_file_naming_it(
 
 
 def test_a_sub_index_without_its_object_refuses_the_file_naming_both(tmp_path):
-    from rocoma_can.drivers.capabilities import CapabilityError, read_capabilities
+    from rocoma_can.drivers.files.capabilities import CapabilityError, read_capabilities
     text = (EDS / "minimal.eds").read_text()
     head = text[text.index("[1600]\n"):text.index("[1600sub0]")]
     path = variant(tmp_path, "orphan.eds", (head, ""))
@@ -216,7 +216,7 @@ def test_a_sub_index_without_its_object_refuses_the_file_naming_both(tmp_path):
 def test_a_utf16_file_is_read(tmp_path):
     """Some Windows tools save UTF-16 with a byte-order mark: it was refused with a garbled
     line (its text read as Latin-1)."""
-    from rocoma_can.drivers.capabilities import read_capabilities
+    from rocoma_can.drivers.files.capabilities import read_capabilities
     path = tmp_path / "utf16.eds"
     path.write_bytes((EDS / "minimal.eds").read_text().encode("utf-16"))
     caps = read_capabilities(str(path), 1)

@@ -23,7 +23,7 @@ from ...cli_args import LONGEST, channel_name, count, positive, seconds, seconds
 from ...exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
-    from ..identity import Identity
+    from ..files.identity import Identity
     from .drive import SimulatedDrive
     from .segment import SimulatedSegment
 
@@ -81,7 +81,7 @@ IDENTITY_KEYS = {"vendor": "vendor_id", "product": "product_code", "revision": "
 
 def parse_identity(text: str) -> Identity:
     """'serial=0x1234,vendor=0x9A' -> Identity(serial=0x1234, vendor_id=0x9A)."""
-    from ..identity import Identity
+    from ..files.identity import Identity
     fields: dict[str, int] = {}
     for part in text.split(","):
         key, _, value = part.strip().partition("=")
@@ -201,12 +201,12 @@ def run(args: argparse.Namespace) -> int:
             print(f"rocoma-can sim: --{inj.flag}: node {inj.node} is not in --nodes",
                   file=sys.stderr)
             return USAGE
-    from ..bus import unknown_interface
+    from ..link.bus import unknown_interface
     unknown = unknown_interface(args.interface)
     if unknown:
         print(f"rocoma-can sim: --interface: {unknown}", file=sys.stderr)
         return USAGE
-    from ..capabilities import CapabilityError, read_capabilities
+    from ..files.capabilities import CapabilityError, read_capabilities
     try:
         caps = read_capabilities(args.eds, args.nodes[0])
     except CapabilityError as exc:

@@ -34,11 +34,11 @@ from typing import Any
 import can
 from canopen import objectdictionary
 
-from .. import cia301 as c301
-from .. import cia402 as c
-from ..cia301 import NmtCommand, NmtState, nmt_name
-from ..cia402 import State402
-from ..identity import Identity
+from ..files.identity import Identity
+from ..protocol import cia301 as c301
+from ..protocol import cia402 as c
+from ..protocol.cia301 import NmtCommand, NmtState, nmt_name
+from ..protocol.cia402 import State402
 from .faults import Babble, EmcyProducer, InjectedFaults, register_bits
 from .limits import OBJECTS as LIMIT_OBJECTS
 from .nmt import NmtSlave

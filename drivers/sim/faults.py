@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from .. import cia301 as c301
+from ..protocol import cia301 as c301
 from .objects import ERROR_REGISTER, Key
 from .port import Segment
 

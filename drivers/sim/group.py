@@ -66,7 +66,7 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 
-from ..frame_io import BusSelector, FrameReader
+from ..link.frame_io import BusSelector, FrameReader
 from .dynamics import JointDynamics
 from .segment import JOIN_WAIT, SimulatedSegment
 from .timers import RX_IDLE

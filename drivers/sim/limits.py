@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from .. import cia402 as c
+from ..protocol import cia402 as c
 from .objects import AxisKeys, Key
 
 #: 0x6065 value that switches following error monitoring off (CiA 402)

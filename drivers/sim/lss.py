@@ -32,9 +32,9 @@ from collections.abc import Callable
 
 from canopen import lss as cs
 
-from ..cia301 import NmtCommand
-from ..identity import Identity
-from ..lss import BIT_TIMING, LSS_RESPONSE, UNCONFIGURED
+from ..commission.lss import BIT_TIMING, LSS_RESPONSE, UNCONFIGURED
+from ..files.identity import Identity
+from ..protocol.cia301 import NmtCommand
 
 log = logging.getLogger(__name__)
 

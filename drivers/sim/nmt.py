@@ -19,8 +19,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from .. import cia301 as c301
-from ..cia301 import NmtState
+from ..protocol import cia301 as c301
+from ..protocol.cia301 import NmtState
 from .objects import Key
 from .port import Segment
 

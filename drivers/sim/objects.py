@@ -3,7 +3,7 @@
 Values live in one flat dict keyed by (index, subindex), initialised from the EDS; the other
 services of the drive read and write it directly, so the SDO server, the PDOs and the state
 machine always see the same object. canopen's SdoServer speaks the protocol (expedited and
-segmented; block upload from drivers/sdo_block_upload.py, block download is refused with
+segmented; block upload from drivers/protocol/sdo_block_server.py, block download is refused with
 0x05040001 as canopen does); this module makes the checks a real drive makes before a
 download takes effect: access type, length, the file's LowLimit/HighLimit, supported
 modes, scaling denominators, and the
@@ -41,13 +41,13 @@ from canopen.sdo.constants import (
 )
 from canopen.sdo.exceptions import SdoAbortedError
 
-from .. import cia301 as c301
-from .. import cia402 as c
-from ..capabilities import modes_from_targets
-from ..device_file import DeviceFileError, read_device_file
-from ..identity import SUBINDEX, Identity, file_identity
-from ..lss import UNCONFIGURED
-from ..sdo_block_upload import BlockUploadServer
+from ..commission.lss import UNCONFIGURED
+from ..files.capabilities import modes_from_targets
+from ..files.device_file import DeviceFileError, read_device_file
+from ..files.identity import SUBINDEX, Identity, file_identity
+from ..protocol import cia301 as c301
+from ..protocol import cia402 as c
+from ..protocol.sdo_block_server import BlockUploadServer
 
 Key = tuple[int, int]
 PDO_NOT_VALID = 0x80000000

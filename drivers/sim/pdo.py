@@ -20,9 +20,9 @@ from typing import Any
 
 import can
 
-from .. import cia301 as c301
-from ..cia301 import NmtState
-from ..wire import fd_length, picker
+from ..protocol import cia301 as c301
+from ..protocol.cia301 import NmtState
+from ..protocol.wire import fd_length, picker
 from .faults import EmcyProducer, InjectedFaults
 from .nmt import NmtSlave
 from .objects import PDO_NOT_VALID, AxisKeys, Key, ObjectDictionaryServer

@@ -36,11 +36,11 @@ import can
 import numpy as np
 from canopen.objectdictionary import ObjectDictionary
 
-from .. import cia301 as c301
-from ..bus import enlarge_bus_buffer
-from ..frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
-from ..identity import Identity
-from ..lss import LSS_REQUEST, UNCONFIGURED
+from ..commission.lss import LSS_REQUEST, UNCONFIGURED
+from ..files.identity import Identity
+from ..link.bus import enlarge_bus_buffer
+from ..link.frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
+from ..protocol import cia301 as c301
 from .drive import SimulatedDrive
 from .dynamics import JointDynamics, JointParams
 from .lss import IdentityError, LssSlave

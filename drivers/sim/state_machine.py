@@ -18,9 +18,9 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from .. import cia301
-from .. import cia402 as c
-from ..cia402 import State402
+from ..protocol import cia301
+from ..protocol import cia402 as c
+from ..protocol.cia402 import State402
 from .dynamics import JointDynamics, LoopMode
 from .faults import EmcyProducer, InjectedFaults
 from .limits import AxisLimits

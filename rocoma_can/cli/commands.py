@@ -377,7 +377,7 @@ def fleet_from_args(args: argparse.Namespace, fleet: FleetConfig | None) -> Flee
 # --- client commands --------------------------------------------------------------------------
 
 def _client(args: argparse.Namespace, action: Callable[[ManagerClient], int]) -> int:
-    from ..drivers.bus import open_bus
+    from ..drivers.link.bus import open_bus
     try:
         bus = open_bus(args.interface, args.channel, receive_own_messages=False)
     except OSError as exc:

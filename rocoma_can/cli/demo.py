@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from ..cli_args import count, positive, rt_priority, seconds
-from ..drivers.wire import MAX_DATA_BITRATE
+from ..drivers.protocol.wire import MAX_DATA_BITRATE
 from ..errors import ConfigError, RocomaError, SimulatorFailed
 from ..events import ManagerState
 from ..exit_codes import FAILED, INTERRUPTED, OK, PIPE_CLOSED, USAGE
@@ -343,7 +343,7 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
     the loop's thread runs SCHED_FIFO at it, as a robot's ``realtime.priority`` has it;
     where the system refuses, the summary says why and the demo runs on at normal
     priority. ``ros2``: the manager as a ROS 2 node, as ``run --ros2`` serves it."""
-    from ..drivers.bus import open_bus
+    from ..drivers.link.bus import open_bus
     from ..live.urdf import parse_urdf
     from ..runtime.config import validate
     from ..runtime.system import Runtime

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 MANAGER_ID = 100
-#: the demo's buses: drivers/inproc.py, which copies a frame once per send, not once per
+#: the demo's buses: drivers/link/inproc.py, which copies a frame once per send, not once per
 #: receiver as python-can's virtual does (the demo has 3-4 receivers per bus)
 DEFAULT_INTERFACE = "inproc"
 ESTOP_COB_ID = 0x0A0
@@ -49,8 +49,8 @@ def emulate(path: str, drives: int) -> Emulated:
     """Fit the demo to ``path``: the position mode it supports (CSP, else IP, else PP), CST
     for the emergency controller damp where it has it (else hold in the position mode),
     its scaling, its node id if it is a DCF. ValueError when no position mode fits."""
-    from ..drivers.capabilities import CapabilityError, read_capabilities
-    from ..drivers.cia402 import (
+    from ..drivers.files.capabilities import CapabilityError, read_capabilities
+    from ..drivers.protocol.cia402 import (
         CONTROLWORD,
         GEAR_RATIO,
         MAX_AXES,
@@ -113,8 +113,8 @@ def emulate(path: str, drives: int) -> Emulated:
                      f"{caps.commissioned_node_id} on, each with its COB-IDs re-derived")
     # One drive measured against the file says what would be wrong with every drive: once,
     # about the file, not once per drive of the config.
-    from ..drivers.config import DriveConfig
-    from ..drivers.drive_plan import plan_drive, plan_drives
+    from ..drivers.plan.config import DriveConfig
+    from ..drivers.plan.drive_plan import plan_drive, plan_drives
 
     def axis(n: int) -> DriveConfig:
         return DriveConfig.from_dict({"name": f"joint{n}", "node_id": fitted.first_node,
@@ -147,7 +147,7 @@ def demo_config(channel: str, drives: int, rate: float, buses: int = 1,
                 priority: int | None = None) -> dict[str, Any]:
     """The demo's config: ``buses`` > 1 gives channels ``channel-0`` ... each with its share
     of the drives (node ids from 1 on each bus); ``interface`` is an in-process one
-    (python-can's ``virtual``, or ``inproc``, drivers/inproc.py); ``emulated``: drives
+    (python-can's ``virtual``, or ``inproc``, drivers/link/inproc.py); ``emulated``: drives
     fitted to a vendor file (``emulate``); ``data_bitrate``: CAN FD buses of FD_BITRATE
     and this data bit rate, load-checked as such, whose drives map PDOs of up to
     FD_PDO_BYTES (one RPDO and one TPDO a cycle). Without it the buses have no bit rate:

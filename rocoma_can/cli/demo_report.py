@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from ..node.objects import STATE_NAMES
 
 if TYPE_CHECKING:
-    from ..drivers.drive_plan import DrivePlan
+    from ..drivers.plan.drive_plan import DrivePlan
     from ..runtime.loop import TimingSummary
     from ..runtime.system import Runtime
 

@@ -3,7 +3,7 @@
 In its own process (``SimProcess``) the simulator costs the control loop what real drives
 would: the frames. The child (``python -m rocoma_can.cli.demo_sim``, started here) opens a
 segment of drives per bus on its own in-process channels, joins the channels to the demo's
-over a socket pair (drivers/inproc_link.py), and on its main thread reads the link and
+over a socket pair (drivers/link/inproc_link.py), and on its main thread reads the link and
 steps the drives that got frames at once (drivers/sim/group.py's lockstep pass). The
 operator's fault injections and the final check go over the child's stdin and stdout, one
 JSON line each way, matched by id; the child ends on ``stop``, when its stdin closes or its
@@ -140,7 +140,7 @@ class SimProcess:
     """The drives in a child process, their buses linked to this process's ``buses``."""
 
     def __init__(self, buses: Buses, eds: str | None, drives: int, fd: bool) -> None:
-        from ..drivers.inproc_link import InProcessLink
+        from ..drivers.link.inproc_link import InProcessLink
         self.node_ids = list(buses[0][1])
         self.stderr: list[str] = []  # the child's, kept for what check() says
         self._replies: queue.Queue[dict[str, Any] | None] = queue.Queue()
@@ -311,7 +311,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The child: ``--link-fd FD SPEC`` (SPEC: the JSON SimProcess writes)."""
     import argparse
 
-    from ..drivers.inproc_link import InProcessLink
+    from ..drivers.link.inproc_link import InProcessLink
     from .demo_config import emulate
     # The demo ends this process (stop, its stdin's end, the link's); a stop signal to
     # every process of a service is the demo's to act on, while the drives answer its

@@ -23,7 +23,7 @@ from ..errors import ConfigError
 from ..exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:  # the checks load on use: ``rocoma-can --help`` stays quick
-    from ..drivers.config import BusConfig
+    from ..drivers.plan.config import BusConfig
     from ..runtime.host import Check
 
 _MARK = {"ok": "ok", "warn": "WARN", "fail": "FAIL", "n/a": "n/a"}
@@ -43,7 +43,7 @@ def _err(text: str) -> None:
 
 def _link_checks(channels: Sequence[tuple[str, BusConfig | None]]) -> list[Check]:
     """Each (channel, its bus in the config or None) as a link of this host."""
-    from ..drivers.can_link import read_link
+    from ..drivers.link.can_link import read_link
     from ..runtime.can_checks import Wanted, link_checks
     checks: list[Check] = []
     for channel, bus in channels:
@@ -81,7 +81,7 @@ _LoopRun = tuple[float, "int | None", "set[int] | None", "float | None"]
 
 def _read_checks(args: argparse.Namespace) -> tuple[str, list[Check], _LoopRun]:
     """(subject, the checks that only read, how a timing check runs the loop)."""
-    from ..drivers.can_link import can_interfaces
+    from ..drivers.link.can_link import can_interfaces
     from ..runtime.host import Check, realtime_checks
     if args.config:
         from ..runtime.config import load

@@ -1,7 +1,7 @@
 """``rocoma-can init-config``: a run config from what a scan found on the bus.
 
 Each node the scan found is matched to a device file in ``--eds-dir`` by the rule bring-up
-checks a drive's identity with (drivers.identity.file_fit): a file that names the
+checks a drive's identity with (drivers.files.identity.file_fit): a file that names the
 vendor-ID and product code its identity object (0x1018) reports is made for it (a
 matching revision, then a DCF commissioned for that node id, win among several); a file
 bring-up would refuse for it is not; one that names too little (no product number, no
@@ -36,7 +36,7 @@ from .scan import bus_options, on_bus
 if TYPE_CHECKING:  # the verb imports canopen when it runs: `rocoma-can --help` stays fast
     from canopen.objectdictionary import ObjectDictionary
 
-    from ..drivers.identity import Identity
+    from ..drivers.files.identity import Identity
 
 #: rates tried, highest first
 RATES = (1000, 500, 250, 100)
@@ -47,7 +47,7 @@ SUFFIXES = (".eds", ".dcf")
 
 
 class Found(Protocol):
-    """What init-config needs of a node a scan found (drivers.scan.FoundNode)."""
+    """What init-config needs of a node a scan found (drivers.commission.scan.FoundNode)."""
     @property
     def node_id(self) -> int: ...
     @property
@@ -72,9 +72,9 @@ class DeviceFileInfo:
 
 
 def read_file_info(path: str) -> DeviceFileInfo:
-    """One device file; DeviceFileError when it is none (drivers.device_file)."""
-    from ..drivers.cia301 import DEVICE_TYPE
-    from ..drivers.device_file import read_device_file
+    """One device file; DeviceFileError when it is none (drivers.files.device_file)."""
+    from ..drivers.files.device_file import read_device_file
+    from ..drivers.protocol.cia301 import DEVICE_TYPE
     device = read_device_file(path)
     od = device.object_dictionary(1)
     var = od.get_variable(DEVICE_TYPE, 0)
@@ -87,7 +87,7 @@ def read_file_info(path: str) -> DeviceFileInfo:
 def index_device_files(directory: str) -> tuple[list[DeviceFileInfo], list[str]]:
     """Every EDS/DCF in ``directory`` (not below it) and a note per file it cannot read, or
     that a config cannot name (a name that is not UTF-8: YAML is UTF-8 text)."""
-    from ..drivers.device_file import DeviceFileError
+    from ..drivers.files.device_file import DeviceFileError
     files, notes = [], []
     for entry in sorted(os.scandir(directory), key=lambda e: e.name):
         if not entry.name.lower().endswith(SUFFIXES):
@@ -135,9 +135,9 @@ def match(node_id: int, identity: Identity, device_type: int | None,
           ) -> tuple[list[DeviceFileInfo], list[tuple[DeviceFileInfo, str]]]:
     """The files made for this device, best first (same revision, then commissioned for
     this node), and those that may fit it, each with what it leaves open (the identity
-    rule: drivers.identity.file_fit). A file of another device profile than the device's
+    rule: drivers.files.identity.file_fit). A file of another device profile than the device's
     (0x1000: the manager's own EDS beside the drives') is for neither."""
-    from ..drivers.identity import file_fit
+    from ..drivers.files.identity import file_fit
     made, may = [], []
     for f in _rank(node_id, identity, files):
         if device_type is not None and f.device_type \
@@ -198,7 +198,7 @@ def generate(found: Sequence[Found], eds_dir: str | None, interface: str, channe
     directory the YAML will be in), each node's file from ``picked`` (``--eds``) or else
     from ``eds_dir``; NothingToConfigure (a ValueError) when no drive could be
     configured."""
-    from ..drivers.identity import file_fit
+    from ..drivers.files.identity import file_fit
     from .demo_config import emulate
     files, notes = index_device_files(eds_dir) if eds_dir is not None else ([], [])
     unread = bool(notes)  # files in DIR not read: one may be the node's
@@ -335,8 +335,8 @@ def _no_file(node_id: int, identity: Identity, eds_dir: str | None,
 
 def _guessed(path: str) -> list[str]:
     """The scaling keys the demo's fit had to guess for this file (no 0x608F / 0x6076)."""
-    from ..drivers.capabilities import read_capabilities
-    from ..drivers.cia402 import POSITION_ENCODER_RESOLUTION, RATED_TORQUE
+    from ..drivers.files.capabilities import read_capabilities
+    from ..drivers.protocol.cia402 import POSITION_ENCODER_RESOLUTION, RATED_TORQUE
     caps = read_capabilities(path, 1)
     return [key for key, ok in (
         ("increments_per_rev", caps.value(POSITION_ENCODER_RESOLUTION, 1)
@@ -346,8 +346,8 @@ def _guessed(path: str) -> list[str]:
 
 def _fitting_rate(drives: list[dict[str, Any]], interface: str, bitrate: int,
                   notes: list[str]) -> int:
-    from ..drivers.config import DriveConfig
-    from ..drivers.drive_plan import plan_drives
+    from ..drivers.plan.config import DriveConfig
+    from ..drivers.plan.drive_plan import plan_drives
     from ..runtime.bus_load import bus_load
     if interface == "inproc":
         return RATES[0]
@@ -399,7 +399,7 @@ def _eds_pick(text: str) -> tuple[int, str]:
 def _picked(picks: Sequence[tuple[int, str]]
             ) -> tuple[dict[int, DeviceFileInfo], str | None]:
     """The --eds files, read; the first problem (one line) of one that cannot be used."""
-    from ..drivers.device_file import DeviceFileError
+    from ..drivers.files.device_file import DeviceFileError
     out: dict[int, DeviceFileInfo] = {}
     for node, path in picks:
         if node in out:
@@ -468,7 +468,7 @@ def _replace(path: Path, text: str) -> Path | None:
 def _write(args: argparse.Namespace, bus: Any) -> int:
     import yaml
 
-    from ..drivers.scan import scan
+    from ..drivers.commission.scan import scan
     from ..errors import ConfigError
     from ..runtime.config import validate
     found = scan(bus, timeout=args.timeout, listen=args.listen)
@@ -507,7 +507,7 @@ def _write(args: argparse.Namespace, bus: Any) -> int:
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from ..cli_args import count, seconds
-    from ..drivers.scan import LISTEN, TIMEOUT  # constants only: no canopen import
+    from ..drivers.commission.scan import LISTEN, TIMEOUT  # constants only: no canopen import
     p = subparsers.add_parser(
         "init-config", help="a run config from a scan of the bus and a folder of EDS/DCF files",
         description="Scan the bus (as `rocoma-can scan`), match each node to a file in "

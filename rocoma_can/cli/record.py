@@ -26,7 +26,7 @@ def _say(text: str) -> None:
 
 
 def _record(args: argparse.Namespace) -> int:
-    from ..drivers.bus import open_bus
+    from ..drivers.link.bus import open_bus
     from ..record.can_log import BusRecording, RecordingError, check_path
     try:
         check_path(args.file)

@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from rocoma_can import Controller
-from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointMode, JointState
 
 
 class {cls}(Controller[JointState, JointCommand]):
@@ -83,7 +83,7 @@ import pytest
 from rocoma_can import (Controller, ControllerManager, ManagerState, SwitchResult,
                         create_controller)
 from rocoma_can.controllers.torque_off import TorqueOff
-from rocoma_can.drivers.joints import JointCommand, JointMode, JointState
+from rocoma_can.drivers.protocol.joints import JointCommand, JointMode, JointState
 
 from {name}.controller import {cls}
 

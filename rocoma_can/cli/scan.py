@@ -25,8 +25,8 @@ from .commands import no_socketcan_hint
 if TYPE_CHECKING:  # imported when a verb runs: `rocoma-can --help` stays fast
     import can
 
-    from ..drivers.identity import Identity
-    from ..drivers.scan import FoundNode
+    from ..drivers.commission.scan import FoundNode
+    from ..drivers.files.identity import Identity
 
 #: what a scan that found nothing asks a person to look at
 NOTHING_FOUND = ("no nodes answered: check the bit rate (every node's and the interface's "
@@ -43,7 +43,7 @@ def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
     open, when its link is down, or when sending fails (nothing acknowledges the frames)."""
     import can
 
-    from ..drivers import bus as bus_module
+    from ..drivers.link import bus as bus_module
     down = _link_down(args.interface, args.channel)
     if down:
         _err(down)
@@ -68,7 +68,7 @@ def _link_down(interface: str, channel: str) -> str | None:
     before python-can logs one of its own), else None."""
     if interface != "socketcan" or not channel or "/" in channel or channel.startswith("."):
         return None
-    from ..drivers.can_link import LinkReading, from_sysfs, socketcan_in_kernel
+    from ..drivers.link.can_link import LinkReading, from_sysfs, socketcan_in_kernel
     link = from_sysfs(channel)
     if link is None and not socketcan_in_kernel():
         return None  # open_bus says so, with what to do instead
@@ -108,9 +108,9 @@ def table(nodes: list[FoundNode]) -> list[str]:
     """One row per node, columns as wide as their widest cell; an object that came
     malformed is "malformed" (not "-", which is an object the node lacks), and a node id
     more than one device answers at says so instead of its cells."""
-    from ..drivers.cia301 import DEVICE_TYPE, IDENTITY, PRODUCER_HEARTBEAT_TIME
-    from ..drivers.identity import SUBINDEX
-    from ..drivers.scan import device_type_text
+    from ..drivers.commission.scan import device_type_text
+    from ..drivers.files.identity import SUBINDEX
+    from ..drivers.protocol.cia301 import DEVICE_TYPE, IDENTITY, PRODUCER_HEARTBEAT_TIME
     head = ("node", "vendor", "product", "revision", "serial", "device type", "name",
             "software", "heartbeat", "NMT state")
     cells: list[tuple[str, ...]] = []
@@ -138,7 +138,7 @@ def table(nodes: list[FoundNode]) -> list[str]:
 
 
 def _scan(args: argparse.Namespace) -> int:
-    from ..drivers.scan import scan
+    from ..drivers.commission.scan import scan
 
     def work(bus: can.BusABC) -> int:
         nodes = scan(bus, timeout=args.timeout, listen=args.listen)
@@ -168,8 +168,8 @@ def _scan(args: argparse.Namespace) -> int:
 
 
 def _unconfigured(bus: can.BusABC, timeout: float) -> list[Identity]:
-    from ..drivers.bus import CanopenBus
-    from ..drivers.lss import find_unconfigured
+    from ..drivers.commission.lss import find_unconfigured
+    from ..drivers.link.bus import CanopenBus
     lent = CanopenBus(bus)
     try:
         return find_unconfigured(lent.network, timeout=min(timeout, 1.0))
@@ -178,11 +178,11 @@ def _unconfigured(bus: can.BusABC, timeout: float) -> list[Identity]:
 
 
 def _lss(args: argparse.Namespace) -> int:
-    from ..drivers.bus import CanopenBus
-    from ..drivers.identity import Identity
-    from ..drivers.lss import assign, bit_timing_index
-    from ..drivers.scan import TIMEOUT as SDO_TIMEOUT
-    from ..drivers.scan import present
+    from ..drivers.commission.lss import assign, bit_timing_index
+    from ..drivers.commission.scan import TIMEOUT as SDO_TIMEOUT
+    from ..drivers.commission.scan import present
+    from ..drivers.files.identity import Identity
+    from ..drivers.link.bus import CanopenBus
     address = None
     if not args.fastscan:
         parts = {"vendor_id": args.vendor, "product_code": args.product,
@@ -240,7 +240,7 @@ def bus_options(p: argparse.ArgumentParser, timeout: float, what: str) -> None:
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    from ..drivers.scan import LISTEN, TIMEOUT  # constants only: no canopen import
+    from ..drivers.commission.scan import LISTEN, TIMEOUT  # constants only: no canopen import
     p = subparsers.add_parser(
         "scan", help="list the nodes on a bus: identity, device type, name, NMT state",
         description="Listen for heartbeats, probe node ids 1..127 by SDO, and read each "
@@ -254,7 +254,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="also list nodes without a node id (LSS fastscan, CiA 305)")
     p.set_defaults(func=_scan)
 
-    from ..drivers.lss import TIMEOUT as LSS_TIMEOUT
+    from ..drivers.commission.lss import TIMEOUT as LSS_TIMEOUT
     p = subparsers.add_parser(
         "lss", help="give a node a node id (and bit rate) by LSS (CiA 305)",
         description="Select one node by its LSS address (0x1018: --vendor --product "

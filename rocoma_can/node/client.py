@@ -12,7 +12,7 @@ from canopen.objectdictionary import DOMAIN, VISIBLE_STRING
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from .. import eds as shipped_eds
-from ..drivers.bus import BusReader
+from ..drivers.link.bus import BusReader
 from ..errors import NoAnswer, Refused, RocomaError
 from . import sdo_block, sdo_write
 from .objects import (

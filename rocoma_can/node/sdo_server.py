@@ -21,7 +21,11 @@ from canopen.sdo.constants import (
 )
 from canopen.sdo.exceptions import SdoAbortedError
 
-from ..drivers.sdo_block_upload import BlockUpload, BlockUploadServer, is_block_continuation
+from ..drivers.protocol.sdo_block_server import (
+    BlockUpload,
+    BlockUploadServer,
+    is_block_continuation,
+)
 from .objects import ABORT_COMMAND_SPECIFIER, ABORT_TOO_LONG, MAX_DOWNLOAD, SEGMENT
 
 #: Segments of a block upload the node hands the interface at once: 8 frames are ~1 ms of
@@ -49,7 +53,7 @@ class StrictSdoServer(BlockUploadServer):
       side) or has completed is forgotten, so a stray last segment cannot complete it.
     - Every abort carries the multiplexer of the request it answers (0000:00 when no request
       named one), so the abort itself cannot fail.
-    - Block upload is served (drivers/sdo_block_upload.py; CiA 301, with the CRC when the
+    - Block upload is served (drivers/protocol/sdo_block_server.py; CiA 301, with the CRC when the
       client asks, any block size 1..127): the 1-2 KB JSON of 0x2140 is ~250 segments, one
       round trip each in a segmented upload, a few in blocks. Each exchange between two
       processes on a busy host can stall for a second, so the status that matters most

@@ -54,8 +54,8 @@ from canopen.sdo.constants import ABORT_GENERAL_ERROR
 from canopen.sdo.exceptions import SdoAbortedError
 
 from .. import eds as shipped_eds
-from ..drivers.bus import BusReader, CanopenFrames
-from ..drivers.cia301 import (
+from ..drivers.link.bus import BusReader, CanopenFrames
+from ..drivers.protocol.cia301 import (
     EMCY,
     NMT,
     PRODUCER_HEARTBEAT_TIME,
@@ -63,7 +63,7 @@ from ..drivers.cia301 import (
     TPDO_COMM,
     reserved_cob_id,
 )
-from ..drivers.wire import frame_bits
+from ..drivers.protocol.wire import frame_bits
 from ..errors import HomingFailed
 from ..events import EventKind, ManagerEvent, ManagerState
 from ..manager import ControllerManager, SwitchResult

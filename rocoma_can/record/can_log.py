@@ -21,10 +21,10 @@ from pathlib import Path
 import can
 from can.util import channel2int
 
-from ..drivers.bus import BusReader
-from ..drivers.wire import BRS, ERROR, ESI, EXTENDED, FD, REMOTE
+from ..drivers.link.bus import BusReader
+from ..drivers.protocol.wire import BRS, ERROR, ESI, EXTENDED, FD, REMOTE
 
-#: a frame record's flags (rings.py): drivers/wire.py's, and this for a frame the hardware
+#: a frame record's flags (rings.py): drivers/protocol/wire.py's, and this for a frame the hardware
 #: sent (``T`` in a candump line, else ``R``)
 SENT = 64
 
@@ -44,7 +44,7 @@ _ERROR_ID = 0x20000000 | 0x00000080
 
 def candump_line(stamp: float, channel: str, cob_id: int, flags: int, data: str) -> str:
     """One frame as a ``candump -L`` line, as python-can's writer makes it (``can.LogReader``
-    and ``canplayer`` read it); ``flags`` as rings.py keeps them (drivers/wire.py's, and
+    and ``canplayer`` read it); ``flags`` as rings.py keeps them (drivers/protocol/wire.py's, and
     ``SENT``: ``T``, else ``R``); ``data`` the payload in upper-case hex."""
     if flags & ERROR:
         return f"({stamp:f}) {channel} {_ERROR_ID:08X}#{data}\n"

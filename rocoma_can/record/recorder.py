@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Protocol
 
-from ..drivers.joints import JointCommand, JointState
+from ..drivers.protocol.joints import JointCommand, JointState
 from ..events import ManagerEvent
 from ..live.foxglove import FoxgloveError
 from ..live.urdf import Robot

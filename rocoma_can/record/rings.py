@@ -30,7 +30,7 @@ from typing import Any
 import can
 import numpy as np
 
-from ..drivers.frame_io import MAX_FRAME_AGE
+from ..drivers.link.frame_io import MAX_FRAME_AGE
 from .can_log import SENT, RecordingError
 
 #: bytes before each ring's records: its count, on a cache line of its own

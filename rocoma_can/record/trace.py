@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, BinaryIO, Protocol
 
 import numpy as np
 
-from ..drivers.joints import JointCommand, JointState
+from ..drivers.protocol.joints import JointCommand, JointState
 from ..events import ManagerEvent, ManagerState
 from .mcap_file import McapFile
 from .pacing import unpaced

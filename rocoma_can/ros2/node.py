@@ -71,7 +71,7 @@ from .interfaces import (
 )
 
 if TYPE_CHECKING:
-    from ..drivers.joints import JointState
+    from ..drivers.protocol.joints import JointState
     from ..manager import ControllerManager, SwitchResult
 
 log = logging.getLogger(__name__)

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import can
 
-from ..drivers.bus import open_bus
-from ..drivers.cia301 import HEARTBEAT, SYNC, TPDO_BASE
-from ..drivers.config import BusConfig, DriveConfig
-from ..drivers.pdo_layout import DriveLayout
+from ..drivers.link.bus import open_bus
+from ..drivers.plan.config import BusConfig, DriveConfig
+from ..drivers.plan.pdo_layout import DriveLayout
+from ..drivers.protocol.cia301 import HEARTBEAT, SYNC, TPDO_BASE
 from ..errors import BusTaken
 from .config import RuntimeConfig
 from .host import Check

@@ -1,7 +1,7 @@
 """Bus load: how many bits one cycle puts on a CAN bus, and what fits.
 
 Per cycle on one bus: every drive's RPDOs and TPDOs, with the layouts the driver will use
-(drivers/pdo_layout.py), plus one SYNC, each frame counted with worst-case bit stuffing. A
+(drivers/plan/pdo_layout.py), plus one SYNC, each frame counted with worst-case bit stuffing. A
 classic 1 Mbit/s bus carries ~7,400 8-byte frames/s that way; CAN FD with bit rate
 switching carries more because its data phase runs at the data bit rate.
 """
@@ -11,9 +11,9 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from ..drivers.config import DriveConfig
-from ..drivers.pdo_layout import DriveLayout, layout_for
-from ..drivers.wire import frame_bits
+from ..drivers.plan.config import DriveConfig
+from ..drivers.plan.pdo_layout import DriveLayout, layout_for
+from ..drivers.protocol.wire import frame_bits
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from ..drivers.can_link import CANFD_MTU, LinkReading
-from ..drivers.config import BusConfig
+from ..drivers.link.can_link import CANFD_MTU, LinkReading
+from ..drivers.plan.config import BusConfig
 from .config_check import DEFAULT_BITRATE
 from .host import Check, Status
 

@@ -15,7 +15,7 @@ Layout (every key but ``drives`` and ``controllers`` has a default; docs/configu
     realtime: {priority: null, cpus: null,   # SCHED_FIFO priority, CPU list
                spin_us: null}   # spin before each deadline; null: 500, half a period, 100 if RT
     supervision: {tpdo_timeout_cycles: 5, heartbeat_timeout_factor: 2.5,
-                  consumer_factor: 2.0, sdo_timeout: 0.5,   # drivers.config.Supervision
+                  consumer_factor: 2.0, sdo_timeout: 0.5,   # drivers.plan.config.Supervision
                   boot_wait: 1.0, start_timeout: 2.0, reset_timeout: 1.0,
                   enable_timeout: 1.0}                      # start-up (Timeouts)
     timing: {advance: 0.5, initialize_fast: 0.5, overruns: 5, hang: 20}  # in cycles (dt):
@@ -44,8 +44,8 @@ from typing import Any
 
 import yaml
 
-from ..drivers.config import BusConfig, DriveConfig, Supervision
-from ..drivers.drive_plan import DrivePlan
+from ..drivers.plan.config import BusConfig, DriveConfig, Supervision
+from ..drivers.plan.drive_plan import DrivePlan
 from ..errors import ConfigError
 from ..fleet.bridge import FleetConfig
 from ..fleet.bridge import parse as parse_fleet

@@ -3,7 +3,7 @@
 Each takes its section as parsed YAML, appends "<yaml path>: <what is wrong>" to ``problems``
 for every problem it finds and returns what it could build anyway, so that one run of
 ``rocoma-can check-config`` lists every problem, and the checks after a broken section still
-run. The ranges live here, the defaults in the dataclasses (config.py, drivers.config).
+run. The ranges live here, the defaults in the dataclasses (config.py, drivers.plan.config).
 """
 from __future__ import annotations
 
@@ -13,9 +13,8 @@ from dataclasses import fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..drivers.bus import unknown_interface
-from ..drivers.cia301 import reserved_cob_id
-from ..drivers.config import (
+from ..drivers.link.bus import unknown_interface
+from ..drivers.plan.config import (
     LIMIT_KEYS,
     BusConfig,
     DriveConfig,
@@ -24,9 +23,10 @@ from ..drivers.config import (
     estop_conflict,
     node_mismatch,
 )
-from ..drivers.drive_plan import DrivePlan, pdo_bytes_problem, plan_drive, plan_drives
-from ..drivers.pdo_layout import cob_id_clashes
-from ..drivers.wire import MAX_DATA_BITRATE
+from ..drivers.plan.drive_plan import DrivePlan, pdo_bytes_problem, plan_drive, plan_drives
+from ..drivers.plan.pdo_layout import cob_id_clashes
+from ..drivers.protocol.cia301 import reserved_cob_id
+from ..drivers.protocol.wire import MAX_DATA_BITRATE
 from ..live.urdf import MOVABLE, Robot, UrdfError, read_urdf
 from ..manager import TimingSupervision
 from ..user_files import not_regular
@@ -48,7 +48,7 @@ _REALTIME_KEYS = {"priority", "cpus", "spin_us"}
 #: CPU numbers realtime.cpus may name (the kernel's affinity mask takes no more)
 MAX_CPUS = 4096
 _DRIVE_KEYS = {f.name for f in fields(DriveConfig)}
-#: supervision margins: key -> (whole number?, minimum, maximum); drivers.config.Supervision
+#: supervision margins: key -> (whole number?, minimum, maximum); drivers.plan.config.Supervision
 #: has the defaults
 _SUPERVISION = {
     "tpdo_timeout_cycles": (True, 1, 10_000),
@@ -68,7 +68,7 @@ _TIMING = {
     "overruns": (True, 1, 1000),
     "hang": (False, 2.0, 100_000.0),
 }
-#: the supervision keys that are start-up timeouts: key -> drivers.config.Timeouts field
+#: the supervision keys that are start-up timeouts: key -> drivers.plan.config.Timeouts field
 TIMEOUT_KEYS = {"boot_wait": "boot_wait", "start_timeout": "start", "reset_timeout": "reset",
                 "enable_timeout": "enable"}
 

@@ -36,7 +36,7 @@ from typing import Protocol
 import numpy as np
 
 from ..adapters import p99
-from ..drivers.stop_requests import StopTarget
+from ..drivers.cycle.stop_requests import StopTarget
 from ..events import STOP_CAUSE, ManagerState
 from ..overrun import overran, waited
 
@@ -240,7 +240,7 @@ class CycleManager(StopTarget, Protocol):
 
 
 class CycleEvent(Protocol):
-    """A finding of the hardware's read for the manager (drivers/stop_requests.py)."""
+    """A finding of the hardware's read for the manager (drivers/cycle/stop_requests.py)."""
 
     def apply(self, manager: StopTarget) -> None: ...
 

@@ -13,9 +13,9 @@ from typing import Any
 
 from ..audit import Audit
 from ..controllers.torque_off import TorqueOff
-from ..drivers.bus import open_bus
+from ..drivers.cycle.status import HardwareStatus
 from ..drivers.hardware import CanopenHardware
-from ..drivers.status import HardwareStatus
+from ..drivers.link.bus import open_bus
 from ..fleet.bridge import FleetBridge, FleetConfig, FleetError
 from ..inputs import TopicCommanded
 from ..live.foxglove import FoxgloveConfig, FoxgloveView

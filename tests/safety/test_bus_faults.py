@@ -11,7 +11,7 @@ from concurrent.futures import Future
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol.cia402 import State402
 
 
 def _torque_off_seen_for_every_drive(served: Served, since: int) -> None:

@@ -11,8 +11,8 @@ from fixtures.driver_rig import Brake, HoldPD, synced_mark
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import Mode, State402
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import Mode, State402
 
 FAULTY = NODES[1]
 NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE = 0x02, 0x80, 0x81

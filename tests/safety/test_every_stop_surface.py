@@ -303,7 +303,7 @@ def test_every_surface_has_garbage_forms_and_both_ways_are_listed():
 NOT_A_REQUEST = {
     ("rocoma_can/stop_surfaces.py", "stop"),            # the one place requests arrive
     ("rocoma_can/stop_surfaces.py", "StopSurface("),    # where the surfaces are made
-    ("drivers/stop_requests.py", "apply"),              # what the cycle's read found (faults,
+    ("drivers/cycle/stop_requests.py", "apply"),              # what the cycle's read found (faults,
                                                         # and e-stop frames: CAN_FRAME's cause)
     ("rocoma_can/runtime/loop.py", "_torque_off"),      # the loop's own stop
     ("rocoma_can/fleet/bridge.py", "_on_deadman"),      # a supervision, not a request

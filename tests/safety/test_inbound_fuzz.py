@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 from safety_rig import CW_DISABLE_VOLTAGE, ESTOP_COB, NODES, SAFETY, SDO_RX, Served
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol.cia402 import State402
 
 PROBE = (0x1018, 1)  # vendor id: read after each sequence, never fuzzed, so its answer is ours
 SERVICE_OBJECTS = (0x1000, 0x1001, 0x1017, 0x1018, 0x1800, 0x1A00, 0x2100, 0x2101, 0x2102,

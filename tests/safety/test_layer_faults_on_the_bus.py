@@ -26,7 +26,7 @@ from fixtures.driver_rig import Brake, HoldPD
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers.cia402 import Mode, State402
+from rocoma_can.drivers.protocol.cia402 import Mode, State402
 
 FAULTS = ("raise", "false", "none", "numpy-array", "nan", "inf", "hang")
 CALLS = (("controller", "advance"), ("emergency", "initialize_fast"), ("emergency", "advance"))

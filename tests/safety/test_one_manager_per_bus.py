@@ -19,7 +19,7 @@ from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.cli.demo_config import demo_config
 from rocoma_can.cli.main import main
-from rocoma_can.drivers import cia301
+from rocoma_can.drivers.protocol import cia301
 from rocoma_can.errors import BusTaken
 from rocoma_can.runtime import Runtime
 from rocoma_can.runtime.another_manager import (

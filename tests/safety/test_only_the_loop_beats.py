@@ -13,7 +13,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from fixtures.driver_rig import MANAGER_NODE_ID, seconds_until_all_off
 from safety_rig import SAFETY, cycle_while
 
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol.cia402 import State402
 
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 

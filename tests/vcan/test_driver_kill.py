@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from fixtures import driver_rig  # tests/ is on sys.path (conftest.py); the subprocess too
 
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol.cia402 import State402
 
 NODES = driver_rig.VCAN.nodes
 HEARTBEAT_MS = 200

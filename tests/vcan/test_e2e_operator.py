@@ -9,8 +9,8 @@ import time
 
 from test_e2e_manager import CONFIG, DRIVES, NODE, cli, processes, wait_for  # noqa: F401
 
-from rocoma_can.drivers import cia301
-from rocoma_can.drivers.cia402 import State402
+from rocoma_can.drivers.protocol import cia301
+from rocoma_can.drivers.protocol.cia402 import State402
 
 
 def test_clear_does_not_rearm_a_faulted_drive(processes, frame_recorder,  # noqa: F811

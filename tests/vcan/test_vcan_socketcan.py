@@ -9,7 +9,7 @@ import time
 
 import can
 
-from rocoma_can.drivers.bus import open_bus
+from rocoma_can.drivers.link.bus import open_bus
 
 
 def frame(cob_id: int, *data: int, extended: bool = False) -> can.Message:
@@ -54,7 +54,7 @@ def test_can_fd_frames_with_bit_rate_switching_pass_vcan(bus_factory):
     """tools/vcan-run gives vcan0/vcan1 an MTU of 72, so FD sockets exchange FD frames: the
     frames an FD bus's manager and simulated drives send (FrameWriter) arrive as FD frames
     with BRS through the batched reader (FrameReader), and classic sockets still work."""
-    from rocoma_can.drivers.frame_io import FrameReader, FrameWriter
+    from rocoma_can.drivers.link.frame_io import FrameReader, FrameWriter
     sender = bus_factory("vcan1", "socketcan", fd=True)
     receiver = bus_factory("vcan1", "socketcan", fd=True)
     FrameWriter(sender, fd=True).send(0x181, bytes(range(8)))
@@ -76,9 +76,9 @@ def test_a_long_fd_pdo_passes_vcan_whole(bus_factory):
     """A PDO over 8 bytes (pdo_bytes on an FD bus) goes out at its FD length and arrives
     with that length as its DLC, which is what the receive check compares with the
     mapping's padded size (pdo_layout: 13 bytes mapped, a 16-byte frame)."""
-    from rocoma_can.drivers.config import DriveConfig
-    from rocoma_can.drivers.frame_io import FrameReader, FrameWriter
-    from rocoma_can.drivers.pdo_layout import layout_for
+    from rocoma_can.drivers.link.frame_io import FrameReader, FrameWriter
+    from rocoma_can.drivers.plan.config import DriveConfig
+    from rocoma_can.drivers.plan.pdo_layout import layout_for
     (rpdo,) = layout_for(DriveConfig("j", 1, 4096, 1.0, modes=("csp", "csv", "cst"),
                                      pdo_bytes=64)).rpdos
     sender = bus_factory("vcan1", "socketcan", fd=True)
@@ -159,7 +159,7 @@ def test_kernel_bcm_with_duration_sends_an_exact_count(bus_factory, frame_record
 
 
 def test_a_reader_that_lags_loses_no_frames(bus_factory):
-    """Every socket rocoma-can opens (drivers.bus.open_bus: the node's, the CLI's, the
+    """Every socket rocoma-can opens (drivers.link.bus.open_bus: the node's, the CLI's, the
     simulator's, recorders) holds thousands of frames unread. The kernel's default buffer
     holds a few hundred (~200 KiB at ~1 KiB a frame), under a second of a busy bus for a
     reader the guest or a loaded host stalls; a frame that meets a full socket is dropped,

@@ -19,9 +19,9 @@ from typing import Protocol
 
 import can
 
-from . import cia301
+from ..plan.config import BusConfig
+from ..protocol import cia301
 from .bus import SENT_HELD, CanopenBus, open_bus
-from .config import BusConfig
 from .frame_io import FrameWriter
 
 _FD = (can.CanProtocol.CAN_FD, can.CanProtocol.CAN_FD_NON_ISO)

@@ -25,8 +25,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from . import cia402
-from .cia402 import State402
+from ..protocol import cia402
+from ..protocol.cia402 import State402
 
 CW_ENABLE = int(cia402.Controlword.ENABLE_OPERATION)
 OP_ENABLED = int(State402.OPERATION_ENABLED)

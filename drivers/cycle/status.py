@@ -13,13 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from . import cia301
-from .bringup import DriveBringup, Phase
-from .bus_port import BusPort
-from .cia402 import State402
-from .config import DriveConfig
+from ..bringup.drive_bringup import DriveBringup, Phase
+from ..link.bus_port import BusPort
+from ..plan.config import DriveConfig
+from ..protocol import cia301
+from ..protocol.cia402 import State402
+from ..protocol.joints import JointState
 from .homing import HomingJob
-from .joints import JointState
 from .supervision import Supervisor
 
 

@@ -21,7 +21,7 @@ from canopen import objectdictionary
 
 from rocoma_can import eds as shipped_eds
 
-from . import cia301, cia402
+from ..protocol import cia301, cia402
 from .device_file import DeviceFileError, read_device_file
 
 Key = tuple[int, int]

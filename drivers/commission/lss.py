@@ -22,8 +22,8 @@ from collections.abc import Callable
 import canopen
 from canopen import lss
 
-from ..errors import LssFailed
-from .identity import Identity
+from ...errors import LssFailed
+from ..files.identity import Identity
 
 #: master -> slaves, slaves -> master
 LSS_REQUEST = lss.LssMaster.LSS_TX_COBID
@@ -198,7 +198,7 @@ def assign(network: canopen.Network, node_id: int, address: Identity | None = No
     that had one at its next NMT reset. ``address``: that node's LSS address (all four
     fields); None: the first unconfigured node fastscan finds. ``store``: kept across a
     power cycle (CiA 305 store configuration). ``occupant(node_id)``: how a node already
-    at that node id shows itself, or None (drivers/scan.py ``present``); asked before any
+    at that node id shows itself, or None (drivers/commission/scan.py ``present``); asked before any
     LSS request, and a node id taken by another node is refused, nothing assigned (the
     addressed node itself may hold it already). Returns the node's address.
 

@@ -21,10 +21,10 @@ from concurrent.futures import Future, InvalidStateError
 
 import numpy as np
 
-from . import cia301
-from .bringup import DriveBringup, Phase
-from .bus_port import BusPort
-from .drive_plan import DrivePlan
+from ..bringup.drive_bringup import DriveBringup, Phase
+from ..link.bus_port import BusPort
+from ..plan.drive_plan import DrivePlan
+from ..protocol import cia301
 from .supervision import Supervisor
 
 

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import cia301, cia402
-from .config import DriveConfig
-from .modes import DriveMode
+from ..plan.config import DriveConfig
+from ..plan.modes import DriveMode
+from ..protocol import cia301, cia402
 
 EMCY_NAMES = {
     cia301.EMCY_GENERIC: "generic error",

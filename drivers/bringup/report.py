@@ -17,8 +17,8 @@ import logging
 from collections.abc import Callable, Sequence
 from typing import Protocol
 
-from ..audit import AUDIT
-from .bringup import Phase
+from ...audit import AUDIT
+from .drive_bringup import Phase
 
 log = logging.getLogger("rocoma_can.drivers.hardware")
 audit = logging.getLogger(AUDIT)

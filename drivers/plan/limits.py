@@ -34,8 +34,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
-from . import cia402
-from .capabilities import DriveCapabilities
+from ..files.capabilities import DriveCapabilities
+from ..protocol import cia402
 from .config import DriveConfig
 from .modes import DriveMode
 

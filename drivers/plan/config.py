@@ -12,11 +12,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from typing import Any, Literal
 
-from ..user_files import not_regular
-from . import cia301
-from .cia402 import MAX_AXES
-from .identity import Identity, identity_from_config
-from .joints import JointMode
+from ...user_files import not_regular
+from ..files.identity import Identity, identity_from_config
+from ..protocol import cia301
+from ..protocol.cia402 import MAX_AXES
+from ..protocol.joints import JointMode
 from .modes import BY_NAME, KIND, DriveMode
 
 
@@ -148,7 +148,7 @@ LIMIT_KEYS = ("position", "velocity", "torque", "following_error", "following_er
 class DriveLimits:
     """A drive's ``limits:`` (joint side, SI; None = not limited): enforced by the manager
     on every command and written to the drive at bring-up where its file has the object
-    (drivers/limits.py), so they hold while the manager is gone too. ``following_error``
+    (drivers/plan/limits.py), so they hold while the manager is gone too. ``following_error``
     (rad) is the window a CSP drive's actual position may lag its target by: the manager
     e-stops after ``following_error_cycles`` cycles beyond it, the drive (0x6065/0x6066)
     faults after twice that."""

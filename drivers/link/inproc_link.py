@@ -41,8 +41,8 @@ from collections.abc import Callable, Sequence
 
 from can import Message
 
+from ..protocol.wire import BRS, ERROR, ESI, EXTENDED, FD, REMOTE
 from .inproc import InProcessBus, received
-from .wire import BRS, ERROR, ESI, EXTENDED, FD, REMOTE
 
 #: channel index, identifier, flags (wire.py), DLC, data length; the data follows
 FRAME = struct.Struct("=BIBBB")

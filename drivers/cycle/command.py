@@ -16,15 +16,15 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from . import cia402
-from .bringup import DriveBringup, Phase
-from .config import DriveConfig
+from ..bringup.drive_bringup import DriveBringup, Phase
+from ..plan.config import DriveConfig
+from ..plan.modes import CW_ENABLE_INTERPOLATION, KIND, DriveMode, SetPointHandshake, carrier
+from ..plan.scaling import Scaling
+from ..protocol import cia402
+from ..protocol.joints import JointCommand, JointMode, JointState
 from .enable import OP_ENABLED, EnableSequence
 from .frames_out import FramesOut
 from .homing import HOMING_MODE, HomingJob, HomingQueue
-from .joints import JointCommand, JointMode, JointState
-from .modes import CW_ENABLE_INTERPOLATION, KIND, DriveMode, SetPointHandshake, carrier
-from .scaling import Scaling
 from .supervision import FollowingErrorWatch, Supervisor
 
 _CW_QUICK_STOP = int(cia402.Controlword.QUICK_STOP)

@@ -36,15 +36,15 @@ from typing import Any
 import canopen
 from canopen.sdo.client import SdoClient
 
-from . import cia301, cia402
-from .bus import CanopenBus
-from .capabilities import DriveCapabilities, PdoChannel
-from .config import DriveConfig, Supervision, Timeouts
-from .drive_plan import DrivePlan
-from .identity import IdentityCheck, verify_identity
-from .limits import write_limits
-from .modes import DriveMode, interpolation_period
-from .pdo_layout import Pdo
+from ..files.capabilities import DriveCapabilities, PdoChannel
+from ..files.identity import IdentityCheck, verify_identity
+from ..link.bus import CanopenBus
+from ..plan.config import DriveConfig, Supervision, Timeouts
+from ..plan.drive_plan import DrivePlan
+from ..plan.limits import write_limits
+from ..plan.modes import DriveMode, interpolation_period
+from ..plan.pdo_layout import Pdo
+from ..protocol import cia301, cia402
 
 #: Transmission type: synchronous, every SYNC (RPDO: act on the next SYNC).
 SYNC_EVERY_CYCLE = 1

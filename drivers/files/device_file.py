@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from canopen import objectdictionary
 from canopen.objectdictionary import datatypes
 
-from ..user_files import read_regular
+from ...user_files import read_regular
 
 Key = tuple[int, int]
 

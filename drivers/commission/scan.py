@@ -48,10 +48,10 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import ReadableStream, SdoClient
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from . import cia301 as c301
-from .bus import CanopenBus
-from .cia301 import NmtState
-from .identity import SUBINDEX, Identity
+from ..files.identity import SUBINDEX, Identity
+from ..link.bus import CanopenBus
+from ..protocol import cia301 as c301
+from ..protocol.cia301 import NmtState
 
 #: Device name and software version (CiA 301 VISIBLE_STRING objects, optional).
 DEVICE_NAME = 0x1008

@@ -15,13 +15,13 @@ from typing import Protocol
 
 import numpy as np
 
-from . import cia301, cia402
-from .bus_port import BusPort
-from .frame_io import clock_offset, to_monotonic
-from .joints import JointState
+from ..link.bus_port import BusPort
+from ..link.frame_io import clock_offset, to_monotonic
+from ..plan.pdo_layout import DriveLayout
+from ..plan.scaling import Scaling
+from ..protocol import cia301, cia402
+from ..protocol.joints import JointState
 from .node_guarding import NodeGuarding
-from .pdo_layout import DriveLayout
-from .scaling import Scaling
 from .supervision import Supervisor
 
 #: A TPDO's receive entry: drive index, its bit in the cycle's mask, size, unpack, targets

@@ -19,11 +19,11 @@ from dataclasses import dataclass, field
 
 import canopen
 
-from . import cia301, cia402
-from .capabilities import PDO_NOT_VALID, DriveCapabilities, PdoChannel
+from ..files.capabilities import PDO_NOT_VALID, DriveCapabilities, PdoChannel
+from ..protocol import cia301, cia402
+from ..protocol.wire import fd_length
 from .config import FEEDBACK, DriveConfig
 from .modes import KIND, DriveMode
-from .wire import fd_length
 
 PDO_BYTES = 8
 PDO_SLOTS = 4

@@ -27,8 +27,8 @@ from typing import Any, Literal, Protocol
 import canopen
 from canopen import objectdictionary
 
-from ..errors import WrongDevice
-from .cia301 import IDENTITY
+from ...errors import WrongDevice
+from ..protocol.cia301 import IDENTITY
 
 #: the subindices of 0x1018, in field order
 SUBINDEX = {"vendor_id": 1, "product_code": 2, "revision": 3, "serial": 4}

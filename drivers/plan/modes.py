@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import enum
 
-from .joints import JointMode
+from ..protocol.joints import JointMode
 
 
 class DriveMode(enum.IntEnum):

@@ -23,11 +23,11 @@ import enum
 import threading
 from concurrent.futures import Future
 
-from ..errors import HomingFailed
-from . import cia402
-from .bringup import Phase as BringupPhase
-from .capabilities import DriveCapabilities
-from .pdo_layout import DriveLayout
+from ...errors import HomingFailed
+from ..bringup.drive_bringup import Phase as BringupPhase
+from ..files.capabilities import DriveCapabilities
+from ..plan.pdo_layout import DriveLayout
+from ..protocol import cia402
 from .supervision import FaultEvent
 
 HOMING_MODE = int(cia402.Mode.HOMING)

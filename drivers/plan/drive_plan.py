@@ -13,16 +13,17 @@ import dataclasses
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-from . import cia301, cia402, limits
-from .capabilities import (
+from ..files.capabilities import (
     MODE_NAMES,
     TARGET_OF_MODE,
     CapabilityError,
     DriveCapabilities,
     read_capabilities,
 )
+from ..files.identity import IdentityCheck
+from ..protocol import cia301, cia402
+from . import limits
 from .config import FEEDBACK, DriveConfig
-from .identity import IdentityCheck
 from .modes import DriveMode
 from .pdo_layout import (
     ENTRY_OF_FEEDBACK,

@@ -14,8 +14,8 @@ from collections.abc import Sequence
 
 import can
 
-from . import cia301
-from .bus_port import BusPort
+from ..link.bus_port import BusPort
+from ..protocol import cia301
 
 
 class NodeGuarding:

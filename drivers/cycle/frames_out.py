@@ -20,11 +20,11 @@ from collections.abc import Sequence
 
 import can
 
-from . import cia402
-from .bringup import DriveBringup
-from .bus_port import BusPort
-from .pdo_layout import DriveLayout
-from .wire import picker
+from ..bringup.drive_bringup import DriveBringup
+from ..link.bus_port import BusPort
+from ..plan.pdo_layout import DriveLayout
+from ..protocol import cia402
+from ..protocol.wire import picker
 
 
 class FramesOut:
