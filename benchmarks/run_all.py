@@ -4,7 +4,7 @@
 
 Each benchmark runs as its own process (so one's threads and GC state cannot colour the
 next), prints its table and writes benchmarks/results/<name>.json. --quick runs each in its
-quickest mode (what tests/test_benchmarks_smoke.py does). Exit status: the number of
+quickest mode (what tests/tools/test_benchmarks_smoke.py does). Exit status: the number of
 benchmarks that failed.
 """
 from __future__ import annotations

@@ -21,7 +21,7 @@ pytest.register_assert_rewrite("fixtures")
 from fixtures.bus import in_ci, vcan_problem  # noqa: E402  (after the rewrite hook)
 
 pytest_plugins = ["fixtures.bus", "fixtures.sim", "fixtures.manager_probes",
-                  "fixtures.driver_rig", "fixtures.sim_group", "fixtures.running"]
+                  "fixtures.driver_rig", "fixtures.sim_group", "fixtures.running", "fixtures.uml"]
 
 VCAN_DIR = Path(__file__).parent / "vcan"
 

@@ -9,7 +9,7 @@ does them that rosbags does not: a ``char`` field is described as ``uint8`` (ros
 wrong: each service's event message holds service_msgs/ServiceEventInfo's ``char[16]``), and
 a service is hashed as rosidl describes it, a type of three fields (``request_message``,
 ``response_message``, ``event_message``) whose event holds the ServiceEventInfo and the
-request and response as sequences of at most one. tests/test_ros2_interfaces.py checks the
+request and response as sequences of at most one. tests/ros2/test_ros2_interfaces.py checks the
 results against hashes published with the ROS packages.
 
 controller_manager_msgs changed inside Jazzy: ros2_control 4.13 added

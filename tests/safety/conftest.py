@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 import pytest
+from fixtures.node_rig import Rig as ServiceRig
 from safety_rig import NODES, served_rig
-from test_services import Rig as ServiceRig
 
 
 @pytest.fixture
@@ -16,7 +16,7 @@ def served(virtual_channel, sim_segment_factory, bus_factory, frame_recorder):
 
 @pytest.fixture
 def service(bus_factory):
-    """The manager node over a joint plant (tests/test_services.py), plus a raw bus of a third
+    """The manager node over a joint plant (tests/node/test_services.py), plus a raw bus of a third
     node: frames read there and nowhere else."""
     rig = ServiceRig(bus_factory, must_clear=False)
     rig.raw = bus_factory()

@@ -10,8 +10,8 @@ import time
 import can
 import pytest
 from fixtures.driver_rig import MANAGER_NODE_ID
+from fixtures.node_rig import ESTOP_COB as SERVICE_ESTOP
 from safety_rig import SAFETY, SDO_RX, sdo_exchange
-from test_services import ESTOP_COB as SERVICE_ESTOP
 
 from rocoma_can.errors import Refused
 from rocoma_can.node.client import ManagerClient

@@ -33,7 +33,7 @@ def test_run_on_a_missing_link_is_one_line_with_what_to_check(tmp_path, capsys, 
     in): python-can's own ERROR line came first ("Could not access SocketCAN device"), then
     ours with only "[Errno 19] No such device". One line, with where to look."""
     import yaml
-    from test_config import good
+    from fixtures.configs import good
     cfg = good()
     cfg["bus"] = {"interface": "socketcan", "channel": "vcan7"}
     path = tmp_path / "robot.yaml"

@@ -1,0 +1,547 @@
+"""Drives described by vendor-like EDS/DCF files (tests/fixtures/eds/, modelled on typical
+vendor files): what check-config reports, that the simulator emulates exactly the file
+(its objects, access types and modes), bring-up, a cyclic command, and e-stop -> torque-off
+frames on the drive's own PDO layout.
+
+    fixed_pdo.eds        read-only mappings: RPDO1 = controlword + target position,
+                         TPDO1 = statusword + position, TPDO2 = velocity + torque; CSP, PP
+    no_abort_option.eds  no 0x6007; 0x1029 and node guarding instead
+    commissioned.dcf     the DCF of node 5: ParameterValue over DefaultValue, $NODEID COB-IDs
+    minimal.eds          no 0x6077, no 0x608F, no 0x6091; empty defaults
+    arm_ip_pp_vl.eds     a robot-arm joint: PP, VL and IP only, no 0x6007 (modes elsewhere)
+    hand_written.eds     every reading quirk: a Latin-1 byte, a key given twice, CRLF with
+                         bare LFs, 0x1000 without value and 0x6502 empty, upper-case access,
+                         lower-case hex, $NodeId, two's-complement hex, a [TypeDefinitions]
+                         record type, a factor group with empty values
+    node1_baked.dcf      a DCF exported for node 1 (DeviceCommissioning, COB-IDs 0x201...)
+    tight_od.eds         0x6060 and 0x607A not PDO-mappable, one TPDO of two objects
+    fixed_split.eds      fixed mappings split over slots: RPDO1 = controlword, RPDO2 =
+                         controlword + target, TPDO3/TPDO4 = statusword + position/velocity
+"""
+from __future__ import annotations
+
+import os
+import struct
+from pathlib import Path
+
+import canopen
+import pytest
+from canopen.sdo.exceptions import SdoAbortedError
+from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Rig, Sine
+from fixtures.paths import ROOT, TESTS
+
+from rocoma_can import ManagerState, SwitchResult
+from rocoma_can.drivers.bringup.drive_bringup import NamedSdo, ObjectRefused
+from rocoma_can.drivers.files.capabilities import read_capabilities
+from rocoma_can.drivers.files.device_file import read_device_file
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_plan import plan_drive
+from rocoma_can.drivers.protocol import cia301, cia402
+from rocoma_can.drivers.protocol.cia402 import State402
+from rocoma_can.drivers.protocol.joints import JointMode
+
+EDS = TESTS / "fixtures" / "eds"
+ABORT_NOT_IN_OD = 0x06020000
+ABORT_WRITE_READONLY = 0x06010002
+ABORT_INVALID_VALUE = 0x06090030
+
+
+def drive(file: str, node_id: int = 1, **kw) -> DriveConfig:
+    kw.setdefault("modes", ("csp",))
+    return DriveConfig("j1", node_id, INCREMENTS_PER_REV, RATED_TORQUE_NM,
+                       eds=str(EDS / file), **kw)
+
+
+# --- what check-config says ------------------------------------------------------------------
+def test_a_fixed_mapping_is_used_as_it_is():
+    plan = plan_drive(drive("fixed_pdo.eds"))
+    (rpdo,), tpdos = plan.layout.rpdos, plan.layout.tpdos
+    assert rpdo.fixed and rpdo.names == ("controlword", "target_position")
+    assert [p.names for p in tpdos] == [("statusword", "position"), ("velocity", "torque")]
+    assert all(p.fixed for p in tpdos)
+    report = "\n".join(plan.report())
+    assert "fixed RPDO1 [controlword, target_position]" in report
+    assert "RPDO1 fixed (<= 2 objects)" in report
+
+
+def test_a_fixed_mapping_of_a_string_is_a_clear_error(tmp_path):
+    """A fixed TPDO that maps a VISIBLE_STRING (0x1008, device name) raised KeyError from
+    the struct table through check-config; it names the object now."""
+    text = (EDS / "fixed_pdo.eds").read_text()
+    text = text.replace("[MandatoryObjects]\nSupportedObjects=3\n1=0x1000\n2=0x1001\n3=0x1018",
+                        "[MandatoryObjects]\nSupportedObjects=4\n1=0x1000\n2=0x1001\n"
+                        "3=0x1018\n4=0x1008")
+    text += ("\n[1008]\nParameterName=Manufacturer device name\nObjectType=0x7\n"
+             "DataType=0x0009\nAccessType=const\nDefaultValue=A\nPDOMapping=1\n")
+    text = text.replace("DefaultValue=0x60640020", "DefaultValue=0x10080008", 1)
+    strings = tmp_path / "string_in_pdo.eds"
+    strings.write_text(text)
+    with pytest.raises(ValueError, match="maps 0x1008:0, which its file gives a type a PDO "
+                                         "cannot carry as a number"):
+        plan_drive(drive(str(strings)))
+
+
+def test_a_fixed_mapping_says_what_it_cannot_carry(tmp_path):
+    with pytest.raises(ValueError, match="CSV is not supported: its 0x6502 = 0x81 lists PP, CSP"):
+        plan_drive(drive("fixed_pdo.eds", modes=("csv",)))
+    csv_too = tmp_path / "fixed_csv.eds"  # lists CSV, but no fixed RPDO carries 0x60FF
+    csv_too.write_text((EDS / "fixed_pdo.eds").read_text().replace(
+        "DefaultValue=0x00000081", "DefaultValue=0x00000181"))
+    config = DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(csv_too),
+                         modes=("csv",))
+    with pytest.raises(ValueError, match=r"mode CSV needs its target 0x60FF:0 in an RPDO, "
+                                         r"but its file has no 0x60FF:0; modes it can run: "
+                                         r"PP, CSP"):
+        plan_drive(config)
+    with pytest.raises(ValueError, match="0x6060 .*none carries 0x6060:0.* configure one mode"):
+        plan_drive(DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(csv_too),
+                               modes=("csp", "csv")))
+
+
+def test_no_abort_option_is_said_and_the_other_ways_are_named():
+    plan = plan_drive(drive("no_abort_option.eds"))
+    report = "\n".join(plan.report())
+    assert "missing: 0x6007" in report
+    assert "heartbeat consumer 0x1016 -> EMCY 0x8130 only" in report
+    assert "0x1029:1 communication error" in report
+    # it has a heartbeat: node guarding is not driven
+    assert "life guarding 0x100C/0x100D" not in report
+    assert any("no 0x6007" in n for n in plan.notes)
+
+
+def test_a_drive_that_ignores_losing_the_manager_needs_an_explicit_yes(tmp_path):
+    text = (EDS / "no_abort_option.eds").read_text()
+    unsupervised = tmp_path / "unsupervised.eds"  # and no heartbeat consumer either
+    unsupervised.write_text(text.replace("[1016sub1]\nParameterName=Consumer heartbeat time 1"
+                                         "\nObjectType=0x7\nDataType=0x0007\nAccessType=rw",
+                                         "[1016sub1]\nParameterName=Consumer heartbeat time 1"
+                                         "\nObjectType=0x7\nDataType=0x0007\nAccessType=ro"))
+    assert not read_capabilities(str(unsupervised), 1).heartbeat_consumer
+    config = DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=str(unsupervised))
+    # node guarding is then how it watches the manager (0x1029 behind it) ...
+    assert plan_drive(config).guarded
+    # ... and without it, nothing does
+    unsupervised.write_text(unsupervised.read_text().replace(
+        "ParameterName=Life time factor\nObjectType=0x7\nDataType=0x0005\nAccessType=rw",
+        "ParameterName=Life time factor\nObjectType=0x7\nDataType=0x0005\nAccessType=ro"))
+    with pytest.raises(ValueError, match="losing the manager would leave this drive running.*"
+                                         "accept_unsupervised: true"):
+        plan_drive(config)
+    accepted = plan_drive(DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM,
+                                      eds=str(unsupervised), accept_unsupervised=True))
+    assert any(n.startswith("RISK accepted") for n in accepted.notes)
+
+
+def test_a_dcf_gives_its_commissioned_values_and_its_node():
+    caps = read_capabilities(str(EDS / "commissioned.dcf"), 5)
+    assert caps.commissioned_node_id == 5
+    assert caps.value(cia301.PRODUCER_HEARTBEAT_TIME) == 50  # ParameterValue, not 100
+    assert caps.value(cia402.POSITION_ENCODER_RESOLUTION, 1) == 0x40000
+    assert caps.rpdos[0].cob_id == 0x205 and caps.tpdos[0].cob_id == 0x185  # $NODEID
+    assert caps.mode_names == ["CSP", "CSV", "CST"]
+    # the same DCF for another node: its values, that node's COB-IDs, said in a note
+    other = plan_drive(drive("commissioned.dcf", node_id=3))
+    assert "a DCF commissioned for node 5, used for node 3: its values are taken, its " \
+        "node's COB-IDs are not" in other.notes
+    assert other.caps.value(cia301.PRODUCER_HEARTBEAT_TIME) == 50
+    assert {p.cob_id for p in other.layout.rpdos} == {0x203}
+    assert {p.cob_id for p in other.layout.tpdos} <= {0x183, 0x283}
+
+
+def test_missing_feedback_objects_turn_that_feedback_off_and_say_so():
+    plan = plan_drive(drive("minimal.eds"))
+    assert plan.drive.feedback == ("position", "velocity")
+    assert not plan.layout.maps("torque")
+    assert any("no 0x6077: torque feedback off" in n for n in plan.notes)
+    assert any("no 0x608F: increments_per_rev comes from the config alone" in n
+               for n in plan.notes)
+    with pytest.raises(ValueError, match="feedback 'torque': the drive has no 0x6077"):
+        plan_drive(drive("minimal.eds", feedback=("position", "torque")))
+
+
+def test_a_mode_the_drive_does_not_list_is_refused_naming_both():
+    with pytest.raises(ValueError, match=r"mode CSP is not supported: its 0x6502 = 0x43 "
+                                         r"lists PP, VL, IP"):
+        plan_drive(drive("arm_ip_pp_vl.eds"))
+
+
+# --- the simulator emulates the file ---------------------------------------------------------
+def _abort_code(call) -> int:
+    with pytest.raises(SdoAbortedError) as info:
+        call()
+    return info.value.code
+
+
+def test_the_simulator_has_exactly_the_files_objects_and_access(sim_bench):
+    bench = sim_bench(1, eds_path=str(EDS / "fixed_pdo.eds"))
+    sdo = bench.node(1).sdo
+    assert _abort_code(lambda: sdo.upload(cia402.TARGET_VELOCITY, 0)) == ABORT_NOT_IN_OD
+    assert _abort_code(lambda: sdo.upload(cia301.RPDO_COMM + 1, 1)) == ABORT_NOT_IN_OD
+    # a fixed mapping stays fixed
+    assert _abort_code(lambda: sdo.download(cia301.RPDO_MAP, 0, b"\0")) == ABORT_WRITE_READONLY
+    # only the modes of its 0x6502 (CSP, PP)
+    assert _abort_code(lambda: sdo.download(cia402.MODES_OF_OPERATION, 0,
+                                            struct.pack("<b", 9))) == ABORT_INVALID_VALUE
+    sdo.download(cia402.MODES_OF_OPERATION, 0, struct.pack("<b", 8))
+    assert bench.drive(1).mode_display == 8
+
+
+def test_a_simulated_drive_without_0x6007_does_not_switch_itself_off(sim_bench):
+    """The honest emulation: losing the manager's heartbeat gives EMCY 0x8130 and 0x1029's
+    NMT change, but no CiA 402 reaction (a drive that cannot be told one)."""
+    bench = sim_bench(1, eds_path=str(EDS / "no_abort_option.eds"))
+    assert _abort_code(lambda: bench.node(1).sdo.upload(cia402.ABORT_CONNECTION_OPTION, 0)) \
+        == ABORT_NOT_IN_OD
+    drive_ = bench.drive(1)
+    with bench.segment.lock:
+        drive_.cia402.set_state(State402.OPERATION_ENABLED)
+        drive_._heartbeat_lost()
+    assert drive_.state402 == State402.OPERATION_ENABLED  # the joint keeps its command
+    (emcy,) = bench.recorder.wait_for_count(1, bench.stall, cia301.EMCY + 1)
+    assert struct.unpack_from("<H", emcy.data)[0] == cia301.EMCY_HEARTBEAT
+
+
+def test_a_simulator_loads_files_with_empty_defaults_and_no_factor_group(sim_bench):
+    bench = sim_bench(1, eds_path=str(EDS / "minimal.eds"), increments_per_rev=4096)
+    assert bench.drive(1).increments_per_rad == pytest.approx(4096 / (2 * 3.141592653589793))
+    assert bench.node(1).sdo.upload(0x1018, 2) == b"\0\0\0\0"  # empty default: 0
+
+
+# --- bring-up, a cyclic command, e-stop -> torque-off, per file -------------------------------
+DRIVABLE = {
+    "fixed_pdo.eds": dict(node=1),
+    "no_abort_option.eds": dict(node=1),
+    "commissioned.dcf": dict(node=5, increments_per_rev=0x40000),
+    "minimal.eds": dict(node=1),
+    "hand_written.eds": dict(node=1),
+    "node1_baked.dcf": dict(node=3, increments_per_rev=0x40000),  # exported for node 1
+    "tight_od.eds": dict(node=2, modes=("ip",)),
+    "fixed_split.eds": dict(node=1),
+    "guarded.eds": dict(node=1),  # node guarding only
+}
+
+
+@pytest.mark.parametrize("file", sorted(DRIVABLE))
+def test_bring_up_track_and_torque_off_on_each_file(file, sim_segment_factory, bus_factory,
+                                                    frame_recorder, virtual_channel):
+    info = DRIVABLE[file]
+    node, increments = info["node"], info.get("increments_per_rev", INCREMENTS_PER_REV)
+    segment = sim_segment_factory([node], eds_path=str(EDS / file),
+                                  increments_per_rev=increments)
+    recorder = frame_recorder(virtual_channel)
+    rig = Rig.for_setup(bus_factory(), [node], VIRTUAL, modes=info.get("modes", ("csp",)),
+                        drive={"eds": str(EDS / file), "increments_per_rev": increments})
+    try:
+        budget = VIRTUAL.bring_up_budget(1)
+        assert rig.run_until(lambda: not rig.hw.starting, budget), rig.hw.drive_status()
+        assert rig.hw.all_ready, rig.hw.drive_status()
+        sim = segment.drives[node]
+        assert sim.nmt_state == cia301.NmtState.OPERATIONAL
+        if rig.hw.plans[0].guarded:  # watches us: by life guarding, or the heartbeat
+            assert sim.od_value(cia301.LIFE_TIME_FACTOR) > 0 and sim.nmt.guard_requests > 0
+        else:
+            assert sim.od_value(cia301.CONSUMER_HEARTBEAT_TIME, 1) >> 16 == 100
+        rig.mgr.add_controller(Sine("sine", JointMode.CSP, amplitude=0.2))
+        assert rig.switch("sine") == SwitchResult.SWITCHED
+        assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget()), \
+            rig.hw.drive_status()
+        rig.run(0.5)
+        assert rig.mgr.state == ManagerState.OK and sim.state402 == State402.OPERATION_ENABLED
+        assert abs(sim.position_rad) > 0.01  # it moved as commanded
+        rpdo = rig.hw.layouts[0].rpdos[0]
+        mark = recorder.mark()
+        rig.mgr.emergency_stop("test")  # no emergency controller: FAILPROOF
+        rig.run(10 * rig.dt)
+        assert rig.states[-1] == ManagerState.FAILPROOF
+        frames = recorder.wait_for_count(5, VIRTUAL.stall, rpdo.cob_id, since=mark)
+        controlwords = [struct.unpack_from("<H", f.data)[0] for f in frames]
+        assert controlwords[-1] == 0 and len(frames[-1].data) == rpdo.size
+        assert rig.run_until(lambda: sim.state402 == State402.SWITCH_ON_DISABLED,
+                             VIRTUAL.detect_budget())
+    finally:
+        rig.close()
+
+
+@pytest.mark.parametrize("file", sorted(p.name for p in EDS.iterdir()))
+def test_the_demo_walks_through_on_each_file(file):
+    """`rocoma-can demo --eds FILE`: the modes the file supports, the steps it cannot do
+    skipped with the reason, and every step that runs passes."""
+    from rocoma_can.cli.demo import run_demo
+    lines: list[str] = []
+    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append,
+                      eds=str(EDS / file))
+    assert report.ok, "\n".join(lines)
+    assert lines[0].startswith(f"rocoma-can demo: the drives emulate {EDS / file}")
+    assert report.steps[-1].name == "loop stop -> torque-off frames"
+    if file == "commissioned.dcf":  # one node's file: from that node on, COB-IDs re-derived
+        assert "  note: a DCF of node 5: the drives from node 5 on, each with its COB-IDs " \
+            "re-derived" in lines
+
+
+def test_the_demo_says_why_it_cannot_use_a_file(tmp_path, capsys):
+    from rocoma_can.cli.main import main
+    velocity_only = tmp_path / "pv_only.eds"
+    velocity_only.write_text((EDS / "minimal.eds").read_text().replace(
+        "DefaultValue=0x00000180", "DefaultValue=0x00000100"))  # CSV only
+    assert main(["demo", "--eds", str(velocity_only)]) == 2
+    assert "no position mode the demo's controllers can use" in capsys.readouterr().out
+    demo_dirs = Path(os.environ["XDG_STATE_HOME"]) / "rocoma-can" / "demo"
+    assert not list(demo_dirs.iterdir())  # it did not run: no empty recording left behind
+
+
+@pytest.mark.parametrize("file", sorted(p.name for p in EDS.iterdir()))
+def test_canopens_own_cia402_master_walks_each_simulated_variant(file, sim_segment_factory,
+                                                                bus_factory):
+    """canopen's BaseNode402 (a CiA 402 master nobody here wrote) reads the simulated drive's
+    PDO configuration by SDO, then walks it to OPERATION ENABLED and back through its PDOs."""
+    from canopen.profiles.p402 import BaseNode402
+    node_id = 5 if file.endswith(".dcf") else 1
+    segment = sim_segment_factory([node_id], eds_path=str(EDS / file))
+    network = canopen.Network(bus_factory())
+    network.connect()
+    # canopen's own master on the dictionary the device-file reader makes (canopen alone
+    # cannot read hand_written.eds: a Latin-1 byte, a key given twice)
+    node = BaseNode402(node_id, read_device_file(str(EDS / file)).object_dictionary(node_id))
+    for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
+                 "TIMEOUT_CHECK_TPDO"):  # a loaded 2-core machine answers late, not wrong
+        setattr(node, name, VIRTUAL.stall)
+    network.add_node(node)
+    node.sdo.RESPONSE_TIMEOUT = VIRTUAL.stall
+    try:
+        node.nmt.send_command(0x80)  # pre-operational: PDO configuration by SDO
+        node.setup_402_state_machine(read_pdos=True)
+        assert 0x6040 in node.rpdo_pointers and 0x6041 in node.tpdo_pointers  # via PDOs
+        node.nmt.send_command(0x01)  # operational: PDOs
+        network.sync.start(0.01)
+        node.state = "OPERATION ENABLED"
+        assert segment.drives[node_id].state402 == State402.OPERATION_ENABLED
+        node.state = "SWITCH ON DISABLED"
+        assert segment.drives[node_id].state402 == State402.SWITCH_ON_DISABLED
+    finally:
+        network.sync.stop()
+        network.disconnect()
+
+
+def test_canopen_reads_every_file_as_the_driver_does():
+    for path in sorted(EDS.iterdir()):
+        od = read_device_file(str(path)).object_dictionary(5)
+        assert cia402.STATUSWORD in od and cia402.CONTROLWORD in od, path.name
+
+
+def test_a_controller_that_needs_missing_feedback_is_refused_at_load():
+    from rocoma_can.cli.demo_config import demo_config
+    from rocoma_can.errors import ConfigError
+    from rocoma_can.runtime.config import validate
+    cfg = demo_config("x", drives=2, rate=100.0, emulated=None)
+    for d in cfg["drives"]:
+        d["eds"] = str(EDS / "minimal.eds")  # no 0x6077: no torque feedback
+        d["modes"] = ["csp"]
+        d["feedback"] = ["position"]  # and velocity left out on purpose
+    cfg["controllers"][0]["params"]["mode"] = "CSP"
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    text = str(info.value)
+    assert "controller 'damp' needs velocity feedback, which drive(s) joint1, joint2 do " \
+           "not report" in text
+    for d in cfg["drives"]:
+        d["feedback"] = ["position", "velocity"]
+    for entry in cfg["controllers"]:
+        entry["emergency"] = "damp"
+    cfg["emergency_controllers"][0] = {"name": "damp", "plugin": "damp"}
+    assert validate(cfg).plans["joint1"].drive.feedback == ("position", "velocity")
+
+
+# --- the layout's limits, from the review of real files ---------------------------------------
+def _variant(tmp_path, name: str, edit) -> str:
+    text = (ROOT / "eds" / "cia402_drive.eds").read_text()
+    path = tmp_path / name
+    path.write_text(edit(text))
+    return str(path)
+
+
+def test_each_mapping_object_takes_at_most_its_own_entries(tmp_path):
+    """RPDO1's mapping object has two entries: controlword + mode fill it, the target goes
+    to RPDO2 (first fit per slot, not the smallest slot's limit for all)."""
+    def two_entries(text: str) -> str:
+        for sub in range(3, 9):
+            text = text.replace(f"[1600sub{sub}]\n", f"[X1600sub{sub}]\n")
+        return text.replace("[1600]\nParameterName=RPDO1 mapping parameter\n"
+                            "ObjectType=0x9\nSubNumber=9",
+                            "[1600]\nParameterName=RPDO1 mapping parameter\n"
+                            "ObjectType=0x9\nSubNumber=3").replace(
+            "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\n"
+            "DataType=0x0005\nAccessType=rw\nDefaultValue=3",
+            "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\n"
+            "DataType=0x0005\nAccessType=rw\nDefaultValue=2")
+    path = _variant(tmp_path, "two.eds", two_entries)
+    caps = read_capabilities(path, 1)
+    assert caps.rpdos[0].max_objects == 2
+    plan = plan_drive(drive_with(path))
+    assert [p.names for p in plan.layout.rpdos] == [("controlword", "mode"),
+                                                    ("target_position",)]
+
+
+def drive_with(path: str, **kw) -> DriveConfig:
+    kw.setdefault("modes", ("csp",))
+    return DriveConfig("j1", 1, INCREMENTS_PER_REV, RATED_TORQUE_NM, eds=path, **kw)
+
+
+def test_a_fixed_rpdo_never_sends_a_target_it_is_not_told(tmp_path):
+    """A fixed RPDO1 = controlword + target position + target velocity on a CSP drive: the
+    velocity target is a constant (the file's 0), not a live value; a non-zero one is
+    refused."""
+    fixed = (EDS / "fixed_pdo.eds").read_text().replace(
+        "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\nDataType=0x0005"
+        "\nAccessType=const\nDefaultValue=2",
+        "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\nDataType=0x0005"
+        "\nAccessType=const\nDefaultValue=3")
+    assert "DefaultValue=3" in fixed
+    # a third entry, 0x6072 max torque (16 bit), left at its file value 3000: not a target
+    fixed = fixed.replace("[1600sub2]", "[1600sub3]\nParameterName=Mapped object 3\n"
+                          "ObjectType=0x7\nDataType=0x0007\nAccessType=const\n"
+                          "DefaultValue=0x60720010\nPDOMapping=0\n\n[1600sub2]")
+    fixed = fixed.replace("[1600]\nParameterName=RPDO1 mapping parameter\nObjectType=0x9\n"
+                          "SubNumber=3", "[1600]\nParameterName=RPDO1 mapping parameter\n"
+                          "ObjectType=0x9\nSubNumber=4")
+    path = tmp_path / "fixed3.eds"
+    path.write_text(fixed)
+    plan = plan_drive(drive_with(str(path)))
+    (rpdo,) = plan.layout.rpdos
+    assert [(e.name, e.constant) for e in rpdo.entries] == [
+        ("controlword", None), ("target_position", None), ("0x6072:0", 3000)]
+    assert "0x6072:0 = 3000" in "\n".join(plan.report())
+    refused = tmp_path / "fixed4.eds"  # the third entry a velocity target the file sets
+    refused.write_text(fixed.replace("DefaultValue=0x60720010", "DefaultValue=0x60FF0020")
+                       + "\n[60FF]\nParameterName=Target velocity\nObjectType=0x7\n"
+                       "DataType=0x0004\nAccessType=rw\nDefaultValue=100\nPDOMapping=1\n")
+    with pytest.raises(ValueError, match=r"maps 0x60FF:0, which rocoma-can does not command "
+                                         r"here and would send as the file's value 100"):
+        plan_drive(drive_with(str(refused)))
+
+
+def test_unused_channels_are_switched_off_and_0x1029_set_at_bring_up(tmp_path,
+                                                                    sim_segment_factory,
+                                                                    bus_factory):
+    """The generic drive's RPDO3/4 and TPDO3/4 are not needed for CSP: invalid after bring-up;
+    a 0x1029:1 of "no state change" becomes "pre-operational"."""
+    path = _variant(tmp_path, "no_change.eds", lambda text: text.replace(
+        "[1029sub1]\nParameterName=Communication error\nObjectType=0x7\n"
+        "DataType=0x0005\nAccessType=rw\nDefaultValue=0",
+        "[1029sub1]\nParameterName=Communication error\nObjectType=0x7\n"
+        "DataType=0x0005\nAccessType=rw\nDefaultValue=1"))
+    segment = sim_segment_factory([1], eds_path=path)
+    assert segment.drives[1].od_value(cia301.ERROR_BEHAVIOR, 1) == 1
+    r = Rig.for_setup(bus_factory(), [1], VIRTUAL, modes=("csp",), drive={"eds": path})
+    try:
+        assert r.run_until(lambda: not r.hw.starting, VIRTUAL.bring_up_budget(1))
+        sim = segment.drives[1]
+        assert sim.od_value(cia301.ERROR_BEHAVIOR, 1) == 0
+        for comm in (0x1402, 0x1403, 0x1802, 0x1803):
+            assert sim.od_value(comm, 1) & 0x8000_0000, hex(comm)
+        assert not sim.od_value(0x1400, 1) & 0x8000_0000
+    finally:
+        r.close()
+
+
+# --- files as vendors write them --------------------------------------------------------------
+def test_a_hand_written_file_is_read_as_its_vendor_meant_it():
+    device = read_device_file(str(EDS / "hand_written.eds"))
+    assert device.notes[0] == "not UTF-8 (byte 0x94 on line 49): read as Latin-1"
+    assert "'1' in [ManufacturerObjects] (line 117)" in device.notes[1]
+    assert "custom record types (0x40, [TypeDefinitions]) read as domains" in device.notes[2]
+    assert {(0x1000, 0), (cia402.SUPPORTED_DRIVE_MODES, 0), (cia402.GEAR_RATIO, 1),
+            (cia402.GEAR_RATIO, 2)} <= device.unknown
+    od = device.object_dictionary(7)
+    assert od[0x2000].default == -2  # 0xFFFE of an INTEGER16
+    assert od[0x2001].data_type == canopen.objectdictionary.DOMAIN
+    assert od[cia301.PRODUCER_HEARTBEAT_TIME].default == 200  # 0x00c8
+    assert od[0x1800][1].default == 0x40000187  # $NodeId
+    assert od[0x1000].access_type == "ro" and od[0x1000].default is None  # unknown, not 0
+
+
+def test_check_config_says_what_is_read_from_the_drive():
+    plan = plan_drive(drive("hand_written.eds"))
+    lines = plan.report()
+    assert "  modes: PP, PV, TQ, CSP, CSV, CST (from its target objects; 0x6502 read from " \
+        "the drive)" in lines
+    assert "  read from the drive at start-up (no value in the file): 0x1000 (device type), " \
+        "0x6502 (supported modes), 0x6091 (gear ratio)" in lines
+    assert any(n.startswith("not UTF-8 (byte 0x94") for n in plan.notes)
+    with pytest.raises(ValueError, match=r"mode IP is not supported: its target objects "
+                                         r"\(0x6502 has no value in the file\) lists PP, PV"):
+        plan_drive(drive("hand_written.eds", modes=("ip",)))
+
+
+def test_the_simulator_answers_plausible_values_where_the_file_has_none(sim_bench):
+    bench = sim_bench(1, eds_path=str(EDS / "hand_written.eds"))
+    sdo = bench.node(1).sdo
+    assert struct.unpack("<I", sdo.upload(0x1000, 0))[0] == 0x00020192  # a CiA 402 servo
+    modes = struct.unpack("<I", sdo.upload(cia402.SUPPORTED_DRIVE_MODES, 0))[0]
+    assert modes == 0x381 | 0x4  # its targets' modes it implements: PP, PV, CSP, CSV, CST
+    assert sdo.upload(cia402.GEAR_RATIO, 1) == sdo.upload(cia402.GEAR_RATIO, 2) == b"\1\0\0\0"
+    assert bench.drive(1).objects.assumed[(0x1000, 0)] == 0x00020192
+
+
+def test_a_dcf_exported_for_node_1_gives_each_node_its_own_cob_ids():
+    caps = read_capabilities(str(EDS / "node1_baked.dcf"), 3)
+    assert caps.commissioned_node_id == 1  # [DeviceCommissioning], as some tools spell it
+    assert caps.rpdos[0].cob_id == 0x203 and caps.tpdos[0].cob_id == 0x40000183
+    assert caps.rpdos[1].cob_id == 0x80000303  # its flag bits kept
+    assert caps.file_notes[0].startswith("COB-IDs the file gives for node 1 re-derived for "
+                                         "node 3: 0x1014:0 0x81, 0x1400:1 0x201")
+    at_home = read_capabilities(str(EDS / "node1_baked.dcf"), 1)
+    assert at_home.rpdos[0].cob_id == 0x201 and not at_home.file_notes
+
+
+def test_a_tight_dictionary_runs_what_it_can_and_says_what_it_cannot():
+    plan = plan_drive(drive("tight_od.eds", modes=("ip",)))
+    assert plan.layout.rpdos[0].names == ("controlword", "target_position")  # no 0x6060
+    assert "no RPDO can carry 0x6060: mode IP is set by SDO at start-up, before enabling" \
+        in plan.notes
+    assert plan.drive.feedback == ("position",)
+    assert "its TPDOs carry statusword and position only: velocity, torque feedback left " \
+        "out (JointState stays 0 there)" in plan.notes
+    assert "  modes ruled out: PP (0x607A not PDO-mappable)" in plan.report()
+    with pytest.raises(ValueError, match=r"mode PP needs its target 0x607A:0 in an RPDO, but "
+                                         r"its file does not let a PDO carry 0x607A:0 "
+                                         r"\(PDOMapping=0\); modes it can run: IP"):
+        plan_drive(drive("tight_od.eds", modes=("pp",)))
+    with pytest.raises(ValueError, match=r"TPDO needs more PDOs for statusword, position, "
+                                         r"velocity than the 1 it lets us map"):
+        plan_drive(drive("tight_od.eds", modes=("ip",), feedback=("position", "velocity")))
+
+
+def test_fixed_mappings_are_used_only_where_they_add_something():
+    plan = plan_drive(drive("fixed_split.eds"))
+    assert [(p.number, p.names) for p in plan.layout.rpdos] == [
+        (2, ("controlword", "target_position"))]  # RPDO1 (controlword alone) adds nothing
+    assert [(p.number, p.names) for p in plan.layout.tpdos] == [
+        (3, ("statusword", "position")), (4, ("statusword", "velocity"))]
+
+
+def test_bring_up_names_the_object_the_drive_refused(sim_bench):
+    bench = sim_bench(1, eds_path=str(EDS / "minimal.eds"))
+    sdo = NamedSdo(bench.node(1).sdo)
+    with pytest.raises(ObjectRefused) as info:
+        sdo.download(0x1000, 0, struct.pack("<I", 1))
+    assert str(info.value).startswith("SDO write of 0x1000:0 = 0x1 refused: Code 0x06010002")
+
+
+def test_a_mapping_count_beyond_its_entries_is_refused_alike_everywhere(tmp_path):
+    """0x1600:0 says 200 objects, the file gives 8: the same line from check-config, the
+    master and the simulator, never the simulator's SDO traceback."""
+    bad = tmp_path / "count_200.eds"
+    bad.write_text((EDS / "minimal.eds").read_text().replace(
+        "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\n"
+        "DataType=0x0005\nAccessType=rw\nDefaultValue=3",
+        "[1600sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\n"
+        "DataType=0x0005\nAccessType=rw\nDefaultValue=200"))
+    assert "DefaultValue=200" in bad.read_text()
+    why = f"{bad}: 0x1600:0 says 200 mapped objects but the file gives 8 (0x1600:1..8)"
+    with pytest.raises(ValueError) as planned:
+        plan_drive(drive(str(bad)))
+    assert str(planned.value) == f"drive 'j1': {why}"
+    from rocoma_can.drivers.sim.objects import load_object_dictionary
+    with pytest.raises(ValueError) as simulated:
+        load_object_dictionary(str(bad), 1)
+    assert str(simulated.value) == f"simulated drive 1: {why}"
