@@ -1,4 +1,5 @@
-"""The seed's four tables (which thread calls what in which timestep), as tests.
+"""rocoma_can/manager.py: the seed's four tables (which thread calls what in which timestep), as
+tests.
 
 The test thread is the update thread: each ``step()`` is one update() call, and every call a
 controller receives is journalled with the update call it happened in and its thread.

@@ -1,4 +1,5 @@
-"""Timing supervision: budgets, overruns in a row, a hung advance, no false trips."""
+"""rocoma_can/manager.py, adapters.py, stopper.py: timing supervision: budgets, overruns in a row, a
+hung advance, no false trips."""
 from __future__ import annotations
 
 import gc

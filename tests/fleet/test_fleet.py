@@ -1,7 +1,7 @@
-"""The manager on Zenoh (issue: beyond one machine): a real Runtime on python-can's virtual
-bus with simulated drives, served on a loopback endpoint (multicast scouting off), and a
-second Zenoh session, or the CLI, as the operator elsewhere. Also a demo process killed
-outright, whose liveliness token must vanish."""
+"""rocoma_can/fleet/bridge.py, client.py: the manager on Zenoh (issue: beyond one machine): a real
+Runtime on python-can's virtual bus with simulated drives, served on a loopback endpoint (multicast
+scouting off), and a second Zenoh session, or the CLI, as the operator elsewhere. Also a demo
+process killed outright, whose liveliness token must vanish."""
 from __future__ import annotations
 
 import json

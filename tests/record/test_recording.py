@@ -1,6 +1,7 @@
-"""Recording (issue: see what happened): raw CAN files that python-can reads back, the
-flight recorder's dump on an e-stop, `run --record`'s MCAP trace with every cycle, export to
-CSV, and an unwritable place that is an error said clearly, never a stop of the loop."""
+"""rocoma_can/record/can_log.py, recording.py, trace.py, plot.py, rocoma_can/cli/record.py:
+Recording (issue: see what happened): raw CAN files that python-can reads back, the flight
+recorder's dump on an e-stop, `run --record`'s MCAP trace with every cycle, export to CSV, and an
+unwritable place that is an error said clearly, never a stop of the loop."""
 from __future__ import annotations
 
 import csv

@@ -1,8 +1,9 @@
-"""The manager as a ROS 2 node (issue 54): a real Runtime on python-can's virtual bus with
-simulated drives, a Zenoh client of a router in this process (as rmw_zenoh's nodes reach
-theirs), seen by an rmw_zenoh client this project did not write (zenoh-ros2-sdk) and by a
-plain Zenoh session whose payloads an independent CDR implementation decodes (Foxglove's
-mcap_ros2, from the ROS message definitions as text: not rosbags, which encodes them)."""
+"""rocoma_can/ros2/node.py, controllers/ros2_command.py: the manager as a ROS 2 node (issue 54): a
+real Runtime on python-can's virtual bus with simulated drives, a Zenoh client of a router in this
+process (as rmw_zenoh's nodes reach theirs), seen by an rmw_zenoh client this project did not write
+(zenoh-ros2-sdk) and by a plain Zenoh session whose payloads an independent CDR implementation
+decodes (Foxglove's mcap_ros2, from the ROS message definitions as text: not rosbags, which encodes
+them)."""
 from __future__ import annotations
 
 import json

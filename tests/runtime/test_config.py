@@ -1,4 +1,5 @@
-"""Run-time config: every problem reported with its YAML path, and the bus-load arithmetic."""
+"""rocoma_can/runtime/config.py, config_check.py, bus_load.py: run-time config: every problem
+reported with its YAML path, and the bus-load arithmetic."""
 from __future__ import annotations
 
 import copy

@@ -1,6 +1,6 @@
-"""tools/module-map, docs/architecture.md and docs/api.md: the module map is the one the
-docstrings give now, and the API page documents every public module and names no module that
-is gone.
+"""tools/module-map, docs/architecture.md, docs/api.md and tests/: the module map is the one the
+docstrings give now, the API page documents every public module and names no module that is
+gone, and every test module says in its first line what it tests.
 
 The map is generated (tools/module-map); a module added, moved or renamed without running the
 tool fails here, with the command that fixes it. The generator itself is tested on a small
@@ -8,6 +8,7 @@ tree of its own: what it reads, the order it lists folders in, what it refuses.
 """
 from __future__ import annotations
 
+import ast
 import importlib
 import importlib.machinery
 import importlib.util
@@ -145,3 +146,37 @@ def test_the_api_page_documents_every_module_a_package_exports_from() -> None:
     assert public, "no package exports a name: the check would prove nothing"
     missing = sorted(public - set(_documented()))
     assert not missing, f"docs/api.md: no automodule for the public modules {missing}"
+
+
+TESTS = ROOT / "tests"
+#: a path in a docstring's first line: a/b.py, a/b/, a/*.py, tools/vcan-run, README.md
+_PATH = re.compile(r"[\w.*-]+(?:/[\w.*-]*)+|[\w-]+\.(?:py|md)\b")
+
+
+def _names_code(line: str) -> bool:
+    """Whether a line names a file or folder of the checkout (rocoma_can/ may be left out:
+    ``record/rings.py``)."""
+    for found in _PATH.findall(line):
+        candidate = found.strip(".,:;)`")
+        for base in (ROOT, ROOT / "rocoma_can"):
+            if any(base.glob(candidate)) or (base / candidate).exists():
+                return True
+    return False
+
+
+def test_every_test_module_names_what_it_tests_in_its_first_line() -> None:
+    silent = []
+    for path in sorted(TESTS.rglob("test_*.py")):
+        docstring = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or ""
+        if not _names_code(docstring.split("\n", 1)[0]):
+            silent.append(str(path.relative_to(ROOT)))
+    assert not silent, f"test modules whose docstring's first line names no module: {silent}"
+
+
+def test_no_two_test_files_share_a_name() -> None:
+    """pytest imports test modules by their file name (tests/ has no ``__init__.py``)."""
+    seen: dict[str, list[str]] = {}
+    for path in TESTS.rglob("test_*.py"):
+        seen.setdefault(path.name, []).append(str(path.relative_to(ROOT)))
+    shared = {name: paths for name, paths in seen.items() if len(paths) > 1}
+    assert not shared, f"test files that share a name: {shared}"

@@ -1,4 +1,5 @@
-"""The CAN driver's bring-up against simulated CiA 402 drives, over a real python-can bus.
+"""drivers/bringup/drive_bringup.py: the CAN driver's bring-up against simulated CiA 402 drives,
+over a real python-can bus.
 
 What must hold: every drive is configured as the safety model needs it (heartbeat consumer
 on the manager, 0x6007, its PDOs) and reaches operation enabled; a drive that cannot (STO

@@ -1,5 +1,6 @@
-"""`rocoma-can scan` and `rocoma-can lss` against simulated drives over a CAN bus: the real
-CLI entry, the simulator's identities and LSS slaves (CiA 305).
+"""drivers/commission/scan.py, lss.py, rocoma_can/cli/scan.py: `rocoma-can scan` and `rocoma-can
+lss` against simulated drives over a CAN bus: the real CLI entry, the simulator's identities and LSS
+slaves (CiA 305).
 
 The tests taking ``sim_interface`` or ``can_setup`` run on python-can's virtual bus and
 again on SocketCAN vcan0 (the vcan suite, through tools/vcan-run)."""

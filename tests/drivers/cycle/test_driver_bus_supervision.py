@@ -1,4 +1,5 @@
-"""What the CAN driver takes as a broken drive or bus, and what it does not.
+"""drivers/cycle/supervision.py, receive.py, drivers/link/bus_port.py: what the CAN driver takes as
+a broken drive or bus, and what it does not.
 
 What must hold: a lost heartbeat, missing TPDOs, a statusword that is no CiA 402 state, a
 TPDO of the wrong length and a bus-off error frame are each a fault at once (one drive: an

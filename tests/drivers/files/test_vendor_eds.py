@@ -1,7 +1,7 @@
-"""Drives described by vendor-like EDS/DCF files (tests/fixtures/eds/, modelled on typical
-vendor files): what check-config reports, that the simulator emulates exactly the file
-(its objects, access types and modes), bring-up, a cyclic command, and e-stop -> torque-off
-frames on the drive's own PDO layout.
+"""drivers/files/device_file.py, capabilities.py: drives described by vendor-like EDS/DCF files
+(tests/fixtures/eds/, modelled on typical vendor files): what check-config reports, that the
+simulator emulates exactly the file (its objects, access types and modes), bring-up, a cyclic
+command, and e-stop -> torque-off frames on the drive's own PDO layout.
 
     fixed_pdo.eds        read-only mappings: RPDO1 = controlword + target position,
                          TPDO1 = statusword + position, TPDO2 = velocity + torque; CSP, PP

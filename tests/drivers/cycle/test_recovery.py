@@ -1,4 +1,5 @@
-"""The CAN driver's recovery of faulted drives, and when a drive back is commanded again.
+"""drivers/cycle/recovery.py: the CAN driver's recovery of faulted drives, and when a drive back is
+commanded again.
 
 What must hold: a recovered fault clears the latched e-stop and the next switch enables
 every drive; a drive that is ready again under the emergency controller, or after the

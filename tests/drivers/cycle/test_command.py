@@ -1,4 +1,5 @@
-"""The CAN driver commanding simulated CiA 402 drives in each mode, over a real python-can bus.
+"""drivers/cycle/command.py: the CAN driver commanding simulated CiA 402 drives in each mode, over a
+real python-can bus.
 
 What must hold: a PD holds in CST and a sine is tracked in CSP and CSV (the drive side
 follows the targets it received, the joints really swing); a mode no drive is configured

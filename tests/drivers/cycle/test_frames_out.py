@@ -1,4 +1,5 @@
-"""The CAN driver's torque-off path: every drive gets controlword 0, whatever else fails.
+"""drivers/cycle/frames_out.py, rocoma_can/stopper.py: the CAN driver's torque-off path: every drive
+gets controlword 0, whatever else fails.
 
 What must hold: a second fault under the emergency controller switches every drive off in
 the same cycle and keeps them off; the torque-off frames are the hardware's own, whatever
