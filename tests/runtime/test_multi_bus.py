@@ -14,7 +14,8 @@ import time
 import can
 import pytest
 from fixtures.bus import record
-from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig
+from fixtures.driver_rig import VIRTUAL, Rig
+from fixtures.rig_controllers import Brake, HoldPD
 
 from rocoma_can import EventKind, ManagerState, SwitchResult
 from rocoma_can.drivers.protocol import cia301

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import can
 import pytest
-from fixtures.driver_rig import Brake, HoldPD, synced_mark
+from fixtures.driver_rig import synced_mark
+from fixtures.rig_controllers import Brake, HoldPD
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult

@@ -22,7 +22,7 @@ import threading
 
 import numpy as np
 import pytest
-from fixtures.driver_rig import Brake, HoldPD
+from fixtures.rig_controllers import Brake, HoldPD
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult

@@ -20,15 +20,9 @@ import time
 
 import canopen
 import pytest
-from fixtures.driver_rig import (
-    MANAGER_NODE_ID,
-    HoldPD,
-    bring_up,
-    drive_configs,
-    enable_with,
-    synced_mark,
-)
+from fixtures.driver_rig import MANAGER_NODE_ID, bring_up, drive_configs, enable_with, synced_mark
 from fixtures.odd_node import OddNode
+from fixtures.rig_controllers import HoldPD
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.bringup.drive_bringup import Phase

@@ -16,8 +16,9 @@ import pytest
 from can.interfaces.virtual import VirtualBus
 from fixtures.budgets import GUEST_STALL, STALL, within
 from fixtures.bus import scan_bus_args
-from fixtures.driver_rig import HoldPD, bring_up, enable_with
+from fixtures.driver_rig import bring_up, enable_with
 from fixtures.odd_node import OddNode
+from fixtures.rig_controllers import HoldPD
 
 from rocoma_can import ManagerState
 from rocoma_can.cli.main import main

@@ -15,7 +15,8 @@ from __future__ import annotations
 import struct
 
 import numpy as np
-from fixtures.driver_rig import RPDO1, HoldPD, Sine, bring_up, enable_with, synced_mark
+from fixtures.driver_rig import RPDO1, bring_up, enable_with, synced_mark
+from fixtures.rig_controllers import HoldPD, Sine
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.protocol import cia402

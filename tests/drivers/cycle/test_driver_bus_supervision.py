@@ -18,7 +18,8 @@ import struct
 import threading
 
 import can
-from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig, bring_up, enable_with, status_report
+from fixtures.driver_rig import VIRTUAL, Rig, bring_up, enable_with, status_report
+from fixtures.rig_controllers import Brake, HoldPD
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.protocol import cia301

@@ -19,15 +19,8 @@ import struct
 import threading
 import time
 
-from fixtures.driver_rig import (
-    RPDO1,
-    Brake,
-    HoldPD,
-    bring_up,
-    enable_with,
-    seconds_until_all_off,
-    synced_mark,
-)
+from fixtures.driver_rig import RPDO1, bring_up, enable_with, seconds_until_all_off, synced_mark
+from fixtures.rig_controllers import Brake, HoldPD
 
 from rocoma_can import ManagerState
 from rocoma_can.drivers.protocol import cia301

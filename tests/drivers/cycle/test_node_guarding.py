@@ -15,15 +15,10 @@ import time
 
 import can
 import pytest
-from fixtures.driver_rig import (
-    Brake,
-    Rig,
-    Sine,
-    seconds_until_all_off,
-    synced_mark,
-)
+from fixtures.driver_rig import Rig, seconds_until_all_off, synced_mark
 from fixtures.odd_node import Responder, frames
 from fixtures.paths import TESTS
+from fixtures.rig_controllers import Brake, Sine
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

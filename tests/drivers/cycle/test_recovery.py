@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import time
 
-from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig, bring_up, enable_with
+from fixtures.driver_rig import VIRTUAL, Rig, bring_up, enable_with
+from fixtures.rig_controllers import Brake, HoldPD
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.protocol import cia301

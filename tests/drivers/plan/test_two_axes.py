@@ -14,8 +14,9 @@ import math
 import time
 
 import pytest
-from fixtures.driver_rig import Brake, Rig
+from fixtures.driver_rig import Rig
 from fixtures.paths import TESTS
+from fixtures.rig_controllers import Brake
 
 from rocoma_can import Controller, ManagerState, SwitchResult
 from rocoma_can.drivers.plan.config import DriveConfig, check_drives

@@ -17,7 +17,8 @@ import uuid
 
 import can
 import pytest
-from fixtures.driver_rig import VCAN, VIRTUAL, Brake, HoldPD, Rig
+from fixtures.driver_rig import VCAN, VIRTUAL, Rig
+from fixtures.rig_controllers import Brake, HoldPD
 from fixtures.sim_group import NODES, sdo_write, send, wait_until
 
 from rocoma_can import ManagerState, SwitchResult
