@@ -1,30 +1,12 @@
 """rocoma-can: the rocoma controller manager for CANopen actuator buses.
 
-The public names are imported on first use (``_lazy.py`` says why). The core's modules:
+The core (this folder's modules) is the manager, its switcher and stopper threads and the controller
+interfaces; the folders around it run it on a bus (runtime), make it a CANopen node (node), keep
+what happened (record), show it to outside tools (live, ros2, fleet) and make the ``rocoma-can``
+command (cli); drivers and controllers are installed into this namespace. Every module, with what it
+holds: the module map in docs/architecture.md (tools/module-map writes it from their docstrings).
 
-manager      ControllerManager: states, layers, update() and its e-stops (the safety path)
-switcher     the switch protocol, on the manager's switcher thread (Switcher, SwitchResult)
-stopper      the manager's stopper threads and its hang watchdog
-adapters     how the manager calls a controller: judged results, timing budgets
-interfaces   Controller, EmergencyController, FailproofController, SwapState
-tuples       controller tuples (several controllers as one)
-workers      worker threads owned by a controller
-events       notifications and logging, delivered off the cycle
-plugins      controllers by name from configuration (entry points)
-overrun      when a control cycle overran: one rule for statistics, recordings, view
-remote       the rules for commands from afar (Zenoh, Foxglove, ROS 2): stops always, the
-             rest when allowed
-inputs       commands from outside for the controllers that follow a topic (ros2_command)
-errors       RocomaError, the one root of the errors raised on purpose
-user_files   files a user names (URDF, EDS) read only when regular: a FIFO cannot hang
-cli_args     argument types every verb shares
-exit_codes   the exit codes every verb shares
-__main__     ``python -m rocoma_can``: the rocoma-can command
-_lazy        package attributes imported on first use (a fast CLI start)
-
-Subpackages: runtime (the manager on a bus), node (its CANopen node), record, fleet, live
-(the Foxglove view), ros2 (a ROS 2 node over rmw_zenoh), cli;
-drivers and controllers are installed into this namespace.
+The public names are imported on first use (``_lazy.py`` says why).
 """
 from __future__ import annotations
 

@@ -119,6 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``rocoma-can`` command on ``argv`` (default: the process's arguments) and return
+    its exit code (``exit_codes.py``); ``python -m rocoma_can`` and the console script call it."""
     restore = stop_signals_interrupt()
     args: argparse.Namespace | None = None
     try:  # (the sub-commands' imports too: a Ctrl-C at once is no traceback)

@@ -1,6 +1,7 @@
-"""Managers on Zenoh (extra ``zenoh``): one manager per robot, coordinated over the network;
-the control loop never goes over it.
+"""Managers on Zenoh (extra ``zenoh``): one manager per robot, coordinated over the network; the
+control loop never goes over it.
 
-bridge  the manager's services and notifications on Zenoh (FleetBridge)
-client  talking to managers over Zenoh: the CLI verbs' ``--zenoh`` and ``rocoma-can fleet``
+The bridge serves the manager's services and notifications, the client talks to managers (the CLI
+verbs' ``--zenoh`` and ``rocoma-can fleet``). The modules: the module map in docs/architecture.md
+(tools/module-map writes it from their docstrings).
 """

@@ -1,10 +1,9 @@
-"""What runs the manager on a bus: config (the YAML, checked whole), config_check (its
-checks, one per section), bus_load (what the config puts on each bus), loop (run_cycle, the
-cycle's order in one place; one thread, fixed rate, a safe way out), system (hardware,
-manager, node, recorders and fleet bridge wired), host and can_checks (what ``doctor``
-judges: the host for a 1 kHz loop, each CAN link against its bus), host_timing (``doctor
---timing``: the bare loop measured, does this host keep a loop's speed). Public names are
-imported on first use (``_lazy.py``)."""
+"""What runs the manager on a bus: its config, the loop, the system wired from them, and what
+``doctor`` judges of the host.
+
+The loop's order (run_cycle) is written in one place, loop.py. The modules: the module map in
+docs/architecture.md (tools/module-map writes it from their docstrings). Public names are imported
+on first use (``_lazy.py``)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING

@@ -1,8 +1,9 @@
-"""The conventions a command line is expected to keep (docs/cli.md): ``-v`` before or after
-the verb, ``--version``, a near name offered for an unknown verb or controller, a refusal
-pointing to what lifts it, plain text in --help, one spelling of each NMT state, one unit
-for the loop's timing, a channel that is a number (Kvaser, IXXAT, Vector) read as the text
-it is, and the operator verbs reaching the manager a config names (``-c robot.yaml``)."""
+"""rocoma_can/cli/main.py, rocoma_can/cli_args.py: the conventions a command line is expected to
+keep (docs/cli.md): ``-v`` before or after the verb, ``--version``, a near name offered for an
+unknown verb or controller, a refusal pointing to what lifts it, plain text in --help, one spelling
+of each NMT state, one unit for the loop's timing, a channel that is a number (Kvaser, IXXAT,
+Vector) read as the text it is, and the operator verbs reaching the manager a config names (``-c
+robot.yaml``)."""
 from __future__ import annotations
 
 import argparse

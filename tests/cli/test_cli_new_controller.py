@@ -1,4 +1,5 @@
-"""`rocoma-can new-controller`: the generated package's own tests pass against this install."""
+"""rocoma_can/cli/scaffold.py: `rocoma-can new-controller`: the generated package's own tests pass
+against this install."""
 from __future__ import annotations
 
 import os

@@ -1,7 +1,7 @@
-"""A reader that goes away (``rocoma-can status | head -3``): every verb that prints stops
-quietly, exit 141 (128 + SIGPIPE), no BrokenPipeError traceback; ``run`` goes on and says
-once that its lines go to stderr (cli/console.py). Each command runs in a process of its
-own (fixtures/cli_child.py) with stdout a pipe whose reader has gone."""
+"""rocoma_can/cli/console.py, rocoma_can/cli/main.py: a reader that goes away (``rocoma-can status |
+head -3``): every verb that prints stops quietly, exit 141 (128 + SIGPIPE), no BrokenPipeError
+traceback; ``run`` goes on and says once that its lines go to stderr (cli/console.py). Each command
+runs in a process of its own (fixtures/cli_child.py) with stdout a pipe whose reader has gone."""
 from __future__ import annotations
 
 import fcntl

@@ -1,10 +1,10 @@
-"""``rocoma-can doctor``: the link checks judged from ``ip -details -statistics -json``
-output captured from real kernels (tests/fixtures/ip_link/, taken in the vcan-run guest:
-vcan0 up and down, and an slcan controller — a real CAN device of kind "can" on a pty —
-stopped, up at 1 Mbit/s, told ERROR-WARNING and BUS-OFF by its adapter protocol; and two
-links that are not CAN, eth0 and lo, taken on a development host's kernel 6.18), and the
-host checks as they run on this machine. tests/vcan/test_vcan_doctor.py runs the verb
-against live links."""
+"""rocoma_can/cli/doctor.py, rocoma_can/runtime/can_checks.py, host.py: ``rocoma-can doctor``: the
+link checks judged from ``ip -details -statistics -json`` output captured from real kernels
+(tests/fixtures/ip_link/, taken in the vcan-run guest: vcan0 up and down, and an slcan controller —
+a real CAN device of kind "can" on a pty — stopped, up at 1 Mbit/s, told ERROR-WARNING and BUS-OFF
+by its adapter protocol; and two links that are not CAN, eth0 and lo, taken on a development host's
+kernel 6.18), and the host checks as they run on this machine. tests/vcan/test_vcan_doctor.py runs
+the verb against live links."""
 from __future__ import annotations
 
 import json

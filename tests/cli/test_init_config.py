@@ -1,7 +1,7 @@
-"""`rocoma-can init-config`: a config from a scan of simulated drives and a folder of
-device files, through the real CLI: each node matched to its file by vendor and product, the
-identity it was seen with carried into the config, the rest as comments; the output passes
-check-config and runs.
+"""rocoma_can/cli/init_config.py: `rocoma-can init-config`: a config from a scan of simulated drives
+and a folder of device files, through the real CLI: each node matched to its file by vendor and
+product, the identity it was seen with carried into the config, the rest as comments; the output
+passes check-config and runs.
 
 The tests taking ``sim_interface`` run on python-can's virtual bus and again on SocketCAN
 vcan0 (the vcan suite, through tools/vcan-run)."""

@@ -1,5 +1,5 @@
-"""A stop signal (Ctrl-C, SIGTERM) for ``rocoma-can run`` at each phase of a run has one
-outcome, said in one line (docs/cli.md, "Stopping run"):
+"""rocoma_can/cli/commands.py (``run``): a stop signal (Ctrl-C, SIGTERM) for ``rocoma-can run`` at
+each phase of a run has one outcome, said in one line (docs/cli.md, "Stopping run"):
 
 * before bring-up (reading the config, opening the buses, starting the recorder's writer):
   ``interrupted (SIGINT) before bring-up: nothing was sent to the drives``, exit 130;

@@ -1,4 +1,5 @@
-"""Emergency controllers on the rigid-joint plant: a moving robot is brought to rest."""
+"""controllers/damp.py, hold.py, quick_stop.py: emergency controllers on the rigid-joint plant: a
+moving robot is brought to rest."""
 from __future__ import annotations
 
 import numpy as np

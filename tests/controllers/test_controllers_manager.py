@@ -1,5 +1,6 @@
-"""The controllers library under the real ControllerManager, loaded from the shipped example
-YAML, on the rigid-joint plant: switching (bumpless), tuples, e-stops, workers."""
+"""controllers/ with rocoma_can/manager.py, plugins.py: the controllers library under the real
+ControllerManager, loaded from the shipped example YAML, on the rigid-joint plant: switching
+(bumpless), tuples, e-stops, workers."""
 from __future__ import annotations
 
 import threading

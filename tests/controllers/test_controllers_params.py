@@ -1,5 +1,6 @@
-"""Parameters of the controllers library: validated at construction (or, for list lengths and
-joint names, in create) with errors naming the controller, the parameter and the reason."""
+"""controllers/params.py: parameters of the controllers library: validated at construction (or, for
+list lengths and joint names, in create) with errors naming the controller, the parameter and the
+reason."""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
-"""JointPD and Float on the rigid-joint plant: convergence, limits, subsets, live targets."""
+"""controllers/pd.py, pd_law.py, zero_torque.py: JointPD and Float on the rigid-joint plant:
+convergence, limits, subsets, live targets."""
 from __future__ import annotations
 
 import threading

@@ -1,5 +1,6 @@
-"""The controllers library over a CAN bus: ControllerManager + CanopenHardware against six
-simulated CiA 402 drives on python-can's virtual bus (200 Hz), controllers loaded from YAML.
+"""controllers/ over drivers/hardware.py: the controllers library over a CAN bus: ControllerManager
++ CanopenHardware against six simulated CiA 402 drives on python-can's virtual bus (200 Hz),
+controllers loaded from YAML.
 
 Assertions are on joint states decoded from the TPDOs, on the drives' CiA 402 states and on
 manager states; waits are bounded. The drives integrate wall time between SYNCs, so

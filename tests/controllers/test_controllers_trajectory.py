@@ -1,4 +1,5 @@
-"""Trajectory on the rigid-joint plant: sine and minimum-jerk tracking, bumpless hand-overs."""
+"""controllers/trajectory.py, pose_swap.py: Trajectory on the rigid-joint plant: sine and
+minimum-jerk tracking, bumpless hand-overs."""
 from __future__ import annotations
 
 import math

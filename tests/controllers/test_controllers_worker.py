@@ -1,4 +1,5 @@
-"""The worker example: a 30 Hz worker started in initialize, cancelled in pre_stop."""
+"""controllers/tracking_monitor.py: the worker example: a 30 Hz worker started in initialize,
+cancelled in pre_stop."""
 from __future__ import annotations
 
 import threading

@@ -1,9 +1,9 @@
-"""The import contract: dependencies point one way, core <- drivers <- node, record, fleet,
-live, ros2 <- runtime <- cli, and controllers see the core and the joint types they command
-only; inside drivers/, the stages point one way too (protocol <- files <- plan <- link <-
-bringup <- cycle <- commission <- sim <- hardware). Read from the source (every import
-statement, at any depth, relative ones resolved), so a violation fails the fast suite wherever
-it hides; and the CLI's verbs start without numpy.
+"""every import of rocoma_can/, drivers/ and controllers/: the import contract: dependencies point
+one way, core <- drivers <- node, record, fleet, live, ros2 <- runtime <- cli, and controllers see
+the core and the joint types they command only; inside drivers/, the stages point one way too
+(protocol <- files <- plan <- link <- bringup <- cycle <- commission <- sim <- hardware). Read from
+the source (every import statement, at any depth, relative ones resolved), so a violation fails the
+fast suite wherever it hides; and the CLI's verbs start without numpy.
 
 import-linter cannot check this project: drivers/ and controllers/ are mapped into the
 rocoma_can namespace by setuptools (package-dir), and it walks the root package's folder.

@@ -13,27 +13,23 @@ from contextlib import contextmanager
 
 import pytest
 from fixtures.manager_probes import (
+    EMERGENCY,
+    FAILPROOF,
     LAYER_METHODS,
+    OK,
     WAIT,
     CommandLog,
     EmergencyProbe,
     FailproofProbe,
     Journal,
     Probe,
+    add_probe,
     layered_manager,
 )
 
-from rocoma_can import ControllerManager, EventKind, ManagerState, ManagerTimeouts, SwitchResult
+from rocoma_can import ControllerManager, EventKind, SwitchResult
 from rocoma_can.remote import STOP_CALLS, StopAnswers, Transport, serve
 from rocoma_can.stop_surfaces import StopSurface
-
-OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
-
-
-def add(rig, name, emergency=None, **behaviour):
-    c = Probe(name, rig.journal, **behaviour)
-    assert rig.mgr.add_controller(c, emergency=emergency)
-    return c
 
 
 def test_starts_in_failproof(rig):
@@ -43,7 +39,7 @@ def test_starts_in_failproof(rig):
 
 
 def test_switch_failproof_to_a_then_a_to_b(rig):
-    add(rig, "a"), add(rig, "b")
+    add_probe(rig, "a"), add_probe(rig, "b")
     assert rig.mgr.switch_controller("a") == SwitchResult.SWITCHED
     assert rig.step() == (OK, ["a"])
     assert rig.mgr.switch_controller("b") == SwitchResult.SWITCHED
@@ -53,14 +49,14 @@ def test_switch_failproof_to_a_then_a_to_b(rig):
 
 
 def test_switch_to_the_active_controller_is_running(rig):
-    add(rig, "a")
+    add_probe(rig, "a")
     assert rig.mgr.switch_controller("a") == SwitchResult.SWITCHED
     assert rig.mgr.switch_controller("a") == SwitchResult.RUNNING
     assert len(rig.journal.of("a", "initialize")) == 1
 
 
 def test_not_found_for_unknown_emergency_and_failproof_names(rig):
-    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    add_probe(rig, "a", emergency=EmergencyProbe("e", rig.journal))
     for name in ("nope", "e", "failproof"):
         assert rig.mgr.switch_controller(name) == SwitchResult.NOT_FOUND
     assert rig.mgr.available_controllers() == ["a"]
@@ -68,19 +64,19 @@ def test_not_found_for_unknown_emergency_and_failproof_names(rig):
 
 def test_available_controllers_sorted(rig):
     for name in ("zeta", "alpha", "mid"):
-        add(rig, name)
+        add_probe(rig, name)
     assert rig.mgr.available_controllers() == ["alpha", "mid", "zeta"]
 
 
 def test_no_emergency_controller_goes_failproof(rig):
-    a = add(rig, "a")
+    a = add_probe(rig, "a")
     rig.mgr.switch_controller("a")
     a.fail.add("advance")
     assert rig.step() == (FAILPROOF, ["failproof"])
 
 
 def test_second_estop_goes_failproof(rig):
-    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    add_probe(rig, "a", emergency=EmergencyProbe("e", rig.journal))
     rig.mgr.switch_controller("a")
     rig.mgr.emergency_stop()
     assert rig.step() == (EMERGENCY, ["e"])
@@ -90,7 +86,7 @@ def test_second_estop_goes_failproof(rig):
 
 
 def test_estop_from_another_thread_takes_effect_by_the_next_update(rig):
-    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    add_probe(rig, "a", emergency=EmergencyProbe("e", rig.journal))
     rig.mgr.switch_controller("a")
     t = threading.Thread(target=rig.mgr.emergency_stop, args=("remote",))
     t.start()
@@ -99,7 +95,7 @@ def test_estop_from_another_thread_takes_effect_by_the_next_update(rig):
 
 
 def test_failproof_stop_from_ok_skips_the_emergency_layer(rig):
-    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    add_probe(rig, "a", emergency=EmergencyProbe("e", rig.journal))
     rig.mgr.switch_controller("a")
     rig.mgr.failproof_stop()
     assert rig.step() == (FAILPROOF, ["failproof"])
@@ -146,147 +142,6 @@ def test_internal_failure_latches_with_must_clear():
         a.fail.add("advance")
         assert mgr.update() is FAILPROOF
         assert mgr.estop_latched
-
-
-def test_concurrent_switch_gets_error_at_once(rig):
-    gate = threading.Event()
-    add(rig, "a", gates={"initialize": gate})
-    add(rig, "b")
-    first = rig.mgr.request_switch("a")
-    rig.journal.wait_for("a", "initialize")
-    second = rig.mgr.request_switch("b")
-    assert second.done() and second.result() == SwitchResult.ERROR
-    gate.set()
-    assert first.result(WAIT) == SwitchResult.SWITCHED
-
-
-def test_estop_during_switch_returns_error_and_stops_both(rig):
-    gate = threading.Event()
-    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
-    add(rig, "b", gates={"initialize": gate})
-    rig.mgr.switch_controller("a")
-    assert rig.step() == (OK, ["a"])
-    future = rig.mgr.request_switch("b")
-    rig.journal.wait_for("b", "initialize")
-    assert rig.step() == (OK, ["a"])  # the old one keeps advancing meanwhile
-    rig.mgr.emergency_stop("button")
-    assert rig.step() == (EMERGENCY, ["e"])
-    gate.set()
-    assert future.result(WAIT) == SwitchResult.ERROR
-    rig.journal.wait_for("a", "stop")
-    rig.journal.wait_for("b", "stop")
-    assert len(rig.journal.of("a", "pre_stop")) == 1  # once, although switch and e-stop met
-    assert len(rig.journal.of("b", "pre_stop")) == 1
-    assert rig.step() == (EMERGENCY, ["e"])
-
-
-def test_estop_requested_but_not_yet_applied_still_interrupts_the_switch(rig):
-    gate = threading.Event()
-    add(rig, "a")
-    add(rig, "b", gates={"initialize": gate})
-    rig.mgr.switch_controller("a")
-    future = rig.mgr.request_switch("b")
-    rig.journal.wait_for("b", "initialize")
-    rig.mgr.emergency_stop()  # no update() runs before the commit
-    gate.set()
-    assert future.result(WAIT) == SwitchResult.ERROR
-    assert rig.mgr.state is FAILPROOF  # applied by the switcher before a's stop
-    rig.journal.wait_for("a", "stop")
-    assert rig.step() == (FAILPROOF, ["failproof"])
-
-
-def test_switch_completes_with_no_update_loop_running(rig):
-    add(rig, "a")
-    assert rig.mgr.switch_controller("a", timeout=WAIT) == SwitchResult.SWITCHED
-    assert rig.mgr.state is OK
-
-
-def test_second_estop_completes_while_the_first_stop_still_runs(rig):
-    a_stop = threading.Event()
-    e = EmergencyProbe("e", rig.journal)
-    add(rig, "a", emergency=e, gates={"stop": a_stop})
-    rig.mgr.switch_controller("a")
-    rig.mgr.emergency_stop()
-    assert rig.step() == (EMERGENCY, ["e"])
-    rig.journal.wait_for("a", "stop")  # hanging on its gate
-    rig.mgr.emergency_stop()
-    assert rig.step() == (FAILPROOF, ["failproof"])
-    rig.journal.wait_for("e", "stop")  # not queued behind a's stop
-    a_stop.set()
-    rig.journal.wait_for("a", "stop")
-
-
-def test_switching_works_again_after_an_interrupted_switch_with_the_loop_running(rig):
-    gate = threading.Event()
-    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
-    add(rig, "b", gates={"initialize": gate})
-    rig.mgr.switch_controller("a")
-    stop = threading.Event()
-
-    def loop():
-        while not stop.wait(0.001):
-            rig.mgr.update()
-    t = threading.Thread(target=loop)
-    rig.journal.update_thread = None
-    t.start()
-    try:
-        future = rig.mgr.request_switch("b")
-        rig.journal.wait_for("b", "initialize")
-        rig.mgr.emergency_stop()
-        gate.set()
-        assert future.result(WAIT) == SwitchResult.ERROR
-        rig.journal.wait_for("b", "stop")
-        assert rig.mgr.switch_controller("b") == SwitchResult.SWITCHED
-        rig.journal.wait_for("b", "advance")
-        assert rig.mgr.switch_controller("a") == SwitchResult.SWITCHED
-        rig.journal.wait_for("a", "advance", count=len(rig.journal.of("a", "advance")) + 1)
-    finally:
-        stop.set()
-        t.join(WAIT)
-    assert rig.mgr.state is OK and rig.mgr.active_controller_name == "a"
-
-
-def test_failed_swap_estops_and_stops_the_new_controller(rig):
-    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
-    add(rig, "b", fail={"initialize"})
-    rig.mgr.switch_controller("a")
-    assert rig.mgr.switch_controller("b") == SwitchResult.ERROR
-    assert rig.mgr.state is EMERGENCY  # a was pre-stopped, so it may not run on
-    rig.journal.wait_for("a", "stop")
-    rig.journal.wait_for("b", "stop")
-    assert rig.step() == (EMERGENCY, ["e"])
-
-
-def test_switch_waits_for_the_new_controller_to_finish_stopping(rig):
-    gate = threading.Event()
-    add(rig, "a", gates={"stop": gate})
-    add(rig, "b")
-    rig.mgr.switch_controller("a")
-    rig.mgr.switch_controller("b")
-    rig.journal.wait_for("a", "stop")  # hanging: a is being stopped
-    future = rig.mgr.request_switch("a")
-    assert not future.done()
-    gate.set()
-    assert future.result(WAIT) == SwitchResult.SWITCHED
-    stop_call = rig.journal.of("a", "stop")[0]
-    swap_call = rig.journal.of("a", "swap")[-1]
-    assert rig.journal.calls.index(stop_call) < rig.journal.calls.index(swap_call)
-
-
-def test_being_stopped_wait_is_bounded():
-    journal = Journal(update_thread=threading.get_ident())
-    gate = threading.Event()
-    with ControllerManager(FailproofProbe("failproof", journal), dt=0.001, timing=None,
-                           command=CommandLog(),
-                           timeouts=ManagerTimeouts(being_stopped=0.2)) as mgr:
-        journal.manager = mgr
-        mgr.add_controller(Probe("a", journal, gates={"stop": gate}))
-        mgr.add_controller(Probe("b", journal))
-        mgr.switch_controller("a")
-        mgr.switch_controller("b")
-        journal.wait_for("a", "stop")
-        assert mgr.switch_controller("a") == SwitchResult.ERROR
-        gate.set()
 
 
 def test_check_state_and_limit_command_failures_are_failures():
@@ -345,9 +200,9 @@ def test_adding_to_the_wrong_layer_raises_type_error(rig):
 
 def test_duplicate_emergency_name_is_dropped_and_the_first_shared(rig, caplog):
     first, second = EmergencyProbe("e", rig.journal), EmergencyProbe("e", rig.journal)
-    add(rig, "a", emergency=first)
+    add_probe(rig, "a", emergency=first)
     with caplog.at_level(logging.WARNING, logger="rocoma_can.manager"):
-        add(rig, "b", emergency=second)
+        add_probe(rig, "b", emergency=second)
     assert "dropped" in caplog.text
     rig.mgr.switch_controller("b")
     rig.mgr.emergency_stop()
@@ -364,7 +219,7 @@ def test_subscribers_see_switch_state_and_estop_events(rig):
         if ev.kind is EventKind.EMERGENCY_STOP:
             got.set()
     rig.mgr.subscribe(on_event)
-    add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    add_probe(rig, "a", emergency=EmergencyProbe("e", rig.journal))
     rig.mgr.switch_controller("a")
     rig.mgr.emergency_stop("big red button")
     rig.step()
@@ -380,7 +235,7 @@ def test_a_raising_subscriber_does_not_silence_the_others(rig):
     seen = threading.Event()
     rig.mgr.subscribe(lambda ev: 1 / 0)
     rig.mgr.subscribe(lambda ev: seen.set())
-    add(rig, "a")
+    add_probe(rig, "a")
     rig.mgr.switch_controller("a")
     assert seen.wait(WAIT)
 
@@ -408,7 +263,7 @@ def test_an_update_wakes_no_thread_before_post_cycle(rig):
     failed controller and the events of the e-stop wait for it: no thread woken inside the
     cycle can take the GIL from the frames. Without post_cycle (a caller that only calls
     update) they go out at the end of update, as the tests above rely on."""
-    a = add(rig, "a", emergency=EmergencyProbe("e", rig.journal))
+    a = add_probe(rig, "a", emergency=EmergencyProbe("e", rig.journal))
     events = []
     delivered = threading.Event()
     rig.mgr.subscribe(lambda ev: (events.append(ev.kind),

@@ -1,7 +1,7 @@
-"""Random interleavings of update, switch, e-stop, failproof stop, clear and misbehaving
-controllers (hypothesis state machine). Invariants: exactly one layer commands each cycle,
-and it is the one the manager says; a stopped or uninitialized controller is never advanced;
-no thread is left after shutdown."""
+"""rocoma_can/manager.py, switcher.py, stopper.py: random interleavings of update, switch, e-stop,
+failproof stop, clear and misbehaving controllers (hypothesis state machine). Invariants: exactly
+one layer commands each cycle, and it is the one the manager says; a stopped or uninitialized
+controller is never advanced; no thread is left after shutdown."""
 from __future__ import annotations
 
 import threading

@@ -1,4 +1,5 @@
-"""The seed's four tables (which thread calls what in which timestep), as tests.
+"""rocoma_can/manager.py: the seed's four tables (which thread calls what in which timestep), as
+tests.
 
 The test thread is the update thread: each ``step()`` is one update() call, and every call a
 controller receives is journalled with the update call it happened in and its thread.
@@ -8,11 +9,17 @@ from __future__ import annotations
 import threading
 import time
 
-from fixtures.manager_probes import WAIT, EmergencyProbe, NumberSwapState, Probe
+from fixtures.manager_probes import (
+    EMERGENCY,
+    FAILPROOF,
+    OK,
+    WAIT,
+    EmergencyProbe,
+    NumberSwapState,
+    Probe,
+)
 
-from rocoma_can import ManagerState, SwitchResult
-
-OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
+from rocoma_can import SwitchResult
 
 
 def test_table_1a_estop_in_ok_emergency_takes_over_in_the_failing_call(rig):

@@ -1,4 +1,5 @@
-"""Timing supervision: budgets, overruns in a row, a hung advance, no false trips."""
+"""rocoma_can/manager.py, adapters.py, stopper.py: timing supervision: budgets, overruns in a row, a
+hung advance, no false trips."""
 from __future__ import annotations
 
 import gc
@@ -6,6 +7,9 @@ import threading
 import time
 
 from fixtures.manager_probes import (
+    EMERGENCY,
+    FAILPROOF,
+    OK,
     WAIT,
     CommandLog,
     EmergencyProbe,
@@ -14,10 +18,9 @@ from fixtures.manager_probes import (
     Probe,
 )
 
-from rocoma_can import ControllerManager, EventKind, ManagerState, SwitchResult, TimingSupervision
+from rocoma_can import ControllerManager, EventKind, SwitchResult, TimingSupervision
 from rocoma_can.manager import ManagerTimeouts
 
-OK, EMERGENCY, FAILPROOF = ManagerState.OK, ManagerState.EMERGENCY, ManagerState.FAILPROOF
 DT = 0.01  # budgets: advance 5 ms, initialize_fast 5 ms, hang 200 ms
 
 

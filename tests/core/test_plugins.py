@@ -1,4 +1,5 @@
-"""Plugin loading: entry points, "module:Class" specs, config lists, and their error paths."""
+"""rocoma_can/plugins.py: plugin loading: entry points, "module:Class" specs, config lists, and
+their error paths."""
 from __future__ import annotations
 
 import copy

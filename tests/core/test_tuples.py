@@ -1,4 +1,5 @@
-"""ControllerTuple: order, stop-at-first-failure, shared objects, swap-state slots."""
+"""rocoma_can/tuples.py: ControllerTuple: order, stop-at-first-failure, shared objects, swap-state
+slots."""
 from __future__ import annotations
 
 import logging

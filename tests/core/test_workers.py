@@ -1,4 +1,5 @@
-"""WorkerManager: real threads on the monotonic clock; counts and orderings, no wall-time limits."""
+"""rocoma_can/workers.py: WorkerManager: real threads on the monotonic clock; counts and orderings,
+no wall-time limits."""
 from __future__ import annotations
 
 import logging

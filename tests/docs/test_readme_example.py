@@ -1,5 +1,5 @@
-"""The controller example runs as written, in the README and on the docs page it comes from
-(docs/controllers.md): docs that cannot rot silently."""
+"""README.md, docs/controllers.md: the controller example runs as written, in the README and on the
+docs page it comes from (docs/controllers.md): docs that cannot rot silently."""
 from __future__ import annotations
 
 import re

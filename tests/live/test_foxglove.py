@@ -5,44 +5,27 @@ nothing."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import signal
 import socket
 import struct
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 from fixtures.budgets import odd_late
-from fixtures.paths import ROOT
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
-from rocoma_can.cli.demo_config import demo_config, demo_urdf
-from rocoma_can.live.foxglove import LAYOUT, FoxgloveConfig
 from rocoma_can.live.front import LEGACY_SUBPROTOCOL
-from rocoma_can.live.messages import INFO, MANAGER_CHANNELS, ROBOT, WARNING, event_log
-from rocoma_can.live.urdf import parse_urdf
+from rocoma_can.live.messages import INFO, MANAGER_CHANNELS, WARNING, event_log
 from rocoma_can.record.trace import read_messages
 from rocoma_can.remote import COMMANDS
 
 pytest.importorskip("foxglove")
 pytest.importorskip("websockets.sync.client")
-from fixtures.foxglove_layout import layout_paths, layout_topics, shipped_layout
-from fixtures.foxglove_viewer import SUBPROTOCOL, Viewer  # noqa: E402 - after the skips
+from fixtures.foxglove_viewer import SUBPROTOCOL, Viewer, live_config, loopback_view  # noqa: E402 - after the skips
 
 TOPICS = [c.topic for c in MANAGER_CHANNELS]
-
-
-def _config(channel: str, drives: int = 2, rate: float = 100.0) -> dict[str, Any]:
-    cfg = demo_config(channel, drives=drives, rate=rate)
-    cfg["manager"]["estop_must_be_cleared"] = False
-    return cfg
-
-
-def _view(**options: Any) -> FoxgloveConfig:
-    return FoxgloveConfig(host="127.0.0.1", port=0, **options)
 
 
 def _listener_pids(port: int) -> set[int]:
@@ -83,7 +66,7 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
     """Under the protocol's either name: the SDK's, and the specification's that viewers
     written before the SDK ask for (the front renames it, live/front.py)."""
     sim_segment_factory(2)
-    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
+    with runtime_running(live_config(virtual_channel), DEMO_RUN, foxglove=loopback_view()) as rt:
         # served by the writer process: its socket is that process's, not the loop's
         assert rt.recorder is not None
         assert _listener_pids(rt.foxglove.port) == {rt.recorder.pid}
@@ -106,7 +89,7 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
             assert set(switch["properties"]) == {"controller"}
             viewer.pump(lambda: viewer.received.get("/joint_states"), "joint states")
             joints = viewer.received["/joint_states"][-1]
-            assert joints["name"] == [d["name"] for d in _config(virtual_channel)["drives"]]
+            assert joints["name"] == [d["name"] for d in live_config(virtual_channel)["drives"]]
             assert len(joints["position"]) == len(joints["velocity"]) == len(
                 joints["effort"]) == 2
             viewer.pump(lambda: viewer.received.get("/rocoma/status"), "a status report")
@@ -135,7 +118,7 @@ def test_channels_joint_states_and_an_estop(virtual_channel, sim_segment_factory
 def test_switch_is_refused_unless_allowed_and_failproof_is_not(virtual_channel,
                                                                sim_segment_factory, tmp_path):
     sim_segment_factory(2)
-    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view(),
+    with runtime_running(live_config(virtual_channel), DEMO_RUN, foxglove=loopback_view(),
                          record=str(tmp_path)) as rt:
         viewer = Viewer(rt.foxglove.port)
         try:
@@ -167,7 +150,7 @@ def test_a_viewer_gone_without_closing_is_counted_not_said(virtual_channel,
     right: counted as viewers_gone, not an error line from the SDK on the run's
     terminal."""
     sim_segment_factory(2)
-    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
+    with runtime_running(live_config(virtual_channel), DEMO_RUN, foxglove=loopback_view()) as rt:
         viewer = Viewer(rt.foxglove.port)
         viewer.pump(lambda: len(viewer.channels) >= len(TOPICS), "the channels advertised")
         sock = viewer.ws.socket
@@ -180,8 +163,8 @@ def test_a_viewer_gone_without_closing_is_counted_not_said(virtual_channel,
 
 def test_an_allowed_switch_switches(virtual_channel, sim_segment_factory):
     sim_segment_factory(2)
-    with runtime_running(_config(virtual_channel), DEMO_RUN,
-                         foxglove=_view(allow_commands=True)) as rt:
+    with runtime_running(live_config(virtual_channel), DEMO_RUN,
+                         foxglove=loopback_view(allow_commands=True)) as rt:
         viewer = Viewer(rt.foxglove.port)
         try:
             wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
@@ -237,8 +220,8 @@ def test_a_stalled_viewer_costs_the_loop_nothing(virtual_channel, sim_segment_fa
     view. A view that made the loop wait on the stalled socket would overrun every cycle it
     published in; a busy machine makes the odd cycle late whatever the view does."""
     sim_segment_factory(2)
-    with runtime_running(_config(virtual_channel), DEMO_RUN,
-                         foxglove=_view(rate=500.0, backlog=8)) as rt:
+    with runtime_running(live_config(virtual_channel), DEMO_RUN,
+                         foxglove=loopback_view(rate=500.0, backlog=8)) as rt:
         wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
         assert rt.manager.switch_controller("pd", timeout=DEMO_WAIT) == 0  # drives enabled
         wait_for(lambda: rt.loop.stats.cycles >= 300, "300 cycles", DEMO_RUN)
@@ -283,8 +266,8 @@ def test_a_viewer_that_never_reads_has_its_drops_counted_and_shown(
     would say so on the stderr of the writer process, which serves the view)."""
     sim_segment_factory(2)
     # the view publishes a row at most once: a loop at 1 kHz gives it 1000 a second
-    with runtime_running(_config(virtual_channel, rate=1000.0), DEMO_RUN,
-                         foxglove=_view(rate=1000.0, backlog=8)) as rt:
+    with runtime_running(live_config(virtual_channel, rate=1000.0), DEMO_RUN,
+                         foxglove=loopback_view(rate=1000.0, backlog=8)) as rt:
         raw = socket.socket()
         raw.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         raw.connect(("127.0.0.1", rt.foxglove.port))
@@ -314,8 +297,8 @@ def test_nothing_is_built_for_channels_nobody_watches(virtual_channel, sim_segme
     report (the one message made there); a viewer's subscription starts exactly the
     channels it asked for, and the report only once a viewer subscribes to it."""
     sim_segment_factory(2)
-    with runtime_running(_config(virtual_channel), DEMO_RUN,
-                         foxglove=_view(rate=200.0)) as rt:
+    with runtime_running(live_config(virtual_channel), DEMO_RUN,
+                         foxglove=loopback_view(rate=200.0)) as rt:
         wait_for(lambda: rt.loop.stats.cycles >= 100, "100 cycles", DEMO_WAIT)
         rt.manager.emergency_stop("nobody watches")  # an event: a log line for nobody
         time.sleep(0.2)
@@ -343,7 +326,7 @@ def test_a_view_whose_process_dies_is_said_and_the_loop_runs_on(virtual_channel,
     connection taken any more, no status report built for it) and the loop keeps its
     cycles; the close waits for nothing."""
     sim_segment_factory(2)
-    with runtime_running(_config(virtual_channel), DEMO_RUN, foxglove=_view()) as rt:
+    with runtime_running(live_config(virtual_channel), DEMO_RUN, foxglove=loopback_view()) as rt:
         port = rt.foxglove.port
         viewer = Viewer(port)
         viewer.subscribe("/joint_states", "/rocoma/status")
@@ -370,9 +353,9 @@ def test_the_manager_channel_goes_on_when_the_loop_stops(virtual_channel,
     """No new cycle, no new joint states; /rocoma/manager goes on at the view's rate, so a
     latch cleared after the loop's stop is seen."""
     sim_segment_factory(2)
-    cfg = _config(virtual_channel)
+    cfg = live_config(virtual_channel)
     cfg["manager"]["estop_must_be_cleared"] = True  # the manager starts latched
-    with runtime_running(cfg, DEMO_RUN, foxglove=_view(rate=50.0)) as rt:
+    with runtime_running(cfg, DEMO_RUN, foxglove=loopback_view(rate=50.0)) as rt:
         viewer = Viewer(rt.foxglove.port)
         try:
             viewer.subscribe("/rocoma/manager", "/joint_states")
@@ -413,7 +396,7 @@ def test_the_port_taken_is_said_in_one_line(virtual_channel, sim_segment_factory
     taken.listen()
     try:
         path = tmp_path / "robot.yaml"
-        path.write_text(yaml.safe_dump(_config(virtual_channel)))
+        path.write_text(yaml.safe_dump(live_config(virtual_channel)))
         code = main(["run", str(path), "--no-flight", "--duration", "0.1",
                      "--foxglove", f"127.0.0.1:{taken.getsockname()[1]}"])
     finally:
@@ -421,166 +404,3 @@ def test_the_port_taken_is_said_in_one_line(virtual_channel, sim_segment_factory
     err = capsys.readouterr().err
     assert code == 2 and "Foxglove: cannot serve on 127.0.0.1:" in err
     assert "Traceback" not in err
-
-
-def test_the_demo_serves_its_robot_live(capsys):
-    """`demo --foxglove`: the walk-through's manager on the live view, said where, and a
-    viewer sees the demo's joints move by name while it runs."""
-    import re
-    import threading
-
-    from rocoma_can.cli.demo import run_demo
-    lines: list[str] = []
-    served = threading.Event()
-
-    def out(line: str) -> None:
-        lines.append(line)
-        if "ws://" in line:
-            served.set()
-    seen: dict[str, Any] = {}
-
-    def watch() -> None:
-        assert served.wait(DEMO_WAIT)
-        port = int(re.search(r"ws://127\.0\.0\.1:(\d+)", next(
-            line for line in lines if "ws://" in line)).group(1))
-        viewer = Viewer(port)
-        try:
-            viewer.subscribe("/joint_states", "/robot_description")
-            viewer.pump(lambda: len(viewer.received.get("/joint_states", [])) >= 10
-                        and viewer.received.get("/robot_description"),
-                        "ten joint states and the robot from the demo")
-            seen["names"] = viewer.received["/joint_states"][-1]["name"]
-            seen["movable"] = parse_urdf(viewer.received["/robot_description"][0][
-                "data"].encode(), "sent").movable
-            seen["topics"] = set(viewer.channels)
-        finally:
-            viewer.close()
-    viewer = threading.Thread(target=watch)
-    viewer.start()
-    report = run_demo(drives=2, rate=100.0, duration=3.0, out=out, record=None,
-                      foxglove=_view())
-    viewer.join(DEMO_WAIT)
-    assert report.ok, "\n".join(lines)
-    assert seen.get("names") == ["joint1", "joint2"], (seen, lines)
-    assert seen["movable"] == ("joint1", "joint2")  # the demo's arm: a joint per drive
-    said = next(line for line in lines if "ws://" in line)
-    assert said.endswith(f"layout to import in Foxglove: {LAYOUT}") and LAYOUT.is_file()
-    assert layout_topics() <= seen["topics"]  # the layout shows what the demo serves
-
-
-def _angle_about_z(q: dict[str, float]) -> float:
-    assert abs(q["x"]) < 1e-12 and abs(q["y"]) < 1e-12  # joint1 of the demo arm turns about z
-    return 2 * math.atan2(q["z"], q["w"])
-
-
-def test_the_robot_and_its_transforms_follow_the_joints(virtual_channel, sim_segment_factory,
-                                                        tmp_path):
-    """With urdf: in the config, a viewer gets the URDF as it subscribes (a second one,
-    later, too: a WebSocket keeps nothing for it) and a transform per joint on /tf at the
-    joints' positions: each /tf sample turns joint1 by the position /joint_states sent with
-    the same timestamp, and they change as the pd controller moves the joints."""
-    sim_segment_factory(2)
-    urdf = demo_urdf(["joint1", "joint2"])
-    (tmp_path / "arm.urdf").write_text(urdf)
-    config = {**_config(virtual_channel), "urdf": str(tmp_path / "arm.urdf")}
-    with runtime_running(config, DEMO_RUN, foxglove=_view()) as rt:
-        viewer = Viewer(rt.foxglove.port)
-        late = None
-        try:
-            viewer.subscribe("/robot_description", "/tf", "/joint_states")
-            assert {t: viewer.channels[t]["schemaName"] for t in ("/robot_description", "/tf")
-                    } == {c.topic: c.schema_name for c in ROBOT}
-            viewer.pump(lambda: viewer.received.get("/robot_description"), "the URDF")
-            assert viewer.received["/robot_description"] == [{"data": urdf}]
-            wait_for(lambda: rt.manager.switch_blocked() is None, "drives up", DEMO_WAIT)
-            assert rt.manager.switch_controller("pd", timeout=DEMO_WAIT) == 0  # to 0.3 rad
-
-            def angles() -> list[tuple[float, float]]:
-                """(joint1's position, its /tf angle) per sample both arrived of."""
-                by_time = {json.dumps(m["timestamp"]): m["position"][0]
-                           for m in viewer.received.get("/joint_states", [])}
-                pairs = []
-                for m in viewer.received.get("/tf", []):
-                    first = m["transforms"][0]
-                    position = by_time.get(json.dumps(first["timestamp"]))
-                    if position is not None:
-                        pairs.append((position, _angle_about_z(first["rotation"])))
-                return pairs
-            viewer.pump(lambda: len(angles()) > 10 and max(p for p, _ in angles())
-                        - min(p for p, _ in angles()) > 0.1, "joint1 moving on /tf")
-            for position, angle in angles():
-                assert angle == pytest.approx(position, abs=1e-9)
-            tf = viewer.received["/tf"][-1]["transforms"]
-            assert [(t["parent_frame_id"], t["child_frame_id"]) for t in tf] == [
-                ("base_link", "joint1_link"), ("joint1_link", "joint2_link")]
-
-            late = Viewer(rt.foxglove.port)
-            late.subscribe("/robot_description")
-            late.pump(lambda: late.received.get("/robot_description"), "the URDF, later")
-            assert late.received["/robot_description"][0] == {"data": urdf}
-        finally:
-            viewer.close()
-            if late is not None:
-                late.close()
-
-
-# --- the layout shipped for the demo (rocoma_can/live/foxglove_layout.json) -------------------
-
-def _panels(node: Any) -> list[str]:
-    """The panel ids of a layout's split tree, left to right."""
-    if isinstance(node, str):
-        return [node]
-    assert set(node) <= {"first", "second", "direction", "splitPercentage"}, node
-    assert node["direction"] in ("row", "column")
-    return _panels(node["first"]) + _panels(node["second"])
-
-
-
-
-
-
-#: the panels it has and how Foxglove names their types
-PANEL_TYPES = {"3D", "Plot", "StateTransitions", "RosOut", "RawMessages"}
-
-
-def test_the_layout_is_one_foxglove_can_import():
-    """A layout as Foxglove exports it: configById, the split tree of the same panels,
-    the 3D panel's URDF layer reading the robot from its topic."""
-    layout = shipped_layout()
-    assert set(layout) == {"configById", "globalVariables", "userNodes", "playbackConfig",
-                           "layout"}
-    ids = list(layout["configById"])
-    assert sorted(_panels(layout["layout"])) == sorted(ids)
-    assert {i.split("!")[0] for i in ids} == PANEL_TYPES and all(i.count("!") == 1
-                                                                 for i in ids)
-    urdf = [layer for layer in layout["configById"]["3D!robot"]["layers"].values()
-            if layer["layerId"] == "foxglove.Urdf"]
-    assert [(u["sourceType"], u["topic"], u["instanceId"]) for u in urdf] == [
-        ("topic", "/robot_description", "robot")]
-    assert layout["configById"]["RosOut!log"]["topicToRender"] == "/rocoma/log"
-
-
-def test_the_layout_reads_only_what_the_view_serves():
-    """Each topic one the view advertises (with a URDF), each field one of its schema."""
-    schemas = {c.topic: c.schema for c in MANAGER_CHANNELS + ROBOT}
-    for path in layout_paths():
-        topic, _, field = path.partition(".")
-        assert topic in schemas, path
-        if field:
-            assert field.split("[")[0] in schemas[topic]["properties"], path
-    assert {"/joint_states", "/rocoma/manager", "/rocoma/status", "/rocoma/log",
-            "/robot_description"} <= layout_topics()
-
-
-def test_an_installed_package_has_the_live_view_and_its_layout():
-    """pyproject lists the package and the layout as package data: a wheel without them
-    has no live view (and no run: the runtime imports it)."""
-    tomllib = pytest.importorskip("tomllib")  # Python 3.11
-    root = ROOT
-    setup = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
-    assert "rocoma_can.live" in setup["packages"]
-    shipped = setup["package-data"]["rocoma_can.live"]
-    assert any(LAYOUT.match(pattern) for pattern in shipped)
-    packages = {".".join(p.parent.relative_to(root).parts)
-                for p in (root / "rocoma_can").rglob("__init__.py")}
-    assert packages <= set(setup["packages"])

@@ -1,5 +1,6 @@
-"""The manager's CANopen node in-process on the virtual bus: SDO services through a real
-canopen client, the e-stop COB-ID, and the state / EMCY frames seen by a third listener."""
+"""rocoma_can/node/server.py, client.py: the manager's CANopen node in-process on the virtual bus:
+SDO services through a real canopen client, the e-stop COB-ID, and the state / EMCY frames seen by a
+third listener."""
 from __future__ import annotations
 
 import struct

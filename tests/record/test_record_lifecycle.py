@@ -1,6 +1,7 @@
-"""The recorder's writer process, its threads and its shared memory over a recorder's life
-(record/recorder.py): a start that fails leaves nothing behind and says why in one line; a
-writer that dies is said, and does not hold the run's close up; every close ends them all."""
+"""rocoma_can/record/recorder.py, writer.py: the recorder's writer process, its threads and its
+shared memory over a recorder's life (record/recorder.py): a start that fails leaves nothing behind
+and says why in one line; a writer that dies is said, and does not hold the run's close up; every
+close ends them all."""
 from __future__ import annotations
 
 import gc

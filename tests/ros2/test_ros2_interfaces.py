@@ -1,8 +1,8 @@
-"""The ROS 2 node's contract with rmw_zenoh, without a session: RIHS01 type hashes against
-the values published with the ROS packages (the generated type descriptions of the Jazzy
-builds: sensor_msgs, std_msgs, std_srvs, service_msgs, rcl_interfaces, diagnostic_msgs,
-controller_manager_msgs), the key expressions, liveliness tokens and QoS text against
-ros2/rmw_zenoh's docs/design.md examples, and the attachment."""
+"""rocoma_can/ros2/interfaces.py, graph.py: the ROS 2 node's contract with rmw_zenoh, without a
+session: RIHS01 type hashes against the values published with the ROS packages (the generated type
+descriptions of the Jazzy builds: sensor_msgs, std_msgs, std_srvs, service_msgs, rcl_interfaces,
+diagnostic_msgs, controller_manager_msgs), the key expressions, liveliness tokens and QoS text
+against ros2/rmw_zenoh's docs/design.md examples, and the attachment."""
 from __future__ import annotations
 
 import pytest

@@ -1,9 +1,9 @@
-"""The manager's heartbeat keeps the period 0x1017 declares (issue 33: 500 ms declared, a
-median of 520 ms measured at 25 Hz, since each beat was scheduled from the cycle that sent
-it). The hardware's cycle runs on a simulated clock over python-can's virtual bus, so the
-grid is asserted exactly, whatever the load of the machine: each cycle sends one SYNC, so
-the frames' order on the bus names the cycle each heartbeat went out in, and that cycle's
-time is the beat's timestamp."""
+"""drivers/cycle/frames_out.py (the manager's heartbeat): the manager's heartbeat keeps the period
+0x1017 declares (issue 33: 500 ms declared, a median of 520 ms measured at 25 Hz, since each beat
+was scheduled from the cycle that sent it). The hardware's cycle runs on a simulated clock over
+python-can's virtual bus, so the grid is asserted exactly, whatever the load of the machine: each
+cycle sends one SYNC, so the frames' order on the bus names the cycle each heartbeat went out in,
+and that cycle's time is the beat's timestamp."""
 from __future__ import annotations
 
 import math

@@ -1,6 +1,7 @@
-"""Several CAN buses under one manager: each bus its own SYNC, PDOs and manager heartbeat;
-one JointState over all joints; a failed bus is a failproof stop with torque-off frames on
-every other bus; the e-stop frame works on any bus, in the cycle that reads it; CAN FD.
+"""drivers/hardware.py, drivers/link/bus_port.py (several buses): several CAN buses under one
+manager: each bus its own SYNC, PDOs and manager heartbeat; one JointState over all joints; a failed
+bus is a failproof stop with torque-off frames on every other bus; the e-stop frame works on any
+bus, in the cycle that reads it; CAN FD.
 
 Two buses ("left", "right"; python-can virtual, and in-process ones), each with its own
 simulated segment of two drives with node ids 1 and 2 (node ids repeat across buses, as on
@@ -13,7 +14,8 @@ import time
 import can
 import pytest
 from fixtures.bus import record
-from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig
+from fixtures.driver_rig import VIRTUAL, Rig
+from fixtures.rig_controllers import Brake, HoldPD
 
 from rocoma_can import EventKind, ManagerState, SwitchResult
 from rocoma_can.drivers.protocol import cia301

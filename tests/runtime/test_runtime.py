@@ -1,5 +1,5 @@
-"""The loop runner against real drives (simulated, virtual bus): fixed rate, bounded stop,
-torque-off frames on every stop path, timing statistics."""
+"""rocoma_can/runtime/loop.py, system.py: the loop runner against real drives (simulated, virtual
+bus): fixed rate, bounded stop, torque-off frames on every stop path, timing statistics."""
 from __future__ import annotations
 
 import gc

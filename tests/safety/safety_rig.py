@@ -9,8 +9,9 @@ from dataclasses import dataclass, replace
 
 import can
 import canopen
-from fixtures.driver_rig import MANAGER_NODE_ID, VIRTUAL, Can, HoldPD, Rig
+from fixtures.driver_rig import MANAGER_NODE_ID, VIRTUAL, Can, Rig
 from fixtures.recorder import FrameRecorder
+from fixtures.rig_controllers import HoldPD
 
 from rocoma_can import SwitchResult, eds
 from rocoma_can.drivers.sim.segment import SimulatedSegment

@@ -1,9 +1,10 @@
-"""SDO block upload from the manager node (CiA 301), frame by frame on a virtual bus: the
-client commands as raw frames, so every answer, sequence number and resume point is seen.
-The node serves its text objects this way because a segmented upload of 0x2140's JSON is one
-round trip per 7 bytes (~250 for a few drives): in a stalled host that took 20 s and failed
-`rocoma-can status` during a fault. Hostile or out-of-order commands get an abort and never
-data; a client asking a short object with a protocol switch threshold gets a normal upload."""
+"""rocoma_can/node/sdo_server.py, drivers/protocol/sdo_block_server.py: SDO block upload from the
+manager node (CiA 301), frame by frame on a virtual bus: the client commands as raw frames, so every
+answer, sequence number and resume point is seen. The node serves its text objects this way because
+a segmented upload of 0x2140's JSON is one round trip per 7 bytes (~250 for a few drives): in a
+stalled host that took 20 s and failed `rocoma-can status` during a fault. Hostile or out-of-order
+commands get an abort and never data; a client asking a short object with a protocol switch
+threshold gets a normal upload."""
 from __future__ import annotations
 
 import json

@@ -1,7 +1,8 @@
-"""The bus and the threads around the loop, against a holding manager and simulated drives:
-a bus that refuses frames, and switch / e-stop / clear / recover storms from several threads.
-Each ends with torque-off frames for every drive seen on the bus, the loop cycling and the
-manager still able to switch (the served fixture checks that no thread is left)."""
+"""drivers/link/bus_port.py, rocoma_can/manager.py: the bus and the threads around the loop, against
+a holding manager and simulated drives: a bus that refuses frames, and switch / e-stop / clear /
+recover storms from several threads. Each ends with torque-off frames for every drive seen on the
+bus, the loop cycling and the manager still able to switch (the served fixture checks that no thread
+is left)."""
 from __future__ import annotations
 
 import random

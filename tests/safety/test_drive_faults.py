@@ -1,13 +1,14 @@
-"""Every fault a simulated drive can have, injected into one drive of a holding manager whose
-controller has a braking emergency controller. Documented end state (docs/safety.md):
-the drive's fault is latched with its cause, the drive gets nothing but torque-off frames
-from then on, the manager is in EMERGENCY and the others are braked (enabled, CSV); the
-operator's second e-stop then gives torque-off frames for every drive."""
+"""drivers/cycle/supervision.py, drivers/sim/faults.py: every fault a simulated drive can have,
+injected into one drive of a holding manager whose controller has a braking emergency controller.
+Documented end state (docs/safety.md): the drive's fault is latched with its cause, the drive gets
+nothing but torque-off frames from then on, the manager is in EMERGENCY and the others are braked
+(enabled, CSV); the operator's second e-stop then gives torque-off frames for every drive."""
 from __future__ import annotations
 
 import can
 import pytest
-from fixtures.driver_rig import Brake, HoldPD, synced_mark
+from fixtures.driver_rig import synced_mark
+from fixtures.rig_controllers import Brake, HoldPD
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult

@@ -1,6 +1,6 @@
-"""Every callback result of every layer is judged inside the adapter's guard: only True is
-success, a result that cannot even be judged or printed never escapes into the cycle; and a
-lower layer never starts from the failed layer's command."""
+"""rocoma_can/adapters.py: every callback result of every layer is judged inside the adapter's
+guard: only True is success, a result that cannot even be judged or printed never escapes into the
+cycle; and a lower layer never starts from the failed layer's command."""
 from __future__ import annotations
 
 import logging

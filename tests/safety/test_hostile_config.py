@@ -1,5 +1,5 @@
-"""Bad configuration input is a clear error, never a traceback or a hang: YAML bombs and
-garbage, a bool where a whole number belongs, any file given as an EDS."""
+"""rocoma_can/runtime/config.py: bad configuration input is a clear error, never a traceback or a
+hang: YAML bombs and garbage, a bool where a whole number belongs, any file given as an EDS."""
 from __future__ import annotations
 
 import pytest

@@ -1,7 +1,7 @@
-"""Inbound frames fuzzed (hypothesis) at a manager that is holding real (simulated) drives:
-SDO requests of every command byte and length to the manager node, segmented transfers aborted
-half way, block transfers, NMT to the node and broadcast, remote and 29-bit frames, DLC 0-8,
-frames on the e-stop COB-ID.
+"""rocoma_can/node/server.py, sdo_server.py, drivers/cycle/receive.py: inbound frames fuzzed
+(hypothesis) at a manager that is holding real (simulated) drives: SDO requests of every command
+byte and length to the manager node, segmented transfers aborted half way, block transfers, NMT to
+the node and broadcast, remote and 29-bit frames, DLC 0-8, frames on the e-stop COB-ID.
 
 After every sequence: the node still answers, nothing raised on its reader thread or in the
 manager, every 11-bit frame on the e-stop COB-ID was an e-stop, and a sequence that touches no

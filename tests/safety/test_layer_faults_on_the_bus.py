@@ -1,8 +1,8 @@
-"""Every fault of the callbacks that run inside the cycle, on the bus against simulated drives:
-the controller's advance and the emergency controller's initialize_fast and advance, each
-raising, returning False, None or a numpy array, writing NaN or inf into the command, or
-hanging. (The other callbacks run off the cycle; their matrix is in
-test_every_layer_result_is_judged.py.)
+"""rocoma_can/adapters.py, manager.py, drivers/hardware.py: every fault of the callbacks that run
+inside the cycle, on the bus against simulated drives: the controller's advance and the emergency
+controller's initialize_fast and advance, each raising, returning False, None or a numpy array,
+writing NaN or inf into the command, or hanging. (The other callbacks run off the cycle; their
+matrix is in test_every_layer_result_is_judged.py.)
 
 Documented end states (docs/safety.md):
 - the controller fails: EMERGENCY in the same update(), the emergency controller brakes the
@@ -22,7 +22,7 @@ import threading
 
 import numpy as np
 import pytest
-from fixtures.driver_rig import Brake, HoldPD
+from fixtures.rig_controllers import Brake, HoldPD
 from safety_rig import CW_DISABLE_VOLTAGE, NODES, SAFETY, Served
 
 from rocoma_can import ManagerState, SwitchResult

@@ -1,6 +1,7 @@
-"""The manager node's services refuse what they cannot honour (an e-stop COB-ID out of
-range, a switch name that is not UTF-8, an aborted or oversized segmented write), and every
-form an e-stop may come in (a remote frame, an expedited write without size) e-stops."""
+"""rocoma_can/node/server.py, objects.py: the manager node's services refuse what they cannot honour
+(an e-stop COB-ID out of range, a switch name that is not UTF-8, an aborted or oversized segmented
+write), and every form an e-stop may come in (a remote frame, an expedited write without size)
+e-stops."""
 from __future__ import annotations
 
 import logging

@@ -1,7 +1,8 @@
-"""Only the control loop may produce the manager's heartbeat: if anything else kept beating
-after the loop hung (an SDO write of 0x1017, an NMT command to the manager's node), the drives'
-heartbeat consumers would never time out and 0x6007 would never switch them off. Driven over
-the virtual bus against simulated drives with the real hardware layer, manager and node."""
+"""drivers/cycle/frames_out.py, rocoma_can/node/server.py: only the control loop may produce the
+manager's heartbeat: if anything else kept beating after the loop hung (an SDO write of 0x1017, an
+NMT command to the manager's node), the drives' heartbeat consumers would never time out and 0x6007
+would never switch them off. Driven over the virtual bus against simulated drives with the real
+hardware layer, manager and node."""
 from __future__ import annotations
 
 import struct

@@ -1,4 +1,4 @@
-"""Every benchmark runs in its quickest mode and writes the JSON it promises.
+"""benchmarks/*.py: every benchmark runs in its quickest mode and writes the JSON it promises.
 
 Timing is never asserted here (a shared 2-core machine): only that each script exits 0 and
 its result file has the keys the README and later comparisons read.

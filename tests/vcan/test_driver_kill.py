@@ -1,4 +1,5 @@
-"""The manager process is killed (SIGKILL): every drive switches itself off.
+"""drivers/bringup/drive_bringup.py (0x1016, 0x6007), drivers/sim/nmt.py: the manager process is
+killed (SIGKILL): every drive switches itself off.
 
 Nothing of the manager survives a SIGKILL (its heartbeat comes from the control loop, not a
 kernel BCM task), so each drive's heartbeat consumer (0x1016; consumer time = the setup's

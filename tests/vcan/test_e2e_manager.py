@@ -1,7 +1,8 @@
-"""End to end on real SocketCAN (vcan0), three processes: `rocoma-can sim`, `rocoma-can run`
-and the CLI client; a raw e-stop frame from python-can and from `cansend`; the state frames
-seen by a third listener; SIGTERM -> torque-off frames before the manager exits.
-Low rates (25 Hz): user-mode-linux system calls are slow. Asserts frames and order only."""
+"""rocoma_can/cli/commands.py, rocoma_can/node/server.py, drivers/sim/cli.py: end to end on real
+SocketCAN (vcan0), three processes: `rocoma-can sim`, `rocoma-can run` and the CLI client; a raw
+e-stop frame from python-can and from `cansend`; the state frames seen by a third listener; SIGTERM
+-> torque-off frames before the manager exits. Low rates (25 Hz): user-mode-linux system calls are
+slow. Asserts frames and order only."""
 from __future__ import annotations
 
 import json

@@ -1,7 +1,7 @@
-"""End to end on two SocketCAN buses (vcan0, vcan1): one `rocoma-can sim` process per bus
-(node ids 1 and 2 on each), `rocoma-can run` on the shipped two-bus example, the CLI on
-vcan0. A fault of one bus (vcan1's link set down: every send refused) is a failproof stop:
-torque-off frames on the other bus at once, and on the failed bus once it is back.
+"""drivers/hardware.py, drivers/link/bus_port.py: end to end on two SocketCAN buses (vcan0, vcan1):
+one `rocoma-can sim` process per bus (node ids 1 and 2 on each), `rocoma-can run` on the shipped
+two-bus example, the CLI on vcan0. A fault of one bus (vcan1's link set down: every send refused) is
+a failproof stop: torque-off frames on the other bus at once, and on the failed bus once it is back.
 Asserts frames and order only (user-mode-linux: 25 Hz, ~10 s margins)."""
 from __future__ import annotations
 

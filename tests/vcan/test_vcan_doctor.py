@@ -1,6 +1,6 @@
-"""``rocoma-can doctor`` against live links: vcan0 as configured, a link that is missing, vcan0
-set down, and a real CAN controller (slcan on a pseudo-terminal, kind "can": a bit rate, a
-state, restart-ms) at another bit rate and bus-off."""
+"""rocoma_can/cli/doctor.py, drivers/link/can_link.py: ``rocoma-can doctor`` against live links:
+vcan0 as configured, a link that is missing, vcan0 set down, and a real CAN controller (slcan on a
+pseudo-terminal, kind "can": a bit rate, a state, restart-ms) at another bit rate and bus-off."""
 from __future__ import annotations
 
 import fcntl

@@ -1,5 +1,6 @@
-"""A SocketCAN link that goes down and comes back: the errors python-can raises, and that the
-same Bus objects work again afterwards (what a driver's bus-failure handling relies on)."""
+"""drivers/link/bus.py: a SocketCAN link that goes down and comes back: the errors python-can
+raises, and that the same Bus objects work again afterwards (what a driver's bus-failure handling
+relies on)."""
 from __future__ import annotations
 
 import errno

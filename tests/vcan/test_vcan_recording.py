@@ -1,6 +1,7 @@
-"""Recording on real SocketCAN: `rocoma-can record` (a process of its own, a passive socket)
-writes what an independent socket sees, and can-utils' `canplayer` replays the file onto
-vcan0 frame for frame. Asserts frames and order, never speed (user-mode-linux)."""
+"""rocoma_can/record/can_log.py, rocoma_can/cli/record.py: recording on real SocketCAN: `rocoma-can
+record` (a process of its own, a passive socket) writes what an independent socket sees, and
+can-utils' `canplayer` replays the file onto vcan0 frame for frame. Asserts frames and order, never
+speed (user-mode-linux)."""
 from __future__ import annotations
 
 import signal

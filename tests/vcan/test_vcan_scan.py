@@ -1,6 +1,7 @@
-"""``rocoma-can scan`` / ``init-config`` / ``lss`` (and ``run``) on a SocketCAN link that is
-down or missing: the first mistake on a real robot (the interface never set up). One line
-saying so and how to bring it up, exit 2, before anything is sent."""
+"""rocoma_can/cli/scan.py, init_config.py: ``rocoma-can scan`` / ``init-config`` / ``lss`` (and
+``run``) on a SocketCAN link that is down or missing: the first mistake on a real robot (the
+interface never set up). One line saying so and how to bring it up, exit 2, before anything is
+sent."""
 from __future__ import annotations
 
 import pytest

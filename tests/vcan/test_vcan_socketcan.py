@@ -1,4 +1,5 @@
-"""Real SocketCAN on vcan0/vcan1 (tests/vcan/ is marked `vcan`: run through tools/vcan-run).
+"""drivers/link/bus.py, frame_io.py: real SocketCAN on vcan0/vcan1 (tests/vcan/ is marked `vcan`:
+run through tools/vcan-run).
 
 Inside user-mode-linux system calls are slow, so these tests use low cycle rates and assert
 counts and orderings, never speed.

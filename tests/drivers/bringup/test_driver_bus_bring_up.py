@@ -1,4 +1,5 @@
-"""The CAN driver's bring-up against simulated CiA 402 drives, over a real python-can bus.
+"""drivers/bringup/drive_bringup.py: the CAN driver's bring-up against simulated CiA 402 drives,
+over a real python-can bus.
 
 What must hold: every drive is configured as the safety model needs it (heartbeat consumer
 on the manager, 0x6007, its PDOs) and reaches operation enabled; a drive that cannot (STO
@@ -19,15 +20,9 @@ import time
 
 import canopen
 import pytest
-from fixtures.driver_rig import (
-    MANAGER_NODE_ID,
-    HoldPD,
-    bring_up,
-    drive_configs,
-    enable_with,
-    synced_mark,
-)
+from fixtures.driver_rig import MANAGER_NODE_ID, bring_up, drive_configs, enable_with, synced_mark
 from fixtures.odd_node import OddNode
+from fixtures.rig_controllers import HoldPD
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.bringup.drive_bringup import Phase

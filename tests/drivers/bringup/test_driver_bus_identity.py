@@ -1,5 +1,6 @@
-"""Identity at bring-up (0x1018): a drive that is not the one its config or its file names is
-refused before anything is written to it, and the others come up.
+"""drivers/bringup/drive_bringup.py, drivers/files/identity.py: identity at bring-up (0x1018): a
+drive that is not the one its config or its file names is refused before anything is written to it,
+and the others come up.
 
 What must hold: a drive answering the identity its config requires comes up; swapped
 serial numbers (swapped node ids or cables) are refused naming both values, with no SDO

@@ -1,5 +1,6 @@
-"""`rocoma-can scan` and `rocoma-can lss` against simulated drives over a CAN bus: the real
-CLI entry, the simulator's identities and LSS slaves (CiA 305).
+"""drivers/commission/scan.py, lss.py, rocoma_can/cli/scan.py: `rocoma-can scan` and `rocoma-can
+lss` against simulated drives over a CAN bus: the real CLI entry, the simulator's identities and LSS
+slaves (CiA 305).
 
 The tests taking ``sim_interface`` or ``can_setup`` run on python-can's virtual bus and
 again on SocketCAN vcan0 (the vcan suite, through tools/vcan-run)."""
@@ -15,8 +16,9 @@ import pytest
 from can.interfaces.virtual import VirtualBus
 from fixtures.budgets import GUEST_STALL, STALL, within
 from fixtures.bus import scan_bus_args
-from fixtures.driver_rig import HoldPD, bring_up, enable_with
+from fixtures.driver_rig import bring_up, enable_with
 from fixtures.odd_node import OddNode
+from fixtures.rig_controllers import HoldPD
 
 from rocoma_can import ManagerState
 from rocoma_can.cli.main import main

@@ -1,7 +1,8 @@
-"""Drive-side limits (``limits:``) over a real python-can bus against simulated drives:
-bring-up writes them and reads them back, a drive that refuses or keeps another value fails
-its bring-up naming the object, the manager clips commands to the same limits and e-stops
-on a following error, and a drive's own 0x607D stops it at the limit with the manager gone.
+"""drivers/plan/limits.py, drivers/cycle/command.py (limit_command): drive-side limits (``limits:``)
+over a real python-can bus against simulated drives: bring-up writes them and reads them back, a
+drive that refuses or keeps another value fails its bring-up naming the object, the manager clips
+commands to the same limits and e-stops on a following error, and a drive's own 0x607D stops it at
+the limit with the manager gone.
 
 Runs on python-can's virtual bus (fast suite) and on SocketCAN vcan0 (vcan suite)."""
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""What the CAN driver takes as a broken drive or bus, and what it does not.
+"""drivers/cycle/supervision.py, receive.py, drivers/link/bus_port.py: what the CAN driver takes as
+a broken drive or bus, and what it does not.
 
 What must hold: a lost heartbeat, missing TPDOs, a statusword that is no CiA 402 state, a
 TPDO of the wrong length and a bus-off error frame are each a fault at once (one drive: an
@@ -17,7 +18,8 @@ import struct
 import threading
 
 import can
-from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig, bring_up, enable_with, status_report
+from fixtures.driver_rig import VIRTUAL, Rig, bring_up, enable_with, status_report
+from fixtures.rig_controllers import Brake, HoldPD
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.protocol import cia301

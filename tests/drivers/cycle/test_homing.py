@@ -8,8 +8,9 @@ import threading
 import time
 
 import pytest
-from fixtures.driver_rig import VIRTUAL, Rig, Sine
+from fixtures.driver_rig import VIRTUAL, Rig
 from fixtures.paths import TESTS
+from fixtures.rig_controllers import Sine
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can import ManagerState, SwitchResult

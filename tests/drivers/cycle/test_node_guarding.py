@@ -1,7 +1,8 @@
-"""Node guarding (CiA 301) for drives that have no heartbeat (tests/fixtures/eds/guarded.eds:
-guard time and life time factor, no 0x1016/0x1017, as Faulhaber's CC and Infranor's Easy-ak
-files). The cycle sends a remote request to each guarded drive every ``heartbeat_ms``; the
-drive answers with its NMT state and a toggle bit, and watches the requests (life guarding).
+"""drivers/cycle/node_guarding.py, drivers/sim/nmt.py: node guarding (CiA 301) for drives that have
+no heartbeat (tests/fixtures/eds/guarded.eds: guard time and life time factor, no 0x1016/0x1017, as
+Faulhaber's CC and Infranor's Easy-ak files). The cycle sends a remote request to each guarded drive
+every ``heartbeat_ms``; the drive answers with its NMT state and a toggle bit, and watches the
+requests (life guarding).
 
 Run on python-can's virtual bus (fast suite) and on SocketCAN vcan0 (vcan suite): a remote
 frame is a frame of its own kind on a real socket. Every wait is a budget of the setup.
@@ -14,15 +15,10 @@ import time
 
 import can
 import pytest
-from fixtures.driver_rig import (
-    Brake,
-    Rig,
-    Sine,
-    seconds_until_all_off,
-    synced_mark,
-)
+from fixtures.driver_rig import Rig, seconds_until_all_off, synced_mark
 from fixtures.odd_node import Responder, frames
 from fixtures.paths import TESTS
+from fixtures.rig_controllers import Brake, Sine
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

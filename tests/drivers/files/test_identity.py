@@ -1,6 +1,6 @@
-"""A drive's ``identity:`` in the config, what check-config says bring-up will require of
-each drive's 0x1018, and how a found identity is judged (no bus: the bring-up side is
-tests/drivers/bringup/test_driver_bus_identity.py)."""
+"""drivers/files/identity.py: a drive's ``identity:`` in the config, what check-config says bring-up
+will require of each drive's 0x1018, and how a found identity is judged (no bus: the bring-up side
+is tests/drivers/bringup/test_driver_bus_identity.py)."""
 from __future__ import annotations
 
 from pathlib import Path

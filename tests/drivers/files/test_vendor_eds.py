@@ -1,7 +1,7 @@
-"""Drives described by vendor-like EDS/DCF files (tests/fixtures/eds/, modelled on typical
-vendor files): what check-config reports, that the simulator emulates exactly the file
-(its objects, access types and modes), bring-up, a cyclic command, and e-stop -> torque-off
-frames on the drive's own PDO layout.
+"""drivers/files/device_file.py, capabilities.py: drives described by vendor-like EDS/DCF files
+(tests/fixtures/eds/, modelled on typical vendor files): what check-config reports, that the
+simulator emulates exactly the file (its objects, access types and modes), bring-up, a cyclic
+command, and e-stop -> torque-off frames on the drive's own PDO layout.
 
     fixed_pdo.eds        read-only mappings: RPDO1 = controlword + target position,
                          TPDO1 = statusword + position, TPDO2 = velocity + torque; CSP, PP
@@ -20,30 +20,19 @@ frames on the drive's own PDO layout.
 """
 from __future__ import annotations
 
-import os
 import struct
-from pathlib import Path
 
 import canopen
 import pytest
-from canopen.sdo.exceptions import SdoAbortedError
-from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Rig, Sine
-from fixtures.paths import ROOT, TESTS
+from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Rig
+from fixtures.paths import EDS, ROOT
 
-from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.bringup.drive_bringup import NamedSdo, ObjectRefused
 from rocoma_can.drivers.files.capabilities import read_capabilities
 from rocoma_can.drivers.files.device_file import read_device_file
 from rocoma_can.drivers.plan.config import DriveConfig
 from rocoma_can.drivers.plan.drive_plan import plan_drive
 from rocoma_can.drivers.protocol import cia301, cia402
-from rocoma_can.drivers.protocol.cia402 import State402
-from rocoma_can.drivers.protocol.joints import JointMode
-
-EDS = TESTS / "fixtures" / "eds"
-ABORT_NOT_IN_OD = 0x06020000
-ABORT_WRITE_READONLY = 0x06010002
-ABORT_INVALID_VALUE = 0x06090030
 
 
 def drive(file: str, node_id: int = 1, **kw) -> DriveConfig:
@@ -165,192 +154,6 @@ def test_a_mode_the_drive_does_not_list_is_refused_naming_both():
         plan_drive(drive("arm_ip_pp_vl.eds"))
 
 
-# --- the simulator emulates the file ---------------------------------------------------------
-def _abort_code(call) -> int:
-    with pytest.raises(SdoAbortedError) as info:
-        call()
-    return info.value.code
-
-
-def test_the_simulator_has_exactly_the_files_objects_and_access(sim_bench):
-    bench = sim_bench(1, eds_path=str(EDS / "fixed_pdo.eds"))
-    sdo = bench.node(1).sdo
-    assert _abort_code(lambda: sdo.upload(cia402.TARGET_VELOCITY, 0)) == ABORT_NOT_IN_OD
-    assert _abort_code(lambda: sdo.upload(cia301.RPDO_COMM + 1, 1)) == ABORT_NOT_IN_OD
-    # a fixed mapping stays fixed
-    assert _abort_code(lambda: sdo.download(cia301.RPDO_MAP, 0, b"\0")) == ABORT_WRITE_READONLY
-    # only the modes of its 0x6502 (CSP, PP)
-    assert _abort_code(lambda: sdo.download(cia402.MODES_OF_OPERATION, 0,
-                                            struct.pack("<b", 9))) == ABORT_INVALID_VALUE
-    sdo.download(cia402.MODES_OF_OPERATION, 0, struct.pack("<b", 8))
-    assert bench.drive(1).mode_display == 8
-
-
-def test_a_simulated_drive_without_0x6007_does_not_switch_itself_off(sim_bench):
-    """The honest emulation: losing the manager's heartbeat gives EMCY 0x8130 and 0x1029's
-    NMT change, but no CiA 402 reaction (a drive that cannot be told one)."""
-    bench = sim_bench(1, eds_path=str(EDS / "no_abort_option.eds"))
-    assert _abort_code(lambda: bench.node(1).sdo.upload(cia402.ABORT_CONNECTION_OPTION, 0)) \
-        == ABORT_NOT_IN_OD
-    drive_ = bench.drive(1)
-    with bench.segment.lock:
-        drive_.cia402.set_state(State402.OPERATION_ENABLED)
-        drive_._heartbeat_lost()
-    assert drive_.state402 == State402.OPERATION_ENABLED  # the joint keeps its command
-    (emcy,) = bench.recorder.wait_for_count(1, bench.stall, cia301.EMCY + 1)
-    assert struct.unpack_from("<H", emcy.data)[0] == cia301.EMCY_HEARTBEAT
-
-
-def test_a_simulator_loads_files_with_empty_defaults_and_no_factor_group(sim_bench):
-    bench = sim_bench(1, eds_path=str(EDS / "minimal.eds"), increments_per_rev=4096)
-    assert bench.drive(1).increments_per_rad == pytest.approx(4096 / (2 * 3.141592653589793))
-    assert bench.node(1).sdo.upload(0x1018, 2) == b"\0\0\0\0"  # empty default: 0
-
-
-# --- bring-up, a cyclic command, e-stop -> torque-off, per file -------------------------------
-DRIVABLE = {
-    "fixed_pdo.eds": dict(node=1),
-    "no_abort_option.eds": dict(node=1),
-    "commissioned.dcf": dict(node=5, increments_per_rev=0x40000),
-    "minimal.eds": dict(node=1),
-    "hand_written.eds": dict(node=1),
-    "node1_baked.dcf": dict(node=3, increments_per_rev=0x40000),  # exported for node 1
-    "tight_od.eds": dict(node=2, modes=("ip",)),
-    "fixed_split.eds": dict(node=1),
-    "guarded.eds": dict(node=1),  # node guarding only
-}
-
-
-@pytest.mark.parametrize("file", sorted(DRIVABLE))
-def test_bring_up_track_and_torque_off_on_each_file(file, sim_segment_factory, bus_factory,
-                                                    frame_recorder, virtual_channel):
-    info = DRIVABLE[file]
-    node, increments = info["node"], info.get("increments_per_rev", INCREMENTS_PER_REV)
-    segment = sim_segment_factory([node], eds_path=str(EDS / file),
-                                  increments_per_rev=increments)
-    recorder = frame_recorder(virtual_channel)
-    rig = Rig.for_setup(bus_factory(), [node], VIRTUAL, modes=info.get("modes", ("csp",)),
-                        drive={"eds": str(EDS / file), "increments_per_rev": increments})
-    try:
-        budget = VIRTUAL.bring_up_budget(1)
-        assert rig.run_until(lambda: not rig.hw.starting, budget), rig.hw.drive_status()
-        assert rig.hw.all_ready, rig.hw.drive_status()
-        sim = segment.drives[node]
-        assert sim.nmt_state == cia301.NmtState.OPERATIONAL
-        if rig.hw.plans[0].guarded:  # watches us: by life guarding, or the heartbeat
-            assert sim.od_value(cia301.LIFE_TIME_FACTOR) > 0 and sim.nmt.guard_requests > 0
-        else:
-            assert sim.od_value(cia301.CONSUMER_HEARTBEAT_TIME, 1) >> 16 == 100
-        rig.mgr.add_controller(Sine("sine", JointMode.CSP, amplitude=0.2))
-        assert rig.switch("sine") == SwitchResult.SWITCHED
-        assert rig.run_until(lambda: rig.hw.all_enabled, VIRTUAL.enable_budget()), \
-            rig.hw.drive_status()
-        rig.run(0.5)
-        assert rig.mgr.state == ManagerState.OK and sim.state402 == State402.OPERATION_ENABLED
-        assert abs(sim.position_rad) > 0.01  # it moved as commanded
-        rpdo = rig.hw.layouts[0].rpdos[0]
-        mark = recorder.mark()
-        rig.mgr.emergency_stop("test")  # no emergency controller: FAILPROOF
-        rig.run(10 * rig.dt)
-        assert rig.states[-1] == ManagerState.FAILPROOF
-        frames = recorder.wait_for_count(5, VIRTUAL.stall, rpdo.cob_id, since=mark)
-        controlwords = [struct.unpack_from("<H", f.data)[0] for f in frames]
-        assert controlwords[-1] == 0 and len(frames[-1].data) == rpdo.size
-        assert rig.run_until(lambda: sim.state402 == State402.SWITCH_ON_DISABLED,
-                             VIRTUAL.detect_budget())
-    finally:
-        rig.close()
-
-
-@pytest.mark.parametrize("file", sorted(p.name for p in EDS.iterdir()))
-def test_the_demo_walks_through_on_each_file(file):
-    """`rocoma-can demo --eds FILE`: the modes the file supports, the steps it cannot do
-    skipped with the reason, and every step that runs passes."""
-    from rocoma_can.cli.demo import run_demo
-    lines: list[str] = []
-    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append,
-                      eds=str(EDS / file))
-    assert report.ok, "\n".join(lines)
-    assert lines[0].startswith(f"rocoma-can demo: the drives emulate {EDS / file}")
-    assert report.steps[-1].name == "loop stop -> torque-off frames"
-    if file == "commissioned.dcf":  # one node's file: from that node on, COB-IDs re-derived
-        assert "  note: a DCF of node 5: the drives from node 5 on, each with its COB-IDs " \
-            "re-derived" in lines
-
-
-def test_the_demo_says_why_it_cannot_use_a_file(tmp_path, capsys):
-    from rocoma_can.cli.main import main
-    velocity_only = tmp_path / "pv_only.eds"
-    velocity_only.write_text((EDS / "minimal.eds").read_text().replace(
-        "DefaultValue=0x00000180", "DefaultValue=0x00000100"))  # CSV only
-    assert main(["demo", "--eds", str(velocity_only)]) == 2
-    assert "no position mode the demo's controllers can use" in capsys.readouterr().out
-    demo_dirs = Path(os.environ["XDG_STATE_HOME"]) / "rocoma-can" / "demo"
-    assert not list(demo_dirs.iterdir())  # it did not run: no empty recording left behind
-
-
-@pytest.mark.parametrize("file", sorted(p.name for p in EDS.iterdir()))
-def test_canopens_own_cia402_master_walks_each_simulated_variant(file, sim_segment_factory,
-                                                                bus_factory):
-    """canopen's BaseNode402 (a CiA 402 master nobody here wrote) reads the simulated drive's
-    PDO configuration by SDO, then walks it to OPERATION ENABLED and back through its PDOs."""
-    from canopen.profiles.p402 import BaseNode402
-    node_id = 5 if file.endswith(".dcf") else 1
-    segment = sim_segment_factory([node_id], eds_path=str(EDS / file))
-    network = canopen.Network(bus_factory())
-    network.connect()
-    # canopen's own master on the dictionary the device-file reader makes (canopen alone
-    # cannot read hand_written.eds: a Latin-1 byte, a key given twice)
-    node = BaseNode402(node_id, read_device_file(str(EDS / file)).object_dictionary(node_id))
-    for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE",
-                 "TIMEOUT_CHECK_TPDO"):  # a loaded 2-core machine answers late, not wrong
-        setattr(node, name, VIRTUAL.stall)
-    network.add_node(node)
-    node.sdo.RESPONSE_TIMEOUT = VIRTUAL.stall
-    try:
-        node.nmt.send_command(0x80)  # pre-operational: PDO configuration by SDO
-        node.setup_402_state_machine(read_pdos=True)
-        assert 0x6040 in node.rpdo_pointers and 0x6041 in node.tpdo_pointers  # via PDOs
-        node.nmt.send_command(0x01)  # operational: PDOs
-        network.sync.start(0.01)
-        node.state = "OPERATION ENABLED"
-        assert segment.drives[node_id].state402 == State402.OPERATION_ENABLED
-        node.state = "SWITCH ON DISABLED"
-        assert segment.drives[node_id].state402 == State402.SWITCH_ON_DISABLED
-    finally:
-        network.sync.stop()
-        network.disconnect()
-
-
-def test_canopen_reads_every_file_as_the_driver_does():
-    for path in sorted(EDS.iterdir()):
-        od = read_device_file(str(path)).object_dictionary(5)
-        assert cia402.STATUSWORD in od and cia402.CONTROLWORD in od, path.name
-
-
-def test_a_controller_that_needs_missing_feedback_is_refused_at_load():
-    from rocoma_can.cli.demo_config import demo_config
-    from rocoma_can.errors import ConfigError
-    from rocoma_can.runtime.config import validate
-    cfg = demo_config("x", drives=2, rate=100.0, emulated=None)
-    for d in cfg["drives"]:
-        d["eds"] = str(EDS / "minimal.eds")  # no 0x6077: no torque feedback
-        d["modes"] = ["csp"]
-        d["feedback"] = ["position"]  # and velocity left out on purpose
-    cfg["controllers"][0]["params"]["mode"] = "CSP"
-    with pytest.raises(ConfigError) as info:
-        validate(cfg)
-    text = str(info.value)
-    assert "controller 'damp' needs velocity feedback, which drive(s) joint1, joint2 do " \
-           "not report" in text
-    for d in cfg["drives"]:
-        d["feedback"] = ["position", "velocity"]
-    for entry in cfg["controllers"]:
-        entry["emergency"] = "damp"
-    cfg["emergency_controllers"][0] = {"name": "damp", "plugin": "damp"}
-    assert validate(cfg).plans["joint1"].drive.feedback == ("position", "velocity")
-
-
 # --- the layout's limits, from the review of real files ---------------------------------------
 def _variant(tmp_path, name: str, edit) -> str:
     text = (ROOT / "eds" / "cia402_drive.eds").read_text()
@@ -470,16 +273,6 @@ def test_check_config_says_what_is_read_from_the_drive():
     with pytest.raises(ValueError, match=r"mode IP is not supported: its target objects "
                                          r"\(0x6502 has no value in the file\) lists PP, PV"):
         plan_drive(drive("hand_written.eds", modes=("ip",)))
-
-
-def test_the_simulator_answers_plausible_values_where_the_file_has_none(sim_bench):
-    bench = sim_bench(1, eds_path=str(EDS / "hand_written.eds"))
-    sdo = bench.node(1).sdo
-    assert struct.unpack("<I", sdo.upload(0x1000, 0))[0] == 0x00020192  # a CiA 402 servo
-    modes = struct.unpack("<I", sdo.upload(cia402.SUPPORTED_DRIVE_MODES, 0))[0]
-    assert modes == 0x381 | 0x4  # its targets' modes it implements: PP, PV, CSP, CSV, CST
-    assert sdo.upload(cia402.GEAR_RATIO, 1) == sdo.upload(cia402.GEAR_RATIO, 2) == b"\1\0\0\0"
-    assert bench.drive(1).objects.assumed[(0x1000, 0)] == 0x00020192
 
 
 def test_a_dcf_exported_for_node_1_gives_each_node_its_own_cob_ids():

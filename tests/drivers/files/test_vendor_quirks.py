@@ -1,7 +1,7 @@
-"""More vendor-file quirks, each as its own small variant of tests/fixtures/eds/minimal.eds
-written for the test: a file the project can run runs (check-config, the simulator, the
-demo's walk-through with its torque-off), one it cannot is refused in one line naming the
-file, the object and why.
+"""drivers/files/device_file.py, capabilities.py: more vendor-file quirks, each as its own small
+variant of tests/fixtures/eds/minimal.eds written for the test: a file the project can run runs
+(check-config, the simulator, the demo's walk-through with its torque-off), one it cannot is refused
+in one line naming the file, the object and why.
 
     a default PDO mapping naming an object the file does not describe (a vendor object
     left out of the file): the simulator starts that PDO unmapped, the master remaps it

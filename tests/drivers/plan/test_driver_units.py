@@ -1,4 +1,5 @@
-"""Pure parts of the CAN driver: config checks, PDO layouts and codecs, scaling, limit_command."""
+"""drivers/plan/config.py, pdo_layout.py, scaling.py: pure parts of the CAN driver: config checks,
+PDO layouts and codecs, scaling, limit_command."""
 from __future__ import annotations
 
 import math

@@ -1,8 +1,8 @@
-"""Two axes in one node (CiA 402-2, as Roboteq's dual-channel controllers): each axis is a
-drive entry with `axis: n`, its profile objects at + (n - 1) x 0x800 in the node's
-dictionary (tests/fixtures/eds/two_axes.eds). The node's PDO channels are shared out between
-its axes, its lowest axis configures the node (NMT, heartbeat, consumer), and each axis's
-faults stay its own.
+"""drivers/plan/config.py, drive_plan.py (two axes in one node): two axes in one node (CiA 402-2, as
+Roboteq's dual-channel controllers): each axis is a drive entry with `axis: n`, its profile objects
+at + (n - 1) x 0x800 in the node's dictionary (tests/fixtures/eds/two_axes.eds). The node's PDO
+channels are shared out between its axes, its lowest axis configures the node (NMT, heartbeat,
+consumer), and each axis's faults stay its own.
 
 The planning tests need no bus; the others run the real driver against a simulated
 two-axis node on python-can's virtual bus (fast suite) and on SocketCAN vcan0 (vcan suite).
@@ -14,8 +14,9 @@ import math
 import time
 
 import pytest
-from fixtures.driver_rig import Brake, Rig
+from fixtures.driver_rig import Rig
 from fixtures.paths import TESTS
+from fixtures.rig_controllers import Brake
 
 from rocoma_can import Controller, ManagerState, SwitchResult
 from rocoma_can.drivers.plan.config import DriveConfig, check_drives

@@ -1,7 +1,7 @@
-"""A simulated node with two CiA 402 axes (CiA 402-2, tests/fixtures/eds/two_axes.eds: axis
-2's objects at +0x800), driven over a python-can virtual bus by canopen's SDO client, raw
-PDO frames and SYNC: one CANopen node (one boot-up, one heartbeat, one EMCY producer), two
-state machines, two joints."""
+"""drivers/sim/drive.py (two axes): a simulated node with two CiA 402 axes (CiA 402-2,
+tests/fixtures/eds/two_axes.eds: axis 2's objects at +0x800), driven over a python-can virtual bus
+by canopen's SDO client, raw PDO frames and SYNC: one CANopen node (one boot-up, one heartbeat, one
+EMCY producer), two state machines, two joints."""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
-"""The CiA 402 state machine of the simulated drive, transition by transition."""
+"""drivers/sim/state_machine.py: the CiA 402 state machine of the simulated drive, transition by
+transition."""
 from __future__ import annotations
 
 import struct

@@ -1,4 +1,5 @@
-"""CSP, CSV and CST move the simulated joint as commanded; torque off lets it coast."""
+"""drivers/sim/dynamics.py: CSP, CSV and CST move the simulated joint as commanded; torque off lets
+it coast."""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
-"""The shipped EDS files import cleanly and hold what the driver and the manager node need."""
+"""eds/*.eds: the shipped EDS files import cleanly and hold what the driver and the manager node
+need."""
 from __future__ import annotations
 
 import logging

@@ -1,4 +1,5 @@
-"""Fault injection: each fault produces the frames (or the silence) a real drive would."""
+"""drivers/sim/faults.py: fault injection: each fault produces the frames (or the silence) a real
+drive would."""
 from __future__ import annotations
 
 import os

@@ -5,7 +5,7 @@ exactly as with a thread per segment; a heartbeat consumer on a bus with nothing
 it still times out (the group vouches for idle buses, or a lost master would never be
 seen); a bus that fails is recorded in its own segment and the others are still served;
 buses one thread cannot wait on together (python-can's virtual) fall back to a thread per
-segment. The waiting itself (frame_io.BusSelector) is tested in test_inproc_bus.py; the
+segment. The waiting itself (frame_io.BusSelector) is tested in test_inproc.py; the
 group's joined step in test_sim_group_joined_steps.py, lockstep in test_sim_group_lockstep.py.
 """
 from __future__ import annotations
@@ -17,7 +17,8 @@ import uuid
 
 import can
 import pytest
-from fixtures.driver_rig import VCAN, VIRTUAL, Brake, HoldPD, Rig
+from fixtures.driver_rig import VCAN, VIRTUAL, Rig
+from fixtures.rig_controllers import Brake, HoldPD
 from fixtures.sim_group import NODES, sdo_write, send, wait_until
 
 from rocoma_can import ManagerState, SwitchResult

@@ -1,6 +1,6 @@
-"""The simulated nodes' LSS slaves (CiA 305), service by service, driven over the bus by
-canopen's LssMaster (the reference master); answers checked on the frames too. Runs on the
-virtual bus and on vcan0."""
+"""drivers/sim/lss.py: the simulated nodes' LSS slaves (CiA 305), service by service, driven over
+the bus by canopen's LssMaster (the reference master); answers checked on the frames too. Runs on
+the virtual bus and on vcan0."""
 from __future__ import annotations
 
 import pytest

@@ -1,4 +1,5 @@
-"""NMT, boot-up, heartbeat producer and heartbeat consumer (0x1016 / 0x6007 / 0x1029)."""
+"""drivers/sim/nmt.py: NMT, boot-up, heartbeat producer and heartbeat consumer (0x1016 / 0x6007 /
+0x1029)."""
 from __future__ import annotations
 
 import statistics

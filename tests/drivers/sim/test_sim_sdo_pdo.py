@@ -1,4 +1,5 @@
-"""The simulated drive's SDO server and PDOs, driven by a canopen client on another bus."""
+"""drivers/sim/objects.py, pdo.py: the simulated drive's SDO server and PDOs, driven by a canopen
+client on another bus."""
 from __future__ import annotations
 
 import struct

@@ -1,4 +1,5 @@
-"""The CAN driver's recovery of faulted drives, and when a drive back is commanded again.
+"""drivers/cycle/recovery.py: the CAN driver's recovery of faulted drives, and when a drive back is
+commanded again.
 
 What must hold: a recovered fault clears the latched e-stop and the next switch enables
 every drive; a drive that is ready again under the emergency controller, or after the
@@ -14,7 +15,8 @@ from __future__ import annotations
 
 import time
 
-from fixtures.driver_rig import VIRTUAL, Brake, HoldPD, Rig, bring_up, enable_with
+from fixtures.driver_rig import VIRTUAL, Rig, bring_up, enable_with
+from fixtures.rig_controllers import Brake, HoldPD
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.protocol import cia301

@@ -1,4 +1,5 @@
-"""The in-process bus (``interface: inproc``): what a CAN bus between threads must keep.
+"""drivers/link/inproc.py, frame_io.py: the in-process bus (``interface: inproc``): what a CAN bus
+between threads must keep.
 
 Every endpoint on a channel sees every other endpoint's frames, in send order, each frame
 as it was when sent (the sender re-fills its pre-allocated frames at once); a reader nobody

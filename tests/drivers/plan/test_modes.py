@@ -11,11 +11,11 @@ from fixtures.driver_rig import (
     RATED_TORQUE_NM,
     VIRTUAL,
     Rig,
-    Sine,
     pd_settle,
     position_settle,
 )
 from fixtures.paths import ROOT, TESTS
+from fixtures.rig_controllers import Sine
 
 from rocoma_can import Controller, ManagerState, SwitchResult
 from rocoma_can.drivers.plan.config import DriveConfig

@@ -1,5 +1,5 @@
-"""The frame recorder on python-can's virtual bus: it sees what every other bus on the channel
-sends, in order, and its waits are bounded."""
+"""tests/fixtures/recorder.py: the frame recorder on python-can's virtual bus: it sees what every
+other bus on the channel sends, in order, and its waits are bounded."""
 from __future__ import annotations
 
 import threading

@@ -1,4 +1,5 @@
-"""The CAN driver commanding simulated CiA 402 drives in each mode, over a real python-can bus.
+"""drivers/cycle/command.py: the CAN driver commanding simulated CiA 402 drives in each mode, over a
+real python-can bus.
 
 What must hold: a PD holds in CST and a sine is tracked in CSP and CSV (the drive side
 follows the targets it received, the joints really swing); a mode no drive is configured
@@ -14,7 +15,8 @@ from __future__ import annotations
 import struct
 
 import numpy as np
-from fixtures.driver_rig import RPDO1, HoldPD, Sine, bring_up, enable_with, synced_mark
+from fixtures.driver_rig import RPDO1, bring_up, enable_with, synced_mark
+from fixtures.rig_controllers import HoldPD, Sine
 
 from rocoma_can import ManagerState, SwitchResult
 from rocoma_can.drivers.protocol import cia402

@@ -1,4 +1,5 @@
-"""The CAN driver's torque-off path: every drive gets controlword 0, whatever else fails.
+"""drivers/cycle/frames_out.py, rocoma_can/stopper.py: the CAN driver's torque-off path: every drive
+gets controlword 0, whatever else fails.
 
 What must hold: a second fault under the emergency controller switches every drive off in
 the same cycle and keeps them off; the torque-off frames are the hardware's own, whatever
@@ -18,15 +19,8 @@ import struct
 import threading
 import time
 
-from fixtures.driver_rig import (
-    RPDO1,
-    Brake,
-    HoldPD,
-    bring_up,
-    enable_with,
-    seconds_until_all_off,
-    synced_mark,
-)
+from fixtures.driver_rig import RPDO1, bring_up, enable_with, seconds_until_all_off, synced_mark
+from fixtures.rig_controllers import Brake, HoldPD
 
 from rocoma_can import ManagerState
 from rocoma_can.drivers.protocol import cia301
