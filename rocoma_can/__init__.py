@@ -17,8 +17,7 @@ remote       the rules for commands from afar (Zenoh, Foxglove, ROS 2): stops al
 inputs       commands from outside for the controllers that follow a topic (ros2_command)
 errors       RocomaError, the one root of the errors raised on purpose
 user_files   files a user names (URDF, EDS) read only when regular: a FIFO cannot hang
-cli_args     argument types every verb shares
-exit_codes   the exit codes every verb shares
+spelling     the hint an unknown name gets: the nearest known one (did_you_mean)
 __main__     ``python -m rocoma_can``: the rocoma-can command
 _lazy        package attributes imported on first use (a fast CLI start)
 

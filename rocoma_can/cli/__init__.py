@@ -1,12 +1,14 @@
-"""The ``rocoma-can`` command: main (the parser; each verb's module registers itself),
-commands (``run``, ``check-config`` and the verbs that talk to a running manager), record
-(``record``, ``export``, ``plot``), live (``status --watch``), scaffold (``new-controller``),
-scan (``scan``, ``lss``), init_config (``init-config``), doctor (``doctor``), demo (the
-whole system on in-process buses), demo_config (its drives and config), demo_sim (its
-simulated drives, in a process of their own), demo_probe (its check of the loop's
-torque-off frames) and demo_stops (an operator's e-stop ends its walk-through).
-``rocoma-can fleet`` lives with the fleet (fleet/client.py), ``rocoma-can sim`` with the
-simulator (drivers/sim/cli.py).
+"""The ``rocoma-can`` command, a module per group of verbs: main (the parser; each verb's
+module registers itself), run (``run``, ``check-config``), operator (``switch``,
+``estop``, ``failproof``, ``clear``, ``recover``, ``home``, ``status``, ``list``: the
+verbs that talk to a running manager), status_watch (``status --watch``), fleet
+(``fleet`` and the operator verbs' ``--zenoh`` path), record (``record``, ``export``,
+``plot``), scan (``scan``, ``lss``), init_config (``init-config``, with device_match: a
+node's device file), doctor (``doctor``), scaffold (``new-controller``), sim (``sim``:
+simulated drives on a CAN interface) and demo/ (``demo``: the whole system on in-process
+buses). What they share: console (how every verb speaks), args (argparse types), hints
+(what a refusal says to do), exit_codes, foxglove_args (``--foxglove`` for run and demo),
+state_dirs (where they write by default).
 """
 from __future__ import annotations
 

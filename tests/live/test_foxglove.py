@@ -19,7 +19,7 @@ from fixtures.budgets import odd_late
 from fixtures.paths import ROOT
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
-from rocoma_can.cli.demo_config import demo_config, demo_urdf
+from rocoma_can.cli.demo.config import demo_config, demo_urdf
 from rocoma_can.live.foxglove import LAYOUT, FoxgloveConfig
 from rocoma_can.live.front import LEGACY_SUBPROTOCOL
 from rocoma_can.live.messages import INFO, MANAGER_CHANNELS, ROBOT, WARNING, event_log
@@ -429,7 +429,7 @@ def test_the_demo_serves_its_robot_live(capsys):
     import re
     import threading
 
-    from rocoma_can.cli.demo import run_demo
+    from rocoma_can.cli.demo.walkthrough import DemoOptions, Walkthrough
     lines: list[str] = []
     served = threading.Event()
 
@@ -457,8 +457,8 @@ def test_the_demo_serves_its_robot_live(capsys):
             viewer.close()
     viewer = threading.Thread(target=watch)
     viewer.start()
-    report = run_demo(drives=2, rate=100.0, duration=3.0, out=out, record=None,
-                      foxglove=_view())
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=3.0, record=None,
+                                     foxglove=_view()), out=out).run()
     viewer.join(DEMO_WAIT)
     assert report.ok, "\n".join(lines)
     assert seen.get("names") == ["joint1", "joint2"], (seen, lines)

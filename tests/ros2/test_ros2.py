@@ -21,7 +21,7 @@ from mcap_ros2._dynamic import generate_dynamic
 from zenoh_ros2_sdk import ROS2Publisher, ROS2ServiceClient, ROS2Subscriber, ZenohSession
 
 from rocoma_can import ManagerState
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.ros2.interfaces import JOINT_STATE, Interfaces
 from rocoma_can.ros2.node import EVENT_QUEUE, Ros2Error
 

@@ -49,8 +49,8 @@ def emulate(path: str, drives: int) -> Emulated:
     """Fit the demo to ``path``: the position mode it supports (CSP, else IP, else PP), CST
     for the emergency controller damp where it has it (else hold in the position mode),
     its scaling, its node id if it is a DCF. ValueError when no position mode fits."""
-    from ..drivers.files.capabilities import CapabilityError, read_capabilities
-    from ..drivers.protocol.cia402 import (
+    from ...drivers.files.capabilities import CapabilityError, read_capabilities
+    from ...drivers.protocol.cia402 import (
         CONTROLWORD,
         GEAR_RATIO,
         MAX_AXES,
@@ -113,8 +113,8 @@ def emulate(path: str, drives: int) -> Emulated:
                      f"{caps.commissioned_node_id} on, each with its COB-IDs re-derived")
     # One drive measured against the file says what would be wrong with every drive: once,
     # about the file, not once per drive of the config.
-    from ..drivers.plan.config import DriveConfig
-    from ..drivers.plan.drive_plan import plan_drive, plan_drives
+    from ...drivers.plan.config import DriveConfig
+    from ...drivers.plan.drive_plan import plan_drive, plan_drives
 
     def axis(n: int) -> DriveConfig:
         return DriveConfig.from_dict({"name": f"joint{n}", "node_id": fitted.first_node,
