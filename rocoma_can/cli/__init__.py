@@ -1,5 +1,5 @@
 """The ``rocoma-can`` command, a module per group of verbs: main (the parser; each verb's
-module registers itself), run (``run``, ``check-config``), operator (``switch``,
+module registers itself), run (``run``, ``check-config``), operator_verbs (``switch``,
 ``estop``, ``failproof``, ``clear``, ``recover``, ``home``, ``status``, ``list``: the
 verbs that talk to a running manager), status_watch (``status --watch``), fleet
 (``fleet`` and the operator verbs' ``--zenoh`` path), record (``record``, ``export``,

@@ -1,7 +1,7 @@
 """``rocoma-can fleet`` (every manager alive on Zenoh, with its state) and the operator
 verbs' ``--zenoh`` path: ``switch``, ``list``, the stops and ``status`` through a manager's
 Zenoh queries (fleet/client.py's FleetClient) instead of its CANopen node. The exit codes
-mean what they mean over SDO (cli/operator.py)."""
+mean what they mean over SDO (cli/operator_verbs.py)."""
 from __future__ import annotations
 
 import argparse

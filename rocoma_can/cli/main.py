@@ -24,7 +24,7 @@ from .exit_codes import INTERRUPTED, OK, PIPE_CLOSED, USAGE
 COMMAND_MODULES: tuple[str, ...] = (
     "rocoma_can.cli.demo.command",
     "rocoma_can.cli.run",
-    "rocoma_can.cli.operator",
+    "rocoma_can.cli.operator_verbs",
     "rocoma_can.cli.scan",
     "rocoma_can.cli.init_config",
     "rocoma_can.cli.doctor",

@@ -53,7 +53,7 @@ def _check_config(args: argparse.Namespace) -> int:
             print(problem, flush=True)
         print(f"{len(exc.problems)} problem(s)", flush=True)
         return USAGE
-    print(f"{args.config}: ok: {len(config.drives)} drives on {bus_summary(config)} at "
+    print(f"{args.config}: ok: {len(config.drives)} drives on {_buses(config)} at "
           f"{config.rate:g} Hz, manager node {config.manager.node_id}, "
           + (f"e-stop COB-ID 0x{config.manager.estop_cob_id:03X}"
              if config.manager.estop_cob_id else "no e-stop frame (manager.estop_cob_id: 0)"),
@@ -76,7 +76,7 @@ def _check_config(args: argparse.Namespace) -> int:
     return OK
 
 
-def bus_summary(config: RuntimeConfig) -> str:
+def _buses(config: RuntimeConfig) -> str:
     """"socketcan:can0", or per bus "left (socketcan:can0, 3 drives), ..."."""
     if len(config.buses) == 1:
         b = config.bus
@@ -177,7 +177,7 @@ def _interrupted(when: str) -> int:
 def _say_started(runtime: Runtime, args: argparse.Namespace) -> None:
     config = runtime.config
     say.info("running %d drives at %g Hz on %s, manager node %d (Ctrl-C / SIGTERM: "
-             "torque-off, then exit)", len(config.drives), config.rate, bus_summary(config),
+             "torque-off, then exit)", len(config.drives), config.rate, _buses(config),
              config.manager.node_id)
     if runtime.flight is not None:
         say.info("flight recorder: the last %g s before every e-stop go to %s",

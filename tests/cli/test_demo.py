@@ -39,7 +39,7 @@ def test_every_latency_is_reported_when_the_watch_runs_late(monkeypatch):
     """The flaky CI run, made certain: the loop's watch records a state change a few cycles
     after the manager's state shows it (as a loaded host may schedule it). Each fault and
     e-stop step still reports its latency."""
-    from rocoma_can.cli.demo.operator import StateWatch
+    from rocoma_can.cli.demo.steps import StateWatch
     rate = 100.0
     record = StateWatch.__call__
 
@@ -350,7 +350,7 @@ def test_twelve_drives_at_2khz_fit_the_demos_can_fd_buses_and_not_classic_ones()
 def test_a_run_that_overruns_points_at_doctor_timing(monkeypatch):
     """Every cycle made to overrun (the loop's watch sleeps 1.5 periods after each): the
     summary says how to measure the host's share of them."""
-    from rocoma_can.cli.demo.operator import StateWatch
+    from rocoma_can.cli.demo.steps import StateWatch
     rate = 100.0
     record = StateWatch.__call__
 
@@ -377,9 +377,9 @@ def test_the_doctor_hint_comes_above_a_thousandth_of_the_cycles():
 
 
 def test_the_demo_runs_its_loop_at_the_priority_asked_and_gives_the_thread_back(monkeypatch):
-    """``--priority``: the loop's thread (the one calling run_demo) runs SCHED_FIFO at it
+    """``--priority``: the loop's thread (the one calling Walkthrough.run) runs SCHED_FIFO at it
     for the walk-through, seen from the loop's own cycles, and is normal again after."""
-    from rocoma_can.cli.demo.operator import StateWatch
+    from rocoma_can.cli.demo.steps import StateWatch
     if os.geteuid() != 0 and resource.getrlimit(resource.RLIMIT_RTPRIO)[0] < 10:
         pytest.skip("no CAP_SYS_NICE nor an rtprio limit here: the refusal test covers it")
     seen: set[tuple[int, int]] = set()

@@ -307,8 +307,8 @@ NOT_A_REQUEST = {
                                                         # and e-stop frames: CAN_FRAME's cause)
     ("rocoma_can/runtime/loop.py", "_torque_off"),      # the loop's own stop
     ("rocoma_can/fleet/bridge.py", "_on_deadman"),      # a supervision, not a request
-    ("rocoma_can/cli/demo/operator.py", "second_fault"),       # the demo's walk-through: its
-    ("rocoma_can/cli/demo/operator.py", "ended_by_operator"),  # steps, an operator's stop
+    ("rocoma_can/cli/demo/steps.py", "second_fault"),       # the demo's walk-through: its
+    ("rocoma_can/cli/demo/steps.py", "ended_by_operator"),  # steps, an operator's stop
 }
 STOP_CALLS = {"emergency_stop", "failproof_stop"}
 

@@ -54,6 +54,7 @@ def emulate(path: str, drives: int) -> Emulated:
         CONTROLWORD,
         GEAR_RATIO,
         MAX_AXES,
+        MODES_OF_OPERATION,
         POSITION_ENCODER_RESOLUTION,
         QUICK_STOP_DECELERATION,
         RATED_TORQUE,
@@ -70,8 +71,8 @@ def emulate(path: str, drives: int) -> Emulated:
                          f"{', '.join(caps.mode_names) or 'no mode'}; needs CSP, IP or PP with "
                          "a target an RPDO can carry)")
     modes = [position]
-    mode_in_pdo = caps.carries(0x6060) and all(
-        ch.mapping_writable or ch.maps(0x6060) for ch in caps.rpdos)
+    mode_in_pdo = caps.carries(MODES_OF_OPERATION) and all(
+        ch.mapping_writable or ch.maps(MODES_OF_OPERATION) for ch in caps.rpdos)
     if caps.usable(_MODE_NUMBER["cst"]) and mode_in_pdo:
         modes.append("cst")
         emergency = {"name": "damp", "plugin": "damp",

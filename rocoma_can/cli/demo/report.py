@@ -1,6 +1,6 @@
 """What ``rocoma-can demo`` says: its steps and report, the drives' notes once each, a
 status line a second while it runs, the summary at the end, and where its recording and
-plot went. Kept apart from the walk-through (walkthrough.py, operator.py) that produces them."""
+plot went. Kept apart from the walk-through (walkthrough.py, steps.py) that produces them."""
 from __future__ import annotations
 
 import logging

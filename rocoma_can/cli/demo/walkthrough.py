@@ -1,6 +1,6 @@
 """The demo's run (``Walkthrough``): the config of its simulated robot, the simulated
 drives, the runtime with its manager, the operator's walk-through on a thread of its own
-(operator.py) while the loop runs, then the loop's torque-off frames judged (probe.py), the
+(steps.py) while the loop runs, then the loop's torque-off frames judged (probe.py), the
 summary, the flight records and the plot. One method per step, in the order they come;
 what the command line chooses is a DemoOptions."""
 from __future__ import annotations
@@ -33,9 +33,9 @@ from .config import (
     emulate,
 )
 from .drives import DemoSimulator, InProcessSim, SimProcess, check_choice
-from .operator import DemoOperator, StateWatch
 from .probe import TorqueOffProbes
 from .report import DemoReport, Said, Step, note_lines, recording_stopped, status_ticker, summary
+from .steps import DemoOperator, StateWatch
 from .stops import OutsideStop
 
 #: the demo's flight recorder window, s: run keeps 10, but e-stops within half a window make
@@ -57,7 +57,7 @@ class DemoOptions:
     do; ``record``: a directory for the run's recording (``run --record``'s files) and its
     plot ``demo.png``; ``zenoh_listen``: an endpoint the manager serves Zenoh on, under the
     prefix ``rocoma/demo`` (another shell can watch and e-stop it); ``duration``: s from the
-    start of bring-up to the loop's stop (operator.py's pace); ``flight``: the flight
+    start of bring-up to the loop's stop (steps.py's pace); ``flight``: the flight
     recorder's directory, as ``run`` has it: each e-stop leaves a record there, its path
     said as it is written. Its window is FLIGHT_SECONDS, not run's 10 s: e-stops within
     half a window make one record, and the walk-through's are seconds apart. ``foxglove``:
