@@ -24,7 +24,7 @@ from typing import Any
 import can
 import numpy as np
 
-from rocoma_can.cli.demo_config import FD_PDO_BYTES
+from rocoma_can.cli.demo.config import FD_PDO_BYTES
 from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.link.bus import open_bus
 from rocoma_can.drivers.plan.config import DriveConfig

@@ -41,7 +41,7 @@ from _report import report
 from rocoma_can.overrun import overran
 from rocoma_can.record.trace import CYCLE_TOPIC, read_messages
 
-#: the summary lines read (rocoma_can/cli/demo_report.py)
+#: the summary lines read (rocoma_can/cli/demo/report.py)
 _CYCLES = re.compile(r"^\s+cycles\s+(\d+)$", re.M)
 _OVERRUNS = re.compile(r"^\s+overruns \(past their period\)\s+(\d+)(?: \((\d+) on the CPU, "
                        r"(\d+) waiting off it\))?$", re.M)  # no split when there are none

@@ -34,7 +34,7 @@ from _report import report, stats
 from _rig import Rig, Script, StartLog, missed_cycles, run_script
 
 from rocoma_can import ManagerState
-from rocoma_can.cli.demo_config import FD_BITRATE, FD_DATA_BITRATE
+from rocoma_can.cli.demo.config import FD_BITRATE, FD_DATA_BITRATE
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.drivers.plan.pdo_layout import DriveLayout

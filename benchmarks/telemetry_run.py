@@ -79,8 +79,8 @@ def one(name: str, drives: int, buses: int | None, rate: float, duration: float,
     """Run one set in this process; its row as a dict."""
     import logging
     logging.basicConfig(level=logging.ERROR)
-    from rocoma_can.cli.demo_config import default_buses, demo_config
-    from rocoma_can.cli.demo_sim import InProcessSim, SimProcess
+    from rocoma_can.cli.demo.config import default_buses, demo_config
+    from rocoma_can.cli.demo.drives import InProcessSim, SimProcess
     from rocoma_can.runtime.config import validate
     from rocoma_can.runtime.system import Runtime
     parts = set(name.split("+"))

@@ -38,9 +38,9 @@ from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
-from .cli_args import did_you_mean
 from .errors import ParamError, PluginError
 from .interfaces import Controller, EmergencyController, FailproofController
+from .spelling import did_you_mean
 from .tuples import ControllerTuple, EmergencyControllerTuple
 
 log = logging.getLogger(__name__)

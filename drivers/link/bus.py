@@ -23,7 +23,7 @@ import can
 import canopen
 from can.interfaces import VALID_INTERFACES
 
-from ...cli_args import did_you_mean
+from ...spelling import did_you_mean
 from .frame_io import READ_LIMIT, BusSelector, FrameReader, FrameWriter, clock_offset, to_monotonic
 
 log = logging.getLogger(__name__)

@@ -1,9 +1,8 @@
-"""The ``rocoma-can`` command: the parser (main) and the verbs, each verb's module registering
-itself.
-
-``rocoma-can fleet`` lives with the fleet (fleet/client.py), ``rocoma-can sim`` with the simulator
-(drivers/sim/cli.py). The modules: the module map in docs/architecture.md (tools/module-map writes
-it from their docstrings).
+"""The ``rocoma-can`` command, a module per group of verbs: main is the parser, and each verb's
+module registers itself (``run``, the operator verbs, ``fleet``, ``sim``, ``record`` ...; the
+demo is the package demo/). What the verbs share: console (how every verb speaks), args,
+hints, exit_codes. The modules: the module map in docs/architecture.md (tools/module-map
+writes it from their docstrings).
 """
 from __future__ import annotations
 

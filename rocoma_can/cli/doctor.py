@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from ..cli_args import channel_name, positive, seconds
 from ..errors import ConfigError
-from ..exit_codes import FAILED, OK, USAGE
+from .args import channel_name, positive, seconds
+from .console import err
+from .exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:  # the checks load on use: ``rocoma-can --help`` stays quick
     from ..drivers.plan.config import BusConfig
@@ -36,9 +36,6 @@ DEFAULT_TIMING_RATE = 1000.0
 MAX_TIMING_SECONDS = 120.0
 AUTO = 0.0  # --timing without SECONDS (not a string: argparse would convert it)
 
-
-def _err(text: str) -> None:
-    print(f"rocoma-can: {text}", file=sys.stderr, flush=True)
 
 
 def _link_checks(channels: Sequence[tuple[str, BusConfig | None]]) -> list[Check]:
@@ -132,26 +129,26 @@ def _print(subject: str, checks: Sequence[Check]) -> None:
 
 def _doctor(args: argparse.Namespace) -> int:
     if args.config and (args.channel or args.interface):
-        _err("doctor: give CONFIG or --channel, not both (the config names its buses)")
+        err("doctor: give CONFIG or --channel, not both (the config names its buses)")
         return USAGE
     if args.interface and not args.channel:
-        _err("doctor: --interface needs --channel")
+        err("doctor: --interface needs --channel")
         return USAGE
     if args.interface not in (None, "socketcan"):
-        _err(f"doctor: --interface {args.interface!r}: doctor reads SocketCAN links only")
+        err(f"doctor: --interface {args.interface!r}: doctor reads SocketCAN links only")
         return USAGE
     from ..runtime.config_check import MAX_RATE
     if args.rate is not None and not (args.rate <= MAX_RATE and args.timing is not None):
-        _err(f"doctor: --rate {args.rate:g}: give 0 < HZ <= {MAX_RATE}, with --timing")
+        err(f"doctor: --rate {args.rate:g}: give 0 < HZ <= {MAX_RATE}, with --timing")
         return USAGE
     try:
         subject, checks = gather(args)
     except ConfigError as exc:
         for problem in exc.problems:
-            _err(problem)
+            err(problem)
         return USAGE
     except ValueError as exc:  # --timing's seconds against the rate (timing_seconds)
-        _err(f"doctor: {exc}")
+        err(f"doctor: {exc}")
         return USAGE
     if args.json:
         print(json.dumps([c.as_dict() for c in checks], indent=2), flush=True)

@@ -30,11 +30,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from ..exit_codes import FAILED, OK, USAGE
+from .console import err
+from .device_match import DeviceFileInfo, index_device_files, match, read_file_info, shown_name
+from .exit_codes import FAILED, OK, USAGE
 from .scan import bus_options, on_bus
 
 if TYPE_CHECKING:  # the verb imports canopen when it runs: `rocoma-can --help` stays fast
-    from canopen.objectdictionary import ObjectDictionary
 
     from ..drivers.files.identity import Identity
 
@@ -43,7 +44,6 @@ RATES = (1000, 500, 250, 100)
 #: CiA 402 in the low 16 bits of the device type (0x1000)
 CIA402 = 402
 MANAGER_NODE_IDS = (100, 127, 126, 125)
-SUFFIXES = (".eds", ".dcf")
 
 
 class Found(Protocol):
@@ -58,104 +58,6 @@ class Found(Protocol):
     def several_devices(self) -> bool: ...
     @property
     def malformed(self) -> tuple[str, ...]: ...
-
-
-@dataclass(frozen=True)
-class DeviceFileInfo:
-    """One file of the directory (or of ``--eds``): its object dictionary, which the
-    identity rule reads, and what ranks it among files made for one device."""
-    path: str
-    od: ObjectDictionary
-    revision: int | None
-    node_id: int | None        # a DCF's commissioned node id
-    device_type: int | None    # its 0x1000 (None: not given)
-
-
-def read_file_info(path: str) -> DeviceFileInfo:
-    """One device file; DeviceFileError when it is none (drivers.files.device_file)."""
-    from ..drivers.files.device_file import read_device_file
-    from ..drivers.protocol.cia301 import DEVICE_TYPE
-    device = read_device_file(path)
-    od = device.object_dictionary(1)
-    var = od.get_variable(DEVICE_TYPE, 0)
-    device_type = None if var is None else var.value if var.value is not None else var.default
-    return DeviceFileInfo(path, od, _number(od.device_information.revision_number),
-                          device.commissioned_node_id,
-                          device_type if isinstance(device_type, int) else None)
-
-
-def index_device_files(directory: str) -> tuple[list[DeviceFileInfo], list[str]]:
-    """Every EDS/DCF in ``directory`` (not below it) and a note per file it cannot read, or
-    that a config cannot name (a name that is not UTF-8: YAML is UTF-8 text)."""
-    from ..drivers.files.device_file import DeviceFileError
-    files, notes = [], []
-    for entry in sorted(os.scandir(directory), key=lambda e: e.name):
-        if not entry.name.lower().endswith(SUFFIXES):
-            continue
-        shown = shown_name(entry.name)
-        try:
-            if not entry.is_file():
-                continue
-        except OSError as exc:  # a symbolic link in a loop, say
-            notes.append(f"{shown}: not read ({exc.strerror or exc})")
-            continue
-        if shown != entry.name:
-            notes.append(f"{shown}: its name is not UTF-8: a config (UTF-8 text) cannot name "
-                         "it; rename it")
-            continue
-        try:
-            files.append(read_file_info(entry.path))
-        except DeviceFileError as exc:
-            notes.append(f"{shown}: not read ({exc})")
-    return files, notes
-
-
-def shown_name(name: str) -> str:
-    """A file name as printable UTF-8 text: the bytes that are not UTF-8 escaped (\\xff)."""
-    try:
-        name.encode("utf-8")
-    except UnicodeEncodeError:
-        return os.fsencode(name).decode("utf-8", "backslashreplace")
-    return name
-
-
-def _number(value: Any) -> int | None:
-    if isinstance(value, int) and not isinstance(value, bool):
-        return value
-    if not isinstance(value, str) or not value.strip():
-        return None
-    try:
-        return int(value.strip(), 0)
-    except ValueError:
-        return None
-
-
-def match(node_id: int, identity: Identity, device_type: int | None,
-          files: Sequence[DeviceFileInfo]
-          ) -> tuple[list[DeviceFileInfo], list[tuple[DeviceFileInfo, str]]]:
-    """The files made for this device, best first (same revision, then commissioned for
-    this node), and those that may fit it, each with what it leaves open (the identity
-    rule: drivers.files.identity.file_fit). A file of another device profile than the device's
-    (0x1000: the manager's own EDS beside the drives') is for neither."""
-    from ..drivers.files.identity import file_fit
-    made, may = [], []
-    for f in _rank(node_id, identity, files):
-        if device_type is not None and f.device_type \
-                and f.device_type & 0xFFFF != device_type & 0xFFFF:
-            continue
-        fit = file_fit(f.od, identity, f.path)
-        if fit.made_for:
-            made.append(f)
-        elif fit.open is not None:
-            may.append((f, fit.open))
-    return made, may
-
-
-def _rank(node_id: int, identity: Identity, files: Sequence[DeviceFileInfo]
-          ) -> list[DeviceFileInfo]:
-    return sorted(files, key=lambda f: (f.revision != identity.revision,
-                                        f.node_id not in (None, node_id), f.node_id is None,
-                                        f.path))
 
 
 def _hex(value: int | None) -> str:
@@ -199,7 +101,7 @@ def generate(found: Sequence[Found], eds_dir: str | None, interface: str, channe
     from ``eds_dir``; NothingToConfigure (a ValueError) when no drive could be
     configured."""
     from ..drivers.files.identity import file_fit
-    from .demo_config import emulate
+    from .demo.config import emulate
     files, notes = index_device_files(eds_dir) if eds_dir is not None else ([], [])
     unread = bool(notes)  # files in DIR not read: one may be the node's
     picked = dict(picked or {})
@@ -380,7 +282,7 @@ def _init_config(args: argparse.Namespace) -> int:
         why = _not_writable(Path(args.output), args.force)
         problem = f"-o {args.output}: {why}" if why else None
     if problem:  # before the scan, which takes seconds
-        print(f"rocoma-can: init-config: {problem}", file=sys.stderr)
+        err(f"init-config: {problem}")
         return USAGE
     return on_bus(args, lambda bus: _write(args, bus))
 
@@ -478,23 +380,21 @@ def _write(args: argparse.Namespace, bus: Any) -> int:
                         str(base), args.picked)
     except ValueError as exc:
         for note in getattr(exc, "notes", ()):  # files not read: maybe why none matched
-            print(f"rocoma-can: init-config: note: {note}", file=sys.stderr)
-        print(f"rocoma-can: init-config: {exc}", file=sys.stderr)
+            err(f"init-config: note: {note}")
+        err(f"init-config: {exc}")
         return FAILED
     try:
         validate(yaml.safe_load(made.text), args.output or "<init-config>", base)
     except ConfigError as exc:  # a bug of ours: never hand out a config check-config refuses
-        print(f"rocoma-can: init-config: the generated config does not pass its own check: "
-              f"{exc}", file=sys.stderr)
+        err(f"init-config: the generated config does not pass its own check: {exc}")
         return FAILED
     for note in made.notes:
-        print(f"rocoma-can: init-config: note: {note}", file=sys.stderr)
+        err(f"init-config: note: {note}")
     if args.output:
         try:
             kept = _replace(Path(args.output), made.text)
         except OSError as exc:
-            print(f"rocoma-can: init-config: -o {args.output}: cannot write "
-                  f"({exc.strerror or exc})", file=sys.stderr)
+            err(f"init-config: -o {args.output}: cannot write ({exc.strerror or exc})")
             return USAGE
         if kept is not None:
             print(f"init-config: {args.output} existed: kept as {kept}", file=sys.stderr)
@@ -506,8 +406,8 @@ def _write(args: argparse.Namespace, bus: Any) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    from ..cli_args import count, seconds
     from ..drivers.commission.scan import LISTEN, TIMEOUT  # constants only: no canopen import
+    from .args import count, seconds
     p = subparsers.add_parser(
         "init-config", help="a run config from a scan of the bus and a folder of EDS/DCF files",
         description="Scan the bus (as `rocoma-can scan`), match each node to a file in "

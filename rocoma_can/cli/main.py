@@ -1,5 +1,5 @@
-"""The ``rocoma-can`` command. Each sub-command lives next to the code it drives and
-registers itself here through a ``register(subparsers)`` function returning nothing; the
+"""The ``rocoma-can`` command. Each group of sub-commands is a module of cli/ (COMMAND_MODULES)
+and registers itself here through a ``register(subparsers)`` function returning nothing; the
 handler is stored with ``parser.set_defaults(func=handler)`` and returns an exit code. Each
 sub-command's parser is a CommandParser (``add_parser(..., hint=...)``); ``set_defaults(
 clock=True, audit=True)`` gives a verb ``run``'s console (console.py)."""
@@ -16,21 +16,22 @@ from types import FrameType
 from typing import Any, NoReturn
 
 from .. import __version__
-from ..cli_args import did_you_mean
-from ..exit_codes import INTERRUPTED, OK, PIPE_CLOSED, USAGE
+from ..spelling import did_you_mean
 from .console import console, err, point_stdout_at_devnull, stdout_gone
+from .exit_codes import INTERRUPTED, OK, PIPE_CLOSED, USAGE
 
 # Modules that contribute sub-commands, in help order.
 COMMAND_MODULES: tuple[str, ...] = (
-    "rocoma_can.cli.demo",
-    "rocoma_can.cli.commands",
+    "rocoma_can.cli.demo.command",
+    "rocoma_can.cli.run",
+    "rocoma_can.cli.operator_verbs",
     "rocoma_can.cli.scan",
     "rocoma_can.cli.init_config",
     "rocoma_can.cli.doctor",
     "rocoma_can.cli.record",
-    "rocoma_can.fleet.client",
+    "rocoma_can.cli.fleet",
     "rocoma_can.cli.scaffold",
-    "rocoma_can.drivers.sim.cli",
+    "rocoma_can.cli.sim",
 )
 
 

@@ -13,16 +13,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..cli_args import channel_name, seconds
-from ..exit_codes import FAILED, OK, USAGE
-from .commands import REACH_ELSEWHERE, no_socketcan_hint
+from .args import channel_name, seconds
+from .console import err
+from .exit_codes import FAILED, OK, USAGE
+from .hints import REACH_ELSEWHERE, no_socketcan_hint
 
 if TYPE_CHECKING:
     from ..record.can_log import FrameLog
 
-
-def _say(text: str) -> None:
-    print(f"rocoma-can: {text}", file=sys.stderr, flush=True)
 
 
 def _record(args: argparse.Namespace) -> int:
@@ -32,13 +30,13 @@ def _record(args: argparse.Namespace) -> int:
         check_path(args.file)
         bus = open_bus(args.interface, args.channel, receive_own_messages=False)
     except (RecordingError, OSError) as exc:
-        _say(str(exc) + no_socketcan_hint(exc, REACH_ELSEWHERE))
+        err(str(exc) + no_socketcan_hint(exc, REACH_ELSEWHERE))
         return USAGE
     try:
         recording = BusRecording(bus, args.file)
     except RecordingError as exc:
         bus.shutdown()
-        _say(str(exc))
+        err(str(exc))
         return USAGE
     stop = threading.Event()
     flag = {"signalled": False}
@@ -67,7 +65,7 @@ def _record(args: argparse.Namespace) -> int:
     print(f"{log.frames} frames written to {log.path}"
           + (f", {log.dropped} dropped" if log.dropped else ""), flush=True)
     if log.error:
-        _say(log.error)
+        err(log.error)
         return FAILED
     return OK
 
@@ -100,7 +98,7 @@ def _export(args: argparse.Namespace) -> int:
         return _export_to_stdout(source)
     out = Path(args.out) if args.out else source.with_suffix(".csv")
     if out.resolve() == source.resolve():
-        _say(f"{out}: the CSV would overwrite the trace it is read from; give --csv FILE")
+        err(f"{out}: the CSV would overwrite the trace it is read from; give --csv FILE")
         return USAGE
     # written beside, then renamed: a failed export leaves an earlier CSV as it was
     part = out.with_name(out.name + ".part")
@@ -111,18 +109,18 @@ def _export(args: argparse.Namespace) -> int:
         os.replace(part, out)
     except ImportError:
         _discard(part)
-        _say("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
+        err("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
         return USAGE
     except TraceError as exc:
         _discard(part)
-        _say(f"{source}: not a rocoma-can trace: {exc}")
+        err(f"{source}: not a rocoma-can trace: {exc}")
         return USAGE
     except OSError as exc:  # the CSV's side (the trace's failures are TraceErrors)
         _discard(part)
-        _say(f"{out}: cannot write the CSV: {exc.strerror or exc}")
+        err(f"{out}: cannot write the CSV: {exc.strerror or exc}")
         return USAGE
     for note in notes:
-        _say(f"{source}: {note}")
+        err(f"{source}: {note}")
     print(f"{rows} cycles written to {out}", flush=True)
     return OK
 
@@ -136,14 +134,14 @@ def _export_to_stdout(source: Path) -> int:
         rows = _write_csv(source, sys.stdout, notes)
         sys.stdout.flush()
     except ImportError:
-        _say("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
+        err("reading MCAP needs the mcap package: pip install 'rocoma-can[record]'")
         return USAGE
     except TraceError as exc:
-        _say(f"{source}: not a rocoma-can trace: {exc}")
+        err(f"{source}: not a rocoma-can trace: {exc}")
         return USAGE
     for note in notes:
-        _say(f"{source}: {note}")
-    _say(f"{rows} cycles written to stdout")
+        err(f"{source}: {note}")
+    err(f"{rows} cycles written to stdout")
     return OK
 
 
@@ -185,10 +183,10 @@ def _plot(args: argparse.Namespace) -> int:
     try:
         path = plot(args.file, args.out or None, notes=notes)
     except PlotError as exc:
-        _say(str(exc))
+        err(str(exc))
         return USAGE
     for note in notes:
-        _say(f"{args.file}: {note}")
+        err(f"{args.file}: {note}")
     print(f"plot written to {path}", flush=True)
     return OK
 

@@ -11,7 +11,7 @@ import keyword
 import sys
 from pathlib import Path
 
-from ..exit_codes import OK, USAGE
+from .exit_codes import OK, USAGE
 
 PYPROJECT = '''[build-system]
 requires = ["setuptools>=68", "wheel"]

@@ -13,14 +13,14 @@ from __future__ import annotations
 import argparse
 import errno
 import json
-import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from ..cli_args import channel_name, node_id, seconds
 from ..errors import LssFailed
-from ..exit_codes import FAILED, OK, USAGE
-from .commands import no_socketcan_hint
+from .args import channel_name, node_id, seconds
+from .console import err
+from .exit_codes import FAILED, OK, USAGE
+from .hints import no_socketcan_hint
 
 if TYPE_CHECKING:  # imported when a verb runs: `rocoma-can --help` stays fast
     import can
@@ -34,9 +34,6 @@ NOTHING_FOUND = ("no nodes answered: check the bit rate (every node's and the in
                  "the drives have power")
 
 
-def _err(message: str) -> None:
-    print(f"rocoma-can: {message}", file=sys.stderr, flush=True)
-
 
 def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
     """``work`` on a bus opened from --interface/--channel; one line (exit 2) when it cannot
@@ -46,17 +43,17 @@ def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
     from ..drivers.link import bus as bus_module
     down = _link_down(args.interface, args.channel)
     if down:
-        _err(down)
+        err(down)
         return USAGE
     try:
         bus = bus_module.open_bus(args.interface, args.channel, receive_own_messages=False)
     except OSError as exc:
-        _err(str(exc) + no_socketcan_hint(exc))
+        err(str(exc) + no_socketcan_hint(exc))
         return USAGE
     try:
         return work(bus)
     except can.CanError as exc:  # SocketCAN: ENOBUFS, ENETDOWN (python-can's error_code)
-        _err(f"{args.interface}:{args.channel}: {exc}"
+        err(f"{args.interface}:{args.channel}: {exc}"
              + _send_failure_hint(getattr(exc, "error_code", None), args.channel))
         return USAGE
     finally:
@@ -147,7 +144,7 @@ def _scan(args: argparse.Namespace) -> int:
         except LssFailed as exc:  # the nodes found are still worth their lines
             if not args.json and nodes:
                 print("\n".join(table(nodes)), flush=True)
-            _err(f"scan --lss: {exc}")
+            err(f"scan --lss: {exc}")
             return FAILED
         if args.json:
             print(json.dumps({"nodes": [n.as_json() for n in nodes],
@@ -190,14 +187,14 @@ def _lss(args: argparse.Namespace) -> int:
         missing = [f"--{k}" for k, v in zip(("vendor", "product", "revision", "serial"),
                                              parts.values()) if v is None]
         if missing:
-            _err(f"lss: an LSS address needs {', '.join(missing)} too (or --fastscan)")
+            err(f"lss: an LSS address needs {', '.join(missing)} too (or --fastscan)")
             return USAGE
         address = Identity(**parts)
     if args.bitrate is not None:
         try:
             bit_timing_index(args.bitrate)
         except ValueError as exc:
-            _err(f"lss: --bitrate: {exc}")
+            err(f"lss: --bitrate: {exc}")
             return USAGE
 
     def work(bus: can.BusABC) -> int:
@@ -208,7 +205,7 @@ def _lss(args: argparse.Namespace) -> int:
                             occupant=lambda n: present(lent.network, n, listen=args.listen,
                                                        timeout=max(args.timeout, SDO_TIMEOUT)))
         except LssFailed as exc:
-            _err(str(exc))
+            err(str(exc))
             return FAILED
         finally:
             lent.close()

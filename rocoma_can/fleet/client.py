@@ -1,18 +1,14 @@
-"""Talking to managers over Zenoh (bridge.py serves them): the CLI verbs' ``--zenoh`` path
-and ``rocoma-can fleet``. A query that nobody answers is retried until its timeout (a new
-peer session finds the others within a moment), then NoAnswer."""
+"""Talking to managers over Zenoh (bridge.py serves them): the client that the CLI verbs'
+``--zenoh`` path and ``rocoma-can fleet`` use (cli/fleet.py). A query that nobody answers
+is retried until its timeout (a new peer session finds the others within a moment), then
+NoAnswer."""
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import time
-from collections.abc import Callable
 from typing import Any
 
-from ..cli_args import did_you_mean, seconds, with_clear_hint
 from ..errors import NoAnswer, RocomaError
-from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from ..remote import STOPS
 from .bridge import (
     FleetError,
@@ -140,107 +136,3 @@ def _shown(value: object, limit: int = 80) -> str:
         return head if len(value) <= limit // 4 else f"{head}... ({len(value)} bytes)"
     text = (value if isinstance(value, str) else repr(value)).replace("\n", " ")
     return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
-
-
-# --- the CLI ----------------------------------------------------------------------------------
-
-def add_options(p: argparse.ArgumentParser, prefix: bool = True) -> None:
-    """``--zenoh [PREFIX]`` (``prefix``) and how to reach Zenoh, for every bus verb."""
-    if prefix:
-        p.add_argument("--zenoh", nargs="?", const="", default=None, metavar="PREFIX",
-                       help="act through Zenoh instead of SDO (default prefix: "
-                            "rocoma/<host>)")
-    p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 "
-                        "(repeatable; default: multicast scouting)")
-    p.add_argument("--zenoh-no-multicast", action="store_true",
-                   help="no multicast scouting (connect only to --zenoh-connect)")
-
-
-def with_client(args: argparse.Namespace, action: Callable[[FleetClient], int]) -> int:
-    try:
-        client = FleetClient(args.zenoh or "", args.zenoh_connect,
-                             multicast=False if args.zenoh_no_multicast else None,
-                             timeout=max(args.timeout, 3.0))
-    except FleetError as exc:
-        _err(str(exc))
-        return USAGE
-    try:
-        return action(client)
-    except NoAnswer as exc:
-        _err(str(exc))
-        return NO_ANSWER
-    except RocomaError as exc:
-        _err(str(exc))
-        return FAILED
-    finally:
-        client.close()
-
-
-def switch(args: argparse.Namespace) -> int:
-    def action(client: FleetClient) -> int:
-        answer = client.query("switch", args.name, timeout=args.wait)
-        result = answer.get("result", "ERROR")
-        print(result, flush=True)
-        if answer.get("error"):
-            hint = did_you_mean(args.name, client.status().get("controllers", [])) \
-                if result == "NOT_FOUND" else ""
-            _err(with_clear_hint(answer["error"]) + hint)
-        return OK if result in ("SWITCHED", "RUNNING") else FAILED
-    return with_client(args, action)
-
-
-def command(verb: str, done: str) -> Callable[[argparse.Namespace], int]:
-    def handler(args: argparse.Namespace) -> int:
-        def action(client: FleetClient) -> int:
-            answer = client.query(verb)
-            if not answer.get("ok"):
-                _err(f"{verb} refused: {answer.get('error', 'no reason given')}")
-                return FAILED
-            print(done, flush=True)
-            return OK
-        return with_client(args, action)
-    return handler
-
-
-def controllers(args: argparse.Namespace) -> int:
-    def action(client: FleetClient) -> int:
-        for i, name in enumerate(client.status().get("controllers", []), 1):
-            print(f"{i} {name}", flush=True)
-        return OK
-    return with_client(args, action)
-
-
-def fleet(args: argparse.Namespace) -> int:
-    """Every manager alive on the network, with its state."""
-    def action(client: FleetClient) -> int:
-        prefixes = client.alive(timeout=args.wait)
-        if not prefixes:
-            print("no manager alive on Zenoh", flush=True)
-            return OK
-        for prefix in prefixes:
-            client.prefix = prefix
-            try:
-                s = client.status()
-            except NoAnswer:
-                print(f"{prefix}: alive, no status answer", flush=True)
-                continue
-            print(f"{prefix}: {s['state']}, {s.get('active', '?')}"
-                  f"{', e-stop latched' if s.get('latched') else ''}"
-                  f"{', last e-stop: ' + s['estop_cause'] if s.get('estop_cause') else ''}"
-                  f", {len(s.get('drives', []))} drives", flush=True)
-        return OK
-    return with_client(args, action)
-
-
-def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = subparsers.add_parser("fleet", help="every manager alive on Zenoh, with its state")
-    p.add_argument("--wait", type=seconds, default=2.0, metavar="S",
-                   help="how long to look for managers (2)")
-    p.add_argument("--timeout", type=seconds, default=3.0, help="status answer timeout, s (3)")
-    add_options(p, prefix=False)
-    p.set_defaults(func=fleet, zenoh="")
-
-
-def _err(message: str) -> None:
-    print(f"rocoma-can: {message}", file=sys.stderr, flush=True)

@@ -83,7 +83,7 @@ def test_numbers_out_of_range_are_usage_errors(args, capsys):
 
 
 def test_numbers_as_a_shell_writes_them():
-    from rocoma_can.cli_args import node_id, seconds_or_zero
+    from rocoma_can.cli.args import node_id, seconds_or_zero
     assert [node_id("010"), node_id("0x0A"), node_id("10")] == [10, 10, 10]
     assert seconds_or_zero("0") == 0.0  # switch --wait 0: ask, do not wait (PENDING)
 

@@ -1,4 +1,4 @@
-"""rocoma_can/cli/main.py, rocoma_can/cli_args.py: the conventions a command line is expected to
+"""rocoma_can/cli/main.py, rocoma_can/cli/args.py: the conventions a command line is expected to
 keep (docs/cli.md): ``-v`` before or after the verb, ``--version``, a near name offered for an
 unknown verb or controller, a refusal pointing to what lifts it, plain text in --help, one spelling
 of each NMT state, one unit for the loop's timing, a channel that is a number (Kvaser, IXXAT,
@@ -19,10 +19,10 @@ from fixtures.node_rig import NODE, Rig
 from fixtures.paths import TESTS
 
 from rocoma_can import __version__
+from rocoma_can.cli.exit_codes import FAILED, NO_ANSWER, OK
 from rocoma_can.cli.main import build_parser, main
 from rocoma_can.drivers.commission.scan import nmt_state_name
 from rocoma_can.drivers.protocol import cia301
-from rocoma_can.exit_codes import FAILED, NO_ANSWER, OK
 from rocoma_can.runtime.config import load, load_reach
 from rocoma_can.runtime.loop import TimingSummary
 
@@ -213,7 +213,7 @@ def test_every_nmt_state_is_spelled_as_cia_301_writes_it(state):
 
 
 def test_run_says_its_timing_in_ms_as_status_does():
-    from rocoma_can.cli.live import cycle_text
+    from rocoma_can.cli.status_watch import cycle_text
     summary = TimingSummary(1000, 2, 1, 0.001, 0.00121, 0.00041, 0.00009, 0.00031)
     assert summary.line() == ("cycles 1000, overruns 2 (1 waiting), period mean 1.000 ms max "
                               "1.210 ms, jitter p99 0.090 ms max 0.410 ms, work max 0.310 ms")

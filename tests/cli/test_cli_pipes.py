@@ -15,8 +15,8 @@ from fixtures.budgets import within
 from fixtures.console import untimed
 from fixtures.paths import ROOT, TESTS
 
-from rocoma_can.cli.demo_config import demo_config
-from rocoma_can.exit_codes import PIPE_CLOSED
+from rocoma_can.cli.demo.config import demo_config
+from rocoma_can.cli.exit_codes import PIPE_CLOSED
 
 CHILD = TESTS / "fixtures" / "cli_child.py"
 EXAMPLES = ROOT / "rocoma_can" / "examples"

@@ -15,13 +15,14 @@ from pathlib import Path
 import pytest
 from fixtures.paths import ROOT, TESTS
 
-from rocoma_can.cli.demo import path_hint, run_demo
+from rocoma_can.cli.demo.command import path_hint
+from rocoma_can.cli.demo.walkthrough import DemoOptions, Walkthrough
 from rocoma_can.cli.main import main
 
 
 def test_demo_walk_through_passes():
     lines: list[str] = []
-    report = run_demo(drives=3, rate=100.0, duration=3.0, out=lines.append)
+    report = Walkthrough(DemoOptions(drives=3, rate=100.0, duration=3.0), out=lines.append).run()
     assert report.ok, "\n".join(lines)
     names = [s.name for s in report.steps]
     assert names[0] == "bring-up" and names[-1] == "loop stop -> torque-off frames"
@@ -38,18 +39,19 @@ def test_every_latency_is_reported_when_the_watch_runs_late(monkeypatch):
     """The flaky CI run, made certain: the loop's watch records a state change a few cycles
     after the manager's state shows it (as a loaded host may schedule it). Each fault and
     e-stop step still reports its latency."""
-    from rocoma_can.cli import demo
+    from rocoma_can.cli.demo.steps import StateWatch
     rate = 100.0
-    record = demo._Watch.__call__
+    record = StateWatch.__call__
 
     def late(self, now: float) -> None:
         if self.runtime is not None and int(self.runtime.loop.last_state) != self.state:
             time.sleep(5 / rate)  # five cycles behind the manager's state
         record(self, now)
 
-    monkeypatch.setattr(demo._Watch, "__call__", late)
+    monkeypatch.setattr(StateWatch, "__call__", late)
     lines: list[str] = []
-    report = run_demo(drives=3, rate=rate, duration=3.0, out=lines.append, record=None)
+    report = Walkthrough(DemoOptions(drives=3, rate=rate, duration=3.0, record=None),
+                         out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert len(report.latencies) == 3
 
@@ -58,7 +60,8 @@ def test_demo_on_several_buses_passes():
     """Six drives on three buses: the faults go to the first bus, the loop's stop sends
     torque-off frames to every drive on every bus."""
     lines: list[str] = []
-    report = run_demo(drives=6, rate=100.0, duration=3.0, out=lines.append, buses=3)
+    report = Walkthrough(DemoOptions(drives=6, rate=100.0, duration=3.0, buses=3),
+                         out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert "3 inproc buses" in lines[0]
     assert report.steps[-1].detail.endswith("6/6 drives' RPDOs on 3 buses")
@@ -67,8 +70,8 @@ def test_demo_on_several_buses_passes():
 def test_demo_on_python_cans_virtual_bus_passes():
     """The demo is not tied to the in-process bus: python-can's virtual runs it too."""
     lines: list[str] = []
-    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append,
-                      interface="virtual")
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=2.0, interface="virtual"),
+                         out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert "virtual bus" in lines[0]
 
@@ -84,7 +87,8 @@ def test_demo_records_its_run_and_plots_it(tmp_path):
     frame), drawn, and both paths said."""
     from rocoma_can.record.plot import load
     lines: list[str] = []
-    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append, record=tmp_path)
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=2.0, record=tmp_path),
+                         out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert report.recording == tmp_path / "trace.mcap"
     assert report.plot == tmp_path / "demo.png"
@@ -136,7 +140,8 @@ def test_a_recording_that_stopped_is_said_and_fails_the_demo(tmp_path):
             for pid in _writer_processes():
                 os.kill(pid, signal.SIGKILL)
 
-    report = run_demo(drives=2, rate=100.0, duration=2.0, out=out, record=tmp_path)
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=2.0, record=tmp_path),
+                         out=out).run()
     assert any(line.startswith("ok  switch to pd") for line in lines), "\n".join(lines)
     failed = [step for step in report.steps if not step.ok]
     assert [step.name for step in failed] == ["recording"], "\n".join(lines)
@@ -161,7 +166,7 @@ def test_demo_duration_is_the_walk_throughs_length():
     """--duration is from bring-up to the loop's stop: the pauses fill it (they used to be
     a tenth of it each, and 60 s ran 28)."""
     lines: list[str] = []
-    report = run_demo(drives=2, rate=100.0, duration=5.0, out=lines.append)
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=5.0), out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert report.walk_time >= 5.0
     assert f"  {'walk-through':28s} {report.walk_time:.1f} s" in lines
@@ -246,11 +251,11 @@ def test_each_estop_of_the_demo_leaves_a_flight_record(tmp_path):
     """As `run` does: the walk-through's e-stops leave flight records, each path said as it
     is written; together they hold every e-stop's cause (e-stops within half the demo's
     window share a record), and the demo's window is the one recorded."""
-    from rocoma_can.cli.demo import FLIGHT_SECONDS
+    from rocoma_can.cli.demo.walkthrough import FLIGHT_SECONDS
     from rocoma_can.record.plot import load
     lines: list[str] = []
-    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append, record=None,
-                      flight=tmp_path / "flight")
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=2.0, record=None,
+                                     flight=tmp_path / "flight"), out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert report.flight_records, "\n".join(lines)
     assert sorted(report.flight_records) == sorted((tmp_path / "flight").glob("*.mcap"))
@@ -268,23 +273,23 @@ def test_each_estop_of_the_demo_leaves_a_flight_record(tmp_path):
 def test_a_run_that_overruns_points_at_doctor_timing(monkeypatch):
     """Every cycle made to overrun (the loop's watch sleeps 1.5 periods after each): the
     summary says how to measure the host's share of them."""
-    from rocoma_can.cli import demo
+    from rocoma_can.cli.demo.steps import StateWatch
     rate = 100.0
-    record = demo._Watch.__call__
+    record = StateWatch.__call__
 
     def slow(self, now: float) -> None:
         time.sleep(1.5 / rate)
         record(self, now)
 
-    monkeypatch.setattr(demo._Watch, "__call__", slow)
+    monkeypatch.setattr(StateWatch, "__call__", slow)
     lines: list[str] = []
-    run_demo(drives=3, rate=rate, duration=2.0, out=lines.append, record=None)
+    Walkthrough(DemoOptions(drives=3, rate=rate, duration=2.0, record=None), out=lines.append).run()
     at = next(k for k, line in enumerate(lines) if "overruns (past their period)" in line)
     assert "rocoma-can doctor --timing" in lines[at + 1]
 
 
 def test_the_doctor_hint_comes_above_a_thousandth_of_the_cycles():
-    from rocoma_can.cli.demo_report import host_hint
+    from rocoma_can.cli.demo.report import host_hint
     from rocoma_can.runtime.loop import TimingSummary
 
     def timing(overruns: int) -> TimingSummary:
@@ -295,22 +300,23 @@ def test_the_doctor_hint_comes_above_a_thousandth_of_the_cycles():
 
 
 def test_the_demo_runs_its_loop_at_the_priority_asked_and_gives_the_thread_back(monkeypatch):
-    """``--priority``: the loop's thread (the one calling run_demo) runs SCHED_FIFO at it
+    """``--priority``: the loop's thread (the one calling Walkthrough.run) runs SCHED_FIFO at it
     for the walk-through, seen from the loop's own cycles, and is normal again after."""
-    from rocoma_can.cli import demo
+    from rocoma_can.cli.demo.steps import StateWatch
     if os.geteuid() != 0 and resource.getrlimit(resource.RLIMIT_RTPRIO)[0] < 10:
         pytest.skip("no CAP_SYS_NICE nor an rtprio limit here: the refusal test covers it")
     seen: set[tuple[int, int]] = set()
-    watch = demo._Watch.__call__
+    watch = StateWatch.__call__
 
     def policy(self, now: float) -> None:  # the loop's on_cycle, on the loop's thread
         seen.add((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority))
         watch(self, now)
 
-    monkeypatch.setattr(demo._Watch, "__call__", policy)
+    monkeypatch.setattr(StateWatch, "__call__", policy)
     before = os.sched_getscheduler(0)
     lines: list[str] = []
-    report = run_demo(drives=3, rate=100.0, duration=2.0, out=lines.append, priority=10)
+    report = Walkthrough(DemoOptions(drives=3, rate=100.0, duration=2.0, priority=10),
+                         out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert seen == {(os.SCHED_FIFO, 10)}
     assert os.sched_getscheduler(0) == before == os.SCHED_OTHER
@@ -354,7 +360,7 @@ def test_an_operators_estop_ends_the_walk_through_and_is_never_undone(virtual_ch
     request at once (its event comes a cycle later), so neither goes out."""
     import can
 
-    from rocoma_can.cli.demo_config import MANAGER_ID
+    from rocoma_can.cli.demo.config import MANAGER_ID
     from rocoma_can.node.client import ManagerClient
     from rocoma_can.node.objects import ESTOP
 
@@ -367,7 +373,8 @@ def test_an_operators_estop_ends_the_walk_through_and_is_never_undone(virtual_ch
                          ignore_config=True) as bus, ManagerClient(bus, MANAGER_ID) as c:
                 c.write(ESTOP, 1)
 
-    report = run_demo(drives=3, rate=100.0, duration=3.0, out=out, channel=virtual_channel)
+    report = Walkthrough(DemoOptions(drives=3, rate=100.0, duration=3.0, channel=virtual_channel),
+                         out=out).run()
     assert report.ok, "\n".join(lines)
     names = [s.name for s in report.steps]
     done = ["bring-up"] if after == "bring-up" else [
@@ -396,7 +403,8 @@ def test_a_stop_signal_ends_the_walk_through_as_interrupted(virtual_channel, sig
         if line.startswith("ok  switch to pd"):
             signal.pthread_kill(main_thread, signum)  # the loop's handler takes it
 
-    report = run_demo(drives=3, rate=100.0, duration=3.0, out=out, channel=virtual_channel)
+    report = Walkthrough(DemoOptions(drives=3, rate=100.0, duration=3.0, channel=virtual_channel),
+                         out=out).run()
     assert report.interrupted == f"signal {signum.name}" and not report.ok
     names = [s.name for s in report.steps]
     assert names == ["bring-up", "switch to pd (SDO 0x2100)", "walk-through",
@@ -416,7 +424,7 @@ def test_the_demo_cli_exits_130_when_stopped_by_sigterm(tmp_path):
     an interrupted command, the verdict line saying so."""
     from fixtures.running import DEMO_WAIT
 
-    from rocoma_can.exit_codes import INTERRUPTED
+    from rocoma_can.cli.exit_codes import INTERRUPTED
     cmd = [sys.executable, "-m", "rocoma_can", "demo", "--drives", "3", "--rate", "100",
            "--duration", "6", "--no-record", "--flight-dir", str(tmp_path)]
     with subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True) as demo:

@@ -6,7 +6,7 @@ import copy
 
 import pytest
 
-from rocoma_can.cli.demo import run_demo
+from rocoma_can.cli.demo.walkthrough import DemoOptions, Walkthrough
 from rocoma_can.cli.main import main
 
 
@@ -18,8 +18,9 @@ def test_demo_on_can_fd_buses_passes_with_fd_frames_both_ways(virtual_channel):
     recorders = [record(f"{virtual_channel}-{k}", "inproc", fd=True) for k in range(2)]
     lines: list[str] = []
     try:
-        report = run_demo(drives=6, rate=200.0, duration=3.0, out=lines.append, buses=2,
-                          data_bitrate=5_000_000, channel=virtual_channel)
+        report = Walkthrough(DemoOptions(drives=6, rate=200.0, duration=3.0, buses=2,
+                                         data_bitrate=5_000_000, channel=virtual_channel),
+                             out=lines.append).run()
     finally:
         for r in recorders:
             r.stop()
@@ -53,7 +54,7 @@ def test_twelve_drives_at_2khz_fit_the_demos_can_fd_buses_and_not_classic_ones()
     are refused with what fits, and so are FD buses with 8-byte PDOs (13 frames a cycle).
     The classic demo's in-process buses have no bit rate: it runs, and says so once."""
     from rocoma_can.cli.demo import _load_line
-    from rocoma_can.cli.demo_config import default_buses, demo_config
+    from rocoma_can.cli.demo.config import default_buses, demo_config
     from rocoma_can.runtime.config import ConfigError, validate
     fd = demo_config("demo-bus", 12, 2000.0, default_buses(12), "inproc",
                      data_bitrate=5_000_000)

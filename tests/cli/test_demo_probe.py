@@ -1,4 +1,4 @@
-"""The demo's torque-off probes (cli/demo_probe.py) on real in-process buses: they see only
+"""The demo's torque-off probes (cli/demo/probe.py) on real in-process buses: they see only
 what is sent once armed, every drive's zero controlword on every bus; a bus that does not
 open, a loop that stopped first, or an arm after the demo closed them leave nothing open and
 say why."""
@@ -12,9 +12,9 @@ from collections.abc import Callable
 import can
 import pytest
 
-from rocoma_can.cli.demo import _only
-from rocoma_can.cli.demo_config import demo_config
-from rocoma_can.cli.demo_probe import TorqueOffProbes, controlword_carriers
+from rocoma_can.cli.demo.config import demo_config
+from rocoma_can.cli.demo.probe import TorqueOffProbes, controlword_carriers
+from rocoma_can.cli.demo.walkthrough import _only
 from rocoma_can.drivers.link import inproc
 from rocoma_can.drivers.link.bus import open_bus
 from rocoma_can.runtime.config import RuntimeConfig, validate

@@ -1,4 +1,4 @@
-"""The demo's simulated drives in a process of their own (rocoma_can/cli/demo_sim.py): they
+"""The demo's simulated drives in a process of their own (rocoma_can/cli/demo/drives.py): they
 answer on this process's in-process buses through the link, take the operator's faults,
 report their failures, and end with the demo, or are said to have ended when they die."""
 from __future__ import annotations
@@ -11,11 +11,11 @@ import uuid
 import can
 import pytest
 
-from rocoma_can.cli.demo import run_demo
-from rocoma_can.cli.demo_sim import SimProcess
+from rocoma_can.cli.demo.drives import SimProcess
+from rocoma_can.cli.demo.walkthrough import DemoOptions, Walkthrough
+from rocoma_can.cli.exit_codes import USAGE
 from rocoma_can.cli.main import main
 from rocoma_can.errors import SimulatorFailed
-from rocoma_can.exit_codes import USAGE
 
 WAIT = 10.0  # s: a bound for the child's frames, never expected to be reached
 
@@ -96,7 +96,8 @@ def test_the_demo_passes_with_its_drives_in_a_process_of_their_own_or_in_the_loo
     for sim, where in (("process", r"in a process of their own \(pid (\d+)\)"),
                        ("loop", "in this process, stepped by the loop")):
         seen: list[str] = []
-        report = run_demo(drives=3, rate=200.0, duration=3.0, out=seen.append, sim=sim)
+        report = Walkthrough(DemoOptions(drives=3, rate=200.0, duration=3.0, sim=sim),
+                             out=seen.append).run()
         assert report.ok, "\n".join(seen)
         said = [m for m in map(re.compile(f"rocoma-can demo: the simulated drives run {where}")
                                 .match, seen) if m]
@@ -110,9 +111,10 @@ def test_a_process_on_a_bus_no_link_joins_is_refused(capsys):
     assert "demo: --sim process needs --interface inproc: the virtual bus joins no other " \
         "process" in capsys.readouterr().out
     with pytest.raises(ValueError, match="--sim process needs --interface inproc"):
-        run_demo(drives=2, sim="process", interface="virtual", out=lambda line: None)
+        Walkthrough(DemoOptions(drives=2, sim="process", interface="virtual"),
+                    out=lambda line: None).run()
     with pytest.raises(ValueError, match="--sim must be one of loop, process, got 'thread'"):
-        run_demo(drives=2, sim="thread", out=lambda line: None)
+        Walkthrough(DemoOptions(drives=2, sim="thread"), out=lambda line: None).run()
 
 
 def test_a_demo_whose_drives_process_dies_fails_and_says_so(monkeypatch):
@@ -133,7 +135,8 @@ def test_a_demo_whose_drives_process_dies_fails_and_says_so(monkeypatch):
         seen.append(line)
         if line.startswith("ok  switch to pd") and started:
             os.kill(started[0]._child.pid, signal.SIGKILL)
-    report = run_demo(drives=3, rate=200.0, duration=3.0, out=out, sim="process")
+    report = Walkthrough(DemoOptions(drives=3, rate=200.0, duration=3.0, sim="process"),
+                         out=out).run()
     assert not report.ok
     text = "\n".join(seen)
     assert "FAILED simulated drives: simulator process ended (exit code -9)" in text, text

@@ -253,7 +253,7 @@ def test_init_config_offers_no_file_bring_up_would_refuse(tmp_path, file_vendor,
     """One rule: a file init-config would write for a device is one bring-up accepts for
     it (identity.IdentityCheck with the file's vendor and product), and every file bring-up
     accepts is made for it or offered."""
-    from rocoma_can.cli.init_config import index_device_files, match
+    from rocoma_can.cli.device_match import index_device_files, match
     from rocoma_can.drivers.files.device_file import read_device_file
     from rocoma_can.drivers.files.identity import IdentityCheck
     vendor, product = f"0x{file_vendor or 0:08X}", f"0x{file_product or 0:08X}"

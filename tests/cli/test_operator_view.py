@@ -15,7 +15,7 @@ from fixtures.running import runtime_running
 from fixtures.running import wait_for as wait_until
 
 from rocoma_can import ManagerState
-from rocoma_can.cli.demo_config import MANAGER_ID, demo_config
+from rocoma_can.cli.demo.config import MANAGER_ID, demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.drivers.protocol import cia301
 from rocoma_can.drivers.protocol.cia402 import State402
@@ -146,7 +146,7 @@ def test_status_watch_in_a_terminal_shows_the_state_change_of_an_estop(virtual_c
     import can
     from rich.console import Console
 
-    from rocoma_can.cli.live import watch
+    from rocoma_can.cli.status_watch import watch
     from rocoma_can.node.client import ManagerClient
     sim_segment_factory(3)
     master, slave = pty.openpty()
@@ -207,7 +207,7 @@ def test_status_view_draws_bring_up_progress_a_pulsing_homing_and_a_stale_manage
     drives are being brought up and one is homing, and after the manager stopped answering."""
     from rich.console import Console
 
-    from rocoma_can.cli.live import view
+    from rocoma_can.cli.status_watch import view
     drive = {"node_id": 1, "cia402_state": "SWITCH_ON_DISABLED", "enabled": False,
              "fault": None, "nmt_state": "PRE-OPERATIONAL", "heartbeat_age": 0.05,
              "homing": "", "position": 0.25, "velocity": None, "torque": None}

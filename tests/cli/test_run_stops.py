@@ -33,8 +33,8 @@ from fixtures.paths import TESTS
 from fixtures.processes import blocked_in, gone, writer_of
 from fixtures.running import DEMO_WAIT, wait_for
 
-from rocoma_can.cli.demo_config import demo_config
-from rocoma_can.exit_codes import INTERRUPTED, OK
+from rocoma_can.cli.demo.config import demo_config
+from rocoma_can.cli.exit_codes import INTERRUPTED, OK
 
 CHILD = TESTS / "fixtures" / "cli_child.py"
 #: a run's start here: the interpreter, the imports, the writer process's own
@@ -183,8 +183,8 @@ def test_a_stop_signal_right_after_the_state_line_is_the_loops(tmp_path, capfd):
     torque-off" (no torque-off had been sent; seen on a loaded machine)."""
     import logging
 
-    from rocoma_can.cli.commands import AUDIT
     from rocoma_can.cli.main import main
+    from rocoma_can.cli.run import AUDIT
 
     class SignalAtState(logging.Handler):
         def emit(self, record: logging.LogRecord) -> None:
@@ -229,12 +229,12 @@ def test_ctrl_c_between_the_config_and_the_buses_says_nothing_was_sent(
     """Before bring-up, between its steps (the command's own imports, the Zenoh and ROS 2
     options, the recorder's look for mcap): the same line as at its first and last step,
     not main()'s bare ``interrupted (SIGINT)``."""
-    from rocoma_can.cli import commands
+    from rocoma_can.cli import run as run_verb
     from rocoma_can.cli.main import main
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
-    monkeypatch.setattr(commands, cut, interrupted)
+    monkeypatch.setattr(run_verb, cut, interrupted)
     assert main(["run", str(_bench(tmp_path, virtual_channel))]) == INTERRUPTED
     captured = capsys.readouterr()
     assert (untimed(captured.out), untimed(captured.err)) == ([], [

@@ -16,12 +16,12 @@ from fixtures.running import DEMO_WAIT, runtime_running, wait_for
 
 from rocoma_can import ControllerManager, add_to_manager
 from rocoma_can.audit import AUDIT, Audit
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
+from rocoma_can.cli.exit_codes import OK
 from rocoma_can.cli.main import main
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.drivers.link.bus import open_bus
 from rocoma_can.errors import NoAnswer
-from rocoma_can.exit_codes import OK
 from rocoma_can.node.client import ManagerClient
 from rocoma_can.node.objects import CLEAR, ESTOP, RECOVER
 from rocoma_can.remote import Transport, serve

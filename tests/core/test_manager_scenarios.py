@@ -336,7 +336,7 @@ def test_each_event_carries_the_latch_it_left():
         assert mgr.estop_requested == ""
         mgr.emergency_stop("big red button")  # latched at once; its event at the update
         assert mgr.estop_latched
-        assert mgr.estop_requested == "big red button"  # said at once too (demo_stops.py)
+        assert mgr.estop_requested == "big red button"  # said at once too (cli/demo/stops.py)
         assert mgr.update() is EMERGENCY
         mgr.post_cycle()
         done.clear()

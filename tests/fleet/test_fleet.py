@@ -22,7 +22,7 @@ from fixtures.running import DEMO_WAIT, free_port, runtime_running
 from fixtures.running import wait_for as wait_until
 
 from rocoma_can import Controller, ManagerState
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.fleet.bridge import FleetError, open_session
 from rocoma_can.runtime import Runtime

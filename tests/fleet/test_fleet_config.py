@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.errors import ConfigError
 from rocoma_can.fleet.bridge import FleetError, open_session

@@ -8,7 +8,7 @@ from typing import Any, cast
 
 import pytest
 
-from rocoma_can.cli.commands import foxglove_from_args
+from rocoma_can.cli.foxglove_args import foxglove_from_args
 from rocoma_can.cli.main import build_parser, main
 from rocoma_can.live.foxglove import (
     DEFAULT_HOST,

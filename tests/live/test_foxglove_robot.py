@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
-from rocoma_can.cli.demo_config import demo_urdf
+from rocoma_can.cli.demo.config import demo_urdf
 from rocoma_can.live.foxglove import LAYOUT
 from rocoma_can.live.messages import ROBOT
 from rocoma_can.live.urdf import parse_urdf
@@ -26,7 +26,7 @@ def test_the_demo_serves_its_robot_live(capsys):
     import re
     import threading
 
-    from rocoma_can.cli.demo import run_demo
+    from rocoma_can.cli.demo.walkthrough import DemoOptions, Walkthrough
     lines: list[str] = []
     served = threading.Event()
 
@@ -54,8 +54,8 @@ def test_the_demo_serves_its_robot_live(capsys):
             viewer.close()
     viewer = threading.Thread(target=watch)
     viewer.start()
-    report = run_demo(drives=2, rate=100.0, duration=3.0, out=out, record=None,
-                      foxglove=loopback_view())
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=3.0, record=None,
+                                     foxglove=loopback_view()), out=out).run()
     viewer.join(DEMO_WAIT)
     assert report.ok, "\n".join(lines)
     assert seen.get("names") == ["joint1", "joint2"], (seen, lines)

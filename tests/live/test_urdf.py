@@ -14,7 +14,7 @@ import yaml
 from fixtures.configs import good
 from fixtures.fifo import FIFO_WAIT, fifo, without_hanging
 
-from rocoma_can.cli.demo_config import demo_urdf
+from rocoma_can.cli.demo.config import demo_urdf
 from rocoma_can.cli.main import main
 from rocoma_can.live.urdf import MAX_URDF_BYTES, Robot, UrdfError, parse_urdf, read_urdf
 from rocoma_can.runtime.config import ConfigError, load, validate

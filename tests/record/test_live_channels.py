@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from rocoma_can import ManagerState
-from rocoma_can.cli.demo_config import demo_urdf
+from rocoma_can.cli.demo.config import demo_urdf
 from rocoma_can.drivers.protocol.joints import JointCommand, JointState
 from rocoma_can.events import EventKind, ManagerEvent
 from rocoma_can.live.urdf import Robot, parse_urdf

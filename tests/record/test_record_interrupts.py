@@ -18,8 +18,8 @@ from fixtures.console import untimed
 from fixtures.processes import gone, stopped, writer_of
 from fixtures.running import DEMO_WAIT, wait_for
 
+from rocoma_can.cli.exit_codes import INTERRUPTED
 from rocoma_can.drivers.protocol.joints import JointCommand, JointState
-from rocoma_can.exit_codes import INTERRUPTED
 from rocoma_can.record.recorder import BusToRecord, Recorder
 
 

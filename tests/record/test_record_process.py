@@ -178,7 +178,7 @@ def _kill_a_manager_process(demo_bench, tmp_path, record: bool) -> None:
     script = textwrap.dedent(f"""
         import sys, time, threading
         sys.path.insert(0, {str(str(TESTS))!r})
-        from rocoma_can.cli.demo_config import demo_config
+        from rocoma_can.cli.demo.config import demo_config
         from rocoma_can.runtime import Runtime
         from rocoma_can.runtime.config import validate
         from fixtures.sim import SimulatedSegment
@@ -232,7 +232,7 @@ def test_a_recording_carries_the_live_views_channels_the_layout_reads(demo_bench
     in both, with the schema the live view serves, and /tf moves with the joints."""
     from fixtures.foxglove_layout import layout_topics
 
-    from rocoma_can.cli.demo_config import demo_urdf
+    from rocoma_can.cli.demo.config import demo_urdf
     from rocoma_can.live import messages
     from rocoma_can.live.urdf import parse_urdf
     config, segment = demo_bench

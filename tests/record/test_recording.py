@@ -29,7 +29,7 @@ from fixtures.running import (
     wait_for,
 )
 
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.record.recorder import STATUS_PERIOD
 from rocoma_can.record.recording import slug as _slug

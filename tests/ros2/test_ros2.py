@@ -28,7 +28,7 @@ from fixtures.running import DEMO_RUN, DEMO_WAIT
 from zenoh_ros2_sdk import ROS2ServiceClient, ROS2Subscriber
 
 from rocoma_can import ManagerState
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.ros2.interfaces import JOINT_STATE
 from rocoma_can.ros2.node import EVENT_QUEUE
 

@@ -25,7 +25,7 @@ from fixtures.ros2_rig import (
 from fixtures.running import DEMO_WAIT, runtime_running
 
 from rocoma_can import ManagerState
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.ros2.interfaces import JOINT_STATE
 
 

@@ -7,7 +7,7 @@ import pytest
 from fixtures.ros2_rig import DOMAIN, RATE, decode
 from fixtures.running import free_port
 
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.ros2.interfaces import JOINT_STATE
 from rocoma_can.ros2.node import Ros2Error
 

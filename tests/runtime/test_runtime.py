@@ -14,8 +14,8 @@ import can
 import pytest
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
-from rocoma_can.cli.demo_config import demo_config
-from rocoma_can.cli.live import cycle_text
+from rocoma_can.cli.demo.config import demo_config
+from rocoma_can.cli.status_watch import cycle_text
 from rocoma_can.runtime import ControlLoop, CycleStats, Runtime
 from rocoma_can.runtime.config import validate
 from rocoma_can.runtime.host import try_sched_fifo

@@ -31,7 +31,7 @@ import pytest
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
 from rocoma_can import EventKind, ManagerEvent, ManagerState, SwitchResult
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.drivers.sim.segment import SimulatedSegment
 from rocoma_can.runtime import Runtime
@@ -307,7 +307,8 @@ NOT_A_REQUEST = {
                                                         # and e-stop frames: CAN_FRAME's cause)
     ("rocoma_can/runtime/loop.py", "_torque_off"),      # the loop's own stop
     ("rocoma_can/fleet/bridge.py", "_on_deadman"),      # a supervision, not a request
-    ("rocoma_can/cli/demo.py", "_operator"),            # the demo's walk-through
+    ("rocoma_can/cli/demo/steps.py", "second_fault"),       # the demo's walk-through: its
+    ("rocoma_can/cli/demo/steps.py", "ended_by_operator"),  # steps, an operator's stop
 }
 STOP_CALLS = {"emergency_stop", "failproof_stop"}
 

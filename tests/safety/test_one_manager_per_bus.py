@@ -17,7 +17,7 @@ from fixtures.console import untimed
 from fixtures.running import DEMO_RUN, DEMO_WAIT, runtime_running, wait_for
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.drivers.protocol import cia301
 from rocoma_can.errors import BusTaken

@@ -14,7 +14,7 @@ from fixtures.rig_controllers import Sine
 from fixtures.running import DEMO_RUN, DEMO_WAIT
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.cli.demo_config import demo_config
+from rocoma_can.cli.demo.config import demo_config
 from rocoma_can.cli.main import main
 from rocoma_can.drivers.cycle.homing import CW_HOMING_START, HOMING_MODE
 from rocoma_can.drivers.protocol.cia402 import State402

@@ -81,10 +81,10 @@ def test_bring_up_track_and_torque_off_on_each_file(file, sim_segment_factory, b
 def test_the_demo_walks_through_on_each_file(file):
     """`rocoma-can demo --eds FILE`: the modes the file supports, the steps it cannot do
     skipped with the reason, and every step that runs passes."""
-    from rocoma_can.cli.demo import run_demo
+    from rocoma_can.cli.demo.walkthrough import DemoOptions, Walkthrough
     lines: list[str] = []
-    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append,
-                      eds=str(EDS / file))
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=2.0, eds=str(EDS / file)),
+                         out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert lines[0].startswith(f"rocoma-can demo: the drives emulate {EDS / file}")
     assert report.steps[-1].name == "loop stop -> torque-off frames"
@@ -144,7 +144,7 @@ def test_canopen_reads_every_file_as_the_driver_does():
 
 
 def test_a_controller_that_needs_missing_feedback_is_refused_at_load():
-    from rocoma_can.cli.demo_config import demo_config
+    from rocoma_can.cli.demo.config import demo_config
     from rocoma_can.errors import ConfigError
     from rocoma_can.runtime.config import validate
     cfg = demo_config("x", drives=2, rate=100.0, emulated=None)

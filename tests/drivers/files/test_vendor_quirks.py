@@ -46,9 +46,10 @@ def drive(path: str, **kw) -> DriveConfig:
 
 
 def walk_through(path: str) -> list[str]:
-    from rocoma_can.cli.demo import run_demo
+    from rocoma_can.cli.demo.walkthrough import DemoOptions, Walkthrough
     lines: list[str] = []
-    report = run_demo(drives=2, rate=100.0, duration=2.0, out=lines.append, eds=path)
+    report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=2.0, eds=path),
+                         out=lines.append).run()
     assert report.ok, "\n".join(lines)
     assert report.steps[-1].name == "loop stop -> torque-off frames"
     return lines

@@ -12,10 +12,10 @@ import pytest
 from fixtures.budgets import STALL, within
 
 from rocoma_can import cli
+from rocoma_can.cli.sim import parse_node_ids
 from rocoma_can.drivers.protocol import cia301 as c301
 from rocoma_can.drivers.protocol.cia301 import NmtCommand, NmtState
 from rocoma_can.drivers.protocol.cia402 import Mode, State402
-from rocoma_can.drivers.sim.cli import parse_node_ids
 
 
 def _emcy(frame):

@@ -1,6 +1,6 @@
 """What ``rocoma-can demo`` says: its steps and report, the drives' notes once each, a
 status line a second while it runs, the summary at the end, and where its recording and
-plot went. Kept apart from the walk-through (demo.py) that produces them."""
+plot went. Kept apart from the walk-through (walkthrough.py, steps.py) that produces them."""
 from __future__ import annotations
 
 import logging
@@ -10,12 +10,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..node.objects import STATE_NAMES
+from ...node.objects import STATE_NAMES
 
 if TYPE_CHECKING:
-    from ..drivers.plan.drive_plan import DrivePlan
-    from ..runtime.loop import TimingSummary
-    from ..runtime.system import Runtime
+    from ...drivers.plan.drive_plan import DrivePlan
+    from ...runtime.loop import TimingSummary
+    from ...runtime.system import Runtime
 
 
 @dataclass
@@ -32,7 +32,7 @@ class Step:
 
 
 @dataclass
-class Report:
+class DemoReport:
     steps: list[Step] = field(default_factory=list)
     latencies: list[tuple[str, float, int]] = field(default_factory=list)  # what, s, cycles
     recording: Path | None = None      # the run's trace.mcap (with a candump .log per bus)
@@ -46,7 +46,7 @@ class Report:
         return bool(self.steps) and all(s.ok for s in self.steps) and not self.interrupted
 
 
-def grouped_notes(plans: Mapping[str, DrivePlan]) -> dict[str, str]:
+def note_lines(plans: Mapping[str, DrivePlan]) -> dict[str, str]:
     """Each drive-plan note once, naming its drives: the demo's drives share one file, so
     a note per drive would say the same thing as many times as there are drives."""
     drives: dict[str, list[str]] = {}
@@ -75,12 +75,12 @@ class Said(logging.Filter):
         return not any(message.endswith(": " + note) for note in self.notes)
 
 
-def plot_run(directory: Path, report: Report, out: Callable[[str], None],
+def plot_run(directory: Path, report: DemoReport, out: Callable[[str], None],
              errors: Sequence[str] = ()) -> None:
     """After the run (the recording closed): draw it, say where both are. ``errors``: why
     the recording stopped (the first first: a full disk, the writer process gone): said
     instead of "every cycle and frame", and a failed step, as ``run`` exits 1 for it."""
-    from ..record.plot import PlotError, plot
+    from ...record.plot import PlotError, plot
     report.recording = directory / "trace.mcap"
     if errors:
         recording_stopped(report, errors)
@@ -99,14 +99,15 @@ def plot_run(directory: Path, report: Report, out: Callable[[str], None],
     out(f"plot: {report.plot}")
 
 
-def recording_stopped(report: Report, errors: Sequence[str]) -> None:
+def recording_stopped(report: DemoReport, errors: Sequence[str]) -> None:
     """The recording's failure as a failed step, once (seen before the summary, or at the
     close)."""
     if errors and not any(step.name == "recording" for step in report.steps):
         report.steps.append(Step("recording", False, errors[0]))
 
 
-def status_lines(rt: Runtime, stop: threading.Event, out: Callable[[str], None]) -> None:
+def status_ticker(rt: Runtime, stop: threading.Event, out: Callable[[str], None]) -> None:
+    """A status line a second until ``stop`` (the demo's thread while the loop runs)."""
     while not stop.wait(1.0):
         hw, mgr, s = rt.hardware, rt.manager, rt.loop.stats
         out(f"  [{s.cycles:6d} cycles] {STATE_NAMES[int(mgr.state)]:9s} "
@@ -128,7 +129,7 @@ def host_hint(timing: TimingSummary) -> str | None:
             "measures what this host allows a loop")
 
 
-def summary(out: Callable[[str], None], report: Report, timing: TimingSummary,
+def summary(out: Callable[[str], None], report: DemoReport, timing: TimingSummary,
              rt: Runtime) -> None:
     out("")
     out("summary")

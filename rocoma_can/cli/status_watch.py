@@ -18,7 +18,8 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from ..errors import RocomaError
-from ..exit_codes import OK, USAGE
+from .console import err
+from .exit_codes import OK, USAGE
 
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
@@ -42,9 +43,7 @@ def watch(read: Callable[[], dict[str, Any]], label: str, interval: float = 0.5,
         from rich.console import Console
         from rich.live import Live
     except ImportError:
-        import sys
-        print("rocoma-can: status --watch needs rich: pip install 'rocoma-can[live]'",
-              file=sys.stderr, flush=True)
+        err("status --watch needs rich: pip install 'rocoma-can[live]'")
         return USAGE
     class Watched(Console):
         def on_broken_pipe(self) -> None:
@@ -96,33 +95,7 @@ def view(status: dict[str, Any] | None, problem: str = "", answered: float = 0.0
         parts.append(Text(f"waiting for {label} ..."))
         return Group(*parts)
 
-    head = Table.grid(padding=(0, 2))
-    head.add_column(style="bold")
-    head.add_column()
-    state = status["state"]
-    head.add_row("state", Text(f" {state} ", style=STATE_STYLES.get(state, "")))
-    head.add_row("controller", status["active"])
-    head.add_row("e-stop", ("latched" if status["latched"] else "not latched")
-                 + (f"; last cause: {status['estop_cause']}" if status["estop_cause"] else ""))
-    head.add_row("last switch", status["last_switch"] + (
-        f" (refused: {status['switch_refused']})" if status["switch_refused"] else ""))
-    drives = status["drives"]
-    ready = sum(d["phase"] == "READY" for d in drives)
-    if not status.get("startup_finished"):
-        head.add_row("bring-up", _bar(ProgressBar(total=max(1, len(drives)), completed=ready,
-                                                  width=30), f"{ready}/{len(drives)} ready"))
-    recovery = status.get("recovery") or "none"
-    if recovery.startswith("running"):
-        head.add_row("recovery", _bar(ProgressBar(total=None, pulse=True, width=30),
-                                      recovery))
-    elif recovery != "none":
-        head.add_row("recovery", recovery)
-    if status.get("bus_fault"):
-        head.add_row("bus fault", Text(status["bus_fault"], style="bold red"))
-    cycle = status.get("cycle")
-    if cycle:
-        head.add_row("cycle", cycle_text(cycle))
-    parts.append(head)
+    parts.append(_head(status))
 
     if status.get("buses"):
         buses = Table(title="buses", title_justify="left", box=box.SIMPLE_HEAD)
@@ -139,6 +112,7 @@ def view(status: dict[str, Any] | None, problem: str = "", answered: float = 0.0
                           Text(b.get("fault") or "", style="bold red"))
         parts.append(buses)
 
+    drives = status["drives"]
     table = Table(title="drives", title_justify="left", box=box.SIMPLE_HEAD)
     for column in ("drive", "node", "bring-up", "CiA 402", "NMT", "heartbeat",
                    "position", "velocity", "torque", "fault / homing"):
@@ -170,6 +144,42 @@ def view(status: dict[str, Any] | None, problem: str = "", answered: float = 0.0
                       f"{time.strftime('%H:%M:%S', time.localtime(answered))}; Ctrl-C ends "
                       "the view (the manager runs on)", style="dim"))
     return Group(*parts)
+
+
+def _head(status: dict[str, Any]) -> RenderableType:
+    """The manager's lines: state, controller, e-stop, last switch, bring-up, recovery,
+    bus fault, cycle."""
+    from rich.progress_bar import ProgressBar
+    from rich.table import Table
+    from rich.text import Text
+
+    head = Table.grid(padding=(0, 2))
+    head.add_column(style="bold")
+    head.add_column()
+    state = status["state"]
+    head.add_row("state", Text(f" {state} ", style=STATE_STYLES.get(state, "")))
+    head.add_row("controller", status["active"])
+    head.add_row("e-stop", ("latched" if status["latched"] else "not latched")
+                 + (f"; last cause: {status['estop_cause']}" if status["estop_cause"] else ""))
+    head.add_row("last switch", status["last_switch"] + (
+        f" (refused: {status['switch_refused']})" if status["switch_refused"] else ""))
+    drives = status["drives"]
+    ready = sum(d["phase"] == "READY" for d in drives)
+    if not status.get("startup_finished"):
+        head.add_row("bring-up", _bar(ProgressBar(total=max(1, len(drives)), completed=ready,
+                                                  width=30), f"{ready}/{len(drives)} ready"))
+    recovery = status.get("recovery") or "none"
+    if recovery.startswith("running"):
+        head.add_row("recovery", _bar(ProgressBar(total=None, pulse=True, width=30),
+                                      recovery))
+    elif recovery != "none":
+        head.add_row("recovery", recovery)
+    if status.get("bus_fault"):
+        head.add_row("bus fault", Text(status["bus_fault"], style="bold red"))
+    cycle = status.get("cycle")
+    if cycle:
+        head.add_row("cycle", cycle_text(cycle))
+    return head
 
 
 def _bar(bar: RenderableType, label: str) -> RenderableType:

@@ -1,16 +1,12 @@
 """What the commands share on their command lines: argparse types for the numbers they
-take, and the hints their refusals carry (``did_you_mean``, ``with_clear_hint``). A value
-that is not a finite number in its range is a usage error naming the option (argparse
-prints it and exits 2), never a traceback, a busy loop (``Event.wait(nan)`` returns at
-once) or a run without end (``--duration nan``)."""
+take (the hints their refusals carry are in hints.py). A value that is not a finite number
+in its range is a usage error naming the option (argparse prints it and exits 2), never a
+traceback, a busy loop (``Event.wait(nan)`` returns at once) or a run without end
+(``--duration nan``)."""
 from __future__ import annotations
 
 import argparse
-import difflib
 import math
-from collections.abc import Iterable
-
-from .events import LATCHED
 
 #: the longest duration or timeout a command line may ask for (a year)
 LONGEST = 365 * 24 * 3600.0
@@ -104,15 +100,3 @@ def channel_name(text: str) -> str:
             f"expected a CAN channel (can0, vcan0, a number for Kvaser, IXXAT, Vector), "
             f"got {text!r}")
     return text
-
-
-def did_you_mean(word: str, choices: Iterable[str]) -> str:
-    """The hint an unknown name gets: ", did you mean 'x'?" for the nearest of ``choices``,
-    "" when none is near."""
-    close = difflib.get_close_matches(word, list(choices), n=1)
-    return f", did you mean {close[0]!r}?" if close else ""
-
-
-def with_clear_hint(reason: str) -> str:
-    """A refusal, pointing to the verb that lifts it where the e-stop latch is why."""
-    return reason + (" (rocoma-can clear clears it)" if LATCHED in reason else "")

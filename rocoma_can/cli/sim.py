@@ -19,13 +19,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from ...cli_args import LONGEST, channel_name, count, positive, seconds, seconds_or_zero
-from ...exit_codes import FAILED, OK, USAGE
+from .args import LONGEST, channel_name, count, positive, seconds, seconds_or_zero
+from .exit_codes import FAILED, OK, USAGE
 
 if TYPE_CHECKING:  # imported by run(): `rocoma-can --help` must not import the simulator
-    from ..files.identity import Identity
-    from .drive import SimulatedDrive
-    from .segment import SimulatedSegment
+    from ..drivers.files.capabilities import DriveCapabilities
+    from ..drivers.files.identity import Identity
+    from ..drivers.sim.drive import SimulatedDrive
+    from ..drivers.sim.segment import SimulatedSegment
 
 
 def parse_node_ids(text: str) -> list[int]:
@@ -81,7 +82,7 @@ IDENTITY_KEYS = {"vendor": "vendor_id", "product": "product_code", "revision": "
 
 def parse_identity(text: str) -> Identity:
     """'serial=0x1234,vendor=0x9A' -> Identity(serial=0x1234, vendor_id=0x9A)."""
-    from ..files.identity import Identity
+    from ..drivers.files.identity import Identity
     fields: dict[str, int] = {}
     for part in text.split(","):
         key, _, value = part.strip().partition("=")
@@ -187,55 +188,86 @@ def _inject(segment: SimulatedSegment, inj: Injection) -> None:
     print(f"sim: node {inj.node}: {inj.flag} {' '.join(inj.args)}".rstrip(), flush=True)
 
 
+class _Refused(Exception):
+    """What ``sim`` refuses before it starts: the line it says and its exit code."""
+
+    def __init__(self, message: str, code: int = USAGE) -> None:
+        super().__init__(message)
+        self.code = code
+
+
 def run(args: argparse.Namespace) -> int:
-    from .lss import IdentityError
-    from .segment import SimulatedSegment
     injections = [inj for flag in INJECTIONS for inj in getattr(args, flag.replace("-", "_"))]
-    identities = dict(args.identity)
-    strays = sorted(set(identities) - set(args.nodes))
-    if strays:
-        print(f"rocoma-can sim: --identity: node(s) {strays} not in --nodes", file=sys.stderr)
-        return USAGE
-    for inj in injections:
-        if inj.node not in args.nodes:
-            print(f"rocoma-can sim: --{inj.flag}: node {inj.node} is not in --nodes",
-                  file=sys.stderr)
-            return USAGE
-    from ..link.bus import unknown_interface
-    unknown = unknown_interface(args.interface)
-    if unknown:
-        print(f"rocoma-can sim: --interface: {unknown}", file=sys.stderr)
-        return USAGE
-    from ..files.capabilities import CapabilityError, read_capabilities
     try:
-        caps = read_capabilities(args.eds, args.nodes[0])
-    except CapabilityError as exc:
-        print(f"rocoma-can sim: --eds: {exc}", file=sys.stderr)
-        return USAGE
-    from .objects import axes_problem
-    problem = axes_problem(caps.object_dictionary, args.axes)
-    if problem:
-        print(f"rocoma-can sim: --axes {args.axes}: {problem} ({caps.source})", file=sys.stderr)
-        return USAGE
-    try:
-        segment = SimulatedSegment.open(args.channel, args.interface, args.nodes,
-                                        eds_path=args.eds, sync_period=args.sync_period,
-                                        fd=args.fd, increments_per_rev=args.increments_per_rev,
-                                        rated_torque_nm=args.rated_torque_nm,
-                                        axes={n: args.axes for n in args.nodes},
-                                        identities=identities,
-                                        unconfigured=args.unconfigured)
-    except IdentityError as exc:  # --identity / --unconfigured: the arguments are wrong
-        print(f"rocoma-can sim: {exc}", file=sys.stderr)
-        return USAGE
-    except (OSError, ValueError, ImportError) as exc:
-        print(f"rocoma-can sim: cannot open {args.interface} channel {args.channel}: {exc}",
-              file=sys.stderr)
-        return FAILED
+        caps = _checked(args, injections)
+        segment = _opened(args)
+    except _Refused as refused:
+        print(f"rocoma-can sim: {refused}", file=sys.stderr)
+        return refused.code
     if args.eds:  # what the drives are, as a master would find out
         print(f"sim: the drives emulate {caps.source}", flush=True)
         for line in caps.report():
             print(f"sim:   {line}", flush=True)
+    _serve(args, segment, injections)
+    if segment.errors:
+        print(f"rocoma-can sim: the simulation failed: {segment.errors[0]!r}", file=sys.stderr)
+        return FAILED
+    if segment.bus_errors:  # the drives were cut off meanwhile: say so, and why
+        print(f"rocoma-can sim: reading {args.interface} {args.channel} failed "
+              f"{segment.bus_errors} time(s) (interface down or gone?); the latest: "
+              f"{segment.bus_error}", file=sys.stderr)
+        return FAILED
+    return OK
+
+
+def _checked(args: argparse.Namespace, injections: list[Injection]) -> DriveCapabilities:
+    """The options checked against each other and the --eds file read (its capabilities);
+    _Refused for the first problem."""
+    strays = sorted(set(dict(args.identity)) - set(args.nodes))
+    if strays:
+        raise _Refused(f"--identity: node(s) {strays} not in --nodes")
+    for inj in injections:
+        if inj.node not in args.nodes:
+            raise _Refused(f"--{inj.flag}: node {inj.node} is not in --nodes")
+    from ..drivers.link.bus import unknown_interface
+    unknown = unknown_interface(args.interface)
+    if unknown:
+        raise _Refused(f"--interface: {unknown}")
+    from ..drivers.files.capabilities import CapabilityError, read_capabilities
+    try:
+        caps = read_capabilities(args.eds, args.nodes[0])
+    except CapabilityError as exc:
+        raise _Refused(f"--eds: {exc}") from None
+    from ..drivers.sim.objects import axes_problem
+    problem = axes_problem(caps.object_dictionary, args.axes)
+    if problem:
+        raise _Refused(f"--axes {args.axes}: {problem} ({caps.source})")
+    return caps
+
+
+def _opened(args: argparse.Namespace) -> SimulatedSegment:
+    """The drives on their bus; _Refused when the options or the bus do not allow them."""
+    from ..drivers.sim.lss import IdentityError
+    from ..drivers.sim.segment import SimulatedSegment
+    try:
+        return SimulatedSegment.open(args.channel, args.interface, args.nodes,
+                                     eds_path=args.eds, sync_period=args.sync_period,
+                                     fd=args.fd, increments_per_rev=args.increments_per_rev,
+                                     rated_torque_nm=args.rated_torque_nm,
+                                     axes={n: args.axes for n in args.nodes},
+                                     identities=dict(args.identity),
+                                     unconfigured=args.unconfigured)
+    except IdentityError as exc:  # --identity / --unconfigured: the arguments are wrong
+        raise _Refused(str(exc)) from None
+    except (OSError, ValueError, ImportError) as exc:
+        raise _Refused(f"cannot open {args.interface} channel {args.channel}: {exc}",
+                       FAILED) from None
+
+
+def _serve(args: argparse.Namespace, segment: SimulatedSegment,
+           injections: list[Injection]) -> None:
+    """Run the drives until Ctrl-C, SIGTERM or --duration; a status line per axis on
+    SIGUSR1 and every --status-interval. The drives' bus is closed after."""
     # Set by signal handlers, polled below: a handler runs on this (main) thread between two
     # bytecodes and must take no lock (Event.set could wait for ever for the lock that the
     # interrupted Event.wait holds).
@@ -255,39 +287,39 @@ def run(args: argparse.Namespace) -> int:
                 previous[sig] = signal.signal(sig, handler)
     try:
         with segment:
-            axes = f" of {args.axes} axes" if args.axes > 1 else ""
-            blank = (f" and {len(args.unconfigured)} without a node id (LSS)"
-                     if args.unconfigured else "")
-            print(f"sim: {len(segment.drives)} drive(s){axes} {args.nodes[0]}..{args.nodes[-1]}"
-                  f"{blank} on {args.interface} {args.channel}"
-                  f"{' (CAN FD)' if args.fd else ''}; Ctrl-C to stop", file=sys.stderr,
-                  flush=True)
-            start = segment.clock()
-            for inj in injections:
-                segment.schedule(start + inj.after, _inject, segment, inj)
-            interval = args.status_interval if args.status_interval > 0 else None
-            next_status = start + interval if interval else None
-            end = start + args.duration if args.duration is not None else None
-            while not signalled["stop"]:
-                now = segment.clock()
-                if end is not None and now >= end:
-                    break
-                if signalled["status"] or (next_status is not None and now >= next_status):
-                    signalled["status"] = False
-                    print("\n".join(segment.status_lines()), flush=True)
-                    if next_status is not None:
-                        next_status = max(next_status + interval, now)
-                waits = [t - now for t in (end, next_status) if t is not None]
-                time.sleep(min(waits + [0.2]))  # bounded: a signal is seen within 0.2 s
+            _say_started(args, segment)
+            _run_until_stopped(args, segment, injections, signalled)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    if segment.errors:
-        print(f"rocoma-can sim: the simulation failed: {segment.errors[0]!r}", file=sys.stderr)
-        return FAILED
-    if segment.bus_errors:  # the drives were cut off meanwhile: say so, and why
-        print(f"rocoma-can sim: reading {args.interface} {args.channel} failed "
-              f"{segment.bus_errors} time(s) (interface down or gone?); the latest: "
-              f"{segment.bus_error}", file=sys.stderr)
-        return FAILED
-    return OK
+
+
+def _say_started(args: argparse.Namespace, segment: SimulatedSegment) -> None:
+    axes = f" of {args.axes} axes" if args.axes > 1 else ""
+    blank = (f" and {len(args.unconfigured)} without a node id (LSS)"
+             if args.unconfigured else "")
+    print(f"sim: {len(segment.drives)} drive(s){axes} {args.nodes[0]}..{args.nodes[-1]}"
+          f"{blank} on {args.interface} {args.channel}"
+          f"{' (CAN FD)' if args.fd else ''}; Ctrl-C to stop", file=sys.stderr,
+          flush=True)
+
+
+def _run_until_stopped(args: argparse.Namespace, segment: SimulatedSegment,
+                       injections: list[Injection], signalled: dict[str, bool]) -> None:
+    start = segment.clock()
+    for inj in injections:
+        segment.schedule(start + inj.after, _inject, segment, inj)
+    interval = args.status_interval if args.status_interval > 0 else None
+    next_status = start + interval if interval else None
+    end = start + args.duration if args.duration is not None else None
+    while not signalled["stop"]:
+        now = segment.clock()
+        if end is not None and now >= end:
+            break
+        if signalled["status"] or (next_status is not None and now >= next_status):
+            signalled["status"] = False
+            print("\n".join(segment.status_lines()), flush=True)
+            if next_status is not None:
+                next_status = max(next_status + interval, now)
+        waits = [t - now for t in (end, next_status) if t is not None]
+        time.sleep(min(waits + [0.2]))  # bounded: a signal is seen within 0.2 s

@@ -49,11 +49,12 @@ def emulate(path: str, drives: int) -> Emulated:
     """Fit the demo to ``path``: the position mode it supports (CSP, else IP, else PP), CST
     for the emergency controller damp where it has it (else hold in the position mode),
     its scaling, its node id if it is a DCF. ValueError when no position mode fits."""
-    from ..drivers.files.capabilities import CapabilityError, read_capabilities
-    from ..drivers.protocol.cia402 import (
+    from ...drivers.files.capabilities import CapabilityError, read_capabilities
+    from ...drivers.protocol.cia402 import (
         CONTROLWORD,
         GEAR_RATIO,
         MAX_AXES,
+        MODES_OF_OPERATION,
         POSITION_ENCODER_RESOLUTION,
         QUICK_STOP_DECELERATION,
         RATED_TORQUE,
@@ -70,8 +71,8 @@ def emulate(path: str, drives: int) -> Emulated:
                          f"{', '.join(caps.mode_names) or 'no mode'}; needs CSP, IP or PP with "
                          "a target an RPDO can carry)")
     modes = [position]
-    mode_in_pdo = caps.carries(0x6060) and all(
-        ch.mapping_writable or ch.maps(0x6060) for ch in caps.rpdos)
+    mode_in_pdo = caps.carries(MODES_OF_OPERATION) and all(
+        ch.mapping_writable or ch.maps(MODES_OF_OPERATION) for ch in caps.rpdos)
     if caps.usable(_MODE_NUMBER["cst"]) and mode_in_pdo:
         modes.append("cst")
         emergency = {"name": "damp", "plugin": "damp",
@@ -113,8 +114,8 @@ def emulate(path: str, drives: int) -> Emulated:
                      f"{caps.commissioned_node_id} on, each with its COB-IDs re-derived")
     # One drive measured against the file says what would be wrong with every drive: once,
     # about the file, not once per drive of the config.
-    from ..drivers.plan.config import DriveConfig
-    from ..drivers.plan.drive_plan import plan_drive, plan_drives
+    from ...drivers.plan.config import DriveConfig
+    from ...drivers.plan.drive_plan import plan_drive, plan_drives
 
     def axis(n: int) -> DriveConfig:
         return DriveConfig.from_dict({"name": f"joint{n}", "node_id": fitted.first_node,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 
-from ..events import EventKind, ManagerEvent
+from ...events import EventKind, ManagerEvent
 
 #: how the causes of stops asked from outside the walk-through begin: the live view's and
 #: Zenoh's services (remote.py) and the manager node's SDO objects (``rocoma-can estop``);

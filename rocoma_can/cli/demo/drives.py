@@ -1,7 +1,7 @@
 """The demo's simulated drives, in the loop's process (the default) or in one of their own.
 
 In its own process (``SimProcess``) the simulator costs the control loop what real drives
-would: the frames. The child (``python -m rocoma_can.cli.demo_sim``, started here) opens a
+would: the frames. The child (``python -m rocoma_can.cli.demo.drives``, started here) opens a
 segment of drives per bus on its own in-process channels, joins the channels to the demo's
 over a socket pair (drivers/link/inproc_link.py), and on its main thread reads the link and
 steps the drives that got frames at once (drivers/sim/group.py's lockstep pass). The
@@ -33,12 +33,12 @@ import time
 from collections.abc import Callable, Sequence
 from typing import IO, TYPE_CHECKING, Any, Protocol
 
-from ..errors import SimulatorFailed
+from ...errors import SimulatorFailed
 
 if TYPE_CHECKING:
-    from ..drivers.sim.group import SegmentGroup
-    from ..drivers.sim.segment import SimulatedSegment
-    from .demo_config import Emulated
+    from ...drivers.sim.group import SegmentGroup
+    from ...drivers.sim.segment import SimulatedSegment
+    from .config import Emulated
 
 #: s the child may take to import, open its buses and power its drives on
 START_TIMEOUT = 30.0
@@ -92,7 +92,7 @@ def check_choice(sim: str, interface: str) -> None:
 def open_segments(buses: Buses, interface: str, emulated: Emulated | None,
                   fd: bool) -> list[SimulatedSegment]:
     """One segment per bus, its drives emulating ``emulated``'s file (or the generic drive)."""
-    from ..drivers.sim.segment import SimulatedSegment
+    from ...drivers.sim.segment import SimulatedSegment
     segments: list[SimulatedSegment] = []
     try:
         for channel, nodes in buses:
@@ -114,7 +114,7 @@ class InProcessSim:
 
     def __init__(self, buses: Buses, interface: str, emulated: Emulated | None,
                  fd: bool) -> None:
-        from ..drivers.sim.group import SegmentGroup
+        from ...drivers.sim.group import SegmentGroup
         self.segments = open_segments(buses, interface, emulated, fd)
         self.node_ids = self.segments[0].node_ids
         self.where = "in this process, stepped by the loop after each write"
@@ -140,7 +140,7 @@ class SimProcess:
     """The drives in a child process, their buses linked to this process's ``buses``."""
 
     def __init__(self, buses: Buses, eds: str | None, drives: int, fd: bool) -> None:
-        from ..drivers.link.inproc_link import InProcessLink
+        from ...drivers.link.inproc_link import InProcessLink
         self.node_ids = list(buses[0][1])
         self.stderr: list[str] = []  # the child's, kept for what check() says
         self._replies: queue.Queue[dict[str, Any] | None] = queue.Queue()
@@ -307,12 +307,12 @@ def _serve(sim: InProcessSim, done: threading.Event) -> None:
         done.set()
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def child_main(argv: Sequence[str] | None = None) -> int:
     """The child: ``--link-fd FD SPEC`` (SPEC: the JSON SimProcess writes)."""
     import argparse
 
-    from ..drivers.link.inproc_link import InProcessLink
-    from .demo_config import emulate
+    from ...drivers.link.inproc_link import InProcessLink
+    from .config import emulate
     # The demo ends this process (stop, its stdin's end, the link's); a stop signal to
     # every process of a service is the demo's to act on, while the drives answer its
     # loop's torque-off frames.
@@ -351,4 +351,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(child_main())

@@ -17,11 +17,11 @@ from typing import TYPE_CHECKING
 
 import can
 
-from ..node.objects import STATE_NAMES
+from ...node.objects import STATE_NAMES
 
 if TYPE_CHECKING:
-    from ..drivers.link.bus import BusReader
-    from ..runtime.config import RuntimeConfig
+    from ...drivers.link.bus import BusReader
+    from ...runtime.config import RuntimeConfig
 
 
 class TorqueOffProbe(can.Listener):
@@ -87,7 +87,7 @@ class TorqueOffProbes:
                 self.error = f"the loop stopped ({stopped}) before the probes opened"
                 return
             try:
-                from ..drivers.link.bus import readers_for
+                from ...drivers.link.bus import readers_for
                 for channel, probe in zip(self._channels, self.probes):
                     self._buses.append(self._open(channel, set(probe.carriers)))
                 self._readers = readers_for([(bus, (probe,)) for bus, probe
