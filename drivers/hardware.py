@@ -75,10 +75,9 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
 import can
 import numpy as np
@@ -87,17 +86,18 @@ from ..errors import HomingFailed
 from ..events import ManagerState
 from ..stop_surfaces import CAN_FRAME
 from .bringup.drive_bringup import DriveBringup, Phase, create_bringups
-from .bringup.report import BringupReport
+from .bringup.start_up import StartUp
 from .cycle.command import Commands
+from .cycle.drive_table import wire_drives
 from .cycle.enable import EnableSequence
 from .cycle.frames_out import FramesOut
 from .cycle.homing import HomingJob, refusal
 from .cycle.node_guarding import NodeGuarding
 from .cycle.receive import Receiver
-from .cycle.recovery import Recovery
+from .cycle.recovery import Recovery, RecoveryDone
 from .cycle.status import DriveStatus, HardwareStatus, bus_status, drive_status, recovery_status
 from .cycle.status import not_ready as _not_ready
-from .cycle.stop_requests import CycleEvent, RecoveryDone, StopRequest
+from .cycle.stop_requests import CycleFinding, StopRequest
 from .cycle.supervision import FaultEvent, Supervisor
 from .cycle.switch_off import SdoSwitchOff
 from .link.bus import start_reading
@@ -109,11 +109,9 @@ from .plan.scaling import Scaling
 from .protocol.cia402 import State402
 from .protocol.joints import JointCommand, JointState
 
-__all__ = ["CanopenHardware", "DriveStatus", "HardwareStatus", "WORKER_START"]
+__all__ = ["CanopenHardware", "DriveStatus", "HardwareStatus"]
 
 log = logging.getLogger(__name__)
-#: how long start() waits for the configuration workers' threads to run
-WORKER_START = 5.0
 
 
 def _whole_cob_id(value: object) -> bool:
@@ -148,80 +146,69 @@ class CanopenHardware:
         for note, which in grouped_notes(self.plans):  # each said once, for every drive
             log.warning("%s: %s", which, note)
         supervision = supervision or Supervision()
-        consumer_ms = supervision.consumer_ms(manager_heartbeat_ms)
         self.drives_config = drives
         self.manager_node_id = manager_node_id
         self.dt = float(dt)
         self.manager_heartbeat_period = manager_heartbeat_ms / 1000.0
-        self.consumer_ms = consumer_ms
+        self.consumer_ms = supervision.consumer_ms(manager_heartbeat_ms)
         self.supervision = supervision
         self.timeouts = supervision.timeouts
         self.config_workers = max(1, int(config_workers))
         self.on_fault = on_fault
         n = len(drives)
-        first = next(iter(buses))
-        self.ports = [BusPort(name, arg, [i for i, d in enumerate(drives)
-                                          if (d.bus or first) == name], manager_node_id)
-                      for name, arg in buses.items()]
-        port_of = {p.name: p for p in self.ports}
-        self._port_of = [port_of[d.bus or first] for d in drives]
+        self.ports, table = wire_drives(self.plans, buses, manager_node_id)
+        self._port_of = [d.port for d in table]
+        self._node = [d.node for d in table]
         check_pdo_bytes(drives, [(p.name, p.fd) for p in self._port_of])
         names = [d.name for d in drives]
         self.state = JointState.zeros(names)
         self.command = JointCommand.zeros(names)
         self.layouts: list[DriveLayout] = [p.layout for p in self.plans]
         self.scaling = Scaling(drives)
-        self.supervisor = Supervisor(drives, supervision.tpdo_timeout_cycles,
-                                     supervision.heartbeat_timeout_factor,
-                                     guarded=[p.guarded for p in self.plans])
         # raw bus values, one slot per drive (the PDO codecs read and write these)
         self._raw = {name: np.zeros(n, dtype=np.int64) for name in
                      ("statusword", "position", "velocity", "torque",
                       "target_position", "target_velocity", "target_torque", IGNORED)}
-        # the drives of each drive's node (several: the axes of a multi-axis device, which
-        # share its NMT state, heartbeat or guarding, EMCY and SDO server), lowest axis first
-        node_of: dict[tuple[str, int], list[int]] = {}
-        for i, d in enumerate(drives):
-            node_of.setdefault((self._port_of[i].name, d.node_id), []).append(i)
-        self._node = [tuple(sorted(node_of[self._port_of[i].name, d.node_id],
-                                   key=lambda k: drives[k].axis)) for i, d in enumerate(drives)]
-        self.frames = FramesOut(self.layouts, self.ports, self._port_of,
-                                [int(d.modes[0]) for d in drives],
-                                self.manager_heartbeat_period)
+        self.frames = FramesOut(table, ports=self.ports,
+                                heartbeat_period=self.manager_heartbeat_period)
         self.guarding = NodeGuarding([p.guarded and p.leads_node for p in self.plans],
                                      [d.node_id for d in drives],
                                      [d.heartbeat_ms / 1000.0 for d in drives], self._port_of)
-        # a guarded node's loss says of every axis what its lead's answers were
-        self.supervisor.why_lost = lambda i: self.guarding.why_lost(self._node[i][0])
-        self.receiver = Receiver(self.ports, self.layouts, [d.node_id for d in drives],
-                                 [p.leads_node for p in self.plans], self._node, self._raw,
-                                 self.state, self.scaling, self.supervisor, self.guarding,
-                                 self._on_estop_frames, self._bus_failed)
+        self.supervisor = Supervisor(
+            drives, supervision.tpdo_timeout_cycles, supervision.heartbeat_timeout_factor,
+            guarded=[p.guarded for p in self.plans],
+            # a guarded node's loss says of every axis what its lead's answers were
+            why_lost=lambda i: self.guarding.why_lost(self._node[i][0]))
+        self.receiver = Receiver(table, ports=self.ports, raw=self._raw, state=self.state,
+                                 scaling=self.scaling, supervisor=self.supervisor,
+                                 guarding=self.guarding, on_estops=self._on_estop_frames,
+                                 on_bus_off=self._bus_failed)
         self.enable = EnableSequence(n, supervision.timeouts.enable, self.supervisor.fault,
                                      min_cycles=supervision.tpdo_timeout_cycles)
-        self.commands = Commands(drives, self.state, self.command, self._raw, self.scaling,
-                                 self.supervisor, self.enable, self.frames,
-                                 np.array([lay.maps("position") for lay in self.layouts],
-                                          dtype=bool), lambda: self.ready)
-        self.recovery = Recovery(self.plans, self._node, self.ports, self.supervisor,
-                                 self.receiver.hb_state, self.receiver.hb_time,
-                                 self.state.error_code)
+        self.commands = Commands(table, state=self.state, command=self.command, raw=self._raw,
+                                 scaling=self.scaling, supervisor=self.supervisor,
+                                 enable=self.enable, frames=self.frames,
+                                 ready=lambda: self.ready)
+        self.recovery = Recovery(table, ports=self.ports, supervisor=self.supervisor,
+                                 hb_state=self.receiver.hb_state,
+                                 hb_time=self.receiver.hb_time,
+                                 error_code=self.state.error_code)
         self._estop_cob_id = 0
         self.set_estop_cob_id(estop_cob_id)
         self.estop_frames = 0  # e-stop frames received (any bus)
         self._manager_state = ManagerState.FAILPROOF  # as of the last write
-        self._events: list[CycleEvent] = []  # read's findings, handed to the loop
+        self._events: list[CycleFinding] = []  # read's findings, handed to the loop
         self._started = False
         self._recorded: list[tuple[can.Listener, SentFrames]] = []
         # (hold_wakeups, release_wakeups) of every bus, taken by start (write wraps in them)
         self._wake_holds: list[tuple[Callable[[], None], Callable[[], None]]] = []
         # the bus readers' drain_now (start): read hands over what waits on the buses first
         self._drains: list[Callable[[], bool]] = []
-        self._bringup: list[DriveBringup] = []
-        self._report = BringupReport([d.node_id for d in drives],
-                                     [self.ports.index(p) for p in self._port_of],
-                                     lambda bus: self.ports[bus].channel, self._submit)
-        self._executor: ThreadPoolExecutor | None = None
+        self._bringup: Sequence[DriveBringup] = ()
+        self._start_up = StartUp([d.node_id for d in drives],
+                                 [self.ports.index(p) for p in self._port_of],
+                                 lambda bus: self.ports[bus].channel,
+                                 on_ready=self._brought_up, on_configured=self._configured)
         self._switch_off = SdoSwitchOff()  # started with the bus (start)
         self._now = 0.0
         self.fault_events = self.supervisor.history
@@ -265,36 +252,20 @@ class CanopenHardware:
             raise
         self._switch_off = SdoSwitchOff()
         self._switch_off.start()
-        workers = min(self.config_workers, len(self.drives_config))
-        self._executor = ThreadPoolExecutor(max_workers=workers,
-                                            thread_name_prefix="canopen-config")
-        # Every worker started here: the executor starts one on a submit that finds none
-        # idle, and bring-up submits from the cycle (read), which must not start a thread.
-        # Each waits at the barrier, so each submit finds none idle and starts one.
-        started = threading.Barrier(workers + 1)
-        for _ in range(workers):
-            self._executor.submit(started.wait, WORKER_START)
-        try:
-            started.wait(WORKER_START)
-        except threading.BrokenBarrierError:  # a machine that slow starts the rest later
-            log.warning("configuration workers not all started within %.0f s", WORKER_START)
+        self._start_up.open_workers(min(self.config_workers, len(self.drives_config)))
         bringup = create_bringups(self.plans, [p.canopen for p in self._port_of], self._node,
                                   self.manager_node_id, self.consumer_ms, self.dt,
                                   self.supervision)
-        for b in bringup:
-            b.restart(now)
-        self._report.started_at = now
+        self._start_up.begin(bringup, now)
         self._now = now
         # published whole: a status read from another thread never sees half a list
-        self.receiver.bringup = self.recovery.bringup = self._bringup = bringup
+        self._bringup = bringup
+        self.receiver.attach_bringups(bringup)
+        self.recovery.attach_bringups(bringup)
 
     def close(self) -> None:
         """Join the configuration workers and the bus reader; shut the bus if opened here."""
-        for b in self._bringup:
-            b.cancel()
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+        self._start_up.close()
         self._switch_off.close()
         for port in self.ports:
             port.close()
@@ -309,7 +280,7 @@ class CanopenHardware:
         self.close()
 
     # --- the cycle ------------------------------------------------------------------------------
-    def read(self, now: float) -> Sequence[CycleEvent]:
+    def read(self, now: float) -> Sequence[CycleFinding]:
         """Drain frames into JointState, step bring-up and recovery, supervise; what the
         manager must act on before this cycle's update, in the order found (the list is
         this hardware's own, valid until the next read). First the buses are read on this
@@ -321,7 +292,8 @@ class CanopenHardware:
         events = self._events
         events.clear()
         self.receiver.drain(now)
-        self._step_bringup(now)
+        self._start_up.step(now, self.receiver.complete, self.state.cia402_state,
+                            self.state.error_code)
         sup = self.supervisor
         sup.tick(now, self.receiver.complete, self.state.cia402_state, self.state.error_code,
                  self.receiver.heard_until)
@@ -346,35 +318,18 @@ class CanopenHardware:
             port.latched = cause
             self.supervisor.bus_fault(cause, now, port.drives, bus=port.name)
 
-    def _step_bringup(self, now: float) -> None:
-        executor = self._executor
-        if executor is None:
-            return
-        states, codes = self.state.cia402_state, self.state.error_code
-        fresh = self.receiver.complete
-        for i, b in enumerate(self._bringup):
-            phase = b.phase
-            if phase == Phase.READY or phase == Phase.FAILED:
-                continue
-            if b.step(now, executor, bool(fresh[i]), int(states[i]), int(codes[i])):
-                self.supervisor.arm(i, now)
-                self.state.error_code[i] = 0
-                self._report.ended(i, self._bringup, now)
-            elif b.phase == Phase.FAILED:
-                # said once (status has it too), by a worker: the cycle does no I/O
-                self._report.ended(i, self._bringup, now)
-            elif phase == Phase.CONFIGURING and b.phase == Phase.STARTING:
-                # The drive's heartbeat consumer was just (re)configured, and it only starts
-                # watching with the first heartbeat it receives: send one in this cycle, so
-                # the drive is protected before it can become READY (a TPDO round trip later).
-                # Life guarding likewise starts with the first guard request.
-                self.frames.next_heartbeat = -math.inf
-                self.guarding.start(i)
+    def _brought_up(self, i: int, now: float) -> None:
+        """Drive i became READY: supervised from now."""
+        self.supervisor.arm(i, now)
+        self.state.error_code[i] = 0
 
-    def _submit(self, call: Callable[..., object], *args: object) -> None:
-        """``call(*args)`` on a configuration worker (the bring-up report's lines)."""
-        if self._executor is not None:
-            self._executor.submit(call, *args)
+    def _configured(self, i: int) -> None:
+        """Drive i's heartbeat consumer was just (re)configured, and it only starts watching
+        with the first heartbeat it receives: one goes out in this cycle, so the drive is
+        protected before it can become READY (a TPDO round trip later). Life guarding
+        likewise starts with the first guard request."""
+        self.frames.next_heartbeat = -math.inf
+        self.guarding.start(i)
 
     def _still_latched(self, i: int, event: FaultEvent) -> Callable[[], bool]:
         """For the SDO switch-off: whether drive i is still latched by ``event``."""
@@ -573,12 +528,12 @@ class CanopenHardware:
     def started_up(self) -> bool:
         """The start-up has ended (every drive READY or FAILED once); a recovery that
         restarts drives later does not undo it."""
-        return self._report.finished
+        return self._start_up.report.finished
 
     @property
     def starting(self) -> bool:
         """Some drive is still in bring-up (neither READY nor FAILED)."""
-        return any(b.phase not in (Phase.READY, Phase.FAILED) for b in self._bringup)
+        return self._start_up.starting
 
     @property
     def enabled(self) -> np.ndarray:

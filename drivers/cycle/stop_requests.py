@@ -7,13 +7,15 @@ e-stop read in the same cycle then latches again after the recovery's clear.
 """
 from __future__ import annotations
 
-from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
 from typing import Protocol
 
+from .recovery import RecoveryDone
 
-class StopTarget(Protocol):
-    """The manager as the hardware's findings see it (rocoma_can's ControllerManager)."""
+
+class ManagerLatch(Protocol):
+    """The manager as the hardware's findings see it (rocoma_can's ControllerManager):
+    its two stops, and the clear of its e-stop latch (a finished recovery's)."""
     def emergency_stop(self, cause: str = ...) -> None: ...
     def failproof_stop(self, cause: str = ...) -> None: ...
     def clear_emergency_stop(self) -> bool: ...
@@ -27,32 +29,12 @@ class StopRequest:
     cause: str
     failproof: bool = False
 
-    def apply(self, manager: StopTarget) -> None:
+    def apply(self, manager: ManagerLatch) -> None:
         if self.failproof:
             manager.failproof_stop(cause=self.cause)
         else:
             manager.emergency_stop(cause=self.cause)
 
 
-@dataclass(frozen=True, slots=True)
-class RecoveryDone:
-    """Every drive came back (recovery.py): the e-stop latch is cleared, then the recovery's
-    future says True, so its caller may switch at once. A clear that raises leaves the latch
-    and ends the recovery as failed."""
-    future: Future[bool]
-
-    def apply(self, manager: StopTarget) -> None:
-        if self.future.done():  # the hardware closed meanwhile: it said False
-            return
-        try:
-            manager.clear_emergency_stop()
-            ok = True
-        except Exception:
-            ok = False
-        try:
-            self.future.set_result(ok)
-        except InvalidStateError:  # closed in between, from another thread
-            pass
-
-
-CycleEvent = StopRequest | RecoveryDone
+#: what ``CanopenHardware.read`` returns: stops, and a finished recovery (recovery.py)
+CycleFinding = StopRequest | RecoveryDone
