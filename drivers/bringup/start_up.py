@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .drive_bringup import DriveBringup, Phase
+from .drive_bringup import BringupPhase, DriveBringup
 from .report import BringupReport
 
 log = logging.getLogger("rocoma_can.drivers.hardware")
@@ -73,21 +73,21 @@ class StartUp:
         bringups = self.bringups
         for i, b in enumerate(bringups):
             phase = b.phase
-            if phase == Phase.READY or phase == Phase.FAILED:
+            if phase == BringupPhase.READY or phase == BringupPhase.FAILED:
                 continue
             if b.step(now, executor, bool(fresh[i]), int(states[i]), int(codes[i])):
                 self._on_ready(i, now)
                 self.report.ended(i, bringups, now)
-            elif b.phase == Phase.FAILED:
+            elif b.phase == BringupPhase.FAILED:
                 # said once (status has it too), by a worker: the cycle does no I/O
                 self.report.ended(i, bringups, now)
-            elif phase == Phase.CONFIGURING and b.phase == Phase.STARTING:
+            elif phase == BringupPhase.CONFIGURING and b.phase == BringupPhase.STARTING:
                 self._on_configured(i)
 
     @property
     def starting(self) -> bool:
         """Some drive is still in bring-up (neither READY nor FAILED)."""
-        return any(b.phase not in (Phase.READY, Phase.FAILED) for b in self.bringups)
+        return any(b.phase not in (BringupPhase.READY, BringupPhase.FAILED) for b in self.bringups)
 
     def _submit(self, call: Callable[..., object], *args: object) -> None:
         """``call(*args)`` on a configuration worker (the report's lines)."""

@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ..bringup.drive_bringup import DriveBringup, Phase
+from ..bringup.drive_bringup import BringupPhase, DriveBringup
 from ..plan.modes import CW_ENABLE_INTERPOLATION, KIND, DriveMode, SetPointHandshake, carrier
 from ..plan.scaling import Scaling
 from ..protocol import cia402
@@ -105,7 +105,7 @@ class Commands:
                 homing[i] = None  # done: torque-off until the next switch (new reference)
                 if armed is not None:
                     armed[i] = False
-            if (b.phase != Phase.READY or sup.latched[i] is not None
+            if (b.phase != BringupPhase.READY or sup.latched[i] is not None
                     or (armed is not None and not armed[i])):
                 if armed is not None:  # off until the next switch: a drive that comes back
                     armed[i] = False   # (a recovery) never takes up a command it dropped
@@ -159,7 +159,7 @@ class Commands:
         has ended (the caller then treats the drive as usual)."""
         if job.done():
             return False
-        if b.phase != Phase.READY or self._sup.latched[i] is not None:
+        if b.phase != BringupPhase.READY or self._sup.latched[i] is not None:
             job.fail("the drive faulted or left start-up state READY")
             return False
         cw = self.enable.controlword(i, state, now)

@@ -10,10 +10,12 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..link.bus_port import Bus, BusPort
 from ..plan.config import DriveConfig
 from ..plan.drive_plan import DrivePlan
-from ..plan.pdo_layout import DriveLayout
+from ..plan.pdo_layout import IGNORED, DriveLayout
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,3 +65,11 @@ def wire_drives(plans: Sequence[DrivePlan], buses: Mapping[str, Bus],
         DriveEntry(i, plan, on[i], tuple(sorted(node_of[on[i].name, plan.drive.node_id],
                                                 key=lambda k: drives[k].axis)))
         for i, plan in enumerate(plans))
+
+
+def raw_values(n: int) -> dict[str, np.ndarray]:
+    """The raw bus values of N drives, one slot per drive: the TPDO codecs unpack into them
+    (receive.py), the RPDO targets are encoded into them (command.py)."""
+    return {name: np.zeros(n, dtype=np.int64) for name in
+            ("statusword", "position", "velocity", "torque",
+             "target_position", "target_velocity", "target_torque", IGNORED)}

@@ -40,11 +40,11 @@ class Receiver:
     def __init__(self, table: DriveTable, *, ports: Sequence[BusPort],
                  raw: dict[str, np.ndarray], state: JointState, scaling: Scaling,
                  supervisor: Supervisor, guarding: NodeGuarding,
-                 on_estops: Callable[[BusPort, int], None],
+                 on_estops: Callable[[BusPort, int, int], None],
                  on_bus_off: Callable[[BusPort, str, float], None]) -> None:
         """``raw``: the raw bus values, one slot per drive, that the TPDOs are unpacked
-        into; ``on_estops``: e-stop frames on a bus this cycle; ``on_bus_off``: a bus
-        failed."""
+        into; ``on_estops``: e-stop frames on a bus this cycle (their count and COB-ID);
+        ``on_bus_off``: a bus failed."""
         n = len(table)
         self.ports, self._state, self._sup = ports, state, supervisor
         self._node = [d.node for d in table]
@@ -134,7 +134,7 @@ class Receiver:
                     if len(axes) == 1:
                         sup.on_emcy(axes[0], code, t)
             if estops:  # one request per bus and cycle, however often a sender repeats
-                self._on_estops(port, estops)
+                self._on_estops(port, estops, estop)
                 estops = 0
             if port.rx_errors:
                 cause = port.bus_off()

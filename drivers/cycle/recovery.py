@@ -23,7 +23,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..bringup.drive_bringup import DriveBringup, Phase
+from ..bringup.drive_bringup import BringupPhase, DriveBringup
 from ..link.bus_port import BusPort
 from ..protocol import cia301
 from .drive_table import DriveTable
@@ -110,15 +110,21 @@ class Recovery:
             if not sup.pending:
                 self._begin(now)
             return None
-        drives_ready = (all(b.phase == Phase.READY for b in self._bringups)
+        drives_ready = (all(b.phase == BringupPhase.READY for b in self._bringups)
                         and not any(sup.latched) and sup.bus_latched is None)
         if drives_ready and min(p.clean_cycles for p in self._ports) >= sup.tpdo_timeout_cycles:
             self._reported = True
             return future
         if now > self._deadline or (not drives_ready and all(
-                b.phase in (Phase.READY, Phase.FAILED) for b in self._bringups)):
+                b.phase in (BringupPhase.READY, BringupPhase.FAILED) for b in self._bringups)):
             self._finish(future, False)
         return None
+
+    def close(self) -> None:
+        """The hardware closes: a recovery still running did not bring the drives back."""
+        future = self.future
+        if future is not None and not future.done():
+            future.set_result(False)
 
     @staticmethod
     def _finish(future: Future[bool], result: bool) -> None:
@@ -137,25 +143,25 @@ class Recovery:
             port.latched = None
         restarted: set[int] = set()
         for i, b in enumerate(bringup):
-            if b.phase == Phase.READY and sup.latched[i] is None:
+            if b.phase == BringupPhase.READY and sup.latched[i] is None:
                 continue
             sup.disarm(i)
             sup.clear(i)
             self._error_code[i] = 0
             hb_ok = (self._hb_state[i] == cia301.NmtState.OPERATIONAL
                      and now - self._hb_time[i] < sup.heartbeat_timeout[i])
-            if b.phase == Phase.READY and hb_ok:
+            if b.phase == BringupPhase.READY and hb_ok:
                 b.reset_fault(now)
-            elif b.phase != Phase.CONFIGURING:
+            elif b.phase != BringupPhase.CONFIGURING:
                 b.restart(now, probe_at_once=True)
                 restarted.add(i)
         for i in restarted:  # a node configured again is NMT-reset: all its axes restart
             if not self._table[i].leads_node:
                 continue
             for k in self._table[i].node[1:]:
-                if k in restarted or bringup[k].phase == Phase.CONFIGURING:
+                if k in restarted or bringup[k].phase == BringupPhase.CONFIGURING:
                     continue
-                if bringup[k].phase == Phase.READY and sup.latched[k] is None:
+                if bringup[k].phase == BringupPhase.READY and sup.latched[k] is None:
                     # it may be under command: the manager hears it drop out (an e-stop,
                     # delivered this cycle); its configuration switched it off by SDO
                     # before the node's NMT pre-operational

@@ -383,7 +383,7 @@ def _axis_view(od: canopen.ObjectDictionary, unknown: frozenset[Key], axis: int,
     (at + (axis - 1) x 0x800 in the file) at the indices of axis 1, the other axes' gone,
     the node's own objects (0x1000-0x5FFF) as they are. Everything that plans a drive then
     reads one axis as it reads a single-axis drive; only the SDO traffic and the mapping
-    entries of bring-up shift the indices back (bringup.NamedSdo)."""
+    entries of bring-up shift the indices back (bringup/named_sdo.py)."""
     controlword = cia402.on_axis(cia402.CONTROLWORD, axis)
     if controlword not in od:
         raise CapabilityError(f"{source} has no axis {axis}: no 0x{controlword:04X} (axis "

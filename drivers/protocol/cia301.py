@@ -36,6 +36,11 @@ HEARTBEAT = 0x700          # heartbeat, boot-up and node guarding (remote reques
 GUARD_TOGGLE = 0x80
 
 
+def is_cob_id(value: object) -> bool:
+    """An 11-bit COB-ID: a whole number 0..0x7FF (a bool is no number here)."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0x7FF
+
+
 def reserved_cob_id(cob_id: int) -> str | None:
     """Why an 11-bit COB-ID cannot be a free-standing identifier such as the e-stop frame's
     (NMT, SYNC, SDO and heartbeat ranges), or None. PDO and EMCY ids depend on the nodes on
