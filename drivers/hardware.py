@@ -101,7 +101,7 @@ from .cycle.stop_requests import CycleFinding, ReadFindings
 from .cycle.supervision import FaultEvent, Supervisor
 from .link.bus_port import Bus, SentFrames, named_buses, open_ports
 from .plan.config import DriveConfig, Supervision, check_drives, estop_conflict
-from .plan.drive_plan import check_pdo_bytes, grouped_notes, pdo_using, plan_drives
+from .plan.drive_plan import check_pdo_bytes, notes_with_drives, pdo_using, plan_drives
 from .plan.pdo_layout import DriveLayout, cob_id_clashes
 from .plan.scaling import Scaling
 from .protocol import cia301
@@ -138,7 +138,7 @@ class CanopenHardware:
                                  estop_cob_id, next(iter(buses)))
         if clashes:
             raise ValueError("; ".join(clashes))
-        for note, which in grouped_notes(self.plans):  # each said once, for every drive
+        for note, which in notes_with_drives(self.plans):  # each said once, for every drive
             log.warning("%s: %s", which, note)
         supervision = supervision or Supervision()
         self.drives_config = drives

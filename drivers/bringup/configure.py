@@ -26,7 +26,7 @@ from ..plan.config import DriveConfig
 from ..plan.drive_plan import DrivePlan
 from ..plan.limits import write_limits
 from ..plan.modes import DriveMode, interpolation_period
-from ..plan.pdo_layout import Pdo
+from ..plan.pdo_layout import LayoutPdo
 from ..protocol import cia301, cia402
 from .named_sdo import NamedSdo
 
@@ -58,7 +58,7 @@ def _u32(v: int) -> bytes:
     return struct.pack("<I", v)
 
 
-def _configure_pdos(sdo: NamedSdo, pdos: tuple[Pdo, ...],
+def _configure_pdos(sdo: NamedSdo, pdos: tuple[LayoutPdo, ...],
                     channels: tuple[PdoChannel, ...]) -> None:
     """Every PDO channel the drive has: ours mapped (a fixed one left as it is), each sent
     or applied every SYNC where the drive lets us say so; the others switched off."""

@@ -91,7 +91,7 @@ class Receiver:
         JointState holds what they carried."""
         sup, got, state = self._sup, self.got, self._state
         got.fill(0)
-        stamp, error_code = state.stamp, state.error_code
+        stamp = state.stamp
         offset = clock_offset()
         estop, estops = self.estop_cob_id or -1, 0
         for k, port in enumerate(self.ports):
@@ -124,15 +124,7 @@ class Receiver:
                     continue
                 axes = emcy_of.get(cob)
                 if axes is not None and msg.dlc >= 2:
-                    code = msg.data[0] | (msg.data[1] << 8)
-                    for j in axes:
-                        error_code[j] = code
-                        if code == cia301.EMCY_STO:
-                            self._bringups[j].sto_seen = True
-                    # An EMCY does not say which axis of a multi-axis node it is about:
-                    # there each axis is faulted by its own statusword, not by the EMCY
-                    if len(axes) == 1:
-                        sup.on_emcy(axes[0], code, t)
+                    self._emcy(axes, msg.data[0] | (msg.data[1] << 8), t)
             if estops:  # one request per bus and cycle, however often a sender repeats
                 self._on_estops(port, estops, estop)
                 estops = 0
@@ -142,6 +134,18 @@ class Receiver:
                     self._on_bus_off(port, cause, now)
         np.equal(got, self.expected, out=self.complete)
         self._decode(now)
+
+    def _emcy(self, axes: tuple[int, ...], code: int, t: float) -> None:
+        """An EMCY of the node whose drives are ``axes``: each one's error code."""
+        error_code = self._state.error_code
+        for j in axes:
+            error_code[j] = code
+            if code == cia301.EMCY_STO:
+                self._bringups[j].sto_seen = True
+        # An EMCY does not say which axis of a multi-axis node it is about: there each
+        # axis is faulted by its own statusword, not by the EMCY
+        if len(axes) == 1:
+            self._sup.on_emcy(axes[0], code, t)
 
     def _decode(self, now: float) -> None:
         """The raw values into JointState, in SI units, with each drive's CiA 402 state."""

@@ -172,7 +172,7 @@ class Supervisor:
 
         Drives already latched are not checked again (one event per drive). The common case,
         nothing wrong, costs a few reductions (Python's on ``tolist()``: for a dozen drives
-        ~4x cheaper than numpy's, whose scalar compared with an IntEnum alone cost ~4 µs);
+        cheaper than numpy's, whose scalar compared with an IntEnum alone costs more);
         the per-drive loops run only when one of them says something is."""
         watch = self.watch
         if True not in watch.tolist():
