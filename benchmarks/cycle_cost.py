@@ -26,7 +26,7 @@ import numpy as np
 from _report import report, stats
 
 from rocoma_can import ManagerState, eds
-from rocoma_can.drivers.bringup.drive_bringup import Phase
+from rocoma_can.drivers.bringup.drive_bringup import BringupPhase
 from rocoma_can.drivers.hardware import CanopenHardware
 from rocoma_can.drivers.plan.config import DriveConfig
 from rocoma_can.drivers.plan.pdo_layout import layout_for
@@ -72,7 +72,7 @@ def time_ours(n: int, repeat: int, channel: str) -> tuple[list[float], list[floa
         hw.start()
         now = time.monotonic()
         for i, b in enumerate(hw._bringup):  # as if brought up: READY, mapped, supervised
-            b.phase, b.mapped = Phase.READY, True
+            b.phase, b.mapped = BringupPhase.READY, True
             hw.supervisor.arm(i, now)
         hw.supervisor.heartbeat_deadline[:] = np.inf  # no heartbeats in this benchmark
         def leave_out(msg: can.Message) -> None:    # leave the bus out (see docstring)

@@ -9,7 +9,8 @@ import contract test holds the order):
   layouts, modes, scaling, drive-side limits.
 - link/: python-can buses and their reader threads, one bus of the hardware (bus_port),
   frame I/O, the in-process bus and its link between processes, SocketCAN links.
-- bringup/: the per-drive start-up state machine and its report.
+- bringup/: the per-drive start-up state machine, its SDO configuration, the start-up of
+  every drive and its report.
 - cycle/: what runs on the loop's thread each cycle (receive, supervision, command,
   frames_out = torque-off, ...) and what it drives off the cycle (recovery, switch_off).
 - commission/: scan and LSS, the first look at a robot's bus.

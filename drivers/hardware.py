@@ -11,9 +11,10 @@ the one place that writes this order)::
                              heartbeat, guard requests (n: the manager's committed switches)
 
 The hardware never holds the manager. Its jobs, one module each: receive.py (dispatch of
-every received frame), supervision.py (deadlines and fault latches), bringup.py (start-up),
+every received frame), supervision.py (deadlines and fault latches), bringup/ (start-up),
 command.py (JointCommand -> controlword, mode, targets), frames_out.py (every frame sent,
-torque-off first), node_guarding.py, recovery.py, status.py; this module wires them.
+torque-off first), stop_requests.py (what a read found), node_guarding.py, recovery.py,
+status.py; this module builds the drive table they all take (drive_table.py) and wires them.
 
 The safety path, top to bottom (each step names where it lives):
 
@@ -23,16 +24,17 @@ The safety path, top to bottom (each step names where it lives):
    enabled or not enabling in time (enable.py, command.py). A whole bus can fail too: a
    bus-off error frame or the bus refusing frames in ``tpdo_timeout_cycles`` cycles in a row
    (``BusPort.bus_off`` and ``BusPort.end_of_write``, bus_port.py) is a fault of every drive
-   on it (``_bus_failed``). Frames arrive on the buses' reader thread (bus.py), which only
-   appends them to each bus's deque; ``read`` drains every bus on the cycle thread
-   (receive.py), so no lock is shared with a slow thread. ``read`` first reads the buses
-   itself where the reader thread is not reading (BusReader.drain_now, a lock only tried):
-   a starved reader thread delays nothing. An e-stop frame (``estop_cob_id``, any bus) is
-   drained the same way and reaches the manager before this cycle's update.
+   on it (``ReadFindings.bus_failed``, stop_requests.py). Frames arrive on the buses' reader
+   thread (bus.py), which only appends them to each bus's deque; ``read`` drains every bus
+   on the cycle thread (receive.py), so no lock is shared with a slow thread. ``read`` first
+   reads the buses itself where the reader thread is not reading (BusReader.drain_now, a
+   lock only tried): a starved reader thread delays nothing. An e-stop frame
+   (``estop_cob_id``, any bus) is drained the same way and reaches the manager before this
+   cycle's update.
 2. The faulted drive gets torque-off frames from the same cycle on (command.py: a latched
    drive is never sent anything but controlword 0x0000), until recovery, and controlword
-   0x0000 once by SDO from a thread of its own (``_deliver``, switch_off.py): a drive that
-   no longer applies RPDOs (pre-operational, ignoring SYNC) still switches off.
+   0x0000 once by SDO from a thread of its own (``ReadFindings.deliver``, switch_off.py):
+   a drive that no longer applies RPDOs (pre-operational, ignoring SYNC) still switches off.
 3. ``read`` returns the event as a StopRequest (stop_requests.py) and the loop applies it
    before update(): ``manager.emergency_stop(cause)``, or ``failproof_stop`` for a failed
    bus (a smart stop needs every joint). In update() the manager switches OK -> EMERGENCY:
@@ -56,12 +58,12 @@ The safety path, top to bottom (each step names where it lives):
    process; the manager's CANopen node cannot start one either: node/server.py). Each
    drive's heartbeat consumer (0x1016, set at start-up by bringup.configure) times out and
    its abort connection option (0x6007 = 2, disable voltage) switches the power stage off.
-   A consumer watches only after the first heartbeat it receives, so ``_step_bringup`` has
+   A consumer watches only after the first heartbeat it receives, so the start-up has
    one sent in the cycle a drive's configuration completes, before it can become READY.
    A node-guarded drive (no heartbeat, drive_plan.py) is the same with its life guarding:
    the guard requests (node_guarding.py) come from ``write`` only, from that cycle on.
 
-Start-up (bringup.py) never enables a drive; it ends in READY (torque off). Drives are enabled
+Start-up (bringup/) never enables a drive; it ends in READY (torque off). Drives are enabled
 step by step from the cyclic controlword (command.py, enable.py) only while the manager is OK
 or EMERGENCY and the active layer commands a cyclic mode for them. Recovery (``recover``,
 recovery.py) resets or restarts latched and failed drives over the following cycles.
@@ -75,49 +77,40 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
 import can
 import numpy as np
 
 from ..errors import HomingFailed
 from ..events import ManagerState
-from ..stop_surfaces import CAN_FRAME
-from .bringup.drive_bringup import DriveBringup, Phase, create_bringups
-from .bringup.report import BringupReport
+from .bringup.drive_bringup import BringupPhase, DriveBringup, create_bringups
+from .bringup.start_up import StartUp
 from .cycle.command import Commands
+from .cycle.drive_table import raw_values, wire_drives
 from .cycle.enable import EnableSequence
 from .cycle.frames_out import FramesOut
-from .cycle.homing import HomingJob, refusal
 from .cycle.node_guarding import NodeGuarding
 from .cycle.receive import Receiver
 from .cycle.recovery import Recovery
 from .cycle.status import DriveStatus, HardwareStatus, bus_status, drive_status, recovery_status
 from .cycle.status import not_ready as _not_ready
-from .cycle.stop_requests import CycleEvent, RecoveryDone, StopRequest
+from .cycle.stop_requests import CycleFinding, ReadFindings
 from .cycle.supervision import FaultEvent, Supervisor
-from .cycle.switch_off import SdoSwitchOff
-from .link.bus import start_reading
-from .link.bus_port import Bus, BusPort, SentFrames, named_buses
+from .link.bus_port import Bus, SentFrames, named_buses, open_ports
 from .plan.config import DriveConfig, Supervision, check_drives, estop_conflict
-from .plan.drive_plan import check_pdo_bytes, grouped_notes, pdo_using, plan_drives
-from .plan.pdo_layout import IGNORED, DriveLayout, cob_id_clashes
+from .plan.drive_plan import check_pdo_bytes, notes_with_drives, pdo_using, plan_drives
+from .plan.pdo_layout import DriveLayout, cob_id_clashes
 from .plan.scaling import Scaling
+from .protocol import cia301
 from .protocol.cia402 import State402
 from .protocol.joints import JointCommand, JointState
 
-__all__ = ["CanopenHardware", "DriveStatus", "HardwareStatus", "WORKER_START"]
+__all__ = ["CanopenHardware", "DriveStatus", "HardwareStatus"]
 
 log = logging.getLogger(__name__)
-#: how long start() waits for the configuration workers' threads to run
-WORKER_START = 5.0
-
-
-def _whole_cob_id(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0x7FF
 
 
 class CanopenHardware:
@@ -145,88 +138,69 @@ class CanopenHardware:
                                  estop_cob_id, next(iter(buses)))
         if clashes:
             raise ValueError("; ".join(clashes))
-        for note, which in grouped_notes(self.plans):  # each said once, for every drive
+        for note, which in notes_with_drives(self.plans):  # each said once, for every drive
             log.warning("%s: %s", which, note)
         supervision = supervision or Supervision()
-        consumer_ms = supervision.consumer_ms(manager_heartbeat_ms)
         self.drives_config = drives
         self.manager_node_id = manager_node_id
         self.dt = float(dt)
         self.manager_heartbeat_period = manager_heartbeat_ms / 1000.0
-        self.consumer_ms = consumer_ms
+        self.consumer_ms = supervision.consumer_ms(manager_heartbeat_ms)
         self.supervision = supervision
         self.timeouts = supervision.timeouts
         self.config_workers = max(1, int(config_workers))
-        self.on_fault = on_fault
-        n = len(drives)
-        first = next(iter(buses))
-        self.ports = [BusPort(name, arg, [i for i, d in enumerate(drives)
-                                          if (d.bus or first) == name], manager_node_id)
-                      for name, arg in buses.items()]
-        port_of = {p.name: p for p in self.ports}
-        self._port_of = [port_of[d.bus or first] for d in drives]
-        check_pdo_bytes(drives, [(p.name, p.fd) for p in self._port_of])
+        self.ports, self._table = wire_drives(self.plans, buses, manager_node_id)
+        table = self._table
+        check_pdo_bytes(drives, [(d.port.name, d.port.fd) for d in table])
         names = [d.name for d in drives]
         self.state = JointState.zeros(names)
         self.command = JointCommand.zeros(names)
         self.layouts: list[DriveLayout] = [p.layout for p in self.plans]
         self.scaling = Scaling(drives)
-        self.supervisor = Supervisor(drives, supervision.tpdo_timeout_cycles,
-                                     supervision.heartbeat_timeout_factor,
-                                     guarded=[p.guarded for p in self.plans])
-        # raw bus values, one slot per drive (the PDO codecs read and write these)
-        self._raw = {name: np.zeros(n, dtype=np.int64) for name in
-                     ("statusword", "position", "velocity", "torque",
-                      "target_position", "target_velocity", "target_torque", IGNORED)}
-        # the drives of each drive's node (several: the axes of a multi-axis device, which
-        # share its NMT state, heartbeat or guarding, EMCY and SDO server), lowest axis first
-        node_of: dict[tuple[str, int], list[int]] = {}
-        for i, d in enumerate(drives):
-            node_of.setdefault((self._port_of[i].name, d.node_id), []).append(i)
-        self._node = [tuple(sorted(node_of[self._port_of[i].name, d.node_id],
-                                   key=lambda k: drives[k].axis)) for i, d in enumerate(drives)]
-        self.frames = FramesOut(self.layouts, self.ports, self._port_of,
-                                [int(d.modes[0]) for d in drives],
-                                self.manager_heartbeat_period)
+        self._raw = raw_values(len(drives))
+        self.frames = FramesOut(table, ports=self.ports,
+                                heartbeat_period=self.manager_heartbeat_period)
         self.guarding = NodeGuarding([p.guarded and p.leads_node for p in self.plans],
                                      [d.node_id for d in drives],
-                                     [d.heartbeat_ms / 1000.0 for d in drives], self._port_of)
-        # a guarded node's loss says of every axis what its lead's answers were
-        self.supervisor.why_lost = lambda i: self.guarding.why_lost(self._node[i][0])
-        self.receiver = Receiver(self.ports, self.layouts, [d.node_id for d in drives],
-                                 [p.leads_node for p in self.plans], self._node, self._raw,
-                                 self.state, self.scaling, self.supervisor, self.guarding,
-                                 self._on_estop_frames, self._bus_failed)
-        self.enable = EnableSequence(n, supervision.timeouts.enable, self.supervisor.fault,
+                                     [d.heartbeat_ms / 1000.0 for d in drives],
+                                     [d.port for d in table])
+        self.supervisor = Supervisor(
+            drives, supervision.tpdo_timeout_cycles, supervision.heartbeat_timeout_factor,
+            guarded=[p.guarded for p in self.plans],
+            # a guarded node's loss says of every axis what its lead's answers were
+            why_lost=lambda i: self.guarding.why_lost(table[i].node[0]))
+        self.findings = ReadFindings(self.supervisor, on_fault)
+        self.receiver = Receiver(table, ports=self.ports, raw=self._raw, state=self.state,
+                                 scaling=self.scaling, supervisor=self.supervisor,
+                                 guarding=self.guarding, on_estops=self.findings.estops,
+                                 on_bus_off=self.findings.bus_failed)
+        self.enable = EnableSequence(len(drives), self.timeouts.enable, self.supervisor.fault,
                                      min_cycles=supervision.tpdo_timeout_cycles)
-        self.commands = Commands(drives, self.state, self.command, self._raw, self.scaling,
-                                 self.supervisor, self.enable, self.frames,
-                                 np.array([lay.maps("position") for lay in self.layouts],
-                                          dtype=bool), lambda: self.ready)
-        self.recovery = Recovery(self.plans, self._node, self.ports, self.supervisor,
-                                 self.receiver.hb_state, self.receiver.hb_time,
-                                 self.state.error_code)
+        self.commands = Commands(table, state=self.state, command=self.command, raw=self._raw,
+                                 scaling=self.scaling, supervisor=self.supervisor,
+                                 enable=self.enable, frames=self.frames,
+                                 ready=lambda: self.ready)
+        self.recovery = Recovery(table, ports=self.ports, supervisor=self.supervisor,
+                                 hb_state=self.receiver.hb_state,
+                                 hb_time=self.receiver.hb_time,
+                                 error_code=self.state.error_code)
         self._estop_cob_id = 0
         self.set_estop_cob_id(estop_cob_id)
-        self.estop_frames = 0  # e-stop frames received (any bus)
         self._manager_state = ManagerState.FAILPROOF  # as of the last write
-        self._events: list[CycleEvent] = []  # read's findings, handed to the loop
         self._started = False
         self._recorded: list[tuple[can.Listener, SentFrames]] = []
         # (hold_wakeups, release_wakeups) of every bus, taken by start (write wraps in them)
         self._wake_holds: list[tuple[Callable[[], None], Callable[[], None]]] = []
         # the bus readers' drain_now (start): read hands over what waits on the buses first
         self._drains: list[Callable[[], bool]] = []
-        self._bringup: list[DriveBringup] = []
-        self._report = BringupReport([d.node_id for d in drives],
-                                     [self.ports.index(p) for p in self._port_of],
-                                     lambda bus: self.ports[bus].channel, self._submit)
-        self._executor: ThreadPoolExecutor | None = None
-        self._switch_off = SdoSwitchOff()  # started with the bus (start)
+        self._bringup: Sequence[DriveBringup] = ()
+        self._start_up = StartUp([d.node_id for d in drives],
+                                 [self.ports.index(d.port) for d in table],
+                                 lambda bus: self.ports[bus].channel,
+                                 on_ready=self._brought_up, on_configured=self._configured)
         self._now = 0.0
         self.fault_events = self.supervisor.history
         self.internal_errors = 0  # bugs caught in the cycle (each ended in torque-off frames)
-        self.hook_errors = 0   # on_fault calls that raised (counted, never raised)
         self.cycles = 0
 
     # --- life cycle ---------------------------------------------------------------------------
@@ -244,63 +218,29 @@ class CanopenHardware:
             raise RuntimeError("CanopenHardware.start() called twice")
         self._started = True
         now = time.monotonic() if now is None else now
-        try:
-            for k, port in enumerate(self.ports):
-                port.open(self.receiver.cob_ids(k))
-                port.set_estop_cob_id(self._estop_cob_id)
-                if self._recorded:
-                    port.record_frames(*self._recorded[k])
-            # one reader thread for every bus where the interface allows (bus.readers_for)
-            start_reading([port.canopen for port in self.ports if port.canopen is not None])
-            # the open buses' wake-up holds for write, as pairs: a port closed while a
-            # write runs is still released by the bus it held
-            self._wake_holds = [(port.hold_wakeups, port.release_wakeups)
-                                for port in self.ports]
-            readers = {id(port.canopen.reader): port.canopen.reader for port in self.ports
-                       if port.canopen is not None and port.canopen.reader is not None}
-            self._drains = [reader.drain_now for reader in readers.values()]
-        except BaseException:
-            for port in self.ports:
-                port.close()
-            raise
-        self._switch_off = SdoSwitchOff()
-        self._switch_off.start()
-        workers = min(self.config_workers, len(self.drives_config))
-        self._executor = ThreadPoolExecutor(max_workers=workers,
-                                            thread_name_prefix="canopen-config")
-        # Every worker started here: the executor starts one on a submit that finds none
-        # idle, and bring-up submits from the cycle (read), which must not start a thread.
-        # Each waits at the barrier, so each submit finds none idle and starts one.
-        started = threading.Barrier(workers + 1)
-        for _ in range(workers):
-            self._executor.submit(started.wait, WORKER_START)
-        try:
-            started.wait(WORKER_START)
-        except threading.BrokenBarrierError:  # a machine that slow starts the rest later
-            log.warning("configuration workers not all started within %.0f s", WORKER_START)
-        bringup = create_bringups(self.plans, [p.canopen for p in self._port_of], self._node,
-                                  self.manager_node_id, self.consumer_ms, self.dt,
-                                  self.supervision)
-        for b in bringup:
-            b.restart(now)
-        self._report.started_at = now
+        self._wake_holds, self._drains = open_ports(
+            self.ports, [self.receiver.cob_ids(k) for k in range(len(self.ports))],
+            self._estop_cob_id, self._recorded)
+        self.findings.switch_off.start()
+        self._start_up.open_workers(min(self.config_workers, len(self.drives_config)))
+        bringup = create_bringups(self.plans, [d.port.canopen for d in self._table],
+                                  [d.node for d in self._table], self.manager_node_id,
+                                  self.consumer_ms, self.dt, self.supervision)
+        self._start_up.begin(bringup, now)
         self._now = now
         # published whole: a status read from another thread never sees half a list
-        self.receiver.bringup = self.recovery.bringup = self._bringup = bringup
+        self._bringup = bringup
+        self.receiver.attach_bringups(bringup)
+        self.recovery.attach_bringups(bringup)
+        self.findings.attach_bringups(bringup)
 
     def close(self) -> None:
         """Join the configuration workers and the bus reader; shut the bus if opened here."""
-        for b in self._bringup:
-            b.cancel()
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
-        self._switch_off.close()
+        self._start_up.close()
+        self.findings.switch_off.close()
         for port in self.ports:
             port.close()
-        future = self.recovery.future
-        if future is not None and not future.done():
-            future.set_result(False)
+        self.recovery.close()
 
     def __enter__(self) -> CanopenHardware:
         return self
@@ -309,7 +249,7 @@ class CanopenHardware:
         self.close()
 
     # --- the cycle ------------------------------------------------------------------------------
-    def read(self, now: float) -> Sequence[CycleEvent]:
+    def read(self, now: float) -> Sequence[CycleFinding]:
         """Drain frames into JointState, step bring-up and recovery, supervise; what the
         manager must act on before this cycle's update, in the order found (the list is
         this hardware's own, valid until the next read). First the buses are read on this
@@ -318,83 +258,33 @@ class CanopenHardware:
         for drain in self._drains:
             drain()
         self._now = now
-        events = self._events
-        events.clear()
+        findings = self.findings
+        events = findings.begin()
         self.receiver.drain(now)
-        self._step_bringup(now)
+        self._start_up.step(now, self.receiver.complete, self.state.cia402_state,
+                            self.state.error_code)
         sup = self.supervisor
         sup.tick(now, self.receiver.complete, self.state.cia402_state, self.state.error_code,
                  self.receiver.heard_until)
         recovered = self.recovery.step(now)
-        if recovered is not None:  # first: an e-stop of this read latches after its clear
-            events.insert(0, RecoveryDone(recovered))
-        self._deliver(sup.take_pending())
+        if recovered is not None:
+            findings.recovered(recovered)
+        findings.deliver(sup.take_pending())
         self.cycles += 1
         return events
 
-    def _on_estop_frames(self, port: BusPort, count: int) -> None:
-        """E-stop frames on one bus in this read: one request, whatever their count."""
-        self.estop_frames += count
-        self._events.append(StopRequest(CAN_FRAME.cause(
-            "estop", f" from 0x{self._estop_cob_id:03X} on bus {port.name!r}")))
+    def _brought_up(self, i: int, now: float) -> None:
+        """Drive i became READY: supervised from now."""
+        self.supervisor.arm(i, now)
+        self.state.error_code[i] = 0
 
-    def _bus_failed(self, port: BusPort, cause: str, now: float) -> None:
-        """A fault of every drive on the bus and one event (Supervisor.bus_fault), latched
-        on the port until recovery; ``_deliver`` makes it a failproof stop, so every other
-        bus gets torque-off frames from this cycle on."""
-        if port.latched is None:
-            port.latched = cause
-            self.supervisor.bus_fault(cause, now, port.drives, bus=port.name)
-
-    def _step_bringup(self, now: float) -> None:
-        executor = self._executor
-        if executor is None:
-            return
-        states, codes = self.state.cia402_state, self.state.error_code
-        fresh = self.receiver.complete
-        for i, b in enumerate(self._bringup):
-            phase = b.phase
-            if phase == Phase.READY or phase == Phase.FAILED:
-                continue
-            if b.step(now, executor, bool(fresh[i]), int(states[i]), int(codes[i])):
-                self.supervisor.arm(i, now)
-                self.state.error_code[i] = 0
-                self._report.ended(i, self._bringup, now)
-            elif b.phase == Phase.FAILED:
-                # said once (status has it too), by a worker: the cycle does no I/O
-                self._report.ended(i, self._bringup, now)
-            elif phase == Phase.CONFIGURING and b.phase == Phase.STARTING:
-                # The drive's heartbeat consumer was just (re)configured, and it only starts
-                # watching with the first heartbeat it receives: send one in this cycle, so
-                # the drive is protected before it can become READY (a TPDO round trip later).
-                # Life guarding likewise starts with the first guard request.
-                self.frames.next_heartbeat = -math.inf
-                self.guarding.start(i)
-
-    def _submit(self, call: Callable[..., object], *args: object) -> None:
-        """``call(*args)`` on a configuration worker (the bring-up report's lines)."""
-        if self._executor is not None:
-            self._executor.submit(call, *args)
-
-    def _still_latched(self, i: int, event: FaultEvent) -> Callable[[], bool]:
-        """For the SDO switch-off: whether drive i is still latched by ``event``."""
-        latched = self.supervisor.latched
-        return lambda: latched[i] is event
-
-    def _deliver(self, faults: list[FaultEvent]) -> None:
-        sup = self.supervisor
-        for event in faults:
-            # a whole bus (index -1): no smart stop without those joints
-            self._events.append(StopRequest(str(event), failproof=event.index < 0))
-            i = event.index
-            if (0 <= i < len(self._bringup) and self._bringup[i].mapped
-                    and sup.latched[i] is event):  # a queue append: cannot block
-                self._switch_off.request(self._bringup[i], self._still_latched(i, event))
-            if self.on_fault is not None:
-                try:
-                    self.on_fault(event)
-                except Exception:  # a reporting hook must not take the cycle down
-                    self.hook_errors += 1
+    def _configured(self, i: int) -> None:
+        """Drive i's heartbeat consumer was just (re)configured, and it only starts watching
+        with the first heartbeat it receives: one goes out in this cycle, so the drive is
+        protected before it can become READY (a TPDO round trip later). Life guarding
+        likewise starts with the first guard request."""
+        self.frames.next_heartbeat = -math.inf
+        self.guarding.start(i)
 
     def write(self, manager_state: ManagerState, switch_count: int | None = None) -> None:
         """Command frames (or torque-off frames in FAILPROOF), then SYNC, then heartbeat.
@@ -430,15 +320,7 @@ class CanopenHardware:
         self.frames.sync_and_heartbeat(self._now)
         if self._now >= self.guarding.next_due:
             self.guarding.send_due(self._now)
-        # A bus that refuses frames cycle after cycle (transmit queue full, interface down)
-        # delivers no command and no heartbeat: after as many cycles as missing TPDOs are
-        # tolerated it is a bus fault, an e-stop like bus-off. A recovery succeeds only
-        # after as many cycles in a row without a refused frame on every bus.
-        limit = self.supervisor.tpdo_timeout_cycles
-        for port in self.ports:
-            cause = port.end_of_write(limit)
-            if cause is not None:
-                self._bus_failed(port, cause, self._now)
+        self.findings.end_of_write(self.ports, self._now)
 
     def _torque_off(self) -> None:
         """FAILPROOF: the pre-encoded frames to every configured drive (frames_out.py)."""
@@ -480,21 +362,17 @@ class CanopenHardware:
         if drive not in names:
             raise HomingFailed(f"no drive named {drive!r} (drives: {', '.join(names)})")
         i = names.index(drive)
-        why = refusal(self.plans[i].caps, self.layouts[i],
-                      self._bringup[i].phase if self._bringup else None,
-                      self.supervisor.latched[i],
-                      (self._manager_state if manager_state is None else manager_state)
-                      == ManagerState.OK)
-        future: Future[str] = Future()
-        job = HomingJob(i, drive, timeout or self.drives_config[i].homing_timeout, future)
-        self.commands.homing.submit(job, why)
-        return future
+        return self.commands.homing.request(
+            self._table[i], self._bringup[i].phase if self._bringup else None,
+            self.supervisor.latched[i],
+            (self._manager_state if manager_state is None else manager_state)
+            == ManagerState.OK, timeout)
 
     def recover(self, timeout: float = 5.0) -> Future[bool]:
         """Fault reset / restart every faulted or failed drive; Future[bool] says if all came
         back (recovery.py). Runs over the following cycles (never blocks the caller's thread
         or the cycle). On success the latched faults are cleared and the loop clears the
-        manager's e-stop latch (stop_requests.RecoveryDone): switching is allowed again. The
+        manager's e-stop latch (recovery.RecoveryDone): switching is allowed again. The
         future is resolved on the cycle thread, so a done-callback must be trivial."""
         return self.recovery.request(timeout)
 
@@ -512,7 +390,7 @@ class CanopenHardware:
     def set_estop_cob_id(self, cob_id: int) -> None:
         """The e-stop frame's COB-ID on every bus (0 = off), from any thread: the manager
         node calls it when 0x2130 is written. ValueError for an id that is not free."""
-        if not _whole_cob_id(cob_id):
+        if not cia301.is_cob_id(cob_id):
             raise ValueError(f"estop_cob_id must be 0 (off) or an 11-bit COB-ID, got {cob_id!r}")
         why = self.estop_conflict(cob_id) if cob_id else None
         if why is not None:
@@ -544,6 +422,16 @@ class CanopenHardware:
         return sum(p.error_frames for p in self.ports)
 
     @property
+    def estop_frames(self) -> int:
+        """E-stop frames received (any bus)."""
+        return self.findings.estop_frames
+
+    @property
+    def hook_errors(self) -> int:
+        """``on_fault`` calls that raised (counted, never raised)."""
+        return self.findings.hook_errors
+
+    @property
     def rx_bad(self) -> int:
         """TPDOs with a length other than their mapping's (never decoded)."""
         return self.receiver.rx_bad
@@ -562,7 +450,7 @@ class CanopenHardware:
     @property
     def ready(self) -> np.ndarray:
         """Per drive: brought up, no latched fault (torque off until a controller enables it)."""
-        return np.array([b.phase == Phase.READY and self.supervisor.latched[i] is None
+        return np.array([b.phase == BringupPhase.READY and self.supervisor.latched[i] is None
                          for i, b in enumerate(self._bringup)], dtype=bool)
 
     @property
@@ -573,12 +461,12 @@ class CanopenHardware:
     def started_up(self) -> bool:
         """The start-up has ended (every drive READY or FAILED once); a recovery that
         restarts drives later does not undo it."""
-        return self._report.finished
+        return self._start_up.report.finished
 
     @property
     def starting(self) -> bool:
         """Some drive is still in bring-up (neither READY nor FAILED)."""
-        return any(b.phase not in (Phase.READY, Phase.FAILED) for b in self._bringup)
+        return self._start_up.starting
 
     @property
     def enabled(self) -> np.ndarray:

@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 from typing import Protocol
 
 from ...audit import AUDIT
-from .drive_bringup import Phase
+from .drive_bringup import BringupPhase
 
 log = logging.getLogger("rocoma_can.drivers.hardware")
 audit = logging.getLogger(AUDIT)
@@ -34,7 +34,7 @@ class Started(Protocol):
     """A drive's bring-up as the report reads it (bringup.DriveBringup)."""
     @property
     def name(self) -> str: ...
-    phase: Phase
+    phase: BringupPhase
     failure: str | None
     unanswered: str
 
@@ -59,7 +59,7 @@ class BringupReport:
         """Drive i's bring-up ended this cycle (READY or FAILED); ``drives``: every one's."""
         b = drives[i]
         bus = self._bus_of[i]
-        if b.phase == Phase.FAILED:
+        if b.phase == BringupPhase.FAILED:
             if b.unanswered:
                 self._held[bus].append(i)
             else:
@@ -78,7 +78,8 @@ class BringupReport:
                               drives[k].failure)
         if not self.finished and not any(_starting(d) for d in drives):
             self.finished = True
-            self._say(self._tell_finished, [(d.name, d.phase == Phase.READY) for d in drives],
+            self._say(self._tell_finished,
+                      [(d.name, d.phase == BringupPhase.READY) for d in drives],
                       now - self.started_at)
 
     @staticmethod
@@ -105,4 +106,4 @@ class BringupReport:
 
 
 def _starting(b: Started) -> bool:
-    return b.phase not in (Phase.READY, Phase.FAILED)
+    return b.phase not in (BringupPhase.READY, BringupPhase.FAILED)

@@ -16,12 +16,12 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ..bringup.drive_bringup import DriveBringup, Phase
-from ..plan.config import DriveConfig
+from ..bringup.drive_bringup import BringupPhase, DriveBringup
 from ..plan.modes import CW_ENABLE_INTERPOLATION, KIND, DriveMode, SetPointHandshake, carrier
 from ..plan.scaling import Scaling
 from ..protocol import cia402
 from ..protocol.joints import JointCommand, JointMode, JointState
+from .drive_table import DriveTable
 from .enable import OP_ENABLED, EnableSequence
 from .frames_out import FramesOut
 from .homing import HOMING_MODE, HomingJob, HomingQueue
@@ -35,11 +35,13 @@ _PP, _IP, _CSP = int(DriveMode.PP), int(DriveMode.IP), int(DriveMode.CSP)
 class Commands:
     """The command side of N drives: what ``send`` puts in their RPDOs each cycle."""
 
-    def __init__(self, drives: Sequence[DriveConfig], state: JointState,
-                 command: JointCommand, raw: dict[str, np.ndarray], scaling: Scaling,
-                 supervisor: Supervisor, enable: EnableSequence, frames: FramesOut,
-                 position_fed: np.ndarray, ready: Callable[[], np.ndarray]) -> None:
-        """``ready``: per drive, READY without a latched fault (read at a switch)."""
+    def __init__(self, table: DriveTable, *, state: JointState, command: JointCommand,
+                 raw: dict[str, np.ndarray], scaling: Scaling, supervisor: Supervisor,
+                 enable: EnableSequence, frames: FramesOut,
+                 ready: Callable[[], np.ndarray]) -> None:
+        """``raw``: the raw bus values, one slot per drive (targets are encoded into them);
+        ``ready``: per drive, READY without a latched fault (read at a switch)."""
+        drives = [d.config for d in table]
         n = len(drives)
         self._state, self._command, self._raw = state, command, raw
         self._scaling, self._sup, self.enable, self._frames = scaling, supervisor, enable, frames
@@ -53,8 +55,10 @@ class Commands:
         self._pp = [DriveMode.PP in d.modes for d in drives]  # the set-point handshake
         self._setpoints = SetPointHandshake(n)
         self._default_mode = [int(d.modes[0]) for d in drives]
-        self._position_fed, self._ready = position_fed, ready
-        self.following = FollowingErrorWatch(drives, position_fed)
+        # per drive: its TPDOs carry the actual position (a neutral command holds it)
+        self._position_fed = np.array([d.layout.maps("position") for d in table], dtype=bool)
+        self._ready = ready
+        self.following = FollowingErrorWatch(drives, self._position_fed)
         self._mode_bits = np.zeros(n, dtype=np.int64)
         self._ones = np.ones(n, dtype=np.int64)
         self._finite = np.zeros(n, dtype=bool)
@@ -88,10 +92,7 @@ class Commands:
         ttrq, actual = raw["target_torque"].tolist(), raw["position"].tolist()
         statuswords = raw["statusword"]
         enable = self.enable
-        if switch_count is not None and switch_count != self._switches_seen:
-            self._switches_seen = switch_count  # a switch committed: arm who is ready
-            self._armed = self._ready().tolist()
-        armed = self._armed if switch_count is not None else None
+        armed = self._armed_for(switch_count)
         homing = self.homing.jobs
         self.homing.take()
         for i, b in enumerate(bringup):
@@ -104,7 +105,7 @@ class Commands:
                 homing[i] = None  # done: torque-off until the next switch (new reference)
                 if armed is not None:
                     armed[i] = False
-            if (b.phase != Phase.READY or sup.latched[i] is not None
+            if (b.phase != BringupPhase.READY or sup.latched[i] is not None
                     or (armed is not None and not armed[i])):
                 if armed is not None:  # off until the next switch: a drive that comes back
                     armed[i] = False   # (a recovery) never takes up a command it dropped
@@ -142,13 +143,23 @@ class Commands:
             frames.rpdos(i, values)
         following.sent(cmd.position)
 
+    def _armed_for(self, switch_count: int | None) -> list[bool] | None:
+        """Per drive, whether it is under command this cycle (None: no manager, every
+        READY drive is); a switch committed since the last cycle arms who is ready."""
+        if switch_count is None:
+            return None
+        if switch_count != self._switches_seen:
+            self._switches_seen = switch_count
+            self._armed = self._ready().tolist()
+        return self._armed
+
     def _home_step(self, i: int, b: DriveBringup, job: HomingJob, state: int,
                    now: float) -> bool:
         """One cycle of drive i's homing: True when its frames were sent, False when the job
         has ended (the caller then treats the drive as usual)."""
         if job.done():
             return False
-        if b.phase != Phase.READY or self._sup.latched[i] is not None:
+        if b.phase != BringupPhase.READY or self._sup.latched[i] is not None:
             job.fail("the drive faulted or left start-up state READY")
             return False
         cw = self.enable.controlword(i, state, now)

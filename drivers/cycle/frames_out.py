@@ -22,18 +22,21 @@ import can
 
 from ..bringup.drive_bringup import DriveBringup
 from ..link.bus_port import BusPort
-from ..plan.pdo_layout import DriveLayout
 from ..protocol import cia402
 from ..protocol.wire import picker
+from .drive_table import DriveTable
 
 
 class FramesOut:
-    """Frames of N drives (drive i on ``port_of[i]``); SYNC, heartbeat on every bus."""
+    """Frames of N drives, each on its own bus; SYNC, heartbeat on every bus."""
 
-    def __init__(self, layouts: Sequence[DriveLayout], ports: Sequence[BusPort],
-                 port_of: Sequence[BusPort], default_mode: Sequence[int],
+    def __init__(self, table: DriveTable, *, ports: Sequence[BusPort],
                  heartbeat_period: float) -> None:
-        self._layouts, self._port_of, self._default_mode = layouts, port_of, default_mode
+        """``heartbeat_period``: the manager's heartbeat's, in seconds."""
+        layouts = [d.layout for d in table]
+        port_of = [d.port for d in table]
+        self._layouts, self._port_of = layouts, port_of
+        self._default_mode = [int(d.config.modes[0]) for d in table]
         self._ports, self._send = ports, [p.send for p in port_of]
         n = range(len(layouts))
         self._torque_off = [self._encode(i, 0) for i in n]

@@ -24,10 +24,11 @@ import threading
 from concurrent.futures import Future
 
 from ...errors import HomingFailed
-from ..bringup.drive_bringup import Phase as BringupPhase
+from ..bringup.drive_bringup import BringupPhase
 from ..files.capabilities import DriveCapabilities
 from ..plan.pdo_layout import DriveLayout
 from ..protocol import cia402
+from .drive_table import DriveEntry
 from .supervision import FaultEvent
 
 HOMING_MODE = int(cia402.Mode.HOMING)
@@ -39,7 +40,7 @@ SW_HOMING_ERROR = 1 << 13
 SETTLE_CYCLES = 3
 
 
-class Phase(enum.Enum):
+class HomingPhase(enum.Enum):
     REQUESTED = "requested"
     ENABLING = "enabling"
     HOMING = "homing"
@@ -54,7 +55,7 @@ class HomingJob:
         self.name = name
         self.timeout = timeout
         self.future = future
-        self.phase = Phase.REQUESTED
+        self.phase = HomingPhase.REQUESTED
         self.deadline: float | None = None
         self._cycles = 0
         # statusword bit 12 before the start edge: set (left over from the previous mode or
@@ -71,12 +72,12 @@ class HomingJob:
             self.fail(f"not homed within {self.timeout:g} s")
             return None
         if not enabled:
-            if self.phase == Phase.HOMING:
+            if self.phase == HomingPhase.HOMING:
                 self.fail("left operation enabled while homing")
-            self.phase = Phase.ENABLING
+            self.phase = HomingPhase.ENABLING
             return None
-        if self.phase != Phase.HOMING:  # the start edge goes out now
-            self.phase = Phase.HOMING
+        if self.phase != HomingPhase.HOMING:  # the start edge goes out now
+            self.phase = HomingPhase.HOMING
             self._stale_attained = bool(statusword & SW_HOMING_ATTAINED)
         self._cycles += 1
         if not statusword & SW_HOMING_ATTAINED:
@@ -133,6 +134,19 @@ class HomingQueue:
         self.seen: list[HomingJob | None] = [None] * drives  # the latest job, for status
         self._requests: collections.deque[HomingJob] = collections.deque()
         self._lock = threading.Lock()
+
+    def request(self, entry: DriveEntry, phase: BringupPhase | None,
+                latched: FaultEvent | None, manager_ok: bool,
+                timeout: float | None) -> Future[str]:
+        """Home the drive of ``entry`` (``refusal`` says what the other arguments are), within
+        ``timeout`` (None: its config's ``homing_timeout``): the future says how it ended
+        ("NAME: homed", or HomingFailed); HomingFailed at once when it cannot be homed now."""
+        why = refusal(entry.plan.caps, entry.layout, phase, latched, manager_ok)
+        future: Future[str] = Future()
+        name = entry.config.name
+        self.submit(HomingJob(entry.index, name, timeout or entry.config.homing_timeout,
+                              future), why)
+        return future
 
     def submit(self, job: HomingJob, refused: str | None) -> None:
         """Queue ``job`` unless ``refused`` (why it cannot run) or its drive is homing:

@@ -17,10 +17,10 @@ import numpy as np
 
 from ..link.bus_port import BusPort
 from ..link.frame_io import clock_offset, to_monotonic
-from ..plan.pdo_layout import DriveLayout
 from ..plan.scaling import Scaling
 from ..protocol import cia301, cia402
 from ..protocol.joints import JointState
+from .drive_table import DriveTable
 from .node_guarding import NodeGuarding
 from .supervision import Supervisor
 
@@ -28,7 +28,7 @@ from .supervision import Supervisor
 _TpdoEntry = tuple[int, int, int, Callable[..., tuple[int, ...]], tuple[np.ndarray, ...]]
 
 
-class Heard(Protocol):
+class BringupSigns(Protocol):
     """What receiving tells a drive's bring-up (bringup.DriveBringup)."""
     alive: bool
     sto_seen: bool
@@ -37,24 +37,26 @@ class Heard(Protocol):
 class Receiver:
     """The receive tables of N drives on their buses and the drain that uses them."""
 
-    def __init__(self, ports: Sequence[BusPort], layouts: Sequence[DriveLayout],
-                 node_ids: Sequence[int], leads_node: Sequence[bool],
-                 node: Sequence[tuple[int, ...]], raw: dict[str, np.ndarray],
-                 state: JointState, scaling: Scaling, supervisor: Supervisor,
-                 guarding: NodeGuarding,
-                 on_estops: Callable[[BusPort, int], None],
+    def __init__(self, table: DriveTable, *, ports: Sequence[BusPort],
+                 raw: dict[str, np.ndarray], state: JointState, scaling: Scaling,
+                 supervisor: Supervisor, guarding: NodeGuarding,
+                 on_estops: Callable[[BusPort, int, int], None],
                  on_bus_off: Callable[[BusPort, str, float], None]) -> None:
-        n = len(layouts)
-        self.ports, self._node, self._state, self._sup = ports, node, state, supervisor
+        """``raw``: the raw bus values, one slot per drive, that the TPDOs are unpacked
+        into; ``on_estops``: e-stop frames on a bus this cycle (their count and COB-ID);
+        ``on_bus_off``: a bus failed."""
+        n = len(table)
+        self.ports, self._state, self._sup = ports, state, supervisor
+        self._node = [d.node for d in table]
         self._raw, self._scaling = raw, scaling
         self._guarding, self._on_estops, self._on_bus_off = guarding, on_estops, on_bus_off
-        self.bringup: Sequence[Heard] = ()  # the drives' bring-ups (hardware.start)
+        self._bringups: Sequence[BringupSigns] = ()  # attach_bringups (the hardware's start)
         self.estop_cob_id = 0
         self.rx_bad = 0  # TPDOs with a length other than their mapping's (never decoded)
         self.got = np.zeros(n, dtype=np.int64)  # TPDO bits seen this cycle
         # one bit per TPDO slot a drive's layout uses (a fixed mapping may use TPDO3 and 4)
-        self.expected = np.array([sum(1 << (p.number - 1) for p in lay.tpdos)
-                                  for lay in layouts], dtype=np.int64)
+        self.expected = np.array([sum(1 << (p.number - 1) for p in d.layout.tpdos)
+                                  for d in table], dtype=np.int64)
         self.complete = np.zeros(n, dtype=bool)  # every TPDO of the drive arrived
         self.hb_state = [-1] * n                 # NMT state of the last heartbeat
         self.hb_time = np.full(n, -math.inf)
@@ -65,13 +67,19 @@ class Receiver:
         self.tpdo_of: list[dict[int, _TpdoEntry]] = [{} for _ in ports]
         for k, port in enumerate(ports):
             for i in port.drives:
-                for pdo in layouts[i].tpdos:
+                d = table[i]
+                for pdo in d.layout.tpdos:
                     self.tpdo_of[k][pdo.cob_id] = (
                         i, 1 << (pdo.number - 1), pdo.size, pdo.codec.unpack_from,
                         tuple(raw[name] for name in pdo.names))
-                if leads_node[i]:
-                    port.heartbeat_of[cia301.HEARTBEAT + node_ids[i]] = i
-                    port.emcy_of[cia301.EMCY + node_ids[i]] = node[i]
+                if d.leads_node:
+                    port.heartbeat_of[cia301.HEARTBEAT + d.node_id] = i
+                    port.emcy_of[cia301.EMCY + d.node_id] = d.node
+
+    def attach_bringups(self, bringups: Sequence[BringupSigns]) -> None:
+        """The drives' bring-ups, once the hardware has started them: a heartbeat marks
+        its drive alive, an EMCY STO its STO seen."""
+        self._bringups = bringups
 
     def cob_ids(self, k: int) -> set[int]:
         """What bus k's receiver keeps (the rest is dropped on the reader thread)."""
@@ -83,20 +91,13 @@ class Receiver:
         JointState holds what they carried."""
         sup, got, state = self._sup, self.got, self._state
         got.fill(0)
-        stamp, error_code = state.stamp, state.error_code
+        stamp = state.stamp
         offset = clock_offset()
         estop, estops = self.estop_cob_id or -1, 0
         for k, port in enumerate(self.ports):
             rx = port.rx
             tpdo_of, heartbeat_of, emcy_of = self.tpdo_of[k], port.heartbeat_of, port.emcy_of
-            # Before draining: every frame that arrived before ``until`` is in ``rx`` now.
-            # A reader starved past a deadline (a frozen process) has heartbeats in time
-            # still unread; the deadline waits for them (a dead reader judges on ``now``).
-            cb = port.canopen
-            reader = cb.reader if cb is not None else None
-            until = now if cb is None or reader is None or not reader.alive else min(
-                now, reader.received_until(cb.bus))
-            self.heard_until[self._drives_of_port[k]] = until
+            self.heard_until[self._drives_of_port[k]] = _received_until(port, now)
             while rx:
                 msg = rx.popleft()
                 cob = msg.arbitration_id
@@ -123,17 +124,9 @@ class Receiver:
                     continue
                 axes = emcy_of.get(cob)
                 if axes is not None and msg.dlc >= 2:
-                    code = msg.data[0] | (msg.data[1] << 8)
-                    for j in axes:
-                        error_code[j] = code
-                        if code == cia301.EMCY_STO:
-                            self.bringup[j].sto_seen = True
-                    # An EMCY does not say which axis of a multi-axis node it is about:
-                    # there each axis is faulted by its own statusword, not by the EMCY
-                    if len(axes) == 1:
-                        sup.on_emcy(axes[0], code, t)
+                    self._emcy(axes, msg.data[0] | (msg.data[1] << 8), t)
             if estops:  # one request per bus and cycle, however often a sender repeats
-                self._on_estops(port, estops)
+                self._on_estops(port, estops, estop)
                 estops = 0
             if port.rx_errors:
                 cause = port.bus_off()
@@ -141,6 +134,18 @@ class Receiver:
                     self._on_bus_off(port, cause, now)
         np.equal(got, self.expected, out=self.complete)
         self._decode(now)
+
+    def _emcy(self, axes: tuple[int, ...], code: int, t: float) -> None:
+        """An EMCY of the node whose drives are ``axes``: each one's error code."""
+        error_code = self._state.error_code
+        for j in axes:
+            error_code[j] = code
+            if code == cia301.EMCY_STO:
+                self._bringups[j].sto_seen = True
+        # An EMCY does not say which axis of a multi-axis node it is about: there each
+        # axis is faulted by its own statusword, not by the EMCY
+        if len(axes) == 1:
+            self._sup.on_emcy(axes[0], code, t)
 
     def _decode(self, now: float) -> None:
         """The raw values into JointState, in SI units, with each drive's CiA 402 state."""
@@ -162,5 +167,16 @@ class Receiver:
         for k in self._node[i]:  # every axis of the node: its NMT state is theirs
             self.hb_state[k] = nmt_state
             self.hb_time[k] = t
-            self.bringup[k].alive = True
+            self._bringups[k].alive = True
             self._sup.on_heartbeat(k, nmt_state, t)
+
+
+def _received_until(port: BusPort, now: float) -> float:
+    """Before draining: every frame that arrived before this is in the port's ``rx`` now.
+    A reader starved past a deadline (a frozen process) has heartbeats in time still
+    unread; the deadline waits for them (a dead reader judges on ``now``)."""
+    cb = port.canopen
+    reader = cb.reader if cb is not None else None
+    if cb is None or reader is None or not reader.alive:
+        return now
+    return min(now, reader.received_until(cb.bus))

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bringup.drive_bringup import DriveBringup, Phase
+from ..bringup.drive_bringup import BringupPhase, DriveBringup
 from ..link.bus_port import BusPort
 from ..plan.config import DriveConfig
 from ..protocol import cia301
@@ -28,7 +28,7 @@ class DriveStatus:
     """A snapshot for status reports and services."""
     name: str
     node_id: int
-    phase: str            # a bringup.Phase name: WAIT_BOOT ... READY, FAILED
+    phase: str            # a bringup.BringupPhase name: WAIT_BOOT ... READY, FAILED
     cia402_state: str
     enabled: bool
     fault: str | None     # the latched fault or start-up failure, None when healthy
@@ -62,7 +62,7 @@ class HardwareStatus:
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able, by hand: ``dataclasses.asdict`` deep-copies every field recursively,
-        ~1 ms for 12 drives, in the loop's process (every field here is a plain value)."""
+        in the loop's process (every field here is a plain value)."""
         return {**vars(self), "buses": [dict(vars(b)) for b in self.buses],
                 "drives": [dict(vars(d)) for d in self.drives]}
 
@@ -130,7 +130,7 @@ def not_ready(drives: Sequence[DriveConfig], bringup: Sequence[DriveBringup],
         b, latched, name = bringup[i], supervisor.latched[i], drives[i].name
         if latched is not None:
             waiting.append(f"{name} (fault: {latched.cause}; recover first)")
-        elif b.phase != Phase.READY:
+        elif b.phase != BringupPhase.READY:
             waiting.append(f"{name} ({b.phase.name}" + (f": {b.failure})" if b.failure
                                                          else ")"))
     return "drives not ready: " + ", ".join(waiting) if waiting else None

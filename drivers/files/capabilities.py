@@ -22,9 +22,8 @@ from canopen import objectdictionary
 from rocoma_can import eds as shipped_eds
 
 from ..protocol import cia301, cia402
+from ..protocol.cia301 import ObjectKey
 from .device_file import DeviceFileError, read_device_file
-
-Key = tuple[int, int]
 
 #: 0x6502 bits (CiA 402): bit n-1 for mode n of 0x6060, except these vendor-neutral ones
 MODE_NAMES = {1: "PP", 2: "VL", 3: "PV", 4: "TQ", 6: "HM", 7: "IP", 8: "CSP", 9: "CSV",
@@ -83,7 +82,7 @@ class DriveCapabilities:
     device_type: int | None = None           # 0x1000 (None: not in the file, or no value)
     commissioned_node_id: int | None = None  # a DCF's [DeviceComissioning] NodeID
     #: objects the file lists without a value: the drive's own value is read at start-up
-    unknown: frozenset[Key] = frozenset()
+    unknown: frozenset[ObjectKey] = frozenset()
     #: 0x6502 has a value in the file; else ``supported_modes`` comes from the target
     #: objects the file has (``modes_from_targets``) and the drive is asked at start-up
     modes_stated: bool = True
@@ -377,13 +376,13 @@ def read_capabilities(path: str | None, node_id: int, axis: int = 1) -> DriveCap
 _PROFILE = range(0x6000, 0x6000 + cia402.MAX_AXES * cia402.AXIS_STRIDE)
 
 
-def _axis_view(od: canopen.ObjectDictionary, unknown: frozenset[Key], axis: int,
-               source: str) -> tuple[canopen.ObjectDictionary, frozenset[Key]]:
+def _axis_view(od: canopen.ObjectDictionary, unknown: frozenset[ObjectKey], axis: int,
+               source: str) -> tuple[canopen.ObjectDictionary, frozenset[ObjectKey]]:
     """The dictionary as axis ``axis`` of a multi-axis device sees it: its profile objects
     (at + (axis - 1) x 0x800 in the file) at the indices of axis 1, the other axes' gone,
     the node's own objects (0x1000-0x5FFF) as they are. Everything that plans a drive then
     reads one axis as it reads a single-axis drive; only the SDO traffic and the mapping
-    entries of bring-up shift the indices back (bringup.NamedSdo)."""
+    entries of bring-up shift the indices back (bringup/named_sdo.py)."""
     controlword = cia402.on_axis(cia402.CONTROLWORD, axis)
     if controlword not in od:
         raise CapabilityError(f"{source} has no axis {axis}: no 0x{controlword:04X} (axis "

@@ -39,8 +39,7 @@ from canopen import objectdictionary
 from canopen.objectdictionary import datatypes
 
 from ...user_files import read_regular
-
-Key = tuple[int, int]
+from ..protocol.cia301 import ObjectKey
 
 _INDEX_SECTION = re.compile(r"([0-9A-Fa-f]{4})(?:sub([0-9A-Fa-f]{1,2}))?", re.IGNORECASE)
 _NODE_ID = re.compile(r"\$node_?id", re.IGNORECASE)
@@ -84,7 +83,7 @@ class DeviceFile:
     sections: dict[str, dict[str, str]]
     notes: list[str] = field(default_factory=list)
     #: objects the file lists with neither DefaultValue nor ParameterValue (or empty ones)
-    unknown: set[Key] = field(default_factory=set)
+    unknown: set[ObjectKey] = field(default_factory=set)
     commissioned_node_id: int | None = None
     #: the node its COB-IDs are re-derived for (``for_node``); None: as the file gives them
     node_id: int | None = None
@@ -284,7 +283,7 @@ def _section_name(name: str) -> str:
     return _SECTIONS.get(name.lower(), name)
 
 
-def _object_key(name: str) -> Key | None:
+def _object_key(name: str) -> ObjectKey | None:
     match = _INDEX_SECTION.fullmatch(name)
     if match is None:
         return None
@@ -314,7 +313,7 @@ def _relative_base(text: str) -> int | None:
     return _int(rest) if rest else 0
 
 
-def _is_cob_id(key: Key) -> bool:
+def _is_cob_id(key: ObjectKey) -> bool:
     index, sub = key
     if sub == 0:
         return index in _COB_ID_SUB0
@@ -393,7 +392,7 @@ def _check_objects(device: DeviceFile) -> None:
                             + (f" and {len(left_out) - 3} more" if len(left_out) > 3 else ""))
 
 
-def _repair_object(name: str, key: Key, keys: dict[str, str],
+def _repair_object(name: str, key: ObjectKey, keys: dict[str, str],
                    sections: dict[str, dict[str, str]]) -> str | None:
     """``keys`` as canopen reads them (names for numbers rewritten, a ParameterName given);
     what makes the object unreadable, or None."""

@@ -224,7 +224,7 @@ def file_fit(od: objectdictionary.ObjectDictionary, found: Identity, file: str) 
 
 
 class Uploads(Protocol):
-    """An SDO client as bring-up has it (bringup.NamedSdo): an abort raises
+    """An SDO client as bring-up has it (bringup/named_sdo.py): an abort raises
     canopen.SdoAbortedError."""
 
     def upload(self, index: int, subindex: int) -> bytes: ...

@@ -197,8 +197,8 @@ class BusReader:
         """Hand what waits on every bus now to the listeners, on the caller's thread: the
         control loop's, at the start of its read (CanopenHardware.read), so a cycle sees
         every frame that arrived before it even when the scheduler starves this reader's
-        thread (measured: a reader thread starved for 5 ms on a loaded 2-core machine left
-        five cycles without TPDOs, and TPDO supervision e-stopped). Never waits: False,
+        thread (a reader thread starved for a few cycles on a loaded machine left those
+        cycles without TPDOs, and TPDO supervision e-stopped). Never waits: False,
         nothing read, when the thread is reading itself (it has the frames) or the
         interface cannot be read apart from its wait (python-can's ``virtual``). A bus that
         fails here is left to the thread to report.

@@ -14,14 +14,14 @@ from __future__ import annotations
 
 import collections
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Protocol
 
 import can
 
 from ..plan.config import BusConfig
 from ..protocol import cia301
-from .bus import SENT_HELD, CanopenBus, open_bus
+from .bus import SENT_HELD, CanopenBus, open_bus, start_reading
 from .frame_io import FrameWriter
 
 _FD = (can.CanProtocol.CAN_FD, can.CanProtocol.CAN_FD_NON_ISO)
@@ -242,3 +242,31 @@ class BusPort:
                          f"0x{msg.arbitration_id:X})")
         return cause
 
+
+
+def open_ports(ports: Sequence[BusPort], cob_ids: Sequence[set[int]], estop_cob_id: int,
+               recorded: Sequence[tuple[can.Listener, SentFrames]] = ()
+               ) -> tuple[list[tuple[Callable[[], None], Callable[[], None]]],
+                          list[Callable[[], bool]]]:
+    """Open every port (unless lent) with what its receiver keeps (``cob_ids``, in the
+    ports' order) and the e-stop frame's COB-ID, its frames recorded where ``recorded``
+    says, and start their readers. Returns the ports' wake-up holds, as pairs (a port closed
+    while a write runs is still released by the bus it held), and the readers' drain_now
+    (the cycle's read hands over what waits on the buses first). A bus that cannot be
+    opened closes the ones opened before it and raises OSError."""
+    try:
+        for k, port in enumerate(ports):
+            port.open(cob_ids[k])
+            port.set_estop_cob_id(estop_cob_id)
+            if recorded:
+                port.record_frames(*recorded[k])
+        # one reader thread for every bus where the interface allows (bus.readers_for)
+        start_reading([port.canopen for port in ports if port.canopen is not None])
+        holds = [(port.hold_wakeups, port.release_wakeups) for port in ports]
+        readers = {id(port.canopen.reader): port.canopen.reader for port in ports
+                   if port.canopen is not None and port.canopen.reader is not None}
+        return holds, [reader.drain_now for reader in readers.values()]
+    except BaseException:
+        for port in ports:
+            port.close()
+        raise

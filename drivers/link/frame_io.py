@@ -3,8 +3,8 @@
 python-can's ``recv`` costs three system calls per frame (a clock read, ``select``,
 ``recvmsg``) and ``send`` three (clock, ``select``, ``send``). Natively that is a few
 microseconds; inside a user-mode-linux guest, where even a clock read is a trapped system
-call (~0.1-0.6 ms each), a simulated segment of six drives at 25 Hz spent half the guest's
-only CPU on it and fell a second behind the kernel. On SocketCAN this module reads every
+call, a simulated segment of six drives at 25 Hz spent half the guest's only CPU on it and
+fell a second behind the kernel. On SocketCAN this module reads every
 waiting frame after one ``select`` with one non-blocking ``recvmsg`` each, and writes with
 one ``send``; on the in-process bus (inproc.py) it takes a whole batch in one call; on any
 other interface it uses python-can's API unchanged.

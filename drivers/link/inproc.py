@@ -1,12 +1,12 @@
 """``interface: inproc``: a CAN bus between threads of one process, cheap enough for 1 kHz.
 
 python-can's ``virtual`` interface deep-copies every frame once per receiver and hands it
-over through a ``queue.Queue``: ~10-15 µs per receiver and frame. A bench of 12 simulated
+over through a ``queue.Queue``, a cost per receiver and frame. A bench of 12 simulated
 drives on 4 buses at 1 kHz moves ~60,000 frame deliveries a second between the loop, the
 simulated segments and the manager's node, which alone is more CPU than one core has. This
 bus copies a frame once per send (the sender may re-fill its pre-allocated frame at once)
-and shares that copy, read-only, with every receiver: ~2 µs per send whatever the number of
-receivers, and a ``deque`` per receiver instead of a locked queue.
+and shares that copy, read-only, with every receiver: one cost per send whatever the number
+of receivers, and a ``deque`` per receiver instead of a locked queue.
 
 Like ``virtual``: every bus opened on a channel name in this process sees the frames the
 others send (not its own, unless ``receive_own_messages``), in order, stamped with
@@ -49,8 +49,8 @@ def received(timestamp: float, arbitration_id: int, is_extended_id: bool,
              is_remote_frame: bool, is_error_frame: bool, channel: str, dlc: int,
              data: bytearray, is_fd: bool, bitrate_switch: bool,
              error_state_indicator: bool) -> Message:
-    """A received frame, built field by field: ``Message()`` checks and converts, ~4x the
-    cost, and every frame given here passed its checks when it was sent."""
+    """A received frame, built field by field: ``Message()`` checks and converts, several
+    times the cost, and every frame given here passed its checks when it was sent."""
     msg = _new_message(Message)
     msg.timestamp = timestamp
     msg.arbitration_id = arbitration_id
@@ -156,7 +156,7 @@ class InProcessBus(BusABC):
     def _apply_filters(self, filters: can.typechecking.CanFilters | None) -> None:
         """Filters that each take one 11-bit identifier (mask 0x7FF, extended False: what a
         CANopen master sets, one per COB-ID it reads) are checked as one set lookup per
-        frame; python-can's own check loops over the filters (~3 µs a frame for a dozen)."""
+        frame; python-can's own check loops over the filters, a cost per filter and frame."""
         exact = None
         if filters and all(f.get("extended") is False and f["can_mask"] == 0x7FF
                            for f in filters):

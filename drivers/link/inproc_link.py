@@ -51,8 +51,8 @@ MAX_DATAGRAM = 1 << 16
 #: a datagram in the making is written once this long (the next frame could not fit)
 FLUSH_AT = MAX_DATAGRAM - FRAME.size - 64
 #: bytes the kernel may hold for the other process before a write is dropped, asked for;
-#: Linux caps it at net.core.wmem_max (212,992 bytes on a stock kernel: ~0.3 s of a
-#: 12-drive bench at 1 kHz; 4 MiB on the machine this was measured on, ~2 s)
+#: Linux caps it at net.core.wmem_max (212,992 bytes on a stock kernel: a fraction of a
+#: second of a 12-drive bench at 1 kHz)
 SEND_BUFFER = 4 << 20
 _SEND_FLAGS = socket.MSG_DONTWAIT | getattr(socket, "MSG_NOSIGNAL", 0)
 

@@ -28,7 +28,7 @@ from .modes import DriveMode
 from .pdo_layout import (
     ENTRY_OF_FEEDBACK,
     DriveLayout,
-    Pdo,
+    LayoutPdo,
     always_on,
     check_against_od,
     layout_for,
@@ -59,7 +59,7 @@ class DrivePlan:
         """check-config's lines for this drive."""
         d, lay = self.drive, self.layout
 
-        def entries(p: Pdo) -> str:  # a fixed RPDO's constants with the value sent
+        def entries(p: LayoutPdo) -> str:  # a fixed RPDO's constants with the value sent
             return ", ".join(e.name if e.constant is None else f"{e.name} = {e.constant}"
                              for e in p.entries)
         pdos = "; ".join(f"{'fixed ' if p.fixed else ''}RPDO{p.number} [{entries(p)}]"
@@ -110,7 +110,7 @@ def plan_drives(drives: Sequence[DriveConfig], first_bus: str = "", *,
     return [p for p in plans if p is not None]
 
 
-def grouped_notes(plans: Sequence[DrivePlan]) -> list[tuple[str, str]]:
+def notes_with_drives(plans: Sequence[DrivePlan]) -> list[tuple[str, str]]:
     """Every drive's notes, each said once: (note, "drive 'j1'" or "drives 'j1', 'j2'"),
     in the order first met. Drives of one model share their notes; a line per drive
     said the same thing once per drive at each start (six lines for two drives)."""
@@ -141,23 +141,7 @@ def plan_drive(drive: DriveConfig, taken: frozenset[tuple[bool, int]] = frozense
     plan's ``limit_writes``, what bring-up writes); None where no loop will run it (a
     file's fit), which leaves those out."""
     where = f"drive {drive.name!r}"
-    try:
-        caps = read_capabilities(drive.eds, drive.node_id, drive.axis)
-    except CapabilityError as exc:
-        raise ValueError(f"{where}: {exc}") from None
-    if drive.axis > 1:  # a fixed mapping names the objects of the axis it was made for
-        taken |= {(ch.tx, ch.number) for ch in caps.rpdos + caps.tpdos
-                  if not ch.mapping_writable}
-    if taken:
-        left = _without(caps, taken)
-        for kind, before, after in (("RPDOs", caps.rpdos, left.rpdos),
-                                    ("TPDOs", caps.tpdos, left.tpdos)):
-            if not after:
-                raise ValueError(f"{where}: no {kind} left for axis {drive.axis}: the node's "
-                                 f"other axes use {', '.join(ch.name for ch in before)}"
-                                 + (" (a fixed mapping serves axis 1 only)"
-                                    if any(not ch.mapping_writable for ch in before) else ""))
-        caps = left
+    caps = _capabilities(drive, taken, where)
     problems: list[str] = []
     notes: list[str] = list(caps.file_notes)
     commissioned = caps.commissioned_node_id
@@ -169,6 +153,58 @@ def plan_drive(drive: DriveConfig, taken: frozenset[tuple[bool, int]] = frozense
                         f"0x{caps.device_type:08X})")
     guarded = _guarding(drive, caps, problems, notes)
     problems += _mode_problems(drive, caps)
+    _mode_objects(drive, caps, problems, notes)
+    feedback = _feedback(drive, caps, problems, notes)
+    for index, sub, what in ((cia402.POSITION_ENCODER_RESOLUTION, 1, "increments_per_rev"),
+                             (cia402.GEAR_RATIO, 1, "gear_ratio"),
+                             (cia402.RATED_TORQUE, 0, "rated_torque_nm")):
+        if not caps.has(index, sub):
+            notes.append(f"no 0x{index:04X}: {what} comes from the config alone (the drive "
+                         "cannot confirm it)")
+    _manager_loss(drive, caps, guarded, problems, notes)
+    writes: list[limits.LimitWrite] = []
+    try:
+        writes = limits.drive_writes(drive, caps, period)
+    except ValueError as exc:
+        problems.append(str(exc).removeprefix(f"{where}: "))
+    if problems:
+        raise ValueError(f"{where}: " + "; ".join(problems))
+    resolved, layout = _fit_feedback(drive, feedback, caps, notes)
+    check_against_od(layout, caps.object_dictionary, drive.name)
+    notes += always_on(layout, caps)
+    return DrivePlan(resolved, caps, layout, tuple(notes), guarded,
+                     limit_writes=tuple(writes), period=period)
+
+
+def _capabilities(drive: DriveConfig, taken: frozenset[tuple[bool, int]],
+                  where: str) -> DriveCapabilities:
+    """The drive's file read at its axis, without the PDO channels its node's other axes
+    use (``taken``; an axis above 1 cannot use a fixed mapping, which names axis 1's
+    objects); ValueError when it has none of a kind left."""
+    try:
+        caps = read_capabilities(drive.eds, drive.node_id, drive.axis)
+    except CapabilityError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    if drive.axis > 1:  # a fixed mapping names the objects of the axis it was made for
+        taken |= {(ch.tx, ch.number) for ch in caps.rpdos + caps.tpdos
+                  if not ch.mapping_writable}
+    if not taken:
+        return caps
+    left = _without(caps, taken)
+    for kind, before, after in (("RPDOs", caps.rpdos, left.rpdos),
+                                ("TPDOs", caps.tpdos, left.tpdos)):
+        if not after:
+            raise ValueError(f"{where}: no {kind} left for axis {drive.axis}: the node's "
+                             f"other axes use {', '.join(ch.name for ch in before)}"
+                             + (" (a fixed mapping serves axis 1 only)"
+                                if any(not ch.mapping_writable for ch in before) else ""))
+    return left
+
+
+def _mode_objects(drive: DriveConfig, caps: DriveCapabilities, problems: list[str],
+                  notes: list[str]) -> None:
+    """How the drive's mode is set (0x6060: by PDO, or once by SDO), its interpolation
+    period (0x60C2) and homing method (0x6098)."""
     if not caps.writable(cia402.MODES_OF_OPERATION):
         # not even by SDO: the drive would run whatever mode it powers up in
         problems.append(f"0x6060 (modes of operation): {caps.source} "
@@ -189,25 +225,30 @@ def plan_drive(drive: DriveConfig, taken: frozenset[tuple[bool, int]] = frozense
     if drive.homing_method is not None and not caps.writable(cia402.HOMING_METHOD):
         problems.append(f"homing_method {drive.homing_method}: {caps.source} has no "
                         "writable 0x6098 (homing method)")
+
+
+def _feedback(drive: DriveConfig, caps: DriveCapabilities, problems: list[str],
+              notes: list[str]) -> tuple[str, ...]:
+    """The feedback the drive reports: the config's (each must exist), or every kind its
+    file has (the others said in a note)."""
     available = tuple(f for f in FEEDBACK if caps.has(ENTRY_OF_FEEDBACK[f].index))
     if drive.feedback is None:
-        feedback = available
         for f in FEEDBACK:
             if f not in available:
                 notes.append(f"no 0x{ENTRY_OF_FEEDBACK[f].index:04X}: {f} feedback off "
                              f"(JointState.{f} stays 0)")
-    else:
-        feedback = drive.feedback
-        for f in feedback:
-            if f not in available:
-                problems.append(f"feedback {f!r}: the drive has no "
-                                f"0x{ENTRY_OF_FEEDBACK[f].index:04X}")
-    for index, sub, what in ((cia402.POSITION_ENCODER_RESOLUTION, 1, "increments_per_rev"),
-                             (cia402.GEAR_RATIO, 1, "gear_ratio"),
-                             (cia402.RATED_TORQUE, 0, "rated_torque_nm")):
-        if not caps.has(index, sub):
-            notes.append(f"no 0x{index:04X}: {what} comes from the config alone (the drive "
-                         "cannot confirm it)")
+        return available
+    for f in drive.feedback:
+        if f not in available:
+            problems.append(f"feedback {f!r}: the drive has no "
+                            f"0x{ENTRY_OF_FEEDBACK[f].index:04X}")
+    return drive.feedback
+
+
+def _manager_loss(drive: DriveConfig, caps: DriveCapabilities, guarded: bool,
+                  problems: list[str], notes: list[str]) -> None:
+    """What the drive does when the manager dies or hangs: a drive nothing switches off
+    then is a problem unless its config accepts the risk."""
     if not caps.supervised(guarded):
         if drive.accept_unsupervised:
             notes.append("RISK accepted (accept_unsupervised): if the manager dies or hangs, "
@@ -223,18 +264,6 @@ def plan_drive(drive: DriveConfig, taken: frozenset[tuple[bool, int]] = frozense
                      "guarding) makes it "
                      "leave OPERATIONAL (0x1029) and stop applying RPDOs; whether it also "
                      "switches its power stage off is its vendor's choice")
-    writes: list[limits.LimitWrite] = []
-    try:
-        writes = limits.drive_writes(drive, caps, period)
-    except ValueError as exc:
-        problems.append(str(exc).removeprefix(f"{where}: "))
-    if problems:
-        raise ValueError(f"{where}: " + "; ".join(problems))
-    resolved, layout = _fit_feedback(drive, feedback, caps, notes)
-    check_against_od(layout, caps.object_dictionary, drive.name)
-    notes += always_on(layout, caps)
-    return DrivePlan(resolved, caps, layout, tuple(notes), guarded,
-                     limit_writes=tuple(writes), period=period)
 
 
 def _guarding(drive: DriveConfig, caps: DriveCapabilities, problems: list[str],

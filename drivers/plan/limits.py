@@ -48,7 +48,7 @@ DRIVE_TIMEOUT_FACTOR = 2
 
 
 class Sdo(Protocol):
-    """What writing the limits needs of a drive's SDO client (bringup.NamedSdo)."""
+    """What writing the limits needs of a drive's SDO client (bringup/named_sdo.py)."""
 
     def upload(self, index: int, subindex: int) -> bytes: ...
 
@@ -151,7 +151,7 @@ def write_limits(sdo: Sdo, writes: Sequence[LimitWrite], caps: DriveCapabilities
     """Write each limit object the drive's plan holds (``drive_writes``), then read it
     back: a drive that keeps another value (it clamps to its own range, or ignores the
     write) fails its bring-up, naming the object and both values. A refusal (SDO abort)
-    names the object too (bringup.ObjectRefused)."""
+    names the object too (bringup/named_sdo.py)."""
     for w in writes:
         var = caps.variable(w.index, w.subindex)
         assert var is not None  # drive_writes took only objects the file has

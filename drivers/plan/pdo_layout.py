@@ -69,7 +69,7 @@ TARGET_OF_MODE = {DriveMode.CSP: TARGET_POSITION, DriveMode.IP: IP_TARGET,
                   DriveMode.PP: TARGET_POSITION, DriveMode.CSV: TARGET_VELOCITY,
                   DriveMode.PV: TARGET_VELOCITY, DriveMode.CST: TARGET_TORQUE}
 ENTRY_OF_FEEDBACK = {"position": POSITION, "velocity": VELOCITY, "torque": TORQUE}
-#: Every name an RPDO codec can be asked to fill, in the order ``Pdo.pack`` takes them
+#: Every name an RPDO codec can be asked to fill, in the order ``LayoutPdo.pack`` takes them
 #: (a drive's constant entries follow: ``DriveLayout.rpdo_fields``).
 RPDO_FIELDS = ("controlword", "mode", "target_position", "target_velocity", "target_torque")
 #: The name of a fixed TPDO's entries that rocoma-can does not read.
@@ -80,7 +80,7 @@ _KNOWN = {(e.index, e.subindex): e for e in (CONTROLWORD, MODE, TARGET_POSITION,
 
 
 @dataclass(frozen=True)
-class Pdo:
+class LayoutPdo:
     """One PDO of one drive: its slot (1..4), COB-ID, mapped entries and codec. ``fixed``:
     the drive's own mapping, used as it is (bring-up writes no mapping for it)."""
     number: int
@@ -125,12 +125,12 @@ def first_fit(entries: Iterable[PdoEntry], max_bytes: int = PDO_BYTES,
     return pdos
 
 
-def _pdo(number: int, cob_id: int, entries: Sequence[PdoEntry], fixed: bool = False) -> Pdo:
+def _pdo(number: int, cob_id: int, entries: Sequence[PdoEntry], fixed: bool = False) -> LayoutPdo:
     """The codec pads to the frame's length on the wire (``fd_length``: a 9-byte PDO is a
     12-byte FD frame, and that is what a receiver gets and what the receive check expects)."""
     mapped = sum(e.size for e in entries)
     pad = "x" * (fd_length(mapped) - mapped)
-    return Pdo(number, cob_id, tuple(entries),
+    return LayoutPdo(number, cob_id, tuple(entries),
                struct.Struct("<" + "".join(e.fmt for e in entries) + pad), fixed)
 
 
@@ -138,8 +138,8 @@ def _pdo(number: int, cob_id: int, entries: Sequence[PdoEntry], fixed: bool = Fa
 class DriveLayout:
     """Every PDO one drive exchanges per cycle (bring-up switches the drive's others off)."""
     node_id: int
-    rpdos: tuple[Pdo, ...]
-    tpdos: tuple[Pdo, ...]
+    rpdos: tuple[LayoutPdo, ...]
+    tpdos: tuple[LayoutPdo, ...]
 
     @property
     def frames_per_cycle(self) -> int:
@@ -197,7 +197,7 @@ def _generic(tx: bool) -> list[tuple[int, int, int]]:
 
 
 def _remapped(need: list[PdoEntry], slots: list[tuple[int, int, int]], drive: DriveConfig,
-              what: str, node_cob: bool = True) -> tuple[Pdo, ...]:
+              what: str, node_cob: bool = True) -> tuple[LayoutPdo, ...]:
     """``need`` packed into the remappable ``slots`` (number, COB-ID or base, max objects),
     each slot taking at most its own number of objects."""
     if not need:
@@ -250,12 +250,12 @@ def _entry_of(caps: DriveCapabilities, index: int, subindex: int, bits: int, tx:
 
 
 def _fit(need: list[PdoEntry], channels: tuple[PdoChannel, ...], caps: DriveCapabilities,
-         drive: DriveConfig, tx: bool) -> tuple[Pdo, ...]:
+         drive: DriveConfig, tx: bool) -> tuple[LayoutPdo, ...]:
     """Fixed channels that carry something needed are used as they are; what they do not
     carry goes first-fit into the remappable ones; every other channel is switched off."""
     what = "TPDO" if tx else "RPDO"
     bases = cia301.TPDO_BASE if tx else cia301.RPDO_BASE
-    used: list[Pdo] = []
+    used: list[LayoutPdo] = []
     carried: set[str] = set()
     fixed = {ch.number: (ch, [_entry_of(caps, i, s, b, tx, drive, ch.name, need)
                               for i, s, b in _split(ch)])

@@ -35,6 +35,14 @@ HEARTBEAT = 0x700          # heartbeat, boot-up and node guarding (remote reques
 #: Node guarding answer: bit 7 toggles with every answer, bits 0..6 are the NMT state.
 GUARD_TOGGLE = 0x80
 
+#: An object's place in an object dictionary: (index, subindex)
+ObjectKey = tuple[int, int]
+
+
+def is_cob_id(value: object) -> bool:
+    """An 11-bit COB-ID: a whole number 0..0x7FF (a bool is no number here)."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0x7FF
+
 
 def reserved_cob_id(cob_id: int) -> str | None:
     """Why an 11-bit COB-ID cannot be a free-standing identifier such as the e-stop frame's

@@ -2,9 +2,10 @@
 
 Every joint of a segment lives in one set of numpy arrays (the drives write their commands
 into them and read their joints back; a SegmentGroup joins several segments' into one).
-A step reads them once as Python floats and integrates joint by joint: ~2 µs a joint,
-where the same step as ~50 numpy calls on the arrays costs ~80 µs whatever the count (a
-dozen drives share a CAN bus at 1 kHz; numpy only pays from ~40 joints on). Units are SI
+A step reads them once as Python floats and integrates joint by joint, where the same
+step as ~50 numpy calls on the arrays costs a fixed amount whatever the count, more than a
+dozen joints cost one by one (a dozen drives share a CAN bus at 1 kHz; numpy pays only for
+several times that). Units are SI
 on the joint side (rad, rad/s, Nm); the drives convert to and from CiA 402 increments and
 per mille.
 """

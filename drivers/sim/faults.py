@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..protocol import cia301 as c301
-from .objects import ERROR_REGISTER, Key
+from ..protocol.cia301 import ObjectKey
+from .objects import ERROR_REGISTER
 from .port import Segment
 
 # Error register (0x1001) bit per EMCY error class (code >> 12), CiA 301; bit 0 = generic.
@@ -38,7 +39,7 @@ class InjectedFaults:
 class EmcyProducer:
     """Error register, error history and EMCY frames of one node (all its axes')."""
 
-    def __init__(self, node_id: int, values: dict[Key, Any],
+    def __init__(self, node_id: int, values: dict[ObjectKey, Any],
                  send: Callable[[int, bytes], None], stopped: Callable[[], bool]) -> None:
         self._cob_id = c301.EMCY + node_id
         self._values = values

@@ -48,10 +48,10 @@ use): the control loop's own thread runs the pass right after its write
 (``lockstep_pass``, via ``stepped_before(on_cycle)``), so the drives answer each SYNC
 before the loop sleeps and no thread takes the GIL from the loop, or the loop from it, in
 the middle of a cycle; the receive thread stands by, and reads the buses again when the
-loop has not called for LOCKSTEP_GRACE. Measured on 2 cores with 12 drives on 4 buses at
-1 kHz: the simulator on its thread cost ~0.5 ms of CPU a cycle against ~0.3 ms stepped
-in lockstep (hand-overs of the GIL cost more than the simulation), and tripped TPDO
-supervision where lockstep holds (benchmarks/HISTORY.md).
+loop has not called for LOCKSTEP_GRACE. With 12 drives on 4 buses at 1 kHz the simulator
+on its thread cost more CPU a cycle than stepped in lockstep (hand-overs of the GIL cost
+more than the simulation), and tripped TPDO supervision where lockstep holds
+(benchmarks/HISTORY.md; the figures: benchmarks/README.md).
 
 Buses one thread cannot wait on together (python-can's ``virtual`` hands frames over a
 queue per bus) get a receive thread per segment, as a lone segment has (no lockstep). A
@@ -249,29 +249,8 @@ class SegmentGroup:
         segments, locks, readers = self.segments, self._locks, self._readers
         clock = SimulatedSegment.clock
         since = clock()
-        if any(s.backlog and s.deferred_dt is None for s in segments):
-            timeout = 0.0  # frames kept from an earlier pass are waiting: no wait
-        elif self._join_by is not None:
-            timeout = min(timeout, max(self._join_by - since, 0.0))
-        ready = selector.wait(timeout)
-        for i, segment in enumerate(segments):  # frames kept after a SYNC (pump)
-            if segment.backlog and segment.deferred_dt is None and i not in ready:
-                ready.append(i)
-        ready.sort()
-        # The locks of the segments to read, in order, held from the first frame to the
-        # joined step (no timer of theirs runs between a SYNC and its step); a bus whose
-        # frames came meanwhile joins the pass if its lock is free. No other holder takes
-        # two locks, so nobody waits in a cycle.
-        held = []
-        busy = set()  # ready, but another thread holds its lock (wait_locks False): later
-        for i in list(ready):
-            if wait_locks:
-                locks[i].acquire()
-            elif not locks[i].acquire(blocking=False):
-                busy.add(i)
-                ready.remove(i)
-                continue
-            held.append(locks[i])
+        ready = self._ready_after(selector, timeout, since)
+        held, busy = self._take_locks(ready, wait_locks)
         for hold, _ in self._holds:  # the answers wake their readers once, after the pass
             hold()
         try:
@@ -287,23 +266,64 @@ class SegmentGroup:
                 elif i not in busy and not selector.failing(i) and not segment.backlog:
                     segment.nothing_arrived(since)  # (a backlog: not everything handled)
             self._step_deferred(held, clock(), join_wait, wait_locks)
-            # behind by more than a cycle: the next cycle of every bus read, one joined
-            # step again, until the backlogs are gone, the SYNCs part, or CATCH_UP_ROUNDS
-            # (then the next pass, at once, after the locks and wake-ups were given back)
-            rounds = 1
-            while rounds < CATCH_UP_ROUNDS and self._join_by is None \
-                    and any(segments[i].backlog for i in ready):
-                rounds += 1
-                for i in ready:
-                    if not segments[i].pump(readers[i], 0.0):
-                        selector.failed(i)
-                self._step_deferred(held, clock(), join_wait, wait_locks)
+            self._catch_up(selector, ready, held, join_wait, wait_locks)
         finally:
             for _, release in self._holds:
                 release()
             for lock in reversed(held):
                 lock.release()
         return not busy
+
+    def _ready_after(self, selector: BusSelector, timeout: float, since: float) -> list[int]:
+        """The segments with frames to handle, in order, after waiting up to ``timeout``
+        s (not at all while frames kept from an earlier pass wait; no longer than a SYNC
+        waits for the others')."""
+        segments = self.segments
+        if any(s.backlog and s.deferred_dt is None for s in segments):
+            timeout = 0.0
+        elif self._join_by is not None:
+            timeout = min(timeout, max(self._join_by - since, 0.0))
+        ready = selector.wait(timeout)
+        for i, segment in enumerate(segments):  # frames kept after a SYNC (pump)
+            if segment.backlog and segment.deferred_dt is None and i not in ready:
+                ready.append(i)
+        ready.sort()
+        return ready
+
+    def _take_locks(self, ready: list[int],
+                    wait_locks: bool) -> tuple[list[threading.RLock], set[int]]:
+        """The locks of the segments to read, in order, held from the first frame to the
+        joined step (no timer of theirs runs between a SYNC and its step); a bus whose
+        frames came meanwhile joins the pass if its lock is free. No other holder takes
+        two locks, so nobody waits in a cycle. Returns the locks held and the segments
+        left out of ``ready`` (``wait_locks`` False: another thread holds its lock)."""
+        locks = self._locks
+        held = []
+        busy = set()
+        for i in list(ready):
+            if wait_locks:
+                locks[i].acquire()
+            elif not locks[i].acquire(blocking=False):
+                busy.add(i)
+                ready.remove(i)
+                continue
+            held.append(locks[i])
+        return held, busy
+
+    def _catch_up(self, selector: BusSelector, ready: list[int],
+                  held: list[threading.RLock], join_wait: float, wait_locks: bool) -> None:
+        """Behind by more than a cycle: the next cycle of every bus read, one joined step
+        again, until the backlogs are gone, the SYNCs part, or CATCH_UP_ROUNDS (then the
+        next pass, at once, after the locks and wake-ups were given back)."""
+        segments, readers = self.segments, self._readers
+        rounds = 1
+        while rounds < CATCH_UP_ROUNDS and self._join_by is None \
+                and any(segments[i].backlog for i in ready):
+            rounds += 1
+            for i in ready:
+                if not segments[i].pump(readers[i], 0.0):
+                    selector.failed(i)
+            self._step_deferred(held, SimulatedSegment.clock(), join_wait, wait_locks)
 
     def _step_deferred(self, held: list[threading.RLock], now: float,
                        join_wait: float, wait_locks: bool = True) -> None:

@@ -23,7 +23,8 @@ import math
 from typing import Any
 
 from ..protocol import cia402 as c
-from .objects import AxisKeys, Key
+from ..protocol.cia301 import ObjectKey
+from .objects import AxisKeys
 
 #: 0x6065 value that switches following error monitoring off (CiA 402)
 WINDOW_OFF = 0xFFFF_FFFF
@@ -37,7 +38,7 @@ class AxisLimits:
     """One axis's limits in joint units, recomputed when an object or the scaling changes
     (``update``), so a SYNC only compares floats."""
 
-    def __init__(self, keys: AxisKeys, values: dict[Key, Any]) -> None:
+    def __init__(self, keys: AxisKeys, values: dict[ObjectKey, Any]) -> None:
         self._keys = keys
         self._values = values
         self.position_min = -math.inf  # rad

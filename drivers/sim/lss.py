@@ -28,7 +28,7 @@ from __future__ import annotations
 import enum
 import logging
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from canopen import lss as cs
 
@@ -203,3 +203,16 @@ class LssSlave:
             return False
         self._activate(self.pending_id)
         return True
+
+
+def check_addresses(slaves: Sequence[LssSlave]) -> None:
+    """IdentityError for two nodes of one identity: LSS needs one of a kind."""
+    owners: dict[tuple[int, int, int, int], str] = {}
+    for slave in slaves:
+        who = f"node {slave.active_id}" if slave.configured else "a node without a node id"
+        if slave.address in owners:
+            raise IdentityError(
+                f"{owners[slave.address]} and {who} have the same identity "
+                f"({slave.identity.describe()}), which LSS needs one of a kind: give each "
+                "its own serial number")
+        owners[slave.address] = who

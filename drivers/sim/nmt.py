@@ -20,13 +20,12 @@ from collections.abc import Callable
 from typing import Any
 
 from ..protocol import cia301 as c301
-from ..protocol.cia301 import NmtState
-from .objects import Key
+from ..protocol.cia301 import NmtState, ObjectKey
 from .port import Segment
 
 
 class NmtSlave:
-    def __init__(self, node_id: int, segment: Segment, values: dict[Key, Any],
+    def __init__(self, node_id: int, segment: Segment, values: dict[ObjectKey, Any],
                  send: Callable[[int, bytes], None], on_lost: Callable[[], None],
                  on_regained: Callable[[], None]) -> None:
         self._hb_cob_id = c301.HEARTBEAT + node_id

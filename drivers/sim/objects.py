@@ -19,6 +19,7 @@ every axis; the communication objects (0x1000-0x1FFF) are the node's.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import struct
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -47,13 +48,13 @@ from ..files.device_file import DeviceFileError, read_device_file
 from ..files.identity import SUBINDEX, Identity, file_identity
 from ..protocol import cia301 as c301
 from ..protocol import cia402 as c
+from ..protocol.cia301 import ObjectKey
 from ..protocol.sdo_block_server import BlockUploadServer
 
-Key = tuple[int, int]
 PDO_NOT_VALID = 0x80000000
 
 ERROR_REGISTER = (c301.ERROR_REGISTER, 0)
-#: the factor group (axis 1's indices): an axis's joint units (state_machine.Scaling)
+#: the factor group (axis 1's indices): an axis's joint units (state_machine.FactorGroup)
 SCALING = {c.POSITION_ENCODER_RESOLUTION, c.GEAR_RATIO, c.RATED_TORQUE}
 #: CiA 402-2: axis n's objects are axis 1's (0x6000-0x67FF) + AXIS_STRIDE (n - 1)
 AXIS_STRIDE = 0x800
@@ -81,7 +82,7 @@ def axis_of(index: int, axes: int) -> tuple[int, int]:
     return 0, index
 
 
-def for_axes(values: Mapping[Key, Any], axes: int) -> dict[Key, Any]:
+def for_axes(values: Mapping[ObjectKey, Any], axes: int) -> dict[ObjectKey, Any]:
     """``values`` (axis 1's keys) with every CiA 402 object repeated for axes 2..``axes``."""
     out = dict(values)
     for axis in range(2, axes + 1):
@@ -106,43 +107,44 @@ def axes_problem(od: objectdictionary.ObjectDictionary, axes: int) -> str | None
 @dataclass(frozen=True, slots=True)
 class AxisKeys:
     """The keys of one axis's CiA 402 objects in the node's ``values``, built once: a key
-    built per access costs ~100 ns, and the state machine reads them every SYNC."""
+    built per access costs as much as the read, and the state machine reads them every
+    SYNC."""
     number: int
-    controlword: Key
-    statusword: Key
-    mode: Key
-    mode_display: Key
-    supported_modes: Key
-    position: Key
-    velocity: Key
-    torque: Key
-    error_code: Key
-    max_torque: Key
-    interpolation_target: Key
-    target_position: Key
-    target_velocity: Key
-    target_torque: Key
-    velocity_offset: Key
-    torque_offset: Key
-    profile_velocity: Key
-    homing_method: Key
-    home_offset: Key
-    abort_connection_option: Key
-    quick_stop_option: Key
-    shutdown_option: Key
-    disable_operation_option: Key
-    quick_stop_deceleration: Key
-    resolution_increments: Key  # 0x608F:1 / :2
-    resolution_revolutions: Key
-    gear_motor: Key             # 0x6091:1 / :2
-    gear_shaft: Key
-    rated_torque: Key
-    position_limit_min: Key     # 0x607D:1 / :2
-    position_limit_max: Key
-    max_profile_velocity: Key
-    max_motor_speed: Key
-    following_error_window: Key
-    following_error_timeout: Key
+    controlword: ObjectKey
+    statusword: ObjectKey
+    mode: ObjectKey
+    mode_display: ObjectKey
+    supported_modes: ObjectKey
+    position: ObjectKey
+    velocity: ObjectKey
+    torque: ObjectKey
+    error_code: ObjectKey
+    max_torque: ObjectKey
+    interpolation_target: ObjectKey
+    target_position: ObjectKey
+    target_velocity: ObjectKey
+    target_torque: ObjectKey
+    velocity_offset: ObjectKey
+    torque_offset: ObjectKey
+    profile_velocity: ObjectKey
+    homing_method: ObjectKey
+    home_offset: ObjectKey
+    abort_connection_option: ObjectKey
+    quick_stop_option: ObjectKey
+    shutdown_option: ObjectKey
+    disable_operation_option: ObjectKey
+    quick_stop_deceleration: ObjectKey
+    resolution_increments: ObjectKey  # 0x608F:1 / :2
+    resolution_revolutions: ObjectKey
+    gear_motor: ObjectKey             # 0x6091:1 / :2
+    gear_shaft: ObjectKey
+    rated_torque: ObjectKey
+    position_limit_min: ObjectKey     # 0x607D:1 / :2
+    position_limit_max: ObjectKey
+    max_profile_velocity: ObjectKey
+    max_motor_speed: ObjectKey
+    following_error_window: ObjectKey
+    following_error_timeout: ObjectKey
 
     @classmethod
     def of(cls, axis: int) -> AxisKeys:
@@ -150,7 +152,7 @@ class AxisKeys:
         if not 1 <= axis <= MAX_AXES:
             raise ValueError(f"a CiA 402 axis is 1..{MAX_AXES}, got {axis}")
 
-        def key(index: int, subindex: int = 0) -> Key:
+        def key(index: int, subindex: int = 0) -> ObjectKey:
             return axis_index(index, axis), subindex
 
         return cls(
@@ -202,8 +204,8 @@ class ObjectDictionaryServer:
 
     def __init__(self, od: objectdictionary.ObjectDictionary, node_id: int,
                  send: Callable[[int, bytes], None],
-                 on_write: Callable[[Key, Any], None],
-                 fallbacks: Mapping[Key, Any] | None,
+                 on_write: Callable[[ObjectKey, Any], None],
+                 fallbacks: Mapping[ObjectKey, Any] | None,
                  axes: Sequence[AxisKeys], pdo_bytes: int = 8) -> None:
         self.object_dictionary = od  # the name canopen's SdoServer reads
         self._node_id = node_id
@@ -214,9 +216,9 @@ class ObjectDictionaryServer:
         # visible on the bus for a missing one: SDO and PDO mapping look the object up in
         # the file first), then the file's values (a DCF's ParameterValue over
         # DefaultValue). An object with no value and no plausible stand-in reads 0.
-        self.defaults: dict[Key, Any] = dict(fallbacks or {})
+        self.defaults: dict[ObjectKey, Any] = dict(fallbacks or {})
         #: objects the file lists without a value, answered with a stand-in (``assumed``)
-        self.assumed: dict[Key, Any] = {}
+        self.assumed: dict[ObjectKey, Any] = {}
         for obj in od.values():
             members = [obj] if isinstance(obj, objectdictionary.ODVariable) else obj.values()
             for var in members:
@@ -232,7 +234,7 @@ class ObjectDictionaryServer:
         #: a PDO's): mapping index -> that entry; the drive starts with the PDO unmapped
         self.unmapped: dict[int, str] = {}
         self._unmap_undescribed_defaults()
-        self.values: dict[Key, Any] = dict(self.defaults)
+        self.values: dict[ObjectKey, Any] = dict(self.defaults)
         self._sdo = BlockUploadServer(c301.SDO_RX + node_id, c301.SDO_TX + node_id, self)
         self._sdo.network = _SdoLink(send)  # type: ignore[assignment]  # send_message only
 
@@ -328,7 +330,7 @@ class ObjectDictionaryServer:
         self._on_write(key, value)
 
     # ------------------------------------------------------------------ write checks
-    def _check_write(self, key: Key, value: Any) -> None:
+    def _check_write(self, key: ObjectKey, value: Any) -> None:
         index, sub = key
         axis, base = axis_of(index, len(self._axes))
         if base == c.MODES_OF_OPERATION and sub == 0 \
@@ -391,7 +393,7 @@ CIA402_DEVICE_TYPE = 0x0002_0192
 
 
 def fallback_values(increments_per_rev: int, rated_torque_nm: float,
-                    od: objectdictionary.ObjectDictionary | None = None) -> dict[Key, Any]:
+                    od: objectdictionary.ObjectDictionary | None = None) -> dict[ObjectKey, Any]:
     """How a simulated drive behaves where its file has no object, or lists one without a
     value: scaling as given (the config's numbers, factors 1:1), no reaction to a lost
     connection without 0x6007 (no CiA 402 reaction at all: the honest emulation of a drive
@@ -423,6 +425,23 @@ def fallback_values(increments_per_rev: int, rated_torque_nm: float,
     }
 
 
+def log_file_notes(log: logging.Logger, eds: str, objects: ObjectDictionaryServer) -> None:
+    """What a segment's drives (all made from ``eds``, ``objects`` one's) answer where the
+    file gives no value, and which default PDO mapping names an object it lacks: once, on
+    the segment's ``log``."""
+    assumed = objects.assumed
+    if assumed:
+        log.info("simulated drives of %s: where the file gives no value they answer %s",
+                 eds, ", ".join(f"0x{i:04X}:{s} = {v if v < 10 else hex(v)}"
+                                for (i, s), v in sorted(assumed.items())
+                                if isinstance(v, int) and not 0x2000 <= i < 0x6000))
+    if objects.unmapped:
+        log.warning("simulated drives of %s: the file's default mapping of %s names an "
+                    "object it does not describe: that PDO starts unmapped", eds,
+                    ", ".join(f"0x{i:04X} ({entry})"
+                              for i, entry in sorted(objects.unmapped.items())))
+
+
 def load_object_dictionaries(eds_path: str, node_ids: Iterable[int]
                              ) -> dict[int, objectdictionary.ObjectDictionary]:
     """Each drive's object dictionary from one EDS/DCF (the file read once), read as the
@@ -441,8 +460,8 @@ def load_object_dictionary(eds_path: str, node_id: int) -> objectdictionary.Obje
     return load_object_dictionaries(eds_path, [node_id])[node_id]
 
 
-def own_identity(od: objectdictionary.ObjectDictionary, node_id: int, overrides: Mapping[Key, Any],
-                 given: Identity | None) -> Identity:
+def own_identity(od: objectdictionary.ObjectDictionary, node_id: int,
+                 overrides: Mapping[ObjectKey, Any], given: Identity | None) -> Identity:
     """A node's 0x1018: the file's (a subindex it lists without a value: 0, as the drive
     answers it), with the vendor and product its [DeviceInfo] names where it names a vendor
     (what bring-up holds a drive to without ``identity:``: identity.file_identity), a

@@ -21,26 +21,26 @@ from typing import Any
 import can
 
 from ..protocol import cia301 as c301
-from ..protocol.cia301 import NmtState
+from ..protocol.cia301 import NmtState, ObjectKey
 from ..protocol.wire import fd_length, picker
 from .faults import EmcyProducer, InjectedFaults
 from .nmt import NmtSlave
-from .objects import PDO_NOT_VALID, AxisKeys, Key, ObjectDictionaryServer
+from .objects import PDO_NOT_VALID, AxisKeys, ObjectDictionaryServer
 from .port import Segment
 
-_OPERATIONAL = NmtState.OPERATIONAL  # a module global: an enum member costs ~100 ns a look-up
+_OPERATIONAL = NmtState.OPERATIONAL  # a module global: an enum member's look-up costs more
 
 
 @dataclass
-class Pdo:
+class ConfiguredPdo:
     """One PDO as configured in the OD, compiled for struct packing."""
     number: int
     cob_id: int
     valid: bool
     trans_type: int
-    keys: tuple[Key, ...]
+    keys: tuple[ObjectKey, ...]
     layout: struct.Struct
-    values_of: Callable[[dict[Key, Any]], tuple[Any, ...]]
+    values_of: Callable[[dict[ObjectKey, Any]], tuple[Any, ...]]
     frame: can.Message             # TPDO: pre-encoded, filled in place before each send
     # RPDO: where in ``keys`` an axis's controlword is, with what it does; where an axis's
     # mode of operation is, with the axis's objects (each empty if none is mapped)
@@ -71,11 +71,11 @@ class PdoService:
         self._send_frame = send_frame
         self._controlword_of = {keys.controlword: on_cw for keys, on_cw in axes}
         self._axis_of_mode = {keys.mode: keys for keys, _ in axes}
-        self._rx: dict[int, Pdo] = {}  # PDO number (0-3) -> compiled
-        self._tx: dict[int, Pdo] = {}
-        self._rpdos: list[Pdo] = []
-        self._event_tpdos: list[Pdo] = []
-        self._sync_tpdos: list[Pdo] = []  # valid, transmission type 0-240
+        self._rx: dict[int, ConfiguredPdo] = {}  # PDO number (0-3) -> compiled
+        self._tx: dict[int, ConfiguredPdo] = {}
+        self._rpdos: list[ConfiguredPdo] = []
+        self._event_tpdos: list[ConfiguredPdo] = []
+        self._sync_tpdos: list[ConfiguredPdo] = []  # valid, transmission type 0-240
 
     def build(self) -> None:
         """Compile every PDO from the OD and tell the segment which RPDOs to route here."""
@@ -87,8 +87,8 @@ class PdoService:
 
     def rebuild(self, index: int) -> None:
         """PDO object ``index`` was written: compile that one PDO again. A master maps a
-        PDO entry by entry, an SDO each; compiling all eight each time cost 38 µs a write
-        (one: 7-9 µs), which a lockstep simulator spends in the loop's pass during
+        PDO entry by entry, an SDO each; compiling all eight each time cost several times
+        compiling one, which a lockstep simulator spends in the loop's pass during
         bring-up. The other PDOs keep their state (a TPDO's SYNC count, an RPDO waiting
         for the next SYNC). An index of no PDO here (the drive has four of each) is none."""
         base = next((b for b in (0x1400, 0x1600, 0x1800, 0x1A00) if b <= index < b + 4), None)
@@ -119,9 +119,9 @@ class PdoService:
             self._seg.set_rpdo_routes(self._node_id, {
                 p.cob_id: partial(self.on_rpdo, p) for p in self._rpdos if p.valid})
 
-    def _compile(self, comm: int, mapping: int, number: int) -> Pdo:
+    def _compile(self, comm: int, mapping: int, number: int) -> ConfiguredPdo:
         raw = self._values[(comm, 1)]
-        keys: list[Key] = []
+        keys: list[ObjectKey] = []
         fmt = "<"
         for sub in range(1, self._values[(mapping, 0)] + 1):
             entry = self._values[(mapping, sub)]
@@ -137,7 +137,7 @@ class PdoService:
         layout = struct.Struct(fmt)
         frame = can.Message(arbitration_id=raw & 0x7FF, data=bytearray(layout.size),
                             is_extended_id=False, is_fd=fd, bitrate_switch=fd)
-        return Pdo(number=number, cob_id=raw & 0x7FF, valid=not raw & PDO_NOT_VALID,
+        return ConfiguredPdo(number=number, cob_id=raw & 0x7FF, valid=not raw & PDO_NOT_VALID,
                    trans_type=self._values.get((comm, 2), 255), keys=tuple(keys),
                    layout=layout, values_of=values_of, frame=frame,
                    controlwords=tuple((at, self._controlword_of[key])
@@ -147,7 +147,7 @@ class PdoService:
                                if key in self._axis_of_mode))
 
     # ------------------------------------------------------------------ RPDOs
-    def on_rpdo(self, pdo: Pdo, data: bytes) -> None:
+    def on_rpdo(self, pdo: ConfiguredPdo, data: bytes) -> None:
         if self._nmt.state != _OPERATIONAL:
             return
         if len(data) < pdo.layout.size:
@@ -166,7 +166,7 @@ class PdoService:
                 data, pdo.pending = pdo.pending, None
                 self._apply(pdo, data)
 
-    def _apply(self, pdo: Pdo, data: bytes) -> None:
+    def _apply(self, pdo: ConfiguredPdo, data: bytes) -> None:
         """The PDO's objects take their values at once (one dict update: this runs for every
         drive on every SYNC), then what the modes and the controlwords make happen."""
         new = pdo.layout.unpack_from(data)
@@ -181,7 +181,7 @@ class PdoService:
         for at, on_controlword in pdo.controlwords:
             on_controlword(new[at])
 
-    def _apply_refusing_modes(self, pdo: Pdo, new: tuple[Any, ...]) -> None:
+    def _apply_refusing_modes(self, pdo: ConfiguredPdo, new: tuple[Any, ...]) -> None:
         """``_apply`` of an RPDO with a mode the axis does not support: a real drive ignores
         that mode; the other objects apply."""
         values = self._values
@@ -221,7 +221,7 @@ class PdoService:
             if pdo.layout.pack(*pdo.values_of(self._values)) != pdo.last:
                 self._send_tpdo(pdo)
 
-    def _send_tpdo(self, pdo: Pdo) -> None:
+    def _send_tpdo(self, pdo: ConfiguredPdo) -> None:
         data = pdo.layout.pack(*pdo.values_of(self._values))
         pdo.last = data
         delay = self._faults.tpdo_delay

@@ -29,29 +29,27 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import can
 import numpy as np
-from canopen.objectdictionary import ObjectDictionary
 
 from ..commission.lss import LSS_REQUEST, UNCONFIGURED
-from ..files.identity import Identity
 from ..link.bus import enlarge_bus_buffer
 from ..link.frame_io import FrameReader, FrameWriter, clock_offset, to_monotonic
 from ..protocol import cia301 as c301
-from .drive import SimulatedDrive
-from .dynamics import JointDynamics, JointParams
-from .lss import IdentityError, LssSlave
+from .dynamics import JointDynamics
+from .lss import LssSlave, check_addresses
+from .nodes_on_bus import NodesOnBus
 from .objects import (
-    MAX_AXES,
     fallback_values,
     load_object_dictionaries,
-    load_object_dictionary,
+    log_file_notes,
     own_identity,
 )
 from .port import Route
+from .segment_options import SegmentOptions
 from .timers import RX_IDLE, Timers
 
 log = logging.getLogger(__name__)
@@ -60,8 +58,8 @@ log = logging.getLogger(__name__)
 RX_BATCH = 64
 #: Longest a segment's SYNC waits for the other segments' of its group before its joints
 #: step alone (group.py). One cycle's SYNCs on every bus come within one write of the
-#: master (~0.1 ms in process); the wait delays the answers to the first ones by as much
-#: at most. A timer event of a segment whose step waits comes after the step.
+#: master (in process, a fraction of this); the wait delays the answers to the first ones by
+#: as much at most. A timer event of a segment whose step waits comes after the step.
 JOIN_WAIT = 0.0002
 
 
@@ -73,70 +71,28 @@ def _default_eds() -> str:
 class SimulatedSegment:
     """Simulated CiA 402 drives sharing one python-can bus.
 
-    ``axes`` maps a node id to its number of CiA 402 axes (1..8, CiA 402-2: axis n's objects
-    at +0x800 (n - 1) in the same file; nodes not in it have one). Each axis is a joint of
-    ``dynamics``, numbered in order of node id, then axis (node 1 axis 1, node 1 axis 2,
-    node 2 axis 1, ...).
-
-    ``params`` gives the joint physics and loop gains: one JointParams for every joint, or
-    a mapping whose key is a node id (every axis of that node) or a (node id, axis) pair
-    (that axis; it wins over the node's). Joints not in it get the defaults.
-
-    ``identities`` maps a node id to its identity object (0x1018: vendor-ID, product code,
-    revision, serial number; the fields given replace the file's). A node not in it answers
-    the file's values, with a serial number of its own (the file's plus node id - 1, or the
-    node id where the file gives none).
-
-    ``unconfigured``: further nodes without a node id (CiA 305: 0xFF), one per identity,
-    which must give the serial number (the other fields default as above). Each answers
-    nothing but LSS until it is given a node id (lss.py); its joints come after the
-    configured nodes'. Every node with a whole identity is an LSS slave
-    (``lss_slaves``); ``drives`` holds the nodes on the bus now, by node id.
+    How they are made and run: ``options`` (segment_options.py). Each axis of a node is a
+    joint of ``dynamics``, numbered in order of node id, then axis (node 1 axis 1, node 1
+    axis 2, node 2 axis 1, ...); unconfigured nodes' joints come after the configured
+    nodes'. Every node with a whole identity is an LSS slave (``lss_slaves``); ``drives``
+    holds the nodes on the bus now, by node id. ``own_bus``: the segment shuts the bus
+    down when it stops.
     """
 
-    def __init__(self, bus: can.BusABC, node_ids: Iterable[int], eds_path: str | None = None,
-                 params: JointParams | Mapping[int | tuple[int, int], JointParams]
-                 | None = None, *,
-                 sync_period: float | None = None, max_dt: float = 0.05,
-                 free_run_period: float | None = 0.05, seed: int = 0,
-                 own_bus: bool = False, fd: bool = False,
-                 increments_per_rev: int = 1 << 20, rated_torque_nm: float = 1.0,
-                 overrides: Mapping[tuple[int, int], Any] | None = None,
-                 axes: Mapping[int, int] | None = None,
-                 identities: Mapping[int, Identity] | None = None,
-                 unconfigured: Iterable[Identity] = ()) -> None:
+    def __init__(self, bus: can.BusABC, node_ids: Iterable[int],
+                 options: SegmentOptions | None = None, *, own_bus: bool = False) -> None:
         ids = sorted(set(int(n) for n in node_ids))
-        blank = list(unconfigured)
-        if not ids and not blank:
-            raise ValueError("a simulated segment needs at least one node")
-        if any(i.serial is None for i in blank):
-            raise ValueError("an unconfigured node needs a serial number (its LSS address "
-                             "tells it from the others)")
-        bad = [n for n in ids if not 1 <= n <= 127]
-        if bad:
-            raise ValueError(f"CANopen node ids must be 1..127, got {bad}")
-        if sync_period is not None and not 0 < sync_period <= 1:
-            raise ValueError(f"sync_period must be in (0, 1] s, got {sync_period}")
-        if not 0 < max_dt <= 1:
-            raise ValueError(f"max_dt must be in (0, 1] s, got {max_dt}")
-        strays = sorted(set(identities or {}) - set(ids))
-        if strays:
-            raise ValueError(f"identities given for node ids {strays}, which are not simulated")
-        axes = dict(axes or {})
-        unknown = sorted(set(axes) - set(ids))
-        if unknown:
-            raise ValueError(f"axes given for node ids {unknown}, which are not simulated")
-        bad_axes = {n: a for n, a in axes.items() if not 1 <= a <= MAX_AXES}
-        if bad_axes:
-            raise ValueError(f"a node has 1..{MAX_AXES} axes, got {bad_axes}")
-        axis_count = {n: axes.get(n, 1) for n in ids}
+        options = options or SegmentOptions()
+        options.check(ids)
+        self.options = options
+        axis_count = {n: options.axes.get(n, 1) for n in ids}
         self.bus = enlarge_bus_buffer(bus)  # the one receive thread may lag behind its socket
         self.node_ids = tuple(ids)
-        self.sync_period = sync_period
-        self.max_dt = max_dt
-        self.free_run_period = free_run_period if sync_period is None else None
+        self.sync_period = options.sync_period
+        self.max_dt = options.max_dt
+        self.free_run_period = options.free_run_period if options.sync_period is None else None
         self.lock = threading.RLock()
-        self.rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(options.seed)
         self.errors: list[BaseException] = []  # the simulation's own failures (check())
         self.send_errors = 0
         # reads of the bus that failed (its interface went down or away): the bus's fault,
@@ -148,60 +104,33 @@ class SimulatedSegment:
         self.nmt_count = 0
         self._own_bus = own_bus
         joints = [(n, a) for n in ids for a in range(1, axis_count[n] + 1)]
-        if isinstance(params, Mapping):
-            joint_params = [params.get((n, a), params.get(n, JointParams())) for n, a in joints]
-        else:
-            joint_params = [params or JointParams()] * len(joints)
-        joint_params += [JointParams()] * len(blank)  # theirs: the defaults
-        self.dynamics = JointDynamics(joint_params)
-        if not isinstance(increments_per_rev, int) or increments_per_rev <= 0 \
-                or not rated_torque_nm > 0:
-            raise ValueError("increments_per_rev must be a positive integer and "
-                             f"rated_torque_nm > 0, got {increments_per_rev!r}, "
-                             f"{rated_torque_nm!r}")
-        self._eds = eds = str(eds_path) if eds_path else _default_eds()
+        self.dynamics = JointDynamics(options.joint_params(joints))
+        options.check_scaling()
+        self._eds = eds = str(options.eds_path) if options.eds_path else _default_eds()
         # what the drives assume where the file has no object (scaling: these numbers)
         dictionaries = load_object_dictionaries(eds, ids or [1])
         template = next(iter(dictionaries.values()))
-        self._fallbacks = fallback_values(increments_per_rev, rated_torque_nm, template)
-        self._overrides = dict(overrides or {})
+        self._fallbacks = fallback_values(options.increments_per_rev, options.rated_torque_nm,
+                                          template)
+        self._overrides = dict(options.overrides)
         # an FD bus: the drives answer in FD frames and map PDOs of up to 64 bytes
-        self._writer = FrameWriter(bus, fd=fd)
-        self.drives: dict[int, SimulatedDrive] = {}
-        self._fixed_routes: dict[int, Route] = {}
-        self._rpdo_routes: dict[int, Route] = {}
-        self._rpdo_of_drive: dict[int, dict[int, Route]] = {}
-        self.lss_slaves: list[LssSlave] = []
+        self._writer = FrameWriter(bus, fd=options.fd)
+        self._nodes = nodes = NodesOnBus(self, eds, self._fallbacks, self._overrides)
+        self.drives = nodes.drives
+        self.lss_slaves = nodes.lss_slaves
         for n in ids:
-            identity = own_identity(template, n, self._overrides, (identities or {}).get(n))
-            self._put_on_bus(n, joints.index((n, 1)), axis_count[n], identity, dictionaries[n])
+            identity = own_identity(template, n, self._overrides, options.identities.get(n))
+            nodes.put_on_bus(n, joints.index((n, 1)), axis_count[n], identity, dictionaries[n])
             if len(identity.objects()) == 4:  # an LSS address needs all four
                 self.lss_slaves.append(LssSlave(identity, n, joints.index((n, 1)),
-                                                axis_count[n], self.send, self._move))
-        for k, given in enumerate(blank):
+                                                axis_count[n], self.send, nodes.move))
+        for k, given in enumerate(options.unconfigured):
             self.lss_slaves.append(LssSlave(
                 own_identity(template, UNCONFIGURED, self._overrides, given), UNCONFIGURED,
-                len(joints) + k, 1, self.send, self._move))
-        owners: dict[tuple[int, int, int, int], str] = {}
-        for slave in self.lss_slaves:
-            who = f"node {slave.active_id}" if slave.configured else "a node without a node id"
-            if slave.address in owners:
-                raise IdentityError(
-                    f"{owners[slave.address]} and {who} have the same identity "
-                    f"({slave.identity.describe()}), which LSS needs one of a kind: give each "
-                    "its own serial number")
-            owners[slave.address] = who
-        assumed = next(iter(self.drives.values())).objects.assumed if self.drives else {}
-        if assumed:
-            log.info("simulated drives of %s: where the file gives no value they answer %s",
-                     eds, ", ".join(f"0x{i:04X}:{s} = {v if v < 10 else hex(v)}"
-                                    for (i, s), v in sorted(assumed.items())
-                                    if isinstance(v, int) and not 0x2000 <= i < 0x6000))
-        unmapped = next(iter(self.drives.values())).objects.unmapped if self.drives else {}
-        if unmapped:
-            log.warning("simulated drives of %s: the file's default mapping of %s names an "
-                        "object it does not describe: that PDO starts unmapped", eds,
-                        ", ".join(f"0x{i:04X} ({entry})" for i, entry in sorted(unmapped.items())))
+                len(joints) + k, 1, self.send, nodes.move))
+        check_addresses(self.lss_slaves)
+        if self.drives:
+            log_file_notes(log, eds, next(iter(self.drives.values())).objects)
         self._last_step: float | None = None
         # A SegmentGroup that steps its segments' joints together (group.py) leaves a SYNC's
         # dynamics step to itself: ``deferred_dt`` is the step this segment's drives are
@@ -221,14 +150,15 @@ class SimulatedSegment:
 
     @classmethod
     def open(cls, channel: str, interface: str = "virtual", node_ids: Iterable[int] = (1,),
-             **kwargs: Any) -> SimulatedSegment:
-        """A segment on its own new bus (shut down with the segment)."""
-        extra: dict[str, Any] = ({"fd": True} if kwargs.get("fd")
+             **options: Any) -> SimulatedSegment:
+        """A segment on its own new bus (shut down with the segment); ``options``: the
+        fields of SegmentOptions."""
+        extra: dict[str, Any] = ({"fd": True} if options.get("fd")
                                  and interface in ("socketcan", "inproc") else {})
         bus = can.Bus(interface=interface, channel=channel, receive_own_messages=False,
                       ignore_config=True, **extra)
         try:
-            return cls(bus, node_ids, own_bus=True, **kwargs)
+            return cls(bus, node_ids, SegmentOptions.of(**options), own_bus=True)
         except BaseException:
             bus.shutdown()
             raise
@@ -311,10 +241,7 @@ class SimulatedSegment:
         return max(deadline, self.clock() + RX_IDLE)
 
     def set_rpdo_routes(self, node_id: int, routes: dict[int, Route]) -> None:
-        for cob_id in self._rpdo_of_drive.get(node_id, {}):
-            self._rpdo_routes.pop(cob_id, None)
-        self._rpdo_of_drive[node_id] = routes
-        self._rpdo_routes.update(routes)
+        self._nodes.set_rpdo_routes(node_id, routes)
 
     # ------------------------------------------------------------------ receiving
     def _receive_loop(self) -> None:
@@ -406,7 +333,7 @@ class SimulatedSegment:
         if cob_id == c301.NMT:
             if len(data) >= 2:
                 for node, drive in list(self.drives.items()):  # a reset may move a node
-                    if data[1] in (0, node) and not self._reset_moves(node, data[0]):
+                    if data[1] in (0, node) and not self._nodes.reset_moves(node, data[0]):
                         drive.on_nmt(data[0])
             self.nmt_count += 1
             return
@@ -417,11 +344,11 @@ class SimulatedSegment:
         if cob_id == c301.SYNC:
             self._on_sync(arrived)
             return
-        route = self._fixed_routes.get(cob_id)
+        route = self._nodes.fixed.get(cob_id)
         if route is not None:
             route(data)
             return
-        rpdo = self._rpdo_routes.get(cob_id)
+        rpdo = self._nodes.rpdo.get(cob_id)
         if rpdo is not None:
             rpdo(data)
             return
@@ -429,46 +356,7 @@ class SimulatedSegment:
             for drive in self.drives.values():
                 drive.on_heartbeat(cob_id - c301.HEARTBEAT, arrived)
 
-    # ------------------------------------------------------------------ node ids (LSS)
-    def _put_on_bus(self, node_id: int, joint: int, axes: int, identity: Identity,
-                    od: ObjectDictionary | None = None) -> SimulatedDrive:
-        drive = SimulatedDrive(self, node_id, joint,
-                               od or load_object_dictionary(self._eds, node_id),
-                               self._fallbacks, axes)
-        for values in (drive.objects.defaults, drive.objects.values):
-            values.update(self._overrides)  # values the file gives that a run replaces
-            values.update(identity.objects())
-        self.drives[node_id] = drive
-        self._fixed_routes[c301.SDO_RX + node_id] = drive.on_sdo
-        return drive
-
-    def _reset_moves(self, node_id: int, command: int) -> bool:
-        """An NMT reset that gives the node its pending LSS node id (then it has booted
-        at that id: True)."""
-        for slave in self.lss_slaves:
-            if slave.active_id == node_id:
-                return slave.on_reset(command)
-        return False
-
-    def _move(self, slave: LssSlave, old: int) -> None:
-        """An LSS slave's node took another node id: off the bus at the old one, a drive
-        booted at the new one (the node's joints; its drive state starts afresh). A node
-        id already taken leaves the node without one (a real bus would have two nodes
-        answering at it)."""
-        if old in self.drives:
-            del self.drives[old]
-            del self._fixed_routes[c301.SDO_RX + old]
-            self.set_rpdo_routes(old, {})
-        new = slave.active_id
-        if new == UNCONFIGURED:
-            return
-        if new in self.drives:
-            log.warning("simulated node %s: node id %d is taken, the node stays without one",
-                        slave.identity.describe(), new)
-            slave.active_id = UNCONFIGURED
-            return
-        self._put_on_bus(new, slave.joint, slave.axes, slave.identity).power_on()
-
+    # ------------------------------------------------------------------ joints
     def _on_sync(self, arrived: float) -> None:
         dt = self._prepare(on_sync=True, now=arrived)
         if self._defer_steps:
@@ -542,7 +430,7 @@ class SimulatedSegment:
                 if self.deferred_dt is not None:  # a SYNC's step waits for the group's
                     if self.clock() - self._deferred_at < RX_IDLE:
                         # it comes within JOIN_WAIT: this event after it, not a step alone
-                        # (~4x the cost of a joined one) taken now for it
+                        # (several times the cost of a joined one) taken now for it
                         self.schedule(self.clock() + JOIN_WAIT, fn, *args)
                         return
                     self._finish_deferred_or_record()  # the group's thread is stuck

@@ -20,11 +20,12 @@ from typing import Any
 
 from ..protocol import cia301
 from ..protocol import cia402 as c
+from ..protocol.cia301 import ObjectKey
 from ..protocol.cia402 import State402
 from .dynamics import JointDynamics, LoopMode
 from .faults import EmcyProducer, InjectedFaults
 from .limits import AxisLimits
-from .objects import AxisKeys, Key
+from .objects import AxisKeys
 
 # States in which the power stage is on (the loops may produce torque).
 POWERED = (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE,
@@ -46,7 +47,8 @@ HOMING_TIME = 0.2  # s a simulated homing takes
 
 
 # What command_joint reads each SYNC, as plain ints and pre-built keys (AxisKeys): an enum
-# member or a key tuple built per access costs ~100 ns, and this runs for every axis at 1 kHz.
+# member or a key tuple built per access costs more than the read, and this runs for every
+# axis at 1 kHz.
 _LOOP_OFF, _LOOP_TORQUE, _LOOP_VELOCITY, _LOOP_POSITION = (
     int(LoopMode.OFF), int(LoopMode.TORQUE), int(LoopMode.VELOCITY), int(LoopMode.POSITION))
 _IP, _PP, _HOMING, _PV, _CSP, _CSV, _CST = (
@@ -56,7 +58,7 @@ _ENABLED = State402.OPERATION_ENABLED
 _CW_HALT = c.CW_HALT
 
 
-class Scaling:
+class FactorGroup:
     """Joint units from an axis's factor group: 0x608F encoder resolution, 0x6091 gear
     ratio, 0x6076 rated torque (torque objects are motor torque; an ideal gearbox multiplies
     it by the ratio)."""
@@ -67,7 +69,7 @@ class Scaling:
         self.motor_revs_per_rad = 1.0 / (2.0 * math.pi)
         self.nm_per_permille = 1.0
 
-    def update(self, v: dict[Key, Any]) -> None:
+    def update(self, v: dict[ObjectKey, Any]) -> None:
         # a factor of 0 (a file's stated default; SDO writes of 0 are refused) counts as 1
         k = self._keys
         increments = (v[k.resolution_increments] or 1) / (v[k.resolution_revolutions] or 1)
@@ -85,8 +87,8 @@ class StateMachine402:
     (0x607D, 0x607F/0x6080, 0x6065/0x6066: limits.py), applied to its loop commands.
     """
 
-    def __init__(self, joint: int, dynamics: JointDynamics, values: dict[Key, Any],
-                 scaling: Scaling, emcy: EmcyProducer, faults: InjectedFaults,
+    def __init__(self, joint: int, dynamics: JointDynamics, values: dict[ObjectKey, Any],
+                 scaling: FactorGroup, emcy: EmcyProducer, faults: InjectedFaults,
                  keys: AxisKeys, on_fault_reset: Callable[[], None]) -> None:
         self._j = joint
         self._dyn = dynamics
@@ -163,10 +165,7 @@ class StateMachine402:
                 self.set_state(S.SWITCH_ON_DISABLED)
             return
         if not cw & 0x04:  # quick stop: transitions 7, 10, 11
-            if s in (S.READY_TO_SWITCH_ON, S.SWITCHED_ON):
-                self.set_state(S.SWITCH_ON_DISABLED)
-            elif s == S.OPERATION_ENABLED:
-                self._quick_stop()
+            self._on_quick_stop_command(s)
             return
         if s == S.QUICK_STOP_ACTIVE:  # transition 16, only for options 5-8
             if cw & 0x0F == 0x0F and self._values[self._keys.quick_stop_option] in (5, 6, 7, 8):
@@ -174,13 +173,7 @@ class StateMachine402:
                 self.set_state(S.OPERATION_ENABLED)
             return
         if not cw & 0x01:  # shutdown: transitions 2, 6, 8
-            if s == S.SWITCH_ON_DISABLED:
-                if not self.sto_low:
-                    self.set_state(S.READY_TO_SWITCH_ON)
-            elif s == S.SWITCHED_ON:
-                self.set_state(S.READY_TO_SWITCH_ON)
-            elif s == S.OPERATION_ENABLED:
-                self._leave_operation(self._keys.shutdown_option, S.READY_TO_SWITCH_ON)
+            self._on_shutdown(s)
             return
         if s == S.READY_TO_SWITCH_ON:  # switch on (3), with enable operation also 4
             self.set_state(S.SWITCHED_ON)
@@ -191,7 +184,24 @@ class StateMachine402:
         elif s == S.OPERATION_ENABLED and not cw & 0x08:  # disable operation (5)
             self._leave_operation(self._keys.disable_operation_option, S.SWITCHED_ON)
 
-    def _leave_operation(self, option: Key, target: State402) -> None:
+    def _on_quick_stop_command(self, s: State402) -> None:
+        """Controlword "quick stop" (bit 2 low): transitions 7, 10, 11."""
+        if s in (State402.READY_TO_SWITCH_ON, State402.SWITCHED_ON):
+            self.set_state(State402.SWITCH_ON_DISABLED)
+        elif s == State402.OPERATION_ENABLED:
+            self._quick_stop()
+
+    def _on_shutdown(self, s: State402) -> None:
+        """Controlword "shutdown" (bit 0 low): transitions 2, 6, 8; STO low refuses 2."""
+        if s == State402.SWITCH_ON_DISABLED:
+            if not self.sto_low:
+                self.set_state(State402.READY_TO_SWITCH_ON)
+        elif s == State402.SWITCHED_ON:
+            self.set_state(State402.READY_TO_SWITCH_ON)
+        elif s == State402.OPERATION_ENABLED:
+            self._leave_operation(self._keys.shutdown_option, State402.READY_TO_SWITCH_ON)
+
+    def _leave_operation(self, option: ObjectKey, target: State402) -> None:
         """Shutdown / disable operation from operation enabled: option 1 ramps down first."""
         if self._values[option] == 1 and not self.sto_low:
             self._start_ramp(self._quick_stop_decel(), then=target)
@@ -289,24 +299,43 @@ class StateMachine402:
         if state not in POWERED or self.sto_low:
             dyn.mode[j] = _LOOP_OFF
             return
-        halt = bool(values[keys.controlword] & _CW_HALT)
+        if self._ramp_command(state, values[keys.controlword], dt):
+            return
+        if state != _ENABLED:  # quick stop active after its ramp: hold
+            dyn.mode[j] = _LOOP_VELOCITY
+            return
+        bits = self._mode_command(values, dt)
+        if bits is None:
+            return
+        if bits != self._mode_bits:
+            self._mode_bits = bits
+            self.set_state(self.state)
+
+    def _ramp_command(self, state: State402, controlword: int, dt: float) -> bool:
+        """Halt (controlword bit 8) starts a ramp, its release ends one; a running ramp
+        commands this step (True)."""
+        halt = bool(controlword & _CW_HALT)
         if state == _ENABLED and halt and not self._ramping:
             self._start_ramp(self._quick_stop_decel(), then=None)
         elif state == _ENABLED and not halt and self._ramping \
                 and self._ramp_then is None:
             self._ramping = False  # halt released
-        if self._ramping:
-            v = self._ramp_velocity
-            step = self._ramp_decel * dt
-            self._ramp_velocity = math.copysign(max(abs(v) - step, 0.0), v)
-            if self._ramp_velocity == 0.0:
-                self._ramp_zero_time += dt
-            dyn.mode[j] = _LOOP_VELOCITY
-            dyn.target_velocity[j] = self._ramp_velocity
-            return
-        if state != _ENABLED:  # quick stop active after its ramp: hold
-            dyn.mode[j] = _LOOP_VELOCITY
-            return
+        if not self._ramping:
+            return False
+        v = self._ramp_velocity
+        step = self._ramp_decel * dt
+        self._ramp_velocity = math.copysign(max(abs(v) - step, 0.0), v)
+        if self._ramp_velocity == 0.0:
+            self._ramp_zero_time += dt
+        self._dyn.mode[self._j] = _LOOP_VELOCITY
+        self._dyn.target_velocity[self._j] = self._ramp_velocity
+        return True
+
+    def _mode_command(self, values: dict[ObjectKey, Any], dt: float) -> int | None:
+        """Operation enabled: the command of the mode of operation (0x6061); its statusword
+        bits 12/13, or None when a following error faulted the drive (then commanded)."""
+        dyn, j, keys, limits = self._dyn, self._j, self._keys, self.limits
+        nm_per_permille = self._scale.nm_per_permille
         scale = self._scale.increments_per_rad
         mode = values[keys.mode_display]
         bits = 0
@@ -324,33 +353,44 @@ class StateMachine402:
         elif mode == _PV:
             self._velocity(values[keys.target_velocity] / scale)
         elif mode == _CSP:
-            demand = limits.clamp(values[keys.target_position] / scale)
-            if limits.following_error(demand, float(dyn.position[j]), dt):
-                self.following_error = True
-                self.fault(cia301.EMCY_FOLLOWING_ERROR)
-                self.command_joint(dt)  # the fault reaction's ramp, from this step on
-                return
-            dyn.mode[j] = _LOOP_POSITION
-            dyn.target_position[j] = demand
-            dyn.target_velocity[j] = values[keys.velocity_offset] / scale
-            dyn.torque_feedforward[j] = values[keys.torque_offset] * nm_per_permille
+            if not self._csp(values, scale, dt):
+                return None
         elif mode == _CSV:
             self._velocity((values[keys.target_velocity] + values[keys.velocity_offset]) / scale)
             dyn.torque_feedforward[j] = values[keys.torque_offset] * nm_per_permille
         elif mode == _CST:
-            torque = (values[keys.target_torque] + values[keys.torque_offset]) * nm_per_permille
-            hold = limits.pushed_past(torque, float(dyn.position[j]))
-            if hold is None:
-                dyn.mode[j] = _LOOP_TORQUE
-                dyn.torque_feedforward[j] = torque
-            else:  # beyond a software position limit: the drive holds it
-                dyn.mode[j] = _LOOP_POSITION
-                dyn.target_position[j] = hold
+            self._cst((values[keys.target_torque] + values[keys.torque_offset])
+                      * nm_per_permille)
         else:
             dyn.mode[j] = _LOOP_OFF  # no mode this drive runs selected: no torque
-        if bits != self._mode_bits:
-            self._mode_bits = bits
-            self.set_state(self.state)
+        return bits
+
+    def _csp(self, values: dict[ObjectKey, Any], scale: float, dt: float) -> bool:
+        """CSP: follow 0x607A with the offsets; False when the following error faulted the
+        drive (its fault reaction's ramp is commanded from this step on)."""
+        dyn, j, keys, limits = self._dyn, self._j, self._keys, self.limits
+        demand = limits.clamp(values[keys.target_position] / scale)
+        if limits.following_error(demand, float(dyn.position[j]), dt):
+            self.following_error = True
+            self.fault(cia301.EMCY_FOLLOWING_ERROR)
+            self.command_joint(dt)
+            return False
+        dyn.mode[j] = _LOOP_POSITION
+        dyn.target_position[j] = demand
+        dyn.target_velocity[j] = values[keys.velocity_offset] / scale
+        dyn.torque_feedforward[j] = values[keys.torque_offset] * self._scale.nm_per_permille
+        return True
+
+    def _cst(self, torque: float) -> None:
+        """CST: the torque; beyond a software position limit the drive holds it."""
+        dyn, j = self._dyn, self._j
+        hold = self.limits.pushed_past(torque, float(dyn.position[j]))
+        if hold is None:
+            dyn.mode[j] = _LOOP_TORQUE
+            dyn.torque_feedforward[j] = torque
+        else:
+            dyn.mode[j] = _LOOP_POSITION
+            dyn.target_position[j] = hold
 
     def _velocity(self, target: float) -> None:
         """A velocity target (CSV, PV); towards a software position limit, a move to the
@@ -365,7 +405,7 @@ class StateMachine402:
             dyn.target_position[j] = limit
             dyn.velocity_limit[j] = min(limits.velocity, abs(target))
 
-    def _profile_position(self, values: dict[Key, Any], scale: float) -> int:
+    def _profile_position(self, values: dict[ObjectKey, Any], scale: float) -> int:
         """PP: a rising controlword bit 4 latches 0x607A (relative with bit 6) and is
         acknowledged by statusword bit 12 until bit 4 falls; the joint moves to the latched
         set-point no faster than 0x6081; bit 10 once it is there."""
@@ -389,7 +429,7 @@ class StateMachine402:
             bits |= c.SW_TARGET_REACHED
         return bits
 
-    def _homing(self, values: dict[Key, Any], scale: float, dt: float) -> int:
+    def _homing(self, values: dict[ObjectKey, Any], scale: float, dt: float) -> int:
         """Mode 6: a rising controlword bit 4 starts homing with 0x6098's method; after
         HOMING_TIME at standstill (a real drive searches its switch meanwhile) the reported
         position becomes the home offset 0x607C here: statusword bit 12 + 10. A method

@@ -36,7 +36,7 @@ from typing import Protocol
 import numpy as np
 
 from ..adapters import p99
-from ..drivers.cycle.stop_requests import StopTarget
+from ..drivers.cycle.stop_requests import ManagerLatch
 from ..events import STOP_CAUSE, ManagerState
 from ..overrun import overran, waited
 
@@ -230,7 +230,7 @@ def runs_realtime() -> bool:
         return False
 
 
-class CycleManager(StopTarget, Protocol):
+class CycleManager(ManagerLatch, Protocol):
     """What the loop needs of a manager (rocoma_can.ControllerManager)."""
 
     @property
@@ -242,7 +242,7 @@ class CycleManager(StopTarget, Protocol):
 class CycleEvent(Protocol):
     """A finding of the hardware's read for the manager (drivers/cycle/stop_requests.py)."""
 
-    def apply(self, manager: StopTarget) -> None: ...
+    def apply(self, manager: ManagerLatch) -> None: ...
 
 
 class CycleHardware(Protocol):

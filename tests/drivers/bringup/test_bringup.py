@@ -13,7 +13,8 @@ import pytest
 from fixtures.driver_rig import drive_configs
 
 from rocoma_can.drivers.bringup import drive_bringup as bringup
-from rocoma_can.drivers.bringup.drive_bringup import ConfigResult, DriveBringup, Phase
+from rocoma_can.drivers.bringup.configure import ConfigResult
+from rocoma_can.drivers.bringup.drive_bringup import BringupPhase, DriveBringup
 from rocoma_can.drivers.plan.config import Timeouts
 from rocoma_can.drivers.plan.drive_plan import plan_drive
 from rocoma_can.drivers.protocol import cia301
@@ -60,23 +61,23 @@ def step(b: DriveBringup, now: float, fresh: bool = False,
 
 
 def test_waits_for_boot_up_then_configures_starts_probes_and_is_ready_once(drive):
-    assert not step(drive, 0.5) and drive.phase == Phase.WAIT_BOOT
+    assert not step(drive, 0.5) and drive.phase == BringupPhase.WAIT_BOOT
     drive.alive = True  # a boot-up or heartbeat frame arrived
     step(drive, 0.6)
-    assert drive.phase == Phase.CONFIGURING
+    assert drive.phase == BringupPhase.CONFIGURING
     step(drive, 0.7)
-    assert drive.phase == Phase.STARTING and drive.mapped
+    assert drive.phase == BringupPhase.STARTING and drive.mapped
     step(drive, 0.8, fresh=True)
-    assert drive.phase == Phase.PROBING and drive.probing  # shutdown (0x06) goes out
+    assert drive.phase == BringupPhase.PROBING and drive.probing  # shutdown (0x06) goes out
     assert step(drive, 0.9, fresh=True, state=State402.READY_TO_SWITCH_ON)  # READY: once
-    assert drive.phase == Phase.READY and not step(drive, 1.0, fresh=True)
+    assert drive.phase == BringupPhase.READY and not step(drive, 1.0, fresh=True)
 
 
 def test_a_silent_drive_is_probed_after_boot_wait(drive):
     step(drive, TIMEOUTS.boot_wait - 0.01)
-    assert drive.phase == Phase.WAIT_BOOT
+    assert drive.phase == BringupPhase.WAIT_BOOT
     step(drive, TIMEOUTS.boot_wait)
-    assert drive.phase == Phase.CONFIGURING
+    assert drive.phase == BringupPhase.CONFIGURING
 
 
 def test_configuration_failures_and_sto_are_reported(drive):
@@ -84,26 +85,28 @@ def test_configuration_failures_and_sto_are_reported(drive):
     drive.alive = True
     step(drive, 0.0)
     step(drive, 0.1)
-    assert drive.phase == Phase.FAILED
+    assert drive.phase == BringupPhase.FAILED
     assert drive.failure == "does not answer (no SDO reply to 0x1000)"
     drive.restart(1.0)
-    assert (drive.phase, drive.failure) == (Phase.WAIT_BOOT, None)
+    assert (drive.phase, drive.failure) == (BringupPhase.WAIT_BOOT, None)
     drive.results[0] = ConfigResult(FAULT, cia301.EMCY_STO)
     drive.alive = True
     step(drive, 1.0)
     step(drive, 1.1)
-    assert (drive.phase, drive.failure) == (Phase.FAILED, "STO input low (safe torque off active)")
+    assert (drive.phase, drive.failure) == (BringupPhase.FAILED,
+                                            "STO input low (safe torque off active)")
 
 
 def test_no_tpdo_after_nmt_start_fails_after_the_start_timeout(drive):
     drive.alive = True
     step(drive, 0.0)
     step(drive, 0.0)
-    assert drive.phase == Phase.STARTING
+    assert drive.phase == BringupPhase.STARTING
     step(drive, TIMEOUTS.start)
-    assert drive.phase == Phase.STARTING
+    assert drive.phase == BringupPhase.STARTING
     step(drive, TIMEOUTS.start + 0.01)
-    assert drive.phase == Phase.FAILED and "no TPDO within 2.0 s of NMT start" in drive.failure
+    assert drive.phase == BringupPhase.FAILED
+    assert "no TPDO within 2.0 s of NMT start" in drive.failure
 
 
 def test_a_faulted_drive_gets_a_reset_edge_then_probes(drive):
@@ -111,12 +114,12 @@ def test_a_faulted_drive_gets_a_reset_edge_then_probes(drive):
     step(drive, 0.0)
     step(drive, 0.0)
     step(drive, 0.1, fresh=True, state=State402.FAULT)
-    assert drive.phase == Phase.RESETTING and not drive.fault_reset_bit  # bit 7 low first
+    assert drive.phase == BringupPhase.RESETTING and not drive.fault_reset_bit  # bit 7 low first
     step(drive, 0.11, fresh=True, state=State402.FAULT)
     assert drive.fault_reset_bit  # then high: the rising edge
     step(drive, 0.12, fresh=True, state=State402.FAULT)
     step(drive, 0.13, fresh=True, state=State402.SWITCH_ON_DISABLED)
-    assert drive.phase == Phase.PROBING
+    assert drive.phase == BringupPhase.PROBING
 
 
 def test_a_fault_that_persists_and_a_refused_shutdown_fail_with_the_reason(drive):
@@ -126,7 +129,7 @@ def test_a_fault_that_persists_and_a_refused_shutdown_fail_with_the_reason(drive
     step(drive, 0.1, fresh=True, state=State402.FAULT, code=cia301.EMCY_OVERCURRENT)
     step(drive, 0.1 + TIMEOUTS.reset + 0.01, fresh=True, state=State402.FAULT,
          code=cia301.EMCY_OVERCURRENT)
-    assert drive.phase == Phase.FAILED
+    assert drive.phase == BringupPhase.FAILED
     assert drive.failure == "fault persists after fault reset (error code 0x2310)"
 
     drive.restart(10.0, probe_at_once=True)
@@ -134,4 +137,4 @@ def test_a_fault_that_persists_and_a_refused_shutdown_fail_with_the_reason(drive
     step(drive, 10.0)
     step(drive, 10.1, fresh=True)  # -> PROBING
     step(drive, 10.1 + TIMEOUTS.reset + 0.01, fresh=True)  # still switch on disabled
-    assert drive.phase == Phase.FAILED and "refuses shutdown" in drive.failure
+    assert drive.phase == BringupPhase.FAILED and "refuses shutdown" in drive.failure

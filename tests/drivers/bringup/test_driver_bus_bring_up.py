@@ -25,7 +25,7 @@ from fixtures.odd_node import OddNode
 from fixtures.rig_controllers import HoldPD
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers.bringup.drive_bringup import Phase
+from rocoma_can.drivers.bringup.drive_bringup import BringupPhase
 from rocoma_can.drivers.protocol import cia301, cia402
 from rocoma_can.drivers.protocol.cia402 import State402
 
@@ -108,7 +108,7 @@ def test_a_node_answering_garbled_sdo_frames_fails_its_bring_up_in_one_line(virt
     """A device at the drive's node id that answers SDO with frames shorter than SDO's
     8 bytes: canopen's struct.error text was the drive's failure ("unpack requires a buffer
     of 3 bytes"). The failure says what it means and what to check."""
-    from rocoma_can.drivers.bringup.drive_bringup import configure
+    from rocoma_can.drivers.bringup.configure import configure
     from rocoma_can.drivers.plan.drive_plan import plan_drive
     odd = OddNode(virtual_channel, lambda request: [garbage])
     network = canopen.Network()
@@ -130,9 +130,9 @@ def test_a_node_answering_garbled_sdo_frames_fails_its_bring_up_in_one_line(virt
 
 def test_bring_up_phases_are_reported(segment, make_rig):
     rig = make_rig()
-    assert {s.phase for s in rig.hw.drive_status()} == {Phase.WAIT_BOOT.name}
+    assert {s.phase for s in rig.hw.drive_status()} == {BringupPhase.WAIT_BOOT.name}
     bring_up(rig)
-    assert {s.phase for s in rig.hw.drive_status()} == {Phase.READY.name}
+    assert {s.phase for s in rig.hw.drive_status()} == {BringupPhase.READY.name}
 
 
 def test_the_configuration_workers_are_started_before_the_first_cycle(make_rig):

@@ -23,7 +23,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rocoma_can import ManagerState, SwitchResult
-from rocoma_can.drivers.bringup.drive_bringup import life_time_factor
+from rocoma_can.drivers.bringup.configure import life_time_factor
 from rocoma_can.drivers.cycle.node_guarding import NodeGuarding
 from rocoma_can.drivers.plan.config import DriveConfig
 from rocoma_can.drivers.plan.drive_plan import plan_drive

@@ -27,7 +27,7 @@ import pytest
 from fixtures.driver_rig import INCREMENTS_PER_REV, RATED_TORQUE_NM, VIRTUAL, Rig
 from fixtures.paths import EDS, ROOT
 
-from rocoma_can.drivers.bringup.drive_bringup import NamedSdo, ObjectRefused
+from rocoma_can.drivers.bringup.named_sdo import NamedSdo, ObjectRefused
 from rocoma_can.drivers.files.capabilities import read_capabilities
 from rocoma_can.drivers.files.device_file import read_device_file
 from rocoma_can.drivers.plan.config import DriveConfig

@@ -323,6 +323,7 @@ def test_each_drive_answers_the_identity_it_was_given(sim_bench, bus_factory):
     vendor and product and its node id as serial number, so no two are alike."""
     from rocoma_can.drivers.files.identity import Identity
     from rocoma_can.drivers.sim.segment import SimulatedSegment
+    from rocoma_can.drivers.sim.segment_options import SegmentOptions
 
     bench = sim_bench([1, 2], identities={2: Identity(vendor_id=0x9A, product_code=0x77,
                                                       serial=0x1234_5678)})
@@ -331,7 +332,7 @@ def test_each_drive_answers_the_identity_it_was_given(sim_bench, bus_factory):
     assert [two.sdo[0x1018][s].raw for s in (1, 2, 4)] == [0x9A, 0x77, 0x1234_5678]
     assert two.sdo[0x1018][3].raw == one.sdo[0x1018][3].raw  # the file's revision
     with pytest.raises(ValueError, match=r"identities given for node ids \[5\]"):
-        SimulatedSegment(bus_factory(), [1], identities={5: Identity(serial=1)})
+        SimulatedSegment(bus_factory(), [1], SegmentOptions(identities={5: Identity(serial=1)}))
 
 
 def test_nodes_simulated_from_a_file_with_a_serial_number_are_each_their_own(sim_bench):
