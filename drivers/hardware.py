@@ -102,7 +102,8 @@ from .cycle.supervision import FaultEvent, Supervisor
 from .cycle.switch_off import SdoSwitchOff
 from .link.bus import start_reading
 from .link.bus_port import Bus, BusPort, SentFrames, named_buses
-from .plan.config import DriveConfig, Supervision, check_drives, estop_conflict
+from .plan.config import DriveConfig, Supervision
+from .plan.drive_clashes import check_drives, estop_conflict
 from .plan.drive_plan import check_pdo_bytes, grouped_notes, pdo_using, plan_drives
 from .plan.pdo_layout import IGNORED, DriveLayout, cob_id_clashes
 from .plan.scaling import Scaling

@@ -18,7 +18,8 @@ from fixtures.driver_rig import Brake, Rig
 from fixtures.paths import TESTS
 
 from rocoma_can import Controller, ManagerState, SwitchResult
-from rocoma_can.drivers.plan.config import DriveConfig, check_drives
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_clashes import check_drives
 from rocoma_can.drivers.plan.drive_plan import plan_drive, plan_drives
 from rocoma_can.drivers.protocol import cia301
 from rocoma_can.drivers.protocol.cia402 import State402
