@@ -1,5 +1,6 @@
 """What runs the manager on a bus: config (the YAML, checked whole), config_check (its
-checks, one per section), bus_load (what the config puts on each bus), loop (run_cycle, the
+checks of the sections that stand alone), config_drives (the checks that need the drives),
+bus_load (what the config puts on each bus), loop (run_cycle, the
 cycle's order in one place; one thread, fixed rate, a safe way out), system (hardware,
 manager, node, recorders and fleet bridge wired), host and can_checks (what ``doctor``
 judges: the host for a 1 kHz loop, each CAN link against its bus), host_timing (``doctor

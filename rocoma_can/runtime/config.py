@@ -56,20 +56,22 @@ from ..ros2.config import parse as parse_ros2
 from ..user_files import yaml_problem
 from .bus_load import BusLoad
 from .config_check import (
-    check_bus_loads,
     check_buses,
-    check_controller_sections,
-    check_drives,
     check_manager,
-    check_manager_and_drives,
     check_rate,
     check_realtime,
     check_regular,
     check_supervision,
     check_timing,
-    check_urdf,
     section_at,
     unknown_keys,
+)
+from .config_drives import (
+    check_bus_loads,
+    check_controller_sections,
+    check_drive_entries,
+    check_manager_and_drives,
+    check_urdf,
 )
 
 _TOP_KEYS = {"bus", "buses", "rate", "manager", "realtime", "supervision", "timing", "drives",
@@ -284,8 +286,8 @@ def _what(data: Any) -> str:
 def validate(data: Any, source: str = "<memory>", base: Path | None = None,
              check_controllers: bool = True) -> RuntimeConfig:
     """Build a RuntimeConfig from a parsed YAML mapping, or raise ConfigError (all problems).
-    One check per section (config_check.py); each appends what is wrong with it to
-    ``problems``."""
+    One check per section (config_check.py, config_drives.py); each appends what is wrong
+    with it to ``problems``."""
     problems: list[str] = []
     if not isinstance(data, Mapping):
         raise ConfigError([f"{source}: (top): expected a mapping with bus, rate, drives, "
@@ -304,10 +306,10 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                                     problems)
     timing = check_timing(section_at(data, "timing", problems), problems)
     named: list[str] = []  # every drive name given, built or not
-    planned, clean = check_drives(data.get("drives"), manager.node_id, base, problems,
-                                  [b.label for b in buses], named,
-                                  fd={b.label for b in buses if b.fd},
-                                  period=1.0 / rate if rate is not None else None)
+    planned, clean = check_drive_entries(data.get("drives"), manager.node_id, base,
+                                         problems, [b.label for b in buses], named,
+                                         fd={b.label for b in buses if b.fd},
+                                         period=1.0 / rate if rate is not None else None)
     drives = [d for d, _ in planned]
     plans: dict[str, DrivePlan] = {}
     for d, plan in planned:
