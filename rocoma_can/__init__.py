@@ -3,6 +3,9 @@
 The public names are imported on first use (``_lazy.py`` says why). The core's modules:
 
 manager      ControllerManager: states, layers, update() and its e-stops (the safety path)
+manager_timing  ManagerTimeouts and TimingSupervision: how long the manager waits, how long
+             its controllers may take
+controller_set  the controllers a manager holds, by name, each with its emergency controller
 switcher     the switch protocol, on the manager's switcher thread (Switcher, SwitchResult)
 stopper      the manager's stopper threads and its hang watchdog
 adapters     how the manager calls a controller: judged results, timing budgets
@@ -43,8 +46,8 @@ __all__ = [
     "PluginError", "add_to_manager", "create_controller", "load_config",
 ]
 _MODULE_OF = {
-    "ControllerManager": "manager", "ManagerTimeouts": "manager", "SwitchResult": "manager",
-    "TimingSupervision": "manager",
+    "ControllerManager": "manager", "ManagerTimeouts": "manager_timing",
+    "SwitchResult": "manager", "TimingSupervision": "manager_timing",
     "EventKind": "events", "ManagerEvent": "events", "ManagerState": "events",
     "Controller": "interfaces", "EmergencyController": "interfaces",
     "FailproofController": "interfaces", "SwapState": "interfaces",
@@ -61,7 +64,8 @@ if TYPE_CHECKING:
     from .errors import PluginError
     from .events import EventKind, ManagerEvent, ManagerState
     from .interfaces import Controller, EmergencyController, FailproofController, SwapState
-    from .manager import ControllerManager, ManagerTimeouts, SwitchResult, TimingSupervision
+    from .manager import ControllerManager, SwitchResult
+    from .manager_timing import ManagerTimeouts, TimingSupervision
     from .plugins import add_to_manager, create_controller, load_config
     from .tuples import ControllerTuple, EmergencyControllerTuple, TupleSwapState
     from .workers import WorkerEvent, WorkerHandle, WorkerManager, WorkerOptions

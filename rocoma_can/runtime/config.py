@@ -50,7 +50,7 @@ from ..errors import ConfigError
 from ..fleet.bridge import FleetConfig
 from ..fleet.bridge import parse as parse_fleet
 from ..live.urdf import Robot
-from ..manager import TimingSupervision
+from ..manager_timing import TimingSupervision
 from ..ros2.config import Ros2Config
 from ..ros2.config import parse as parse_ros2
 from ..user_files import yaml_problem

@@ -16,7 +16,7 @@ from ..drivers.link.bus import unknown_interface
 from ..drivers.plan.config import BusConfig, Supervision, Timeouts, whole
 from ..drivers.protocol.cia301 import reserved_cob_id
 from ..drivers.protocol.wire import MAX_DATA_BITRATE
-from ..manager import TimingSupervision
+from ..manager_timing import TimingSupervision
 from ..user_files import not_regular
 from .loop import spin_fits
 
