@@ -37,8 +37,7 @@ from ..cli_args import (
 from ..errors import BusTaken, ConfigError, NoAnswer, Refused, RocomaError
 from ..exit_codes import FAILED, INTERRUPTED, NO_ANSWER, OK, USAGE
 from ..fleet import client as fleet_client
-from ..fleet.bridge import FleetConfig, FleetError
-from ..fleet.bridge import parse as parse_fleet
+from ..fleet.bridge import FleetConfig, FleetError, parse_fleet
 from ..live.foxglove import FoxgloveConfig, FoxgloveError, describe, parse_address
 from ..node.client import ManagerClient
 from ..node.objects import (

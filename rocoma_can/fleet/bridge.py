@@ -119,13 +119,38 @@ def known_section(section: Any, known: set[str], where: str, problems: list[str]
     return True
 
 
-def parse(section: Any, problems: list[str], where: str = "zenoh",
-          base: FleetConfig | None = None) -> FleetConfig | None:
+def parse_fleet(section: Any, problems: list[str], where: str = "zenoh",
+                base: FleetConfig | None = None) -> FleetConfig | None:
     """The ``zenoh:`` section (None: absent) over ``base`` (default: the defaults), every
     problem as "zenoh.KEY: ..."; the CLI's flags come through here too."""
     if section is None or not known_section(section, _KEYS, where, problems):
         return None
     out = base or FleetConfig()
+    _take_names(section, out, where, problems)
+    _take_endpoints(section, out, where, problems)
+    _take_switches(section, out, where, problems)
+    if section.get("deadman") is not None:
+        why = key_problem(section["deadman"])
+        if why:
+            problems.append(f"{where}.deadman: {why} (a liveliness key, e.g. "
+                            "rocoma/operators/console1)")
+        else:
+            out.deadman = section["deadman"]
+    _take_periods(section, out, where, problems)
+    config_file = section.get("config_file")
+    if config_file is not None and not isinstance(config_file, str):
+        problems.append(f"{where}.config_file: expected a path, got {config_file!r}")
+    elif config_file is not None:
+        out.config_file = config_file
+    if out.deadman and not out.required:
+        problems.append(f"{where}.deadman: needs {where}.required: true (a dead-man that "
+                        "may be missing without Zenoh, with only a warning, is none)")
+    return out
+
+
+def _take_names(section: Mapping[str, Any], out: FleetConfig, where: str,
+                problems: list[str]) -> None:
+    """The prefix (a key expression) and the mode."""
     if "prefix" in section:
         why = key_problem(section["prefix"])
         if why:
@@ -137,6 +162,11 @@ def parse(section: Any, problems: list[str], where: str = "zenoh",
             problems.append(f"{where}.mode: expected peer or client, got {section['mode']!r}")
         else:
             out.mode = section["mode"]
+
+
+def _take_endpoints(section: Mapping[str, Any], out: FleetConfig, where: str,
+                    problems: list[str]) -> None:
+    """connect and listen: one endpoint or a list, added to the base's."""
     for key in ("connect", "listen"):
         value = section.get(key, [])
         if isinstance(value, str):
@@ -147,6 +177,10 @@ def parse(section: Any, problems: list[str], where: str = "zenoh",
                             f"tcp/192.168.1.10:7447, got {value!r}")
         else:
             getattr(out, key).extend(value)
+
+
+def _take_switches(section: Mapping[str, Any], out: FleetConfig, where: str,
+                   problems: list[str]) -> None:
     for key in ("multicast", "allow_commands", "required"):
         if key in section:
             if not isinstance(section[key], bool):
@@ -154,13 +188,10 @@ def parse(section: Any, problems: list[str], where: str = "zenoh",
                                 f"{section[key]!r}")
             else:
                 setattr(out, key, section[key])
-    if section.get("deadman") is not None:
-        why = key_problem(section["deadman"])
-        if why:
-            problems.append(f"{where}.deadman: {why} (a liveliness key, e.g. "
-                            "rocoma/operators/console1)")
-        else:
-            out.deadman = section["deadman"]
+
+
+def _take_periods(section: Mapping[str, Any], out: FleetConfig, where: str,
+                  problems: list[str]) -> None:
     for key, low, high in (("drives_period", 0.05, 60.0), ("alive_timeout", 0.05, 60.0)):
         value = section.get(key, getattr(out, key))
         if not isinstance(value, (int, float)) or isinstance(value, bool) \
@@ -168,15 +199,6 @@ def parse(section: Any, problems: list[str], where: str = "zenoh",
             problems.append(f"{where}.{key}: expected seconds {low:g}..{high:g}, got {value!r}")
         else:
             setattr(out, key, float(value))
-    config_file = section.get("config_file")
-    if config_file is not None and not isinstance(config_file, str):
-        problems.append(f"{where}.config_file: expected a path, got {config_file!r}")
-    elif config_file is not None:
-        out.config_file = config_file
-    if out.deadman and not out.required:
-        problems.append(f"{where}.deadman: needs {where}.required: true (a dead-man that "
-                        "may be missing without Zenoh, with only a warning, is none)")
-    return out
 
 
 #: the longest Zenoh config file read, bytes (one is a few kB)

@@ -47,12 +47,10 @@ import yaml
 from ..drivers.plan.config import BusConfig, DriveConfig, Supervision
 from ..drivers.plan.drive_plan import DrivePlan
 from ..errors import ConfigError
-from ..fleet.bridge import FleetConfig
-from ..fleet.bridge import parse as parse_fleet
+from ..fleet.bridge import FleetConfig, parse_fleet
 from ..live.urdf import Robot
 from ..manager_timing import TimingSupervision
-from ..ros2.config import Ros2Config
-from ..ros2.config import parse as parse_ros2
+from ..ros2.config import Ros2Config, parse_ros2
 from ..user_files import yaml_problem
 from .bus_load import BusLoad
 from .config_check import (
