@@ -1,7 +1,7 @@
 """Controller plugins: failproof torque-off, emergency controllers, PD, trajectories.
 
-torque_off (the failproof layer); emergency controllers damp, hold, quick_stop, zero_torque
-(``float``); controllers pd, trajectory, tracking_monitor (a worker example), ros2_command
+torque_off (the failproof layer); emergency controllers damp, hold, quick_stop, float
+(zero torque); controllers pd, trajectory, tracking_monitor (a worker example), ros2_command
 (joint commands from a ROS 2 topic); what they
 share: pd_law (the PD law and tracking step), joint_group (the joints one controller
 drives), params (parameter checks), pose_swap (the pose handed over on a switch)."""

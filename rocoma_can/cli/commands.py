@@ -38,7 +38,7 @@ from ..errors import BusTaken, ConfigError, NoAnswer, Refused, RocomaError
 from ..exit_codes import FAILED, INTERRUPTED, NO_ANSWER, OK, USAGE
 from ..fleet import client as fleet_client
 from ..fleet.bridge import FleetConfig, FleetError, parse_fleet
-from ..live.foxglove import FoxgloveConfig, FoxgloveError, describe, parse_address
+from ..live.foxglove import FoxgloveConfig, FoxgloveError, describe_view, parse_address
 from ..node.client import ManagerClient
 from ..node.objects import (
     ABORT_NOT_FOUND,
@@ -49,7 +49,7 @@ from ..node.objects import (
     RESULT_NAMES,
     SWITCH_REFUSAL,
 )
-from ..ros2.config import add_options as add_ros2_options
+from ..ros2.config import add_ros2_options
 from ..ros2.config import from_args as ros2_from_args
 from .live import cycle_text
 from .main import interrupted_by
@@ -230,9 +230,9 @@ def _say_started(runtime: Runtime, args: argparse.Namespace) -> None:
                  "allowed" if f.allow_commands else "refused")
     # (running without Zenoh, zenoh.required false: said by the runtime as it found it)
     if runtime.foxglove is not None:
-        say.info("%s", describe(runtime.foxglove))
+        say.info("%s", describe_view(runtime.foxglove))
     if runtime.ros2 is not None:
-        from ..ros2.node import describe as describe_ros2
+        from ..ros2.node import describe_node as describe_ros2
         say.info("%s", describe_ros2(runtime.ros2))
     elif runtime.ros2_error:
         log.warning("running without the ROS 2 node: %s", runtime.ros2_error)

@@ -413,10 +413,10 @@ def run_demo(drives: int = 6, rate: float = 200.0, duration: float = 16.0,
                 f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
             out(f"rocoma-can demo: the simulated drives run {simulator.where}")
             if rt.foxglove is not None:
-                from ..live.foxglove import describe
-                out(f"rocoma-can demo: {describe(rt.foxglove)}")
+                from ..live.foxglove import describe_view
+                out(f"rocoma-can demo: {describe_view(rt.foxglove)}")
             if rt.ros2 is not None:
-                from ..ros2.node import describe as describe_ros2
+                from ..ros2.node import describe_node as describe_ros2
                 out(f"rocoma-can demo: {describe_ros2(rt.ros2)}")
             if zenoh_listen is not None:
                 out(f"rocoma-can demo: on Zenoh as {ZENOH_PREFIX} at {zenoh_listen}; from "
@@ -514,7 +514,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         "said, and the demo runs at normal priority). Default: normal")
     from .commands import add_foxglove_options
     add_foxglove_options(p)
-    from ..ros2.config import add_options as add_ros2_options
+    from ..ros2.config import add_ros2_options
     add_ros2_options(p, connect=True)
     p.add_argument("--zenoh-listen", default=None, metavar="ENDPOINT",
                    help="serve the demo's manager on Zenoh as rocoma/demo at ENDPOINT "

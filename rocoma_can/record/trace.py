@@ -424,7 +424,7 @@ def _json_kind(value: Any) -> str:
     return f"{kinds.get(type(value), type(value).__name__)} ({glimpse})"
 
 
-def joint_names(path: str, joints: int) -> list[str] | None:
+def recorded_joint_names(path: str, joints: int) -> list[str] | None:
     """The ``joints`` joint names the cycle schema's description carries ("joints: a, b"),
     None where a file has none that fit (another writer's schema, an older file)."""
     from mcap.reader import make_reader

@@ -158,7 +158,7 @@ def parse_ros2(section: Any, problems: list[str], where: str = "ros2",
     return out
 
 
-def add_options(p: argparse.ArgumentParser, connect: bool = False) -> None:
+def add_ros2_options(p: argparse.ArgumentParser, connect: bool = False) -> None:
     """``--ros2`` and its options, for run and demo alike; ``connect``: add
     ``--zenoh-connect`` here (run has it among its Zenoh options: with --ros2 it names the
     node's router, see ``from_args``)."""

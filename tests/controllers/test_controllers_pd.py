@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from fixtures.joint_plant import JointPlant, attach
 
+from rocoma_can.controllers.float import Float
 from rocoma_can.controllers.pd import JointPD
-from rocoma_can.controllers.zero_torque import Float
 from rocoma_can.drivers.protocol.joints import JointMode
 
 DT = 0.001
