@@ -3,7 +3,7 @@ from the rows and events it writes anyway: a recording or flight record opens in
 with the live view's layout (live/foxglove_layout.json).
 
 ``/joint_states`` every cycle (the plots); ``/rocoma/manager`` on every manager event and at
-SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics cost ~5 µs a joint);
+SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics costs per joint);
 ``/rocoma/log``, a line per manager event; ``/robot_description`` once, with the first
 cycle; ``/rocoma/status``, the status reports the loop's process sent (every STATUS_PERIOD
 while it records, recorder.py, and as often as a viewer of the live view asks), each once per

@@ -40,10 +40,11 @@ JOINT_FIELDS = ("position", "velocity", "torque", "command_mode", "command_posit
                 "command_velocity", "command_torque", "statusword", "cia402_state",
                 "error_code")
 SCALARS = ("t", "period", "work", "late", "state", "controller", "cpu")
-#: /can/<bus> messages between two ``pace`` calls (~2-3 µs each; a row's message takes ~30)
+#: /can/<bus> messages between two ``pace`` calls (each a tenth of a row's message or less:
+#: benchmarks/README.md, "Figures behind constants")
 PACED_FRAMES = 32
 #: an MCAP chunk's bytes: each is compressed (zstd) in one call between two ``pace`` calls,
-#: ~0.4 ms for 128 KiB where a 1 MiB chunk took ~3 ms
+#: so a chunk must compress well within one pause (a 1 MiB one did not: benchmarks/README.md)
 CHUNK_SIZE = 128 * 1024
 STATE_NAMES = {int(s): s.name for s in ManagerState}
 
@@ -75,7 +76,7 @@ class RowLayout:
         """One row as the /rocoma/cycle message (``controllers``: number -> name). A value
         that is not finite is ``null`` (the first row's period, a command's NaN): JSON has
         no NaN, and Foxglove and PlotJuggler parse strict JSON."""
-        values = row.tolist()  # plain floats at once: ~5x faster than element by element
+        values = row.tolist()  # plain floats at once: faster than element by element
         finite = np.isfinite(row)
         if not finite.all():
             values = [v if ok else None for v, ok in zip(values, finite.tolist())]
