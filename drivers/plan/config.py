@@ -24,6 +24,11 @@ def whole(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+def is_node_id(value: Any) -> bool:
+    """A CANopen node id: a whole number 1..127 (a drive's, the manager's)."""
+    return whole(value) and 1 <= value <= 127
+
+
 def _finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) \
         and math.isfinite(value)
@@ -306,7 +311,7 @@ class DriveConfig:
         """The name, the node id and the scaling: what every drive must have."""
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"drive name must be a non-empty string, got {self.name!r}")
-        if not whole(self.node_id) or not 1 <= self.node_id <= 127:
+        if not is_node_id(self.node_id):
             raise ValueError(f"{where}: node_id must be an integer 1..127, got {self.node_id!r}")
         if not whole(self.increments_per_rev) or self.increments_per_rev <= 0:
             raise ValueError(f"{where}: increments_per_rev must be a positive integer, "

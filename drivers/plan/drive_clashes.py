@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from ..protocol import cia301
-from .config import DriveConfig, whole
+from .config import DriveConfig, is_node_id
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,7 @@ def check_drives(drives: list[DriveConfig], manager_node_id: int,
     ``drive_problems``, then for the first node whose axes disagree (``node_mismatch``)."""
     if not drives:
         raise ValueError("drives: at least one drive is needed")
-    if not whole(manager_node_id) or not 1 <= manager_node_id <= 127:
+    if not is_node_id(manager_node_id):
         raise ValueError(f"manager_node_id must be an integer 1..127, got {manager_node_id!r}")
     clashes = drive_problems(drives, manager_node_id, buses)
     if clashes:

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from ..drivers.link.bus import unknown_interface
-from ..drivers.plan.config import BusConfig, Supervision, Timeouts, whole
+from ..drivers.plan.config import BusConfig, Supervision, Timeouts, is_node_id, whole
 from ..drivers.protocol.cia301 import reserved_cob_id
 from ..drivers.protocol.wire import MAX_DATA_BITRATE
 from ..manager_timing import TimingSupervision
@@ -145,11 +145,11 @@ def check_manager(m: Mapping[str, Any], manager: ManagerNodeConfig,
     """The manager's own keys onto ``manager`` (its defaults: config.py builds it, this
     module only checks); its bus and required drives need the drives: later."""
     unknown_keys(m, _MANAGER_KEYS, "manager", problems)
-    node_id = m.get("node_id", manager.node_id)
-    if not whole(node_id) or not 1 <= node_id <= 127:
-        problems.append(f"manager.node_id: expected an integer 1..127, got {node_id!r}")
+    given = m.get("node_id", manager.node_id)
+    if not is_node_id(given):
+        problems.append(f"manager.node_id: expected an integer 1..127, got {given!r}")
     else:
-        manager.node_id = node_id
+        manager.node_id = given
     hb = m.get("heartbeat_ms", manager.heartbeat_ms)
     if not whole(hb) or not 1 <= hb <= 30000:
         problems.append(f"manager.heartbeat_ms: expected an integer 1..30000 ms, got {hb!r}")
