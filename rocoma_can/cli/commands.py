@@ -37,7 +37,8 @@ from ..cli_args import (
 from ..errors import BusTaken, ConfigError, NoAnswer, Refused, RocomaError
 from ..exit_codes import FAILED, INTERRUPTED, NO_ANSWER, OK, USAGE
 from ..fleet import client as fleet_client
-from ..fleet.bridge import FleetConfig, FleetError, parse_fleet
+from ..fleet.bridge import FleetError
+from ..fleet.config import FleetConfig, parse_fleet
 from ..live.foxglove import FoxgloveConfig, FoxgloveError, describe_view, parse_address
 from ..node.client import ManagerClient
 from ..node.objects import (

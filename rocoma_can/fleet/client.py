@@ -14,13 +14,8 @@ from ..cli_args import did_you_mean, seconds, with_clear_hint
 from ..errors import NoAnswer, RocomaError
 from ..exit_codes import FAILED, NO_ANSWER, OK, USAGE
 from ..remote import STOPS
-from .bridge import (
-    FleetError,
-    close_session,
-    default_prefix,
-    key_problem,
-    open_session,
-)
+from .bridge import FleetError, close_session, open_session
+from .config import default_prefix, key_problem
 
 #: one round of a query; repeated until the caller's timeout
 ROUND = 0.5

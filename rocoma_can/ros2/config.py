@@ -22,7 +22,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..fleet.bridge import known_section
+from ..fleet.config import known_section
 from ..inputs import NAME_TOKEN
 from .interfaces import DISTROS, ROS2_CONTROL
 

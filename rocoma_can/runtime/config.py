@@ -21,7 +21,7 @@ Layout (every key but ``drives`` and ``controllers`` has a default; docs/configu
     timing: {advance: 0.5, initialize_fast: 0.5, overruns: 5, hang: 20}  # in cycles (dt):
                                    # the manager's wall-time supervision of controllers
     zenoh: {prefix: rocoma/<host>, mode: null, connect: [], listen: [], multicast: null,
-            allow_commands: false, deadman: null, required: true}  # optional (fleet/bridge.py);
+            allow_commands: false, deadman: null, required: true}  # optional (fleet/config.py);
                                    # null mode/multicast: Zenoh's own (peer, scouting on)
     ros2: {node: rocoma, namespace: /, domain_id: 0, distro: jazzy}  # optional: the manager
                                    # as a ROS 2 node over rmw_zenoh (ros2/config.py)
@@ -47,7 +47,7 @@ import yaml
 from ..drivers.plan.config import BusConfig, DriveConfig, Supervision
 from ..drivers.plan.drive_plan import DrivePlan
 from ..errors import ConfigError
-from ..fleet.bridge import FleetConfig, parse_fleet
+from ..fleet.config import FleetConfig, parse_fleet
 from ..live.urdf import Robot
 from ..manager_timing import TimingSupervision
 from ..ros2.config import Ros2Config, parse_ros2
