@@ -100,7 +100,8 @@ from .cycle.status import not_ready as _not_ready
 from .cycle.stop_requests import CycleFinding, ReadFindings
 from .cycle.supervision import FaultEvent, Supervisor
 from .link.bus_port import Bus, SentFrames, named_buses, open_ports
-from .plan.config import DriveConfig, Supervision, check_drives, estop_conflict
+from .plan.config import DriveConfig, Supervision
+from .plan.drive_clashes import check_drives, estop_conflict
 from .plan.drive_plan import check_pdo_bytes, notes_with_drives, pdo_using, plan_drives
 from .plan.pdo_layout import DriveLayout, cob_id_clashes
 from .plan.scaling import Scaling

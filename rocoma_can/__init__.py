@@ -25,8 +25,8 @@ __all__ = [
     "PluginError", "add_to_manager", "create_controller", "load_config",
 ]
 _MODULE_OF = {
-    "ControllerManager": "manager", "ManagerTimeouts": "manager", "SwitchResult": "manager",
-    "TimingSupervision": "manager",
+    "ControllerManager": "manager", "ManagerTimeouts": "manager_timing",
+    "SwitchResult": "manager", "TimingSupervision": "manager_timing",
     "EventKind": "events", "ManagerEvent": "events", "ManagerState": "events",
     "Controller": "interfaces", "EmergencyController": "interfaces",
     "FailproofController": "interfaces", "SwapState": "interfaces",
@@ -43,7 +43,8 @@ if TYPE_CHECKING:
     from .errors import PluginError
     from .events import EventKind, ManagerEvent, ManagerState
     from .interfaces import Controller, EmergencyController, FailproofController, SwapState
-    from .manager import ControllerManager, ManagerTimeouts, SwitchResult, TimingSupervision
+    from .manager import ControllerManager, SwitchResult
+    from .manager_timing import ManagerTimeouts, TimingSupervision
     from .plugins import add_to_manager, create_controller, load_config
     from .tuples import ControllerTuple, EmergencyControllerTuple, TupleSwapState
     from .workers import WorkerEvent, WorkerHandle, WorkerManager, WorkerOptions

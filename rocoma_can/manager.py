@@ -34,63 +34,22 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
 from typing import Any
 
-from .adapters import (
-    ControllerAdapter,
-    ControllerPair,
-    EmergencyControllerAdapter,
-    FailproofControllerAdapter,
-    StateCheck,
-    TimingBudget,
-)
+from .adapters import ControllerAdapter, ControllerPair, FailproofControllerAdapter, StateCheck
+from .controller_set import ControllerSet
 from .events import EventDispatcher, EventKind, ManagerEvent, ManagerState, Subscriber
 from .interfaces import Controller, EmergencyController, FailproofController
+from .manager_timing import ManagerTimeouts, TimingSupervision
 from .stopper import Stoppers, Watchdog
 from .switcher import Switcher
 from .switcher import SwitchResult as SwitchResult  # re-exported: imported from here
-from .workers import WorkerManager
 
 log = logging.getLogger("rocoma_can.manager")
 
 
 #: The least update() waits for the cycle lock with timing supervision (see __init__)
 LOCK_WAIT_MIN = 0.05
-
-
-@dataclass
-class ManagerTimeouts:
-    """Upper bounds, in seconds, for every wait the manager does."""
-    being_stopped: float = 5.0  # a switch waits this long for the new controller's stop
-    switch: float = 60.0        # switch_controller() waits this long for the result
-    shutdown: float = 5.0       # shutdown waits this long for stops and for each thread
-
-
-@dataclass(frozen=True)
-class TimingSupervision:
-    """What rocoma left to the user ("make sure you have no deadlocks"), supervised.
-
-    Budgets are fractions of dt; a controller may set its own ``advance_budget`` (seconds).
-    Budgets are wall time, what the cycle experiences: without real-time priority a
-    preempted advance counts too, so ``overruns`` in a row (not one) makes a failure.
-    A controller over its advance budget ``overruns`` cycles in a row, or an emergency
-    controller whose initialize_fast overruns, has failed. An update() that has not returned
-    after ``hang`` × dt is hung: the watchdog thread calls ``on_hang`` every dt until it
-    returns (the CAN layer sends the failproof torque-off frames from there), and the hung
-    advance counts as a failure when it finally returns: straight to FAILPROOF when
-    ``on_hang`` ran (the drives are off already), as any failure otherwise.
-    """
-    advance: float = 0.5
-    initialize_fast: float = 0.5
-    overruns: int = 5
-    hang: float = 20.0
-
-    def budget_for(self, controller: object, dt: float) -> TimingBudget:
-        advance = getattr(controller, "advance_budget", None) or self.advance * dt
-        return TimingBudget(advance_ns=int(advance * 1e9),
-                            initialize_fast_ns=int(self.initialize_fast * dt * 1e9),
-                            overruns=self.overruns, hang_ns=int(self.hang * dt * 1e9))
 
 
 class ControllerManager:
@@ -147,14 +106,14 @@ class ControllerManager:
         self._in_update = False
         self._deferring = False  # a caller calls post_cycle (the loop does): hold till then
         self._failproof = FailproofControllerAdapter(failproof, self._log)
-        self._attach(failproof)
+        self._controllers = ControllerSet(self._failproof, self.dt, state, command, self._log,
+                                          check_state, limit_command, timing)
+        self._controllers.attach(failproof)
         if not self._failproof.create(self.dt):
             self._events.close(self.timeouts.shutdown)
             raise RuntimeError(f"failproof controller {failproof.name!r} could not be created: "
                                f"{self._failproof.failure}")
 
-        self._pairs: dict[str, ControllerPair] = {}
-        self._emergencies: dict[str, EmergencyControllerAdapter] = {}
         self._state = ManagerState.FAILPROOF
         self._active: ControllerPair | None = None
         self._cycle_lock = threading.Lock()
@@ -175,13 +134,6 @@ class ControllerManager:
                                       self._events.log)
 
     # --- set-up ---------------------------------------------------------------------------
-    def _attach(self, controller: Controller | FailproofController) -> None:
-        controller.dt = self.dt
-        controller.state = self.state_object
-        controller.command = self.command_object
-        if isinstance(controller, Controller) and controller.workers is None:
-            controller.workers = WorkerManager(controller.name)
-
     def add_controller(self, controller: Controller,
                        emergency: EmergencyController | None = None) -> bool:
         """Create and register a controller, paired with an optional emergency controller.
@@ -194,49 +146,10 @@ class ControllerManager:
                             "(emergency controllers go in add_controller(..., emergency=...))")
         if emergency is not None and not isinstance(emergency, EmergencyController):
             raise TypeError(f"{emergency!r} is not an EmergencyController")
-        name = controller.name
-        if name in self._pairs or name in self._emergencies or name == self._failproof.name:
-            log.error("controller name %r is already taken; not added", name)
+        if not self._controllers.add(controller, emergency, self._closed):
             return False
-        if self._closed:
-            log.error("manager is shut down; controller %r not added", name)
-            return False
-
-        emcy_adapter = None
-        if emergency is not None:
-            emcy_adapter = self._emergencies.get(emergency.name)
-            if emcy_adapter is None:
-                if emergency.name in self._pairs or emergency.name == self._failproof.name:
-                    log.error("emergency controller name %r is taken by another layer; "
-                              "controller %r not added", emergency.name, name)
-                    return False
-                emcy_adapter = EmergencyControllerAdapter(
-                    emergency, self._log, self._check_state, self._limit_command,
-                    self._budget_for(emergency))
-                self._attach(emergency)
-                if not emcy_adapter.create(self.dt):
-                    log.error("emergency controller %r could not be created (%s); "
-                              "controller %r not added", emergency.name, emcy_adapter.failure, name)
-                    return False
-                self._emergencies[emergency.name] = emcy_adapter
-            elif emcy_adapter.controller is not emergency:
-                log.warning("a second emergency controller named %r was dropped; "
-                            "the first instance is shared", emergency.name)
-
-        adapter = ControllerAdapter(controller, self._log, self._check_state,
-                                    self._limit_command, self._budget_for(controller))
-        self._attach(controller)
-        if not adapter.create(self.dt):
-            log.error("controller %r could not be created: %s", name, adapter.failure)
-            return False
-        self._pairs[name] = ControllerPair(adapter, emcy_adapter)
-        self._stoppers.grow_to(len(self._pairs) + len(self._emergencies))
+        self._stoppers.grow_to(len(self._controllers))
         return True
-
-    def _budget_for(self, controller: object) -> TimingBudget:
-        if self.timing is None:
-            return TimingBudget()
-        return self.timing.budget_for(controller, self.dt)
 
     # --- the cycle ------------------------------------------------------------------------
     def update(self) -> ManagerState:
@@ -487,7 +400,7 @@ class ControllerManager:
         return adapter.name if adapter is not None else self._failproof.name
 
     def available_controllers(self) -> list[str]:
-        return sorted(self._pairs)
+        return sorted(self._controllers.pairs)
 
     def notify_recovery(self, cause: str) -> None:
         """Tell the subscribers of a recovery of the drives (``cause``: "started", "done:
@@ -533,11 +446,7 @@ class ControllerManager:
 
     def adapters(self) -> dict[str, ControllerAdapter | FailproofControllerAdapter]:
         """Every registered controller's adapter by name (flags and call statistics)."""
-        out: dict[str, ControllerAdapter | FailproofControllerAdapter] = {
-            p.controller.name: p.controller for p in self._pairs.values()}
-        out.update(self._emergencies)
-        out[self._failproof.name] = self._failproof
-        return out
+        return self._controllers.adapters()
 
     # --- shutdown -------------------------------------------------------------------------
     def shutdown(self) -> bool:
@@ -569,18 +478,7 @@ class ControllerManager:
             log.error("shutdown: the cycle lock was not free within %.1f s (a switch stuck "
                       "in a controller callback)", limit)
             ok = False
-        deadline = time.monotonic() + limit
-        pending = [a for a in self.adapters().values()
-                   if isinstance(a, ControllerAdapter) and a.being_stopped]
-        while pending and time.monotonic() < deadline:
-            time.sleep(0.005)
-            pending = [a for a in pending if a.being_stopped]
-        for adapter in pending:
-            log.error("shutdown: controller %r still stopping after %.1f s", adapter.name, limit)
-        ok = ok and not pending
-        for each in self.adapters().values():
-            if each.created and each not in pending:
-                ok = each.cleanup() and ok
+        ok = self._controllers.finish(limit) and ok
         switcher_stuck = self._switcher.close(limit)
         watchdog_stuck = self._watchdog.close(limit) if self._watchdog is not None else []
         stuck = self._stoppers.close(limit) + switcher_stuck + watchdog_stuck

@@ -30,7 +30,7 @@ StopKind = Literal["estop", "failproof"]
 KINDS: tuple[StopKind, ...] = ("estop", "failproof")
 
 
-class StopTarget(Protocol):
+class Stoppable(Protocol):
     """The manager as a stop sees it (rocoma_can's ControllerManager)."""
     def emergency_stop(self, cause: str = ...) -> None: ...
     def failproof_stop(self, cause: str = ...) -> None: ...
@@ -52,7 +52,7 @@ class StopSurface:
         """The stop's cause as the manager keeps it: "SDO e-stop (0x2110)"."""
         return f"{self.label} {'e-stop' if kind == 'estop' else 'failproof stop'}{where}"
 
-    def stop(self, manager: StopTarget, kind: str, where: str = "") -> None:
+    def stop(self, manager: Stoppable, kind: str, where: str = "") -> None:
         """A stop arrived here: the manager's stop, at once (effective by its next update).
         Any ``kind`` other than "failproof" is an e-stop: a stop never fails for a word."""
         if kind == "failproof":

@@ -28,11 +28,12 @@ from concurrent.futures import Future
 from typing import TYPE_CHECKING, Protocol
 
 from .adapters import ControllerAdapter, ControllerPair
+from .controller_set import ControllerSet
 from .events import LATCHED, ManagerState
 from .stopper import Stoppers
 
 if TYPE_CHECKING:
-    from .manager import ManagerTimeouts
+    from .manager_timing import ManagerTimeouts
 
 # The manager's logger: a switch is the manager's work, and its records are found there.
 log = logging.getLogger("rocoma_can.manager")
@@ -56,7 +57,7 @@ class SwitchHost(Protocol):
     switch_count: int
     _cycle_lock: threading.Lock
     _stoppers: Stoppers
-    _pairs: dict[str, ControllerPair]
+    _controllers: ControllerSet
     _state: ManagerState
     _active: ControllerPair | None
     _latched: bool
@@ -94,7 +95,7 @@ class Switcher:
         """ControllerManager.request_switch: refused at once, or queued for the thread."""
         m = self._manager
         future: Future[SwitchResult] = Future()
-        pair = m._pairs.get(name)
+        pair = m._controllers.pairs.get(name)
         if pair is None:
             m.last_refusal = f"no controller {name!r}"
             log.warning("switch to %r: no such controller (available: %s)",

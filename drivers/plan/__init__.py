@@ -2,4 +2,4 @@
 
 A drive's config (DriveConfig, BusConfig) measured against its device file becomes a plan:
 the PDO layouts, the modes each joint is commanded in, the unit scaling and the drive-side
-limits. Computed once; the cycle only reads it."""
+limits; the checks across drives (drive_clashes). Computed once; the cycle only reads it."""

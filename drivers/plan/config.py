@@ -14,15 +14,19 @@ from typing import Any, Literal
 
 from ...user_files import not_regular
 from ..files.identity import Identity, identity_from_config
-from ..protocol import cia301
 from ..protocol.cia402 import MAX_AXES
 from ..protocol.joints import JointMode
 from .modes import BY_NAME, KIND, DriveMode
 
 
-def _whole(value: Any) -> bool:
+def whole(value: Any) -> bool:
     """An integer, and not a bool (YAML ``true`` is not node 1)."""
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def is_node_id(value: Any) -> bool:
+    """A CANopen node id: a whole number 1..127 (a drive's, the manager's)."""
+    return whole(value) and 1 <= value <= 127
 
 
 def _finite(value: Any) -> bool:
@@ -57,7 +61,7 @@ class BusConfig:
             raise ValueError(f"{where}: data_bitrate needs fd: true")
         for name in ("bitrate", "data_bitrate"):
             value = getattr(self, name)
-            if value is not None and (not _whole(value) or value <= 0):
+            if value is not None and (not whole(value) or value <= 0):
                 raise ValueError(f"{where}: {name} must be a positive integer (bit/s), "
                                  f"got {value!r}")
 
@@ -99,7 +103,7 @@ class Supervision:
     timeouts: Timeouts = Timeouts()
 
     def __post_init__(self) -> None:
-        if not _whole(self.tpdo_timeout_cycles) or self.tpdo_timeout_cycles < 1:
+        if not whole(self.tpdo_timeout_cycles) or self.tpdo_timeout_cycles < 1:
             raise ValueError("supervision.tpdo_timeout_cycles must be a whole number >= 1, "
                              f"got {self.tpdo_timeout_cycles!r}")
         for name in ("heartbeat_timeout_factor", "consumer_factor"):
@@ -109,19 +113,29 @@ class Supervision:
                                  f"the heartbeat period always trips), got {value!r}")
         if not _finite(self.sdo_timeout) or self.sdo_timeout <= 0:
             raise ValueError(f"supervision.sdo_timeout must be > 0 s, got {self.sdo_timeout!r}")
-        if not _whole(self.sdo_retries) or self.sdo_retries < 0:
+        if not whole(self.sdo_retries) or self.sdo_retries < 0:
             raise ValueError("supervision.sdo_retries must be a whole number >= 0, "
                              f"got {self.sdo_retries!r}")
 
     def consumer_ms(self, manager_heartbeat_ms: int) -> int:
         """The drives' heartbeat consumer time (0x1016) for this manager heartbeat."""
-        consumer_ms = int(round(manager_heartbeat_ms * self.consumer_factor))
-        if not 1 <= manager_heartbeat_ms or consumer_ms > 0xFFFF:
+        if not 1 <= manager_heartbeat_ms \
+                or self.consumer_overflow(manager_heartbeat_ms) is not None:
             raise ValueError("manager_heartbeat_ms must be >= 1 and its product with "
                              "supervision.consumer_factor <= 65535 ms (the drives' heartbeat "
                              f"consumer time); got {manager_heartbeat_ms} and "
                              f"{self.consumer_factor}")
-        return consumer_ms
+        return int(round(manager_heartbeat_ms * self.consumer_factor))
+
+    def consumer_overflow(self, manager_heartbeat_ms: int) -> str | None:
+        """Why ``consumer_factor`` manager heartbeat periods do not fit the drives'
+        heartbeat consumer time (0x1016: 16 bits of ms), or None."""
+        consumer_ms = int(round(manager_heartbeat_ms * self.consumer_factor))
+        if consumer_ms <= 0xFFFF:
+            return None
+        return (f"{self.consumer_factor:g} x manager.heartbeat_ms {manager_heartbeat_ms} = "
+                f"{consumer_ms} ms, more than the drives' heartbeat consumer (0x1016) can "
+                "hold (65535 ms)")
 
 
 #: Feedback objects a drive can report in its TPDOs (statusword is always mapped).
@@ -134,10 +148,38 @@ def _mode(value: Any, where: str) -> DriveMode:
     """A mode by config name (csp, ip, pv, ...) or by its 0x6060 number."""
     if isinstance(value, str) and value.strip().lower() in BY_NAME:
         return BY_NAME[value.strip().lower()]
-    if _whole(value) and value in {int(m) for m in DriveMode}:
+    if whole(value) and value in {int(m) for m in DriveMode}:
         return DriveMode(value)
     raise ValueError(f"{where}: unknown mode {value!r}; use {_MODE_NAMES} (position: csp, ip "
                      "or pp; velocity: csv or pv; torque: cst)")
+
+
+def _modes(given: Any, where: str) -> tuple[DriveMode, ...]:
+    """``modes:`` (YAML: a name, a number or a list of them) as distinct modes, at most one
+    of each kind: a controller's target of one kind goes in one mode."""
+    modes = (given,) if isinstance(given, (str, int)) else tuple(given)
+    if not modes:
+        raise ValueError(f"{where}: modes must name at least one of {_MODE_NAMES}")
+    out = tuple(dict.fromkeys(_mode(m, f"{where}: modes") for m in modes))
+    kinds: dict[JointMode, DriveMode] = {}
+    for m in out:
+        other = kinds.setdefault(KIND[m], m)
+        if other != m:
+            raise ValueError(f"{where}: modes {other.name.lower()} and {m.name.lower()} "
+                             f"both carry {KIND[m].name} targets: configure one of them")
+    return out
+
+
+def _feedback(named: Any, where: str) -> tuple[str, ...] | None:
+    """``feedback:`` (a name or a list) in FEEDBACK's order; None stays None (every one the
+    drive's file has)."""
+    if named is None:
+        return None
+    feedback = (named,) if isinstance(named, str) else tuple(named)
+    for name in feedback:
+        if name not in FEEDBACK:
+            raise ValueError(f"{where}: feedback {name!r} unknown; use {list(FEEDBACK)}")
+    return tuple(f for f in FEEDBACK if f in feedback)
 
 
 #: Keys of a drive's ``limits:`` mapping.
@@ -186,7 +228,7 @@ class DriveLimits:
             if value.get(name) is not None:
                 _positive(where, f"limits.{name}", value[name])
         cycles = value.get("following_error_cycles", 3)
-        if not _whole(cycles) or cycles < 1:
+        if not whole(cycles) or cycles < 1:
             raise ValueError(f"{where}: limits.following_error_cycles must be a whole number "
                              f">= 1, got {cycles!r}")
 
@@ -253,39 +295,35 @@ class DriveConfig:
                                             # None: the file's vendor/product, any: none
 
     def __post_init__(self) -> None:
+        """Each field checked (and the ones YAML gives loosely made exact: modes, feedback,
+        limits, identity) in the order they are declared: the first problem raises."""
         where = f"drive {self.name!r}"
+        self._check_numbers(where)
+        self.modes = _modes(self.modes, where)
+        self.feedback = _feedback(self.feedback, where)
+        self.limits = DriveLimits.from_value(self.limits, where)
+        self._take_limits(where)
+        self._check_manager_limits(where)
+        self._check_node(where)
+        self._check_rest(where)
+
+    def _check_numbers(self, where: str) -> None:
+        """The name, the node id and the scaling: what every drive must have."""
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"drive name must be a non-empty string, got {self.name!r}")
-        if not _whole(self.node_id) or not 1 <= self.node_id <= 127:
+        if not is_node_id(self.node_id):
             raise ValueError(f"{where}: node_id must be an integer 1..127, got {self.node_id!r}")
-        if not _whole(self.increments_per_rev) or self.increments_per_rev <= 0:
+        if not whole(self.increments_per_rev) or self.increments_per_rev <= 0:
             raise ValueError(f"{where}: increments_per_rev must be a positive integer, "
                              f"got {self.increments_per_rev!r}")
         _positive(where, "rated_torque_nm", self.rated_torque_nm)
         if not _finite(self.gear_ratio) or self.gear_ratio == 0:
             raise ValueError(f"{where}: gear_ratio must be a non-zero number, "
                              f"got {self.gear_ratio!r}")
-        given: Any = self.modes  # YAML: a name, a number or a list of them
-        modes = (given,) if isinstance(given, (str, int)) else tuple(given)
-        if not modes:
-            raise ValueError(f"{where}: modes must name at least one of {_MODE_NAMES}")
-        self.modes = tuple(dict.fromkeys(_mode(m, f"{where}: modes") for m in modes))
-        kinds: dict[JointMode, DriveMode] = {}
-        for m in self.modes:  # a controller's target of one kind goes in one mode
-            other = kinds.setdefault(KIND[m], m)
-            if other != m:
-                raise ValueError(f"{where}: modes {other.name.lower()} and {m.name.lower()} "
-                                 f"both carry {KIND[m].name} targets: configure one of them")
-        named: Any = self.feedback
-        if named is not None:
-            feedback = (named,) if isinstance(named, str) else tuple(named)
-            for name in feedback:
-                if name not in FEEDBACK:
-                    raise ValueError(f"{where}: feedback {name!r} unknown; use "
-                                     f"{list(FEEDBACK)}")
-            self.feedback = tuple(f for f in FEEDBACK if f in feedback)
-        self.limits = DriveLimits.from_value(self.limits, where)
-        self._take_limits(where)
+
+    def _check_manager_limits(self, where: str) -> None:
+        """The manager's limits (after ``limits:`` set them): numbers, the range the right
+        way round and within what the drive's position can hold."""
         for name in ("max_torque_nm", "max_velocity"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or math.isnan(value) or value <= 0:
@@ -308,19 +346,25 @@ class DriveConfig:
                     f"{where}: {said} {value:g} rad is beyond what the drive's position "
                     f"(INT32 increments, 0x6064/0x607A) holds at {self.increments_per_rev} "
                     f"increments a turn and gear ratio {self.gear_ratio:g}: +-{span:.4g} rad")
-        if not _whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
+
+    def _check_node(self, where: str) -> None:
+        """What the drive's node is on the bus: its heartbeat, axis, PDO size, guarding."""
+        if not whole(self.heartbeat_ms) or not 1 <= self.heartbeat_ms <= 0xFFFF:
             raise ValueError(f"{where}: heartbeat_ms must be an integer 1..65535, "
                              f"got {self.heartbeat_ms!r}")
-        if not _whole(self.axis) or not 1 <= self.axis <= MAX_AXES:
+        if not whole(self.axis) or not 1 <= self.axis <= MAX_AXES:
             raise ValueError(f"{where}: axis must be an integer 1..{MAX_AXES} (CiA 402-2), "
                              f"got {self.axis!r}")
-        if not _whole(self.pdo_bytes) or not 8 <= self.pdo_bytes <= 64:
+        if not whole(self.pdo_bytes) or not 8 <= self.pdo_bytes <= 64:
             raise ValueError(f"{where}: pdo_bytes must be an integer 8..64 (bytes per PDO; "
                              f"over 8 on a CAN FD bus only), got {self.pdo_bytes!r}")
         if self.guarding not in GUARDING:
             raise ValueError(f"{where}: guarding must be one of {list(GUARDING)}, "
                              f"got {self.guarding!r}")
-        if self.homing_method is not None and (not _whole(self.homing_method)
+
+    def _check_rest(self, where: str) -> None:
+        """Homing, the manager-loss waiver, the bus's name, the identity and the file."""
+        if self.homing_method is not None and (not whole(self.homing_method)
                                                or not -128 <= self.homing_method <= 127):
             raise ValueError(f"{where}: homing_method must be a CiA 402 method number "
                              f"(0x6098, -128..127), got {self.homing_method!r}")
@@ -372,63 +416,3 @@ class DriveConfig:
         if missing:
             raise ValueError(f"drive {data.get('name', '?')!r}: missing keys {missing}")
         return cls(**dict(data))
-
-
-def check_drives(drives: list[DriveConfig], manager_node_id: int,
-                 buses: Sequence[str] = ("",)) -> None:
-    """Checks across drives: unique names, each drive on one of ``buses`` ("" = the first),
-    node ids unique on each bus and none equal to the manager's (the manager is a node on
-    every bus: its heartbeat goes to all of them)."""
-    if not drives:
-        raise ValueError("drives: at least one drive is needed")
-    if not _whole(manager_node_id) or not 1 <= manager_node_id <= 127:
-        raise ValueError(f"manager_node_id must be an integer 1..127, got {manager_node_id!r}")
-    seen_names: set[str] = set()
-    seen_ids: dict[tuple[str, int, int], str] = {}
-    first_of_node: dict[tuple[str, int], DriveConfig] = {}
-    for d in drives:
-        if d.name in seen_names:
-            raise ValueError(f"drive name {d.name!r} is used twice")
-        seen_names.add(d.name)
-        if d.bus and d.bus not in buses:
-            raise ValueError(f"drive {d.name!r}: no bus named {d.bus!r} (buses: "
-                             f"{', '.join(repr(b) for b in buses)})")
-        bus = d.bus or buses[0]
-        on = f" on bus {bus!r}" if len(buses) > 1 else ""
-        if (bus, d.node_id, d.axis) in seen_ids:
-            axis = f" axis {d.axis}" if d.axis > 1 else ""
-            raise ValueError(f"drive {d.name!r}: node_id {d.node_id}{axis} is already used by "
-                             f"drive {seen_ids[bus, d.node_id, d.axis]!r}{on}")
-        if d.node_id == manager_node_id:
-            raise ValueError(f"drive {d.name!r}: node_id {d.node_id} is the manager's node id")
-        seen_ids[bus, d.node_id, d.axis] = d.name
-        sibling = first_of_node.setdefault((bus, d.node_id), d)
-        why = node_mismatch(sibling, d)
-        if why is not None:
-            raise ValueError(why)
-
-
-def node_mismatch(a: DriveConfig, b: DriveConfig) -> str | None:
-    """Why two axes of one node cannot be configured as given, or None: what belongs to
-    the node (its file, its heartbeat or guarding, its identity) must be said alike for each."""
-    for key in ("eds", "heartbeat_ms", "guarding", "identity", "pdo_bytes"):
-        if getattr(a, key) != getattr(b, key):
-            return (f"drive {b.name!r}: node {b.node_id} is also drive {a.name!r} (axis "
-                    f"{a.axis}), whose {key} is {getattr(a, key)!r}, not "
-                    f"{getattr(b, key)!r}: one node has one {key}")
-    return None
-
-
-def estop_conflict(cob_id: int, drives: Sequence[DriveConfig],
-                   manager_node_id: int) -> str | None:
-    """Why ``cob_id`` cannot be the e-stop COB-ID with these drives (on any of their buses)
-    and this manager node, or None."""
-    why = cia301.reserved_cob_id(cob_id)
-    if why is not None:
-        return why
-    for d in drives:
-        used = cia301.node_cob_ids(d.node_id).get(cob_id)
-        if used is not None:
-            return f"{used} (drive {d.name!r})"
-    used = cia301.node_cob_ids(manager_node_id).get(cob_id)
-    return None if used is None else f"{used}, the manager's own"

@@ -150,7 +150,7 @@ def _write_csv(source: Path, stream: Any, notes: list[str]) -> int:
     cycles. Per-joint columns are ``FIELD[JOINT]`` with the joints' names from the trace
     (their numbers where a trace carries none), as the arrays appear in PlotJuggler. A
     file cut short is written up to the cut, said in ``notes``."""
-    from ..record.trace import CYCLE_TOPIC, JOINT_FIELDS, SCALARS, joint_names, read_trace
+    from ..record.trace import CYCLE_TOPIC, JOINT_FIELDS, SCALARS, read_trace, recorded_joint_names
     writer = csv.writer(stream)
     rows = 0
     for topic, log_time, msg in read_trace(str(source), notes):
@@ -158,7 +158,7 @@ def _write_csv(source: Path, stream: Any, notes: list[str]) -> int:
             continue
         if rows == 0:
             joints = len(msg["position"])  # every row alike: read_trace checked them
-            names = joint_names(str(source), joints) or [str(j) for j in range(joints)]
+            names = recorded_joint_names(str(source), joints) or [str(j) for j in range(joints)]
             scalars = [k for k in SCALARS if k in msg]  # (a trace from before ``cpu``)
             writer.writerow(["log_time_ns", *scalars,
                              *(f"{f}[{name}]" for f in JOINT_FIELDS for name in names)])

@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING, Any
 
 from ..audit import AUDIT
 from ..errors import BusTaken, ConfigError
-from ..fleet.bridge import FleetConfig, FleetError
-from ..fleet.bridge import parse as parse_fleet
-from ..live.foxglove import FoxgloveError, describe
-from ..ros2.config import add_options as add_ros2_options
+from ..fleet.bridge import FleetError
+from ..fleet.config import FleetConfig, parse_fleet
+from ..live.foxglove import FoxgloveError, describe_view
+from ..ros2.config import add_ros2_options
 from ..ros2.config import from_args as ros2_from_args
 from .args import flight_seconds, seconds
 from .exit_codes import FAILED, INTERRUPTED, OK, USAGE
@@ -192,10 +192,10 @@ def _say_started(runtime: Runtime, args: argparse.Namespace) -> None:
                  "allowed" if f.allow_commands else "refused")
     # (running without Zenoh, zenoh.required false: said by the runtime as it found it)
     if runtime.foxglove is not None:
-        say.info("%s", describe(runtime.foxglove))
+        say.info("%s", describe_view(runtime.foxglove))
     if runtime.ros2 is not None:
-        from ..ros2.node import describe as describe_ros2
-        say.info("%s", describe_ros2(runtime.ros2))
+        from ..ros2.node import describe_node
+        say.info("%s", describe_node(runtime.ros2))
     elif runtime.ros2_error:
         log.warning("running without the ROS 2 node: %s", runtime.ros2_error)
 

@@ -10,13 +10,8 @@ from typing import Any
 
 from ..errors import NoAnswer, RocomaError
 from ..remote import STOPS
-from .bridge import (
-    FleetError,
-    close_session,
-    default_prefix,
-    key_problem,
-    open_session,
-)
+from .bridge import FleetError, close_session, open_session
+from .config import default_prefix, key_problem
 
 #: one round of a query; repeated until the caller's timeout
 ROUND = 0.5

@@ -374,7 +374,7 @@ class FoxgloveView:
             self._stop.wait(self.config.status_period)
 
 
-def describe(view: FoxgloveView) -> str:
+def describe_view(view: FoxgloveView) -> str:
     """The line ``run`` prints: where to connect, what is served, the layout's file."""
     host = view.config.host
     every = every_interface(host)  # said: whoever reaches the machine reaches the robot

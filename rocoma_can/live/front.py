@@ -199,69 +199,109 @@ class Front:
         leaves without its half of a close leaves the SDK's side reset. The viewer's bytes
         go through ``calls`` (a stop call reaches the SDK in the form it takes), the SDK's
         are read by it (the stop services' ids)."""
-        viewer.setblocking(False)
-        sdk.setblocking(False)
-        other = {viewer: sdk, sdk: viewer}
-        waiting = {viewer: bytearray(), sdk: bytearray()}  # bytes to write to each
-        reading = {viewer: True, sdk: True}
-        taken = time.monotonic()  # the viewer's last progress, or when bytes began waiting
-        sdk_done: float | None = None  # when the SDK's side had ended and all was delivered
+        splice = _Splice(viewer, sdk, calls)
         with selectors.DefaultSelector() as selector:
-            watched: dict[socket.socket, int] = {}
             while not self._stop.is_set():
-                if not (reading[viewer] or reading[sdk] or waiting[viewer] or waiting[sdk]):
+                if splice.finished():
                     return
                 now = time.monotonic()
-                if waiting[viewer] and now - taken > STALL_LIMIT:
+                if splice.stalled(now):
                     self._count("viewers_stalled")
                     break
-                if not reading[sdk] and not waiting[viewer]:  # the viewer's turn to close
-                    sdk_done = now if sdk_done is None else sdk_done
-                    if now - sdk_done > HANDSHAKE_WAIT:
-                        break
-                for sock in (viewer, sdk):
-                    events = (selectors.EVENT_READ if reading[sock]
-                              and len(waiting[other[sock]]) < BUFFER else 0) | (
-                        selectors.EVENT_WRITE if waiting[sock] else 0)
-                    if events != watched.get(sock, 0):
-                        if not events:
-                            selector.unregister(sock)
-                        elif sock in watched:
-                            selector.modify(sock, events)
-                        else:
-                            selector.register(sock, events)
-                        watched[sock] = events
-                        if not events:
-                            del watched[sock]
+                if splice.close_overdue(now):
+                    break
+                splice.watch(selector)
                 try:
-                    for key, mask in selector.select(POLL):
-                        sock = viewer if key.fileobj is viewer else sdk
-                        if mask & selectors.EVENT_WRITE:
-                            del waiting[sock][:sock.send(waiting[sock])]
-                            if sock is viewer:
-                                taken = time.monotonic()
-                            if not waiting[sock] and not reading[other[sock]]:
-                                sock.shutdown(socket.SHUT_WR)  # the other end's close
-                        if mask & selectors.EVENT_READ:
-                            data = sock.recv(BUFFER)
-                            to = other[sock]
-                            if not data:
-                                reading[sock] = False
-                                if not waiting[to]:
-                                    to.shutdown(socket.SHUT_WR)
-                            else:
-                                if to is viewer and not waiting[to]:
-                                    taken = time.monotonic()
-                                if sock is viewer:
-                                    data = calls.from_viewer(data)
-                                else:
-                                    calls.from_sdk(data)
-                                waiting[to] += data
+                    splice.step(selector)
                 except (BlockingIOError, InterruptedError):
                     continue
                 except OSError:  # reset, or a shutdown of an end already gone
                     break
             _reset(sdk)  # failed, stalled or closing: the SDK sees the viewer gone
+
+
+class _Splice:
+    """One viewer's connection and the SDK's, spliced (``Front._splice``): what waits to
+    be written to each end, which end still sends, and the viewer's last progress."""
+
+    def __init__(self, viewer: socket.socket, sdk: socket.socket, calls: StopCalls) -> None:
+        viewer.setblocking(False)
+        sdk.setblocking(False)
+        self.viewer, self.sdk, self.calls = viewer, sdk, calls
+        self.other = {viewer: sdk, sdk: viewer}
+        self.waiting = {viewer: bytearray(), sdk: bytearray()}  # bytes to write to each
+        self.reading = {viewer: True, sdk: True}
+        self.taken = time.monotonic()  # the viewer's last progress, or when bytes began waiting
+        self.sdk_done: float | None = None  # when the SDK's side had ended, all delivered
+        self.watched: dict[socket.socket, int] = {}
+
+    def finished(self) -> bool:
+        """Both ends closed and everything delivered."""
+        return not (self.reading[self.viewer] or self.reading[self.sdk]
+                    or self.waiting[self.viewer] or self.waiting[self.sdk])
+
+    def stalled(self, now: float) -> bool:
+        """The viewer has taken none of the bytes waiting for it for STALL_LIMIT."""
+        return bool(self.waiting[self.viewer]) and now - self.taken > STALL_LIMIT
+
+    def close_overdue(self, now: float) -> bool:
+        """The SDK's side ended and was delivered HANDSHAKE_WAIT ago, and the viewer, whose
+        turn it is to close, has not."""
+        if self.reading[self.sdk] or self.waiting[self.viewer]:
+            return False
+        self.sdk_done = now if self.sdk_done is None else self.sdk_done
+        return now - self.sdk_done > HANDSHAKE_WAIT
+
+    def watch(self, selector: selectors.BaseSelector) -> None:
+        """Each end watched for what it can do now: read while the other end's queue has
+        room, write while its own holds bytes."""
+        for sock in (self.viewer, self.sdk):
+            events = (selectors.EVENT_READ if self.reading[sock]
+                      and len(self.waiting[self.other[sock]]) < BUFFER else 0) | (
+                selectors.EVENT_WRITE if self.waiting[sock] else 0)
+            if events != self.watched.get(sock, 0):
+                if not events:
+                    selector.unregister(sock)
+                elif sock in self.watched:
+                    selector.modify(sock, events)
+                else:
+                    selector.register(sock, events)
+                self.watched[sock] = events
+                if not events:
+                    del self.watched[sock]
+
+    def step(self, selector: selectors.BaseSelector) -> None:
+        """What the ends are ready for, done (OSError: an end failed)."""
+        for key, mask in selector.select(POLL):
+            sock = self.viewer if key.fileobj is self.viewer else self.sdk
+            if mask & selectors.EVENT_WRITE:
+                self._write(sock)
+            if mask & selectors.EVENT_READ:
+                self._read(sock)
+
+    def _write(self, sock: socket.socket) -> None:
+        waiting = self.waiting[sock]
+        del waiting[:sock.send(waiting)]
+        if sock is self.viewer:
+            self.taken = time.monotonic()
+        if not waiting and not self.reading[self.other[sock]]:
+            sock.shutdown(socket.SHUT_WR)  # the other end's close
+
+    def _read(self, sock: socket.socket) -> None:
+        data = sock.recv(BUFFER)
+        to = self.other[sock]
+        if not data:
+            self.reading[sock] = False
+            if not self.waiting[to]:
+                to.shutdown(socket.SHUT_WR)
+            return
+        if to is self.viewer and not self.waiting[to]:
+            self.taken = time.monotonic()
+        if sock is self.viewer:
+            data = self.calls.from_viewer(data)
+        else:
+            self.calls.from_sdk(data)
+        self.waiting[to] += data
 
 
 def _keep_alive(sock: socket.socket) -> None:

@@ -3,7 +3,7 @@ from the rows and events it writes anyway: a recording or flight record opens in
 with the live view's layout (live/foxglove_layout.json).
 
 ``/joint_states`` every cycle (the plots); ``/rocoma/manager`` on every manager event and at
-SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics cost ~5 µs a joint);
+SAMPLE_RATE; ``/tf`` at SAMPLE_RATE (the 3D panel: forward kinematics costs per joint);
 ``/rocoma/log``, a line per manager event; ``/robot_description`` once, with the first
 cycle; ``/rocoma/status``, the status reports the loop's process sent (every STATUS_PERIOD
 while it records, recorder.py, and as often as a viewer of the live view asks), each once per
@@ -42,11 +42,11 @@ T = TypeVar("T")
 SAMPLE_RATE = 50.0
 _SAMPLE_PERIOD = 1.0 / SAMPLE_RATE
 #: status reports (and service-call lines) a second, an upper bound: the recording's one
-#: every STATUS_PERIOD, the live view's two; a Heard keeps a flight record's window of them
+#: every STATUS_PERIOD, the live view's two; a HeardWindow keeps a flight record's window of them
 HEARD_PER_SECOND = 4
 
 
-class Heard(Generic[T]):
+class HeardWindow(Generic[T]):
     """The last ``keep`` things heard, each numbered as it came and stamped (the monotonic
     clock, one for every process). Any thread adds; a file takes what came after the last
     number it wrote, so none is written twice or passed over."""
@@ -122,13 +122,13 @@ class Facts:
     window: float = 10.0  # s: the flight record's, whose reports and lines are kept
     latched: bool = False
     span: float = 10.0
-    statuses: Heard[dict[str, Any]] = field(init=False)
-    logs: Heard[tuple[str, int]] = field(init=False)
+    statuses: HeardWindow[dict[str, Any]] = field(init=False)
+    logs: HeardWindow[tuple[str, int]] = field(init=False)
     estops: EstopHistory = field(init=False)
 
     def __post_init__(self) -> None:
         keep = max(64, int(HEARD_PER_SECOND * self.window) + 8)
-        self.statuses, self.logs = Heard(keep), Heard(keep)
+        self.statuses, self.logs = HeardWindow(keep), HeardWindow(keep)
         self.estops = EstopHistory(self.latched, self.span)
 
     def on_event(self, event: Mapping[str, Any]) -> None:

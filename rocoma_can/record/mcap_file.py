@@ -2,11 +2,12 @@
 struct pack and two buffer appends.
 
 Why not the ``mcap`` package's ``Writer`` (still the reader, ``trace.read_messages``): it
-builds a record object, updates statistics and writes six pieces per message, ~3 µs each.
-A recording with every frame writes ~52,000 of them a second for the demo's 12 drives,
-and a flight record 10 s of them at once: a frame's message with its JSON took the writer
-process 4.8-9 µs there, 1.9-3 µs here (benchmarks/recording_cost.py), and the writer's
-whole work at 1 kHz went from ~50 to ~30 % of a core.
+builds a record object, updates statistics and writes six pieces per message. A recording
+with every frame writes tens of thousands of them a second for the demo's 12 drives, and a
+flight record 10 s of them at once: here a frame's message costs the writer process a
+fraction of what it cost there, and the writer's whole work at 1 kHz shrank by a third
+(benchmarks/recording_cost.py; the figures: benchmarks/README.md, "Figures behind
+constants").
 
 What it writes (MCAP, https://mcap.dev/spec): the magic, a header, then chunks of
 ``chunk_size`` uncompressed bytes (zstd, with their CRC) each followed by its message

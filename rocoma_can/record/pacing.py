@@ -16,9 +16,10 @@ default.
 A ``sched_yield`` ends the writer's turn: a task queued on its CPU runs next. Work is
 counted in the thread's CPU time, so time the writer spent preempted or asleep is no reason
 to yield again (under contention that would cut its share further, towards falling a ring
-behind); the CPU clock (a system call, ~1 µs) is read only once a piece of wall time has
-passed (``perf_counter``, ~0.1 µs). With nothing queued a yield returns at once (~1 µs, a
-few hundred a second while the writer works). What stays whole is what happens in one
+behind); the CPU clock (a system call) is read only once a piece of wall time has passed
+(``perf_counter``, a tenth of its cost). With nothing queued a yield returns at once (a
+few hundred a second while the writer works; the figures: benchmarks/README.md, "Figures
+behind constants"). What stays whole is what happens in one
 call: a numpy sort or copy of a flight record's 10 s, an MCAP chunk's compression.
 """
 from __future__ import annotations

@@ -73,10 +73,10 @@ class Trace:
                 if rank.get(b, 2) < rank.get(a, 2)]
 
 
-def load(path: str | Path, notes: list[str] | None = None) -> Trace:
+def load_trace(path: str | Path, notes: list[str] | None = None) -> Trace:
     """The trace in ``path``; PlotError says why a file cannot be read, in one line; a file
     cut short is read up to the cut, said in ``notes`` (trace.read_messages)."""
-    from .trace import CYCLE_TOPIC, EVENT_TOPIC, TraceError, joint_names, read_trace
+    from .trace import CYCLE_TOPIC, EVENT_TOPIC, TraceError, read_trace, recorded_joint_names
     rows: list[tuple[int, dict[str, Any]]] = []
     raw_events: list[tuple[int, dict[str, Any]]] = []
     try:
@@ -94,7 +94,7 @@ def load(path: str | Path, notes: list[str] | None = None) -> Trace:
         raise PlotError(f"{path}: no cycles ({CYCLE_TOPIC}) to plot")
     joints = len(rows[0][1]["position"])  # every row alike: read_trace checked them
     t0 = rows[0][0]
-    names = joint_names(str(path), joints) or [f"joint {j}" for j in range(joints)]
+    names = recorded_joint_names(str(path), joints) or [f"joint {j}" for j in range(joints)]
 
     def matrix(key: str) -> np.ndarray:
         return np.array([m[key] for _, m in rows], dtype=float).reshape(len(rows), joints)
@@ -206,7 +206,7 @@ def plot(source: str | Path, out: str | Path | None = None, title: str = "",
     the title defaults to the file's name (marked when the file was cut short: ``notes``
     says how)."""
     said: list[str] = []
-    trace = load(source, said)
+    trace = load_trace(source, said)
     if notes is not None:
         notes += said
     if said and not title:  # (the note's last words: "read up to the cut" / "the damage")

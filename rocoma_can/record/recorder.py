@@ -2,10 +2,10 @@
 them, and the writer process it starts (the flight recorder, on by default, ``--record``
 and ``--foxglove``'s server).
 
-The loop must not pay for recording: JSON, MCAP, candump text and the disk cost ~20 % of a
-core at 1 kHz with 12 drives, and in the loop's interpreter they took that from the loop.
-So the loop's process only copies, into rings in shared memory (rings.py): each cycle's
-signal row (trace.SignalTrace, ~4 µs) and each frame its buses carried (~0.3 µs a frame:
+The loop must not pay for recording: JSON, MCAP, candump text and the disk cost a good
+share of a core at 1 kHz with 12 drives, and in the loop's interpreter they took that from
+the loop. So the loop's process only copies, into rings in shared memory (rings.py): each
+cycle's signal row (trace.SignalTrace) and each frame its buses carried (a copy each:
 the hardware's own reader hands the received ones over, BusPort the sent ones; no second
 socket). Everything else runs in a process of its own (writer.py), niced, on the other core
 (never on CPUs the loop is pinned to, ``loop_cpus``: realtime.cpus, while there are others):
@@ -60,9 +60,9 @@ CLOSE_WAIT = 30.0
 #: manager events queued for the writer at most
 EVENT_QUEUE = 4096
 #: s between the status reports that go into the recording and the flight records
-#: (``status_source``: ~0.4 ms of this process's interpreter each, 12 drives; measured in
-#: the demo at 1 kHz, one report in five made a cycle overrun; the per-cycle statistics
-#: are in every /rocoma/cycle row anyway)
+#: (``status_source`` holds this process's interpreter for a fair share of a 1 kHz cycle,
+#: and in the demo some reports made a cycle overrun: benchmarks/README.md, "Figures behind
+#: constants"; the per-cycle statistics are in every /rocoma/cycle row anyway)
 STATUS_PERIOD = 2.0
 #: the writer's niceness: the loop's process comes first when the cores are busy
 NICE = 19

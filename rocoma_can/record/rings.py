@@ -196,8 +196,8 @@ def _cgroup_room() -> int | None:
 class FrameRing(can.Listener):
     """One bus's frames in one direction, into the shared file: received (a ``lock_free``
     listener on the hardware's own reader: the frames it reads anyway, no second socket)
-    or sent (``sent``, called by BusPort after each frame it sent). ~0.3 µs a frame, no
-    allocation."""
+    or sent (``sent``, called by BusPort after each frame it sent). No allocation (its cost
+    a frame: benchmarks/README.md, "Figures behind constants")."""
 
     #: BusReader.drain_now may call it on the loop's thread: it takes no lock
     lock_free = True
@@ -237,7 +237,8 @@ class FrameRing(can.Listener):
         pass
 
 
-#: frame records ``frame_chunks`` converts at once (~40 µs; their candump lines ~0.2 ms)
+#: frame records ``frame_chunks`` converts at once (a short step of the writer's, their
+#: candump lines too: benchmarks/README.md, "Figures behind constants")
 CHUNK = 128
 #: a frame as a writer takes it: (stamp, COB-ID, flags, payload in upper-case hex)
 Fields = tuple[float, int, int, str]
@@ -245,7 +246,7 @@ Fields = tuple[float, int, int, str]
 
 def frame_fields(records: np.ndarray) -> list[Fields]:
     """Frame records as (stamp, COB-ID, flags, payload in upper-case hex), converted in
-    whole arrays (a frame's fields one by one cost ~4 µs; this ~0.3 µs)."""
+    whole arrays (an order of magnitude faster than a frame's fields one by one)."""
     if not len(records):
         return []
     size = records.dtype["data"].shape[0]

@@ -40,10 +40,11 @@ JOINT_FIELDS = ("position", "velocity", "torque", "command_mode", "command_posit
                 "command_velocity", "command_torque", "statusword", "cia402_state",
                 "error_code")
 SCALARS = ("t", "period", "work", "late", "state", "controller", "cpu")
-#: /can/<bus> messages between two ``pace`` calls (~2-3 µs each; a row's message takes ~30)
+#: /can/<bus> messages between two ``pace`` calls (each a tenth of a row's message or less:
+#: benchmarks/README.md, "Figures behind constants")
 PACED_FRAMES = 32
 #: an MCAP chunk's bytes: each is compressed (zstd) in one call between two ``pace`` calls,
-#: ~0.4 ms for 128 KiB where a 1 MiB chunk took ~3 ms
+#: so a chunk must compress well within one pause (a 1 MiB one did not: benchmarks/README.md)
 CHUNK_SIZE = 128 * 1024
 STATE_NAMES = {int(s): s.name for s in ManagerState}
 
@@ -75,7 +76,7 @@ class RowLayout:
         """One row as the /rocoma/cycle message (``controllers``: number -> name). A value
         that is not finite is ``null`` (the first row's period, a command's NaN): JSON has
         no NaN, and Foxglove and PlotJuggler parse strict JSON."""
-        values = row.tolist()  # plain floats at once: ~5x faster than element by element
+        values = row.tolist()  # plain floats at once: faster than element by element
         finite = np.isfinite(row)
         if not finite.all():
             values = [v if ok else None for v, ok in zip(values, finite.tolist())]
@@ -424,7 +425,7 @@ def _json_kind(value: Any) -> str:
     return f"{kinds.get(type(value), type(value).__name__)} ({glimpse})"
 
 
-def joint_names(path: str, joints: int) -> list[str] | None:
+def recorded_joint_names(path: str, joints: int) -> list[str] | None:
     """The ``joints`` joint names the cycle schema's description carries ("joints: a, b"),
     None where a file has none that fit (another writer's schema, an older file)."""
     from mcap.reader import make_reader

@@ -309,7 +309,7 @@ def keep_off(loop_cpus: list[int]) -> None:
             pass
 
 
-def main() -> int:
+def run_writer() -> int:
     # A stop signal is the loop's process's to act on: it closes this writer after its
     # torque-off. systemd stops a service by signalling every process of it, this one too,
     # which must live to write the run's end (and ends with its input in any case).
@@ -369,4 +369,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_writer())

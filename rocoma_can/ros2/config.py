@@ -22,7 +22,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..fleet.bridge import known_section
+from ..fleet.config import known_section
 from ..inputs import NAME_TOKEN
 from .interfaces import DISTROS, ROS2_CONTROL
 
@@ -96,8 +96,8 @@ def namespace_problem(namespace: Any) -> str | None:
     return None
 
 
-def parse(section: Any, problems: list[str], where: str = "ros2",
-          base: Ros2Config | None = None) -> Ros2Config | None:
+def parse_ros2(section: Any, problems: list[str], where: str = "ros2",
+               base: Ros2Config | None = None) -> Ros2Config | None:
     """The ``ros2:`` section over ``base`` (None: absent), each problem "ros2.KEY: ..."."""
     if section is None or not known_section(section, _KEYS, where, problems):
         return None
@@ -158,7 +158,7 @@ def parse(section: Any, problems: list[str], where: str = "ros2",
     return out
 
 
-def add_options(p: argparse.ArgumentParser, connect: bool = False) -> None:
+def add_ros2_options(p: argparse.ArgumentParser, connect: bool = False) -> None:
     """``--ros2`` and its options, for run and demo alike; ``connect``: add
     ``--zenoh-connect`` here (run has it among its Zenoh options: with --ros2 it names the
     node's router, see ``from_args``)."""
@@ -194,4 +194,4 @@ def from_args(args: argparse.Namespace, config: Ros2Config | None,
         return None
     if getattr(args, "zenoh_connect", None) and (args.ros2 or flags):
         flags["connect"] = list(args.zenoh_connect)
-    return parse(flags, problems, where="--ros2", base=config)
+    return parse_ros2(flags, problems, where="--ros2", base=config)

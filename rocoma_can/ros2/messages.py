@@ -26,17 +26,17 @@ INFO, WARN, ERROR = 20, 30, 40
 OK_LEVEL, WARN_LEVEL, ERROR_LEVEL = 0, 1, 2
 
 
-def stamp(i: Interfaces, ns: int) -> Any:
+def ros_time(i: Interfaces, ns: int) -> Any:
     return i.message("builtin_interfaces/msg/Time", sec=ns // 1_000_000_000,
                      nanosec=ns % 1_000_000_000)
 
 
 def header(i: Interfaces, ns: int) -> Any:
-    return i.message("std_msgs/msg/Header", stamp=stamp(i, ns), frame_id="")
+    return i.message("std_msgs/msg/Header", stamp=ros_time(i, ns), frame_id="")
 
 
-def joint_states(i: Interfaces, ns: int, names: Sequence[str], position: np.ndarray,
-                 velocity: np.ndarray, effort: np.ndarray) -> bytes:
+def joint_state(i: Interfaces, ns: int, names: Sequence[str], position: np.ndarray,
+                velocity: np.ndarray, effort: np.ndarray) -> bytes:
     """SI units, as the drives reported them last (float64 arrays, copied by the caller)."""
     return i.encode(i.message(JOINT_STATE, header=header(i, ns), name=list(names),
                               position=position, velocity=velocity, effort=effort),
@@ -84,7 +84,7 @@ def diagnostics(i: Interfaces, ns: int, node: str, report: Mapping[str, Any],
 
 
 def log(i: Interfaces, ns: int, node: str, level: int, text: str) -> bytes:
-    return i.encode(i.message(LOG, stamp=stamp(i, ns), level=level, name=node, msg=text,
+    return i.encode(i.message(LOG, stamp=ros_time(i, ns), level=level, name=node, msg=text,
                               file="", function="", line=0), LOG)
 
 

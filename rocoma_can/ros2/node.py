@@ -315,7 +315,7 @@ class Ros2Node:
                 if missed:  # due while the thread was held up: gone, counted
                     self._count("dropped", missed)
                 next_joints += (missed + 1) * period
-                self._publish("joint_states", lambda: messages.joint_states(
+                self._publish("joint_states", lambda: messages.joint_state(
                     self.interfaces, time.time_ns(), names, state.position.copy(),
                     state.velocity.copy(), state.torque.copy()))
             if now >= next_diagnostics:
@@ -443,7 +443,7 @@ class Ros2Node:
         self.manager.request_switch(name).add_done_callback(done)
 
 
-def describe(node: Ros2Node) -> str:
+def describe_node(node: Ros2Node) -> str:
     """The line ``run`` prints."""
     c = node.config
     return (f"ROS 2 node {node.info()['node']} (domain {c.domain_id}, {c.distro}, "

@@ -41,7 +41,7 @@ LISTEN_PERIODS = 2.5
 
 
 @dataclass(frozen=True, order=True)
-class Heard:
+class HeardFrame:
     """A frame heard on one bus: its identifier, and what a frame there means."""
     bus: str     # the bus's label
     cob_id: int
@@ -94,7 +94,7 @@ def _open(bus: BusConfig) -> can.BusABC:
 
 
 def listen(config: RuntimeConfig, layouts: Sequence[DriveLayout] | None = None,
-           seconds: float | None = None, opener: Opener = _open) -> list[Heard]:
+           seconds: float | None = None, opener: Opener = _open) -> list[HeardFrame]:
     """Listen on every bus at once for ``seconds`` (``listen_time``), sending nothing;
     what was heard, in the order first heard per bus. OSError: a bus that cannot be
     opened (the one line open_bus gives)."""
@@ -105,7 +105,7 @@ def listen(config: RuntimeConfig, layouts: Sequence[DriveLayout] | None = None,
     try:
         for bus in config.buses:
             handles.append((bus, opener(bus)))
-        heard: list[list[Heard]] = [[] for _ in handles]
+        heard: list[list[HeardFrame]] = [[] for _ in handles]
         deadline = time.monotonic() + seconds
         threads = [threading.Thread(target=_listen_one, name="another-manager",
                                     args=(handle, bus.label, ids[bus.label], deadline, out),
@@ -124,7 +124,7 @@ def listen(config: RuntimeConfig, layouts: Sequence[DriveLayout] | None = None,
 
 
 def _listen_one(bus: can.BusABC, label: str, ids: dict[int, str], deadline: float,
-                out: list[Heard]) -> None:
+                out: list[HeardFrame]) -> None:
     try:
         bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in ids])
     except (can.CanError, NotImplementedError):  # then every frame is read and sorted here
@@ -140,10 +140,10 @@ def _listen_one(bus: can.BusABC, label: str, ids: dict[int, str], deadline: floa
         what = ids.get(msg.arbitration_id)
         if what is not None and msg.arbitration_id not in seen:
             seen.add(msg.arbitration_id)
-            out.append(Heard(label, msg.arbitration_id, what))
+            out.append(HeardFrame(label, msg.arbitration_id, what))
 
 
-def heard_text(config: RuntimeConfig, heard: Sequence[Heard], seconds: float) -> str:
+def heard_text(config: RuntimeConfig, heard: Sequence[HeardFrame], seconds: float) -> str:
     """What was heard on which bus: "heard within 0.250 s on socketcan:can0: SYNC ..."."""
     channel = {b.label: f"{b.interface}:{b.channel}" for b in config.buses}
     buses: dict[str, list[str]] = {}
@@ -162,7 +162,7 @@ def what_to_do(config: RuntimeConfig) -> str:
             "bus of its own")
 
 
-def describe(config: RuntimeConfig, heard: Sequence[Heard], seconds: float) -> str:
+def describe_bus_taken(config: RuntimeConfig, heard: Sequence[HeardFrame], seconds: float) -> str:
     """The refusal's one line: what was heard on which bus, and what to do."""
     return (f"another manager is driving the bus: {heard_text(config, heard, seconds)}; "
             f"nothing was sent. {what_to_do(config).capitalize()}")
@@ -200,8 +200,8 @@ def what_run_listens_for(config: RuntimeConfig) -> str:
 
 def refuse_if_heard(config: RuntimeConfig, layouts: Sequence[DriveLayout] | None = None,
                     seconds: float | None = None) -> None:
-    """``listen``, and BusTaken (its one line: ``describe``) when anything was heard."""
+    """``listen``, and BusTaken (its one line: ``describe_bus_taken``) when anything was heard."""
     seconds = listen_time(config) if seconds is None else seconds
     heard = listen(config, layouts, seconds)
     if heard:
-        raise BusTaken(describe(config, heard, seconds))
+        raise BusTaken(describe_bus_taken(config, heard, seconds))

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 from ..drivers.link.can_link import CANFD_MTU, LinkReading
 from ..drivers.plan.config import BusConfig
-from .config_check import DEFAULT_BITRATE
+from .config_drives import DEFAULT_BITRATE
 from .host import Check, Status
 
 #: the least transmit queue recommended on a real CAN link (SocketCAN's default is 10)

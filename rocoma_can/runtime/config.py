@@ -21,7 +21,7 @@ Layout (every key but ``drives`` and ``controllers`` has a default; docs/configu
     timing: {advance: 0.5, initialize_fast: 0.5, overruns: 5, hang: 20}  # in cycles (dt):
                                    # the manager's wall-time supervision of controllers
     zenoh: {prefix: rocoma/<host>, mode: null, connect: [], listen: [], multicast: null,
-            allow_commands: false, deadman: null, required: true}  # optional (fleet/bridge.py);
+            allow_commands: false, deadman: null, required: true}  # optional (fleet/config.py);
                                    # null mode/multicast: Zenoh's own (peer, scouting on)
     ros2: {node: rocoma, namespace: /, domain_id: 0, distro: jazzy}  # optional: the manager
                                    # as a ROS 2 node over rmw_zenoh (ros2/config.py)
@@ -47,29 +47,29 @@ import yaml
 from ..drivers.plan.config import BusConfig, DriveConfig, Supervision
 from ..drivers.plan.drive_plan import DrivePlan
 from ..errors import ConfigError
-from ..fleet.bridge import FleetConfig
-from ..fleet.bridge import parse as parse_fleet
+from ..fleet.config import FleetConfig, parse_fleet
 from ..live.urdf import Robot
-from ..manager import TimingSupervision
-from ..ros2.config import Ros2Config
-from ..ros2.config import parse as parse_ros2
+from ..manager_timing import TimingSupervision
+from ..ros2.config import Ros2Config, parse_ros2
 from ..user_files import yaml_problem
 from .bus_load import BusLoad
 from .config_check import (
-    check_bus_loads,
     check_buses,
-    check_controller_sections,
-    check_drives,
     check_manager,
-    check_manager_and_drives,
     check_rate,
     check_realtime,
     check_regular,
     check_supervision,
     check_timing,
-    check_urdf,
     section_at,
     unknown_keys,
+)
+from .config_drives import (
+    check_bus_loads,
+    check_controller_sections,
+    check_drive_entries,
+    check_manager_and_drives,
+    check_urdf,
 )
 
 _TOP_KEYS = {"bus", "buses", "rate", "manager", "realtime", "supervision", "timing", "drives",
@@ -284,8 +284,8 @@ def _what(data: Any) -> str:
 def validate(data: Any, source: str = "<memory>", base: Path | None = None,
              check_controllers: bool = True) -> RuntimeConfig:
     """Build a RuntimeConfig from a parsed YAML mapping, or raise ConfigError (all problems).
-    One check per section (config_check.py); each appends what is wrong with it to
-    ``problems``."""
+    One check per section (config_check.py, config_drives.py); each appends what is wrong
+    with it to ``problems``."""
     problems: list[str] = []
     if not isinstance(data, Mapping):
         raise ConfigError([f"{source}: (top): expected a mapping with bus, rate, drives, "
@@ -304,10 +304,10 @@ def validate(data: Any, source: str = "<memory>", base: Path | None = None,
                                     problems)
     timing = check_timing(section_at(data, "timing", problems), problems)
     named: list[str] = []  # every drive name given, built or not
-    planned, clean = check_drives(data.get("drives"), manager.node_id, base, problems,
-                                  [b.label for b in buses], named,
-                                  fd={b.label for b in buses if b.fd},
-                                  period=1.0 / rate if rate is not None else None)
+    planned, clean = check_drive_entries(data.get("drives"), manager.node_id, base,
+                                         problems, [b.label for b in buses], named,
+                                         fd={b.label for b in buses if b.fd},
+                                         period=1.0 / rate if rate is not None else None)
     drives = [d for d, _ in planned]
     plans: dict[str, DrivePlan] = {}
     for d, plan in planned:

@@ -31,8 +31,8 @@ OBJECT_BYTES = 120
 #: the footprint of the memory-bound work: past a core's second-level cache (0.5-2 MiB),
 #: within a server's shared third-level cache (which a virtual machine's neighbours share)
 MEMORY_FOOTPRINT = 4 << 20
-#: the work a cycle, as a share of the period: the demo's loop with its simulated drives
-#: works ~40 % of a 1 kHz period
+#: the work a cycle, as a share of the period: about the demo's loop's, with its simulated
+#: drives, at 1 kHz (benchmarks/README.md, "Figures behind constants")
 WORK_SHARE = 0.4
 #: doctor's verdicts: overruns above this share of the cycles, or a work whose slowest
 #: cycles (p99.9) took more than this many times its median, warn; a check has at least

@@ -51,9 +51,8 @@ log = logging.getLogger(__name__)
 #: the loop's slack rather than at its next deadline. 0 sleeps to the deadline. A loop
 #: that runs SCHED_FIFO (``realtime.priority``) or SCHED_RR spins ``PLAIN_SPIN`` unless told: it is
 #: woken at once, and a long spin is CPU that the kernel's real-time throttling (95 % of
-#: each second by default) takes back in one stall of up to 50 ms (2 kHz, 12 drives,
-#: SCHED_FIFO: a 250 µs spin missed 219-1,334 of ~30,000 cycles, max gap 46-49 ms; 100 µs
-#: missed 14, max 1.1 ms).
+#: each second by default) takes back in one stall of up to 50 ms (what a long and a short
+#: spin missed: benchmarks/README.md, "Figures behind constants").
 DEFAULT_SPIN = 0.0005
 
 #: A yield hands the core to any task that can run there, a nice-19 one too, and that
@@ -62,10 +61,9 @@ DEFAULT_SPIN = 0.0005
 #: shorter lateness is left alone: the process's own threads, or a moment of the host).
 #: The spin then stops yielding for ``YIELD_PAUSE`` s: it sleeps to ``PLAIN_SPIN`` (or the
 #: spin, if shorter) before the deadline and spins on the CPU, as a thread that slept is
-#: woken ahead of one that kept running. ``loop_run.py --drives 12 --buses 4 --rate 2000
-#: --fd`` beside two nice-19 CPU hogs missed 6,451 of 23,680 cycles yielding every turn,
-#: 254-480 of ~30,000 always sleeping and 595-873 so; quiet, 4-25 yielding, 30-185
-#: sleeping, 12-27 so (benchmarks/HISTORY.md).
+#: woken ahead of one that kept running. Yielding every turn loses beside CPU hogs, always
+#: sleeping loses when the machine is quiet; this way holds both (``loop_run.py
+#: --nice-hogs 2``: benchmarks/README.md, "Figures behind constants").
 YIELD_LATE = 1.0
 YIELD_PAUSE = 5.0
 PLAIN_SPIN = 0.0001
@@ -368,7 +366,7 @@ class ControlLoop:
         gc.disable()
         hw, mgr, stats, period = self.hardware, self.manager, self.stats, self.period
         on_cycle, trace = self.on_cycle, self.trace
-        clock, cpu_clock = time.monotonic, time.thread_time  # (thread_time: ~0.6 µs)
+        clock, cpu_clock = time.monotonic, time.thread_time  # (thread_time: cheap, a read)
         start = clock()
         end = start + duration if duration is not None else math.inf
         deadline = start

@@ -16,7 +16,8 @@ from ..controllers.torque_off import TorqueOff
 from ..drivers.cycle.status import HardwareStatus
 from ..drivers.hardware import CanopenHardware
 from ..drivers.link.bus import open_bus
-from ..fleet.bridge import FleetBridge, FleetConfig, FleetError
+from ..fleet.bridge import FleetBridge, FleetError
+from ..fleet.config import FleetConfig
 from ..inputs import TopicCommanded
 from ..live.foxglove import FoxgloveConfig, FoxgloveView
 from ..manager import ControllerManager

@@ -85,7 +85,7 @@ def test_demo_cli_rejects_bad_options(capsys):
 def test_demo_records_its_run_and_plots_it(tmp_path):
     """What `rocoma-can demo` does by default: the run recorded (every cycle, event and
     frame), drawn, and both paths said."""
-    from rocoma_can.record.plot import load
+    from rocoma_can.record.plot import load_trace
     lines: list[str] = []
     report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=2.0, record=tmp_path),
                          out=lines.append).run()
@@ -95,7 +95,7 @@ def test_demo_records_its_run_and_plots_it(tmp_path):
     assert report.plot.read_bytes()[:4] == b"\x89PNG"
     assert f"plot: {report.plot}" in lines and any(
         line.startswith(f"recording: {report.recording}") for line in lines)
-    causes = [cause for _, cause in load(report.recording).estops]
+    causes = [cause for _, cause in load_trace(report.recording).estops]
     assert any("CAN e-stop from 0x0A0" in c for c in causes), causes  # the walk-through's
     assert len(list(tmp_path.glob("*.log"))) == 1  # the bus's frames, candump
     # the walk-through's recovery (SDO 0x2113), as an event and a log line: started, then
@@ -252,7 +252,7 @@ def test_each_estop_of_the_demo_leaves_a_flight_record(tmp_path):
     is written; together they hold every e-stop's cause (e-stops within half the demo's
     window share a record), and the demo's window is the one recorded."""
     from rocoma_can.cli.demo.walkthrough import FLIGHT_SECONDS
-    from rocoma_can.record.plot import load
+    from rocoma_can.record.plot import load_trace
     lines: list[str] = []
     report = Walkthrough(DemoOptions(drives=2, rate=100.0, duration=2.0, record=None,
                                      flight=tmp_path / "flight"), out=lines.append).run()
@@ -263,10 +263,10 @@ def test_each_estop_of_the_demo_leaves_a_flight_record(tmp_path):
     assert [line.rsplit(": ", 1)[1] for line in said] == \
         [str(p) for p in report.flight_records]
     assert f"flight records: {len(report.flight_records)} in {tmp_path / 'flight'}" in lines
-    causes = [cause for p in report.flight_records for _, cause in load(p).estops]
+    causes = [cause for p in report.flight_records for _, cause in load_trace(p).estops]
     assert any("CAN e-stop from 0x0A0" in c for c in causes), causes
     assert any("EMCY" in c for c in causes), causes  # the drive faults the demo trips
-    first = load(report.flight_records[0])
+    first = load_trace(report.flight_records[0])
     assert first.time[-1] - first.time[0] <= FLIGHT_SECONDS + 0.5  # its window, not run's
 
 

@@ -14,12 +14,12 @@ import pytest
 from fixtures.joint_plant import JointPlant, attach
 
 from rocoma_can.controllers.damp import Damp
+from rocoma_can.controllers.float import Float
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.quick_stop import QuickStop
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.controllers.trajectory import Trajectory
-from rocoma_can.controllers.zero_torque import Float
 from rocoma_can.interfaces import EmergencyController
 
 DT = 0.001

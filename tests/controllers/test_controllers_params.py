@@ -11,6 +11,7 @@ import pytest
 from fixtures.joint_plant import JointPlant, attach
 
 from rocoma_can.controllers.damp import Damp
+from rocoma_can.controllers.float import Float
 from rocoma_can.controllers.hold import Hold
 from rocoma_can.controllers.pd import JointPD
 from rocoma_can.controllers.quick_stop import QuickStop
@@ -18,7 +19,6 @@ from rocoma_can.controllers.ros2_command import Ros2Command
 from rocoma_can.controllers.torque_off import TorqueOff
 from rocoma_can.controllers.tracking_monitor import TrackingMonitor
 from rocoma_can.controllers.trajectory import Trajectory
-from rocoma_can.controllers.zero_torque import Float
 
 ENTRY_POINTS = {
     "torque_off": TorqueOff, "damp": Damp, "hold": Hold, "quick_stop": QuickStop,

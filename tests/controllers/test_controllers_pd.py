@@ -1,4 +1,4 @@
-"""controllers/pd.py, pd_law.py, zero_torque.py: JointPD and Float on the rigid-joint plant:
+"""controllers/pd.py, pd_law.py, float.py: JointPD and Float on the rigid-joint plant:
 convergence, limits, subsets, live targets."""
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from fixtures.joint_plant import JointPlant, attach
 
+from rocoma_can.controllers.float import Float
 from rocoma_can.controllers.pd import JointPD
-from rocoma_can.controllers.zero_torque import Float
 from rocoma_can.drivers.protocol.joints import JointMode
 
 DT = 0.001

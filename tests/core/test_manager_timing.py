@@ -19,7 +19,7 @@ from fixtures.manager_probes import (
 )
 
 from rocoma_can import ControllerManager, EventKind, SwitchResult, TimingSupervision
-from rocoma_can.manager import ManagerTimeouts
+from rocoma_can.manager_timing import ManagerTimeouts
 
 DT = 0.01  # budgets: advance 5 ms, initialize_fast 5 ms, hang 200 ms
 

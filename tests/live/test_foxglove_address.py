@@ -15,7 +15,7 @@ from rocoma_can.live.foxglove import (
     DEFAULT_PORT,
     FoxgloveConfig,
     FoxgloveView,
-    describe,
+    describe_view,
     parse_address,
 )
 
@@ -66,11 +66,11 @@ def test_a_port_that_is_no_port_is_refused(port):
 
 
 def _said(host: str, allow_commands: bool = False) -> str:
-    """describe()'s line for a view on ``host`` (the server said: port 18774)."""
+    """describe_view()'s line for a view on ``host`` (the server said: port 18774)."""
     view = FoxgloveView(FoxgloveConfig(host, 0, allow_commands=allow_commands),
                         manager=cast(Any, None), status=dict)
     view.served(18774, lambda message: True)
-    return describe(view)
+    return describe_view(view)
 
 
 @pytest.mark.parametrize("text", [

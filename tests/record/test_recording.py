@@ -260,13 +260,13 @@ def test_plot_draws_state_band_positions_torques_period_and_each_estop(demo_benc
                                                                        capsys):
     """The figure's axes, not its pixels: the five panels, a position and a target line per
     joint, the controllers on the band, a line at the e-stop with its cause listed."""
-    from rocoma_can.record.plot import PANELS, figure, load
+    from rocoma_can.record.plot import PANELS, figure, load_trace
     config, segment = demo_bench
     out = tmp_path / "rec"
     with Runtime(config, record=str(out)) as rt:
         run_operated(rt, switch_and_stop(rt, 1.0, fault=segment.drives[1].trip_fault,
                                          settle=0.5))
-    trace = load(out / "trace.mcap")
+    trace = load_trace(out / "trace.mcap")
     causes = [cause for _, cause in trace.estops]
     assert len(causes) == 2 and "(node 1)" in causes[0] and causes[1] == "loop stopping: test"
     fig = figure(trace)

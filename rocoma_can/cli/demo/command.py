@@ -93,7 +93,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         "realtime.priority (needs CAP_SYS_NICE or an rtprio limit; refused: "
                         "said, and the demo runs at normal priority). Default: normal")
     add_foxglove_options(p)
-    from ...ros2.config import add_options as add_ros2_options
+    from ...ros2.config import add_ros2_options
     add_ros2_options(p, connect=True)
     p.add_argument("--zenoh-listen", default=None, metavar="ENDPOINT",
                    help="serve the demo's manager on Zenoh as rocoma/demo at ENDPOINT "

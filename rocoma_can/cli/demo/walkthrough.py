@@ -238,11 +238,11 @@ class Walkthrough:
             f"{MANAGER_ID}, e-stop COB-ID 0x{ESTOP_COB_ID:03X} ({on})")
         out(f"rocoma-can demo: the simulated drives run {self.simulator.where}")
         if rt.foxglove is not None:
-            from ...live.foxglove import describe
-            out(f"rocoma-can demo: {describe(rt.foxglove)}")
+            from ...live.foxglove import describe_view
+            out(f"rocoma-can demo: {describe_view(rt.foxglove)}")
         if rt.ros2 is not None:
-            from ...ros2.node import describe as describe_ros2
-            out(f"rocoma-can demo: {describe_ros2(rt.ros2)}")
+            from ...ros2.node import describe_node
+            out(f"rocoma-can demo: {describe_node(rt.ros2)}")
         if o.zenoh_listen is not None:
             out(f"rocoma-can demo: on Zenoh as {ZENOH_PREFIX} at {o.zenoh_listen}; from "
                 f"another shell: rocoma-can status --watch --zenoh {ZENOH_PREFIX} "

@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 from rocoma_can import eds
 from rocoma_can.drivers.cycle.enable import ENABLE_STEP, EnableSequence
 from rocoma_can.drivers.hardware import CanopenHardware
-from rocoma_can.drivers.plan.config import DriveConfig, check_drives
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_clashes import check_drives
 from rocoma_can.drivers.plan.pdo_layout import (
     CONTROLWORD,
     MODE,

@@ -19,7 +19,8 @@ from fixtures.paths import TESTS
 from fixtures.rig_controllers import Brake
 
 from rocoma_can import Controller, ManagerState, SwitchResult
-from rocoma_can.drivers.plan.config import DriveConfig, check_drives
+from rocoma_can.drivers.plan.config import DriveConfig
+from rocoma_can.drivers.plan.drive_clashes import check_drives
 from rocoma_can.drivers.plan.drive_plan import plan_drive, plan_drives
 from rocoma_can.drivers.protocol import cia301
 from rocoma_can.drivers.protocol.cia402 import State402

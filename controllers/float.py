@@ -1,4 +1,4 @@
-"""Zero torque ("float", entry point ``float``): CST with torque 0 on every selected joint.
+"""Float (entry point ``float``): zero torque, CST with torque 0 on every selected joint.
 
 The drives stay enabled and the joints move freely (back-drivable, no gravity compensation):
 for teaching by hand and for measuring friction. Unlike torque-off, the power stage is on, so
