@@ -1,5 +1,5 @@
-"""rocoma_can/exit_codes.py, rocoma_can/cli/main.py: the CLI's exit codes a shell script relies on:
-0 ok, 1 refused, 2 usage/config, 3 no answer."""
+"""rocoma_can/cli/exit_codes.py, rocoma_can/cli/main.py: the CLI's exit codes a shell script relies
+on: 0 ok, 1 refused, 2 usage/config, 3 no answer."""
 from __future__ import annotations
 
 import errno

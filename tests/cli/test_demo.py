@@ -1,5 +1,5 @@
-"""rocoma_can/cli/demo.py, demo_report.py, demo_config.py: the embedded demo runs its whole
-walk-through (shortened) and says so with exit code 0."""
+"""rocoma_can/cli/demo/ (walkthrough.py, steps.py, report.py, config.py): the embedded demo
+runs its whole walk-through (shortened) and says so with exit code 0."""
 from __future__ import annotations
 
 import logging

@@ -1,5 +1,6 @@
-"""rocoma_can/cli/demo.py, demo_config.py (``--fd``): the demo on CAN FD buses, FD frames both ways;
-its CAN FD options checked; twelve drives at 2 kHz fit its CAN FD buses and not classic ones."""
+"""rocoma_can/cli/demo/walkthrough.py, config.py (``--fd``): the demo on CAN FD buses, FD frames
+both ways; its CAN FD options checked; twelve drives at 2 kHz fit its CAN FD buses and not classic
+ones."""
 from __future__ import annotations
 
 import copy

@@ -1,7 +1,7 @@
-"""rocoma_can/cli/commands.py, rocoma_can/cli/live.py: what the operator is told and allowed,
-through the CLI against a running manager (the real Runtime, simulated drives, python-can's virtual
-bus): clearing an e-stop never re-arms a faulted drive, `status` shows every drive, and a configured
-subset of drives may run degraded."""
+"""rocoma_can/cli/operator_verbs.py, rocoma_can/cli/status_watch.py: what the operator is told and
+allowed, through the CLI against a running manager (the real Runtime, simulated drives, python-can's
+virtual bus): clearing an e-stop never re-arms a faulted drive, `status` shows every drive, and a
+configured subset of drives may run degraded."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,4 @@
-"""rocoma_can/cli/commands.py (``run``): a stop signal (Ctrl-C, SIGTERM) for ``rocoma-can run`` at
+"""rocoma_can/cli/run.py (``run``): a stop signal (Ctrl-C, SIGTERM) for ``rocoma-can run`` at
 each phase of a run has one outcome, said in one line (docs/cli.md, "Stopping run"):
 
 * before bring-up (reading the config, opening the buses, starting the recorder's writer):

@@ -1,6 +1,7 @@
-"""The house rules a reader relies on to find things, read from the source: a public name
-means one thing across rocoma_can/, drivers/ and controllers/ (``from x import Phase`` never
-picks the wrong one), and no module is longer than a reader takes in (500 lines).
+"""rocoma_can/, drivers/, controllers/, tests/, tools/: the house rules a reader relies on to find
+things, read from the source: a public name means one thing across rocoma_can/, drivers/ and
+controllers/ (``from x import Phase`` never picks the wrong one), and no module is longer than a
+reader takes in (500 lines).
 
 Function complexity (at most 15) is ruff's C901, configured in pyproject.toml and run by
 tools/test's lint step."""

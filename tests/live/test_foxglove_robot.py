@@ -1,4 +1,4 @@
-"""rocoma_can/live/server.py, urdf.py, rocoma_can/cli/demo.py (``--foxglove``): the robot live in
+"""rocoma_can/live/server.py, urdf.py, rocoma_can/cli/demo/ (``--foxglove``): the robot live in
 Foxglove's 3D panel: the demo serves its robot, and the transforms follow the joints."""
 from __future__ import annotations
 

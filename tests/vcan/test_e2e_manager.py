@@ -1,4 +1,4 @@
-"""rocoma_can/cli/commands.py, rocoma_can/node/server.py, drivers/sim/cli.py: end to end on real
+"""rocoma_can/cli/run.py, rocoma_can/node/server.py, rocoma_can/cli/sim.py: end to end on real
 SocketCAN (vcan0), three processes: `rocoma-can sim`, `rocoma-can run` and the CLI client; a raw
 e-stop frame from python-can and from `cansend`; the state frames seen by a third listener; SIGTERM
 -> torque-off frames before the manager exits. Low rates (25 Hz): user-mode-linux system calls are

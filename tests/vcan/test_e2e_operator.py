@@ -1,8 +1,8 @@
-"""rocoma_can/cli/commands.py, rocoma_can/node/client.py: the operator's view end to end on real
-SocketCAN (vcan0): `rocoma-can run` and the CLI as separate processes, the simulated drives in this
-one (so a fault is injected exactly when the test wants it). A faulted drive: `clear` unlatches, but
-`switch` stays refused with the reason and no drive is re-enabled; `status --json` lists every
-drive's phase and fault."""
+"""rocoma_can/cli/operator_verbs.py, rocoma_can/node/client.py: the operator's view end to end on
+real SocketCAN (vcan0): `rocoma-can run` and the CLI as separate processes, the simulated drives in
+this one (so a fault is injected exactly when the test wants it). A faulted drive: `clear`
+unlatches, but `switch` stays refused with the reason and no drive is re-enabled; `status --json`
+lists every drive's phase and fault."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,4 @@
-"""drivers/files/device_file.py, capabilities.py, rocoma_can/cli/demo.py (``--eds``): each
+"""drivers/files/device_file.py, capabilities.py, rocoma_can/cli/demo/ (``--eds``): each
 vendor-like file (tests/fixtures/eds/) runs: bring-up, tracking and torque-off on the bus, the
 demo's walk-through, canopen's own CiA 402 master on the simulated variant, and a controller that
 needs feedback a file lacks refused at load."""
