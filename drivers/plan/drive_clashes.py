@@ -87,17 +87,18 @@ def drive_problems(drives: Sequence[DriveConfig], manager_node_id: int,
 
 def check_drives(drives: list[DriveConfig], manager_node_id: int,
                  buses: Sequence[str] = ("",)) -> None:
-    """The Python API's check across drives: ValueError for the first of
-    ``drive_problems``, then for the first node whose axes disagree (``node_mismatch``)."""
+    """The Python API's check across drives: ValueError for the first problem in the drives'
+    order, a drive's clash (``drive_problems``) before its node's axes disagreeing
+    (``node_mismatch``)."""
     if not drives:
         raise ValueError("drives: at least one drive is needed")
     if not is_node_id(manager_node_id):
         raise ValueError(f"manager_node_id must be an integer 1..127, got {manager_node_id!r}")
     clashes = drive_problems(drives, manager_node_id, buses)
-    if clashes:
-        raise ValueError(clashes[0].by_name(drives))
     first_of_node: dict[tuple[str, int], DriveConfig] = {}
-    for d in drives:
+    for i, d in enumerate(drives):
+        if clashes and clashes[0].drive == i:
+            raise ValueError(clashes[0].by_name(drives))
         why = node_mismatch(first_of_node.setdefault((d.bus or buses[0], d.node_id), d), d)
         if why is not None:
             raise ValueError(why)

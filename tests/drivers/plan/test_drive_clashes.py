@@ -3,8 +3,10 @@ collects every finding; the Python API (``check_drives``) raises the first by th
 names, check-config says each at its YAML path (tests/runtime/test_config.py)."""
 from __future__ import annotations
 
+import pytest
+
 from rocoma_can.drivers.plan.config import DriveConfig
-from rocoma_can.drivers.plan.drive_clashes import drive_problems
+from rocoma_can.drivers.plan.drive_clashes import check_drives, drive_problems
 
 
 def drive(name: str, node_id: int, bus: str = "", axis: int = 1) -> DriveConfig:
@@ -35,3 +37,14 @@ def test_a_taken_node_id_is_not_also_the_managers_and_axes_are_their_own():
     drives = [drive("a", 100), drive("b", 100), drive("c", 5), drive("d", 5, axis=2)]
     assert [(c.kind, c.drive) for c in drive_problems(drives, 100)] == [
         ("manager", 0), ("node_id", 1)]
+
+
+def test_the_api_raises_the_first_problem_in_the_drives_order():
+    """As before the checks were written once: a node whose axes disagree (drive 'b') is
+    said before a clash of a later drive ('c' takes 'a''s name)."""
+    drives = [drive("a", 5), DriveConfig("b", 5, 4096, 1.0, axis=2, heartbeat_ms=50),
+              drive("a", 6)]
+    with pytest.raises(ValueError, match="drive 'b': node 5 is also drive 'a'"):
+        check_drives(drives, 100)
+    with pytest.raises(ValueError, match="drive name 'a' is used twice"):
+        check_drives([drives[0], drives[2], drives[1]], 100)
