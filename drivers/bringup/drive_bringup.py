@@ -10,9 +10,8 @@ All SDO traffic runs in ``configure`` (configure.py) on a worker thread (canopen
 SdoClient has no lock: one job per node at a time, never two threads on one node's SDO). The
 cycle only looks at ``Future.done()``. A drive that is faulted, whose STO input is low or
 that does not answer ends in FAILED with the cause, and the others carry on; so does one
-whose identity
-(0x1018, read before anything is written) is not the one its config or file names
-(identity.py).
+whose identity (0x1018, read before anything is written) is not the one its config or file
+names (files/identity.py).
 
 PROBING sends "shutdown" (0x06) until the drive reports ready to switch on: the power stage
 stays off in that state, and a drive whose STO input is low refuses the transition, so it is
@@ -21,7 +20,7 @@ found here and left out instead of failing later when a controller wants it enab
 READY means: NMT operational, PDOs mapped, no fault, torque off. Enabling (switch on, enable
 operation) is not part of start-up: the manager starts in FAILPROOF, which sends
 disable voltage to every drive, so the enable steps run from the cyclic controlword when a
-controller commands a cyclic mode (see hardware.py).
+controller commands a cyclic mode (cycle/enable.py).
 """
 from __future__ import annotations
 

@@ -20,6 +20,8 @@ from typing import Protocol
 from ...audit import AUDIT
 from .drive_bringup import BringupPhase
 
+# The hardware's logger: start-up is the hardware's work, and its records are found there
+# (a log filter on it, the demo's among them, keeps working).
 log = logging.getLogger("rocoma_can.drivers.hardware")
 audit = logging.getLogger(AUDIT)
 
@@ -31,7 +33,7 @@ SILENT_BUS_CHECKS = ("check that the drives have power, the bit rate (every node
 
 
 class Started(Protocol):
-    """A drive's bring-up as the report reads it (bringup.DriveBringup)."""
+    """A drive's bring-up as the report reads it (drive_bringup.DriveBringup)."""
     @property
     def name(self) -> str: ...
     phase: BringupPhase

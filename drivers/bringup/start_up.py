@@ -20,6 +20,8 @@ import numpy as np
 from .drive_bringup import BringupPhase, DriveBringup
 from .report import BringupReport
 
+# The hardware's logger: start-up is the hardware's work, and its records are found there
+# (a log filter on it, the demo's among them, keeps working).
 log = logging.getLogger("rocoma_can.drivers.hardware")
 
 #: how long ``open_workers`` waits for the configuration workers' threads to run (s)

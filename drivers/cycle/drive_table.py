@@ -2,8 +2,10 @@
 
 The hardware measures every drive against its file (plan/) and puts each on a bus; the
 cycle's parts (receive.py, command.py, frames_out.py, recovery.py) each take this one table
-and precompute from it the per-drive lists their loops index, so no part is handed a
+and precompute from it the per-drive lists their loops index, so none of them is handed a
 dozen parallel lists in an order it must trust, and no cycle looks anything up in it.
+(Supervision and node guarding, which tests build alone, and the bring-ups, a stage below
+this table, still take the few per-drive lists they need.)
 """
 from __future__ import annotations
 
@@ -50,8 +52,8 @@ DriveTable = tuple[DriveEntry, ...]
 
 def wire_drives(plans: Sequence[DrivePlan], buses: Mapping[str, Bus],
                 manager_node_id: int) -> tuple[list[BusPort], DriveTable]:
-    """One BusPort per bus, and every drive on its own (``DriveConfig.bus``, "" = the
-    first), grouped with the other axes of its node."""
+    """One BusPort per bus, and each drive on the bus its config names (``DriveConfig.bus``,
+    "" = the first), grouped with the other axes of its node."""
     drives = [p.drive for p in plans]
     first = next(iter(buses))
     ports = [BusPort(name, arg, [i for i, d in enumerate(drives) if (d.bus or first) == name],

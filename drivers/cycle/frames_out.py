@@ -15,7 +15,6 @@ frame is counted; refused cycle after cycle, a bus fault. What goes out (hardwar
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import can
@@ -28,14 +27,13 @@ from .drive_table import DriveTable
 
 
 class FramesOut:
-    """Frames of N drives, each on its own bus; SYNC, heartbeat on every bus."""
+    """Frames of N drives, each to the bus it sits on; SYNC and the manager's heartbeat
+    (every ``heartbeat_period`` s) on every bus."""
 
     def __init__(self, table: DriveTable, *, ports: Sequence[BusPort],
                  heartbeat_period: float) -> None:
-        """``heartbeat_period``: the manager's heartbeat's, in seconds."""
-        layouts = [d.layout for d in table]
-        port_of = [d.port for d in table]
-        self._layouts, self._port_of = layouts, port_of
+        self._layouts = layouts = [d.layout for d in table]
+        self._port_of = port_of = [d.port for d in table]
         self._default_mode = [int(d.config.modes[0]) for d in table]
         self._ports, self._send = ports, [p.send for p in port_of]
         n = range(len(layouts))
@@ -47,7 +45,7 @@ class FramesOut:
                         picker(p.positions_in(lay.rpdo_fields))) for p in lay.rpdos]
                       for i, lay in enumerate(layouts)]
         self._constants = [lay.rpdo_constants for lay in layouts]
-        self._period, self.next_heartbeat = heartbeat_period, -math.inf  # -inf: next cycle
+        self._period, self.next_heartbeat = heartbeat_period, float("-inf")  # due next cycle
 
     def _encode(self, i: int, controlword: int) -> list[can.Message]:
         lay = self._layouts[i]
@@ -72,16 +70,14 @@ class FramesOut:
             port.send_elsewhere(port.sync)
 
     def off(self, i: int, b: DriveBringup) -> None:
-        """A drive not under command: torque off, or its bring-up's fault-reset edge or
-        shutdown probe (controlword 0x80 / 0x06: the power stage stays off in both)."""
+        """Not under command: torque off, or bring-up's fault reset / probe (0x80, 0x06: off)."""
         frames = (self._fault_reset[i] if b.fault_reset_bit
                   else self._probe[i] if b.probing else self._torque_off[i])
         for msg in frames:
             self._send[i](msg)
 
     def rpdos(self, i: int, values: tuple[int, ...]) -> None:
-        """Drive i's RPDOs packed from (controlword, mode, position, velocity, torque) and a
-        fixed mapping's other objects as its file gives them."""
+        """Drive i's RPDOs from (controlword, mode, position, velocity, torque, constants)."""
         values += self._constants[i]
         send = self._send[i]
         for msg, pack_into, pick in self._rpdo[i]:
@@ -89,10 +85,9 @@ class FramesOut:
             send(msg)
 
     def sync_and_heartbeat(self, now: float) -> None:
-        """SYNC on every bus, then the manager heartbeat when due, back to back. Due on the
-        grid 0x1017 declares (a period after the last due time, sent in the first cycle at
-        or after it: never late on average); a grid a whole period behind (a stalled loop,
-        a beat sent out of turn) starts again from now, with no burst of beats."""
+        """SYNC on every bus, then the heartbeat when due on 0x1017's grid (a period after
+        the last due time, in the first cycle at or after it: never late on average); a grid
+        a period behind (a stalled loop, a beat out of turn) restarts from now, no burst."""
         for port in self._ports:
             port.send(port.sync)
         if now >= self.next_heartbeat:

@@ -29,7 +29,7 @@ _TpdoEntry = tuple[int, int, int, Callable[..., tuple[int, ...]], tuple[np.ndarr
 
 
 class BringupSigns(Protocol):
-    """What receiving tells a drive's bring-up (bringup.DriveBringup)."""
+    """What receiving tells a drive's bring-up (drive_bringup.DriveBringup)."""
     alive: bool
     sto_seen: bool
 

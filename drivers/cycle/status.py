@@ -28,7 +28,7 @@ class DriveStatus:
     """A snapshot for status reports and services."""
     name: str
     node_id: int
-    phase: str            # a bringup.BringupPhase name: WAIT_BOOT ... READY, FAILED
+    phase: str            # a drive_bringup.BringupPhase name: WAIT_BOOT ... READY, FAILED
     cia402_state: str
     enabled: bool
     fault: str | None     # the latched fault or start-up failure, None when healthy

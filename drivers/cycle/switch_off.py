@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 
 
 class SdoControlword(Protocol):
-    """The drive side (bringup.DriveBringup): writes the controlword by SDO, or returns
+    """The drive side (drive_bringup.DriveBringup): writes the controlword by SDO, or returns
     False without writing when the drive's SDO client is busy (its configuration runs)."""
     @property
     def name(self) -> str: ...

@@ -1,6 +1,6 @@
 """The checks across a robot's drives, each written once and returning what it finds, so
 the Python API (``check_drives``: ValueError at the first) and check-config (every problem,
-each at its YAML path: rocoma_can/runtime/config_check.py) say the same findings.
+each at its YAML path: rocoma_can/runtime/config_drives.py) say the same findings.
 """
 from __future__ import annotations
 

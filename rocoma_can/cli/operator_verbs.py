@@ -67,12 +67,12 @@ def _switch(args: argparse.Namespace) -> int:
             if exc.code == ABORT_NOT_FOUND:
                 print("NOT_FOUND", flush=True)
                 err(f"no controller {args.name!r}"
-                     + did_you_mean(args.name, client.controllers())
-                     + " (rocoma-can list names them)")
+                    + did_you_mean(args.name, client.controllers())
+                    + " (rocoma-can list names them)")
                 return FAILED
             print("ERROR", flush=True)
             err("switch refused: "
-                 + with_clear_hint(client.read_text(SWITCH_REFUSAL) or str(exc)))
+                + with_clear_hint(client.read_text(SWITCH_REFUSAL) or str(exc)))
             return FAILED
         print(RESULT_NAMES.get(result, str(result)), flush=True)
         if result == 3:
@@ -114,9 +114,9 @@ def _command(index: int, verb: str, done: str) -> Callable[[argparse.Namespace],
         finally:  # a stop is sent first; what it did not take is said after it
             if getattr(args, "ignored", None):
                 err(f"{verb}: ignored (a stop takes nothing but where to send it): "
-                     + ", ".join(_word(w) for w in args.ignored[:IGNORED_SHOWN])
-                     + (f" and {len(args.ignored) - IGNORED_SHOWN} more"
-                        if len(args.ignored) > IGNORED_SHOWN else ""))
+                    + ", ".join(_word(w) for w in args.ignored[:IGNORED_SHOWN])
+                    + (f" and {len(args.ignored) - IGNORED_SHOWN} more"
+                       if len(args.ignored) > IGNORED_SHOWN else ""))
 
     def sent(args: argparse.Namespace) -> int:
         if args.zenoh is not None:
@@ -170,7 +170,7 @@ def status_lines(status: dict[str, Any]) -> list[str]:
     """``status`` as text, one fact per line (what scripts grep)."""
     status = dict(status)
     drives, buses, cycle = status.pop("drives"), status.pop("buses"), status.pop("cycle")
-    fleet = status.pop("zenoh", None)
+    zenoh = status.pop("zenoh", None)
     status.pop("controllers", None)  # `list` prints them
     lines = []
     for key, value in status.items():
@@ -181,11 +181,11 @@ def status_lines(status: dict[str, Any]) -> list[str]:
         lines.append(f"{key}: {value}")
     if cycle:
         lines.append(f"cycle: {cycle_text(cycle)}")
-    if fleet:
-        lines.append("zenoh: " + (f"unavailable: {fleet['error']}" if "error" in fleet else
-                                  f"{fleet['prefix']}, alive {fleet['alive']}, queries "
-                                  f"{fleet['queries']} ({fleet['refused']} refused), "
-                                  f"published {fleet['published']}, errors {fleet['errors']}"))
+    if zenoh:
+        lines.append("zenoh: " + (f"unavailable: {zenoh['error']}" if "error" in zenoh else
+                                  f"{zenoh['prefix']}, alive {zenoh['alive']}, queries "
+                                  f"{zenoh['queries']} ({zenoh['refused']} refused), "
+                                  f"published {zenoh['published']}, errors {zenoh['errors']}"))
     for b in buses:
         load = "n/a (in-process)" if b.get("load") is None else f"{b['load']:.0%}"
         lines.append(f"bus {b['name']} ({b['channel']}): planned load {load}, tx errors "
@@ -255,7 +255,6 @@ def operator_verb(handler: Callable[[argparse.Namespace], int]
                 setattr(args, key, value)
         return handler(args)
     return resolved
-
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

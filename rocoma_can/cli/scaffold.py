@@ -8,9 +8,9 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import keyword
-import sys
 from pathlib import Path
 
+from .console import err
 from .exit_codes import OK, USAGE
 
 PYPROJECT = '''[build-system]
@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from rocoma_can import Controller
-from rocoma_can.drivers.protocol.joints import JointCommand, JointMode, JointState
+from rocoma_can.drivers import JointCommand, JointMode, JointState
 
 
 class {cls}(Controller[JointState, JointCommand]):
@@ -83,7 +83,7 @@ import pytest
 from rocoma_can import (Controller, ControllerManager, ManagerState, SwitchResult,
                         create_controller)
 from rocoma_can.controllers.torque_off import TorqueOff
-from rocoma_can.drivers.protocol.joints import JointCommand, JointMode, JointState
+from rocoma_can.drivers import JointCommand, JointMode, JointState
 
 from {name}.controller import {cls}
 
@@ -194,7 +194,7 @@ def _main(args: argparse.Namespace) -> int:
     try:
         root = create_package(args.name, Path(args.dir))
     except (ValueError, OSError) as exc:
-        print(f"rocoma-can: {exc}", file=sys.stderr, flush=True)
+        err(str(exc))
         return USAGE
     print(f"created {root}: pip install -e {root} && pytest {root}", flush=True)
     return OK

@@ -54,7 +54,7 @@ def on_bus(args: argparse.Namespace, work: Callable[[can.BusABC], int]) -> int:
         return work(bus)
     except can.CanError as exc:  # SocketCAN: ENOBUFS, ENETDOWN (python-can's error_code)
         err(f"{args.interface}:{args.channel}: {exc}"
-             + _send_failure_hint(getattr(exc, "error_code", None), args.channel))
+            + _send_failure_hint(getattr(exc, "error_code", None), args.channel))
         return USAGE
     finally:
         bus.shutdown()

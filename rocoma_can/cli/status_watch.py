@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from rich.console import Console, RenderableType
 
 
-#: bring-up phases in order (drivers/bringup.BringupPhase); READY is the end of the bar
+#: bring-up phases in order (bringup/drive_bringup.BringupPhase); READY is the end of the bar
 PHASES = ("WAIT_BOOT", "CONFIGURING", "STARTING", "RESETTING", "PROBING", "READY")
 STATE_STYLES = {"OK": "bold white on green", "EMERGENCY": "bold black on dark_orange",
                 "FAILPROOF": "bold white on red"}

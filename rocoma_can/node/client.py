@@ -44,7 +44,7 @@ SdoValue = int | float | str | bytes
 #: Tries of a read that got no answer. A read is the same request again, and one lost frame
 #: (a segment of the ~100-frame status upload, on a busy bus or a stalled host) must not
 #: fail an operator's `status`; writes are tried once (a switch sent twice is two switches),
-#: except the stops (commands.STOP_ATTEMPTS). A node that is not there costs this many
+#: except the stops (cli/operator_verbs.STOP_ATTEMPTS). A node that is not there costs this many
 #: timeouts.
 READ_ATTEMPTS = 3
 

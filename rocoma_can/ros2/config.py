@@ -1,5 +1,5 @@
 """The ``ros2:`` config section and the ``--ros2`` family of command-line options
-(docs/ros2.md); both go through ``parse``, so a flag is checked as the section is::
+(docs/ros2.md); both go through ``parse_ros2``, so a flag is checked as the section is::
 
     ros2:
       node: rocoma               # the node's name

@@ -21,6 +21,9 @@ PACKAGES = {"rocoma_can": "rocoma_can", "drivers": "rocoma_can.drivers",
 CONVENTIONS = {"log", "register", "main"}
 #: the longest module a reader takes in at once
 MAX_LINES = 500
+#: the frames the drives receive, torque-off first: the safety path's last step, read whole
+#: in one sitting by a safety review
+FRAMES_OUT = ROOT / "drivers" / "cycle" / "frames_out.py"
 
 
 def _public_names(tree: ast.Module) -> set[str]:
@@ -72,3 +75,7 @@ def test_no_module_is_over_500_lines():
     long = [f"{path.relative_to(ROOT)}: {n} lines" for path in _python_files()
             if (n := len(path.read_text().splitlines())) > MAX_LINES]
     assert not long, "\n".join(long)
+
+
+def test_the_torque_off_path_reads_in_one_sitting():
+    assert len(FRAMES_OUT.read_text().splitlines()) < 100

@@ -1,6 +1,6 @@
-"""rocoma_can/runtime/config.py (the ``zenoh:`` section), rocoma_can/fleet/bridge.py (open_session):
-a bad section lists every problem, ``run --zenoh`` refuses a wildcard prefix, and a Zenoh config
-file that cannot be read is one line naming it."""
+"""rocoma_can/fleet/config.py (the ``zenoh:`` section), rocoma_can/fleet/bridge.py
+(open_session): a bad section lists every problem, ``run --zenoh`` refuses a wildcard prefix,
+and a Zenoh config file that cannot be read is one line naming it."""
 from __future__ import annotations
 
 import pytest

@@ -3,7 +3,7 @@ demo's simulator process and the loop's process rely on.
 
 Both ends run in this process here, each joined to channels of its own name (the link
 matches channels by position, not name), over a real socket pair; the demo's own test
-(test_demo_sim.py) runs the other end in a child process.
+(tests/cli/demo/test_demo_drives.py) runs the other end in a child process.
 """
 from __future__ import annotations
 

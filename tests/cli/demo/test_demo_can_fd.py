@@ -54,8 +54,8 @@ def test_twelve_drives_at_2khz_fit_the_demos_can_fd_buses_and_not_classic_ones()
     Mbit/s, PDOs up to 64 bytes) carry it, checked as real buses; 1 Mbit/s classic buses
     are refused with what fits, and so are FD buses with 8-byte PDOs (13 frames a cycle).
     The classic demo's in-process buses have no bit rate: it runs, and says so once."""
-    from rocoma_can.cli.demo.walkthrough import _load_line
     from rocoma_can.cli.demo.config import default_buses, demo_config
+    from rocoma_can.cli.demo.walkthrough import _load_line
     from rocoma_can.runtime.config import ConfigError, validate
     fd = demo_config("demo-bus", 12, 2000.0, default_buses(12), "inproc",
                      data_bitrate=5_000_000)
